@@ -1,0 +1,3 @@
+from magcomp.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,43 @@
+import numpy as np
+import pytest
+
+from magcomp.core import rotations as rot
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+def test_quat_dcm_euler_roundtrip(rng: np.random.Generator) -> None:
+    for _ in range(50):
+        roll, yaw = rng.uniform(-np.pi, np.pi, 2)
+        pitch = rng.uniform(-1.5, 1.5)
+        r = rot.dcm_from_euler(roll, pitch, yaw)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        q = rot.quat_from_dcm(r)
+        np.testing.assert_allclose(rot.dcm_from_quat(q), r, atol=1e-12)
+        np.testing.assert_allclose(rot.euler_from_quat(q), (roll, pitch, yaw), atol=1e-9)
+
+
+def test_so3_exp_log_inverse_and_strapdown_eq18(rng: np.random.Generator) -> None:
+    for _ in range(50):
+        phi = rng.normal(size=3)
+        phi *= rng.uniform(0.0, 3.0) / np.linalg.norm(phi)
+        np.testing.assert_allclose(rot.so3_log(rot.so3_exp(phi)), phi, atol=1e-9)
+        np.testing.assert_allclose(rot.dcm_from_quat(rot.quat_exp(phi)), rot.so3_exp(phi), atol=1e-12)
+    # eq. (18): integrating a constant body rate for 1 s equals the exponential map
+    w = np.array([0.3, -0.2, 0.9])
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for _ in range(100):
+        q = rot.quat_integrate_body_rate(q, w, 0.01)
+    np.testing.assert_allclose(rot.dcm_from_quat(q), rot.so3_exp(w), atol=1e-12)
+
+
+def test_frd_ned_convention_nose_east_and_down_vector() -> None:
+    # yaw +90 deg: body x (nose) points east in NED
+    r = rot.dcm_from_euler(0.0, 0.0, np.pi / 2)
+    np.testing.assert_allclose(r @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    # roll +90 deg (right wing down): NED down is along body -y
+    q = rot.quat_from_euler(np.pi / 2, 0.0, 0.3)
+    np.testing.assert_allclose(rot.down_b_from_quat(q), [0, 1, 0], atol=1e-12)
