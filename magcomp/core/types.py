@@ -103,3 +103,83 @@ Sample = (
     | HeartbeatSample
     | ParamSample
 )
+
+
+@dataclass
+class Series:
+    """A time series: ``t_s`` (n,) seconds on the source clock, sorted; ``values`` (n,) or (n, k)."""
+
+    t_s: NDArray[np.float64]
+    values: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @classmethod
+    def empty(cls, width: int = 0) -> Series:
+        shape: tuple[int, ...] = (0,) if width == 0 else (0, width)
+        return cls(np.zeros(0), np.zeros(shape))
+
+
+@dataclass
+class LogData:
+    """A whole log as columns, in the fixed units of this module (see :mod:`magcomp.core`).
+
+    mag: per compass index, field in mgauss, compass frame, shape (n, 3)
+    gyro_rad_s / accel_m_s2: body FRD, shape (n, 3) (same time base: ``imu_t_s``)
+    attitude_rad: autopilot roll, pitch, yaw (n, 3)
+    throttle_01: (n,) from the selected throttle source; motors_01: (n, m) each motor output 0..1
+    voltage_v, current_a: battery 0 (n,) each; temperature_degc: (n,)
+    params: parameter name -> value; vehicle_type/autopilot from HEARTBEAT (MAV_TYPE/MAV_AUTOPILOT) or -1
+    """
+
+    source: str
+    mag: dict[int, Series] = field(default_factory=dict)
+    imu_t_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    gyro_rad_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    accel_m_s2: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    attitude_rad: Series = field(default_factory=lambda: Series.empty(3))
+    throttle_01: Series = field(default_factory=Series.empty)
+    throttle_source: str = ""
+    motors_01: Series = field(default_factory=lambda: Series.empty(4))
+    voltage_v: Series = field(default_factory=Series.empty)
+    current_a: Series = field(default_factory=Series.empty)
+    temperature_degc: Series = field(default_factory=Series.empty)
+    params: dict[str, float] = field(default_factory=dict)
+    vehicle_type: int = -1
+    autopilot: int = -1
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+# Bits of HeadingEstimate.flags and of MAGCOMP_HEADING.flags
+FLAG_CALIBRATED = 1
+FLAG_THETA_CONVERGED = 2
+FLAG_INPUTS_STALE = 4
+FLAG_NO_THROTTLE = 8
+FLAG_OBSERVER_RESET = 16
+FLAG_Z_UNOBSERVABLE = 32
+FLAG_SATURATED = 64
+
+
+@dataclass(frozen=True, slots=True)
+class HeadingEstimate:
+    """One output of the pipeline, for one magnetometer sample (what MAGCOMP_HEADING carries and more).
+
+    heading_deg / heading_raw_deg: magnetic heading 0..360 with / without current compensation.
+    theta_mgauss: theta-hat of eq. (11), compass frame after calibration; bias_mgauss = theta * throttle^2.
+    field_raw_mgauss: the sample as received; field_cal_mgauss: after eq. (2) and bias removal.
+    excitation: smallest eigenvalue of the recent rotation-excitation Gramian (eq. (21)), rad^2/s^2.
+    """
+
+    t_s: float
+    mag_index: int
+    heading_deg: float
+    heading_raw_deg: float
+    theta_mgauss: Vec3
+    bias_mgauss: Vec3
+    throttle_01: float
+    flags: int
+    field_raw_mgauss: Vec3
+    field_cal_mgauss: Vec3
+    residual_norm_mgauss: float = float("nan")
+    excitation: float = float("nan")
