@@ -1,0 +1,88 @@
+"""Earth-field reference from the World Magnetic Model (thin wrapper over pygeomag 1.1.0, WMM-2025).
+
+The paper (sec. II-C, footnote 1) takes the earth-frame field ``u^e`` of eq. (13) from NOAA's magnetic
+calculator; this module gives the same quantity offline. The DPI calibration (eq. (3)) needs its down
+component ``Z`` as the dot-product constant, the field norm ``F`` for the optional norm refinement, and
+heading users need the declination.
+
+Units: pygeomag returns nT; we return mgauss (1 mgauss = 1e-7 T = 100 nT), NED (north, east, down).
+Altitude is metres above the WGS-84 ellipsoid (pygeomag takes km).
+
+This is not part of :mod:`magcomp.core` only because it reads pygeomag's coefficient file on first use.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import functools
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.errors import InputError
+
+#: The paper's lab (University of Florida, Gainesville FL): latitude deg N, longitude deg E, altitude m.
+GAINESVILLE_LAT_DEG = 29.65
+GAINESVILLE_LON_DEG = -82.35
+GAINESVILLE_ALT_M = 30.0
+DEFAULT_LOCATION: tuple[float, float, float] = (GAINESVILLE_LAT_DEG, GAINESVILLE_LON_DEG, GAINESVILLE_ALT_M)
+
+NT_PER_MGAUSS = 100.0
+WMM_COEFFICIENTS = "wmm/WMM_2025.COF"
+
+
+@functools.lru_cache(maxsize=1)
+def _geomag() -> Any:
+    from pygeomag import GeoMag
+
+    return GeoMag(coefficients_file=WMM_COEFFICIENTS)
+
+
+def decimal_year(when: _dt.date | _dt.datetime) -> float:
+    """Decimal year of a date or datetime (UTC assumed for naive datetimes), e.g. 2025-07-02 -> ~2025.5."""
+    if isinstance(when, _dt.datetime):
+        if when.tzinfo is not None:
+            when = when.astimezone(_dt.UTC).replace(tzinfo=None)
+        start = _dt.datetime(when.year, 1, 1)
+        end = _dt.datetime(when.year + 1, 1, 1)
+        return when.year + (when - start).total_seconds() / (end - start).total_seconds()
+    start_d = _dt.date(when.year, 1, 1)
+    days = (_dt.date(when.year + 1, 1, 1) - start_d).days
+    return when.year + (when - start_d).days / days
+
+
+def earth_field_ned_mgauss(
+    lat_deg: float,
+    lon_deg: float,
+    alt_m: float,
+    decimal_year: float,
+    allow_outside_lifespan: bool = False,
+) -> NDArray[np.float64]:
+    """WMM-2025 main field at a point: ``[north, east, down]`` in mgauss, shape (3,).
+
+    Raises :class:`InputError` for coordinates out of range or a date outside 2025.0-2030.0 (unless
+    ``allow_outside_lifespan``, which extrapolates the secular variation).
+    """
+    if not (-90.0 <= lat_deg <= 90.0) or not (-180.0 <= lon_deg <= 360.0):
+        raise InputError(f"location out of range: lat {lat_deg} deg, lon {lon_deg} deg")
+    if not all(math.isfinite(x) for x in (lat_deg, lon_deg, alt_m, decimal_year)):
+        raise InputError("location/date for the magnetic model must be finite numbers")
+    lon = lon_deg - 360.0 if lon_deg > 180.0 else lon_deg
+    try:
+        res = _geomag().calculate(
+            glat=float(lat_deg),
+            glon=float(lon),
+            alt=float(alt_m) / 1000.0,
+            time=float(decimal_year),
+            allow_date_outside_lifespan=allow_outside_lifespan,
+        )
+    except ValueError as exc:
+        raise InputError(f"magnetic model (WMM-2025): {exc} (date {decimal_year:.2f})") from exc
+    return np.array([res.x, res.y, res.z], dtype=float) / NT_PER_MGAUSS
+
+
+def declination_deg(field_ned_mgauss: NDArray[np.float64]) -> float:
+    """Magnetic declination (deg, east positive) of an NED field vector."""
+    return math.degrees(math.atan2(float(field_ned_mgauss[1]), float(field_ned_mgauss[0])))
