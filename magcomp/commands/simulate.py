@@ -1,15 +1,142 @@
-"""`magcomp simulate`: not implemented yet (issue #3)."""
+"""`magcomp simulate`: a synthetic vehicle's MAVLink stream, to a tlog (+ truth) or a live endpoint."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 
-from magcomp.errors import NotImplementedYet
+from magcomp.errors import InputError
+
+_SCENARIOS = (
+    "tumble",
+    "spin",
+    "pan",
+    "ramp",
+    "step",
+    "bench",
+    "flight",
+    "paper",
+    "flight_fixedwing",
+    "flight_multirotor",
+)
+_EFFECTS = (
+    "throttle_offset",
+    "throttle_exponent",
+    "current_lag",
+    "time_skew",
+    "voltage_sag",
+    "temperature_drift",
+    "per_motor",
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = "Not implemented yet: issue #3 fills this in."
+    parser.add_argument(
+        "--scenario", default="paper", help=f"one of: {', '.join(_SCENARIOS)} (default paper)"
+    )
+    parser.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help=f"hidden effect, repeatable; NAME in: {', '.join(_EFFECTS)}",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
+    parser.add_argument(
+        "--vehicle",
+        choices=("fixedwing", "multirotor"),
+        default=None,
+        help="airframe (default fixedwing; flight_* aliases set it)",
+    )
+    parser.add_argument("--compasses", type=int, default=2, help="number of compasses 1..3 (default 2)")
+    parser.add_argument("--lat", type=float, default=None, help="latitude deg (default: Gainesville, FL)")
+    parser.add_argument("--lon", type=float, default=None, help="longitude deg")
+    parser.add_argument("--alt", type=float, default=None, help="altitude m above the ellipsoid")
+    parser.add_argument(
+        "--year", type=float, default=None, help="decimal year, 2025.0-2030.0 (default 2025.5)"
+    )
+    parser.add_argument(
+        "--imu-rate", type=float, default=50.0, help="IMU/compass message rate Hz (default 50)"
+    )
+    parser.add_argument(
+        "--attitude-rate", type=float, default=25.0, help="ATTITUDE and SERVO rate Hz (default 25)"
+    )
+    out = parser.add_mutually_exclusive_group(required=True)
+    out.add_argument("--out", metavar="FILE.tlog", help="write a tlog and FILE.truth.json / FILE.truth.npz")
+    out.add_argument("--link", metavar="URL", help="live endpoint: udpout:HOST:PORT or tcpout:HOST:PORT")
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="live playback speed-up (default 1 = real time; 0 = as fast as possible)",
+    )
+
+
+def _config(args: argparse.Namespace) -> object:
+    from magcomp.sim.config import Location, Rates, SimConfig, parse_effect
+
+    effects: dict[str, float] = {}
+    for text in args.effect:
+        name, value = parse_effect(text)
+        effects[name] = value
+    loc_kwargs = {
+        k: v
+        for k, v in (
+            ("lat_deg", args.lat),
+            ("lon_deg", args.lon),
+            ("alt_m", args.alt),
+            ("decimal_year", args.year),
+        )
+        if v is not None
+    }
+    if args.imu_rate <= 0 or args.attitude_rate <= 0:
+        raise InputError("rates must be positive")
+    att = min(args.attitude_rate, args.imu_rate)
+    rates = Rates(
+        imu_hz=args.imu_rate,
+        attitude_hz=att,
+        servo_hz=att,
+        rc_hz=min(10.0, att),
+        vfr_hud_hz=min(10.0, att),
+        power_hz=min(10.0, att),
+    )
+    kwargs: dict[str, object] = {}
+    if args.vehicle is not None:
+        kwargs["vehicle"] = args.vehicle
+    return SimConfig(
+        scenario=args.scenario,
+        duration_s=args.duration,
+        seed=args.seed,
+        effects=effects,
+        location=Location(**loc_kwargs),
+        rates=rates,
+        n_compasses=args.compasses,
+        **kwargs,  # type: ignore[arg-type]
+    )
 
 
 def execute(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("'simulate' is not implemented yet (issue #3)")
+    from magcomp.adapters.mavlink_emit import stream_to_link, write_tlog, write_truth
+    from magcomp.sim import SimConfig, simulate
+
+    if args.speed < 0:
+        raise InputError("--speed must be >= 0")
+    config = _config(args)
+    assert isinstance(config, SimConfig)
+    result = simulate(config)
+    if args.out:
+        count = write_tlog(result, args.out)
+        json_path, npz_path = write_truth(result, args.out)
+        print(
+            f"wrote {args.out}: {count} messages, {config.duration:.1f} s of {config.scenario} "
+            f"({config.vehicle}); truth: {json_path.name}, {npz_path.name}"
+        )
+        return 0
+    report = stream_to_link(result, args.link, speed=args.speed)
+    got = ", ".join(f"{k} {v}" for k, v in sorted(report.received.items())) or "nothing"
+    print(
+        f"sent {report.sent} messages to {args.link} in {report.wall_s:.1f} s; received: {got}",
+        file=sys.stdout,
+    )
+    return 0
