@@ -1,0 +1,1089 @@
+"""The Rerun view of a magcomp run: the ONLY module that imports ``rerun`` (rerun-sdk==0.41.0, pinned).
+
+Rerun renames its API between versions (``Scalar`` -> ``Scalars``, ``set_time_seconds`` -> ``set_time``, ...),
+so every ``rr.*`` call lives here and the rest of magcomp talks to the :class:`Viz` protocol. ``rerun``
+is imported only inside :func:`open_viz` when a mode is asked for: :class:`NullViz` (no ``--rerun``) costs
+nothing, and the 0.5 s import of ``rerun`` is not paid by a plain replay.
+
+Modes (``--rerun MODE``):
+
+- ``spawn``: start the native viewer (needs a display);
+- ``serve``: host the web viewer on this machine; :attr:`RerunViz.url` is the page to open;
+- ``connect`` / ``connect=URL``: stream to a running viewer (``rerun+http://HOST:PORT/proxy``, ``HOST:PORT``);
+- ``save=PATH.rrd``: write a recording file (open it later with ``rerun PATH.rrd``);
+- ``auto``: ``spawn`` when there is a display, else ``serve`` (:func:`default_mode_for_demo`).
+
+Everything is stamped on one timeline, :data:`TIMELINE` (seconds of *message* time, a duration), never on
+arrival time; rerun's own wall-clock ``log_time`` timeline is kept only for live views. Replay sends whole
+series as columns (``send_columns``); live logs one row per estimate.
+
+The blueprint follows the paper's figures (Silic & Mohseni 2019):
+
+- heading raw / corrected / truth and their errors (Fig. 9);
+- theta-hat per axis converging, with the offline least-squares theta (Fig. 8) and the simulation's truth as
+  horizontal reference lines;
+- raw and calibrated magnetometer samples as 3D points: the off-centre ellipsoid becomes a centred sphere
+  (Fig. 5);
+- bias against throttle^2 with the fitted line ``B = theta * throttle^2`` of eq. (11) (Fig. 7), drawn in a
+  2D view (throttle^2 scaled so that 0..1 spans the bias range; y up), plus throttle, current and voltage;
+- observer residual norm, rotation excitation (smallest eigenvalue of the excitation Gramian, eq. (21)) and
+  status flags as text.
+
+Departures / limits: one compass per view (the entity paths carry no mag index); reference lines are drawn as
+two-point series stretched over the time seen so far (Rerun has no horizontal-line primitive in time series).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import socket
+import sys
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magcomp.core.types import (
+    FLAG_CALIBRATED,
+    FLAG_INPUTS_STALE,
+    FLAG_NO_THROTTLE,
+    FLAG_OBSERVER_RESET,
+    FLAG_SATURATED,
+    FLAG_THETA_CONVERGED,
+    FLAG_Z_UNOBSERVABLE,
+    HeadingEstimate,
+)
+from magcomp.errors import MagcompError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import rerun as rr_types
+
+TIMELINE = "msg_time"
+"""Timeline of every logged row: seconds on the message's own clock (a Rerun duration timeline).
+
+Not ``log_time``: Rerun already owns a wall-clock timeline of that name."""
+
+AXES = ("x", "y", "z")
+DEFAULT_GRPC_PORT = 9876
+DEFAULT_WEB_PORT = 9090
+DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+CLOUD_MAX_POINTS = 3000
+"""Replay: largest flight cloud sent per batch; live: points drawn per halving of the sampling rate."""
+LIVE_CLOUD_PERIOD_S = 1.0
+"""Live: new cloud points and the reference lines' ends are sent at most this often (message time)."""
+BIAS_FIT_MAX_POINTS = 4000
+
+# Colours (RGB). Heading colours are kept apart from the axis colours so a screenshot can tell them apart.
+COLOR_RAW = (245, 120, 30)
+COLOR_CORRECTED = (40, 190, 245)
+COLOR_TRUTH = (110, 110, 110)
+COLOR_CORRECTION = (170, 120, 230)
+COLOR_AXES = ((235, 70, 70), (90, 205, 90), (95, 125, 245))
+
+FLAG_NAMES: tuple[tuple[int, str], ...] = (
+    (FLAG_CALIBRATED, "CALIBRATED"),
+    (FLAG_THETA_CONVERGED, "THETA_CONVERGED"),
+    (FLAG_INPUTS_STALE, "INPUTS_STALE"),
+    (FLAG_NO_THROTTLE, "NO_THROTTLE"),
+    (FLAG_OBSERVER_RESET, "OBSERVER_RESET"),
+    (FLAG_Z_UNOBSERVABLE, "Z_UNOBSERVABLE"),
+    (FLAG_SATURATED, "SATURATED"),
+)
+
+
+def flags_text(flags: int) -> str:
+    """``FLAG_*`` bits as ``"CALIBRATED|THETA_CONVERGED"`` (``"none"`` for 0; unknown bits as hex)."""
+    names = [name for bit, name in FLAG_NAMES if flags & bit]
+    known = 0
+    for bit, _ in FLAG_NAMES:
+        known |= bit
+    if flags & ~known:
+        names.append(f"0x{flags & ~known:x}")
+    return "|".join(names) if names else "none"
+
+
+def wrap_deg(angle_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Wrap angles to [-180, 180) degrees."""
+    return np.asarray((np.asarray(angle_deg, dtype=float) + 180.0) % 360.0 - 180.0, dtype=float)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The interface the service calls
+# ----------------------------------------------------------------------------------------------------------
+
+
+@runtime_checkable
+class Viz(Protocol):
+    """A visualisation sink. Times are seconds on the message clock; fields in mgauss; throttle 0..1."""
+
+    @property
+    def url(self) -> str | None:
+        """Where to look: the web viewer page (``serve``), the gRPC URL or the .rrd path; else None."""
+        ...
+
+    @property
+    def notice(self) -> str | None:
+        """One line the CLI should print (to stderr) after opening, e.g. the URL to open; None for nothing."""
+        ...
+
+    @property
+    def keeps_serving(self) -> bool:
+        """True when the viewer's data lives in this process (``serve``): the CLI waits before close()."""
+        ...
+
+    def log_estimate(self, est: HeadingEstimate) -> None:
+        """Live: one estimate, logged as it arrives."""
+        ...
+
+    def log_estimates(self, estimates: Sequence[HeadingEstimate]) -> None:
+        """Replay: a whole run of estimates, sent as columns."""
+        ...
+
+    def log_reference_theta(
+        self, theta_offline_mgauss: ArrayLike | None, theta_truth_mgauss: ArrayLike | None
+    ) -> None:
+        """Horizontal lines on the theta plot: offline least-squares theta (Fig. 8) and/or simulated truth."""
+        ...
+
+    def log_truth_heading(self, t_s: ArrayLike, heading_deg: ArrayLike) -> None:
+        """True magnetic heading (simulated logs), arrays (n,) or one sample."""
+        ...
+
+    def log_power(
+        self, t_s: ArrayLike, throttle_01: ArrayLike, current_a: ArrayLike, voltage_v: ArrayLike
+    ) -> None:
+        """Throttle 0..1, battery current (A), voltage (V); arrays (n,) or one sample; NaN = not carried."""
+        ...
+
+    def log_bias_fit(
+        self, throttle2: ArrayLike, bias_mgauss: ArrayLike, theta_line: ArrayLike | None
+    ) -> None:
+        """Measured bias (n, 3) against throttle^2 (n,) and the fit bias = theta * throttle^2 (Fig. 7)."""
+        ...
+
+    def log_calibration_cloud(self, raw_mgauss: ArrayLike, calibrated_mgauss: ArrayLike) -> None:
+        """The calibration data set before and after calibration, (n, 3) each (Fig. 5)."""
+        ...
+
+    def log_text(self, t_s: float, msg: str) -> None:
+        """A status message at message time ``t_s``."""
+        ...
+
+    def close(self) -> None:
+        """Flush and close the sink (stops a served viewer)."""
+        ...
+
+
+class NullViz:
+    """The sink used without ``--rerun``: every call is a no-op and ``rerun`` is never imported."""
+
+    url: str | None = None
+    notice: str | None = None
+    keeps_serving: bool = False
+
+    def log_estimate(self, est: HeadingEstimate) -> None:
+        return None
+
+    def log_estimates(self, estimates: Sequence[HeadingEstimate]) -> None:
+        return None
+
+    def log_reference_theta(
+        self, theta_offline_mgauss: ArrayLike | None, theta_truth_mgauss: ArrayLike | None
+    ) -> None:
+        return None
+
+    def log_truth_heading(self, t_s: ArrayLike, heading_deg: ArrayLike) -> None:
+        return None
+
+    def log_power(
+        self, t_s: ArrayLike, throttle_01: ArrayLike, current_a: ArrayLike, voltage_v: ArrayLike
+    ) -> None:
+        return None
+
+    def log_bias_fit(
+        self, throttle2: ArrayLike, bias_mgauss: ArrayLike, theta_line: ArrayLike | None
+    ) -> None:
+        return None
+
+    def log_calibration_cloud(self, raw_mgauss: ArrayLike, calibrated_mgauss: ArrayLike) -> None:
+        return None
+
+    def log_text(self, t_s: float, msg: str) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Modes
+# ----------------------------------------------------------------------------------------------------------
+
+MODE_HELP = (
+    "show the run in Rerun: spawn (native viewer), serve (web viewer on this machine; prints the URL), "
+    "connect[=URL] (a running viewer, default "
+    + DEFAULT_CONNECT_URL
+    + "), save=PATH.rrd (a recording file), "
+    "auto (spawn with a display, else serve; the default when --rerun has no value)"
+)
+
+
+@dataclass(frozen=True, slots=True)
+class VizMode:
+    """A parsed ``--rerun`` value: ``kind`` spawn | serve | connect | save; ``target`` the URL or path."""
+
+    kind: str
+    target: str = ""
+    reason: str = ""
+
+
+class DefaultMode(NamedTuple):
+    """What :func:`default_mode_for_demo` chose, and a one-line reason to show the user."""
+
+    mode: str
+    reason: str
+
+
+def has_display(environ: Mapping[str, str] | None = None) -> bool:
+    """True when a native viewer can open a window: $DISPLAY or $WAYLAND_DISPLAY set (True off Linux)."""
+    env = os.environ if environ is None else environ
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
+
+
+def default_mode_for_demo(environ: Mapping[str, str] | None = None) -> DefaultMode:
+    """``spawn`` when there is a display, else ``serve`` (the web viewer), with the reason."""
+    if has_display(environ):
+        return DefaultMode("spawn", "a display is available: starting the native Rerun viewer")
+    return DefaultMode(
+        "serve", "no display ($DISPLAY and $WAYLAND_DISPLAY are unset): serving the Rerun web viewer instead"
+    )
+
+
+def _normalise_connect_url(target: str) -> str:
+    if not target:
+        return DEFAULT_CONNECT_URL
+    if "://" not in target:
+        host, sep, port = target.rpartition(":")
+        if not sep or not host or not port.isdigit():
+            raise MagcompError(
+                f"--rerun connect=URL: expected rerun+http://HOST:PORT/proxy or HOST:PORT, got {target!r}"
+            )
+        return f"rerun+http://{host}:{port}/proxy"
+    scheme = target.split("://", 1)[0]
+    if scheme not in ("rerun", "rerun+http", "rerun+https"):
+        raise MagcompError(
+            "--rerun connect=URL: the scheme must be rerun://, rerun+http:// or rerun+https://, "
+            f"got {target!r}"
+        )
+    return target
+
+
+def parse_mode(mode: str, environ: Mapping[str, str] | None = None) -> VizMode:
+    """Parse and check a ``--rerun`` value; raise :class:`MagcompError` (one line) when it is not valid."""
+    text = mode.strip()
+    kind, sep, target = text.partition("=")
+    kind = kind.strip().lower()
+    target = target.strip()
+    if kind == "auto" and not sep:
+        chosen = default_mode_for_demo(environ)
+        return VizMode(chosen.mode, "", chosen.reason)
+    if kind in ("spawn", "serve") and not sep:
+        if kind == "spawn" and not has_display(environ):
+            raise MagcompError(
+                "--rerun spawn needs a display ($DISPLAY/$WAYLAND_DISPLAY unset); "
+                "use --rerun serve or save=PATH.rrd"
+            )
+        return VizMode(kind)
+    if kind == "connect":
+        if sep and not target:
+            raise MagcompError("--rerun connect=URL: the URL is empty")
+        return VizMode("connect", _normalise_connect_url(target))
+    if kind == "save":
+        if not target:
+            raise MagcompError("--rerun save=PATH.rrd: the path is missing")
+        path = Path(target).expanduser()
+        if path.suffix != ".rrd":
+            raise MagcompError(f"--rerun save=PATH.rrd: the file name must end in .rrd, got {target!r}")
+        if path.exists() and path.is_dir():
+            raise MagcompError(f"--rerun save=PATH.rrd: {target!r} is a directory")
+        if not path.parent.is_dir():
+            raise MagcompError(f"--rerun save=PATH.rrd: the directory {str(path.parent)!r} does not exist")
+        return VizMode("save", str(path))
+    raise MagcompError(
+        f"--rerun: unknown mode {mode!r}; expected spawn, serve, connect[=URL], save=PATH.rrd or auto"
+    )
+
+
+def add_rerun_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--rerun [MODE]`` to a subcommand (no value means ``auto``); :func:`open_viz` validates it."""
+    parser.add_argument("--rerun", metavar="MODE", nargs="?", const="auto", default=None, help=MODE_HELP)
+
+
+def _port_is_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("0.0.0.0", port))
+        except OSError:
+            return False
+    return True
+
+
+def free_port(preferred: int | None = None) -> int:
+    """``preferred`` when nobody listens on it, else a port the OS hands out (a small race either way)."""
+    if preferred is not None and _port_is_free(preferred):
+        return preferred
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def open_viz(
+    mode: str | None,
+    *,
+    app_id: str = "magcomp",
+    live: bool,
+    recording_name: str | None = None,
+    environ: Mapping[str, str] | None = None,
+    grpc_port: int | None = None,
+    web_port: int | None = None,
+) -> Viz:
+    """The sink for ``--rerun MODE``: :class:`NullViz` for None (no ``rerun`` import), else RerunViz.
+
+    ``live`` selects the live layout and keeps Rerun's wall-clock timeline; replay uses column sends.
+    ``grpc_port`` / ``web_port`` (``serve``): ports to use; default 9876 / 9090 when free, else any free port.
+    """
+    if mode is None:
+        return NullViz()
+    parsed = parse_mode(mode, environ)
+    return RerunViz(
+        parsed,
+        app_id=app_id,
+        live=live,
+        recording_name=recording_name,
+        grpc_port=grpc_port,
+        web_port=web_port,
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Helpers kept free of rerun (unit-testable without a viewer)
+# ----------------------------------------------------------------------------------------------------------
+
+
+class StreamDecimator:
+    """Decides which samples of an unbounded stream to draw, without ever taking one back: every sample until
+    ``cap`` are kept, then every 2nd for the next ``cap``, every 4th for the next, ... so a run of n samples
+    draws about ``cap * (1 + log2(n / cap))`` points spread over the whole run. Deterministic."""
+
+    def __init__(self, cap: int) -> None:
+        if cap < 1:
+            raise ValueError("cap must be >= 1")
+        self.cap = cap
+        self.stride = 1
+        self._seen = 0
+        self._kept_in_phase = 0
+        self.kept = 0
+
+    def accept(self) -> bool:
+        """Call once per sample; True when this sample is to be drawn."""
+        take = self._seen % self.stride == 0
+        self._seen += 1
+        if take:
+            self.kept += 1
+            self._kept_in_phase += 1
+            if self._kept_in_phase >= self.cap:
+                self._kept_in_phase = 0
+                self._seen = 0
+                self.stride *= 2
+        return take
+
+
+def thin_rows(rows: NDArray[np.float64], cap: int) -> NDArray[np.float64]:
+    """Every k-th row so that at most ``cap`` remain (the whole array when it is already small)."""
+    n = rows.shape[0]
+    if n <= cap:
+        return rows
+    step = math.ceil(n / cap)
+    return rows[::step]
+
+
+class TruthHeading:
+    """The true heading, accumulated from arrays or single samples, interpolated (unwrapped) at any time."""
+
+    def __init__(self) -> None:
+        self._t: NDArray[np.float64] = np.zeros(0)
+        self._deg: NDArray[np.float64] = np.zeros(0)
+        self._pending_t: list[float] = []
+        self._pending_deg: list[float] = []
+
+    def add(self, t_s: NDArray[np.float64], heading_deg: NDArray[np.float64]) -> None:
+        self._pending_t.extend(np.asarray(t_s, dtype=float).tolist())
+        self._pending_deg.extend(np.asarray(heading_deg, dtype=float).tolist())
+
+    def _merge(self) -> None:
+        if not self._pending_t:
+            return
+        t = np.concatenate([self._t, np.asarray(self._pending_t)])
+        deg = np.concatenate([self._deg, np.asarray(self._pending_deg)])
+        self._pending_t.clear()
+        self._pending_deg.clear()
+        ok = np.isfinite(t) & np.isfinite(deg)
+        t, deg = t[ok], deg[ok]
+        order = np.argsort(t, kind="stable")
+        self._t, self._deg = t[order], deg[order]
+
+    def __len__(self) -> int:
+        self._merge()
+        return int(self._t.shape[0])
+
+    def at(self, t_s: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Truth heading (deg, 0..360) at ``t_s``; NaN outside the truth's time span (no extrapolation)."""
+        self._merge()
+        t_q = np.asarray(t_s, dtype=float)
+        if self._t.shape[0] == 0:
+            return np.full(t_q.shape, np.nan)
+        unwrapped = np.degrees(np.unwrap(np.radians(self._deg)))
+        value = np.interp(t_q, self._t, unwrapped)
+        inside = (t_q >= self._t[0]) & (t_q <= self._t[-1])
+        return np.where(inside, value % 360.0, np.nan)
+
+
+def _as_1d(x: ArrayLike) -> NDArray[np.float64]:
+    return np.atleast_1d(np.asarray(x, dtype=float)).reshape(-1)
+
+
+def _as_rows3(x: ArrayLike, name: str) -> NDArray[np.float64]:
+    arr = np.asarray(x, dtype=float)
+    if arr.ndim == 1 and arr.shape[0] == 3:
+        arr = arr.reshape(1, 3)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise MagcompError(f"{name}: expected an array of shape (n, 3), got {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True, slots=True)
+class EstimateColumns:
+    """A list of HeadingEstimate as columns (what replay sends)."""
+
+    t_s: NDArray[np.float64]
+    heading_deg: NDArray[np.float64]
+    heading_raw_deg: NDArray[np.float64]
+    theta_mgauss: NDArray[np.float64]
+    bias_mgauss: NDArray[np.float64]
+    throttle_01: NDArray[np.float64]
+    flags: NDArray[np.int64]
+    field_raw_mgauss: NDArray[np.float64]
+    field_cal_mgauss: NDArray[np.float64]
+    residual_norm_mgauss: NDArray[np.float64]
+    excitation: NDArray[np.float64]
+
+    @classmethod
+    def from_estimates(cls, estimates: Sequence[HeadingEstimate]) -> EstimateColumns:
+        n = len(estimates)
+        t = np.fromiter((e.t_s for e in estimates), dtype=float, count=n)
+        return cls(
+            t_s=t,
+            heading_deg=np.fromiter((e.heading_deg for e in estimates), dtype=float, count=n),
+            heading_raw_deg=np.fromiter((e.heading_raw_deg for e in estimates), dtype=float, count=n),
+            theta_mgauss=np.array([e.theta_mgauss for e in estimates], dtype=float).reshape(n, 3),
+            bias_mgauss=np.array([e.bias_mgauss for e in estimates], dtype=float).reshape(n, 3),
+            throttle_01=np.fromiter((e.throttle_01 for e in estimates), dtype=float, count=n),
+            flags=np.fromiter((e.flags for e in estimates), dtype=np.int64, count=n),
+            field_raw_mgauss=np.array([e.field_raw_mgauss for e in estimates], dtype=float).reshape(n, 3),
+            field_cal_mgauss=np.array([e.field_cal_mgauss for e in estimates], dtype=float).reshape(n, 3),
+            residual_norm_mgauss=np.fromiter(
+                (e.residual_norm_mgauss for e in estimates), dtype=float, count=n
+            ),
+            excitation=np.fromiter((e.excitation for e in estimates), dtype=float, count=n),
+        )
+
+
+def flag_changes(flags: NDArray[np.int64]) -> NDArray[np.intp]:
+    """Indices where the flags differ from the previous row (always the first row)."""
+    if flags.shape[0] == 0:
+        return np.zeros(0, dtype=np.intp)
+    change = np.ones(flags.shape[0], dtype=bool)
+    change[1:] = flags[1:] != flags[:-1]
+    return np.flatnonzero(change)
+
+
+BIAS_CANVAS_X = 100.0
+"""Fig. 7 canvas: throttle^2 0..1 is drawn over x = 0..100."""
+BIAS_CANVAS_Y = 50.0
+"""Fig. 7 canvas: +-bias_range_mgauss is drawn over y = -50..50 (y up: Rerun's 2D y axis points down)."""
+
+
+def nice_range(value: float) -> float:
+    """The smallest 1, 2 or 5 x 10^k at or above ``value`` (at least 1): an axis limit that reads well."""
+    v = max(float(value), 1.0)
+    exp = 10.0 ** math.floor(math.log10(v))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if m * exp >= v * (1 - 1e-12):
+            return m * exp
+    return 10.0 * exp  # pragma: no cover
+
+
+@dataclass(frozen=True, slots=True)
+class BiasFitCanvas:
+    """The Fig. 7 view drawn on a fixed 2D canvas, so the view's bounds are known before the data.
+
+    ``points``: (3, n, 2) canvas positions of the measured bias per axis; ``lines``: (3, 2, 2) the fitted
+    lines ``B = theta * throttle^2`` (eq. (11)) from throttle^2 = 0 to 1, or None; ``range_mgauss``: the bias
+    at the canvas's top edge."""
+
+    range_mgauss: float
+    points: NDArray[np.float64]
+    lines: NDArray[np.float64] | None
+
+    def to_canvas(
+        self, throttle2: NDArray[np.float64], bias_mgauss: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """(x, y) canvas coordinates of (throttle^2, bias)."""
+        x = np.asarray(throttle2, dtype=float) * BIAS_CANVAS_X
+        y = -np.asarray(bias_mgauss, dtype=float) / self.range_mgauss * BIAS_CANVAS_Y
+        return np.stack([x, y], axis=-1)
+
+
+def bias_fit_canvas(
+    throttle2: NDArray[np.float64], bias_mgauss: NDArray[np.float64], theta_line: NDArray[np.float64] | None
+) -> BiasFitCanvas:
+    """Place measured bias (n, 3) against throttle^2 (n,) and the fitted lines on the Fig. 7 canvas."""
+    values = [np.abs(bias_mgauss[np.isfinite(bias_mgauss)])]
+    th = None if theta_line is None else np.asarray(theta_line, dtype=float).reshape(3)
+    if th is not None:
+        values.append(np.abs(th[np.isfinite(th)]))
+    allv = np.concatenate([v.reshape(-1) for v in values] + [np.zeros(1)])
+    canvas = BiasFitCanvas(nice_range(float(np.max(allv))), np.zeros((3, 0, 2)), None)
+    pts = np.stack([canvas.to_canvas(throttle2, bias_mgauss[:, k]) for k in range(3)])
+    lines = None
+    if th is not None:
+        ends = np.array([0.0, 1.0])
+        lines = np.stack([canvas.to_canvas(ends, th[k] * ends) for k in range(3)])  # eq. (11)
+    return BiasFitCanvas(canvas.range_mgauss, pts, lines)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The Rerun sink
+# ----------------------------------------------------------------------------------------------------------
+
+
+def build_blueprint(live: bool) -> Any:
+    """The view layout (a ``rerun.blueprint.Blueprint``): headings and theta on the left; clouds, bias fit,
+    power, observer and status on the right. Live views of heading/power/observer show the last 120 s."""
+    import rerun.blueprint as rrb
+
+    window: dict[str, Any] = {}
+    if live:
+        window = {
+            "time_ranges": rrb.VisibleTimeRange(
+                TIMELINE,
+                start=rrb.TimeRangeBoundary.cursor_relative(seconds=-120.0),
+                end=rrb.TimeRangeBoundary.cursor_relative(),
+            )
+        }
+    heading = rrb.TimeSeriesView(
+        name="Heading raw / corrected / truth (Fig. 9), deg", origin="/heading", **window
+    )
+    heading_error = rrb.TimeSeriesView(name="Heading error (Fig. 9), deg", origin="/heading_error", **window)
+    theta = rrb.TimeSeriesView(name="theta-hat vs offline / truth (Fig. 8), mgauss", origin="/theta")
+    everything = rrb.VisibleTimeRange(
+        TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+    )
+    raw_cloud = rrb.Spatial3DView(
+        name="Raw field: ellipsoid (Fig. 5)",
+        origin="/mag",
+        contents=["/mag/raw_cloud", "/mag/flight/raw"],
+        time_ranges=everything,
+    )
+    cal_cloud = rrb.Spatial3DView(
+        name="Calibrated: sphere (Fig. 5)",
+        origin="/mag",
+        contents=["/mag/calibrated_cloud", "/mag/flight/calibrated"],
+        time_ranges=everything,
+    )
+    bias_fit = rrb.Spatial2DView(
+        name="Bias vs throttle² (Fig. 7)",
+        origin="/bias/fit",
+        visual_bounds=rrb.VisualBounds2D(
+            x_range=[-0.25 * BIAS_CANVAS_X, 1.35 * BIAS_CANVAS_X],
+            y_range=[-1.15 * BIAS_CANVAS_Y, 1.15 * BIAS_CANVAS_Y],
+        ),
+    )
+    bias_t = rrb.TimeSeriesView(name="Bias theta·throttle², mgauss", origin="/bias/estimate", **window)
+    power = rrb.Vertical(
+        rrb.TimeSeriesView(name="Throttle 0..1", origin="/power/throttle", **window),
+        rrb.TimeSeriesView(name="Current, A", origin="/power/current", **window),
+        rrb.TimeSeriesView(name="Voltage, V", origin="/power/voltage", **window),
+        name="Power",
+    )
+    observer = rrb.Vertical(
+        rrb.TimeSeriesView(name="Residual norm, mgauss", origin="/observer/residual_norm", **window),
+        rrb.TimeSeriesView(
+            name="Rotation excitation (eq. 21), rad²/s²", origin="/observer/excitation", **window
+        ),
+        name="Observer",
+    )
+    status = rrb.TextLogView(name="Status", origin="/status")
+    layout = rrb.Horizontal(
+        rrb.Vertical(heading, heading_error, theta, row_shares=[3, 2, 3]),
+        rrb.Vertical(
+            rrb.Horizontal(raw_cloud, cal_cloud),
+            rrb.Tabs(bias_fit, bias_t, active_tab=0),
+            rrb.Tabs(power, observer, status, active_tab=0),
+            row_shares=[3, 2, 3],
+        ),
+        column_shares=[3, 2],
+    )
+    return rrb.Blueprint(
+        layout,
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE),
+        auto_views=False,
+    )
+
+
+class RerunViz:
+    """The Rerun sink: a dedicated ``RecordingStream`` (not the global one) with one of the four sinks."""
+
+    def __init__(
+        self,
+        mode: VizMode,
+        *,
+        app_id: str = "magcomp",
+        live: bool,
+        recording_name: str | None = None,
+        grpc_port: int | None = None,
+        web_port: int | None = None,
+    ) -> None:
+        import rerun as rr
+
+        self._rr = rr
+        self.mode = mode
+        self.live = live
+        self._url: str | None = None
+        self._notice: str | None = None
+        self._closed = False
+        rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())  # distinct runs stay distinct
+        self._rec: rr_types.RecordingStream = rec
+        if not live:
+            # Replay: message time is the only meaningful clock; Rerun's wall-clock/tick timelines are noise.
+            rec.set_log_time_enabled(False)
+            rec.set_log_tick_enabled(False)
+        blueprint = build_blueprint(live)
+        prefix = f"{mode.reason}; " if mode.reason else ""
+        try:
+            if mode.kind == "save":
+                rec.save(mode.target, default_blueprint=blueprint)
+                self._url = mode.target
+                self._notice = f"{prefix}Rerun recording: {mode.target} (open it with: rerun {mode.target})"
+            elif mode.kind == "connect":
+                rec.connect_grpc(mode.target, default_blueprint=blueprint)
+                self._url = mode.target
+                self._notice = f"{prefix}streaming to the Rerun viewer at {mode.target}"
+            elif mode.kind == "spawn":
+                port = free_port(DEFAULT_GRPC_PORT)
+                rec.spawn(port=port, connect=True, default_blueprint=blueprint)
+                self._url = f"rerun+http://127.0.0.1:{port}/proxy"
+                self._notice = f"{prefix}started the Rerun viewer (port {port})"
+            elif mode.kind == "serve":
+                gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
+                wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
+                grpc_url = rec.serve_grpc(
+                    grpc_port=gport, default_blueprint=blueprint, server_memory_limit="512MiB"
+                )
+                rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
+                self._url = web_viewer_url(wport, grpc_url)
+                self._notice = f"{prefix}Rerun web viewer: {self._url}"
+            else:  # pragma: no cover - parse_mode only returns the four kinds
+                raise MagcompError(f"--rerun: unknown mode {mode.kind!r}")
+        except MagcompError:
+            raise
+        except Exception as exc:  # rerun raises plain RuntimeError/ValueError from its bindings
+            raise MagcompError(f"--rerun {mode.kind}: could not open the Rerun sink: {exc}") from exc
+        if recording_name:
+            rec.send_recording_name(recording_name)
+        self._send_styles()
+        # state
+        self._t_min = math.inf
+        self._t_max = -math.inf
+        self._theta_refs: dict[str, NDArray[np.float64]] = {}
+        self._ref_sent_t = -math.inf
+        self._truth = TruthHeading()
+        self._replay_cols: list[EstimateColumns] = []
+        self._replay_err_done: list[bool] = []
+        self._last_flags: int | None = None
+        self._cloud_pick = StreamDecimator(CLOUD_MAX_POINTS)
+        self._cloud_raw: list[NDArray[np.float64]] = []
+        self._cloud_cal: list[NDArray[np.float64]] = []
+        self._cloud_sent_t = -math.inf
+
+    # -- properties ----------------------------------------------------------------------------------------
+    @property
+    def url(self) -> str | None:
+        return self._url
+
+    @property
+    def notice(self) -> str | None:
+        return self._notice
+
+    @property
+    def keeps_serving(self) -> bool:
+        return self.mode.kind == "serve"
+
+    @property
+    def recording(self) -> Any:
+        """The underlying ``rerun.RecordingStream`` (tests, advanced use)."""
+        return self._rec
+
+    # -- static styling --------------------------------------------------------------------------------------
+    def _series_style(self, path: str, color: Sequence[int], name: str, width: float = 1.5) -> None:
+        rr = self._rr
+        self._rec.log(path, rr.SeriesLines(colors=[list(color)], names=[name], widths=[width]), static=True)
+
+    def _send_styles(self) -> None:
+        self._rec.log(
+            "bias/estimate",
+            self._rr.SeriesLines(colors=[list(c) for c in COLOR_AXES], names=[f"B_{ax}" for ax in AXES]),
+            static=True,
+        )
+        for k, ax in enumerate(AXES):
+            self._series_style(f"theta/{ax}", COLOR_AXES[k], f"theta_{ax}", 2.0)
+            faded = [int(0.55 * c) for c in COLOR_AXES[k]]
+            self._series_style(f"theta/offline/{ax}", faded, f"offline LS theta_{ax}", 5.0)
+            self._series_style(f"theta/truth/{ax}", COLOR_TRUTH, f"true theta_{ax}", 1.0)
+        self._series_style("heading/raw", COLOR_RAW, "raw (B-hat = 0)", 2.0)
+        self._series_style("heading/corrected", COLOR_CORRECTED, "corrected (B-hat = theta·throttle²)", 2.0)
+        self._series_style("heading/truth", COLOR_TRUTH, "truth", 1.5)
+        self._series_style("heading_error/raw", COLOR_RAW, "raw - truth", 2.0)
+        self._series_style("heading_error/corrected", COLOR_CORRECTED, "corrected - truth", 2.0)
+        self._series_style("heading_error/raw_minus_corrected", COLOR_CORRECTION, "raw - corrected", 1.0)
+        self._series_style("power/throttle", (230, 200, 60), "throttle")
+        self._series_style("power/throttle/at_mag", (150, 130, 40), "throttle at mag sample")
+        self._series_style("power/current", (230, 120, 60), "current A")
+        self._series_style("power/voltage", (120, 200, 230), "voltage V")
+        self._series_style("observer/residual_norm", (200, 200, 120), "|residual| mgauss")
+        self._series_style("observer/excitation", (150, 220, 150), "lambda_min")
+
+    # -- time helpers --------------------------------------------------------------------------------------
+    def _time_col(self, t_s: NDArray[np.float64]) -> Any:
+        return self._rr.TimeColumn(TIMELINE, duration=np.asarray(t_s, dtype=float))
+
+    def _send_scalars(
+        self, path: str, t_s: NDArray[np.float64], values: NDArray[np.float64], drop_nan: bool
+    ) -> None:
+        if drop_nan:
+            ok = np.isfinite(values)
+            t_s, values = t_s[ok], values[ok]
+        if t_s.shape[0] == 0:
+            return
+        self._rec.send_columns(
+            path, indexes=[self._time_col(t_s)], columns=self._rr.Scalars.columns(scalars=values)
+        )
+
+    def _see_times(self, t_s: NDArray[np.float64]) -> None:
+        finite = t_s[np.isfinite(t_s)]
+        if finite.size:
+            self._t_min = min(self._t_min, float(finite.min()))
+            self._t_max = max(self._t_max, float(finite.max()))
+
+    # -- live ----------------------------------------------------------------------------------------------
+    def log_estimate(self, est: HeadingEstimate) -> None:
+        rr, rec = self._rr, self._rec
+        t = float(est.t_s)
+        rec.set_time(TIMELINE, duration=t)
+        theta = np.asarray(est.theta_mgauss, dtype=float)
+        bias = np.asarray(est.bias_mgauss, dtype=float)
+        for k, ax in enumerate(AXES):
+            rec.log(f"theta/{ax}", rr.Scalars(float(theta[k])))
+        rec.log("bias/estimate", rr.Scalars(bias))  # the three axes as one 3-series entity
+        rec.log("heading/raw", rr.Scalars(float(est.heading_raw_deg)))
+        rec.log("heading/corrected", rr.Scalars(float(est.heading_deg)))
+        rec.log(
+            "heading_error/raw_minus_corrected",
+            rr.Scalars(float(wrap_deg(np.array(est.heading_raw_deg - est.heading_deg)))),
+        )
+        if len(self._truth):
+            truth = float(self._truth.at(np.array([t]))[0])
+            if math.isfinite(truth):
+                rec.log(
+                    "heading_error/raw", rr.Scalars(float(wrap_deg(np.array(est.heading_raw_deg - truth))))
+                )
+                rec.log(
+                    "heading_error/corrected", rr.Scalars(float(wrap_deg(np.array(est.heading_deg - truth))))
+                )
+        if math.isfinite(est.throttle_01):
+            rec.log("power/throttle/at_mag", rr.Scalars(float(est.throttle_01)))
+        if math.isfinite(est.residual_norm_mgauss):
+            rec.log("observer/residual_norm", rr.Scalars(float(est.residual_norm_mgauss)))
+        if math.isfinite(est.excitation):
+            rec.log("observer/excitation", rr.Scalars(float(est.excitation)))
+        if est.flags != self._last_flags:
+            self._last_flags = int(est.flags)
+            rec.log("status/flags", rr.TextLog(f"flags: {flags_text(int(est.flags))}", level="INFO"))
+        if self._cloud_pick.accept():
+            self._cloud_raw.append(np.asarray(est.field_raw_mgauss, dtype=float))
+            self._cloud_cal.append(np.asarray(est.field_cal_mgauss, dtype=float))
+        self._see_times(np.array([t]))
+        if t - self._cloud_sent_t >= LIVE_CLOUD_PERIOD_S or t < self._cloud_sent_t:
+            self._flush_live_cloud(t)
+        if self._theta_refs and (t - self._ref_sent_t >= LIVE_CLOUD_PERIOD_S or t < self._ref_sent_t):
+            self._send_reference_lines()
+
+    # -- replay --------------------------------------------------------------------------------------------
+    def log_estimates(self, estimates: Sequence[HeadingEstimate]) -> None:
+        if not estimates:
+            return
+        cols = EstimateColumns.from_estimates(estimates)
+        t = cols.t_s
+        for k, ax in enumerate(AXES):
+            self._send_scalars(f"theta/{ax}", t, cols.theta_mgauss[:, k], drop_nan=False)
+        n = t.shape[0]
+        self._rec.send_columns(
+            "bias/estimate",
+            indexes=[self._time_col(t)],
+            columns=self._rr.Scalars.columns(scalars=cols.bias_mgauss.reshape(-1)).partition(np.full(n, 3)),
+        )
+        self._send_scalars("heading/raw", t, cols.heading_raw_deg, drop_nan=False)
+        self._send_scalars("heading/corrected", t, cols.heading_deg, drop_nan=False)
+        self._send_scalars(
+            "heading_error/raw_minus_corrected",
+            t,
+            wrap_deg(cols.heading_raw_deg - cols.heading_deg),
+            drop_nan=True,
+        )
+        self._send_scalars("power/throttle/at_mag", t, cols.throttle_01, drop_nan=True)
+        self._send_scalars("observer/residual_norm", t, cols.residual_norm_mgauss, drop_nan=True)
+        self._send_scalars("observer/excitation", t, cols.excitation, drop_nan=True)
+        changes = flag_changes(cols.flags)
+        if self._last_flags is not None and changes.size and int(cols.flags[0]) == self._last_flags:
+            changes = changes[1:]
+        if changes.size:
+            texts = [f"flags: {flags_text(int(f))}" for f in cols.flags[changes]]
+            self._rec.send_columns(
+                "status/flags",
+                indexes=[self._time_col(t[changes])],
+                columns=self._rr.TextLog.columns(text=texts, level=["INFO"] * len(texts)),
+            )
+        self._last_flags = int(cols.flags[-1])
+        self._see_times(t)
+        self._replay_cols.append(cols)
+        self._replay_err_done.append(False)
+        self._send_heading_errors()
+        if t.size:
+            self._send_flight_clouds(
+                thin_rows(cols.field_raw_mgauss, CLOUD_MAX_POINTS),
+                thin_rows(cols.field_cal_mgauss, CLOUD_MAX_POINTS),
+                float(np.nanmin(t)) if np.isfinite(t).any() else 0.0,
+            )
+        if self._theta_refs:
+            self._send_reference_lines()
+
+    def _send_heading_errors(self) -> None:
+        if not len(self._truth):
+            return
+        for i, cols in enumerate(self._replay_cols):
+            if self._replay_err_done[i]:
+                continue
+            truth = self._truth.at(cols.t_s)
+            if not np.isfinite(truth).any():
+                continue
+            self._replay_err_done[i] = True
+            self._send_scalars(
+                "heading_error/raw", cols.t_s, wrap_deg(cols.heading_raw_deg - truth), drop_nan=True
+            )
+            self._send_scalars(
+                "heading_error/corrected", cols.t_s, wrap_deg(cols.heading_deg - truth), drop_nan=True
+            )
+
+    def _flush_live_cloud(self, t_s: float) -> None:
+        """Live: the points picked since the last flush, as one row; the 3D views show every row up to the
+        cursor (their visible time range starts at -inf), so the cloud grows without being sent again."""
+        self._cloud_sent_t = t_s
+        if self._cloud_raw:
+            self._send_flight_clouds(np.vstack(self._cloud_raw), np.vstack(self._cloud_cal), t_s)
+            self._cloud_raw.clear()
+            self._cloud_cal.clear()
+
+    def _send_flight_clouds(self, raw: NDArray[np.float64], cal: NDArray[np.float64], t_s: float) -> None:
+        rr, rec = self._rr, self._rec
+        rec.set_time(TIMELINE, duration=float(t_s))
+        for path, pts, color in (
+            ("mag/flight/raw", raw, COLOR_RAW),
+            ("mag/flight/calibrated", cal, COLOR_CORRECTED),
+        ):
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            if pts.shape[0] == 0:
+                continue
+            rec.log(path, rr.Points3D(pts, radii=_cloud_radius(pts), colors=[list(color)]))
+
+    # -- references, truth, power, fits --------------------------------------------------------------------
+    def log_reference_theta(
+        self, theta_offline_mgauss: ArrayLike | None, theta_truth_mgauss: ArrayLike | None
+    ) -> None:
+        for name, value in (("offline", theta_offline_mgauss), ("truth", theta_truth_mgauss)):
+            if value is None:
+                self._theta_refs.pop(name, None)
+                continue
+            arr = np.asarray(value, dtype=float).reshape(-1)
+            if arr.shape[0] != 3:
+                raise MagcompError(
+                    f"log_reference_theta: theta_{name} must have 3 components, got {arr.shape[0]}"
+                )
+            self._theta_refs[name] = arr
+        self._send_reference_lines()
+
+    def _send_reference_lines(self) -> None:
+        if not self._theta_refs:
+            return
+        if math.isfinite(self._t_min):
+            t = np.array([self._t_min, self._t_max]) if self._t_max > self._t_min else np.array([self._t_min])
+        else:
+            t = np.array([0.0])
+        for name, theta in self._theta_refs.items():
+            for k, ax in enumerate(AXES):
+                self._send_scalars(f"theta/{name}/{ax}", t, np.full(t.shape[0], theta[k]), drop_nan=True)
+        self._ref_sent_t = float(t[-1])
+
+    def log_truth_heading(self, t_s: ArrayLike, heading_deg: ArrayLike) -> None:
+        t = _as_1d(t_s)
+        deg = _as_1d(heading_deg)
+        if t.shape != deg.shape:
+            raise MagcompError(f"log_truth_heading: {t.shape[0]} times but {deg.shape[0]} headings")
+        self._truth.add(t, deg)
+        self._send_scalars("heading/truth", t, deg, drop_nan=True)
+        self._send_heading_errors()
+
+    def log_power(
+        self, t_s: ArrayLike, throttle_01: ArrayLike, current_a: ArrayLike, voltage_v: ArrayLike
+    ) -> None:
+        t = _as_1d(t_s)
+        for path, values in (
+            ("power/throttle", throttle_01),
+            ("power/current", current_a),
+            ("power/voltage", voltage_v),
+        ):
+            v = _as_1d(values)
+            if v.shape[0] == 1 and t.shape[0] > 1:
+                v = np.full(t.shape[0], v[0])
+            if v.shape[0] != t.shape[0]:
+                raise MagcompError(f"log_power: {t.shape[0]} times but {v.shape[0]} values for {path}")
+            self._send_scalars(path, t, v, drop_nan=True)
+
+    def log_bias_fit(
+        self, throttle2: ArrayLike, bias_mgauss: ArrayLike, theta_line: ArrayLike | None
+    ) -> None:
+        rr, rec = self._rr, self._rec
+        thr2 = _as_1d(throttle2)
+        bias = _as_rows3(bias_mgauss, "log_bias_fit bias_mgauss")
+        if bias.shape[0] != thr2.shape[0]:
+            raise MagcompError(
+                f"log_bias_fit: {thr2.shape[0]} throttle^2 values but {bias.shape[0]} bias rows"
+            )
+        keep = np.isfinite(thr2) & np.isfinite(bias).all(axis=1)
+        both = thin_rows(np.column_stack([thr2[keep], bias[keep]]), BIAS_FIT_MAX_POINTS)
+        line = None if theta_line is None else np.asarray(theta_line, dtype=float).reshape(3)
+        canvas = bias_fit_canvas(both[:, 0], both[:, 1:], line)
+        for k, ax in enumerate(AXES):
+            rec.log(
+                f"bias/fit/points/{ax}",
+                rr.Points2D(canvas.points[k], radii=0.6, colors=[COLOR_AXES[k]]),
+                static=True,
+            )
+            if canvas.lines is not None:
+                rec.log(
+                    f"bias/fit/line/{ax}",
+                    rr.LineStrips2D([canvas.lines[k]], radii=0.35, colors=[COLOR_AXES[k]]),
+                    static=True,
+                )
+                end = canvas.lines[k][1]
+                rec.log(
+                    f"bias/fit/label/{ax}",
+                    rr.Points2D(
+                        [end + np.array([2.0, 0.0])],
+                        radii=0.01,
+                        colors=[COLOR_AXES[k]],
+                        labels=[f"theta_{ax} = {line[k]:.1f}" if line is not None else ax],
+                        show_labels=True,
+                    ),
+                    static=True,
+                )
+        r = canvas.range_mgauss
+        grey = [140, 140, 140]
+        rec.log(
+            "bias/fit/axes",
+            rr.LineStrips2D(
+                [
+                    [[0.0, 0.0], [BIAS_CANVAS_X, 0.0]],
+                    [[0.0, -BIAS_CANVAS_Y], [0.0, BIAS_CANVAS_Y]],
+                    [[BIAS_CANVAS_X, -1.5], [BIAS_CANVAS_X, 1.5]],
+                ],
+                radii=0.15,
+                colors=[grey],
+            ),
+            static=True,
+        )
+        rec.log(
+            "bias/fit/ticks",
+            rr.Points2D(
+                [[0.0, -BIAS_CANVAS_Y], [0.0, BIAS_CANVAS_Y], [BIAS_CANVAS_X, 4.0], [0.0, 4.0]],
+                radii=0.01,
+                colors=[grey],
+                labels=[f"+{r:g} mgauss", f"-{r:g} mgauss", "throttle² = 1", "0"],
+                show_labels=True,
+            ),
+            static=True,
+        )
+
+    def log_calibration_cloud(self, raw_mgauss: ArrayLike, calibrated_mgauss: ArrayLike) -> None:
+        rr, rec = self._rr, self._rec
+        for path, arr, color in (
+            ("mag/raw_cloud", raw_mgauss, COLOR_RAW),
+            ("mag/calibrated_cloud", calibrated_mgauss, COLOR_CORRECTED),
+        ):
+            pts = _as_rows3(arr, f"log_calibration_cloud {path}")
+            pts = thin_rows(pts[np.isfinite(pts).all(axis=1)], CLOUD_MAX_POINTS)
+            faded = [int(0.7 * c) for c in color]
+            rec.log(path, rr.Points3D(pts, radii=_cloud_radius(pts), colors=[faded]), static=True)
+
+    def log_text(self, t_s: float, msg: str) -> None:
+        self._rec.send_columns(
+            "status/messages",
+            indexes=[self._time_col(np.array([float(t_s)]))],
+            columns=self._rr.TextLog.columns(text=[msg], level=["INFO"]),
+        )
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._cloud_raw:
+            self._flush_live_cloud(self._t_max)
+        if self._theta_refs:
+            self._send_reference_lines()
+        try:
+            self._rec.flush(timeout_sec=10.0)
+        finally:
+            self._rec.disconnect()
+
+
+def _cloud_radius(pts: NDArray[np.float64]) -> float:
+    """Point radius ~1/80 of the typical field magnitude, so every batch of a cloud draws alike."""
+    if pts.shape[0] == 0:
+        return 1.0
+    return max(float(np.median(np.linalg.norm(pts, axis=1))) / 80.0, 0.5)
+
+
+def web_viewer_url(web_port: int, grpc_url: str) -> str:
+    """The page that opens the served web viewer on the gRPC stream ``grpc_url``."""
+    from urllib.parse import quote
+
+    return f"http://127.0.0.1:{web_port}/?url={quote(grpc_url, safe='')}"

@@ -1,0 +1,328 @@
+"""The Rerun adapter: mode parsing, the lazy import, and recordings read back with rerun's own reader."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from magcomp.adapters.rerun_viz import (
+    AXES,
+    TIMELINE,
+    NullViz,
+    StreamDecimator,
+    TruthHeading,
+    Viz,
+    add_rerun_argument,
+    bias_fit_canvas,
+    default_mode_for_demo,
+    flag_changes,
+    flags_text,
+    nice_range,
+    open_viz,
+    parse_mode,
+    wrap_deg,
+)
+from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, HeadingEstimate
+from magcomp.errors import MagcompError
+
+REPO = Path(__file__).resolve().parents[2]
+THETA_TRUE = np.array([42.0, -27.0, 65.0])
+
+
+def synthetic_estimates(n: int, seed: int, dt_s: float = 0.02) -> tuple[list[HeadingEstimate], np.ndarray]:
+    """A run whose theta-hat converges to THETA_TRUE; heading raw = truth + bias-induced error, corrected =
+    truth + noise. Returns the estimates and the true heading (deg) at their times."""
+    rng = np.random.default_rng(seed)
+    t = 3.0 + np.arange(n) * dt_s
+    truth = (25.0 * t) % 360.0
+    thr = 0.5 + 0.5 * np.sin(t / 2.0)
+    out = []
+    for i in range(n):
+        theta = THETA_TRUE * (1.0 - np.exp(-(t[i] - t[0]) / 5.0)) + rng.normal(0.0, 0.5, 3)
+        flags = FLAG_CALIBRATED | (FLAG_THETA_CONVERGED if i > n // 2 else 0)
+        out.append(
+            HeadingEstimate(
+                t_s=float(t[i]),
+                mag_index=0,
+                heading_deg=float((truth[i] + rng.normal(0.0, 0.5)) % 360.0),
+                heading_raw_deg=float((truth[i] + 12.0 * thr[i] ** 2) % 360.0),
+                theta_mgauss=theta,
+                bias_mgauss=theta * thr[i] ** 2,
+                throttle_01=float(thr[i]),
+                flags=flags,
+                field_raw_mgauss=rng.normal(size=3) * [300.0, 250.0, 200.0] + [60.0, -30.0, 10.0],
+                field_cal_mgauss=rng.normal(size=3) * 150.0,
+                residual_norm_mgauss=float(abs(rng.normal(3.0, 1.0))),
+                excitation=float("nan") if i < 5 else 0.2,
+            )
+        )
+    return out, truth
+
+
+def read_rrd(path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """Entity path -> {"t_s": times (s, on TIMELINE), "values": each row's scalar, vector or text}."""
+    from rerun.chunk import RrdReader
+
+    cols: dict[str, dict[str, list[Any]]] = defaultdict(lambda: {"t_s": [], "values": []})
+    for chunk in RrdReader(str(path)).stream():
+        rb = chunk.to_record_batch()
+        names = rb.schema.names
+        value_col = next(
+            (c for c in names if c.endswith("Scalars:scalars") or c.endswith("TextLog:text")), None
+        )
+        if value_col is None or TIMELINE not in names:
+            continue
+        times = rb.column(TIMELINE).cast("int64").to_numpy(zero_copy_only=False) * 1e-9
+        values = rb.column(value_col).to_pylist()
+        entry = cols[chunk.entity_path]
+        entry["t_s"].extend(times.tolist())
+        entry["values"].extend((v[0] if len(v) == 1 else v) if isinstance(v, list) else v for v in values)
+    result: dict[str, dict[str, np.ndarray]] = {}
+    for path_, entry in cols.items():
+        order = np.argsort(np.asarray(entry["t_s"]), kind="stable")
+        result[path_] = {k: np.asarray(v)[order] for k, v in entry.items()}
+    return result
+
+
+def _points3d_rows(path: Path, entity: str) -> list[list[object]]:
+    from rerun.chunk import RrdReader
+
+    rows: list[list[object]] = []
+    for chunk in RrdReader(str(path)).stream():
+        if chunk.entity_path == entity:
+            rb = chunk.to_record_batch()
+            rows.extend(rb.column("Points3D:positions").to_pylist())
+    return rows
+
+
+# -- the lazy import ----------------------------------------------------------------------------------------
+
+
+def test_open_viz_none_does_not_import_rerun() -> None:
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from magcomp.adapters.rerun_viz import open_viz, NullViz\n"
+        "v = open_viz(None, live=False)\n"
+        "assert isinstance(v, NullViz)\n"
+        "v.log_estimates([]); v.log_truth_heading(np.zeros(2), np.zeros(2))\n"
+        "v.log_text(0.0, 'x'); v.close()\n"
+        "print('rerun' in sys.modules, any(m.startswith('rerun') for m in sys.modules))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=60, check=True
+    )
+    assert out.stdout.split() == ["False", "False"], out.stdout + out.stderr
+
+
+def test_null_viz_satisfies_the_viz_protocol() -> None:
+    assert isinstance(NullViz(), Viz)
+    assert NullViz().url is None and NullViz().keeps_serving is False
+
+
+# -- modes --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        "",
+        "spawnx",
+        "serve=9000",
+        "save",
+        "save=out.txt",
+        "save=/nonexistent-dir-h6/x.rrd",
+        "connect=",
+        "connect=ftp://x",
+        "connect=hostonly",
+        "web",
+    ],
+)
+def test_invalid_mode_raises_one_line_magcomp_error(bad: str) -> None:
+    with pytest.raises(MagcompError) as info:
+        parse_mode(bad, environ={"DISPLAY": ":0"})
+    message = str(info.value)
+    assert message.startswith("--rerun") and "\n" not in message
+
+
+def test_valid_modes_parse_to_their_targets(tmp_path: Path) -> None:
+    display = {"DISPLAY": ":0"}
+    assert parse_mode("spawn", display).kind == "spawn"
+    assert parse_mode("serve", {}).kind == "serve"
+    assert parse_mode("connect", {}).target == "rerun+http://127.0.0.1:9876/proxy"
+    assert parse_mode("connect=10.0.0.2:9999", {}).target == "rerun+http://10.0.0.2:9999/proxy"
+    assert parse_mode("connect=rerun+https://h:1/proxy", {}).target == "rerun+https://h:1/proxy"
+    saved = parse_mode(f"save={tmp_path / 'a.rrd'}", {})
+    assert (saved.kind, saved.target) == ("save", str(tmp_path / "a.rrd"))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the display check applies on Linux")
+def test_demo_default_is_serve_without_a_display_and_says_why() -> None:
+    headless = default_mode_for_demo({})
+    assert headless.mode == "serve" and "DISPLAY" in headless.reason
+    assert default_mode_for_demo({"WAYLAND_DISPLAY": "wayland-0"}).mode == "spawn"
+    auto = parse_mode("auto", {})
+    assert auto.kind == "serve" and auto.reason == headless.reason
+    with pytest.raises(MagcompError, match="display"):
+        parse_mode("spawn", {})
+
+
+def test_rerun_argument_without_value_means_auto() -> None:
+    parser = argparse.ArgumentParser()
+    add_rerun_argument(parser)
+    assert parser.parse_args([]).rerun is None
+    assert parser.parse_args(["--rerun"]).rerun == "auto"
+    assert parser.parse_args(["--rerun", "save=x.rrd"]).rerun == "save=x.rrd"
+
+
+# -- pure helpers -------------------------------------------------------------------------------------------
+
+
+def test_truth_heading_interpolates_across_north_without_jumping() -> None:
+    truth = TruthHeading()
+    truth.add(np.array([0.0, 1.0]), np.array([350.0, 10.0]))  # turning right through north
+    truth.add(np.array([2.0]), np.array([30.0]))
+    got = truth.at(np.array([0.5, 1.5, 2.5, -1.0]))
+    np.testing.assert_allclose(got[:2], [0.0, 20.0], atol=1e-9)
+    assert np.isnan(got[2:]).all()  # no extrapolation outside the truth's span
+
+
+def test_wrap_deg_gives_smallest_signed_difference() -> None:
+    np.testing.assert_allclose(
+        wrap_deg(np.array([359.0 - 1.0, 1.0 - 359.0, 180.0, -190.0])), [-2.0, 2.0, -180.0, 170.0]
+    )
+
+
+def test_stream_decimator_bounds_points_and_spans_the_whole_stream() -> None:
+    pick = StreamDecimator(cap=100)
+    n = 10_000
+    kept = np.flatnonzero([pick.accept() for _ in range(n)])
+    assert kept[0] == 0 and kept[-1] >= n - pick.stride  # reaches the end of the stream
+    assert len(kept) <= 100 * (1 + np.log2(n / 100)) + 1
+    np.testing.assert_array_equal(kept[:100], np.arange(100))  # dense at first, then halving
+    assert np.all(np.diff(kept)[100:199] == 2)  # then every 2nd sample for the next 100
+
+
+def test_flags_text_names_each_bit_and_changes_are_found() -> None:
+    assert flags_text(0) == "none"
+    assert flags_text(FLAG_CALIBRATED | FLAG_THETA_CONVERGED) == "CALIBRATED|THETA_CONVERGED"
+    assert flags_text(1 | 1024) == "CALIBRATED|0x400"
+    np.testing.assert_array_equal(flag_changes(np.array([1, 1, 3, 3, 1])), [0, 2, 4])
+
+
+def test_bias_fit_canvas_puts_exact_model_points_on_the_fitted_line_eq11() -> None:
+    rng = np.random.default_rng(7)
+    thr2 = rng.uniform(0.0, 1.0, 200)
+    bias = np.outer(thr2, THETA_TRUE)  # eq. (11) with no noise
+    canvas = bias_fit_canvas(thr2, bias, THETA_TRUE)
+    assert canvas.range_mgauss == nice_range(65.0) == 100.0
+    assert canvas.lines is not None
+    for k in range(3):
+        (x0, y0), (x1, y1) = canvas.lines[k]
+        on_line = y0 + (canvas.points[k, :, 0] - x0) * (y1 - y0) / (x1 - x0)
+        np.testing.assert_allclose(canvas.points[k, :, 1], on_line, atol=1e-9)
+        assert np.all(np.abs(canvas.points[k, :, 1]) <= 50.0)
+    assert canvas.lines[2][1][1] < 0.0  # positive bias drawn upwards (Rerun's 2D y points down)
+
+
+# -- recordings read back with rerun's reader ---------------------------------------------------------------
+
+
+def _drive_replay(path: Path, estimates: list[HeadingEstimate], truth: np.ndarray) -> None:
+    viz = open_viz(f"save={path}", live=False, recording_name="replay-test")
+    assert viz.url == str(path) and viz.notice is not None and str(path) in viz.notice
+    t = np.array([e.t_s for e in estimates])
+    viz.log_estimates(estimates)
+    viz.log_truth_heading(t, truth)  # after the estimates: the errors must still be sent
+    viz.log_reference_theta(THETA_TRUE + 1.5, THETA_TRUE)
+    viz.log_power(
+        t, np.array([e.throttle_01 for e in estimates]), np.full(t.shape, np.nan), np.full(t.shape, 12.0)
+    )
+    thr2 = np.linspace(0.0, 1.0, 50)
+    viz.log_bias_fit(thr2, np.outer(thr2, THETA_TRUE), THETA_TRUE)
+    viz.log_calibration_cloud(np.ones((10, 3)), np.zeros((10, 3)))
+    viz.log_text(t[3], "observer reset")
+    viz.close()
+
+
+def test_saved_replay_recording_holds_one_row_per_estimate_and_final_theta(tmp_path: Path) -> None:
+    estimates, truth = synthetic_estimates(400, seed=11)
+    path = tmp_path / "replay.rrd"
+    _drive_replay(path, estimates, truth)
+    data = read_rrd(path)
+    t = np.array([e.t_s for e in estimates])
+    for k, ax in enumerate(AXES):
+        series = data[f"/theta/{ax}"]
+        assert len(series["values"]) == len(estimates)
+        np.testing.assert_allclose(series["t_s"], t, atol=1e-9)
+        assert series["values"][-1] == pytest.approx(estimates[-1].theta_mgauss[k], abs=1e-9)
+        ref = data[f"/theta/offline/{ax}"]
+        np.testing.assert_allclose(ref["values"], THETA_TRUE[k] + 1.5)
+        assert ref["t_s"].min() == pytest.approx(t[0]) and ref["t_s"].max() == pytest.approx(t[-1])
+    for name, attr in (("raw", "heading_raw_deg"), ("corrected", "heading_deg")):
+        series = data[f"/heading/{name}"]
+        assert len(series["values"]) == len(estimates)
+        np.testing.assert_allclose(series["values"], [getattr(e, attr) for e in estimates])
+    # Fig. 9 errors: corrected within the synthetic 0.5 deg noise; raw carries the 12 * throttle^2 deg error
+    err_c = data["/heading_error/corrected"]["values"]
+    err_r = data["/heading_error/raw"]["values"]
+    thr = np.array([e.throttle_01 for e in estimates])
+    assert len(err_c) == len(estimates) and np.max(np.abs(err_c)) < 2.5
+    np.testing.assert_allclose(err_r, 12.0 * thr**2, atol=1e-6)
+    assert "/power/current" not in data  # all-NaN current is not drawn
+    flags = data["/status/flags"]["values"]
+    assert list(flags) == ["flags: CALIBRATED", "flags: CALIBRATED|THETA_CONVERGED"]
+
+
+def test_live_logging_matches_replay_row_for_row(tmp_path: Path) -> None:
+    estimates, truth = synthetic_estimates(150, seed=12)
+    t = np.array([e.t_s for e in estimates])
+    live_path = tmp_path / "live.rrd"
+    viz = open_viz(f"save={live_path}", live=True)
+    viz.log_reference_theta(THETA_TRUE, None)  # before any estimate, as the demo does
+    for i, est in enumerate(estimates):
+        viz.log_truth_heading(t[i], truth[i])  # per sample, before its estimate
+        viz.log_estimate(est)
+    viz.close()
+    replay_path = tmp_path / "replay.rrd"
+    _drive_replay(replay_path, estimates, truth)
+    live, replay = read_rrd(live_path), read_rrd(replay_path)
+    for path_ in (
+        "/theta/x",
+        "/theta/y",
+        "/theta/z",
+        "/heading/raw",
+        "/heading/corrected",
+        "/bias/estimate",
+    ):
+        assert len(live[path_]["values"]) == len(estimates), path_
+        np.testing.assert_allclose(live[path_]["t_s"], replay[path_]["t_s"], atol=1e-9)
+        np.testing.assert_allclose(live[path_]["values"], replay[path_]["values"], atol=1e-12)
+    np.testing.assert_allclose(
+        live["/heading_error/raw"]["values"], replay["/heading_error/raw"]["values"], atol=1e-9
+    )
+    n_points = sum(len(v) for v in _points3d_rows(live_path, "/mag/flight/calibrated"))
+    assert n_points == len(estimates)  # below the cap every sample is drawn, each once
+    bias = np.array([e.bias_mgauss for e in estimates])
+    np.testing.assert_allclose(live["/bias/estimate"]["values"], bias, atol=1e-12)  # 3 series, one entity
+    assert live["/theta/offline/x"]["t_s"].max() >= t[-1] - 1.0  # the reference line follows the live run
+
+
+def test_bad_shapes_raise_magcomp_error(tmp_path: Path) -> None:
+    viz = open_viz(f"save={tmp_path / 'bad.rrd'}", live=False)
+    try:
+        with pytest.raises(MagcompError, match="shape"):
+            viz.log_bias_fit(np.zeros(4), np.zeros((4, 2)), None)
+        with pytest.raises(MagcompError, match="times"):
+            viz.log_truth_heading(np.zeros(3), np.zeros(2))
+        with pytest.raises(MagcompError, match="3 components"):
+            viz.log_reference_theta(np.zeros(2), None)
+    finally:
+        viz.close()
