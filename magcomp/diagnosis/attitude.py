@@ -1,0 +1,264 @@
+"""Compass-free attitude for the forward model: gyro-propagated rotation with tilt from a reference.
+
+Why not the log's own attitude: ArduPilot's and PX4's ATTITUDE yaw is fused from the very compass we are
+diagnosing, so a throttle-driven bias leaks into the yaw, and a forward model driven by that yaw would
+absorb part of the bias it is meant to expose. Roll and pitch, by contrast, come from the gyro and the
+accelerometer (gravity), not the compass.
+
+So the rotation ``R_nb`` used here is the strap-down integral of the gyro, eq. (18) ``R_dot = R [omega]_x``,
+with a Mahony-style complementary correction (proportional + integral, ref. [23]) that pulls only the
+*tilt* toward a compass-free "down" reference: the log's roll and pitch when it has an attitude, otherwise
+the accelerometer. The heading is then pure gyro integration: it is free of the compass, drifts only with the
+gyro bias about the vertical, and that drift is a fitted nuisance parameter of the forward model
+(:mod:`magcomp.diagnosis.model`). Departure from the paper: the paper feeds the accelerometer to the Mahony
+filter and uses the full estimated attitude; here the filter never sees the compass.
+
+Symbols: ``q_nb`` body FRD -> NED (w, x, y, z); ``down_b`` unit down vector in body axes (third row of R_nb).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, quat_from_dcm
+
+F64 = NDArray[np.float64]
+
+
+STATIONARY_RATE_RAD_S = 0.05
+
+
+@dataclass(frozen=True)
+class TiltFilterParams:
+    """Gains of the tilt-only complementary filter.
+
+    kp_rad_s: proportional gain on the tilt error (rad/s per rad); ki_rad_s2: gyro-bias integral gain;
+    passes: runs over the log, each starting from the gyro bias the previous one ended with (a log is
+    short compared with the integral's time constant, so the second pass removes most of the start-up drift).
+    """
+
+    kp_rad_s: float = 5.0
+    ki_rad_s2: float = 0.3
+    passes: int = 2
+
+
+def down_b_from_euler(roll_rad: F64, pitch_rad: F64) -> F64:
+    """Unit down vector in body axes from roll/pitch, shape (n, 3): yaw-free third row of ``R_nb``."""
+    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
+    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
+    return np.column_stack([-sp, cp * sr, cp * cr])
+
+
+def _interp_rows(t_new: F64, t: F64, x: F64) -> F64:
+    out = np.empty((t_new.shape[0], x.shape[1]))
+    for j in range(x.shape[1]):
+        out[:, j] = np.interp(t_new, t, x[:, j])
+    return out
+
+
+def propagate_attitude(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    ref_t_s: F64,
+    ref_down_b: F64,
+    q0_nb: F64,
+    p: TiltFilterParams | None = None,
+) -> F64:
+    """Integrate the gyro (eq. (18)) from ``q0_nb``, correcting tilt toward ``ref_down_b``.
+
+    Parameters
+    ----------
+    imu_t_s : (n,) s, sorted. gyro_b_rad_s : (n, 3) rad/s, body FRD.
+    ref_t_s, ref_down_b : (m,), (m, 3) reference down vector in body axes (unit), interpolated to IMU times.
+    q0_nb : (4,) initial attitude.
+
+    Returns
+    -------
+    (n, 4) quaternions q_nb at the IMU times.
+    """
+    p = p or TiltFilterParams()
+    n = imu_t_s.shape[0]
+    ref = _interp_rows(imu_t_s, ref_t_s, ref_down_b)
+    ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-9)
+    out = np.empty((n, 4))
+    bias = (0.0, 0.0, 0.0)
+    for _ in range(max(1, p.passes)):
+        bias = _tilt_pass(imu_t_s, gyro_b_rad_s, ref, q0_nb, p, bias, out)
+    return out
+
+
+def _tilt_pass(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    ref: F64,
+    q0_nb: F64,
+    p: TiltFilterParams,
+    bias0: tuple[float, float, float],
+    out: F64,
+) -> tuple[float, float, float]:
+    """One pass of the filter, writing ``out`` (n, 4); returns the final gyro-bias estimate (rad/s)."""
+    n = imu_t_s.shape[0]
+    w, x, y, z = (float(v) for v in q0_nb)
+    bx, by, bz = bias0
+    dts = np.diff(imu_t_s, prepend=imu_t_s[0])
+    med = float(np.median(dts[1:])) if n > 1 else 0.02
+    g = gyro_b_rad_s.tolist()
+    r = ref.tolist()
+    kp, ki = p.kp_rad_s, p.ki_rad_s2
+    for k in range(n):
+        dt = float(dts[k])
+        if not 0.0 < dt < 10.0 * med:
+            dt = 0.0 if k == 0 else med
+        # estimated down in body axes: third row of R_nb
+        dx = 2.0 * (x * z - w * y)
+        dy = 2.0 * (y * z + w * x)
+        dz = 1.0 - 2.0 * (x * x + y * y)
+        rx, ry, rz = r[k - 1] if k > 0 else r[0]  # the state still stands for t_{k-1}
+        # tilt error e = d_est x d_ref (rotation that takes the estimate to the reference)
+        ex = dy * rz - dz * ry
+        ey = dz * rx - dx * rz
+        ez = dx * ry - dy * rx
+        bx += ki * ex * dt
+        by += ki * ey * dt
+        bz += ki * ez * dt
+        # trapezoid: the mean rate over (t_{k-1}, t_k], whichever end of the interval a sample stands for
+        gp = g[k - 1] if k > 0 else g[k]
+        gx = 0.5 * (g[k][0] + gp[0])
+        gy = 0.5 * (g[k][1] + gp[1])
+        gz = 0.5 * (g[k][2] + gp[2])
+        ox = gx - bx - kp * ex
+        oy = gy - by - kp * ey
+        oz = gz - bz - kp * ez
+        # q <- q * exp(omega dt / 2), eq. (18) in closed form
+        ang = math.sqrt(ox * ox + oy * oy + oz * oz) * dt
+        if ang > 1e-12:
+            s = math.sin(ang / 2.0) / (ang / dt)
+            c = math.cos(ang / 2.0)
+            qx, qy, qz = ox * s, oy * s, oz * s
+            w, x, y, z = (
+                w * c - x * qx - y * qy - z * qz,
+                w * qx + x * c + y * qz - z * qy,
+                w * qy - x * qz + y * c + z * qx,
+                w * qz + x * qy - y * qx + z * c,
+            )
+            nq = math.sqrt(w * w + x * x + y * y + z * z)
+            w, x, y, z = w / nq, x / nq, y / nq, z / nq
+        out[k] = (w, x, y, z)
+    return bx, by, bz
+
+
+def quats_at(t_new: F64, t: F64, q: F64) -> F64:
+    """Quaternions at ``t_new`` by component-wise linear interpolation (sign-continuous) + renormalisation."""
+    qc = q.copy()
+    flip = np.sum(qc[1:] * qc[:-1], axis=1) < 0.0
+    sign = np.cumprod(np.where(np.concatenate([[False], flip]), -1.0, 1.0))
+    qc *= sign[:, None]
+    out = _interp_rows(t_new, t, qc)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def dcms_from_quats(q: F64) -> F64:
+    """(n, 4) -> (n, 3, 3) rotation matrices R_nb."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    r = np.empty((q.shape[0], 3, 3))
+    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    r[:, 0, 1] = 2 * (x * y - w * z)
+    r[:, 0, 2] = 2 * (x * z + w * y)
+    r[:, 1, 0] = 2 * (x * y + w * z)
+    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    r[:, 1, 2] = 2 * (y * z - w * x)
+    r[:, 2, 0] = 2 * (x * z - w * y)
+    r[:, 2, 1] = 2 * (y * z + w * x)
+    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
+def dcms_from_euler(att_rad: F64) -> F64:
+    """(n, 3) roll, pitch, yaw -> (n, 3, 3) R_nb."""
+    return np.stack([dcm_from_euler(float(a[0]), float(a[1]), float(a[2])) for a in att_rad])
+
+
+@dataclass(frozen=True)
+class AttitudeTrack:
+    """Rotation used by the forward model at the compass sample times.
+
+    r_nb: (n, 3, 3); source: 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or 'autopilot';
+    note: one sentence for the JSON ``evidence`` and the report.
+    """
+
+    r_nb: F64
+    source: str
+    note: str
+
+
+def attitude_track(
+    t_s: F64,
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    accel_b_m_s2: F64,
+    att_t_s: F64,
+    att_rad: F64,
+) -> AttitudeTrack:
+    """Choose and build the rotation for the forward model at times ``t_s`` (see module docstring)."""
+    has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
+    has_att = att_t_s.shape[0] >= 2
+    if has_gyro:
+        dev = np.linalg.norm(gyro_b_rad_s - np.median(gyro_b_rad_s, axis=0), axis=1)
+        if float(np.percentile(dev, 99)) < STATIONARY_RATE_RAD_S:
+            if has_att:
+                d = down_b_from_euler(att_rad[:, 0], att_rad[:, 1]).mean(axis=0)
+                roll0 = math.atan2(float(d[1]), float(d[2]))
+                pitch0 = -math.asin(float(np.clip(d[0] / np.linalg.norm(d), -1.0, 1.0)))
+            else:
+                roll0 = pitch0 = 0.0
+            r0 = dcm_from_euler(roll0, pitch0, 0.0)
+            return AttitudeTrack(
+                np.repeat(r0[None], t_s.shape[0], axis=0),
+                "stationary",
+                "the vehicle does not rotate (gyro within "
+                f"{STATIONARY_RATE_RAD_S} rad/s of its median): the Earth field is constant in body axes, as "
+                "in the paper's offline fit (eqs. (14a), (15)); the calibration is neither "
+                "needed nor observable",
+            )
+    if has_gyro:
+        if has_att:
+            ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
+            ref_t = att_t_s
+            d0 = _interp_rows(imu_t_s[:1], att_t_s, ref)[0]
+            roll0 = math.atan2(float(d0[1]), float(d0[2]))
+            pitch0 = -math.asin(float(np.clip(d0[0] / np.linalg.norm(d0), -1.0, 1.0)))
+            q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, float(att_rad[0, 2])))
+            src = "gyro+tilt(attitude)"
+            tilt = "the log's roll and pitch"
+        else:
+            a = accel_b_m_s2
+            ref = -a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+            ref_t = imu_t_s
+            d = ref[0]
+            roll0 = math.atan2(float(d[1]), float(d[2]))
+            pitch0 = -math.asin(float(np.clip(d[0], -1.0, 1.0)))
+            q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
+            src = "gyro+tilt(accelerometer)"
+            tilt = "the accelerometer's gravity direction"
+        q = propagate_attitude(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        r = dcms_from_quats(quats_at(t_s, imu_t_s, q))
+        note = (
+            "rotation from the gyro (eq. (18)) with tilt pulled toward "
+            f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
+            "because the autopilot's yaw is fused from the disturbed compass"
+        )
+        return AttitudeTrack(r, src, note)
+    if has_att:
+        att = np.column_stack([np.interp(t_s, att_t_s, np.unwrap(att_rad[:, j])) for j in range(3)])
+        return AttitudeTrack(
+            dcms_from_euler(att),
+            "autopilot",
+            "no gyro in the log: rotation from the autopilot's attitude, whose yaw came from the disturbed "
+            "compass, so the heading-axis part of the bias is partly hidden from this residual",
+        )
+    r = np.repeat(dcm_from_quat(np.array([1.0, 0.0, 0.0, 0.0]))[None], t_s.shape[0], axis=0)
+    return AttitudeTrack(r, "none", "no gyro and no attitude: the vehicle is assumed not to rotate")

@@ -1,0 +1,260 @@
+"""Markdown report with plots (matplotlib, Agg) for a :class:`~magcomp.diagnosis.engine.Diagnosis`.
+
+This is the one module of :mod:`magcomp.diagnosis` that writes files; the CLI calls it, the math never does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.diagnosis.effects import drive_columns
+from magcomp.diagnosis.engine import CompassDiagnosis, Diagnosis, compass_yaw_rad
+from magcomp.diagnosis.model import ModelFit, design
+
+F64 = NDArray[np.float64]
+
+
+def _earth_part(c: CompassDiagnosis, fit: ModelFit) -> F64:
+    x, _ = design(c.data, fit.inc_rad, fit.dec_rad, fit.drift_rad_s, fit.ext)
+    return np.asarray(x[:, :4] @ np.vstack([fit.a_mgauss.T, fit.c_mgauss]))
+
+
+def write_plots(c: CompassDiagnosis, out_dir: Path, stem: str) -> list[tuple[str, str]]:
+    """PNG figures for compass ``c``; returns (file name, caption) pairs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t = c.data.t_s - c.data.t_s[0]
+    thr = np.interp(c.data.t_s, c.data.drive.grid_t_s, c.data.drive.throttle_grid)
+    figs: list[tuple[str, str]] = []
+
+    # 1. residual of both models over time, with the throttle
+    fig, axes = plt.subplots(4, 1, figsize=(10, 8), sharex=True)
+    for i, ax in enumerate(axes[:3]):
+        ax.plot(
+            t, c.baseline.residual_mgauss[:, i], ".", ms=1.5, color="tab:red", label="paper model eq. (11)"
+        )
+        ax.plot(t, c.extended.residual_mgauss[:, i], ".", ms=1.5, color="tab:green", label="extended model")
+        ax.set_ylabel(f"{'XYZ'[i]} residual\nmgauss")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", markerscale=6, fontsize=8)
+    axes[3].plot(t, thr, color="k", lw=0.8)
+    axes[3].set_ylabel("throttle 0..1")
+    axes[3].set_xlabel("time since first compass sample, s")
+    fig.suptitle(f"Compass {c.index}: measured minus predicted field")
+    name = f"{stem}_compass{c.index}_residual.png"
+    fig.tight_layout()
+    fig.savefig(out_dir / name, dpi=90)
+    plt.close(fig)
+    figs.append((name, "Measured minus predicted field, per axis (red: the paper's model; green: extended)."))
+
+    # 2. bias against throttle: measured field minus the fitted Earth part, with both models' bias curves
+    meas = c.data.field_mgauss - _earth_part(c, c.extended)
+    cols_b, _ = drive_columns(c.data.drive, c.baseline.ext)
+    bias_b = cols_b @ c.baseline.coefs
+    bias_e = c.bias_mgauss(c.extended)
+    order = np.argsort(thr)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    for i, ax in enumerate(axes):
+        ax.plot(thr, meas[:, i], ".", ms=1.5, color="0.6", label="measured")
+        ax.plot(thr[order], bias_b[order, i], color="tab:red", lw=1, label="theta throttle^2 (eq. 11)")
+        ax.plot(thr[order], bias_e[order, i], ".", ms=1, color="tab:green", label="extended")
+        ax.set_xlabel("throttle 0..1")
+        ax.set_title(f"{'XYZ'[i]} bias, mgauss")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, markerscale=6)
+    fig.tight_layout()
+    name = f"{stem}_compass{c.index}_bias.png"
+    fig.savefig(out_dir / name, dpi=90)
+    plt.close(fig)
+    figs.append(
+        (
+            name,
+            "Bias against throttle: the measured field minus the fitted Earth field and hard iron "
+            "(grey), the paper's model (red), the extended model (green).",
+        )
+    )
+
+    # 3. the largest step of the field with the motors off: measured against predicted
+    if c.field_step is not None and c.field_step.get("t_s") is not None:
+        ts = float(c.field_step["t_s"])
+        win = (c.data.t_s > ts - 6.0) & (c.data.t_s < ts + 6.0)
+        pred = c.data.field_mgauss - c.extended.residual_mgauss
+        fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+        for i, ax in enumerate(axes):
+            ax.plot(
+                c.data.t_s[win],
+                c.data.field_mgauss[win, i],
+                ".-",
+                ms=3,
+                lw=0.6,
+                color="0.3",
+                label="measured",
+            )
+            ax.plot(c.data.t_s[win], pred[win, i], lw=1.2, color="tab:blue", label="forward model (gyro)")
+            ax.axvline(ts, color="tab:red", lw=0.8, ls="--")
+            ax.set_title(f"{'XYZ'[i]}, mgauss")
+            ax.set_xlabel("log time, s")
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=7)
+        fig.tight_layout()
+        name = f"{stem}_compass{c.index}_motors_off_step.png"
+        fig.savefig(out_dir / name, dpi=90)
+        plt.close(fig)
+        figs.append(
+            (name, f"Largest field step with the motors off (t = {ts:.1f} s): measured and predicted.")
+        )
+
+    # 4. heading error, when there is a reference
+    if c.heading is not None:
+        fig, ax = plt.subplots(figsize=(10, 3.5))
+        for label, fit, remove, color in (
+            ("uncompensated", c.baseline, False, "tab:red"),
+            ("paper", c.baseline, True, "tab:orange"),
+            ("extended", c.extended, True, "tab:green"),
+        ):
+            yaw = np.degrees(np.unwrap(compass_yaw_rad(c.data, fit, remove)))
+            ax.plot(t, yaw - yaw[0], lw=0.8, color=color, label=label)
+        ax.set_ylabel("compass heading change, deg")
+        ax.set_xlabel("time, s")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        name = f"{stem}_compass{c.index}_heading.png"
+        fig.savefig(out_dir / name, dpi=90)
+        plt.close(fig)
+        figs.append((name, f"Heading from the compass (reference: {c.heading.reference})."))
+    return figs
+
+
+def _vec(v: Any) -> str:
+    return "[" + ", ".join(f"{float(x):.1f}" for x in v) + "]"
+
+
+def markdown(
+    d: Diagnosis, figures: dict[int, list[tuple[str, str]]] | None = None, rel_dir: str = "."
+) -> str:
+    """The report as Markdown; ``figures`` maps compass index -> (file, caption) under ``rel_dir``."""
+    j = d.to_json()
+    lines = [f"# magcomp diagnosis: `{Path(d.log_source).name}`", ""]
+    lines += [
+        "What this is: the paper's model of the compass (calibration + Earth field + "
+        "bias = theta * throttle^2, "
+        "eq. (11)) is driven with this log's own rotation, throttle, battery and temperature and compared "
+        "with what the compass measured. Extensions (physical causes the paper ignores) are kept only when "
+        "they predict unseen parts of the log better (blocked cross-validation) and win on BIC.",
+        "",
+        "| compass | theta at full throttle (mgauss, compass frame) | residual paper "
+        "(mgauss) | residual extended "
+        "| findings |",
+        "|---|---|---|---|---|",
+    ]
+    for c in d.compasses:
+        names = ", ".join(f.effect for f in c.findings) or "none"
+        lines.append(
+            f"| {c.index} | {_vec(c.extended.theta_mgauss)} | {c.baseline.rms_mgauss:.2f} | "
+            f"{c.extended.rms_mgauss:.2f} | {names} |"
+        )
+    lines.append("")
+    g = j["gain"]
+    lines += [
+        f"Primary compass {d.primary}: residual {j['residual_rms_baseline']} -> "
+        f"{j['residual_rms_extended']} mgauss per axis (ratio {g['residual_rms_ratio']})."
+    ]
+    if "heading_error_rms_deg" in g:
+        h = g["heading_error_rms_deg"]
+        lines.append(
+            f"Heading error against {g['heading_reference']} (rms, deg; tilt under 45 deg): "
+            f"uncompensated {h['uncompensated']}, paper {h['paper']}, extended {h['extended']}."
+        )
+    lines.append("")
+    for note in d.notes:
+        lines.append(f"- note: {note}")
+    for c in d.compasses:
+        lines += _compass_section(c, (figures or {}).get(c.index, []), rel_dir)
+    return "\n".join(lines) + "\n"
+
+
+def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: str) -> list[str]:
+    cj = c.to_json()
+    out = ["", f"## Compass {c.index}", ""]
+    out.append(f"Rotation used by the model: {c.data.attitude_note}.")
+    out.append(
+        f"Earth field through the calibration: {cj['field_strength_mgauss']} mgauss, inclination "
+        f"{cj['inclination_deg']} deg; heading drift of the gyro {cj['heading_drift_deg_per_min']} deg/min."
+    )
+    out.append("")
+    if c.findings:
+        out.append("### What the paper's model gets wrong here")
+        out.append("")
+        for k, f in enumerate(c.findings, 1):
+            ev = f.evidence
+            out.append(
+                f"{k}. **{f.effect}** {f.params}: {f.cause} Held-out residual "
+                f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss ({ev['cv_gain_pct']} %), "
+                f"delta BIC {ev['delta_bic']}; residual after: {f.residual_rms_after:.2f} mgauss."
+            )
+        out.append("")
+    else:
+        out.append(
+            "No extension improves the prediction of held-out data: the paper's model explains this "
+            "compass as far as the log can tell."
+        )
+        out.append("")
+    if cj["unavailable"]:
+        out.append(
+            "Not testable in this log: " + "; ".join(f"{k} ({v})" for k, v in cj["unavailable"].items()) + "."
+        )
+        out.append("")
+    if c.suspects:
+        out.append("### What the remaining residual follows")
+        out.append("")
+        out.append("| signal | lag s | share of residual variance |")
+        out.append("|---|---|---|")
+        for s in c.suspects[:6]:
+            out.append(f"| {s.signal} | {s.lag_s:+.1f} | {100 * s.r2:.1f} % |")
+        out.append("")
+    if c.step is not None and c.step.size_sigma > 8.0:
+        st = c.step
+        co = ", ".join(f"{k} ({v:+.2f} sd)" for k, v in list(st.co_stepping.items())[:4])
+        evs = "; ".join(e for _, e in st.events[:5]) or "none logged"
+        out.append(
+            f"Largest step in the residual: {_vec(st.size_mgauss)} mgauss at t = {st.t_s:.1f} s "
+            f"({st.size_sigma:.0f} noise units). Signals stepping at the same time: {co or 'none'}. "
+            f"Events within 2 s: {evs}."
+        )
+        out.append("")
+    out.append("### Compensation in autopilot terms")
+    out.append("")
+    out.append(cj["linearisation"])
+    out.append("")
+    for k, v in cj["autopilot"].items():
+        out.append(f"- {k}: " + ", ".join(f"`{p}={val}`" for p, val in v.items()))
+    out.append("")
+    for name, caption in figs:
+        out.append(f"![{caption}]({rel_dir}/{name})")
+        out.append("")
+        out.append(f"*{caption}*")
+        out.append("")
+    return out
+
+
+def write_report(d: Diagnosis, path: Path, img_dir: Path | None = None) -> list[Path]:
+    """Write the Markdown report to ``path`` and its PNGs to ``img_dir`` (default: beside it)."""
+    img_dir = img_dir or path.parent / (path.stem + "_img")
+    stem = path.stem
+    figs = {c.index: write_plots(c, img_dir, stem) for c in d.compasses}
+    try:
+        rel = img_dir.resolve().relative_to(path.parent.resolve()).as_posix()
+    except ValueError:
+        rel = img_dir.resolve().as_posix()
+    path.write_text(markdown(d, figs, rel), encoding="utf-8")
+    written = [path] + [img_dir / f for fl in figs.values() for f, _ in fl]
+    return written
