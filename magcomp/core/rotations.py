@@ -61,6 +61,23 @@ def dcm_from_quat(q_nb: ArrayLike) -> F64:
     )
 
 
+def dcms_from_quats(q_nb: ArrayLike) -> F64:
+    """``R_nb`` for each row of ``q_nb`` (n, 4) -> (n, 3, 3): the vectorised :func:`dcm_from_quat`."""
+    q = np.asarray(q_nb, dtype=float)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    r = np.empty((q.shape[0], 3, 3))
+    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    r[:, 0, 1] = 2 * (x * y - w * z)
+    r[:, 0, 2] = 2 * (x * z + w * y)
+    r[:, 1, 0] = 2 * (x * y + w * z)
+    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    r[:, 1, 2] = 2 * (y * z - w * x)
+    r[:, 2, 0] = 2 * (x * z - w * y)
+    r[:, 2, 1] = 2 * (y * z + w * x)
+    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
 def quat_from_dcm(r_nb: ArrayLike) -> F64:
     """Unit quaternion ``q_nb`` from ``R_nb`` (Shepperd's method, numerically safe)."""
     m = np.asarray(r_nb, dtype=float)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, quat_from_dcm
+from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, dcms_from_quats, quat_from_dcm
 
 F64 = NDArray[np.float64]
 
@@ -161,20 +161,6 @@ def quats_at(t_new: F64, t: F64, q: F64) -> F64:
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
-def dcms_from_quats(q: F64) -> F64:
-    """(n, 4) -> (n, 3, 3) rotation matrices R_nb."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    r = np.empty((q.shape[0], 3, 3))
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - w * z)
-    r[:, 0, 2] = 2 * (x * z + w * y)
-    r[:, 1, 0] = 2 * (x * y + w * z)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - w * x)
-    r[:, 2, 0] = 2 * (x * z - w * y)
-    r[:, 2, 1] = 2 * (y * z + w * x)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
 
 
 def dcms_from_euler(att_rad: F64) -> F64:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.rotations import quat_from_euler, quat_integrate_body_rate
+from magcomp.core.rotations import dcms_from_quats, quat_from_euler, quat_integrate_body_rate
 
 F64 = NDArray[np.float64]
 GRAVITY_M_S2 = 9.80665
@@ -94,18 +94,7 @@ def _quat_mul_batch(p: F64, q: F64) -> F64:
 
 def dcm_batch(q_nb: F64) -> F64:
     """``R_nb`` for each row of q_nb (n, 4) -> (n, 3, 3)."""
-    w, x, y, z = q_nb[:, 0], q_nb[:, 1], q_nb[:, 2], q_nb[:, 3]
-    r = np.empty((q_nb.shape[0], 3, 3))
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - w * z)
-    r[:, 0, 2] = 2 * (x * z + w * y)
-    r[:, 1, 0] = 2 * (x * y + w * z)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - w * x)
-    r[:, 2, 0] = 2 * (x * z - w * y)
-    r[:, 2, 1] = 2 * (y * z + w * x)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
+    return dcms_from_quats(q_nb)
 
 
 def euler_batch(q_nb: F64) -> F64:

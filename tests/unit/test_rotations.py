@@ -41,3 +41,11 @@ def test_frd_ned_convention_nose_east_and_down_vector() -> None:
     # roll +90 deg (right wing down): NED down is along body -y
     q = rot.quat_from_euler(np.pi / 2, 0.0, 0.3)
     np.testing.assert_allclose(rot.down_b_from_quat(q), [0, 1, 0], atol=1e-12)
+
+
+def test_batch_dcm_equals_single(rng: np.random.Generator) -> None:
+    q = rng.normal(size=(20, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    batch = rot.dcms_from_quats(q)
+    for qi, ri in zip(q, batch, strict=True):
+        np.testing.assert_allclose(ri, rot.dcm_from_quat(qi), atol=1e-14)
