@@ -1,15 +1,77 @@
-"""`magcomp replay`: not implemented yet (issue #4)."""
+"""`magcomp replay`: run the whole pipeline over a tlog or DataFlash log as fast as the machine goes."""
 
 from __future__ import annotations
 
 import argparse
 
-from magcomp.errors import NotImplementedYet
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = "Not implemented yet: issue #4 fills this in."
+    from magcomp.adapters.rerun_viz import add_rerun_argument
+
+    parser.add_argument("log", metavar="LOG", help=".tlog, raw MAVLink, or ArduPilot DataFlash .bin/.log")
+    parser.add_argument("--emit", metavar="OUT.tlog", help="write every published MAGCOMP_HEADING to a tlog")
+    parser.add_argument("--json", metavar="SUMMARY.json", help="write a JSON summary: counts, theta")
+    parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
+    parser.add_argument(
+        "--state-dir",
+        metavar="DIR",
+        help="load and save calibration and theta here (default: none; a replay starts fresh)",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    add_rerun_argument(parser)
 
 
 def execute(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("'replay' is not implemented yet (issue #4)")
+    from magcomp.adapters.config import load_config
+    from magcomp.adapters.rerun_viz import open_viz
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.service.console import (
+        SKIP_KEYS,
+        format_counts,
+        primary_compass,
+        setup_logging,
+        summary_lines,
+        write_json,
+    )
+    from magcomp.service.replay import replay_log
+
+    setup_logging("replay", args.verbose)
+    cfg = load_config(args.config)
+    store = StateStore(args.state_dir) if args.state_dir else None
+    viz = None
+    if args.rerun:
+        viz = open_viz(args.rerun, live=False, recording_name=f"magcomp replay {args.log}")
+    if viz is not None and viz.notice:
+        print(viz.notice, flush=True)
+    texts: list[tuple[float, str]] = []
+    report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_estimates=viz is not None,
+                        on_text=lambda t, m: texts.append((t, m)))  # fmt: skip
+    counts = report.counts
+    print(f"{args.log}: {report.n_estimates} headings in {report.wall_s:.2f} s")
+    for line in summary_lines(report.summary):
+        print(line)
+    print(f"skipped or absorbed: {format_counts(counts, SKIP_KEYS)}")
+    for w in report.summary["warnings"]:
+        print(f"warning: {w}")
+    if args.emit:
+        print(f"wrote {report.emitted} MAGCOMP_HEADING to {args.emit}")
+    if args.json:
+        write_json(args.json, report.to_json())
+    if viz is not None:
+        primary = primary_compass(cfg.input.compasses)
+        viz.log_estimates([e for e in report.estimates if e.mag_index == primary])
+        if primary in report.clouds and len(report.clouds[primary][0]):
+            viz.log_calibration_cloud(*report.clouds[primary])
+        for t, m in texts:
+            viz.log_text(t, m)
+        if viz.keeps_serving:
+            print("serving the viewer; press ^C to stop", flush=True)
+            try:
+                import time
+
+                while True:
+                    time.sleep(1.0)
+            except KeyboardInterrupt:
+                pass
+        viz.close()
+    return 0

@@ -1,15 +1,93 @@
-"""`magcomp run`: not implemented yet (issue #4)."""
+"""`magcomp run`: attach to a live flight-controller link and publish corrected headings (MAGCOMP_HEADING)."""
 
 from __future__ import annotations
 
 import argparse
 
-from magcomp.errors import NotImplementedYet
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = "Not implemented yet: issue #4 fills this in."
+    from magcomp.adapters.rerun_viz import add_rerun_argument
+
+    parser.add_argument(
+        "--master",
+        required=True,
+        metavar="URL",
+        help="the flight controller's link: udpin:0.0.0.0:14550 (MAGCOMP_HEADING goes back to the "
+        "sender), udpout:HOST:PORT, tcp:HOST:PORT, tcpin:0.0.0.0:PORT, /dev/ttyACM0:115200 or "
+        "serial:/dev/ttyUSB0:57600",
+    )
+    parser.add_argument(
+        "--out", action="append", default=[], metavar="URL", help="also publish on this link (repeatable)"
+    )
+    parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
+    parser.add_argument(
+        "--state-dir",
+        metavar="DIR",
+        help="calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)",
+    )
+    parser.add_argument("--json", metavar="SUMMARY.json", help="write a summary when the run ends")
+    parser.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S seconds (default: run until ^C)"
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    add_rerun_argument(parser)
 
 
 def execute(args: argparse.Namespace) -> int:
-    raise NotImplementedYet("'run' is not implemented yet (issue #4)")
+    import signal
+    import threading
+
+    from magcomp.adapters.config import load_config
+    from magcomp.adapters.rerun_viz import open_viz
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.core.types import HeadingEstimate
+    from magcomp.errors import InputError
+    from magcomp.service.console import (
+        default_state_dir,
+        primary_compass,
+        setup_logging,
+        summary_lines,
+        write_json,
+    )
+    from magcomp.service.daemon import Daemon
+
+    if args.duration is not None and not args.duration > 0:
+        raise InputError(f"--duration must be > 0, got {args.duration}")
+    setup_logging("run", args.verbose)
+    cfg = load_config(args.config)
+    store = StateStore(args.state_dir or default_state_dir())
+    viz = open_viz(args.rerun, live=True, recording_name="magcomp run")
+    if viz.notice:
+        print(viz.notice, flush=True)
+    primary = primary_compass(cfg.input.compasses)
+
+    def show(est: HeadingEstimate) -> None:
+        if est.mag_index == primary:
+            viz.log_estimate(est)
+
+    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text)
+
+    def on_signal(signum: int, frame: object) -> None:
+        daemon.stop()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    timer = threading.Timer(args.duration, daemon.stop) if args.duration else None
+    if timer is not None:
+        timer.daemon = True
+        timer.start()
+    try:
+        report = daemon.run()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if timer is not None:
+            timer.cancel()
+        viz.close()
+    for line in summary_lines(report.summary):
+        print(line)
+    lat = report.latency_ms
+    if lat:
+        print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
+    if args.json:
+        write_json(args.json, report.to_json())
+    return 0

@@ -1,0 +1,94 @@
+"""Replay speed: the whole pipeline over a long tlog vs pymavlink merely parsing the same file.
+
+Baseline: ``mavutil.mavlink_connection(path)`` + ``recv_msg()`` until None (every message decoded,
+nothing else done). Measured: ``magcomp.service.replay.replay_log`` (source -> alignment -> Mahony ->
+calibration -> observer -> heading; two compasses), and the source alone. Wall times, min and median of
+``--repeat`` runs, from one process on this machine.
+
+    .venv/bin/python benchmarks/replay_speed.py [--duration 600] [--repeat 3] [--emit]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from magcomp.adapters.config import Config
+from magcomp.service.replay import replay_log
+
+
+def timed(fn: object, repeat: int) -> list[float]:
+    out = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()  # type: ignore[operator]
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=600.0, help="simulated seconds (paper scenario)")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--emit", action="store_true", help="also write every MAGCOMP_HEADING to a tlog")
+    args = ap.parse_args()
+
+    from magcomp.adapters.dialect import ensure_dialect
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.adapters.mavlink_source import open_source
+    from magcomp.sim import SimConfig, simulate
+
+    ensure_dialect()
+    from pymavlink import mavutil
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "long.tlog"
+        n_msgs = write_tlog(simulate(SimConfig(scenario="paper", duration_s=args.duration, seed=0)), path)
+        size_mb = path.stat().st_size / 1e6
+
+        def parse_only() -> None:
+            conn = mavutil.mavlink_connection(str(path), dialect="magcomp")
+            while conn.recv_msg() is not None:
+                pass
+            conn.close()
+
+        def source_only() -> None:
+            with open_source(path) as src:
+                for _ in src.samples():
+                    pass
+
+        emit = str(Path(tmp) / "out.tlog") if args.emit else None
+        report: list[object] = []
+
+        def replay() -> None:
+            report.append(replay_log(path, Config(), emit=emit))
+
+        # interleaved, so that load from other processes hits all three alike
+        base: list[float] = []
+        src: list[float] = []
+        rep: list[float] = []
+        for _ in range(args.repeat):
+            base += timed(parse_only, 1)
+            src += timed(source_only, 1)
+            rep += timed(replay, 1)
+    n_est = report[-1].n_estimates  # type: ignore[attr-defined]
+    print(f"tlog: {args.duration:g} s simulated, {n_msgs} messages, {size_mb:.1f} MB; {n_est} headings")
+    for name, ts in (("mavutil parse only", base), ("magcomp source only", src), ("magcomp replay", rep)):
+        med = statistics.median(ts)
+        print(f"{name:<22} min {min(ts):6.2f} s  median {med:6.2f} s  "
+              f"{n_msgs / med / 1e3:6.1f} k msgs/s  {args.duration / med:7.0f}x real time")  # fmt: skip
+    ratio = statistics.median(rep) / statistics.median(base)
+    src_ratio = statistics.median(src) / statistics.median(base)
+    print(f"replay / parse-only wall time: median {ratio:.2f}, best {min(rep) / min(base):.2f} "
+          f"(target <= 1.0); source alone: {src_ratio:.2f}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,324 @@
+"""Configuration: TOML (``tomllib``) -> frozen dataclasses, every value validated once.
+
+A file only needs the keys it changes; everything else keeps the defaults below, which
+``config/default.toml`` mirrors key for key (a test holds them equal). Unknown sections or keys are
+rejected with their name, wrong types and out-of-range values with the key, the rule and the value,
+always as one-line :class:`~magcomp.errors.InputError` messages such as
+``config my.toml: [observer] k1 must be > 0, got -1``.
+
+This is the only module that reads configuration files.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from magcomp.errors import InputError
+
+ATTITUDE_SOURCES = ("mahony", "autopilot")
+CALIBRATION_MODES = ("auto", "learn", "stored", "none")
+OBSERVER_FORMS = ("default", "paper", "delta_dot", "regression")
+
+
+class ConfigError(InputError):
+    """A configuration file or value that cannot be used."""
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """Which inputs to use and which samples to refuse.
+
+    throttle_source: ``auto``, ``servo:N``, ``motors``, ``rc:N``, ``vfr_hud``, ``ctun``, ``none``.
+    compasses: compass indices to correct; empty = every compass the vehicle sends.
+    attitude: ``mahony`` (our own filter on gyro + accelerometer, as in the paper, sec. II-A) or
+    ``autopilot`` (roll and pitch from ATTITUDE).
+    """
+
+    throttle_source: str = "auto"
+    compasses: tuple[int, ...] = ()
+    attitude: str = "mahony"
+    saturation_mgauss: float = 8000.0
+    gyro_saturation_rad_s: float = 34.0
+    stale_s: float = 0.5
+    time_reset_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """The 5 Hz low-pass of sec. II-D."""
+
+    corner_hz: float = 5.0
+    order: int = 2
+
+
+@dataclass(frozen=True)
+class ObserverConfig:
+    """Online theta estimator, eq. (20) family (:mod:`magcomp.core.observer`).
+
+    form: ``default``/``regression`` (recursive least squares on the exact discrete model, the 5 Hz
+    filter on the regression: unbiased), ``delta_dot`` (eq. (20) with the throttle-rate term of
+    eq. (16)), ``paper`` (eq. (20) as printed). k1 (1/s), k2: gains of eq. (20) (observer forms);
+    forget_s: forgetting time constant of the regression form. learn = false: keep the stored theta
+    fixed (no online estimation; bias = stored theta * throttle^2). max_throttle_jump_01: a magnetometer
+    sample between two throttle samples further apart than this is not used by the observer (the
+    instant of the step is unknown, and interpolating across it would feed eq. (16) a wrong delta_dot).
+    """
+
+    form: str = "default"
+    learn: bool = True
+    k1: float = 2.0
+    k2: float = 4.0
+    forget_s: float = 30.0
+    theta_max_mgauss: float = 2000.0
+    dt_min_s: float = 0.001
+    dt_max_s: float = 0.2
+    max_throttle_jump_01: float = 0.15
+
+
+@dataclass(frozen=True)
+class MahonyConfig:
+    """Complementary attitude filter of ref. [23] (gains in rad/s per unit error)."""
+
+    kp: float = 1.0
+    ki: float = 0.1
+    accel_gate_m_s2: float = 2.0
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """DPI calibration, eqs. (1)-(3), from a hand rotation at zero throttle.
+
+    mode: ``auto`` (stored calibration if any, else learn one), ``learn`` (ignore the stored one),
+    ``stored`` (only a stored one; uncalibrated otherwise), ``none`` (identity: L = I, d = 0).
+    """
+
+    mode: str = "auto"
+    max_throttle_01: float = 0.05
+    min_samples: int = 500
+    max_samples: int = 10000
+    check_every: int = 250
+
+
+@dataclass(frozen=True)
+class LocationConfig:
+    """Where the vehicle flies, for the WMM Earth field the calibration is scaled to."""
+
+    lat_deg: float = 29.65
+    lon_deg: float = -82.35
+    alt_m: float = 30.0
+    decimal_year: float = 2025.5
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """What is published. rate_hz = 0: one MAGCOMP_HEADING per magnetometer sample.
+
+    heading_tau_s: time constant of the gyro-aided complementary filter on both headings (0 = the raw
+    per-sample tilt-compensated eq. (24)); see :class:`magcomp.service.estimators.HeadingFilter`.
+    """
+
+    rate_hz: float = 0.0
+    heading_tau_s: float = 1.0
+    source_system: int = 0
+    source_component: int = 191
+
+
+@dataclass(frozen=True)
+class StateConfig:
+    """How often theta is written to the state directory (message time)."""
+
+    save_interval_s: float = 10.0
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Live link behaviour."""
+
+    reconnect_s: float = 1.0
+    silence_s: float = 5.0
+    heartbeat_hz: float = 1.0
+
+
+@dataclass(frozen=True)
+class Config:
+    input: InputConfig = field(default_factory=InputConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    mahony: MahonyConfig = field(default_factory=MahonyConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    location: LocationConfig = field(default_factory=LocationConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    state: StateConfig = field(default_factory=StateConfig)
+    link: LinkConfig = field(default_factory=LinkConfig)
+
+
+# ----------------------------------------------------------------------------------------- validation
+
+
+def _positive(v: float) -> bool:
+    return v > 0.0
+
+
+def _non_negative(v: float) -> bool:
+    return v >= 0.0
+
+
+# (section, key) -> (predicate, rule text). Types are checked separately from the dataclass defaults.
+_RULES: dict[tuple[str, str], tuple[Any, str]] = {
+    ("input", "attitude"): (lambda v: v in ATTITUDE_SOURCES, f"be one of {', '.join(ATTITUDE_SOURCES)}"),
+    ("input", "throttle_source"): (
+        lambda v: (
+            v in ("auto", "motors", "vfr_hud", "ctun", "none")
+            or (v.split(":")[0] in ("servo", "rc") and v.split(":")[-1].isdigit() and ":" in v)
+        ),
+        "be auto, motors, vfr_hud, ctun, none, servo:N or rc:N",
+    ),
+    ("input", "compasses"): (lambda v: all(0 <= i <= 7 for i in v), "hold compass indices 0..7"),
+    ("input", "saturation_mgauss"): (_positive, "be > 0"),
+    ("input", "gyro_saturation_rad_s"): (_positive, "be > 0"),
+    ("input", "stale_s"): (_positive, "be > 0"),
+    ("input", "time_reset_s"): (_positive, "be > 0"),
+    ("filter", "corner_hz"): (_positive, "be > 0"),
+    ("filter", "order"): (lambda v: v in (1, 2), "be 1 or 2"),
+    ("observer", "form"): (lambda v: v in OBSERVER_FORMS, f"be one of {', '.join(OBSERVER_FORMS)}"),
+    ("observer", "k1"): (_positive, "be > 0"),
+    ("observer", "k2"): (_positive, "be > 0"),
+    ("observer", "forget_s"): (_positive, "be > 0"),
+    ("observer", "theta_max_mgauss"): (_positive, "be > 0"),
+    ("observer", "dt_min_s"): (_positive, "be > 0"),
+    ("observer", "dt_max_s"): (lambda v: 0.0 < v <= 5.0, "be in (0, 5] s"),
+    ("observer", "max_throttle_jump_01"): (lambda v: 0.0 < v <= 1.0, "be in (0, 1]"),
+    ("mahony", "kp"): (_non_negative, "be >= 0"),
+    ("mahony", "ki"): (_non_negative, "be >= 0"),
+    ("mahony", "accel_gate_m_s2"): (_positive, "be > 0"),
+    ("calibration", "mode"): (lambda v: v in CALIBRATION_MODES, f"be one of {', '.join(CALIBRATION_MODES)}"),
+    ("calibration", "max_throttle_01"): (lambda v: 0.0 <= v <= 1.0, "be in [0, 1]"),
+    ("calibration", "min_samples"): (lambda v: v >= 20, "be >= 20"),
+    ("calibration", "max_samples"): (lambda v: v >= 20, "be >= 20"),
+    ("calibration", "check_every"): (lambda v: v >= 1, "be >= 1"),
+    ("location", "lat_deg"): (lambda v: -90.0 <= v <= 90.0, "be in [-90, 90]"),
+    ("location", "lon_deg"): (lambda v: -180.0 <= v <= 360.0, "be in [-180, 360]"),
+    ("location", "alt_m"): (lambda v: -1000.0 <= v <= 100000.0, "be in [-1000, 100000] m"),
+    ("location", "decimal_year"): (lambda v: 2025.0 <= v < 2030.0, "be in [2025, 2030) (WMM-2025 validity)"),
+    ("output", "rate_hz"): (_non_negative, "be >= 0 (0 = every magnetometer sample)"),
+    ("output", "heading_tau_s"): (lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)"),
+    ("output", "source_system"): (lambda v: 0 <= v <= 255, "be in 0..255 (0 = the vehicle's own id)"),
+    ("output", "source_component"): (lambda v: 1 <= v <= 255, "be in 1..255"),
+    ("state", "save_interval_s"): (_positive, "be > 0"),
+    ("link", "reconnect_s"): (_positive, "be > 0"),
+    ("link", "silence_s"): (_positive, "be > 0"),
+    ("link", "heartbeat_hz"): (_non_negative, "be >= 0 (0 = no heartbeat)"),
+}
+
+
+def _coerce(origin: str, section: str, key: str, default: Any, value: Any) -> Any:
+    """Check ``value`` against the type of ``default``; ints are accepted where floats are expected."""
+    where = f"config {origin}: [{section}] {key}"
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where} must be a number, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise ConfigError(f"{where} must be finite, got {value!r}")
+        return float(value)
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return value
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        return value
+    if isinstance(default, tuple):
+        ints = isinstance(value, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in value)
+        if not ints:
+            raise ConfigError(f"{where} must be a list of integers, got {value!r}")
+        return tuple(value)
+    raise ConfigError(f"{where}: unsupported value {value!r}")  # pragma: no cover
+
+
+def config_from_dict(data: dict[str, Any], origin: str = "<dict>", base: Config | None = None) -> Config:
+    """Validate a parsed TOML document and lay it over ``base`` (default: the built-in defaults)."""
+    cfg = base if base is not None else Config()
+    section_names = [f.name for f in fields(Config)]
+    for name in data:
+        if name not in section_names:
+            known = ", ".join(section_names)
+            raise ConfigError(f"config {origin}: unknown section [{name}] (known: {known})")
+    updates: dict[str, Any] = {}
+    for name in section_names:
+        if name not in data:
+            continue
+        raw = data[name]
+        if not isinstance(raw, dict):
+            raise ConfigError(f"config {origin}: [{name}] must be a table, got {raw!r}")
+        current = getattr(cfg, name)
+        keys = [f.name for f in fields(current)]
+        changes: dict[str, Any] = {}
+        for key, value in raw.items():
+            if key not in keys:
+                known = ", ".join(keys)
+                raise ConfigError(f"config {origin}: unknown key '{key}' in [{name}] (known: {known})")
+            v = _coerce(origin, name, key, getattr(current, key), value)
+            rule = _RULES.get((name, key))
+            if rule is not None and not rule[0](v):
+                raise ConfigError(f"config {origin}: [{name}] {key} must {rule[1]}, got {value!r}")
+            changes[key] = v
+        updates[name] = replace(current, **changes)
+    out = replace(cfg, **updates)
+    _check_cross(out, origin)
+    return out
+
+
+def _check_cross(cfg: Config, origin: str) -> None:
+    if cfg.observer.dt_min_s >= cfg.observer.dt_max_s:
+        raise ConfigError(
+            f"config {origin}: [observer] dt_min_s ({cfg.observer.dt_min_s}) must be below dt_max_s "
+            f"({cfg.observer.dt_max_s})"
+        )
+    if cfg.calibration.min_samples > cfg.calibration.max_samples:
+        raise ConfigError(
+            f"config {origin}: [calibration] min_samples ({cfg.calibration.min_samples}) must not exceed "
+            f"max_samples ({cfg.calibration.max_samples})"
+        )
+
+
+def load_config(path: str | Path | None = None, base: Config | None = None) -> Config:
+    """Read a TOML file (``None``: the defaults). Raises :class:`ConfigError` with a one-line message."""
+    if path is None:
+        return base if base is not None else Config()
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config {p}: no such file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"config {p}: is a directory, not a TOML file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config {p}: cannot read ({exc.__class__.__name__}: {exc})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config {p}: not valid TOML ({exc})") from None
+    return config_from_dict(data, str(p), base)
+
+
+def config_to_dict(cfg: Config) -> dict[str, dict[str, Any]]:
+    """The configuration as plain values (for summaries and for comparing with default.toml)."""
+    out: dict[str, dict[str, Any]] = {}
+    for sec in fields(cfg):
+        section = getattr(cfg, sec.name)
+        out[sec.name] = {
+            f.name: list(getattr(section, f.name))
+            if isinstance(getattr(section, f.name), tuple)
+            else getattr(section, f.name)
+            for f in fields(section)
+        }
+    return out

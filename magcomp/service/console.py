@@ -1,0 +1,95 @@
+"""Shared wiring for the service commands: logging to stderr, state directory, summaries as text."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from magcomp.errors import InputError
+
+
+def setup_logging(command: str, verbose: bool = False) -> None:
+    """One line per event on stderr: ``HH:MM:SS magcomp run: message``."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(f"%(asctime)s magcomp {command}: %(message)s", "%H:%M:%S"))
+    root = logging.getLogger("magcomp")
+    root.handlers[:] = [handler]
+    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+
+
+def default_state_dir() -> Path:
+    """``$MAGCOMP_STATE_DIR``, else ``$XDG_STATE_HOME/magcomp``, else ``~/.local/state/magcomp``."""
+    env = os.environ.get("MAGCOMP_STATE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_STATE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".local" / "state") / "magcomp"
+
+
+def write_json(path: str | Path, doc: dict[str, Any]) -> None:
+    p = Path(path)
+    try:
+        p.write_text(json.dumps(doc, indent=2, default=_plain) + "\n")
+    except OSError as exc:
+        raise InputError(f"cannot write {p}: {exc.strerror}") from None
+
+
+def _plain(obj: Any) -> Any:
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.ndarray):
+            return obj.tolist()
+        if isinstance(obj, np.generic):
+            return obj.item()
+    except ImportError:  # pragma: no cover
+        pass
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def format_counts(counts: dict[str, int], keys: tuple[str, ...]) -> str:
+    parts = [f"{k.replace('_', ' ')} {counts[k]}" for k in keys if counts.get(k)]
+    return ", ".join(parts) if parts else "none"
+
+
+SKIP_KEYS = (
+    "bad_crc",
+    "garbage_bytes",
+    "truncated",
+    "nonfinite",
+    "non_finite",
+    "saturated",
+    "time_backwards",
+    "clock_resets",
+    "gaps",
+    "observer_resets",
+    "dataflash_errors",
+)
+
+
+def summary_lines(summary: dict[str, Any]) -> list[str]:
+    """Human-readable lines for a pipeline summary (per compass: calibration and theta)."""
+    lines = []
+    for c in summary.get("compasses", []):
+        cal = c.get("calibration")
+        cal_txt = "not calibrated"
+        if cal is not None:
+            cal_txt = f"calibration {cal['source']}"
+            if cal["source"] != "identity":
+                cal_txt += f" ({cal['n']} samples, eq. (3) residual {cal['residual_rms_mgauss']:.1f} mgauss)"
+        th = c["theta_mgauss"]
+        conv = "converged" if c["theta_converged"] else "not converged"
+        lines.append(
+            f"compass {c['index']}: {c['estimates']} headings, {cal_txt}, "
+            f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) mgauss ({conv})"
+        )
+    return lines
+
+
+def primary_compass(compasses: tuple[int, ...]) -> int:
+    """The compass the viewer shows: the first configured one, else compass 0."""
+    return compasses[0] if compasses else 0

@@ -1,0 +1,303 @@
+"""The live companion: attach to a flight controller's link, run the pipeline, publish MAGCOMP_HEADING.
+
+``Daemon.run()`` keeps going across link loss: a failed open or a dead link is logged on one clear line
+and retried every ``link.reconnect_s``; silence on the master is logged once per silent spell. The same
+:class:`~magcomp.service.pipeline.Pipeline` object lives across reconnects, so calibration and theta
+carry over (and a rebooted autopilot's clock reset is absorbed by the pipeline). State is saved on the
+way out. A housekeeping thread sends a companion HEARTBEAT (``link.heartbeat_hz``), watches for
+silence and ends the run on :meth:`Daemon.stop`, so signal handlers only have to call ``stop()``.
+
+Latency: for every estimate the time from the moment its magnetometer sample left the source (i.e.
+was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recorded
+(:attr:`Daemon.latency_s`, a bounded ring).
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from magcomp.adapters.config import Config
+from magcomp.adapters.state_store import StateStore
+from magcomp.core.types import HeadingEstimate
+from magcomp.errors import InputError
+from magcomp.service.pipeline import Pipeline
+from magcomp.service.publish import HeadingEncoder, LinkSink
+from magcomp.service.replay import source_throttle
+
+log = logging.getLogger("magcomp.daemon")
+
+LATENCY_RING = 200_000
+
+
+@dataclass
+class DaemonReport:
+    summary: dict[str, Any]
+    source_counts: dict[str, int]
+    connects: int
+    link_losses: int
+    published: int
+    latency_ms: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        out = dict(self.summary)
+        out.update(
+            source_counts=dict(sorted(self.source_counts.items())),
+            connects=self.connects,
+            link_losses=self.link_losses,
+            published=self.published,
+            latency_ms=self.latency_ms,
+        )
+        return out
+
+
+def _grow_receive_buffer(connection: Any, size: int = 8 << 20) -> None:
+    """Ask for a large socket receive buffer so a stall of the pipeline (a calibration fit, a busy
+    machine) does not drop UDP datagrams; the kernel may grant less (net.core.rmem_max)."""
+    import socket
+
+    port = getattr(connection, "port", None)
+    if isinstance(port, socket.socket):
+        try:
+            port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+        except OSError as exc:  # not fatal: the default buffer still works
+            log.debug("cannot enlarge the receive buffer: %s", exc)
+
+
+def _link_alive(connection: Any) -> bool:
+    """A pymavlink connection whose socket or device is open (after its own reconnect)."""
+    if connection is None:
+        return False
+    port = getattr(connection, "port", None)
+    if port is None:
+        return False
+    fileno = getattr(port, "fileno", None)
+    try:
+        return fileno is None or fileno() >= 0
+    except (OSError, ValueError):
+        return False
+
+
+def latency_stats_ms(samples_s: Sequence[float]) -> dict[str, float]:
+    if len(samples_s) == 0:
+        return {}
+    a = np.asarray(samples_s, dtype=float) * 1e3
+    return {
+        "n": float(a.size),
+        "p50": float(np.percentile(a, 50)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(a.max()),
+    }
+
+
+class Daemon:
+    """One live run. ``master``: the flight controller's link (udpin:, udpout:, tcp:, tcpin:, serial);
+    ``outs``: more links to publish on. ``on_estimate``: called with each estimate (e.g. the viewer)."""
+
+    def __init__(
+        self,
+        master: str,
+        cfg: Config,
+        *,
+        outs: Sequence[str] = (),
+        store: StateStore | None = None,
+        on_estimate: Callable[[HeadingEstimate], None] | None = None,
+        on_text: Callable[[float, str], None] | None = None,
+    ) -> None:
+        self.master = master
+        self.cfg = cfg
+        self.out_urls = list(outs)
+        self.store = store
+        self.on_estimate = on_estimate
+        self.pipeline = Pipeline(cfg, store=store, on_text=on_text)
+        # imports that would otherwise happen on the live path (the refined calibration fit's
+        # scipy.optimize costs ~0.3 s the first time, holding the interpreter)
+        import scipy.optimize  # noqa: F401
+        self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
+        self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
+        self.published = 0
+        self.connects = 0
+        self.link_losses = 0
+        self.source_counts: dict[str, int] = {}
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # one encoder (sequence numbers) and sinks shared with housekeeping
+        self._source: Any = None
+        self._sinks: list[LinkSink] = []
+        self._master_sink: LinkSink | None = None
+        self._last_rx = time.monotonic()
+        self._silent = False
+        self._sysid_set = False
+
+    # ------------------------------------------------------------------------------------------- control
+
+    def stop(self) -> None:
+        """Ask the run to end (thread- and signal-safe); :meth:`run` returns within about a second."""
+        self._stop.set()
+        src = self._source
+        if src is not None:
+            src.close()
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    # ----------------------------------------------------------------------------------------- outputs
+
+    def _open_outs(self) -> None:
+        from magcomp.adapters.dialect import ensure_dialect
+
+        ensure_dialect()
+        from pymavlink import mavutil
+
+        for url in self.out_urls:
+            try:
+                conn = mavutil.mavlink_connection(url, input=False, dialect="magcomp", autoreconnect=True,
+                                                  source_system=255, source_component=191)  # fmt: skip
+            except Exception as exc:
+                raise InputError(f"cannot open output {url}: {exc}") from None
+            self._sinks.append(LinkSink(url, conn))
+            log.info("publishing on %s", url)
+
+    def _write_all(self, t_s: float, packet: bytes) -> None:
+        if self._master_sink is not None:
+            self._master_sink.write_packet(t_s, packet)
+        for sink in self._sinks:
+            sink.write_packet(t_s, packet)
+
+    def _publish(self, est: HeadingEstimate, t_arrival: float) -> None:
+        with self._lock:
+            if not self._sysid_set and self.pipeline.system_id is not None:
+                self.encoder.set_system(self.pipeline.system_id)
+                self._sysid_set = True
+            self._write_all(est.t_s, self.encoder.encode(est))
+        self.latency_s.append(time.perf_counter() - t_arrival)
+        self.published += 1
+        if self.on_estimate is not None:
+            self.on_estimate(est)
+
+    # ------------------------------------------------------------------------------------- housekeeping
+
+    def _housekeeping(self) -> None:
+        hb_period = 1.0 / self.cfg.link.heartbeat_hz if self.cfg.link.heartbeat_hz > 0 else 0.0
+        next_hb = time.monotonic()
+        while not self._stop.wait(0.05):
+            now = time.monotonic()
+            if hb_period and now >= next_hb:
+                next_hb = now + hb_period
+                with self._lock:
+                    self._write_all(0.0, self.encoder.heartbeat())
+            quiet_s = now - self._last_rx
+            if not self._silent and self._source is not None and quiet_s > self.cfg.link.silence_s:
+                self._silent = True
+                log.warning("no data from %s for %.0f s (still listening)", self.master, now - self._last_rx)
+
+    # ---------------------------------------------------------------------------------------------- run
+
+    def run(self) -> DaemonReport:
+        """Run until :meth:`stop`. Raises InputError only for outputs that cannot be opened at all."""
+        from magcomp.adapters.mavlink_source import open_source
+
+        self._open_outs()
+        # everything imported and built so far (pymavlink's dialect alone is thousands of classes) is
+        # moved out of the collector's reach: a full collection otherwise stalls the loop ~40 ms
+        gc.collect()
+        gc.freeze()
+        # the background threads (refined calibration fit, state writes, housekeeping) hand the
+        # interpreter back to the sample loop after at most 1 ms instead of the default 5 ms
+        old_switch = sys.getswitchinterval()
+        sys.setswitchinterval(0.001)
+        hk = threading.Thread(target=self._housekeeping, name="magcomp-housekeeping", daemon=True)
+        hk.start()
+        first_failure = True
+        try:
+            while not self._stop.is_set():
+                try:
+                    source = open_source(
+                        self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
+                    )
+                except InputError as exc:
+                    if first_failure:
+                        log.warning("%s; retrying every %.1f s", exc, self.cfg.link.reconnect_s)
+                        first_failure = False
+                    self._stop.wait(self.cfg.link.reconnect_s)
+                    continue
+                first_failure = True
+                self._source = source
+                self.connects += 1
+                self._last_rx = time.monotonic()
+                log.info("%s %s", "listening on" if self.connects == 1 else "reconnected to", self.master)
+                _grow_receive_buffer(source.connection)
+                with self._lock:
+                    self._master_sink = LinkSink(self.master, source.connection)
+                try:
+                    while True:
+                        try:
+                            self._pump(source)
+                            break
+                        except InputError as exc:
+                            # pymavlink's tcp/serial links reconnect by themselves before reporting the
+                            # error; when the link object is usable again, keep reading from it
+                            if self._stop.is_set() or not _link_alive(source.connection):
+                                raise
+                            self.link_losses += 1
+                            log.warning("link reset (%s); the link reconnected, resuming", exc)
+                    if not self._stop.is_set():  # the source ended by itself: the link is gone
+                        raise InputError(f"link {self.master} closed")
+                except InputError as exc:
+                    if self._stop.is_set():
+                        break
+                    self.link_losses += 1
+                    log.warning("link lost (%s); reconnecting in %.1f s", exc, self.cfg.link.reconnect_s)
+                    self._stop.wait(self.cfg.link.reconnect_s)
+                finally:
+                    with self._lock:
+                        self._master_sink = None
+                    self._merge_counts(source.counts)
+                    self._source = None
+                    source.close()
+        finally:
+            self._stop.set()
+            sys.setswitchinterval(old_switch)
+            gc.unfreeze()
+            hk.join(timeout=2.0)
+            self.pipeline.close()
+            for sink in self._sinks:
+                sink.close()
+            log.info("stopped after %d estimates", self.published)
+        return self.report()
+
+    def _pump(self, source: Any) -> None:
+        """Samples from the source through the pipeline to the sinks until the source ends or fails."""
+        process = self.pipeline.process
+        for sample in source.samples():
+            t_arrival = time.perf_counter()
+            self._last_rx = time.monotonic()
+            if self._silent:
+                self._silent = False
+                log.info("data from %s again", self.master)
+            est = process(sample)
+            if est is not None:
+                self._publish(est, t_arrival)
+
+    def _merge_counts(self, counts: dict[str, int]) -> None:
+        for k, v in counts.items():
+            self.source_counts[k] = self.source_counts.get(k, 0) + int(v)
+
+    def report(self) -> DaemonReport:
+        return DaemonReport(
+            summary=self.pipeline.summary(),
+            source_counts=dict(self.source_counts),
+            connects=self.connects,
+            link_losses=self.link_losses,
+            published=self.published,
+            latency_ms=latency_stats_ms(list(self.latency_s)),
+        )

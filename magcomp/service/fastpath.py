@@ -1,0 +1,430 @@
+"""Scalar twins of the per-sample core steps, for the pipeline's hot path.
+
+The core steps (:func:`magcomp.core.mahony.mahony_update`, :func:`magcomp.core.observer.observer_step`)
+work on small numpy arrays; at one call per sample numpy's per-call overhead dominates (about 450 us per
+observer step on this machine). These classes run the *same arithmetic* on Python floats, in the same
+order where it matters, so their results agree with the core to rounding (tests/unit/test_fastpath.py
+runs both side by side on the same streams). They are mutable shells: the pipeline owns one per
+compass (observer) and one per vehicle (attitude), as PX4 modules own their library states.
+
+Only the default observer configuration has a twin (scheme "regression", variant "delta_dot",
+prefilter "regression", rate interpolation "quadratic"); any other ``[observer] form`` runs the core
+step itself.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.core.mahony import MahonyParams
+from magcomp.core.observer import ObserverParams, ObserverState
+from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_NO_THROTTLE, FLAG_OBSERVER_RESET, FLAG_SATURATED
+
+F64 = NDArray[np.float64]
+Vec = list[float]
+
+_NO_THROTTLE_D2 = 1e-4  # as magcomp.core.observer._NO_THROTTLE_D2
+
+
+def supports(p: ObserverParams) -> bool:
+    """True when :class:`FastObserver` reproduces ``observer_step`` for these parameters."""
+    return (
+        p.scheme == "regression"
+        and p.variant == "delta_dot"
+        and p.prefilter == "regression"
+        and p.rate_interp == "quadratic"
+    )
+
+
+# ------------------------------------------------------------------------------------------ attitude
+
+
+class FastMahony:
+    """Twin of :func:`magcomp.core.mahony.mahony_update` (Mahony explicit complementary filter, ref. [23])."""
+
+    __slots__ = ("b", "gate", "gravity", "ki", "kp", "max_b", "q")
+
+    def __init__(self, p: MahonyParams, q_nb: F64, gyro_bias_b_rad_s: F64) -> None:
+        self.kp, self.ki = p.kp, p.ki
+        self.gravity = p.gravity_m_s2
+        self.gate = p.accel_gate_frac * p.gravity_m_s2
+        self.max_b = p.max_bias_rad_s
+        self.q = [float(x) for x in q_nb]
+        self.b = [float(x) for x in gyro_bias_b_rad_s]
+
+    def down_b(self) -> Vec:
+        """Third row of R_nb: the reference down vector in body axes (sec. II-A)."""
+        w, x, y, z = self.q
+        return [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)]
+
+    def update(self, gx: float, gy: float, gz: float, ax: float, ay: float, az: float, dt: float) -> bool:
+        """One step over ``dt`` s; returns whether the accelerometer passed the gate."""
+        an = math.sqrt(ax * ax + ay * ay + az * az)
+        used = math.isfinite(an) and abs(an - self.gravity) <= self.gate
+        b0, b1, b2 = self.b
+        q = _quat_step(self.q, gx - b0, gy - b1, gz - b2, dt)  # predict, eq. (18)
+        if used:
+            w, x, y, z = q
+            vx, vy, vz = -ax / an, -ay / an, -az / an  # measured down
+            hx, hy, hz = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+            ex, ey, ez = vy * hz - vz * hy, vz * hx - vx * hz, vx * hy - vy * hx  # [23] v x v_hat
+            kp = self.kp
+            q = _quat_step(q, kp * ex, kp * ey, kp * ez, dt)  # [23] correction
+        else:
+            ex = ey = ez = 0.0
+        self.q = q
+        kd = self.ki * dt
+        m = self.max_b
+        self.b = [
+            min(max(b0 - kd * ex, -m), m),
+            min(max(b1 - kd * ey, -m), m),
+            min(max(b2 - kd * ez, -m), m),
+        ]
+        return used
+
+
+def _quat_step(q: Vec, ox: float, oy: float, oz: float, dt: float) -> Vec:
+    """Twin of :func:`magcomp.core.rotations.quat_integrate_body_rate`: ``q * exp(omega dt)``, normalised."""
+    px, py, pz = ox * dt, oy * dt, oz * dt
+    ang = math.sqrt(px * px + py * py + pz * pz)
+    if ang < 1e-12:
+        dw, dx, dy, dz = 1.0, 0.5 * px, 0.5 * py, 0.5 * pz
+        n = math.sqrt(dw * dw + dx * dx + dy * dy + dz * dz)
+        dw, dx, dy, dz = dw / n, dx / n, dy / n, dz / n
+    else:
+        s = math.sin(ang / 2.0) / ang
+        dw, dx, dy, dz = math.cos(ang / 2.0), s * px, s * py, s * pz
+    w, x, y, z = q
+    qw = w * dw - x * dx - y * dy - z * dz
+    qx = w * dx + x * dw + y * dz - z * dy
+    qy = w * dy - x * dz + y * dw + z * dx
+    qz = w * dz + x * dy - y * dx + z * dw
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    return [qw / n, qx / n, qy / n, qz / n]
+
+
+# ------------------------------------------------------------------------------------- small algebra
+
+
+def _inv3(m: Vec) -> Vec:
+    """Inverse of a row-major 3x3 (9 floats) by cofactors."""
+    a, b, c, d, e, f, g, h, i = m
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * c00 + b * c01 + c * c02
+    r = 1.0 / det
+    return [
+        c00 * r, (c * h - b * i) * r, (b * f - c * e) * r,
+        c01 * r, (a * i - c * g) * r, (c * d - a * f) * r,
+        c02 * r, (b * g - a * h) * r, (a * e - b * d) * r,
+    ]  # fmt: skip
+
+
+def _sym_eig_min(m: Vec) -> float:
+    """Smallest eigenvalue of a symmetric 3x3 (closed form, trigonometric)."""
+    a, b, c, _, e, f, _, _, i = m
+    p1 = b * b + c * c + f * f
+    q = (a + e + i) / 3.0
+    if p1 == 0.0:
+        return min(a, e, i)
+    p2 = (a - q) ** 2 + (e - q) ** 2 + (i - q) ** 2 + 2.0 * p1
+    p = math.sqrt(p2 / 6.0)
+    b00, b11, b22 = (a - q) / p, (e - q) / p, (i - q) / p
+    b01, b02, b12 = b / p, c / p, f / p
+    det_b = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    r = min(max(det_b / 2.0, -1.0), 1.0)
+    phi = math.acos(r) / 3.0
+    return q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+
+
+def _excitation(gram: Vec, min_info: float) -> tuple[float, tuple[bool, bool, bool]]:
+    """Twin of :func:`magcomp.core.observer.excitation` (smallest eigenvalue, per-axis observability)."""
+    g = [
+        gram[0], 0.5 * (gram[1] + gram[3]), 0.5 * (gram[2] + gram[6]),
+        0.5 * (gram[3] + gram[1]), gram[4], 0.5 * (gram[5] + gram[7]),
+        0.5 * (gram[6] + gram[2]), 0.5 * (gram[7] + gram[5]), gram[8],
+    ]  # fmt: skip
+    lam_min = _sym_eig_min(g)
+    reg = 1e-9 * max(g[0] + g[4] + g[8], 1e-12)
+    gi = _inv3([g[0] + reg, g[1], g[2], g[3], g[4] + reg, g[5], g[6], g[7], g[8] + reg])
+    return lam_min, (1.0 / gi[0] >= min_info, 1.0 / gi[4] >= min_info, 1.0 / gi[8] >= min_info)
+
+
+def _lowpass_coefficients(corner_hz: float, order: int, dt: float) -> tuple[float, ...]:
+    """(b0, b1, b2, a1, a2) of :func:`magcomp.core.lowpass._coefficients`."""
+    fs = 1.0 / dt
+    fc = min(corner_hz, 0.45 * fs)
+    k = math.tan(math.pi * fc / fs)
+    if order == 1:
+        b0 = k / (1.0 + k)
+        return b0, b0, 0.0, (k - 1.0) / (k + 1.0), 0.0
+    qf = 1.0 / math.sqrt(2.0)
+    norm = 1.0 / (1.0 + k / qf + k * k)
+    b0 = k * k * norm
+    return b0, 2.0 * b0, b0, 2.0 * (k * k - 1.0) * norm, (1.0 - k / qf + k * k) * norm
+
+
+# -------------------------------------------------------------------------------------------- observer
+
+
+class FastStepInfo:
+    __slots__ = ("converged", "excitation", "flags", "residual_norm_mgauss", "status", "z_unobservable")
+
+    def __init__(
+        self, status: str, flags: int, converged: bool, z_unobs: bool, resid: float, exc: float
+    ) -> None:
+        self.status = status
+        self.flags = flags
+        self.converged = converged
+        self.z_unobservable = z_unobs
+        self.residual_norm_mgauss = resid
+        self.excitation = exc
+
+
+class FastObserver:
+    """Twin of :func:`magcomp.core.observer.observer_step` for the default parameters (see :func:`supports`).
+
+    Holds the same state as :class:`~magcomp.core.observer.ObserverState` in Python floats;
+    :meth:`to_state` / :meth:`from_state` convert, so a run can switch between the two at any sample.
+    """
+
+    def __init__(self, p: ObserverParams, state: ObserverState) -> None:
+        if not supports(p):
+            raise ValueError("FastObserver only covers the default observer configuration")
+        self.p = p
+        self.from_state(state)
+
+    # -- conversion --------------------------------------------------------------------------------
+    def from_state(self, s: ObserverState) -> None:
+        def v(a: F64) -> Vec:
+            return [float(x) for x in np.asarray(a, dtype=float).ravel()]
+
+        self.v_hat = v(s.v_hat_mgauss)
+        self.theta = v(s.theta_hat_mgauss)
+        self.info = v(s.info)
+        self.gram = v(s.gram_sum)
+        self.gram_w = float(s.gram_weight)
+        self.field_prev = v(s.field_prev_mgauss)
+        self.w_prev = v(s.omega_prev_rad_s)
+        self.w_prev2 = v(s.omega_prev2_rad_s)
+        self.d2_prev = float(s.d2_prev)
+        self.dt_prev = float(s.dt_prev_s)
+        if s.lp is None:
+            self.lp_z: Vec | None = None
+            self.lp_init = False
+        else:
+            self.lp_z = v(s.lp.z)  # (2, 12) row-major: z1[0..11], z2[0..11]
+            self.lp_init = bool(s.lp.initialized)
+        self.resid_var = float(s.resid_var)
+        self.excited = v(s.excited_s)
+        self.converged = tuple(bool(c) for c in s.converged)
+        self.initialized = bool(s.initialized)
+        self.n_steps = int(s.n_steps)
+
+    def to_state(self) -> ObserverState:
+        from magcomp.core.lowpass import LowPassState
+
+        lp = None
+        if self.lp_z is not None:
+            lp = LowPassState(z=np.array(self.lp_z).reshape(2, 12), initialized=self.lp_init)
+        c = self.converged
+        return ObserverState(
+            v_hat_mgauss=np.array(self.v_hat), theta_hat_mgauss=np.array(self.theta),
+            info=np.array(self.info).reshape(3, 3), gram_sum=np.array(self.gram).reshape(3, 3),
+            gram_weight=self.gram_w, field_prev_mgauss=np.array(self.field_prev),
+            omega_prev_rad_s=np.array(self.w_prev), omega_prev2_rad_s=np.array(self.w_prev2),
+            d2_prev=self.d2_prev, dt_prev_s=self.dt_prev, lp=lp, resid_var=self.resid_var,
+            excited_s=np.array(self.excited), converged=(c[0], c[1], c[2]), initialized=self.initialized,
+            n_steps=self.n_steps,
+        )  # fmt: skip
+
+    def reset(self) -> None:
+        """Twin of ``observer_reset(state, p, keep_theta=True)``."""
+        self.initialized = False
+        self.lp_z = None
+        self.lp_init = False
+        self.dt_prev = float("nan")
+
+    # -- info ----------------------------------------------------------------------------------------
+    def _info(
+        self, status: str, flags: int, resid: float, exc: tuple[float, tuple[bool, bool, bool]] | None = None
+    ) -> FastStepInfo:
+        if exc is not None:  # the step's own excitation: the same Gramian
+            lam_min, obs = exc
+        elif self.gram_w > 0.0:
+            gw = self.gram_w
+            lam_min, obs = _excitation([x / gw for x in self.gram], self.p.excitation_min_rad2_s2)
+        else:
+            lam_min, obs = _excitation([0.0] * 9, self.p.excitation_min_rad2_s2)
+        if not obs[2]:
+            flags |= 32  # FLAG_Z_UNOBSERVABLE
+        conv = all(self.converged)
+        if conv:
+            flags |= 2  # FLAG_THETA_CONVERGED
+        return FastStepInfo(status, flags, conv, not obs[2], resid, lam_min)
+
+    def _anchor(self, field: Vec, omega: Vec, d2: float) -> None:
+        self.v_hat = list(field)
+        self.field_prev = list(field)
+        self.w_prev = list(omega)
+        self.w_prev2 = list(omega)
+        self.d2_prev = d2
+        self.dt_prev = float("nan")
+        self.lp_z = None
+        self.lp_init = False
+        self.initialized = True
+
+    # -- the step ----------------------------------------------------------------------------------
+    def step(self, omega: Vec, field: Vec, throttle_01: float, dt: float) -> FastStepInfo:
+        p = self.p
+        if not (all(math.isfinite(x) for x in omega) and all(math.isfinite(x) for x in field)
+                and math.isfinite(throttle_01) and math.isfinite(dt)):  # fmt: skip
+            return self._info("non_finite", FLAG_INPUTS_STALE, float("nan"))
+        d2 = min(max(throttle_01, 0.0), 1.0) ** 2
+        if not self.initialized:
+            self._anchor(field, omega, d2)
+            return self._info("init", FLAG_OBSERVER_RESET, float("nan"))
+        if not p.dt_min_s <= dt <= p.dt_max_s:
+            self._anchor(field, omega, d2)
+            return self._info("dt_out_of_range", FLAG_OBSERVER_RESET, float("nan"))
+
+        w1x, w1y, w1z = omega
+        v1x, v1y, v1z = field
+        v0x, v0y, v0z = self.field_prev
+        d2_0 = self.d2_prev
+        wpx, wpy, wpz = self.w_prev
+        # rotation over the step: quadratic through three gyro samples + coning (rotation_increment)
+        ix, iy, iz = 0.5 * dt * (wpx + w1x), 0.5 * dt * (wpy + w1y), 0.5 * dt * (wpz + w1z)
+        h0 = self.dt_prev
+        if math.isfinite(h0) and h0 > 0.0:
+            h1 = dt
+            w2x, w2y, w2z = self.w_prev2
+            den = h0 * h1 * (h0 + h1)
+            cx = (h0 * (w1x - wpx) + h1 * (w2x - wpx)) / den
+            cy = (h0 * (w1y - wpy) + h1 * (w2y - wpy)) / den
+            cz = (h0 * (w1z - wpz) + h1 * (w2z - wpz)) / den
+            bx, by, bz = (w1x - wpx) / h1 - cx * h1, (w1y - wpy) / h1 - cy * h1, (w1z - wpz) / h1 - cz * h1
+            hh2, hh3 = h1 * h1 / 2.0, h1**3 / 3.0
+            ix = wpx * h1 + bx * hh2 + cx * hh3
+            iy = wpy * h1 + by * hh2 + cy * hh3
+            iz = wpz * h1 + bz * hh2 + cz * hh3
+        k12 = dt * dt / 12.0
+        px = ix + k12 * (wpy * w1z - wpz * w1y)
+        py = iy + k12 * (wpz * w1x - wpx * w1z)
+        pz = iz + k12 * (wpx * w1y - wpy * w1x)
+        # A_k = so3_exp(-phi) (Rodrigues, as magcomp.core.rotations.so3_exp)
+        kx, ky, kz = -px, -py, -pz
+        ang = math.sqrt(kx * kx + ky * ky + kz * kz)
+        if ang < 1e-8:
+            s1, s2 = 1.0, 0.5
+        else:
+            s1, s2 = math.sin(ang) / ang, (1.0 - math.cos(ang)) / ang**2
+        kxx, kyy, kzz = kx * kx, ky * ky, kz * kz
+        kxy, kxz, kyz = kx * ky, kx * kz, ky * kz
+        a00, a01, a02 = 1.0 + s2 * (-kyy - kzz), -s1 * kz + s2 * kxy, s1 * ky + s2 * kxz
+        a10, a11, a12 = s1 * kz + s2 * kxy, 1.0 + s2 * (-kxx - kzz), -s1 * kx + s2 * kyz
+        a20, a21, a22 = -s1 * ky + s2 * kxz, s1 * kx + s2 * kyz, 1.0 + s2 * (-kxx - kyy)
+        # Phi_k = d2_1 I - d2_0 A_k (exact discrete eq. (16)); y_k = v1 - A_k v0
+        ph = [
+            d2 - d2_0 * a00, -d2_0 * a01, -d2_0 * a02,
+            -d2_0 * a10, d2 - d2_0 * a11, -d2_0 * a12,
+            -d2_0 * a20, -d2_0 * a21, d2 - d2_0 * a22,
+        ]  # fmt: skip
+        yx = v1x - (a00 * v0x + a01 * v0y + a02 * v0z)
+        yy = v1y - (a10 * v0x + a11 * v0y + a12 * v0z)
+        yz = v1z - (a20 * v0x + a21 * v0y + a22 * v0z)
+        # excitation Gramian, eq. (21)
+        lam_e = math.exp(-dt / p.excitation_window_s)
+        ptp = _ata(ph)
+        g = self.gram
+        self.gram = [lam_e * g[j] + ptp[j] / dt for j in range(9)]
+        self.gram_w = lam_e * self.gram_w + dt
+        gw = self.gram_w
+        exc = _excitation([x / gw for x in self.gram], p.excitation_min_rad2_s2)
+        obs = exc[1]
+        # 5 Hz low-pass on y and on every column of Phi alike (regression prefilter)
+        regs = [yx, yy, yz, *ph]
+        b0, b1, b2, fa1, fa2 = _lowpass_coefficients(p.lowpass.corner_hz, p.lowpass.order, dt)
+        if self.lp_z is None or not self.lp_init:
+            c1, c2 = b1 + b2 - fa1 - fa2, b2 - fa2
+            z1 = [c1 * x for x in regs]
+            z2 = [c2 * x for x in regs]
+        else:
+            z1 = self.lp_z[:12]
+            z2 = self.lp_z[12:]
+        out = [b0 * regs[j] + z1[j] for j in range(12)]
+        self.lp_z = [b1 * regs[j] - fa1 * out[j] + z2[j] for j in range(12)] + [
+            b2 * regs[j] - fa2 * out[j] for j in range(12)
+        ]
+        self.lp_init = True
+        yfx, yfy, yfz = out[0], out[1], out[2]
+        f = out[3:]
+        th0, th1, th2 = self.theta
+        rx = yfx - (f[0] * th0 + f[1] * th1 + f[2] * th2)
+        ry = yfy - (f[3] * th0 + f[4] * th1 + f[5] * th2)
+        rz = yfz - (f[6] * th0 + f[7] * th1 + f[8] * th2)
+        lam = math.exp(-dt / p.forget_s)
+        ftf = _ata(f)
+        j0 = (1.0 - lam) * p.info0
+        info = self.info
+        info_new = [lam * info[j] + ftf[j] for j in range(9)]
+        info_new[0] += j0
+        info_new[4] += j0
+        info_new[8] += j0
+        # RLS with regularised forgetting: d_theta = J^-1 Phi_f^T r
+        gx = f[0] * rx + f[3] * ry + f[6] * rz
+        gy = f[1] * rx + f[4] * ry + f[7] * rz
+        gz = f[2] * rx + f[5] * ry + f[8] * rz
+        ji = _inv3(info_new)
+        dth = [ji[0] * gx + ji[1] * gy + ji[2] * gz, ji[3] * gx + ji[4] * gy + ji[5] * gz,
+               ji[6] * gx + ji[7] * gy + ji[8] * gz]  # fmt: skip
+        flags = 0
+        tmax = p.theta_max_mgauss
+        theta_new = []
+        for ax in range(3):
+            t_new = self.theta[ax] + (0.0 if not obs[ax] else dth[ax])  # hold unexcited axes
+            t_clip = min(max(t_new, -tmax), tmax)
+            if t_clip != t_new:
+                flags |= FLAG_SATURATED
+            theta_new.append(t_clip)
+        c = math.exp(-p.k1_1_s * dt)
+        vh0, vh1, vh2 = self.v_hat
+        t0n, t1n, t2n = theta_new
+        pv0 = a00 * vh0 + a01 * vh1 + a02 * vh2 + ph[0] * t0n + ph[1] * t1n + ph[2] * t2n
+        pv1 = a10 * vh0 + a11 * vh1 + a12 * vh2 + ph[3] * t0n + ph[4] * t1n + ph[5] * t2n
+        pv2 = a20 * vh0 + a21 * vh1 + a22 * vh2 + ph[6] * t0n + ph[7] * t1n + ph[8] * t2n
+        self.v_hat = [v1x + c * (pv0 - v1x), v1y + c * (pv1 - v1y), v1z + c * (pv2 - v1z)]
+        rr = rx * rx + ry * ry + rz * rz
+        self.resid_var = lam_e * self.resid_var + (1.0 - lam_e) * rr / 3.0
+        self.excited = [self.excited[ax] + (dt if obs[ax] else 0.0) for ax in range(3)]
+        jn = ji
+        tol = p.converge_std_mgauss + p.converge_rel * math.sqrt(t0n * t0n + t1n * t1n + t2n * t2n)
+        rv = self.resid_var
+        need_s = p.converge_min_excited_s
+        ex_s = self.excited
+        self.converged = tuple(ex_s[ax] >= need_s and math.sqrt(jn[4 * ax] * rv) <= tol for ax in range(3))
+        if d2 < _NO_THROTTLE_D2:
+            flags |= FLAG_NO_THROTTLE
+        self.theta = theta_new
+        self.info = info_new
+        self.field_prev = [v1x, v1y, v1z]
+        self.w_prev2 = self.w_prev
+        self.w_prev = [w1x, w1y, w1z]
+        self.d2_prev = d2
+        self.dt_prev = dt
+        self.n_steps += 1
+        return self._info("ok", flags, math.sqrt(rr), exc)
+
+
+def _ata(m: Vec) -> Vec:
+    """M^T M of a row-major 3x3."""
+    m0, m1, m2, m3, m4, m5, m6, m7, m8 = m
+    x00 = m0 * m0 + m3 * m3 + m6 * m6
+    x01 = m0 * m1 + m3 * m4 + m6 * m7
+    x02 = m0 * m2 + m3 * m5 + m6 * m8
+    x11 = m1 * m1 + m4 * m4 + m7 * m7
+    x12 = m1 * m2 + m4 * m5 + m7 * m8
+    x22 = m2 * m2 + m5 * m5 + m8 * m8
+    return [x00, x01, x02, x01, x11, x12, x02, x12, x22]

@@ -1,0 +1,719 @@
+"""One pipeline for live links and replays: typed samples in, one :class:`HeadingEstimate` per magnetometer
+sample out.
+
+    samples (message time) -> alignment -> attitude (Mahony, sec. II-A) -> calibration (DPI, eqs. (1)-(3))
+    -> 5 Hz low-pass (sec. II-D) -> theta observer (eq. (20)) -> bias (eq. (11)) -> heading (eq. (24))
+
+:class:`Pipeline` is the imperative shell around the pure core states (PX4's module/lib split): it keeps
+the current states and the last timestamps, computes every ``dt`` from the messages' own timestamps (never
+arrival time), checks it, and decides resets. Live runs and replays call the same :meth:`Pipeline.process`
+with the same sample order, so a replay at any speed gives the live answer by construction.
+
+Alignment, on message time. The gyro and attitude of a magnetometer sample are those of the latest IMU
+sample (in ArduPilot's RAW_IMU both share one message, so they are exact). The throttle differs by use:
+
+* the published heading uses the latest throttle received (causal, no added latency; after a throttle
+  step, up to one throttle period late: SERVO_OUTPUT_RAW comes at 25 Hz);
+* the observer gets the throttle *interpolated at the sample's own time*: each sample waits in a short
+  per-compass queue until the throttle after it has arrived (or ``stale_s`` passed). A sample between
+  two throttle messages that straddle a jump is left out and the observer re-anchors after it (the
+  instant of the step is unknown). The result does not depend on the order in which a link delivers
+  the messages of one instant; with the latest throttle instead, theta came out 8-15 % off on
+  simulated flights (docs/benchmarks.md).
+
+The 5 Hz low-pass of sec. II-D goes where the observer module says: on the regression (``y`` and
+``Phi`` alike) in the default form, so it adds no bias. Departure from the paper: the published heading
+passes a gyro-aided complementary filter (:class:`~magcomp.service.estimators.HeadingFilter`).
+
+Bad input never stops the pipeline: non-finite or saturated samples, time running backwards, gaps and
+clock resets are skipped or absorbed and counted in :attr:`Pipeline.counts`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.adapters.config import Config
+from magcomp.adapters.state_store import CompassState, StateStore
+from magcomp.core.mahony import MahonyParams, mahony_init
+from magcomp.core.types import (
+    FLAG_CALIBRATED,
+    FLAG_INPUTS_STALE,
+    FLAG_NO_THROTTLE,
+    FLAG_OBSERVER_RESET,
+    FLAG_SATURATED,
+    FLAG_THETA_CONVERGED,
+    FLAG_Z_UNOBSERVABLE,
+    AttitudeSample,
+    HeadingEstimate,
+    HeartbeatSample,
+    ImuSample,
+    MagSample,
+    Sample,
+    ThrottleSample,
+)
+from magcomp.service import estimators as est_core
+from magcomp.service.fastpath import FastMahony
+
+log = logging.getLogger("magcomp.pipeline")
+
+F64 = NDArray[np.float64]
+
+#: seconds of IMU data the attitude filter gets before its down vector feeds the calibration
+MAHONY_SETTLE_S = 2.0
+#: message-time seconds without any throttle sample before the "no throttle" warning
+NO_THROTTLE_WARN_S = 2.0
+#: at most this many (evenly strided) pairs go into the final (refined) DPI fit / an interim one
+FIT_MAX_ROWS = 3000
+INTERIM_FIT_MAX_ROWS = 1000
+#: the refined calibration is adopted this many magnetometer samples after the motors start
+REFINE_ADOPT_AFTER = 50
+
+_EXECUTOR: ThreadPoolExecutor | None = None
+
+
+_STATE_WRITER: ThreadPoolExecutor | None = None
+
+
+def _state_writer() -> ThreadPoolExecutor:
+    """One background thread for state writes (in submission order)."""
+    global _STATE_WRITER
+    if _STATE_WRITER is None:
+        _STATE_WRITER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="magcomp-state")
+    return _STATE_WRITER
+
+
+def _worker() -> ThreadPoolExecutor:
+    """One background thread for the refined calibration fits (created on first use)."""
+    global _EXECUTOR
+    if _EXECUTOR is None:
+        _EXECUTOR = ThreadPoolExecutor(max_workers=1, thread_name_prefix="magcomp-calibration")
+    return _EXECUTOR
+
+
+@dataclass(frozen=True)
+class CalibrationSummary:
+    source: str  # "learned", "stored", "identity"
+    residual_rms_mgauss: float
+    coverage: float
+    n: int
+
+
+class CompassCorrector:
+    """The online corrector of one compass: calibration, low-pass, observer, heading (mutable shell)."""
+
+    def __init__(
+        self,
+        mag_index: int,
+        cfg: Config,
+        earth_field_ned_mgauss: F64,
+        stored: CompassState | None,
+    ) -> None:
+        self.mag_index = mag_index
+        self.cfg = cfg
+        self.earth_ned = earth_field_ned_mgauss
+        self.calib_l: F64 | None = None
+        self.calib_d: F64 | None = None
+        self.calibration: CalibrationSummary | None = None
+        mode = cfg.calibration.mode
+        if mode == "none":
+            self.calib_l, self.calib_d = np.eye(3), np.zeros(3)
+            self.calibration = CalibrationSummary("identity", float("nan"), float("nan"), 0)
+        elif mode != "learn" and stored is not None and stored.calib_l is not None:
+            self.calib_l, self.calib_d = stored.calib_l, stored.calib_d
+            info = stored.calib_info or {}
+            self.calibration = CalibrationSummary(
+                "stored",
+                float(info.get("residual_rms_mgauss", float("nan"))),
+                float(info.get("coverage", float("nan"))),
+                int(info.get("n", 0)),
+            )
+        theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
+        self.theta_est = est_core.ThetaEstimator(cfg, theta0)
+        # observer inputs waiting for the throttle at their time: (t_s, gyro, calibrated field);
+        # (t_s, None, None) is a reset marker
+        self.queue: deque[tuple[float, Any, Any]] = deque()
+        self.obs_last_t: float | None = None
+        self.last_info: est_core.ThetaStepInfo | None = None
+        self.hdg_filter = est_core.HeadingFilter(cfg.output.heading_tau_s)
+        self.hdg_raw_filter = est_core.HeadingFilter(cfg.output.heading_tau_s)
+        # calibration data (down_b, raw field) at zero throttle
+        n_max = cfg.calibration.max_samples
+        self._cal_down = np.empty((n_max, 3))
+        self._cal_field = np.empty((n_max, 3))
+        self._cal_n = 0
+        self.n_cal_fits = 0
+        self.n_mag = 0  # magnetometer samples seen (the clock of the refined-fit adoption)
+        self._refine: tuple[Future[est_core.LearnedCalibration | None], int, int] | None = None
+        self._cal_next_check = cfg.calibration.min_samples
+        self._collecting = self.calibration is None and mode in ("auto", "learn")
+        self.last_t: float | None = None
+        self.n_out = 0
+        self.out_t = -math.inf
+        self.last_saved_t: float | None = None
+        self.dirty = False
+
+    def queue_reset(self) -> None:
+        """Reset the observer's filters (theta kept) once the samples queued before now are through."""
+        self.queue.append((self.last_t if self.last_t is not None else 0.0, None, None))
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calib_l is not None
+
+    @property
+    def collecting(self) -> bool:
+        """True while (down, field) pairs are gathered: learning enabled, not frozen, room left."""
+        return self._collecting and self._cal_n < self._cal_down.shape[0]
+
+    def freeze_calibration(self) -> None:
+        """The motors started after a calibration was learned: the hand-rotation phase is over. The
+        final calibration is one refined fit on all the pairs collected; it runs in a worker thread
+        (tens to hundreds of ms) and is adopted exactly ``REFINE_ADOPT_AFTER`` magnetometer samples
+        later (waiting for it if need be), so a live run and a replay adopt it at the same sample."""
+        self._collecting = False
+        if self.calibration is None or self.calibration.source != "learned":
+            return
+        n = self._cal_n
+        stride = max(1, n // FIT_MAX_ROWS)
+        down, field = self._cal_down[:n:stride].copy(), self._cal_field[:n:stride].copy()
+        self._refine = (
+            _worker().submit(est_core.calibrate, down, field, self.earth_ned, True),
+            self.n_mag + REFINE_ADOPT_AFTER,
+            n,
+        )
+
+    def adopt_refined(self, force: bool = False) -> bool:
+        """Adopt the refined fit once its sample has come (``force``: now). True when adopted."""
+        if self._refine is None or (not force and self.n_mag < self._refine[1]):
+            return False
+        future, _, n = self._refine
+        self._refine = None
+        return self._adopt(future.result(), n)
+
+    def _fit(self, refine: bool) -> bool:
+        n = self._cal_n
+        stride = max(1, n // INTERIM_FIT_MAX_ROWS)  # bounds the time one fit takes on the live path
+        res = est_core.calibrate(
+            self._cal_down[:n:stride], self._cal_field[:n:stride], self.earth_ned, refine
+        )
+        return self._adopt(res, n)
+
+    def _adopt(self, res: est_core.LearnedCalibration | None, n: int) -> bool:
+        if res is None:
+            return False
+        self.calib_l, self.calib_d = res.calib_l, res.calib_d
+        self.calibration = CalibrationSummary("learned", res.residual_rms_mgauss, res.coverage, n)
+        self.n_cal_fits += 1
+        self.queue_reset()
+        self.dirty = True
+        return True
+
+    def collect_calibration(self, down_b: F64, field_raw: F64) -> bool:
+        """Add one (down vector, raw field) pair at zero throttle and refit now and then (eq. (3)).
+
+        The first (linear) fit that the DPI module accepts is adopted at once; later fits on more samples
+        replace it while the vehicle is still being rotated by hand; when the motors start,
+        :meth:`freeze_calibration` makes the final, refined fit. Returns True when a fit was adopted.
+        """
+        n = self._cal_n
+        self._cal_down[n] = down_b
+        self._cal_field[n] = field_raw
+        n += 1
+        self._cal_n = n
+        if n == self._cal_down.shape[0]:  # full: the final, refined fit follows
+            self.freeze_calibration()
+            return False
+        if n < self._cal_next_check:
+            return False
+        self._cal_next_check = n + self.cfg.calibration.check_every
+        return self._fit(refine=False)  # the linear eq. (3) solve while collecting: a few ms
+
+    def calibration_cloud(self) -> tuple[F64, F64]:
+        """The raw calibration samples and the same after eq. (2) (for the viewer)."""
+        raw = self._cal_field[: self._cal_n]
+        if self.calib_l is None or self.calib_d is None:
+            return raw, raw
+        return raw, raw @ self.calib_l.T - self.calib_d
+
+    def to_state(self, system_id: int, t_s: float) -> CompassState:
+        info = None
+        if self.calibration is not None and self.calibration.source != "identity":
+            info = {
+                "residual_rms_mgauss": self.calibration.residual_rms_mgauss,
+                "coverage": self.calibration.coverage,
+                "n": float(self.calibration.n),
+            }
+        keep = self.calibration is not None and self.calibration.source != "identity"
+        return CompassState(
+            system_id=system_id,
+            mag_index=self.mag_index,
+            calib_l=self.calib_l if keep else None,
+            calib_d=self.calib_d if keep else None,
+            theta_mgauss=np.asarray(self.theta_est.theta_mgauss, dtype=float),
+            t_s=t_s,
+            calib_info=info,
+        )
+
+
+class Pipeline:
+    """Samples in (any order of types, message-time stamped), heading estimates out.
+
+    ``store``: a :class:`StateStore` to load calibration and theta from at the first magnetometer sample
+    of each compass and to save them to (on calibration, every ``state.save_interval_s`` of message time
+    and on :meth:`close`). ``system_id``: the vehicle; None -> taken from the first HEARTBEAT, else 1.
+    ``on_text``: status lines (calibration learned, resets, warnings) with their message time.
+    """
+
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        store: StateStore | None = None,
+        system_id: int | None = None,
+        on_text: Callable[[float, str], None] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.store = store
+        self.system_id = system_id
+        self._on_text = on_text
+        self.counts: dict[str, int] = {
+            "samples": 0,
+            "mag": 0,
+            "imu": 0,
+            "estimates": 0,
+            "non_finite": 0,
+            "saturated": 0,
+            "time_backwards": 0,
+            "clock_resets": 0,
+            "gaps": 0,
+            "observer_resets": 0,
+            "throttle_jumps": 0,
+            "no_throttle": 0,
+        }
+        self.warnings: list[str] = []
+        self.correctors: dict[int, CompassCorrector] = {}
+        self._earth_ned = est_core.earth_field(cfg)
+        self._mahony_p = MahonyParams(
+            kp=cfg.mahony.kp,
+            ki=cfg.mahony.ki,
+            accel_gate_frac=cfg.mahony.accel_gate_m_s2 / 9.80665,
+        )
+        self._mahony: FastMahony | None = None
+        self._mahony_t0 = 0.0
+        self._imu_t: float | None = None
+        self._gyro = [0.0, 0.0, 0.0]  # bias-corrected body rate of the latest IMU sample, rad/s
+        self._att_t: float | None = None
+        self._att_roll = 0.0
+        self._att_pitch = 0.0
+        self._thr_t: float | None = None
+        self._thr = 0.0
+        self._thr_prev_t: float | None = None
+        self._thr_prev = 0.0
+        self._use_throttle = cfg.input.throttle_source != "none"
+        self._learn = cfg.observer.learn
+        self._max_jump = cfg.observer.max_throttle_jump_01
+        self._first_mag_t: float | None = None
+        self._warned_no_throttle = False
+        self._out_period = 1.0 / cfg.output.rate_hz if cfg.output.rate_hz > 0 else 0.0
+        self._compasses = set(cfg.input.compasses)
+        self._pending_saves: list[Future[None]] = []
+
+    # ------------------------------------------------------------------------------------------ helpers
+
+    def _text(self, t_s: float, msg: str, warning: bool = False) -> None:
+        if warning:
+            self.warnings.append(msg)
+            log.warning(msg)
+        else:
+            log.info(msg)
+        if self._on_text is not None:
+            self._on_text(t_s, msg)
+
+    def _check_time(self, last: float | None, t: float, allow_equal: bool = False) -> int:
+        """0: fine; 1: skip (time went backwards a little); 2: clock reset (backwards by a lot)."""
+        if last is None or t > last or (allow_equal and t == last):
+            return 0
+        if last - t > self.cfg.input.time_reset_s:
+            self.counts["clock_resets"] += 1
+            return 2
+        self.counts["time_backwards"] += 1
+        return 1
+
+    # --------------------------------------------------------------------------------------- dispatcher
+
+    def process(self, sample: Sample) -> HeadingEstimate | None:
+        """Feed one sample; returns the heading estimate for a magnetometer sample, else None."""
+        self.counts["samples"] += 1
+        kind = type(sample)
+        if kind is MagSample:
+            return self._on_mag(sample)  # type: ignore[arg-type]
+        if kind is ImuSample:
+            self._on_imu(sample)  # type: ignore[arg-type]
+        elif kind is ThrottleSample:
+            self._on_throttle(sample)  # type: ignore[arg-type]
+        elif kind is AttitudeSample:
+            self._on_attitude(sample)  # type: ignore[arg-type]
+        elif kind is HeartbeatSample and self.system_id is None:
+            self.system_id = int(sample.system_id)  # type: ignore[union-attr]
+        return None
+
+    def _on_throttle(self, s: ThrottleSample) -> None:
+        if not self._use_throttle:
+            return
+        thr = s.throttle_01
+        if not math.isfinite(thr) or not math.isfinite(s.t_s):
+            self.counts["non_finite"] += 1
+            return
+        if self._check_time(self._thr_t, s.t_s, allow_equal=True) == 1:
+            return
+        self._thr_prev_t, self._thr_prev = self._thr_t, self._thr
+        self._thr_t = s.t_s
+        self._thr = min(max(thr, 0.0), 1.0)
+        for c in self.correctors.values():
+            if c.queue:
+                self._drain(c, s.t_s)
+
+    def _throttle_at(self, t: float) -> float:
+        """Throttle at message time ``t``: linear between the two samples around it, else the nearest."""
+        t1, pt = self._thr_t, self._thr_prev_t
+        if t1 is None or t >= t1 or pt is None or pt >= t1:
+            return self._thr
+        if t <= pt:
+            return self._thr_prev
+        w = (t - pt) / (t1 - pt)
+        return self._thr_prev + w * (self._thr - self._thr_prev)
+
+    def _across_jump(self, t: float) -> bool:
+        """True when ``t`` lies strictly between two throttle samples that differ by more than
+        ``[observer] max_throttle_jump_01`` (a step whose instant the throttle stream does not resolve)."""
+        t1, pt = self._thr_t, self._thr_prev_t
+        if t1 is None or pt is None or not pt < t < t1:
+            return False
+        return abs(self._thr - self._thr_prev) > self._max_jump
+
+    def _drain(self, c: CompassCorrector, t_now: float) -> None:
+        """Feed the observer every queued sample whose throttle is known now (the throttle stream has
+        reached its time), or that has waited longer than ``stale_s`` (then: the latest throttle)."""
+        q = c.queue
+        t_thr = self._thr_t
+        stale = self.cfg.input.stale_s
+        while q:
+            t, omega, u = q[0]
+            if u is None:  # a reset marker
+                q.popleft()
+                c.theta_est.reset_filters()
+                c.obs_last_t = None
+                continue
+            if t_thr is None or (t > t_thr and t_now - t <= stale):
+                return
+            q.popleft()
+            thr = self._throttle_at(t)
+            if self._across_jump(t):
+                # the throttle jumped between the two throttle samples around this one: its value at
+                # this instant is unknown, so this sample is not used and the observer re-anchors on
+                # the next one whose throttle is known
+                self.counts["throttle_jumps"] += 1
+                c.theta_est.reset_filters()
+                c.obs_last_t = None
+                continue
+            dt = 0.0 if c.obs_last_t is None else t - c.obs_last_t
+            c.obs_last_t = t
+            c.last_info = c.theta_est.step(omega, u, thr, dt)
+            c.dirty = True
+
+    def _on_attitude(self, s: AttitudeSample) -> None:
+        if not (math.isfinite(s.roll_rad) and math.isfinite(s.pitch_rad) and math.isfinite(s.t_s)):
+            self.counts["non_finite"] += 1
+            return
+        if self._check_time(self._att_t, s.t_s, allow_equal=True) == 1:
+            return
+        self._att_t = s.t_s
+        self._att_roll, self._att_pitch = s.roll_rad, s.pitch_rad
+
+    def _on_imu(self, s: ImuSample) -> None:
+        if s.imu_index != 0:  # the attitude comes from the primary IMU
+            return
+        self.counts["imu"] += 1
+        g, a = s.gyro_b_rad_s, s.accel_b_m_s2
+        gx, gy, gz = float(g[0]), float(g[1]), float(g[2])
+        ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+        t = s.t_s
+        if not all(map(math.isfinite, (t, gx, gy, gz, ax, ay, az))):
+            self.counts["non_finite"] += 1
+            return
+        lim = self.cfg.input.gyro_saturation_rad_s
+        if abs(gx) >= lim or abs(gy) >= lim or abs(gz) >= lim:
+            self.counts["saturated"] += 1
+            return
+        verdict = self._check_time(self._imu_t, t)
+        if verdict == 1:
+            return
+        m = self._mahony
+        prev_t = self._imu_t
+        if m is not None and prev_t is not None and verdict == 0 and t - prev_t <= self.cfg.observer.dt_max_s:
+            self._imu_t = t
+            m.update(gx, gy, gz, ax, ay, az, t - prev_t)
+            b = m.b
+            self._gyro = [gx - b[0], gy - b[1], gz - b[2]]
+            return
+        # first sample, a gap or a clock reset: the rotation since the last sample is unknown, so the
+        # tilt restarts from the accelerometer (gyro bias kept) and must settle again before the
+        # calibration uses it
+        try:
+            fresh = mahony_init(a)
+        except ValueError:
+            self.counts["non_finite"] += 1
+            return
+        bias = np.array(m.b) if m is not None else fresh.gyro_bias_b_rad_s
+        self._mahony = FastMahony(self._mahony_p, fresh.q_nb, bias)
+        self._mahony_t0 = t
+        self._imu_t = t
+        self._gyro = [gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2])]
+
+    # ----------------------------------------------------------------------------------- magnetometer
+
+    def _corrector(self, idx: int) -> CompassCorrector:
+        c = self.correctors.get(idx)
+        if c is None:
+            sysid = self.system_id if self.system_id is not None else 1
+            if self.system_id is None:
+                self.system_id = sysid
+            stored = self.store.load(sysid, idx) if self.store is not None else None
+            if self.store is not None:
+                for w in self.store.warnings:
+                    if w not in self.warnings:
+                        self.warnings.append(w)
+            c = CompassCorrector(idx, self.cfg, self._earth_ned, stored)
+            self.correctors[idx] = c
+        return c
+
+    def _attitude(self) -> tuple[float, float, F64 | None]:
+        """Roll, pitch (rad) and the DPI reference down vector (None when no settled estimate)."""
+        if self._mahony is not None and self.cfg.input.attitude == "mahony":
+            w, x, y, z = self._mahony.q
+            # third row of R_nb = down vector in body axes (sec. II-A); roll/pitch of ZYX Euler
+            down = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+            roll = math.atan2(down[1], down[2])
+            pitch = -math.asin(max(-1.0, min(1.0, float(down[0]))))
+            settled = self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S
+            return roll, pitch, down if settled else None
+        return self._att_roll, self._att_pitch, None
+
+    def _on_mag(self, s: MagSample) -> HeadingEstimate | None:
+        self.counts["mag"] += 1
+        idx = s.mag_index
+        if self._compasses and idx not in self._compasses:
+            return None
+        v = s.field_b_mgauss
+        t = s.t_s
+        vx, vy, vz = float(v[0]), float(v[1]), float(v[2])
+        if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
+            self.counts["non_finite"] += 1
+            return None
+        lim = self.cfg.input.saturation_mgauss
+        if abs(vx) >= lim or abs(vy) >= lim or abs(vz) >= lim:
+            self.counts["saturated"] += 1
+            return None
+        c = self._corrector(idx)
+        verdict = self._check_time(c.last_t, t)
+        if verdict == 1:
+            return None
+        c.n_mag += 1
+        if c.adopt_refined():
+            self._refined_text(c, t)
+        flags = 0
+        prev_t = c.last_t
+        c.last_t = t
+        if self._first_mag_t is None or verdict == 2:
+            self._first_mag_t = t
+        reset = False
+        if verdict == 2 or prev_t is None:
+            reset = True
+        else:
+            dt = t - prev_t
+            if dt < self.cfg.observer.dt_min_s or dt > self.cfg.observer.dt_max_s:
+                if dt > self.cfg.observer.dt_max_s:
+                    self.counts["gaps"] += 1
+                reset = True
+        # ---- throttle
+        thr = 0.0
+        have_thr = self._thr_t is not None
+        if have_thr:
+            thr = self._thr
+            assert self._thr_t is not None
+            if t - self._thr_t > self.cfg.input.stale_s:
+                flags |= FLAG_INPUTS_STALE
+        else:
+            flags |= FLAG_NO_THROTTLE
+            self.counts["no_throttle"] += 1
+            if not self._warned_no_throttle and (
+                not self._use_throttle or t - self._first_mag_t >= NO_THROTTLE_WARN_S
+            ):
+                self._warned_no_throttle = True
+                why = "disabled in the configuration" if not self._use_throttle else "no throttle samples"
+                self._text(t, f"no throttle source ({why}): headings are published uncorrected", warning=True)
+        # ---- attitude and gyro
+        roll, pitch, down = self._attitude()
+        gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self.cfg.input.stale_s
+        if not gyro_fresh:
+            flags |= FLAG_INPUTS_STALE
+        # ---- calibration, eqs. (1)-(3)
+        if c.collecting:
+            at_rest = not have_thr or thr <= self.cfg.calibration.max_throttle_01
+            if not at_rest:
+                c.freeze_calibration()
+            elif down is not None and gyro_fresh and c.collect_calibration(down, v):
+                assert c.calibration is not None
+                rms = c.calibration.residual_rms_mgauss
+                if c.n_cal_fits == 1:
+                    self._text(t, f"compass {idx}: calibration learned from {c.calibration.n} samples "
+                                  f"(eq. (3) residual {rms:.1f} mgauss); refining while the motors are off")
+                else:
+                    log.debug("compass %d: calibration refined from %d samples (residual %.1f mgauss)",
+                              idx, c.calibration.n, rms)
+                self._save(c, t)
+        if c.calib_l is not None and c.calib_d is not None:
+            flags |= FLAG_CALIBRATED
+            u = c.calib_l @ v - c.calib_d  # eq. (2)
+            # ---- low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated
+            # at the sample's own time (queued until the throttle after it is known)
+            if reset:
+                c.queue_reset()
+                self.counts["observer_resets"] += 1
+                flags |= FLAG_OBSERVER_RESET
+            elif self._learn and have_thr and gyro_fresh:
+                c.queue.append((t, self._gyro, u))
+            self._drain(c, t)
+            info = c.last_info
+            if info is not None:
+                if info.z_unobservable:
+                    flags |= FLAG_Z_UNOBSERVABLE
+                if info.saturated:
+                    flags |= FLAG_SATURATED
+                residual, excitation = info.residual_norm_mgauss, info.excitation
+            else:
+                residual, excitation = float("nan"), float("nan")
+            if c.theta_est.converged:
+                flags |= FLAG_THETA_CONVERGED
+            theta = c.theta_est.theta_mgauss
+        else:
+            u = v
+            theta = np.zeros(3)
+            residual, excitation = float("nan"), float("nan")
+        bias = theta * (thr * thr) if have_thr else np.zeros(3)  # eq. (11)
+        corrected = u - bias
+        psi_raw = est_core.heading_deg(u, roll, pitch)
+        psi = est_core.heading_deg(corrected, roll, pitch) if have_thr else psi_raw
+        if reset or not gyro_fresh:
+            c.hdg_filter.reset()
+            c.hdg_raw_filter.reset()
+        yaw_rate = est_core.yaw_rate_rad_s(self._gyro, roll, pitch)
+        dt_h = 0.0 if prev_t is None or reset else t - prev_t
+        heading_raw = c.hdg_raw_filter.update(psi_raw, yaw_rate, dt_h)
+        heading = c.hdg_filter.update(psi, yaw_rate, dt_h) if have_thr else heading_raw
+        # ---- state persistence on message time
+        if c.dirty and (c.last_saved_t is None or t - c.last_saved_t >= self.cfg.state.save_interval_s):
+            self._save(c, t)
+        # ---- output decimation on message time
+        if self._out_period > 0.0:
+            if c.n_out > 0 and prev_t is not None and t - c.out_t < self._out_period and not reset:
+                return None
+            c.out_t = t
+        c.n_out += 1
+        self.counts["estimates"] += 1
+        return HeadingEstimate(
+            t_s=t,
+            mag_index=idx,
+            heading_deg=heading,
+            heading_raw_deg=heading_raw,
+            theta_mgauss=theta,
+            bias_mgauss=bias,
+            throttle_01=thr,
+            flags=flags,
+            field_raw_mgauss=v,
+            field_cal_mgauss=corrected,
+            residual_norm_mgauss=residual,
+            excitation=excitation,
+        )
+
+    def _refined_text(self, c: CompassCorrector, t: float) -> None:
+        assert c.calibration is not None
+        self._save(c, t)
+        self._text(t, f"compass {c.mag_index}: motors on, calibration final ({c.calibration.n} samples, "
+                      f"eq. (3) residual {c.calibration.residual_rms_mgauss:.1f} mgauss)")
+
+    # ------------------------------------------------------------------------------------------ state
+
+    def _save(self, c: CompassCorrector, t_s: float) -> None:
+        """Write the compass's state in the background (two fsyncs can take tens of ms on some disks);
+        one writer thread keeps the writes in order, :meth:`close` waits for them."""
+        c.last_saved_t = t_s
+        c.dirty = False
+        if self.store is None:
+            return
+        state = c.to_state(self.system_id if self.system_id is not None else 1, t_s)
+        self._pending_saves = [f for f in self._pending_saves if not f.done()]
+        self._pending_saves.append(_state_writer().submit(self._write_state, state, t_s))
+
+    def _write_state(self, state: CompassState, t_s: float) -> None:
+        assert self.store is not None
+        try:
+            self.store.save(state)
+        except OSError as exc:
+            msg = f"cannot write state for compass {state.mag_index}: {exc.strerror}"
+            self.warnings.append(msg)
+            log.warning(msg)
+
+    def close(self) -> None:
+        """Feed what is still queued, save every compass's state and wait for the writes."""
+        for c in self.correctors.values():
+            if c.adopt_refined(force=True) and c.last_t is not None:
+                self._refined_text(c, c.last_t)
+            if c.queue:
+                self._drain(c, math.inf)
+            if c.last_t is not None:
+                self._save(c, c.last_t)
+        for f in self._pending_saves:
+            f.result()
+        self._pending_saves = []
+
+    def summary(self) -> dict[str, object]:
+        """Plain values for JSON: counts, warnings and each compass's calibration and theta."""
+        compasses = []
+        for idx, c in sorted(self.correctors.items()):
+            cal = c.calibration
+            compasses.append(
+                {
+                    "index": idx,
+                    "calibrated": c.calibrated,
+                    "calibration": None
+                    if cal is None
+                    else {
+                        "source": cal.source,
+                        "residual_rms_mgauss": cal.residual_rms_mgauss,
+                        "coverage": cal.coverage,
+                        "n": cal.n,
+                        "L": None if c.calib_l is None else np.asarray(c.calib_l).tolist(),
+                        "d_mgauss": None if c.calib_d is None else np.asarray(c.calib_d).tolist(),
+                    },
+                    "theta_mgauss": np.asarray(c.theta_est.theta_mgauss).tolist(),
+                    "theta_converged": bool(c.theta_est.converged),
+                    "estimates": c.n_out,
+                }
+            )
+        return {
+            "system_id": self.system_id,
+            "counts": dict(self.counts),
+            "warnings": list(self.warnings),
+            "compasses": compasses,
+        }
