@@ -24,9 +24,14 @@ Units at this boundary (everything downstream uses them):
 - Bad input is skipped and counted, never fatal: ``bad_crc``, ``garbage_bytes``, ``truncated``,
   ``nonfinite``. A file with no usable message at all is an :class:`~magcomp.errors.InputError`.
 
-The tlog reader walks the tlog framing (8-byte big-endian timestamp + packet) itself and decodes, with
-pymavlink's CRC check, only the message ids it needs (stack-notes §3: ~2.7x faster than
-``mavlink_connection`` + ``recv_msg``).
+The tlog / raw-stream reader walks the framing (8-byte big-endian timestamp + MAVLink 1/2 packet) itself and
+decodes only the message ids it needs, without pymavlink's ``MAVLink.decode``: X.25 CRC with the message's
+crc_extra (the dialect module's CRC function, i.e. fastcrc when pymavlink uses it), then the dialect class's
+precompiled ``Struct`` (zero-truncated MAVLink 2 payloads padded with zeros) into a named-tuple view in wire
+order with pymavlink's field values (arrays as lists, char[N] as str); other ids are skipped unread. Same
+messages, values and counts as ``MAVLink.decode`` (tests/unit/test_sources_fastpath.py); on a 600 s simulated
+tlog the whole source (decode + conversion + throttle) takes ~0.35x the wall time of ``mavlink_connection`` +
+``recv_msg`` merely parsing it (benchmarks/source_speed.py). Signatures of signed frames are not checked.
 """
 
 from __future__ import annotations
@@ -72,6 +77,7 @@ from magcomp.core.types import (
 from magcomp.errors import InputError
 
 G_M_S2 = 9.80665
+_MG_TO_M_S2 = G_M_S2 * 1e-3
 RESET_JUMP_S = 5.0  # a timestamp this far behind the newest one is an autopilot reboot
 U32_WRAP_S = 4294.967296  # SERVO_OUTPUT_RAW.time_usec is uint32
 MAV_AUTOPILOT_INVALID = 8
@@ -112,6 +118,8 @@ WANTED_DATAFLASH = (
     "PARM",
     "MSG",
 )
+_SERVO_FIELDS = tuple(f"servo{i}_raw" for i in range(1, 17))
+_RC_FIELDS = tuple(f"chan{i}_raw" for i in range(1, 19))
 _PWM_COLUMN = re.compile(r"^(?:C|Ch|Chan)(\d+)$")
 
 
@@ -162,10 +170,12 @@ class _Clock:
             if prev is not None and raw_s < prev:
                 self.counts["time_backwards"] += 1
                 return None
-            self.max_raw_s = max(self.max_raw_s, raw_s)
+            if raw_s > self.max_raw_s:
+                self.max_raw_s = raw_s
         self.last_by_stream[stream] = raw_s
         t_s = raw_s + self.offset_s
-        self.last_t_s = max(self.last_t_s, t_s)
+        if t_s > self.last_t_s:
+            self.last_t_s = t_s
         return t_s
 
     def unwrap_u32_us(self, usec: int) -> float:
@@ -210,13 +220,14 @@ class _Converter:
         return handler(msg) if handler is not None else []
 
     def _imu_mag(self, origin: str, t_s: float, msg: Any, index: int) -> list[tuple[str, Record]]:
-        gyro = _vec(msg.xgyro, msg.ygyro, msg.zgyro, 1e-3)  # mrad/s -> rad/s
-        accel = _vec(msg.xacc, msg.yacc, msg.zacc, G_M_S2 * 1e-3)  # mG -> m/s^2
-        mag = _vec(msg.xmag, msg.ymag, msg.zmag)  # mgauss
+        gyro = np.array((msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3))  # mrad/s -> rad/s
+        accel = np.array((msg.xacc * _MG_TO_M_S2, msg.yacc * _MG_TO_M_S2, msg.zacc * _MG_TO_M_S2))  # mG
         out: list[tuple[str, Record]] = [(origin, ImuSample(t_s, gyro, accel, index))]
-        if not mag.any():  # (0, 0, 0): no compass data in this message
+        xmag, ymag, zmag = msg.xmag, msg.ymag, msg.zmag
+        if not (xmag or ymag or zmag):  # (0, 0, 0): no compass data in this message
             self.counts["mag_zero"] += 1
         elif self.mag_index is None or self.mag_index == index:
+            mag = np.array((xmag, ymag, zmag), dtype=np.float64)  # mgauss
             out.append((origin, MagSample(t_s, mag, index)))
         temp = getattr(msg, "temperature", 0)
         if temp:  # 0 = not provided (common.xml)
@@ -258,8 +269,8 @@ class _Converter:
         if t_s is None:
             return []
         base = 8 * int(msg.port)
-        for i in range(1, 17 if base == 0 else 9):
-            value = getattr(msg, f"servo{i}_raw", 0)
+        for i, name in enumerate(_SERVO_FIELDS if base == 0 else _SERVO_FIELDS[:8], start=1):
+            value = getattr(msg, name, 0)
             if i <= 8 or value:  # servo9..16 are an extension: 0 when the sender does not fill them
                 self.servo_pwm[base + i] = float(value)
         return [("SERVO_OUTPUT_RAW", PwmRecord(t_s, "servo", dict(self.servo_pwm)))]
@@ -269,8 +280,8 @@ class _Converter:
         if t_s is None:
             return []
         pwm = {}
-        for i in range(1, min(int(msg.chancount), 18) + 1):
-            value = getattr(msg, f"chan{i}_raw")
+        for i, name in enumerate(_RC_FIELDS[: min(int(msg.chancount), 18)], start=1):
+            value = getattr(msg, name)
             if value != 0xFFFF:
                 pwm[i] = float(value)
         return [("RC_CHANNELS", PwmRecord(t_s, "rc", pwm))]
@@ -484,16 +495,117 @@ def _next_magic(data: bytes, start: int) -> int:
     return min(a, b)
 
 
-def iter_mavlink_frames(
-    data: bytes, mav: Any, wanted_ids: frozenset[int], counts: dict[str, int], ts_len: int
-) -> Iterator[Any]:
-    """Walk tlog framing (``ts_len`` = 8) or a raw MAVLink stream (0); decode (with CRC check) wanted ids
-    only."""
-    mav_error = sys.modules[type(mav).__module__].MAVError
+class _ViewBase(tuple):
+    """Base of the decoded-message views: a named tuple of the payload fields in wire order + srcSystem."""
 
+    __slots__ = ()
+    msgname = ""
+
+    def get_type(self) -> str:
+        return self.msgname
+
+    def get_srcSystem(self) -> int:  # pymavlink's spelling
+        return int(self[-1])
+
+
+# (payload Struct, its size, crc_extra as 1 byte, view builder (fields tuple, srcSystem) -> view, handler)
+FrameDecoder = tuple[Any, int, bytes, Callable[[tuple[Any, ...], int], Any], Callable[[Any], Any]]
+
+
+def _view_builder(msgtype: Any) -> Callable[[tuple[Any, ...], int], Any]:
+    """A builder of the message's view from ``Struct.unpack`` output, with pymavlink's field values.
+
+    Fields are in wire order (``ordered_fieldnames``), which is the order of the unpacked tuple, so a
+    message without arrays or strings needs no reordering at all. Arrays become lists and ``char[N]``
+    fields strings cut at the first NUL (ASCII, errors replaced), as pymavlink's generated classes do.
+    """
+    names = list(msgtype.ordered_fieldnames)
+    from collections import namedtuple
+
+    base = namedtuple(f"{msgtype.msgname}_view", [*names, "srcSystem"])  # type: ignore[misc]
+    cls = type(base.__name__, (base, _ViewBase), {"__slots__": (), "msgname": msgtype.msgname})
+    new = tuple.__new__
+    fmt = msgtype.unpacker.format
+    has_str = "s" in (fmt.decode() if isinstance(fmt, bytes) else fmt)
+    lengths = list(msgtype.lengths)
+    if not has_str and sum(lengths) == len(lengths):
+
+        def build(t: tuple[Any, ...], src: int) -> Any:
+            return new(cls, (*t, src))
+
+        return build
+    # a layout of (first element, count, kind): kind 0 scalar, 1 array, 2 string
+    layout: list[tuple[int, int, int]] = []
+    i = 0
+    for n_el, array_len in zip(lengths, msgtype.array_lengths, strict=True):
+        is_str = array_len > 0 and n_el == 1  # char[N]: one "Ns" element
+        layout.append((i, n_el, 2 if is_str else (1 if n_el > 1 else 0)))
+        i += n_el
+
+    def build_slow(t: tuple[Any, ...], src: int) -> Any:
+        values: list[Any] = []
+        for first, count, kind in layout:
+            if kind == 0:
+                values.append(t[first])
+            elif kind == 1:
+                values.append(list(t[first : first + count]))
+            else:
+                raw = t[first]
+                values.append(raw.split(b"\x00", 1)[0].decode("ascii", errors="replace"))
+        values.append(src)
+        return new(cls, values)
+
+    return build_slow
+
+
+def frame_decoders(mod: Any, handlers: dict[str, Callable[[Any], Any]]) -> dict[int, FrameDecoder]:
+    """Precompiled decoders by message id, from the dialect's message classes, for the ids in ``handlers``."""
+    out: dict[int, FrameDecoder] = {}
+    for name, handler in handlers.items():
+        msgtype = mod.mavlink_map[getattr(mod, f"MAVLINK_MSG_ID_{name}")]
+        st = msgtype.unpacker
+        out[msgtype.id] = (st, st.size, bytes([msgtype.crc_extra]), _view_builder(msgtype), handler)
+    return out
+
+
+def _crc_function(mod: Any) -> Callable[[Any, int], int]:
+    """The CRC-16/MCRF4XX (X.25) function of the dialect module: fastcrc's when pymavlink uses it."""
+    fast = getattr(mod, "mcrf4xx", None)
+    if fast is not None:
+        return fast
+    x25 = mod.x25crc
+
+    def slow(buf: Any, crc: int) -> int:
+        acc = x25()
+        acc.crc = crc
+        acc.accumulate(bytes(buf))
+        return int(acc.crc)
+
+    return slow
+
+
+def iter_mavlink_frames(
+    data: bytes,
+    decoders: dict[int, FrameDecoder],
+    counts: dict[str, int],
+    ts_len: int,
+    *,
+    crc16: Callable[[Any, int], int],
+    ignore_crc: bool = False,
+    reference_mav: Any = None,
+) -> Iterator[tuple[Callable[[Any], Any], Any]]:
+    """Walk tlog framing (``ts_len`` = 8) or a raw MAVLink stream (0); yield (handler, message) for the ids
+    in ``decoders`` only, CRC-checked (X.25 with the message's crc_extra) and unpacked with a precompiled
+    Struct (MAVLink 2 payloads cut by zero-truncation are padded with zeros). Other ids are skipped unread.
+
+    ``reference_mav`` (tests): decode the same frames with pymavlink's ``MAVLink.decode`` instead.
+    """
+    mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
+    view = memoryview(data)
     n = len(data)
     p = 0
     magics = (MAGIC_V1, MAGIC_V2)
+    get = decoders.get
     while p + ts_len + 8 <= n:
         h = p + ts_len
         magic = data[h]
@@ -501,10 +613,16 @@ def iter_mavlink_frames(
             if h + 10 > n:
                 counts["truncated"] += 1
                 break
-            end = h + 12 + data[h + 1] + (13 if data[h + 2] & 1 else 0)
+            mlen = data[h + 1]
+            start = h + 10
+            crc_at = start + mlen
+            end = crc_at + (15 if data[h + 2] & 1 else 2)
             msgid = data[h + 7] | (data[h + 8] << 8) | (data[h + 9] << 16)
         elif magic == MAGIC_V1:
-            end = h + 8 + data[h + 1]
+            mlen = data[h + 1]
+            start = h + 6
+            crc_at = start + mlen
+            end = crc_at + 2
             msgid = data[h + 5]
         else:
             q = _next_magic(data, h + 1)
@@ -517,10 +635,25 @@ def iter_mavlink_frames(
             counts["truncated"] += 1
             break
         next_ok = end + ts_len >= n or data[end + ts_len] in magics
-        if msgid in wanted_ids:
-            try:
-                msg = mav.decode(bytearray(data[h:end]))
-            except mav_error:
+        dec = get(msgid)
+        if dec is not None:
+            st, size, extra, build, handler = dec
+            if mav_error is not None:
+                try:
+                    msg = reference_mav.decode(bytearray(data[h:end]))
+                except mav_error:
+                    msg = None
+            elif ignore_crc or crc16(extra, crc16(view[h + 1 : crc_at], 0xFFFF)) == (
+                data[crc_at] | (data[crc_at + 1] << 8)
+            ):
+                if mlen >= size:
+                    fields = st.unpack_from(data, start)
+                else:  # MAVLink 2 zero-truncation: the missing tail is zeros
+                    fields = st.unpack(data[start:crc_at] + bytes(size - mlen))
+                msg = build(fields, data[start - 5] if magic == MAGIC_V2 else data[h + 3])
+            else:
+                msg = None
+            if msg is None:
                 if next_ok:
                     counts["bad_crc"] += 1
                     p = end
@@ -529,7 +662,7 @@ def iter_mavlink_frames(
                     p += 1
                 continue
             counts["messages"] += 1
-            yield msg
+            yield handler, msg
         elif not next_ok:  # framing of an unchecked packet is doubtful: resynchronise byte by byte
             counts["garbage_bytes"] += 1
             p += 1
@@ -635,6 +768,7 @@ class MavSource:
         self._live_timeout_s = live_timeout_s
         self._baud = baud
         self._kind = self._classify(target)
+        self._reference_decode = False  # tests: decode tlog frames with pymavlink's MAVLink.decode
         if self._kind == "live":
             self._open_live()
 
@@ -713,11 +847,14 @@ class MavSource:
                 raise InputError(f"{self.target}: no DataFlash messages found (not an ArduPilot log?)")
             return
         if self._kind == "mavlink_file":
-            yield from ((conv.mavlink, m) for m in self._file_messages())
+            if self._reference_decode:  # tests: pymavlink's decode, dispatched by type name
+                yield from ((conv.mavlink, m) for _, m in self._file_messages())
+            else:
+                yield from self._file_messages()
             return
         yield from ((conv.mavlink, m) for m in self._live_messages())
 
-    def _file_messages(self) -> Iterator[Any]:
+    def _file_messages(self) -> Iterator[tuple[Callable[[Any], list[tuple[str, Record]]], Any]]:
         path = Path(self.target)
         data = path.read_bytes()
         ts_len = _sniff_mavlink_stream(data)
@@ -726,9 +863,17 @@ class MavSource:
             if data[:256].isascii():
                 raise InputError(f"{path}: a text file, not a MAVLink log")
             ts_len = 8 if path.suffix.lower() == ".tlog" else 0
-        mav = mod.MAVLink(None)
-        wanted = frozenset(getattr(mod, f"MAVLINK_MSG_ID_{name}") for name in WANTED_MAVLINK)
-        yield from iter_mavlink_frames(data, mav, wanted, self.counts, ts_len)
+        conv = self._conv
+        decoders = frame_decoders(mod, {name: getattr(conv, f"_m_{name}") for name in WANTED_MAVLINK})
+        yield from iter_mavlink_frames(
+            data,
+            decoders,
+            self.counts,
+            ts_len,
+            crc16=_crc_function(mod),
+            ignore_crc=bool(mod.MAVLINK_IGNORE_CRC),
+            reference_mav=mod.MAVLink(None) if self._reference_decode else None,
+        )
         if self.counts["messages"] == 0:
             raise InputError(f"{path}: no valid MAVLink messages found")
 
@@ -759,26 +904,35 @@ class MavSource:
 
     def samples(self) -> Iterator[Sample]:
         """Stream typed samples; throttle records become ThrottleSample per the configured source."""
+        # records() inlined (the hot loop of a replay): parameters are stored before the sample is yielded
         available: set[str] = set()
         resolved: ResolvedThrottle | None = None
         stale = True
-        for _, rec in self.records():
-            if isinstance(rec, PwmRecord | ThrottleRecord):
-                if rec.kind not in available:
-                    available.add(rec.kind)
+        params = self.params
+        for handler, msg in self._messages():
+            for _, rec in handler(msg):
+                cls = type(rec)
+                if cls is PwmRecord or cls is ThrottleRecord:
+                    assert isinstance(rec, PwmRecord | ThrottleRecord)  # for mypy (cheap: few per message)
+                    if rec.kind not in available:
+                        available.add(rec.kind)
+                        stale = True
+                    if stale:
+                        resolved = resolve_throttle(
+                            self.spec, self.vehicle_type, params, frozenset(available)
+                        )
+                        stale = False
+                    thr = _throttle_sample(resolved, rec)
+                    if thr is not None:
+                        yield thr
+                    continue
+                if cls is ParamSample:
+                    assert isinstance(rec, ParamSample)
+                    params[rec.name] = rec.value
                     stale = True
-                if stale:
-                    resolved = resolve_throttle(
-                        self.spec, self.vehicle_type, self.params, frozenset(available)
-                    )
-                    stale = False
-                thr = _throttle_sample(resolved, rec)
-                if thr is not None:
-                    yield thr
-                continue
-            if isinstance(rec, ParamSample | HeartbeatSample):
-                stale = True
-            yield rec
+                elif cls is HeartbeatSample:
+                    stale = True
+                yield rec  # type: ignore[misc]
 
 
 def _throttle_sample(
