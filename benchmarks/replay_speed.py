@@ -11,6 +11,7 @@ calibration -> observer -> heading; two compasses), and the source alone. Wall t
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -18,6 +19,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# as the magcomp command line does before numpy is loaded (magcomp/cli.py); pymavlink does not use BLAS
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from magcomp.adapters.config import Config
 from magcomp.service.replay import replay_log

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
+
+# Before anything imports numpy. The matrices magcomp solves on its sample path are small (the interim
+# calibration fits: ~1000 x 12); OpenBLAS threads them anyway, and on a loaded 2-core machine its
+# spinning threads made each fit 30-150 ms instead of ~1 ms (docs/benchmarks.md, replay speed).
+# A setting in the environment wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from magcomp import __version__
 from magcomp.commands import COMMANDS

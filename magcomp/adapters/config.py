@@ -167,6 +167,10 @@ def _non_negative(v: float) -> bool:
     return v >= 0.0
 
 
+#: the calibration buffer holds this many 3-vectors at most (24 MB); more is a typo, not a wish
+MAX_CALIBRATION_SAMPLES = 1_000_000
+_SAMPLES_RULE = f"be in [20, {MAX_CALIBRATION_SAMPLES}]"
+
 # (section, key) -> (predicate, rule text). Types are checked separately from the dataclass defaults.
 _RULES: dict[tuple[str, str], tuple[Any, str]] = {
     ("input", "attitude"): (lambda v: v in ATTITUDE_SOURCES, f"be one of {', '.join(ATTITUDE_SOURCES)}"),
@@ -197,8 +201,8 @@ _RULES: dict[tuple[str, str], tuple[Any, str]] = {
     ("mahony", "accel_gate_m_s2"): (_positive, "be > 0"),
     ("calibration", "mode"): (lambda v: v in CALIBRATION_MODES, f"be one of {', '.join(CALIBRATION_MODES)}"),
     ("calibration", "max_throttle_01"): (lambda v: 0.0 <= v <= 1.0, "be in [0, 1]"),
-    ("calibration", "min_samples"): (lambda v: v >= 20, "be >= 20"),
-    ("calibration", "max_samples"): (lambda v: v >= 20, "be >= 20"),
+    ("calibration", "min_samples"): (lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE),
+    ("calibration", "max_samples"): (lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE),
     ("calibration", "check_every"): (lambda v: v >= 1, "be >= 1"),
     ("location", "lat_deg"): (lambda v: -90.0 <= v <= 90.0, "be in [-90, 90]"),
     ("location", "lon_deg"): (lambda v: -180.0 <= v <= 360.0, "be in [-180, 360]"),
@@ -209,9 +213,9 @@ _RULES: dict[tuple[str, str], tuple[Any, str]] = {
     ("output", "source_system"): (lambda v: 0 <= v <= 255, "be in 0..255 (0 = the vehicle's own id)"),
     ("output", "source_component"): (lambda v: 1 <= v <= 255, "be in 1..255"),
     ("state", "save_interval_s"): (_positive, "be > 0"),
-    ("link", "reconnect_s"): (_positive, "be > 0"),
+    ("link", "reconnect_s"): (lambda v: 0.0 < v <= 3600.0, "be in (0, 3600] s"),
     ("link", "silence_s"): (_positive, "be > 0"),
-    ("link", "heartbeat_hz"): (_non_negative, "be >= 0 (0 = no heartbeat)"),
+    ("link", "heartbeat_hz"): (lambda v: 0.0 <= v <= 50.0, "be in [0, 50] Hz (0 = no heartbeat)"),
 }
 
 

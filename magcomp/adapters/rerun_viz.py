@@ -14,8 +14,10 @@ Modes (``--rerun MODE``):
 - ``auto``: ``spawn`` when there is a display, else ``serve`` (:func:`default_mode_for_demo`).
 
 Everything is stamped on one timeline, :data:`TIMELINE` (seconds of *message* time, a duration), never on
-arrival time; rerun's own wall-clock ``log_time`` timeline is kept only for live views. Replay sends whole
-series as columns (``send_columns``); live logs one row per estimate.
+arrival time; rerun's own wall-clock ``log_time`` timeline is kept only for live views (on the rows sent with
+``rr.log``, e.g. the clouds). Replay sends whole series as columns (``send_columns``); live buffers estimates
+and sends them as columns every 0.5 s of message time (one row per estimate for theta, heading and bias;
+throttle, power and observer thinned to 10 Hz).
 
 The blueprint follows the paper's figures (Silic & Mohseni 2019):
 
@@ -77,12 +79,18 @@ CLOUD_MAX_POINTS = 3000
 """Replay: largest flight cloud sent per batch; live: points drawn per halving of the sampling rate."""
 LIVE_CLOUD_PERIOD_S = 1.0
 """Live: new cloud points and the reference lines' ends are sent at most this often (message time)."""
+LIVE_FLUSH_PERIOD_S = 0.5
+"""Live: buffered estimates are sent as columns once this much message time has gathered."""
+LIVE_SLOW_HZ = 10.0
+"""Live: throttle, current, voltage and observer series are thinned to at most this rate (message time)."""
 BIAS_FIT_MAX_POINTS = 4000
 
 # Colours (RGB). Heading colours are kept apart from the axis colours so a screenshot can tell them apart.
 COLOR_RAW = (245, 120, 30)
 COLOR_CORRECTED = (40, 190, 245)
 COLOR_TRUTH = (110, 110, 110)
+COLOR_TRUTH_LINE = (40, 40, 40, 210)
+"""Truth lines (RGBA): thin, slightly translucent dark grey; the wider corrected heading under them shows."""
 COLOR_CORRECTION = (170, 120, 230)
 COLOR_AXES = ((235, 70, 70), (90, 205, 90), (95, 125, 245))
 
@@ -416,11 +424,15 @@ def thin_rows(rows: NDArray[np.float64], cap: int) -> NDArray[np.float64]:
 
 
 class TruthHeading:
-    """The true heading, accumulated from arrays or single samples, interpolated (unwrapped) at any time."""
+    """The true heading, accumulated from arrays or single samples, interpolated (unwrapped) at any time.
+
+    Samples that arrive in time order (a live run fed chunk by chunk) extend the unwrapped copy in place, so
+    adding and querying stay cheap over a long run; out-of-order samples re-sort and unwrap everything."""
 
     def __init__(self) -> None:
         self._t: NDArray[np.float64] = np.zeros(0)
         self._deg: NDArray[np.float64] = np.zeros(0)
+        self._unwrapped: NDArray[np.float64] = np.zeros(0)
         self._pending_t: list[float] = []
         self._pending_deg: list[float] = []
 
@@ -431,14 +443,30 @@ class TruthHeading:
     def _merge(self) -> None:
         if not self._pending_t:
             return
-        t = np.concatenate([self._t, np.asarray(self._pending_t)])
-        deg = np.concatenate([self._deg, np.asarray(self._pending_deg)])
+        t_new = np.asarray(self._pending_t, dtype=float)
+        deg_new = np.asarray(self._pending_deg, dtype=float)
         self._pending_t.clear()
         self._pending_deg.clear()
-        ok = np.isfinite(t) & np.isfinite(deg)
-        t, deg = t[ok], deg[ok]
+        ok = np.isfinite(t_new) & np.isfinite(deg_new)
+        t_new, deg_new = t_new[ok], deg_new[ok]
+        if t_new.size == 0:
+            return
+        in_order = bool(np.all(np.diff(t_new) >= 0.0))
+        if in_order and (self._t.size == 0 or t_new[0] >= self._t[-1]):
+            if self._t.size:  # continue the unwrapped angle from the last known sample
+                steps = np.degrees(np.unwrap(np.radians(np.concatenate([self._deg[-1:], deg_new]))))
+                tail = self._unwrapped[-1] + (steps[1:] - steps[0])
+            else:
+                tail = np.degrees(np.unwrap(np.radians(deg_new)))
+            self._t = np.concatenate([self._t, t_new])
+            self._deg = np.concatenate([self._deg, deg_new])
+            self._unwrapped = np.concatenate([self._unwrapped, tail])
+            return
+        t = np.concatenate([self._t, t_new])
+        deg = np.concatenate([self._deg, deg_new])
         order = np.argsort(t, kind="stable")
         self._t, self._deg = t[order], deg[order]
+        self._unwrapped = np.degrees(np.unwrap(np.radians(self._deg)))
 
     def __len__(self) -> int:
         self._merge()
@@ -450,8 +478,7 @@ class TruthHeading:
         t_q = np.asarray(t_s, dtype=float)
         if self._t.shape[0] == 0:
             return np.full(t_q.shape, np.nan)
-        unwrapped = np.degrees(np.unwrap(np.radians(self._deg)))
-        value = np.interp(t_q, self._t, unwrapped)
+        value = np.interp(t_q, self._t, self._unwrapped)
         inside = (t_q >= self._t[0]) & (t_q <= self._t[-1])
         return np.where(inside, value % 360.0, np.nan)
 
@@ -575,38 +602,62 @@ def bias_fit_canvas(
 # ----------------------------------------------------------------------------------------------------------
 
 
-def build_blueprint(live: bool) -> Any:
+def theta_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
+    """The theta plot's y range: every value and 0 (where theta-hat starts), 10 % margin below and 60 % of
+    the span above, so that the legend in the top corner sits over empty plot."""
+    finite = [float(v) for v in values_mgauss if math.isfinite(float(v))] + [0.0]
+    lo, hi = min(finite), max(finite)
+    span = max(hi - lo, 10.0)
+    return (lo - 0.1 * span, hi + 0.6 * span)
+
+
+HEADING_AXIS_RANGE = (-10.0, 480.0)
+"""Heading plot's y range (deg): 0..360 with room for the legend above."""
+
+
+def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) -> Any:
     """The view layout (a ``rerun.blueprint.Blueprint``): headings and theta on the left; clouds, bias fit,
-    power, observer and status on the right. Live views of heading/power/observer show the last 120 s."""
+    power, observer and status on the right. Every time-series plot shows the whole run on its x axis (not
+    Rerun's default window around the time cursor), so theta's transient in the spin segment stays in view.
+    ``theta_range``: the theta plot's y range (mgauss), see :func:`theta_axis_range`; None = automatic."""
+    import rerun as rr
     import rerun.blueprint as rrb
 
-    window: dict[str, Any] = {}
-    if live:
-        window = {
-            "time_ranges": rrb.VisibleTimeRange(
-                TIMELINE,
-                start=rrb.TimeRangeBoundary.cursor_relative(seconds=-120.0),
-                end=rrb.TimeRangeBoundary.cursor_relative(),
-            )
-        }
-    heading = rrb.TimeSeriesView(
-        name="Heading raw / corrected / truth (Fig. 9), deg", origin="/heading", **window
+    del live  # live and replay now share the layout; kept for callers
+    whole_run = rrb.TimeAxis(
+        link="Independent",
+        view_range=rr.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()),
     )
-    heading_error = rrb.TimeSeriesView(name="Heading error (Fig. 9), deg", origin="/heading_error", **window)
-    theta = rrb.TimeSeriesView(name="theta-hat vs offline / truth (Fig. 8), mgauss", origin="/theta")
+
+    def plot(name: str, origin: str, corner: Any = "LeftTop", **extra: Any) -> Any:
+        return rrb.TimeSeriesView(
+            name=name, origin=origin, axis_x=whole_run, plot_legend=rrb.PlotLegend(corner=corner), **extra
+        )
+
+    heading = plot(
+        "Heading raw / corrected / truth (Fig. 9), deg",
+        "/heading",
+        "RightTop",
+        axis_y=rrb.ScalarAxis(range=HEADING_AXIS_RANGE),
+    )
+    heading_error = plot("Heading error (Fig. 9), deg", "/heading_error", "RightBottom")
+    theta_extra: dict[str, Any] = {}
+    if theta_range is not None:
+        theta_extra["axis_y"] = rrb.ScalarAxis(range=theta_range)
+    theta = plot("theta-hat vs offline / truth (Fig. 8), mgauss", "/theta", "RightTop", **theta_extra)
     everything = rrb.VisibleTimeRange(
         TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
     )
     raw_cloud = rrb.Spatial3DView(
         name="Raw field: ellipsoid (Fig. 5)",
         origin="/mag",
-        contents=["/mag/raw_cloud", "/mag/flight/raw"],
+        contents=["/mag/raw_cloud", "/mag/flight/raw", "/mag/origin/**"],
         time_ranges=everything,
     )
     cal_cloud = rrb.Spatial3DView(
         name="Calibrated: sphere (Fig. 5)",
         origin="/mag",
-        contents=["/mag/calibrated_cloud", "/mag/flight/calibrated"],
+        contents=["/mag/calibrated_cloud", "/mag/flight/calibrated", "/mag/origin/**"],
         time_ranges=everything,
     )
     bias_fit = rrb.Spatial2DView(
@@ -614,21 +665,19 @@ def build_blueprint(live: bool) -> Any:
         origin="/bias/fit",
         visual_bounds=rrb.VisualBounds2D(
             x_range=[-0.25 * BIAS_CANVAS_X, 1.35 * BIAS_CANVAS_X],
-            y_range=[-1.15 * BIAS_CANVAS_Y, 1.15 * BIAS_CANVAS_Y],
+            y_range=[-1.3 * BIAS_CANVAS_Y, 1.3 * BIAS_CANVAS_Y],
         ),
     )
-    bias_t = rrb.TimeSeriesView(name="Bias theta·throttle², mgauss", origin="/bias/estimate", **window)
+    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop")
     power = rrb.Vertical(
-        rrb.TimeSeriesView(name="Throttle 0..1", origin="/power/throttle", **window),
-        rrb.TimeSeriesView(name="Current, A", origin="/power/current", **window),
-        rrb.TimeSeriesView(name="Voltage, V", origin="/power/voltage", **window),
+        plot("Throttle 0..1", "/power/throttle", "LeftTop", axis_y=rrb.ScalarAxis(range=(-0.05, 1.8))),
+        plot("Current, A", "/power/current", "LeftTop"),
+        plot("Voltage, V", "/power/voltage", "LeftBottom"),
         name="Power",
     )
     observer = rrb.Vertical(
-        rrb.TimeSeriesView(name="Residual norm, mgauss", origin="/observer/residual_norm", **window),
-        rrb.TimeSeriesView(
-            name="Rotation excitation (eq. 21), rad²/s²", origin="/observer/excitation", **window
-        ),
+        plot("Residual norm, mgauss", "/observer/residual_norm", "RightTop"),
+        plot("Rotation excitation (eq. 21), rad²/s²", "/observer/excitation", "RightTop"),
         name="Observer",
     )
     status = rrb.TextLogView(name="Status", origin="/status")
@@ -718,9 +767,16 @@ class RerunViz:
         self._theta_refs: dict[str, NDArray[np.float64]] = {}
         self._ref_sent_t = -math.inf
         self._truth = TruthHeading()
-        self._replay_cols: list[EstimateColumns] = []
-        self._replay_err_done: list[bool] = []
+        # heading rows whose errors against the truth are not sent yet (the truth came later or not at all)
+        self._err_pending: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
         self._last_flags: int | None = None
+        self._live_buffer: list[HeadingEstimate] = []
+        self._live_flushed_t = -math.inf
+        self._slow_bucket: dict[str, float] = {}
+        self._theta_lo = math.inf
+        self._theta_hi = -math.inf
+        self._theta_range: tuple[float, float] | None = None
+        self._origin_radius = 0.0
         self._cloud_pick = StreamDecimator(CLOUD_MAX_POINTS)
         self._cloud_raw: list[NDArray[np.float64]] = []
         self._cloud_cal: list[NDArray[np.float64]] = []
@@ -759,10 +815,10 @@ class RerunViz:
             self._series_style(f"theta/{ax}", COLOR_AXES[k], f"theta_{ax}", 2.0)
             faded = [int(0.55 * c) for c in COLOR_AXES[k]]
             self._series_style(f"theta/offline/{ax}", faded, f"offline LS theta_{ax}", 5.0)
-            self._series_style(f"theta/truth/{ax}", COLOR_TRUTH, f"true theta_{ax}", 1.0)
+            self._series_style(f"theta/truth/{ax}", COLOR_TRUTH_LINE, "true theta (x, y, z)", 1.0)
         self._series_style("heading/raw", COLOR_RAW, "raw (B-hat = 0)", 2.0)
-        self._series_style("heading/corrected", COLOR_CORRECTED, "corrected (B-hat = theta·throttle²)", 2.0)
-        self._series_style("heading/truth", COLOR_TRUTH, "truth", 1.5)
+        self._series_style("heading/corrected", COLOR_CORRECTED, "corrected (B-hat = theta·throttle²)", 3.0)
+        self._series_style("heading/truth", COLOR_TRUTH_LINE, "truth", 1.0)
         self._series_style("heading_error/raw", COLOR_RAW, "raw - truth", 2.0)
         self._series_style("heading_error/corrected", COLOR_CORRECTED, "corrected - truth", 2.0)
         self._series_style("heading_error/raw_minus_corrected", COLOR_CORRECTION, "raw - corrected", 1.0)
@@ -797,52 +853,51 @@ class RerunViz:
 
     # -- live ----------------------------------------------------------------------------------------------
     def log_estimate(self, est: HeadingEstimate) -> None:
-        rr, rec = self._rr, self._rec
+        """Live: buffered and sent as columns every :data:`LIVE_FLUSH_PERIOD_S` of message time (one row per
+        estimate and entity, but a few chunks per second instead of ~12 one-row chunks per estimate, which
+        the web viewer takes minutes to ingest). Any other call, and close(), sends the buffer first."""
         t = float(est.t_s)
-        rec.set_time(TIMELINE, duration=t)
-        theta = np.asarray(est.theta_mgauss, dtype=float)
-        bias = np.asarray(est.bias_mgauss, dtype=float)
-        for k, ax in enumerate(AXES):
-            rec.log(f"theta/{ax}", rr.Scalars(float(theta[k])))
-        rec.log("bias/estimate", rr.Scalars(bias))  # the three axes as one 3-series entity
-        rec.log("heading/raw", rr.Scalars(float(est.heading_raw_deg)))
-        rec.log("heading/corrected", rr.Scalars(float(est.heading_deg)))
-        rec.log(
-            "heading_error/raw_minus_corrected",
-            rr.Scalars(float(wrap_deg(np.array(est.heading_raw_deg - est.heading_deg)))),
-        )
-        if len(self._truth):
-            truth = float(self._truth.at(np.array([t]))[0])
-            if math.isfinite(truth):
-                rec.log(
-                    "heading_error/raw", rr.Scalars(float(wrap_deg(np.array(est.heading_raw_deg - truth))))
-                )
-                rec.log(
-                    "heading_error/corrected", rr.Scalars(float(wrap_deg(np.array(est.heading_deg - truth))))
-                )
-        if math.isfinite(est.throttle_01):
-            rec.log("power/throttle/at_mag", rr.Scalars(float(est.throttle_01)))
-        if math.isfinite(est.residual_norm_mgauss):
-            rec.log("observer/residual_norm", rr.Scalars(float(est.residual_norm_mgauss)))
-        if math.isfinite(est.excitation):
-            rec.log("observer/excitation", rr.Scalars(float(est.excitation)))
-        if est.flags != self._last_flags:
-            self._last_flags = int(est.flags)
-            rec.log("status/flags", rr.TextLog(f"flags: {flags_text(int(est.flags))}", level="INFO"))
-        if self._cloud_pick.accept():
-            self._cloud_raw.append(np.asarray(est.field_raw_mgauss, dtype=float))
-            self._cloud_cal.append(np.asarray(est.field_cal_mgauss, dtype=float))
-        self._see_times(np.array([t]))
-        if t - self._cloud_sent_t >= LIVE_CLOUD_PERIOD_S or t < self._cloud_sent_t:
-            self._flush_live_cloud(t)
-        if self._theta_refs and (t - self._ref_sent_t >= LIVE_CLOUD_PERIOD_S or t < self._ref_sent_t):
-            self._send_reference_lines()
+        if self._live_buffer and t < self._live_flushed_t:  # the clock went back: keep blocks in order
+            self._flush_live()
+        self._live_buffer.append(est)
+        if not math.isfinite(self._live_flushed_t) or t < self._live_flushed_t:
+            self._live_flushed_t = t
+        if t - self._live_flushed_t >= LIVE_FLUSH_PERIOD_S:
+            self._flush_live()
+
+    def _flush_live(self) -> None:
+        if not self._live_buffer:
+            return
+        block = self._live_buffer
+        self._live_buffer = []
+        self._live_flushed_t = float(block[-1].t_s)
+        self._send_estimate_block(EstimateColumns.from_estimates(block), live=True)
+
+    def _slow_rows(self, key: str, t_s: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Live: rows to keep so that entity group ``key`` gets at most one row per 1/LIVE_SLOW_HZ s of
+        message time (the first row of each new time bucket)."""
+        if not self.live:
+            return np.ones(t_s.shape[0], dtype=bool)
+        bucket = np.floor(np.asarray(t_s, dtype=float) * LIVE_SLOW_HZ)
+        keep = np.zeros(t_s.shape[0], dtype=bool)
+        last = self._slow_bucket.get(key, -math.inf)
+        for i, bk in enumerate(bucket):
+            if math.isfinite(bk) and bk != last:
+                keep[i] = True
+                last = float(bk)
+        self._slow_bucket[key] = last
+        return keep
 
     # -- replay --------------------------------------------------------------------------------------------
     def log_estimates(self, estimates: Sequence[HeadingEstimate]) -> None:
+        self._flush_live()
         if not estimates:
             return
-        cols = EstimateColumns.from_estimates(estimates)
+        self._send_estimate_block(EstimateColumns.from_estimates(estimates), live=False)
+
+    def _send_estimate_block(self, cols: EstimateColumns, *, live: bool) -> None:
+        """One block of estimates as columns: theta, heading, bias one row per estimate; throttle and the
+        observer at most LIVE_SLOW_HZ in live mode; flags on change; heading errors once truth is known."""
         t = cols.t_s
         for k, ax in enumerate(AXES):
             self._send_scalars(f"theta/{ax}", t, cols.theta_mgauss[:, k], drop_nan=False)
@@ -860,9 +915,10 @@ class RerunViz:
             wrap_deg(cols.heading_raw_deg - cols.heading_deg),
             drop_nan=True,
         )
-        self._send_scalars("power/throttle/at_mag", t, cols.throttle_01, drop_nan=True)
-        self._send_scalars("observer/residual_norm", t, cols.residual_norm_mgauss, drop_nan=True)
-        self._send_scalars("observer/excitation", t, cols.excitation, drop_nan=True)
+        slow = self._slow_rows("estimate", t)
+        self._send_scalars("power/throttle/at_mag", t[slow], cols.throttle_01[slow], drop_nan=True)
+        self._send_scalars("observer/residual_norm", t[slow], cols.residual_norm_mgauss[slow], drop_nan=True)
+        self._send_scalars("observer/excitation", t[slow], cols.excitation[slow], drop_nan=True)
         changes = flag_changes(cols.flags)
         if self._last_flags is not None and changes.size and int(cols.flags[0]) == self._last_flags:
             changes = changes[1:]
@@ -875,34 +931,64 @@ class RerunViz:
             )
         self._last_flags = int(cols.flags[-1])
         self._see_times(t)
-        self._replay_cols.append(cols)
-        self._replay_err_done.append(False)
+        self._err_pending.append((t, cols.heading_raw_deg, cols.heading_deg))
         self._send_heading_errors()
-        if t.size:
+        if live:
+            for i in range(n):
+                if self._cloud_pick.accept():
+                    self._cloud_raw.append(cols.field_raw_mgauss[i])
+                    self._cloud_cal.append(cols.field_cal_mgauss[i])
+            t_last = float(t[-1])
+            if t_last - self._cloud_sent_t >= LIVE_CLOUD_PERIOD_S or t_last < self._cloud_sent_t:
+                self._flush_live_cloud(t_last)
+        elif t.size:
             self._send_flight_clouds(
                 thin_rows(cols.field_raw_mgauss, CLOUD_MAX_POINTS),
                 thin_rows(cols.field_cal_mgauss, CLOUD_MAX_POINTS),
                 float(np.nanmin(t)) if np.isfinite(t).any() else 0.0,
             )
-        if self._theta_refs:
+        theta = cols.theta_mgauss[np.isfinite(cols.theta_mgauss)]
+        if theta.size:
+            self._theta_lo = min(self._theta_lo, float(theta.min()))
+            self._theta_hi = max(self._theta_hi, float(theta.max()))
+        if self._theta_refs and (
+            not live or t[-1] - self._ref_sent_t >= LIVE_CLOUD_PERIOD_S or t[-1] < self._ref_sent_t
+        ):
             self._send_reference_lines()
+        self._update_theta_axis()
+
+    def _update_theta_axis(self) -> None:
+        """Send the blueprint again with a wider theta y range when theta-hat or a reference line left it."""
+        values = [self._theta_lo, self._theta_hi]
+        for ref in self._theta_refs.values():
+            values.extend(float(v) for v in ref)
+        if not any(math.isfinite(v) for v in values):
+            return
+        current = self._theta_range
+        lo = min(v for v in [*values, 0.0] if math.isfinite(v))
+        hi = max(v for v in [*values, 0.0] if math.isfinite(v))
+        if current is not None and current[0] <= lo and hi <= current[1]:
+            return
+        self._theta_range = theta_axis_range(values)
+        self._rec.send_blueprint(build_blueprint(self.live, self._theta_range))
 
     def _send_heading_errors(self) -> None:
-        if not len(self._truth):
+        """Errors against the truth (Fig. 9) for every heading row the truth now covers; rows outside the
+        truth's span stay pending until more truth arrives."""
+        if not len(self._truth) or not self._err_pending:
             return
-        for i, cols in enumerate(self._replay_cols):
-            if self._replay_err_done[i]:
-                continue
-            truth = self._truth.at(cols.t_s)
-            if not np.isfinite(truth).any():
-                continue
-            self._replay_err_done[i] = True
-            self._send_scalars(
-                "heading_error/raw", cols.t_s, wrap_deg(cols.heading_raw_deg - truth), drop_nan=True
-            )
-            self._send_scalars(
-                "heading_error/corrected", cols.t_s, wrap_deg(cols.heading_deg - truth), drop_nan=True
-            )
+        still: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
+        for t, raw, cor in self._err_pending:
+            truth = self._truth.at(t)
+            ok = np.isfinite(truth)
+            if ok.any():
+                self._send_scalars("heading_error/raw", t[ok], wrap_deg(raw[ok] - truth[ok]), drop_nan=True)
+                self._send_scalars(
+                    "heading_error/corrected", t[ok], wrap_deg(cor[ok] - truth[ok]), drop_nan=True
+                )
+            if not ok.all():
+                still.append((t[~ok], raw[~ok], cor[~ok]))
+        self._err_pending = still
 
     def _flush_live_cloud(self, t_s: float) -> None:
         """Live: the points picked since the last flush, as one row; the 3D views show every row up to the
@@ -924,6 +1010,37 @@ class RerunViz:
             if pts.shape[0] == 0:
                 continue
             rec.log(path, rr.Points3D(pts, radii=_cloud_radius(pts), colors=[list(color)]))
+        self._log_origin_axes(cal)
+
+    def _log_origin_axes(self, calibrated: NDArray[np.float64]) -> None:
+        """Fig. 5: axes through the origin, +-1.3x the calibrated radius, in both 3D views, so the raw
+        ellipsoid's offset from 0 (hard iron) and the calibrated sphere's centring show."""
+        pts = calibrated[np.isfinite(calibrated).all(axis=1)]
+        if pts.shape[0] == 0:
+            return
+        radius = 1.3 * float(np.median(np.linalg.norm(pts, axis=1)))
+        if not math.isfinite(radius) or radius <= 0.0 or abs(radius - self._origin_radius) < 0.1 * radius:
+            return
+        self._origin_radius = radius
+        rr = self._rr
+        unit = np.eye(3)
+        strips = [np.stack([-radius * unit[k], radius * unit[k]]) for k in range(3)]
+        self._rec.log(
+            "mag/origin/axes",
+            rr.LineStrips3D(strips, radii=radius / 400.0, colors=[list(c) for c in COLOR_AXES]),
+            static=True,
+        )
+        self._rec.log(
+            "mag/origin/labels",
+            rr.Points3D(
+                np.vstack([1.05 * radius * unit, np.zeros((1, 3))]),
+                radii=radius / 100.0,
+                colors=[list(c) for c in COLOR_AXES] + [[230, 230, 230]],
+                labels=["x", "y", "z", "0"],
+                show_labels=True,
+            ),
+            static=True,
+        )
 
     # -- references, truth, power, fits --------------------------------------------------------------------
     def log_reference_theta(
@@ -939,7 +1056,9 @@ class RerunViz:
                     f"log_reference_theta: theta_{name} must have 3 components, got {arr.shape[0]}"
                 )
             self._theta_refs[name] = arr
+        self._flush_live()
         self._send_reference_lines()
+        self._update_theta_axis()
 
     def _send_reference_lines(self) -> None:
         if not self._theta_refs:
@@ -958,6 +1077,7 @@ class RerunViz:
         deg = _as_1d(heading_deg)
         if t.shape != deg.shape:
             raise MagcompError(f"log_truth_heading: {t.shape[0]} times but {deg.shape[0]} headings")
+        self._flush_live()
         self._truth.add(t, deg)
         self._send_scalars("heading/truth", t, deg, drop_nan=True)
         self._send_heading_errors()
@@ -965,7 +1085,9 @@ class RerunViz:
     def log_power(
         self, t_s: ArrayLike, throttle_01: ArrayLike, current_a: ArrayLike, voltage_v: ArrayLike
     ) -> None:
+        self._flush_live()
         t = _as_1d(t_s)
+        slow = self._slow_rows("power", t)
         for path, values in (
             ("power/throttle", throttle_01),
             ("power/current", current_a),
@@ -976,11 +1098,12 @@ class RerunViz:
                 v = np.full(t.shape[0], v[0])
             if v.shape[0] != t.shape[0]:
                 raise MagcompError(f"log_power: {t.shape[0]} times but {v.shape[0]} values for {path}")
-            self._send_scalars(path, t, v, drop_nan=True)
+            self._send_scalars(path, t[slow], v[slow], drop_nan=True)
 
     def log_bias_fit(
         self, throttle2: ArrayLike, bias_mgauss: ArrayLike, theta_line: ArrayLike | None
     ) -> None:
+        self._flush_live()
         rr, rec = self._rr, self._rec
         thr2 = _as_1d(throttle2)
         bias = _as_rows3(bias_mgauss, "log_bias_fit bias_mgauss")
@@ -1034,7 +1157,7 @@ class RerunViz:
         rec.log(
             "bias/fit/ticks",
             rr.Points2D(
-                [[0.0, -BIAS_CANVAS_Y], [0.0, BIAS_CANVAS_Y], [BIAS_CANVAS_X, 4.0], [0.0, 4.0]],
+                [[0.0, -BIAS_CANVAS_Y], [0.0, BIAS_CANVAS_Y], [BIAS_CANVAS_X, 16.0], [0.0, 6.0]],
                 radii=0.01,
                 colors=[grey],
                 labels=[f"+{r:g} mgauss", f"-{r:g} mgauss", "throttle² = 1", "0"],
@@ -1044,6 +1167,7 @@ class RerunViz:
         )
 
     def log_calibration_cloud(self, raw_mgauss: ArrayLike, calibrated_mgauss: ArrayLike) -> None:
+        self._flush_live()
         rr, rec = self._rr, self._rec
         for path, arr, color in (
             ("mag/raw_cloud", raw_mgauss, COLOR_RAW),
@@ -1053,8 +1177,11 @@ class RerunViz:
             pts = thin_rows(pts[np.isfinite(pts).all(axis=1)], CLOUD_MAX_POINTS)
             faded = [int(0.7 * c) for c in color]
             rec.log(path, rr.Points3D(pts, radii=_cloud_radius(pts), colors=[faded]), static=True)
+            if path == "mag/calibrated_cloud":
+                self._log_origin_axes(pts)
 
     def log_text(self, t_s: float, msg: str) -> None:
+        self._flush_live()
         self._rec.send_columns(
             "status/messages",
             indexes=[self._time_col(np.array([float(t_s)]))],
@@ -1065,6 +1192,7 @@ class RerunViz:
         if self._closed:
             return
         self._closed = True
+        self._flush_live()
         if self._cloud_raw:
             self._flush_live_cloud(self._t_max)
         if self._theta_refs:

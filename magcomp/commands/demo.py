@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,7 +30,7 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.rerun_viz import open_viz
     from magcomp.adapters.state_store import StateStore
     from magcomp.errors import InputError
-    from magcomp.service.console import setup_logging, write_json
+    from magcomp.service.console import check_output_path, setup_logging, write_json
     from magcomp.service.demo import run_demo
 
     if not 60.0 <= args.duration <= 3600.0:
@@ -39,15 +40,40 @@ def execute(args: argparse.Namespace) -> int:
         )
     if not 0.1 <= args.speed <= 50.0:
         raise InputError(f"--speed must be in [0.1, 50], got {args.speed}")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    check_output_path(args.json, "--json", (args.config,))
     setup_logging("demo", args.verbose)
     cfg = load_config(args.config)
     viz = open_viz(args.rerun, live=True, recording_name="magcomp demo")
     if viz.notice:
         print(viz.notice, flush=True)
 
-    def on_sim(result: object) -> None:
-        truth = [float(x) for x in result.compasses[0].theta_mgauss]  # type: ignore[attr-defined]
-        viz.log_reference_theta(None, truth)
+    feed: dict[str, Any] = {"until": -np.inf}  # the simulated truth, fed to the viewer as the run goes
+
+    def on_sim(result: Any) -> None:
+        viz.log_reference_theta(None, [float(x) for x in result.compasses[0].theta_mgauss])
+        s = result.samples
+        yaw = result.euler_rad[s.truth_index, 2]
+        feed.update(samples=s, heading=(np.degrees(yaw) - result.declination_deg) % 360.0, sent=0)
+
+    def feed_truth(until_s: float) -> None:
+        """Truth heading and power up to ``until_s`` (message time): the errors against truth show live."""
+        feed["until"] = until_s
+        if "samples" not in feed:
+            return
+        s, i = feed["samples"], feed["sent"]
+        end = int(np.searchsorted(s.t_s, until_s, side="right"))
+        if end > i:
+            viz.log_truth_heading(s.t_s[i:end], feed["heading"][i:end])
+            viz.log_power(s.t_s[i:end], s.throttle_01[i:end], s.current_a[i:end], s.voltage_v[i:end])
+            feed["sent"] = end
+
+    def on_estimate(est: Any) -> None:
+        if est.mag_index == 0:
+            if est.t_s > feed["until"] - 0.5:
+                feed_truth(est.t_s + 1.0)
+            viz.log_estimate(est)
 
     with tempfile.TemporaryDirectory(prefix="magcomp-demo-") as tmp:
         store = StateStore(args.state_dir or tmp)
@@ -56,15 +82,17 @@ def execute(args: argparse.Namespace) -> int:
         try:
             report, result, _ = run_demo(
                 duration_s=args.duration, speed=args.speed, seed=args.seed, cfg=cfg, store=store,
-                on_estimate=lambda e: viz.log_estimate(e) if e.mag_index == 0 else None,
-                on_text=viz.log_text, on_sim=on_sim,
+                on_estimate=on_estimate, on_text=viz.log_text, on_sim=on_sim,
             )  # fmt: skip
-            s = result.samples
-            yaw = result.euler_rad[s.truth_index, 2]
-            viz.log_truth_heading(s.t_s, (np.degrees(yaw) - result.declination_deg) % 360.0)
-            viz.log_power(s.t_s, s.throttle_01, s.current_a, s.voltage_v)
+            feed_truth(np.inf)
             if 0 in report.clouds and len(report.clouds[0][0]):
                 viz.log_calibration_cloud(*report.clouds[0])
+            # Fig. 7: the simulator's true current-induced bias against throttle^2 (the demo has no stationary
+            # throttle sweep to measure it), with the line of the daemon's final theta-hat (eq. (11))
+            thr = np.asarray(result.samples.throttle_01, dtype=float)
+            viz.log_bias_fit(
+                thr**2, result.truth_at_samples(result.bias_mgauss)[0], report.theta_mgauss.get(0)
+            )
         finally:
             if not viz.keeps_serving:
                 viz.close()

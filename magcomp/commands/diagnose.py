@@ -57,7 +57,12 @@ def _truth_reference(args: argparse.Namespace) -> tuple[Any, Any] | None:
         with np.load(path) as z:
             return np.asarray(z["t_s"], dtype=float), np.asarray(z["euler_rad"], dtype=float)[:, 2]
     except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"cannot read the truth {path}: {exc}") from exc
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        if isinstance(exc, ValueError) and "pickle" in str(exc):
+            why = "not a NumPy .npz file"
+        elif isinstance(exc, KeyError):
+            why = f"no array {exc} in it (not a magcomp simulate truth file)"
+        raise InputError(f"cannot read the truth {path}: {why}") from exc
 
 
 def log_events(path: str) -> list[tuple[float, str]]:
@@ -209,11 +214,26 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.diagnosis.engine import diagnose
     from magcomp.errors import InputError
+    from magcomp.service.console import check_distinct_outputs, check_output_path
 
+    if not str(args.log).strip():
+        raise InputError("LOG: the path is empty")
+    if Path(args.log).is_dir():
+        raise InputError(f"{args.log}: is a directory, not a log file")
     if not Path(args.log).is_file():
         raise InputError(f"{args.log}: no such file")
-    log = load_log(args.log, throttle_source=args.throttle_source)
+    if args.mag_index is not None and args.mag_index < 0:
+        raise InputError(f"--mag-index must be a compass index >= 0, got {args.mag_index}")
+    inputs = (args.log, args.truth)
+    check_output_path(args.json, "--json", inputs)
+    check_output_path(args.report, "--report", inputs, makes_parents=True)
+    check_distinct_outputs(json=args.json, report=args.report)
+    if args.rerun:
+        from magcomp.adapters.rerun_viz import parse_mode
+
+        parse_mode(args.rerun)  # a bad --rerun fails now, not after the diagnosis
     reference = _truth_reference(args)
+    log = load_log(args.log, throttle_source=args.throttle_source)
     d = diagnose(log, primary=args.mag_index, heading_reference=reference, events=log_events(args.log))
     j = d.to_json()
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")

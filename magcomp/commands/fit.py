@@ -62,6 +62,8 @@ class FitReport:
 
 def _pick_mag(log: LogData, mag_index: int | None) -> int:
     present = sorted(i for i, s in log.mag.items() if len(s) > 0)
+    if not present and mag_index is not None:
+        raise InputError(f"{log.source}: no compass {mag_index} in the log")
     if not present:
         raise InputError(f"{log.source}: no magnetometer samples in the log")
     if mag_index is None:
@@ -69,6 +71,9 @@ def _pick_mag(log: LogData, mag_index: int | None) -> int:
     if mag_index not in present:
         raise InputError(f"{log.source}: no compass {mag_index} in the log (have {present})")
     return mag_index
+
+
+MAX_MONTE_CARLO = 100_000
 
 
 def fit_log(
@@ -110,7 +115,7 @@ def fit_log(
         t0 = start_s if start_s is not None else max(float(mag.t_s[0]), float(thr_t[0]))
         t1 = end_s if end_s is not None else min(float(mag.t_s[-1]), float(thr_t[-1]))
         if not t1 > t0:
-            raise InputError(f"empty window: --start {t0:.3f} s is not before --end {t1:.3f} s")
+            raise InputError(f"empty window: --start {t0:.6g} s is not before --end {t1:.6g} s")
     sel = (mag.t_s >= t0) & (mag.t_s <= t1) & (mag.t_s >= thr_t[0]) & (mag.t_s <= thr_t[-1])
     t_mag = mag.t_s[sel]
     # drop magnetometer samples that fall in a hole of the throttle stream
@@ -175,12 +180,23 @@ def execute(args: argparse.Namespace) -> int:
     import numpy as np
 
     from magcomp.adapters.mavlink_source import load_log
+    from magcomp.service.console import check_output_path
 
-    if args.monte_carlo < 0:
-        raise InputError("--monte-carlo must be >= 0")
+    if not 0 <= args.monte_carlo <= MAX_MONTE_CARLO:
+        raise InputError(f"--monte-carlo must be in [0, {MAX_MONTE_CARLO}], got {args.monte_carlo}")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    if args.mag is not None and args.mag < 0:
+        raise InputError(f"--mag must be a compass index >= 0, got {args.mag}")
+    for name, value in (("--start", args.start), ("--end", args.end)):
+        if value is not None and not math.isfinite(value):
+            raise InputError(f"{name} must be a finite time in s on the log's clock, got {value}")
     path = Path(args.log)
+    if not str(args.log).strip():
+        raise InputError("LOG: the path is empty")
     if not path.exists():
         raise InputError(f"{path}: no such file")
+    check_output_path(args.json, "--json", (args.log,))
     log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag)
     rep = fit_log(
         log,

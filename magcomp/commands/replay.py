@@ -25,8 +25,11 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz
     from magcomp.adapters.state_store import StateStore
+    from magcomp.errors import InputError
     from magcomp.service.console import (
         SKIP_KEYS,
+        check_distinct_outputs,
+        check_output_path,
         format_counts,
         primary_compass,
         setup_logging,
@@ -36,6 +39,10 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.service.replay import replay_log
 
     setup_logging("replay", args.verbose)
+    inputs = (args.log, args.config)
+    check_output_path(args.emit, "--emit", inputs)
+    check_output_path(args.json, "--json", inputs)
+    check_distinct_outputs(emit=args.emit, json=args.json)
     cfg = load_config(args.config)
     store = StateStore(args.state_dir) if args.state_dir else None
     viz = None
@@ -53,6 +60,8 @@ def execute(args: argparse.Namespace) -> int:
     print(f"skipped or absorbed: {format_counts(counts, SKIP_KEYS)}")
     for w in report.summary["warnings"]:
         print(f"warning: {w}")
+    if report.interrupted:
+        print(f"interrupted: the summary covers the log up to {report.t_last_s:.1f} s", flush=True)
     if args.emit:
         print(f"wrote {report.emitted} MAGCOMP_HEADING to {args.emit}")
     if args.json:
@@ -64,7 +73,7 @@ def execute(args: argparse.Namespace) -> int:
             viz.log_calibration_cloud(*report.clouds[primary])
         for t, m in texts:
             viz.log_text(t, m)
-        if viz.keeps_serving:
+        if viz.keeps_serving and not report.interrupted:
             print("serving the viewer; press ^C to stop", flush=True)
             try:
                 import time
@@ -74,4 +83,8 @@ def execute(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 pass
         viz.close()
+    if report.interrupted:
+        raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
+    if not report.summary["counts"].get("mag"):
+        raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
     return 0

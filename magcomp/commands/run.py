@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+MAX_DURATION_S = 1e8  # about three years; longer overflows the platform's timer
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from magcomp.adapters.rerun_viz import add_rerun_argument
@@ -43,16 +45,21 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.core.types import HeadingEstimate
     from magcomp.errors import InputError
     from magcomp.service.console import (
+        check_output_path,
         default_state_dir,
         primary_compass,
         setup_logging,
         summary_lines,
         write_json,
     )
-    from magcomp.service.daemon import Daemon
+    from magcomp.service.daemon import Daemon, check_link_url
 
-    if args.duration is not None and not args.duration > 0:
-        raise InputError(f"--duration must be > 0, got {args.duration}")
+    if args.duration is not None and not 0 < args.duration <= MAX_DURATION_S:
+        raise InputError(f"--duration must be in (0, {MAX_DURATION_S:.0f}] s, got {args.duration:g}")
+    check_link_url(args.master, "--master")
+    for url in args.out:
+        check_link_url(url, "--out")
+    check_output_path(args.json, "--json", (args.config,))
     setup_logging("run", args.verbose)
     cfg = load_config(args.config)
     store = StateStore(args.state_dir or default_state_dir())
@@ -90,4 +97,6 @@ def execute(args: argparse.Namespace) -> int:
         print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
     if args.json:
         write_json(args.json, report.to_json())
+    if report.connects == 0:
+        raise InputError(f"never connected to {args.master}: {daemon.last_error or 'no link'}")
     return 0

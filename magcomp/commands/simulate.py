@@ -118,10 +118,14 @@ def _config(args: argparse.Namespace) -> object:
 
 def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.mavlink_emit import stream_to_link, write_tlog, write_truth
+    from magcomp.service.console import check_output_path
     from magcomp.sim import SimConfig, simulate
 
-    if args.speed < 0:
-        raise InputError("--speed must be >= 0")
+    if not (args.speed == 0 or 0.01 <= args.speed <= 1000.0):
+        raise InputError(f"--speed must be 0 (as fast as possible) or in [0.01, 1000], got {args.speed:g}")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    check_output_path(args.out, "--out")
     config = _config(args)
     assert isinstance(config, SimConfig)
     result = simulate(config)

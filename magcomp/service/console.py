@@ -30,6 +30,61 @@ def default_state_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".local" / "state") / "magcomp"
 
 
+def check_output_path(
+    path: str | Path | None,
+    option: str,
+    inputs: tuple[str | Path | None, ...] = (),
+    *,
+    makes_parents: bool = False,
+) -> None:
+    """Refuse, before any work is done, an output path that cannot be written or would overwrite an input.
+
+    ``option`` names the command-line option (``--json``) in the one-line message; ``inputs`` are the
+    files the command reads (the log, the configuration), which an output must never replace.
+    ``makes_parents``: the writer creates missing directories itself.
+    """
+    if path is None:
+        return
+    if str(path).strip() == "":
+        raise InputError(f"{option}: the path is empty")
+    p = Path(path).expanduser()
+    if p.is_dir():
+        raise InputError(f"{option} {p}: is a directory")
+    parent = p.parent
+    if makes_parents:
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{option} {p}: the directory {str(parent)!r} does not exist")
+    if p.exists():
+        for other in inputs:
+            if other is None or str(other) == "":
+                continue
+            try:
+                same = os.path.samefile(p, other)
+            except OSError:
+                same = False
+            if same:
+                raise InputError(f"{option} {p}: is an input of this command; refusing to overwrite it")
+        if not os.access(p, os.W_OK):
+            raise InputError(f"{option} {p}: not writable")
+    elif not os.access(parent, os.W_OK):
+        raise InputError(f"{option} {p}: the directory {str(parent)!r} is not writable")
+
+
+def check_distinct_outputs(**paths: str | Path | None) -> None:
+    """Two options writing the same file would clobber each other: refuse (one line) before any work."""
+    seen: dict[str, str] = {}
+    for option, path in paths.items():
+        if path is None:
+            continue
+        key = os.path.abspath(os.path.expanduser(str(path)))
+        name = "--" + option.replace("_", "-")
+        if key in seen:
+            raise InputError(f"{seen[key]} and {name} name the same file {path}")
+        seen[key] = name
+
+
 def write_json(path: str | Path, doc: dict[str, Any]) -> None:
     p = Path(path)
     try:

@@ -99,6 +99,62 @@ def latency_stats_ms(samples_s: Sequence[float]) -> dict[str, float]:
     }
 
 
+_NET_PREFIXES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+_URL_FORMS = (
+    "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, serial:DEVICE[:BAUD] "
+    "or /dev/DEVICE[:BAUD]"
+)
+
+
+def _is_serial_device(name: str) -> bool:
+    import re
+
+    return name.startswith("/dev/") or re.match(r"^COM\d+$", name) is not None
+
+
+def check_link_url(url: str, option: str = "--master") -> None:
+    """Refuse, with one line, a link URL that can never open (a typo, a log file, a bad port or baud).
+
+    A well-formed URL whose other end is not there yet (nothing listening, a serial device not plugged
+    in) passes: the daemon retries it every ``link.reconnect_s``.
+    """
+    import os
+    import stat
+
+    text = url.strip()
+    if not text:
+        raise InputError(f"{option}: the link URL is empty (use {_URL_FORMS})")
+    for prefix in _NET_PREFIXES:
+        if text.startswith(prefix):
+            host, sep, port = text[len(prefix) :].rpartition(":")
+            if not sep or not host or not port.isdigit():
+                raise InputError(f"{option} {url}: expected {prefix}HOST:PORT")
+            listening = prefix in ("udpin:", "tcpin:")
+            if not (0 if listening else 1) <= int(port) <= 65535:
+                raise InputError(f"{option} {url}: port {port} is out of range")
+            return
+    serial = text.startswith("serial:")
+    device = text.removeprefix("serial:")
+    head, sep, baud = device.rpartition(":")
+    if sep and (serial or _is_serial_device(head)):
+        device = head
+        if not baud.isdigit() or int(baud) <= 0:
+            raise InputError(f"{option} {url}: the baud rate must be a positive integer, got {baud!r}")
+    if not device:
+        raise InputError(f"{option} {url}: the serial device is missing")
+    if serial or _is_serial_device(device):
+        return  # a device that is not there (yet) is retried: USB links appear when the autopilot boots
+    try:
+        st = os.stat(device)
+    except OSError:
+        st = None
+    if st is not None and stat.S_ISREG(st.st_mode):
+        raise InputError(f"{option} {url}: is a log file, not a live link (use `magcomp replay {url}`)")
+    if st is not None and stat.S_ISCHR(st.st_mode):
+        return
+    raise InputError(f"{option} {url}: not a link URL (use {_URL_FORMS})")
+
+
 class Daemon:
     """One live run. ``master``: the flight controller's link (udpin:, udpout:, tcp:, tcpin:, serial);
     ``outs``: more links to publish on. ``on_estimate``: called with each estimate (e.g. the viewer)."""
@@ -113,9 +169,13 @@ class Daemon:
         on_estimate: Callable[[HeadingEstimate], None] | None = None,
         on_text: Callable[[float, str], None] | None = None,
     ) -> None:
+        check_link_url(master, "--master")
+        for url in outs:
+            check_link_url(url, "--out")
         self.master = master
         self.cfg = cfg
         self.out_urls = list(outs)
+        self.last_error: str | None = None
         self.store = store
         self.on_estimate = on_estimate
         self.pipeline = Pipeline(cfg, store=store, on_text=on_text)
@@ -225,6 +285,7 @@ class Daemon:
                         self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
                     )
                 except InputError as exc:
+                    self.last_error = str(exc)
                     if first_failure:
                         log.warning("%s; retrying every %.1f s", exc, self.cfg.link.reconnect_s)
                         first_failure = False

@@ -17,9 +17,8 @@ from magcomp.adapters.config import Config
 from magcomp.core.dpi import DpiParams, calibrate_dpi
 from magcomp.core.lowpass import LowPassParams
 from magcomp.core.observer import ObserverParams, ObserverState, observer_init, observer_reset, observer_step
-from magcomp.core.types import FLAG_SATURATED
 from magcomp.geomag import earth_field_ned_mgauss
-from magcomp.service.fastpath import FastObserver
+from magcomp.service.fastpath import FastObserver, FastStepInfo
 from magcomp.service.fastpath import supports as fast_supports
 
 F64 = NDArray[np.float64]
@@ -70,20 +69,21 @@ def heading_deg(field_b_mgauss: F64, roll_rad: float, pitch_rad: float) -> float
     """Tilt-compensated magnetic heading in [0, 360) deg; scalar twin of
     :func:`magcomp.core.heading.tilt_compensated_heading_deg` (eq. (24) after de-rotating roll and pitch)."""
     mx, my, mz = float(field_b_mgauss[0]), float(field_b_mgauss[1]), float(field_b_mgauss[2])
-    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
-    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    return heading_from_trig(
+        mx, my, mz, math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
+    )
+
+
+def heading_from_trig(mx: float, my: float, mz: float, cr: float, sr: float, cp: float, sp: float) -> float:
+    """:func:`heading_deg` from the cosines and sines of roll and pitch (computed once per attitude)."""
     y_l = cr * my - sr * mz
     x_l = cp * mx + sp * (sr * my + cr * mz)
     return math.degrees(math.atan2(-y_l, x_l)) % 360.0  # eq. (24), quadrant-resolved
 
 
-@dataclass(frozen=True)
-class ThetaStepInfo:
-    converged: bool
-    z_unobservable: bool
-    saturated: bool
-    residual_norm_mgauss: float
-    excitation: float
+#: what one observer step reports (converged, z_unobservable, saturated, residual_norm_mgauss,
+#: excitation): the fast path's own small record, also for the core path
+ThetaStepInfo = FastStepInfo
 
 
 class ThetaEstimator:
@@ -99,8 +99,19 @@ class ThetaEstimator:
         state = observer_init(self.params, theta0_mgauss)
         self._fast = FastObserver(self.params, state) if fast_supports(self.params) else None
         self._state = state
-        self.theta_mgauss: F64 = np.asarray(state.theta_hat_mgauss, dtype=float)
         self.converged = False
+
+    @property
+    def theta_mgauss(self) -> F64:
+        """theta-hat (mgauss), a new array."""
+        return np.array(self.theta_values(), dtype=float)
+
+    def theta_values(self) -> Sequence[float]:
+        """theta-hat (mgauss) as three floats (not to be modified)."""
+        if self._fast is not None:
+            return self._fast.theta
+        th = self._state.theta_hat_mgauss
+        return float(th[0]), float(th[1]), float(th[2])
 
     @property
     def state(self) -> ObserverState:
@@ -115,31 +126,25 @@ class ThetaEstimator:
             self._state = observer_reset(self._state, self.params, keep_theta=True)
 
     def step(
-        self, omega_b_rad_s: Sequence[float], field_b_mgauss: F64, throttle_01: float, dt_s: float
+        self,
+        omega_b_rad_s: Sequence[float],
+        field_b_mgauss: Sequence[float],
+        throttle_01: float,
+        dt_s: float,
     ) -> ThetaStepInfo:
+        """One observer step; the vectors as floats (lists, tuples or arrays of three)."""
         if self._fast is not None:
-            fi = self._fast.step(
-                [float(omega_b_rad_s[0]), float(omega_b_rad_s[1]), float(omega_b_rad_s[2])],
-                [float(field_b_mgauss[0]), float(field_b_mgauss[1]), float(field_b_mgauss[2])],
-                throttle_01,
-                dt_s,
-            )
-            self.theta_mgauss = np.array(self._fast.theta)
+            fi = self._fast.step(omega_b_rad_s, field_b_mgauss, throttle_01, dt_s)
             self.converged = fi.converged
-            return ThetaStepInfo(fi.converged, fi.z_unobservable, bool(fi.flags & FLAG_SATURATED),
-                                 fi.residual_norm_mgauss, fi.excitation)  # fmt: skip
+            return fi
         self._state, info = observer_step(
-            self._state, np.asarray(omega_b_rad_s, dtype=float), field_b_mgauss, throttle_01, dt_s,
-            self.params,
-        )
-        self.theta_mgauss = self._state.theta_hat_mgauss
+            self._state, np.asarray(omega_b_rad_s, dtype=float), np.asarray(field_b_mgauss, dtype=float),
+            throttle_01, dt_s, self.params,
+        )  # fmt: skip
         self.converged = all(self._state.converged)
         return ThetaStepInfo(
-            converged=self.converged,
-            z_unobservable=info.z_unobservable,
-            saturated=bool(info.flags & FLAG_SATURATED),
-            residual_norm_mgauss=info.residual_norm_mgauss,
-            excitation=info.excitation_min_rad2_s2,
+            info.status, info.flags, self.converged, info.z_unobservable, info.residual_norm_mgauss,
+            info.excitation_min_rad2_s2,
         )
 
 

@@ -15,13 +15,21 @@ step itself.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.mahony import MahonyParams
 from magcomp.core.observer import ObserverParams, ObserverState
-from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_NO_THROTTLE, FLAG_OBSERVER_RESET, FLAG_SATURATED
+from magcomp.core.types import (
+    FLAG_INPUTS_STALE,
+    FLAG_NO_THROTTLE,
+    FLAG_OBSERVER_RESET,
+    FLAG_SATURATED,
+    FLAG_THETA_CONVERGED,
+    FLAG_Z_UNOBSERVABLE,
+)
 
 F64 = NDArray[np.float64]
 Vec = list[float]
@@ -78,10 +86,12 @@ class FastMahony:
         self.q = q
         kd = self.ki * dt
         m = self.max_b
+        b0, b1, b2 = b0 - kd * ex, b1 - kd * ey, b2 - kd * ez
+        # clip to +-m (as min(max(b, -m), m))
         self.b = [
-            min(max(b0 - kd * ex, -m), m),
-            min(max(b1 - kd * ey, -m), m),
-            min(max(b2 - kd * ez, -m), m),
+            m if b0 > m else -m if b0 < -m else b0,
+            m if b1 > m else -m if b1 < -m else b1,
+            m if b2 > m else -m if b2 < -m else b2,
         ]
         return used
 
@@ -122,9 +132,9 @@ def _inv3(m: Vec) -> Vec:
     ]  # fmt: skip
 
 
-def _sym_eig_min(m: Vec) -> float:
-    """Smallest eigenvalue of a symmetric 3x3 (closed form, trigonometric)."""
-    a, b, c, _, e, f, _, _, i = m
+def _sym_eig_min(a: float, b: float, c: float, e: float, f: float, i: float) -> float:
+    """Smallest eigenvalue of the symmetric 3x3 [[a, b, c], [b, e, f], [c, f, i]] (closed form,
+    trigonometric)."""
     p1 = b * b + c * c + f * f
     q = (a + e + i) / 3.0
     if p1 == 0.0:
@@ -146,10 +156,23 @@ def _excitation(gram: Vec, min_info: float) -> tuple[float, tuple[bool, bool, bo
         0.5 * (gram[3] + gram[1]), gram[4], 0.5 * (gram[5] + gram[7]),
         0.5 * (gram[6] + gram[2]), 0.5 * (gram[7] + gram[5]), gram[8],
     ]  # fmt: skip
-    lam_min = _sym_eig_min(g)
-    reg = 1e-9 * max(g[0] + g[4] + g[8], 1e-12)
-    gi = _inv3([g[0] + reg, g[1], g[2], g[3], g[4] + reg, g[5], g[6], g[7], g[8] + reg])
-    return lam_min, (1.0 / gi[0] >= min_info, 1.0 / gi[4] >= min_info, 1.0 / gi[8] >= min_info)
+    return _sym_eig_min(g[0], g[1], g[2], g[4], g[5], g[8]), _observable(
+        g[0], g[1], g[2], g[4], g[5], g[8], min_info
+    )
+
+
+def _observable(
+    a: float, b: float, c: float, e: float, f: float, i: float, min_info: float
+) -> tuple[bool, bool, bool]:
+    """Per-axis observability of :func:`_excitation` for the symmetric Gramian [[a, b, c], [b, e, f],
+    [c, f, i]] given by its upper triangle: the same arithmetic as the cofactor inverse of :func:`_inv3`,
+    diagonal only."""
+    reg = 1e-9 * max(a + e + i, 1e-12)
+    a, e, i = a + reg, e + reg, i + reg
+    c00 = e * i - f * f
+    r = 1.0 / (a * c00 + b * (f * c - b * i) + c * (b * f - e * c))
+    gi0, gi4, gi8 = c00 * r, (a * i - c * c) * r, (a * e - b * b) * r
+    return 1.0 / gi0 >= min_info, 1.0 / gi4 >= min_info, 1.0 / gi8 >= min_info
 
 
 def _lowpass_coefficients(corner_hz: float, order: int, dt: float) -> tuple[float, ...]:
@@ -170,17 +193,40 @@ def _lowpass_coefficients(corner_hz: float, order: int, dt: float) -> tuple[floa
 
 
 class FastStepInfo:
-    __slots__ = ("converged", "excitation", "flags", "residual_norm_mgauss", "status", "z_unobservable")
+    """What one step reports. ``excitation`` (smallest eigenvalue of the normalised Gramian) is only
+    output, so a step may leave it as the Gramian's upper triangle, solved on first read."""
+
+    __slots__ = ("_exc", "_gram", "converged", "flags", "residual_norm_mgauss", "status", "z_unobservable")
 
     def __init__(
-        self, status: str, flags: int, converged: bool, z_unobs: bool, resid: float, exc: float
+        self,
+        status: str,
+        flags: int,
+        converged: bool,
+        z_unobs: bool,
+        resid: float,
+        exc: float,
+        gram_upper: tuple[float, float, float, float, float, float] | None = None,
     ) -> None:
         self.status = status
         self.flags = flags
         self.converged = converged
         self.z_unobservable = z_unobs
         self.residual_norm_mgauss = resid
-        self.excitation = exc
+        self._exc = exc
+        self._gram = gram_upper
+
+    @property
+    def excitation(self) -> float:
+        if self._gram is not None:
+            self._exc = _sym_eig_min(*self._gram)
+            self._gram = None
+        return self._exc
+
+    @property
+    def saturated(self) -> bool:
+        """theta-hat hit ``theta_max_mgauss`` on some axis in this step."""
+        return bool(self.flags & FLAG_SATURATED)
 
 
 class FastObserver:
@@ -194,6 +240,7 @@ class FastObserver:
         if not supports(p):
             raise ValueError("FastObserver only covers the default observer configuration")
         self.p = p
+        self._consts: dict[float, tuple[float, ...]] = {}
         self.from_state(state)
 
     # -- conversion --------------------------------------------------------------------------------
@@ -265,7 +312,7 @@ class FastObserver:
             flags |= 2  # FLAG_THETA_CONVERGED
         return FastStepInfo(status, flags, conv, not obs[2], resid, lam_min)
 
-    def _anchor(self, field: Vec, omega: Vec, d2: float) -> None:
+    def _anchor(self, field: Sequence[float], omega: Sequence[float], d2: float) -> None:
         self.v_hat = list(field)
         self.field_prev = list(field)
         self.w_prev = list(omega)
@@ -276,11 +323,36 @@ class FastObserver:
         self.lp_init = False
         self.initialized = True
 
+    def _step_constants(self, dt: float) -> tuple[float, ...]:
+        """Everything of a step that depends on ``dt`` alone (exponentials, the low-pass coefficients).
+        A steady sample rate repeats a few ``dt`` values, so they are cached by ``dt``."""
+        k = self._consts.get(dt)
+        if k is None:
+            p = self.p
+            lam = math.exp(-dt / p.forget_s)
+            k = (
+                dt * dt / 12.0,  # coning term
+                math.exp(-dt / p.excitation_window_s),
+                lam,
+                (1.0 - lam) * p.info0,
+                math.exp(-p.k1_1_s * dt),
+                *_lowpass_coefficients(p.lowpass.corner_hz, p.lowpass.order, dt),
+            )
+            if len(self._consts) >= 64:  # jittery timestamps: keep the cache small
+                self._consts.clear()
+            self._consts[dt] = k
+        return k
+
     # -- the step ----------------------------------------------------------------------------------
-    def step(self, omega: Vec, field: Vec, throttle_01: float, dt: float) -> FastStepInfo:
+    def step(
+        self, omega: Sequence[float], field: Sequence[float], throttle_01: float, dt: float
+    ) -> FastStepInfo:
         p = self.p
-        if not (all(math.isfinite(x) for x in omega) and all(math.isfinite(x) for x in field)
-                and math.isfinite(throttle_01) and math.isfinite(dt)):  # fmt: skip
+        w1x, w1y, w1z = omega
+        v1x, v1y, v1z = field
+        fin = math.isfinite
+        if not (fin(w1x) and fin(w1y) and fin(w1z) and fin(v1x) and fin(v1y) and fin(v1z)
+                and fin(throttle_01) and fin(dt)):  # fmt: skip
             return self._info("non_finite", FLAG_INPUTS_STALE, float("nan"))
         d2 = min(max(throttle_01, 0.0), 1.0) ** 2
         if not self.initialized:
@@ -289,14 +361,12 @@ class FastObserver:
         if not p.dt_min_s <= dt <= p.dt_max_s:
             self._anchor(field, omega, d2)
             return self._info("dt_out_of_range", FLAG_OBSERVER_RESET, float("nan"))
+        k12, lam_e, lam, j0, c, b0, b1, b2, fa1, fa2 = self._step_constants(dt)
 
-        w1x, w1y, w1z = omega
-        v1x, v1y, v1z = field
         v0x, v0y, v0z = self.field_prev
         d2_0 = self.d2_prev
         wpx, wpy, wpz = self.w_prev
         # rotation over the step: quadratic through three gyro samples + coning (rotation_increment)
-        ix, iy, iz = 0.5 * dt * (wpx + w1x), 0.5 * dt * (wpy + w1y), 0.5 * dt * (wpz + w1z)
         h0 = self.dt_prev
         if math.isfinite(h0) and h0 > 0.0:
             h1 = dt
@@ -310,7 +380,8 @@ class FastObserver:
             ix = wpx * h1 + bx * hh2 + cx * hh3
             iy = wpy * h1 + by * hh2 + cy * hh3
             iz = wpz * h1 + bz * hh2 + cz * hh3
-        k12 = dt * dt / 12.0
+        else:  # trapezoid
+            ix, iy, iz = 0.5 * dt * (wpx + w1x), 0.5 * dt * (wpy + w1y), 0.5 * dt * (wpz + w1z)
         px = ix + k12 * (wpy * w1z - wpz * w1y)
         py = iy + k12 * (wpz * w1x - wpx * w1z)
         pz = iz + k12 * (wpx * w1y - wpy * w1x)
@@ -335,79 +406,94 @@ class FastObserver:
         yx = v1x - (a00 * v0x + a01 * v0y + a02 * v0z)
         yy = v1y - (a10 * v0x + a11 * v0y + a12 * v0z)
         yz = v1z - (a20 * v0x + a21 * v0y + a22 * v0z)
-        # excitation Gramian, eq. (21)
-        lam_e = math.exp(-dt / p.excitation_window_s)
-        ptp = _ata(ph)
-        g = self.gram
-        self.gram = [lam_e * g[j] + ptp[j] / dt for j in range(9)]
-        self.gram_w = lam_e * self.gram_w + dt
-        gw = self.gram_w
-        exc = _excitation([x / gw for x in self.gram], p.excitation_min_rad2_s2)
-        obs = exc[1]
-        # 5 Hz low-pass on y and on every column of Phi alike (regression prefilter)
-        regs = [yx, yy, yz, *ph]
-        b0, b1, b2, fa1, fa2 = _lowpass_coefficients(p.lowpass.corner_hz, p.lowpass.order, dt)
-        if self.lp_z is None or not self.lp_init:
+        # excitation Gramian, eq. (21) (written out: comprehensions cost more than the arithmetic here)
+        g0, g1, g2, g3, g4, g5, g6, g7, g8 = self.gram
+        q0, q1, q2, q3, q4, q5, q6, q7, q8 = _ata(ph)
+        g0, g1, g2 = lam_e * g0 + q0 / dt, lam_e * g1 + q1 / dt, lam_e * g2 + q2 / dt
+        g3, g4, g5 = lam_e * g3 + q3 / dt, lam_e * g4 + q4 / dt, lam_e * g5 + q5 / dt
+        g6, g7, g8 = lam_e * g6 + q6 / dt, lam_e * g7 + q7 / dt, lam_e * g8 + q8 / dt
+        self.gram = [g0, g1, g2, g3, g4, g5, g6, g7, g8]
+        gw = lam_e * self.gram_w + dt
+        self.gram_w = gw
+        g_upper = (
+            g0 / gw, 0.5 * (g1 / gw + g3 / gw), 0.5 * (g2 / gw + g6 / gw),
+            g4 / gw, 0.5 * (g5 / gw + g7 / gw), g8 / gw,
+        )  # fmt: skip
+        obs0, obs1, obs2 = _observable(*g_upper, p.excitation_min_rad2_s2)
+        # 5 Hz low-pass on y and on every column of Phi alike (regression prefilter): biquad, direct form II
+        # transposed, 12 channels; lp_z holds z1 (12) then z2 (12). Written out channel by channel: a loop
+        # or comprehensions take twice as long as this arithmetic.
+        p0, p1, p2, p3, p4, p5, p6, p7, p8 = ph
+        z = self.lp_z
+        if z is None or not self.lp_init:
+            regs = [yx, yy, yz, *ph]
             c1, c2 = b1 + b2 - fa1 - fa2, b2 - fa2
-            z1 = [c1 * x for x in regs]
-            z2 = [c2 * x for x in regs]
-        else:
-            z1 = self.lp_z[:12]
-            z2 = self.lp_z[12:]
-        out = [b0 * regs[j] + z1[j] for j in range(12)]
-        self.lp_z = [b1 * regs[j] - fa1 * out[j] + z2[j] for j in range(12)] + [
-            b2 * regs[j] - fa2 * out[j] for j in range(12)
-        ]
+            z = [c1 * x for x in regs] + [c2 * x for x in regs]
+        yfx, yfy, yfz = b0 * yx + z[0], b0 * yy + z[1], b0 * yz + z[2]
+        f0, f1, f2 = b0 * p0 + z[3], b0 * p1 + z[4], b0 * p2 + z[5]
+        f3, f4, f5 = b0 * p3 + z[6], b0 * p4 + z[7], b0 * p5 + z[8]
+        f6, f7, f8 = b0 * p6 + z[9], b0 * p7 + z[10], b0 * p8 + z[11]
+        self.lp_z = [
+            b1 * yx - fa1 * yfx + z[12], b1 * yy - fa1 * yfy + z[13], b1 * yz - fa1 * yfz + z[14],
+            b1 * p0 - fa1 * f0 + z[15], b1 * p1 - fa1 * f1 + z[16], b1 * p2 - fa1 * f2 + z[17],
+            b1 * p3 - fa1 * f3 + z[18], b1 * p4 - fa1 * f4 + z[19], b1 * p5 - fa1 * f5 + z[20],
+            b1 * p6 - fa1 * f6 + z[21], b1 * p7 - fa1 * f7 + z[22], b1 * p8 - fa1 * f8 + z[23],
+            b2 * yx - fa2 * yfx, b2 * yy - fa2 * yfy, b2 * yz - fa2 * yfz,
+            b2 * p0 - fa2 * f0, b2 * p1 - fa2 * f1, b2 * p2 - fa2 * f2,
+            b2 * p3 - fa2 * f3, b2 * p4 - fa2 * f4, b2 * p5 - fa2 * f5,
+            b2 * p6 - fa2 * f6, b2 * p7 - fa2 * f7, b2 * p8 - fa2 * f8,
+        ]  # fmt: skip
         self.lp_init = True
-        yfx, yfy, yfz = out[0], out[1], out[2]
-        f = out[3:]
         th0, th1, th2 = self.theta
-        rx = yfx - (f[0] * th0 + f[1] * th1 + f[2] * th2)
-        ry = yfy - (f[3] * th0 + f[4] * th1 + f[5] * th2)
-        rz = yfz - (f[6] * th0 + f[7] * th1 + f[8] * th2)
-        lam = math.exp(-dt / p.forget_s)
-        ftf = _ata(f)
-        j0 = (1.0 - lam) * p.info0
-        info = self.info
-        info_new = [lam * info[j] + ftf[j] for j in range(9)]
-        info_new[0] += j0
-        info_new[4] += j0
-        info_new[8] += j0
+        rx = yfx - (f0 * th0 + f1 * th1 + f2 * th2)
+        ry = yfy - (f3 * th0 + f4 * th1 + f5 * th2)
+        rz = yfz - (f6 * th0 + f7 * th1 + f8 * th2)
+        j_0, j_1, j_2, j_3, j_4, j_5, j_6, j_7, j_8 = self.info
+        q0, q1, q2, q3, q4, q5, q6, q7, q8 = _ata([f0, f1, f2, f3, f4, f5, f6, f7, f8])
+        info_new = [
+            lam * j_0 + q0 + j0, lam * j_1 + q1, lam * j_2 + q2,
+            lam * j_3 + q3, lam * j_4 + q4 + j0, lam * j_5 + q5,
+            lam * j_6 + q6, lam * j_7 + q7, lam * j_8 + q8 + j0,
+        ]  # fmt: skip
         # RLS with regularised forgetting: d_theta = J^-1 Phi_f^T r
-        gx = f[0] * rx + f[3] * ry + f[6] * rz
-        gy = f[1] * rx + f[4] * ry + f[7] * rz
-        gz = f[2] * rx + f[5] * ry + f[8] * rz
+        gx = f0 * rx + f3 * ry + f6 * rz
+        gy = f1 * rx + f4 * ry + f7 * rz
+        gz = f2 * rx + f5 * ry + f8 * rz
         ji = _inv3(info_new)
-        dth = [ji[0] * gx + ji[1] * gy + ji[2] * gz, ji[3] * gx + ji[4] * gy + ji[5] * gz,
-               ji[6] * gx + ji[7] * gy + ji[8] * gz]  # fmt: skip
         flags = 0
         tmax = p.theta_max_mgauss
-        theta_new = []
-        for ax in range(3):
-            t_new = self.theta[ax] + (0.0 if not obs[ax] else dth[ax])  # hold unexcited axes
-            t_clip = min(max(t_new, -tmax), tmax)
-            if t_clip != t_new:
-                flags |= FLAG_SATURATED
-            theta_new.append(t_clip)
-        c = math.exp(-p.k1_1_s * dt)
+        # hold unexcited axes
+        t0 = th0 + (ji[0] * gx + ji[1] * gy + ji[2] * gz if obs0 else 0.0)
+        t1 = th1 + (ji[3] * gx + ji[4] * gy + ji[5] * gz if obs1 else 0.0)
+        t2 = th2 + (ji[6] * gx + ji[7] * gy + ji[8] * gz if obs2 else 0.0)
+        # clip to +-tmax (as min(max(x, -tmax), tmax), NaN passing through)
+        t0n = tmax if t0 > tmax else -tmax if t0 < -tmax else t0
+        t1n = tmax if t1 > tmax else -tmax if t1 < -tmax else t1
+        t2n = tmax if t2 > tmax else -tmax if t2 < -tmax else t2
+        if t0n != t0 or t1n != t1 or t2n != t2:
+            flags |= FLAG_SATURATED
         vh0, vh1, vh2 = self.v_hat
-        t0n, t1n, t2n = theta_new
-        pv0 = a00 * vh0 + a01 * vh1 + a02 * vh2 + ph[0] * t0n + ph[1] * t1n + ph[2] * t2n
-        pv1 = a10 * vh0 + a11 * vh1 + a12 * vh2 + ph[3] * t0n + ph[4] * t1n + ph[5] * t2n
-        pv2 = a20 * vh0 + a21 * vh1 + a22 * vh2 + ph[6] * t0n + ph[7] * t1n + ph[8] * t2n
+        pv0 = a00 * vh0 + a01 * vh1 + a02 * vh2 + p0 * t0n + p1 * t1n + p2 * t2n
+        pv1 = a10 * vh0 + a11 * vh1 + a12 * vh2 + p3 * t0n + p4 * t1n + p5 * t2n
+        pv2 = a20 * vh0 + a21 * vh1 + a22 * vh2 + p6 * t0n + p7 * t1n + p8 * t2n
         self.v_hat = [v1x + c * (pv0 - v1x), v1y + c * (pv1 - v1y), v1z + c * (pv2 - v1z)]
         rr = rx * rx + ry * ry + rz * rz
-        self.resid_var = lam_e * self.resid_var + (1.0 - lam_e) * rr / 3.0
-        self.excited = [self.excited[ax] + (dt if obs[ax] else 0.0) for ax in range(3)]
-        jn = ji
+        rv = lam_e * self.resid_var + (1.0 - lam_e) * rr / 3.0
+        self.resid_var = rv
+        e0, e1, e2 = self.excited
+        e0, e1, e2 = e0 + (dt if obs0 else 0.0), e1 + (dt if obs1 else 0.0), e2 + (dt if obs2 else 0.0)
+        self.excited = [e0, e1, e2]
         tol = p.converge_std_mgauss + p.converge_rel * math.sqrt(t0n * t0n + t1n * t1n + t2n * t2n)
-        rv = self.resid_var
         need_s = p.converge_min_excited_s
-        ex_s = self.excited
-        self.converged = tuple(ex_s[ax] >= need_s and math.sqrt(jn[4 * ax] * rv) <= tol for ax in range(3))
+        conv = (
+            e0 >= need_s and math.sqrt(ji[0] * rv) <= tol,
+            e1 >= need_s and math.sqrt(ji[4] * rv) <= tol,
+            e2 >= need_s and math.sqrt(ji[8] * rv) <= tol,
+        )
+        self.converged = conv
         if d2 < _NO_THROTTLE_D2:
             flags |= FLAG_NO_THROTTLE
-        self.theta = theta_new
+        self.theta = [t0n, t1n, t2n]
         self.info = info_new
         self.field_prev = [v1x, v1y, v1z]
         self.w_prev2 = self.w_prev
@@ -415,7 +501,13 @@ class FastObserver:
         self.d2_prev = d2
         self.dt_prev = dt
         self.n_steps += 1
-        return self._info("ok", flags, math.sqrt(rr), exc)
+        # the step's info (as _info, with the step's own excitation)
+        if not obs2:
+            flags |= FLAG_Z_UNOBSERVABLE
+        all_conv = conv[0] and conv[1] and conv[2]
+        if all_conv:
+            flags |= FLAG_THETA_CONVERGED
+        return FastStepInfo("ok", flags, all_conv, not obs2, math.sqrt(rr), math.nan, g_upper)
 
 
 def _ata(m: Vec) -> Vec:

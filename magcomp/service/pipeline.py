@@ -80,6 +80,10 @@ REFINE_ADOPT_AFTER = 50
 
 _EXECUTOR: ThreadPoolExecutor | None = None
 
+#: what the magnetometer path needs of the attitude: the settled down vector (or None), cos/sin of roll,
+#: cos/sin of pitch
+_Attitude = tuple[tuple[float, float, float] | None, float, float, float, float]
+
 
 _STATE_WRITER: ThreadPoolExecutor | None = None
 
@@ -161,6 +165,18 @@ class CompassCorrector:
         self.out_t = -math.inf
         self.last_saved_t: float | None = None
         self.dirty = False
+        self._coeffs: tuple[float, ...] = ()
+        self._coeffs_of: tuple[object, object] = (None, None)
+
+    def calib_coeffs(self) -> tuple[float, ...] | None:
+        """L (row-major) and d of eq. (2) as 12 floats for the per-sample path; None while uncalibrated."""
+        cl, cd = self.calib_l, self.calib_d
+        if cl is None or cd is None:
+            return None
+        if self._coeffs_of[0] is not cl or self._coeffs_of[1] is not cd:
+            self._coeffs = (*np.ravel(cl).astype(float).tolist(), *np.ravel(cd).astype(float).tolist())
+            self._coeffs_of = (cl, cd)
+        return self._coeffs
 
     def queue_reset(self) -> None:
         """Reset the observer's filters (theta kept) once the samples queued before now are through."""
@@ -192,6 +208,11 @@ class CompassCorrector:
             n,
         )
 
+    @property
+    def refine_pending(self) -> bool:
+        """A refined calibration fit is running or waiting to be adopted."""
+        return self._refine is not None
+
     def adopt_refined(self, force: bool = False) -> bool:
         """Adopt the refined fit once its sample has come (``force``: now). True when adopted."""
         if self._refine is None or (not force and self.n_mag < self._refine[1]):
@@ -218,7 +239,7 @@ class CompassCorrector:
         self.dirty = True
         return True
 
-    def collect_calibration(self, down_b: F64, field_raw: F64) -> bool:
+    def collect_calibration(self, down_b: F64 | tuple[float, float, float], field_raw: F64) -> bool:
         """Add one (down vector, raw field) pair at zero throttle and refit now and then (eq. (3)).
 
         The first (linear) fit that the DPI module accepts is adopted at once; later fits on more samples
@@ -327,6 +348,17 @@ class Pipeline:
         self._out_period = 1.0 / cfg.output.rate_hz if cfg.output.rate_hz > 0 else 0.0
         self._compasses = set(cfg.input.compasses)
         self._pending_saves: list[Future[None]] = []
+        # configuration read once (the per-sample path below runs ~100k times a minute of log)
+        self._stale_s = cfg.input.stale_s
+        self._mag_sat = cfg.input.saturation_mgauss
+        self._gyro_sat = cfg.input.gyro_saturation_rad_s
+        self._dt_min = cfg.observer.dt_min_s
+        self._dt_max = cfg.observer.dt_max_s
+        self._att_mahony = cfg.input.attitude == "mahony"
+        # attitude of the latest IMU / ATTITUDE sample, derived once for every compass (see _attitude)
+        self._att_cache: _Attitude | None = None
+        # the numbers of the last published estimate (see last_estimate)
+        self._last: tuple[Any, ...] | None = None
 
     # ------------------------------------------------------------------------------------------ helpers
 
@@ -353,6 +385,11 @@ class Pipeline:
 
     def process(self, sample: Sample) -> HeadingEstimate | None:
         """Feed one sample; returns the heading estimate for a magnetometer sample, else None."""
+        return self.last_estimate() if self.feed(sample) else None
+
+    def feed(self, sample: Sample) -> bool:
+        """:meth:`process` without building the estimate: True when one was published; it is then
+        :meth:`last_estimate` (for consumers that only count, or need only some estimates)."""
         self.counts["samples"] += 1
         kind = type(sample)
         if kind is MagSample:
@@ -365,7 +402,27 @@ class Pipeline:
             self._on_attitude(sample)  # type: ignore[arg-type]
         elif kind is HeartbeatSample and self.system_id is None:
             self.system_id = int(sample.system_id)  # type: ignore[union-attr]
-        return None
+        return False
+
+    def last_estimate(self) -> HeadingEstimate:
+        """The estimate of the last magnetometer sample for which :meth:`feed` returned True."""
+        if self._last is None:
+            raise ValueError("no estimate published yet")
+        t, idx, heading, heading_raw, theta, bias, thr, flags, v, corrected, info = self._last
+        return HeadingEstimate(
+            t_s=t,
+            mag_index=idx,
+            heading_deg=heading,
+            heading_raw_deg=heading_raw,
+            theta_mgauss=np.array(theta, dtype=float),
+            bias_mgauss=np.array(bias, dtype=float),
+            throttle_01=thr,
+            flags=flags,
+            field_raw_mgauss=v,
+            field_cal_mgauss=np.array(corrected, dtype=float),
+            residual_norm_mgauss=float("nan") if info is None else info.residual_norm_mgauss,
+            excitation=float("nan") if info is None else info.excitation,
+        )
 
     def _on_throttle(self, s: ThrottleSample) -> None:
         if not self._use_throttle:
@@ -383,52 +440,49 @@ class Pipeline:
             if c.queue:
                 self._drain(c, s.t_s)
 
-    def _throttle_at(self, t: float) -> float:
-        """Throttle at message time ``t``: linear between the two samples around it, else the nearest."""
+    def _throttle_at(self, t: float) -> float | None:
+        """Throttle at message time ``t``: linear between the two samples around it, else the nearest.
+        None when ``t`` lies strictly between two throttle samples that differ by more than
+        ``[observer] max_throttle_jump_01`` (a step whose instant the throttle stream does not resolve)."""
         t1, pt = self._thr_t, self._thr_prev_t
         if t1 is None or t >= t1 or pt is None or pt >= t1:
             return self._thr
         if t <= pt:
             return self._thr_prev
-        w = (t - pt) / (t1 - pt)
-        return self._thr_prev + w * (self._thr - self._thr_prev)
-
-    def _across_jump(self, t: float) -> bool:
-        """True when ``t`` lies strictly between two throttle samples that differ by more than
-        ``[observer] max_throttle_jump_01`` (a step whose instant the throttle stream does not resolve)."""
-        t1, pt = self._thr_t, self._thr_prev_t
-        if t1 is None or pt is None or not pt < t < t1:
-            return False
-        return abs(self._thr - self._thr_prev) > self._max_jump
+        thr1, thr0 = self._thr, self._thr_prev
+        if abs(thr1 - thr0) > self._max_jump:
+            return None
+        return thr0 + (t - pt) / (t1 - pt) * (thr1 - thr0)
 
     def _drain(self, c: CompassCorrector, t_now: float) -> None:
         """Feed the observer every queued sample whose throttle is known now (the throttle stream has
         reached its time), or that has waited longer than ``stale_s`` (then: the latest throttle)."""
         q = c.queue
         t_thr = self._thr_t
-        stale = self.cfg.input.stale_s
+        stale = self._stale_s
+        est = c.theta_est
         while q:
             t, omega, u = q[0]
             if u is None:  # a reset marker
                 q.popleft()
-                c.theta_est.reset_filters()
+                est.reset_filters()
                 c.obs_last_t = None
                 continue
             if t_thr is None or (t > t_thr and t_now - t <= stale):
                 return
             q.popleft()
             thr = self._throttle_at(t)
-            if self._across_jump(t):
+            if thr is None:
                 # the throttle jumped between the two throttle samples around this one: its value at
                 # this instant is unknown, so this sample is not used and the observer re-anchors on
                 # the next one whose throttle is known
                 self.counts["throttle_jumps"] += 1
-                c.theta_est.reset_filters()
+                est.reset_filters()
                 c.obs_last_t = None
                 continue
-            dt = 0.0 if c.obs_last_t is None else t - c.obs_last_t
+            last = c.obs_last_t
             c.obs_last_t = t
-            c.last_info = c.theta_est.step(omega, u, thr, dt)
+            c.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)
             c.dirty = True
 
     def _on_attitude(self, s: AttitudeSample) -> None:
@@ -439,6 +493,7 @@ class Pipeline:
             return
         self._att_t = s.t_s
         self._att_roll, self._att_pitch = s.roll_rad, s.pitch_rad
+        self._att_cache = None
 
     def _on_imu(self, s: ImuSample) -> None:
         if s.imu_index != 0:  # the attitude comes from the primary IMU
@@ -451,16 +506,17 @@ class Pipeline:
         if not all(map(math.isfinite, (t, gx, gy, gz, ax, ay, az))):
             self.counts["non_finite"] += 1
             return
-        lim = self.cfg.input.gyro_saturation_rad_s
+        lim = self._gyro_sat
         if abs(gx) >= lim or abs(gy) >= lim or abs(gz) >= lim:
             self.counts["saturated"] += 1
             return
-        verdict = self._check_time(self._imu_t, t)
+        prev_t = self._imu_t
+        verdict = 0 if prev_t is None or t > prev_t else self._check_time(prev_t, t)
         if verdict == 1:
             return
         m = self._mahony
-        prev_t = self._imu_t
-        if m is not None and prev_t is not None and verdict == 0 and t - prev_t <= self.cfg.observer.dt_max_s:
+        self._att_cache = None
+        if m is not None and prev_t is not None and verdict == 0 and t - prev_t <= self._dt_max:
             self._imu_t = t
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
             b = m.b
@@ -497,42 +553,51 @@ class Pipeline:
             self.correctors[idx] = c
         return c
 
-    def _attitude(self) -> tuple[float, float, F64 | None]:
-        """Roll, pitch (rad) and the DPI reference down vector (None when no settled estimate)."""
-        if self._mahony is not None and self.cfg.input.attitude == "mahony":
+    def _attitude(self) -> _Attitude:
+        """The DPI reference down vector (None when no settled estimate) and cos/sin of roll and pitch;
+        derived once per IMU (or ATTITUDE) sample, shared by the compasses."""
+        a = self._att_cache
+        if a is not None:
+            return a
+        down: tuple[float, float, float] | None = None
+        if self._mahony is not None and self._att_mahony:
             w, x, y, z = self._mahony.q
             # third row of R_nb = down vector in body axes (sec. II-A); roll/pitch of ZYX Euler
-            down = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
-            roll = math.atan2(down[1], down[2])
-            pitch = -math.asin(max(-1.0, min(1.0, float(down[0]))))
-            settled = self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S
-            return roll, pitch, down if settled else None
-        return self._att_roll, self._att_pitch, None
+            d = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+            roll = math.atan2(d[1], d[2])
+            pitch = -math.asin(max(-1.0, min(1.0, d[0])))
+            if self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S:
+                down = d
+        else:
+            roll, pitch = self._att_roll, self._att_pitch
+        a = (down, math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch))
+        self._att_cache = a
+        return a
 
-    def _on_mag(self, s: MagSample) -> HeadingEstimate | None:
+    def _on_mag(self, s: MagSample) -> bool:
         self.counts["mag"] += 1
         idx = s.mag_index
         if self._compasses and idx not in self._compasses:
-            return None
+            return False
         v = s.field_b_mgauss
         t = s.t_s
         vx, vy, vz = float(v[0]), float(v[1]), float(v[2])
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
             self.counts["non_finite"] += 1
-            return None
-        lim = self.cfg.input.saturation_mgauss
+            return False
+        lim = self._mag_sat
         if abs(vx) >= lim or abs(vy) >= lim or abs(vz) >= lim:
             self.counts["saturated"] += 1
-            return None
-        c = self._corrector(idx)
-        verdict = self._check_time(c.last_t, t)
+            return False
+        c = self.correctors.get(idx) or self._corrector(idx)
+        prev_t = c.last_t
+        verdict = 0 if prev_t is None or t > prev_t else self._check_time(prev_t, t)
         if verdict == 1:
-            return None
+            return False
         c.n_mag += 1
-        if c.adopt_refined():
+        if c.refine_pending and c.adopt_refined():
             self._refined_text(c, t)
         flags = 0
-        prev_t = c.last_t
         c.last_t = t
         if self._first_mag_t is None or verdict == 2:
             self._first_mag_t = t
@@ -541,17 +606,17 @@ class Pipeline:
             reset = True
         else:
             dt = t - prev_t
-            if dt < self.cfg.observer.dt_min_s or dt > self.cfg.observer.dt_max_s:
-                if dt > self.cfg.observer.dt_max_s:
+            if dt < self._dt_min or dt > self._dt_max:
+                if dt > self._dt_max:
                     self.counts["gaps"] += 1
                 reset = True
         # ---- throttle
         thr = 0.0
-        have_thr = self._thr_t is not None
-        if have_thr:
+        thr_t = self._thr_t
+        have_thr = thr_t is not None
+        if thr_t is not None:
             thr = self._thr
-            assert self._thr_t is not None
-            if t - self._thr_t > self.cfg.input.stale_s:
+            if t - thr_t > self._stale_s:
                 flags |= FLAG_INPUTS_STALE
         else:
             flags |= FLAG_NO_THROTTLE
@@ -563,8 +628,8 @@ class Pipeline:
                 why = "disabled in the configuration" if not self._use_throttle else "no throttle samples"
                 self._text(t, f"no throttle source ({why}): headings are published uncorrected", warning=True)
         # ---- attitude and gyro
-        roll, pitch, down = self._attitude()
-        gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self.cfg.input.stale_s
+        down, cr, sr, cp, sp = self._attitude()
+        gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self._stale_s
         if not gyro_fresh:
             flags |= FLAG_INPUTS_STALE
         # ---- calibration, eqs. (1)-(3)
@@ -582,9 +647,14 @@ class Pipeline:
                     log.debug("compass %d: calibration refined from %d samples (residual %.1f mgauss)",
                               idx, c.calibration.n, rms)
                 self._save(c, t)
-        if c.calib_l is not None and c.calib_d is not None:
+        k = c.calib_coeffs()
+        info: est_core.ThetaStepInfo | None = None
+        if k is not None:
             flags |= FLAG_CALIBRATED
-            u = c.calib_l @ v - c.calib_d  # eq. (2)
+            # eq. (2): u = L v - d
+            ux = k[0] * vx + k[1] * vy + k[2] * vz - k[9]
+            uy = k[3] * vx + k[4] * vy + k[5] * vz - k[10]
+            uz = k[6] * vx + k[7] * vy + k[8] * vz - k[11]
             # ---- low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated
             # at the sample's own time (queued until the throttle after it is known)
             if reset:
@@ -592,7 +662,7 @@ class Pipeline:
                 self.counts["observer_resets"] += 1
                 flags |= FLAG_OBSERVER_RESET
             elif self._learn and have_thr and gyro_fresh:
-                c.queue.append((t, self._gyro, u))
+                c.queue.append((t, self._gyro, (ux, uy, uz)))
             self._drain(c, t)
             info = c.last_info
             if info is not None:
@@ -600,24 +670,23 @@ class Pipeline:
                     flags |= FLAG_Z_UNOBSERVABLE
                 if info.saturated:
                     flags |= FLAG_SATURATED
-                residual, excitation = info.residual_norm_mgauss, info.excitation
-            else:
-                residual, excitation = float("nan"), float("nan")
             if c.theta_est.converged:
                 flags |= FLAG_THETA_CONVERGED
-            theta = c.theta_est.theta_mgauss
+            th0, th1, th2 = c.theta_est.theta_values()
         else:
-            u = v
-            theta = np.zeros(3)
-            residual, excitation = float("nan"), float("nan")
-        bias = theta * (thr * thr) if have_thr else np.zeros(3)  # eq. (11)
-        corrected = u - bias
-        psi_raw = est_core.heading_deg(u, roll, pitch)
-        psi = est_core.heading_deg(corrected, roll, pitch) if have_thr else psi_raw
+            ux, uy, uz = vx, vy, vz
+            th0 = th1 = th2 = 0.0
+        # eq. (11): bias = theta throttle^2, removed from the calibrated field
+        d2 = thr * thr
+        bx, by, bz = (th0 * d2, th1 * d2, th2 * d2) if have_thr else (0.0, 0.0, 0.0)
+        cx, cy, cz = ux - bx, uy - by, uz - bz
+        psi_raw = est_core.heading_from_trig(ux, uy, uz, cr, sr, cp, sp)
+        psi = est_core.heading_from_trig(cx, cy, cz, cr, sr, cp, sp) if have_thr else psi_raw
         if reset or not gyro_fresh:
             c.hdg_filter.reset()
             c.hdg_raw_filter.reset()
-        yaw_rate = est_core.yaw_rate_rad_s(self._gyro, roll, pitch)
+        # Euler yaw rate from body rates (ZYX), as est_core.yaw_rate_rad_s
+        yaw_rate = math.nan if abs(cp) < 0.25 else (self._gyro[1] * sr + self._gyro[2] * cr) / cp
         dt_h = 0.0 if prev_t is None or reset else t - prev_t
         heading_raw = c.hdg_raw_filter.update(psi_raw, yaw_rate, dt_h)
         heading = c.hdg_filter.update(psi, yaw_rate, dt_h) if have_thr else heading_raw
@@ -627,24 +696,14 @@ class Pipeline:
         # ---- output decimation on message time
         if self._out_period > 0.0:
             if c.n_out > 0 and prev_t is not None and t - c.out_t < self._out_period and not reset:
-                return None
+                return False
             c.out_t = t
         c.n_out += 1
         self.counts["estimates"] += 1
-        return HeadingEstimate(
-            t_s=t,
-            mag_index=idx,
-            heading_deg=heading,
-            heading_raw_deg=heading_raw,
-            theta_mgauss=theta,
-            bias_mgauss=bias,
-            throttle_01=thr,
-            flags=flags,
-            field_raw_mgauss=v,
-            field_cal_mgauss=corrected,
-            residual_norm_mgauss=residual,
-            excitation=excitation,
-        )
+        # the estimate itself is built by last_estimate(), only when someone asks for it
+        self._last = (t, idx, heading, heading_raw, (th0, th1, th2), (bx, by, bz), thr, flags, v,
+                      (cx, cy, cz), info)  # fmt: skip
+        return True
 
     def _refined_text(self, c: CompassCorrector, t: float) -> None:
         assert c.calibration is not None

@@ -6,6 +6,7 @@ One :class:`HeadingEncoder` packs each estimate once; the bytes go to every sink
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import struct
 from pathlib import Path
@@ -80,12 +81,24 @@ class TlogWriter:
         self.packets = 0
 
     def write_packet(self, t_s: float, packet: bytes) -> None:
-        self._f.write(_TLOG_STAMP.pack(max(0, int(t_s * 1e6))) + packet)
+        try:
+            self._f.write(_TLOG_STAMP.pack(max(0, int(t_s * 1e6))) + packet)
+        except OSError as exc:  # a full disk or a vanished device: one line, not a traceback
+            self._abandon()
+            raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
         self.packets += 1
+
+    def _abandon(self) -> None:
+        """Close after a failed write without flushing again (the flush would fail the same way)."""
+        with contextlib.suppress(OSError):
+            self._f.close()
 
     def close(self) -> None:
         if not self._f.closed:
-            self._f.close()
+            try:
+                self._f.close()
+            except OSError as exc:
+                raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
 
 
 class LinkSink:

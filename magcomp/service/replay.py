@@ -29,6 +29,9 @@ class ReplayReport:
     estimates: list[HeadingEstimate] = field(default_factory=list)
     #: per compass, the calibration samples before and after eq. (2) (only with ``keep_estimates``)
     clouds: dict[int, tuple[Any, Any]] = field(default_factory=dict)
+    #: ^C stopped the replay early; everything above covers the log up to ``t_last_s``
+    interrupted: bool = False
+    t_last_s: float = float("nan")
 
     @property
     def counts(self) -> dict[str, int]:
@@ -45,6 +48,8 @@ class ReplayReport:
         out["wall_s"] = self.wall_s
         out["estimates"] = self.n_estimates
         out["emitted"] = self.emitted
+        if self.interrupted:
+            out["interrupted_at_s"] = self.t_last_s
         return out
 
 
@@ -67,7 +72,9 @@ def replay_log(
 
     ``emit``: write every published MAGCOMP_HEADING into this tlog. ``keep_estimates``: return them
     (for tests and the batch viewer). Raises :class:`~magcomp.errors.InputError` for unreadable, empty
-    or non-MAVLink files; damaged parts of a readable log are skipped and counted.
+    or non-MAVLink files; damaged parts of a readable log are skipped and counted. A ^C
+    (KeyboardInterrupt) ends the replay early but keeps what was done: the state is saved, the ``emit``
+    file closed, and the report (``interrupted=True``) covers the log up to the last sample.
     """
     from magcomp.adapters.mavlink_source import open_source
 
@@ -79,13 +86,19 @@ def replay_log(
     kept: list[HeadingEstimate] = []
     n = 0
     sysid_set = False
-    process = pipeline.process
+    feed = pipeline.feed
+    # the estimate object is built only for a consumer (same numbers: Pipeline.process = feed + last_estimate)
+    consumers = keep_estimates or on_estimate is not None or writer is not None
+    interrupted = False
+    sample: Any = None
     try:
         for sample in source.samples():
-            est = process(sample)
-            if est is None:
+            if not feed(sample):
                 continue
             n += 1
+            if not consumers:
+                continue
+            est = pipeline.last_estimate()
             if keep_estimates:
                 kept.append(est)
             if on_estimate is not None:
@@ -95,6 +108,8 @@ def replay_log(
                     encoder.set_system(pipeline.system_id)
                     sysid_set = True
                 writer.write_packet(est.t_s, encoder.encode(est))
+    except KeyboardInterrupt:
+        interrupted = True
     finally:
         source.close()
         if writer is not None:
@@ -109,4 +124,6 @@ def replay_log(
         emitted=writer.packets if writer is not None else 0,
         estimates=kept,
         clouds={i: c.calibration_cloud() for i, c in pipeline.correctors.items()} if keep_estimates else {},
+        interrupted=interrupted,
+        t_last_s=float(sample.t_s) if sample is not None else float("nan"),
     )
