@@ -82,7 +82,7 @@ class TlogWriter:
 
     def write_packet(self, t_s: float, packet: bytes) -> None:
         try:
-            self._f.write(_TLOG_STAMP.pack(max(0, int(t_s * 1e6))) + packet)
+            self._f.write(_TLOG_STAMP.pack(max(0, round(t_s * 1e6))) + packet)
         except OSError as exc:  # a full disk or a vanished device: one line, not a traceback
             self._abandon()
             raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None

@@ -3,6 +3,7 @@ as the machine goes."""
 
 from __future__ import annotations
 
+import gc
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -91,6 +92,10 @@ def replay_log(
     consumers = keep_estimates or on_estimate is not None or writer is not None
     interrupted = False
     sample: Any = None
+    # The replay loop allocates many short-lived, acyclic objects (decoded rows, samples); the cyclic
+    # collector finds nothing among them but costs ~10 % of the loop. Reference counting still frees them.
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
     try:
         for sample in source.samples():
             if not feed(sample):
@@ -111,6 +116,8 @@ def replay_log(
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        if gc_was_enabled:
+            gc.enable()
         source.close()
         if writer is not None:
             writer.close()
