@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.heading import declination_deg as declination_deg  # re-exported: pure, lives in core
 from magcomp.errors import InputError
 
 #: The paper's lab (University of Florida, Gainesville FL): latitude deg N, longitude deg E, altitude m.
@@ -81,8 +82,3 @@ def earth_field_ned_mgauss(
     except ValueError as exc:
         raise InputError(f"magnetic model (WMM-2025): {exc} (date {decimal_year:.2f})") from exc
     return np.array([res.x, res.y, res.z], dtype=float) / NT_PER_MGAUSS
-
-
-def declination_deg(field_ned_mgauss: NDArray[np.float64]) -> float:
-    """Magnetic declination (deg, east positive) of an NED field vector."""
-    return math.degrees(math.atan2(float(field_ned_mgauss[1]), float(field_ned_mgauss[0])))

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 from magcomp.errors import InputError
 from magcomp.sim.simulate import SimResult
 
@@ -138,8 +139,7 @@ def build_messages(result: SimResult) -> list[tuple[float, int, Any]]:
             )
         )
 
-    g = 9.80665
-    acc_mg = np.round(s.accel_m_s2 / g * 1000.0).astype(np.int64)
+    acc_mg = np.round(s.accel_m_s2 / STANDARD_GRAVITY_M_S2 * 1000.0).astype(np.int64)
     gyro_mrad = np.round(s.gyro_rad_s * 1000.0).astype(np.int64)
     mag = np.round(s.mag_mgauss).astype(np.int64)
     temp_cdeg = np.round(s.imu_temp_degc * 100.0).astype(np.int64)

@@ -42,8 +42,9 @@ import math
 import os
 import socket
 import sys
+import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
@@ -379,6 +380,27 @@ def open_viz(
         grpc_port=grpc_port,
         web_port=web_port,
     )
+
+
+SERVING_MESSAGE = "serving the viewer; press ^C to stop"
+
+
+def serve_until_interrupt(
+    viz: Viz,
+    say: Callable[[str], None],
+    message: str = SERVING_MESSAGE,
+    sleep: Callable[[float], None] = time.sleep,
+) -> None:
+    """When ``viz.keeps_serving`` (its web viewer lives in this process), ``say(message)`` and block until
+    ^C (KeyboardInterrupt, swallowed); otherwise return at once. The caller still calls ``viz.close()``."""
+    if not viz.keeps_serving:
+        return
+    say(message)
+    try:
+        while True:
+            sleep(1.0)
+    except KeyboardInterrupt:
+        pass
 
 
 # ----------------------------------------------------------------------------------------------------------

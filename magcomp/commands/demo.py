@@ -27,7 +27,7 @@ def execute(args: argparse.Namespace) -> int:
     import numpy as np
 
     from magcomp.adapters.config import load_config
-    from magcomp.adapters.rerun_viz import open_viz
+    from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
     from magcomp.errors import InputError
     from magcomp.service.console import check_output_path, setup_logging, write_json
@@ -113,13 +113,7 @@ def execute(args: argparse.Namespace) -> int:
         }
         write_json(args.json, doc)
     if viz.keeps_serving:
-        print(f"the viewer keeps serving at {viz.url}; press ^C to stop", flush=True)
-        try:
-            import time
-
-            while True:
-                time.sleep(1.0)
-        except KeyboardInterrupt:
-            pass
+        message = f"the viewer keeps serving at {viz.url}; press ^C to stop"
+        serve_until_interrupt(viz, lambda m: print(m, flush=True), message)
         viz.close()
     return 0

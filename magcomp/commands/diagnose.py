@@ -159,7 +159,7 @@ def _summary(j: dict[str, Any]) -> list[str]:
 def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None:
     import numpy as np
 
-    from magcomp.adapters.rerun_viz import open_viz
+    from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.core.types import FLAG_CALIBRATED, HeadingEstimate
     from magcomp.diagnosis.engine import compass_yaw_rad
     from magcomp.diagnosis.report import _earth_part
@@ -172,7 +172,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     yaw_e = np.degrees(compass_yaw_rad(data, c.extended)) % 360.0
     yaw_r = np.degrees(compass_yaw_rad(data, c.baseline, remove_bias=False)) % 360.0
     bias = c.bias_mgauss(c.extended)
-    thr = np.interp(data.t_s, data.drive.grid_t_s, data.drive.throttle_grid)
+    thr = data.throttle_01
     theta = c.extended.theta_mgauss
     ests = [
         HeadingEstimate(
@@ -198,15 +198,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
         viz.log_truth_heading(reference[0], np.degrees(reference[1]) % 360.0)
     for f in c.findings:
         viz.log_text(float(data.t_s[0]), f"finding: {f.effect} {f.params}")
-    if viz.keeps_serving:
-        print("serving the viewer; press ^C to stop", flush=True)
-        try:
-            import time
-
-            while True:
-                time.sleep(1.0)
-        except KeyboardInterrupt:
-            pass
+    serve_until_interrupt(viz, lambda m: print(m, flush=True))
     viz.close()
 
 

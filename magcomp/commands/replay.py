@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
-    from magcomp.adapters.rerun_viz import open_viz
+    from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
     from magcomp.errors import InputError
     from magcomp.service.console import (
@@ -73,15 +73,8 @@ def execute(args: argparse.Namespace) -> int:
             viz.log_calibration_cloud(*report.clouds[primary])
         for t, m in texts:
             viz.log_text(t, m)
-        if viz.keeps_serving and not report.interrupted:
-            print("serving the viewer; press ^C to stop", flush=True)
-            try:
-                import time
-
-                while True:
-                    time.sleep(1.0)
-            except KeyboardInterrupt:
-                pass
+        if not report.interrupted:
+            serve_until_interrupt(viz, lambda m: print(m, flush=True))
         viz.close()
     if report.interrupted:
         raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results

@@ -13,6 +13,8 @@ pitch_rad (ZYX Euler, rad); psi -> heading_deg (magnetic, deg, clockwise from ma
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -65,6 +67,17 @@ def heading_from_quat_deg(field_b_mgauss: ArrayLike, q_nb: ArrayLike, declinatio
     """Tilt-compensated heading using the roll and pitch of ``q_nb`` (its yaw is ignored)."""
     roll, pitch, _ = euler_from_quat(q_nb)
     return float(tilt_compensated_heading_deg(field_b_mgauss, roll, pitch, declination_deg))
+
+
+def declination_rad(field_ned_mgauss: ArrayLike) -> float:
+    """Magnetic declination (rad, east positive) of an NED field vector: ``atan2(east, north)``."""
+    f = np.asarray(field_ned_mgauss, dtype=float)
+    return math.atan2(float(f[1]), float(f[0]))
+
+
+def declination_deg(field_ned_mgauss: ArrayLike) -> float:
+    """Magnetic declination (deg, east positive) of an NED field vector."""
+    return math.degrees(declination_rad(field_ned_mgauss))
 
 
 def wrap_deg_180(angle_deg: ArrayLike) -> F64:

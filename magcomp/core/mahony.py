@@ -37,10 +37,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcomp.core.rotations import down_b_from_quat, quat_from_euler, quat_integrate_body_rate
-from magcomp.core.types import ImuSample
+from magcomp.core.types import STANDARD_GRAVITY_M_S2, ImuSample
 
 F64 = NDArray[np.float64]
-STANDARD_GRAVITY_M_S2 = 9.80665
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,23 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> F64:
     )
 
 
+def quats_multiply(p: ArrayLike, q: ArrayLike) -> F64:
+    """Row-wise Hamilton products ``p[k] * q[k]`` of (n, 4) arrays: the vectorised :func:`quat_multiply`."""
+    pa = np.asarray(p, dtype=float)
+    qa = np.asarray(q, dtype=float)
+    pw, px, py, pz = pa[:, 0], pa[:, 1], pa[:, 2], pa[:, 3]
+    qw, qx, qy, qz = qa[:, 0], qa[:, 1], qa[:, 2], qa[:, 3]
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=1,
+    )
+
+
 def quat_conj(q: ArrayLike) -> F64:
     w, x, y, z = np.asarray(q, dtype=float)
     return np.array([w, -x, -y, -z])
@@ -126,6 +143,45 @@ def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> F64:
 
 def euler_from_quat(q_nb: ArrayLike) -> tuple[float, float, float]:
     return euler_from_dcm(dcm_from_quat(q_nb))
+
+
+def euler_from_dcms(r_nb: ArrayLike) -> F64:
+    """ZYX Euler angles (roll, pitch, yaw) rad for each ``R_nb`` of (n, 3, 3) -> (n, 3); yaw in (-pi, pi].
+
+    The vectorised :func:`euler_from_dcm`.
+    """
+    r = np.asarray(r_nb, dtype=float)
+    roll = np.arctan2(r[:, 2, 1], r[:, 2, 2])
+    pitch = -np.arcsin(np.clip(r[:, 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(r[:, 1, 0], r[:, 0, 0])
+    return np.stack([roll, pitch, yaw], axis=1)
+
+
+def euler_from_quats(q_nb: ArrayLike) -> F64:
+    """ZYX Euler angles (roll, pitch, yaw) rad for each row of ``q_nb`` (n, 4) -> (n, 3): the vectorised
+    :func:`euler_from_quat`."""
+    return euler_from_dcms(dcms_from_quats(q_nb))
+
+
+def quats_from_euler(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> F64:
+    """``q_nb`` (n, 4) from ZYX Euler angle arrays (n,): the same rotations as :func:`quat_from_euler`, in
+    closed form. Unlike the scalar function the sign is not normalised to ``w >= 0``, so a smooth angle path
+    gives a smooth quaternion path."""
+    roll = np.asarray(roll_rad, dtype=float)
+    pitch = np.asarray(pitch_rad, dtype=float)
+    yaw = np.asarray(yaw_rad, dtype=float)
+    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
+    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
+    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+    return np.stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ],
+        axis=1,
+    )
 
 
 def so3_exp(phi: ArrayLike) -> F64:

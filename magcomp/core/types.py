@@ -14,6 +14,8 @@ from numpy.typing import NDArray
 Vec3 = NDArray[np.float64]
 Mat3 = NDArray[np.float64]
 
+STANDARD_GRAVITY_M_S2 = 9.80665  # standard gravity g_n (exact, by definition)
+
 
 @dataclass(frozen=True, slots=True)
 class ImuSample:

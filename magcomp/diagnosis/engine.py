@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.types import LogData, Series
+from magcomp.core.rotations import euler_from_dcms
+from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
 from magcomp.diagnosis.attitude import attitude_track
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, DriveInputs, drive_columns, effect_available, negligible
@@ -222,7 +223,7 @@ def drive_inputs(log: LogData, t_s: F64) -> DriveInputs:
     return DriveInputs(t_s, grid, GRID_DT_S, thr_g, mot_g, v_g, v_full, temp_m, thr_dt)
 
 
-IMPACT_M_S2 = 2.5 * 9.80665
+IMPACT_M_S2 = 2.5 * STANDARD_GRAVITY_M_S2
 
 
 def crash_mask(log: LogData, t_s: F64, before_s: float = 2.0, after_s: float = 3.0) -> NDArray[np.bool_]:
@@ -491,7 +492,7 @@ def motors_off_step(
     time and size, the step the model predicts and the step left in the residual at that time, the
     signals that step with it and the logged events nearby.
     """
-    thr = np.interp(data.t_s, data.drive.grid_t_s, data.drive.throttle_grid)
+    thr = data.throttle_01
     off = thr < 0.02
     if np.count_nonzero(off) < 40:
         return None
@@ -527,10 +528,9 @@ def signals_at(data: CompassData, log: LogData | None) -> dict[str, tuple[F64, F
         "throttle_rate": (g, np.gradient(_smooth(d.throttle_grid, 10), d.grid_dt_s)),
         "time": (data.t_s, data.t_s - data.t_s[0]),
     }
-    r = data.r_nb
-    out["roll"] = (data.t_s, np.arctan2(r[:, 2, 1], r[:, 2, 2]))
-    out["pitch"] = (data.t_s, -np.arcsin(np.clip(r[:, 2, 0], -1, 1)))
-    yaw = np.arctan2(r[:, 1, 0], r[:, 0, 0])
+    roll, pitch, yaw = euler_from_dcms(data.r_nb).T
+    out["roll"] = (data.t_s, roll)
+    out["pitch"] = (data.t_s, pitch)
     out["yaw_deg"] = (data.t_s, np.degrees(np.unwrap(yaw)))
     out["cos_yaw"] = (data.t_s, np.cos(yaw))
     out["sin_yaw"] = (data.t_s, np.sin(yaw))
@@ -567,7 +567,7 @@ def _smooth(x: F64, w: int) -> F64:
 def _autopilot_terms(cd: CompassDiagnosis, log: LogData | None) -> None:
     fit = cd.extended
     bias = cd.bias_mgauss(fit)
-    thr = np.interp(cd.data.t_s, cd.data.drive.grid_t_s, cd.data.drive.throttle_grid)
+    thr = cd.data.throttle_01
     cur = None
     if log is not None:
         c = _finite_series(log.current_a)
@@ -627,7 +627,7 @@ def compass_yaw_rad(data: CompassData, fit: ModelFit, remove_bias: bool = True) 
     else:
         h_b = np.asarray(np.linalg.solve(fit.a_mgauss, v.T).T, dtype=float)
     r = data.r_nb
-    yaw = np.arctan2(r[:, 1, 0], r[:, 0, 0])
+    yaw = euler_from_dcms(r)[:, 2]
     cy, sy = np.cos(yaw), np.sin(yaw)
     # level frame: R_tilt = Rz(-yaw) R_nb
     h_n = np.einsum("nij,nj->ni", r, h_b)

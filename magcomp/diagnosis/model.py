@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from magcomp.core.heading import declination_rad
 from magcomp.diagnosis.effects import EFFECTS, DriveInputs, ExtensionParams, drive_columns, set_value
 
 F64 = NDArray[np.float64]
@@ -58,6 +59,11 @@ class CompassData:
     @property
     def n(self) -> int:
         return int(self.t_s.shape[0])
+
+    @property
+    def throttle_01(self) -> F64:
+        """Logged throttle (0..1) at the compass sample times, linearly interpolated from the drive grid."""
+        return np.asarray(np.interp(self.t_s, self.drive.grid_t_s, self.drive.throttle_grid), dtype=float)
 
 
 @dataclass(frozen=True)
@@ -291,7 +297,7 @@ def initial_fit(data: CompassData, rows: B64 | None = None) -> ModelFit:
     if m[2] < 0:  # choose the sign that points the field down in the northern sense of the fit
         m = -m
     inc = math.asin(float(np.clip(m[2], -1.0, 1.0)))
-    dec = math.atan2(float(m[1]), float(m[0]))
+    dec = declination_rad(m)
     z = np.array([inc, dec, 0.0])
     ext = ExtensionParams()
 

@@ -32,7 +32,7 @@ def write_plots(c: CompassDiagnosis, out_dir: Path, stem: str) -> list[tuple[str
 
     out_dir.mkdir(parents=True, exist_ok=True)
     t = c.data.t_s - c.data.t_s[0]
-    thr = np.interp(c.data.t_s, c.data.drive.grid_t_s, c.data.drive.throttle_grid)
+    thr = c.data.throttle_01
     figs: list[tuple[str, str]] = []
 
     # 1. residual of both models over time, with the throttle

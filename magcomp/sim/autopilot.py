@@ -15,10 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core import heading
 from magcomp.core.rotations import dcm_from_quat, quat_integrate_body_rate
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 F64 = NDArray[np.float64]
-GRAVITY_M_S2 = 9.80665
 
 
 @dataclass(frozen=True)
@@ -57,13 +58,13 @@ def run_autopilot(
         corr = np.zeros(3)
         f = accel_b_m_s2[k] - r.T @ accel_n_m_s2[k]
         fn = float(np.linalg.norm(f))
-        if abs(fn - GRAVITY_M_S2) <= p.accel_gate_frac * GRAVITY_M_S2:
+        if abs(fn - STANDARD_GRAVITY_M_S2) <= p.accel_gate_frac * STANDARD_GRAVITY_M_S2:
             down_meas = -f / fn
             down_est = r[2, :]  # R^T e3
             corr = corr + p.kp_tilt * np.cross(down_meas, down_est)
         m_n = r @ mag_cal_b_mgauss[k]
         if math.hypot(m_n[0], m_n[1]) > 1e-6:
-            err = math.atan2(m_n[1], m_n[0]) - declination_rad  # = yaw_est - yaw_compass
+            err = heading.declination_rad(m_n) - declination_rad  # = yaw_est - yaw_compass
             err = (err + math.pi) % (2.0 * math.pi) - math.pi
             corr = corr + r.T @ (-p.kp_yaw * err * e3)
         q = quat_integrate_body_rate(q, gyro_b_rad_s[k] + corr, dt_s)  # eq. (18)

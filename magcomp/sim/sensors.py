@@ -25,9 +25,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.rotations import so3_exp
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 F64 = NDArray[np.float64]
-GRAVITY_M_S2 = 9.80665
 MESSAGE_NAMES = ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
 
 
@@ -145,4 +145,4 @@ def measure_gyro(c: CompassTruth, omega_b_rad_s: F64, rng: np.random.Generator) 
 def measure_accel(c: CompassTruth, specific_force_b_m_s2: F64, rng: np.random.Generator) -> F64:
     f = specific_force_b_m_s2 + c.accel_bias_m_s2
     f = f + rng.normal(0.0, c.accel_noise_m_s2, f.shape)
-    return quantize(f, GRAVITY_M_S2 * 1e-3)
+    return quantize(f, STANDARD_GRAVITY_M_S2 * 1e-3)

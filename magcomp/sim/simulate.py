@@ -21,11 +21,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.heading import declination_rad
+from magcomp.core.rotations import dcms_from_quats, euler_from_quats
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 from magcomp.sim.autopilot import AutopilotParams, run_autopilot
 from magcomp.sim.config import SimConfig
 from magcomp.sim.powertrain import PowertrainParams, PowertrainTruth, simulate_powertrain
 from magcomp.sim.sensors import (
-    GRAVITY_M_S2,
     CompassTruth,
     make_compasses,
     measure_accel,
@@ -33,7 +35,7 @@ from magcomp.sim.sensors import (
     measure_mag,
     quantize,
 )
-from magcomp.sim.trajectory import Motion, build_motion, dcm_batch, euler_batch
+from magcomp.sim.trajectory import Motion, build_motion
 
 F64 = NDArray[np.float64]
 
@@ -98,7 +100,7 @@ class SimResult:
     @property
     def euler_rad(self) -> F64:
         """True roll, pitch, yaw (n_truth, 3)."""
-        return euler_batch(self.motion.q_nb)
+        return euler_from_quats(self.motion.q_nb)
 
     def truth_at_samples(self, values: F64) -> F64:
         """Pick truth rows at the sample instants (values indexed on axis 0, or axis 1 for (J, n, 3))."""
@@ -152,9 +154,9 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     drift = np.stack([drift_k * dtemp[:, None] * c.drift_dir[None, :] for c in compasses])
 
     m_n = _earth_field(config)
-    r_nb = dcm_batch(motion.q_nb)
+    r_nb = dcms_from_quats(motion.q_nb)
     field_b = np.einsum("nji,j->ni", r_nb, m_n)  # u = R_nb^T m_n
-    g_n = np.array([0.0, 0.0, GRAVITY_M_S2])
+    g_n = np.array([0.0, 0.0, STANDARD_GRAVITY_M_S2])
     f_b = np.einsum("nji,nj->ni", r_nb, motion.accel_n_m_s2 - g_n)
 
     step = round(rates.truth_hz / rates.imu_hz)
@@ -172,7 +174,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
 
     c0 = compasses[0]
     mag_cal0 = np.linalg.solve(c0.k_matrix, (mag[0] - c0.b_mgauss).T).T  # eq. (2), motor-off calibration
-    decl = math.atan2(m_n[1], m_n[0])
+    decl = declination_rad(m_n)
     att_q = run_autopilot(
         motion.q_nb[0],
         gyro[0] - c0.gyro_bias_rad_s,
@@ -183,7 +185,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         decl,
         AutopilotParams(),
     )
-    attitude = euler_batch(att_q)
+    attitude = euler_from_quats(att_q)
 
     voltage = np.round(power.voltage_v[idx] + rng_noise.normal(0.0, 0.01, idx.size), 3)
     noisy_current: F64 = power.current_a[idx] + rng_noise.normal(0.0, 0.05, idx.size)

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.rotations import dcms_from_quats, quat_from_euler, quat_integrate_body_rate
+from magcomp.core.rotations import quat_from_euler, quat_integrate_body_rate, quats_from_euler, quats_multiply
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 F64 = NDArray[np.float64]
-GRAVITY_M_S2 = 9.80665
 # heading of the fixed-orientation scenarios (ramp, step, bench, pan start): with the default theta and
 # location the bias is then nearly square to the horizontal field, the worst case of Fig. 9b/c
 FIXED_HEADING_RAD = math.radians(110.0)
@@ -78,52 +78,9 @@ def _smoothstep(x: F64) -> F64:
     return x - np.sin(2.0 * np.pi * x) / (2.0 * np.pi)
 
 
-def _quat_mul_batch(p: F64, q: F64) -> F64:
-    pw, px, py, pz = p[:, 0], p[:, 1], p[:, 2], p[:, 3]
-    qw, qx, qy, qz = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=1,
-    )
-
-
-def dcm_batch(q_nb: F64) -> F64:
-    """``R_nb`` for each row of q_nb (n, 4) -> (n, 3, 3)."""
-    return dcms_from_quats(q_nb)
-
-
-def euler_batch(q_nb: F64) -> F64:
-    """ZYX Euler angles (roll, pitch, yaw) rad, (n, 3), yaw in (-pi, pi]."""
-    r = dcm_batch(q_nb)
-    roll = np.arctan2(r[:, 2, 1], r[:, 2, 2])
-    pitch = -np.arcsin(np.clip(r[:, 2, 0], -1.0, 1.0))
-    yaw = np.arctan2(r[:, 1, 0], r[:, 0, 0])
-    return np.stack([roll, pitch, yaw], axis=1)
-
-
-def quat_batch_from_euler(roll: F64, pitch: F64, yaw: F64) -> F64:
-    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
-    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
-    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
-    return np.stack(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ],
-        axis=1,
-    )
-
-
 def rates_from_quat_path(q_nb: F64, dt_s: float) -> F64:
     """Body rates that carry q[k] to q[k+1] in one step (last row repeats the previous one)."""
-    dq = _quat_mul_batch(q_nb[:-1] * np.array([1.0, -1.0, -1.0, -1.0]), q_nb[1:])
+    dq = quats_multiply(q_nb[:-1] * np.array([1.0, -1.0, -1.0, -1.0]), q_nb[1:])
     dq = dq * np.where(dq[:, :1] < 0.0, -1.0, 1.0)
     vn = np.linalg.norm(dq[:, 1:], axis=1)
     angle = 2.0 * np.arctan2(vn, dq[:, 0])
@@ -162,7 +119,7 @@ def _hand_rotation(n: int, dt_s: float, rng: np.random.Generator, rms_rad_s: flo
 
 def _rotate_to(q_from: F64, q_to: F64, n: int) -> F64:
     """Per-step rotation vectors (body) turning q_from into q_to about one fixed body axis, smoothly."""
-    dq = _quat_mul_batch((q_from * np.array([1.0, -1.0, -1.0, -1.0]))[None, :], q_to[None, :])[0]
+    dq = quats_multiply((q_from * np.array([1.0, -1.0, -1.0, -1.0]))[None, :], q_to[None, :])[0]
     if dq[0] < 0:
         dq = -dq
     vn = float(np.linalg.norm(dq[1:]))
@@ -347,7 +304,7 @@ def _phases(duration_s: float, dt_s: float, table: Sequence[tuple[float, ...]]) 
 def _finish_path(
     dt_s: float, roll: F64, pitch: F64, yaw: F64, vel_n: F64, alt: F64, thr: F64, airspeed: F64, vehicle: str
 ) -> Motion:
-    q_path = quat_batch_from_euler(roll, pitch, yaw)
+    q_path = quats_from_euler(roll, pitch, yaw)
     omega = rates_from_quat_path(q_path, dt_s)
     q = integrate_attitude(q_path[0], omega, dt_s)  # eq. (18): the truth is the integrated attitude
     n = thr.shape[0]
@@ -394,7 +351,7 @@ def _flight_fixedwing(duration_s: float, dt_s: float) -> Motion:
         v[k] = v[k - 1] + a * (target[k - 1] - v[k - 1])
     yaw = np.cumsum(psi_dot) * dt_s
     gamma = np.arcsin(np.clip(climb / v, -0.5, 0.5))
-    roll = np.arctan(v * psi_dot / GRAVITY_M_S2)
+    roll = np.arctan(v * psi_dot / STANDARD_GRAVITY_M_S2)
     pitch = gamma + 0.06
     vel = v[:, None] * np.stack([np.cos(gamma) * np.cos(yaw), np.cos(gamma) * np.sin(yaw), -np.sin(gamma)], 1)
     alt = 30.0 - np.cumsum(vel[:, 2]) * dt_s
@@ -421,13 +378,14 @@ def _flight_multirotor(duration_s: float, dt_s: float) -> Motion:
     climb = _smooth(climb, dt_s, 1.5)
     vel = np.stack([u * np.cos(yaw), u * np.sin(yaw), -climb], axis=1)
     acc = np.gradient(vel, dt_s, axis=0)
-    f_n = acc - np.array([0.0, 0.0, GRAVITY_M_S2])  # specific force the thrust must provide, NED
+    f_n = acc - np.array([0.0, 0.0, STANDARD_GRAVITY_M_S2])  # specific force the thrust must provide, NED
     d = -f_n / np.linalg.norm(f_n, axis=1, keepdims=True)  # body z axis in NED
     cy, sy = np.cos(yaw), np.sin(yaw)
     d_h = np.stack([cy * d[:, 0] + sy * d[:, 1], -sy * d[:, 0] + cy * d[:, 1], d[:, 2]], axis=1)
     roll = -np.arcsin(np.clip(d_h[:, 1], -1.0, 1.0))
     pitch = np.arctan2(d_h[:, 0], d_h[:, 2])
     hover = 0.5
-    thr = np.clip(hover * np.sqrt(np.linalg.norm(f_n, axis=1) / GRAVITY_M_S2) + 0.03 * climb, 0.0, 0.95)
+    g_load = np.linalg.norm(f_n, axis=1) / STANDARD_GRAVITY_M_S2
+    thr = np.clip(hover * np.sqrt(g_load) + 0.03 * climb, 0.0, 0.95)
     alt = np.cumsum(climb) * dt_s
     return _finish_path(dt_s, roll, pitch, yaw, vel, alt, thr, np.abs(u), "multirotor")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -33,16 +34,6 @@ def cfg() -> Config:
     return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
 
 
-def split_tlog(data: bytes) -> list[bytes]:
-    """Records of a clean tlog: 8-byte stamp + one MAVLink 2 packet."""
-    out, p = [], 0
-    while p < len(data):
-        n = 8 + 12 + data[p + 9] + (13 if data[p + 10] & 1 else 0)
-        out.append(data[p : p + n])
-        p += n
-    return out
-
-
 def no_magic(data: bytes) -> bytes:
     """Random bytes without MAVLink start bytes (a start byte could begin a false, valid-looking frame)."""
     return data.replace(b"\xfd", b"\x01").replace(b"\xfe", b"\x01")
@@ -56,7 +47,9 @@ RAW_IMU, SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD = 27, 36, 65, 74
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[bytes]]:
+def clean(
+    tmp_path_factory: pytest.TempPathFactory, split_tlog: Callable[[bytes], list[bytes]]
+) -> tuple[Path, list[bytes]]:
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.sim import SimConfig, simulate
 

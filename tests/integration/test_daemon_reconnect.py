@@ -7,6 +7,7 @@ import logging
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,23 +18,16 @@ from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon
 
 
-def packets_of(tlog: bytes) -> list[bytes]:
-    out, p = [], 0
-    while p < len(tlog):
-        n = 12 + tlog[p + 9] + (13 if tlog[p + 10] & 1 else 0)
-        out.append(tlog[p + 8 : p + 8 + n])
-        p += 8 + n
-    return out
-
-
 @pytest.mark.slow
-def test_tcp_link_loss_reconnects_and_keeps_state(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_tcp_link_loss_reconnects_and_keeps_state(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, split_tlog: Callable[[bytes], list[bytes]]
+) -> None:
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.sim import SimConfig, simulate
 
     result = simulate(SimConfig(scenario="paper", duration_s=34.0, seed=4, n_compasses=1))
     write_tlog(result, tmp_path / "f.tlog")
-    pkts = packets_of((tmp_path / "f.tlog").read_bytes())
+    pkts = [r[8:] for r in split_tlog((tmp_path / "f.tlog").read_bytes())]
     half = len(pkts) // 2
     server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)

@@ -40,13 +40,14 @@ def test_log171_crash_is_left_out(log171: dict[str, Any]) -> None:
 @pytest.mark.slow
 def test_log171_motors_off_step_is_the_yaw_rotation_the_gyro_saw(log171: dict[str, Any]) -> None:
     """The ~80 mgauss MagY step ~16 s into the log (boot time ~27.7 s) with the motors off."""
-    for c in log171["compasses"]:
+    # docs/measured-data.md: the model explains 82 / 84 / 73 % of the step on compasses 0 / 1 / 2
+    for c, least_explained in zip(log171["compasses"], (0.75, 0.75, 0.65), strict=True):
         st = c["field_step_motors_off"]
         assert st is not None
         assert 26.5 < st["t_s"] < 29.0
         assert abs(st["size_mgauss"][1]) > 50.0
         # the forward model, driven by the gyro, predicts most of it: a rotation, not the powertrain
-        assert st["fraction_explained_by_model"] > 0.6
+        assert st["fraction_explained_by_model"] > least_explained
         top = next(iter(st["co_stepping_signals"]))
         assert top in ("sin_yaw", "cos_yaw", "yaw_deg")
 

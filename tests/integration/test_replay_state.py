@@ -4,6 +4,7 @@ gives a warning and a fresh start."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,17 +23,10 @@ def cfg() -> Config:
     return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
 
 
-def split_tlog(data: bytes) -> list[tuple[float, bytes]]:
-    out, p = [], 0
-    while p < len(data):
-        n = 8 + 12 + data[p + 9] + (13 if data[p + 10] & 1 else 0)
-        out.append((int.from_bytes(data[p : p + 8], "big") * 1e-6, data[p : p + n]))
-        p += n
-    return out
-
-
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, object]:
+def logs(
+    tmp_path_factory: pytest.TempPathFactory, split_tlog: Callable[[bytes], list[bytes]]
+) -> tuple[Path, Path, object]:
     from magcomp.adapters.mavlink_emit import default_start_unix_s, write_tlog
     from magcomp.sim import SimConfig, simulate
 
@@ -46,7 +40,8 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, object]:
     t_unix0 = default_start_unix_s(result)
     recs = split_tlog(whole.read_bytes())
     tail = d / "tail.tlog"
-    tail.write_bytes(b"".join(r for t, r in recs if t - t_unix0 >= pan_start))
+    stamps_s = [int.from_bytes(r[:8], "big") * 1e-6 for r in recs]
+    tail.write_bytes(b"".join(r for t, r in zip(stamps_s, recs, strict=True) if t - t_unix0 >= pan_start))
     return whole, tail, result
 
 

@@ -193,14 +193,15 @@ def test_discrete_step_matches_continuous_eq20_at_fine_dt(variant: str) -> None:
 @pytest.mark.parametrize("fs_hz", [25.0, 50.0, 100.0])
 @pytest.mark.parametrize("scheme", ["regression", "observer"])
 @pytest.mark.parametrize("theta", [THETA, THETA_SMALL], ids=["theta120", "theta_paper"])
-def test_observer_converges_theorem1_within_2pct_under_60s(
+def test_observer_converges_theorem1_within_2pct_in_the_documented_time(
     fs_hz: float, scheme: str, theta: np.ndarray
 ) -> None:
+    """docs/observer.md: 2 % in 0.2-0.3 s (regression) and 8.6-11.4 s (paper form); bounds with margin."""
     p = DEFAULT if scheme == "regression" else PAPER_OBS
     sc = scenario(fs_hz, 45.0, theta=theta)
     th, _, infos = run(p, sc, theta)
     err = rel_err(th, theta)
-    assert settle_time(sc["t"], err, 0.02) < 30.0
+    assert settle_time(sc["t"], err, 0.02) < (1.0 if scheme == "regression" else 15.0)
     assert err[-1] < 0.005
     assert all(infos[-1].converged)
 

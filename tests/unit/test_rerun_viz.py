@@ -27,6 +27,7 @@ from magcomp.adapters.rerun_viz import (
     nice_range,
     open_viz,
     parse_mode,
+    serve_until_interrupt,
     wrap_deg,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, HeadingEstimate
@@ -326,3 +327,22 @@ def test_bad_shapes_raise_magcomp_error(tmp_path: Path) -> None:
             viz.log_reference_theta(np.zeros(2), None)
     finally:
         viz.close()
+
+
+def test_serve_until_interrupt_waits_for_ctrl_c_only_when_the_viewer_lives_here() -> None:
+    said: list[str] = []
+    naps: list[float] = []
+
+    def sleep(dt_s: float) -> None:
+        naps.append(dt_s)
+        if len(naps) == 3:
+            raise KeyboardInterrupt
+
+    serve_until_interrupt(NullViz(), said.append, sleep=sleep)  # nothing served: returns at once
+    assert said == [] and naps == []
+
+    class Serving(NullViz):
+        keeps_serving = True
+
+    serve_until_interrupt(Serving(), said.append, "msg", sleep=sleep)
+    assert said == ["msg"] and naps == [1.0, 1.0, 1.0]

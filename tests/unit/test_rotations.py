@@ -49,3 +49,37 @@ def test_batch_dcm_equals_single(rng: np.random.Generator) -> None:
     batch = rot.dcms_from_quats(q)
     for qi, ri in zip(q, batch, strict=True):
         np.testing.assert_allclose(ri, rot.dcm_from_quat(qi), atol=1e-14)
+
+
+def test_batch_quat_multiply_equals_single(rng: np.random.Generator) -> None:
+    p = rng.normal(size=(20, 4))
+    q = rng.normal(size=(20, 4))
+    batch = rot.quats_multiply(p, q)
+    assert batch.shape == (20, 4)
+    for pi, qi, bi in zip(p, q, batch, strict=True):
+        np.testing.assert_allclose(bi, rot.quat_multiply(pi, qi), atol=1e-14)
+
+
+def test_batch_euler_equals_single(rng: np.random.Generator) -> None:
+    q = rng.normal(size=(20, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    from_quats = rot.euler_from_quats(q)
+    from_dcms = rot.euler_from_dcms(rot.dcms_from_quats(q))
+    assert from_quats.shape == (20, 3)
+    np.testing.assert_array_equal(from_quats, from_dcms)
+    for qi, ei in zip(q, from_quats, strict=True):
+        np.testing.assert_allclose(ei, rot.euler_from_quat(qi), atol=1e-12)
+
+
+def test_batch_quats_from_euler_same_rotation_as_single(rng: np.random.Generator) -> None:
+    roll = rng.uniform(-np.pi, np.pi, 20)
+    pitch = rng.uniform(-1.5, 1.5, 20)
+    yaw = rng.uniform(-np.pi, np.pi, 20)
+    batch = rot.quats_from_euler(roll, pitch, yaw)
+    np.testing.assert_allclose(np.linalg.norm(batch, axis=1), 1.0, atol=1e-14)
+    for k in range(20):
+        single = rot.quat_from_euler(roll[k], pitch[k], yaw[k])
+        # q and -q are the same rotation; the batch form does not normalise the sign
+        sign = 1.0 if batch[k, 0] >= 0.0 else -1.0
+        np.testing.assert_allclose(sign * batch[k], single, atol=1e-12)
+    np.testing.assert_allclose(rot.euler_from_quats(batch), np.stack([roll, pitch, yaw], axis=1), atol=1e-9)

@@ -8,16 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from magcomp.core.rotations import quat_from_euler
+from magcomp.core.rotations import dcms_from_quats, euler_from_quats, quat_from_euler, quats_from_euler
 from magcomp.errors import InputError
 from magcomp.sim import EFFECTS, SimConfig, parse_effect, simulate
 from magcomp.sim.powertrain import PowertrainParams, simulate_powertrain
 from magcomp.sim.trajectory import (
     STEP_TIME_S,
-    dcm_batch,
-    euler_batch,
     integrate_attitude,
-    quat_batch_from_euler,
     rates_from_quat_path,
 )
 
@@ -152,24 +149,24 @@ def test_attitude_integration_reproduces_an_euler_path_on_so3_eq18() -> None:
     dt = 1 / 200.0
     t = np.arange(0, 10, dt)
     roll, pitch, yaw = 0.5 * np.sin(t), 0.3 * np.cos(0.7 * t), 2.0 * np.sin(0.2 * t)
-    q_path = quat_batch_from_euler(roll, pitch, yaw)
+    q_path = quats_from_euler(roll, pitch, yaw)
     q = integrate_attitude(q_path[0], rates_from_quat_path(q_path, dt), dt)
     np.testing.assert_allclose(np.abs(np.sum(q * q_path, axis=1)), 1.0, atol=1e-9)
-    e = euler_batch(q_path[:3])
+    e = euler_from_quats(q_path[:3])
     np.testing.assert_allclose(quat_from_euler(*e[1]), q_path[1] * np.sign(q_path[1, 0]), atol=1e-12)
 
 
 def test_tumble_covers_the_sphere_and_pan_turns_360_degrees() -> None:
     r = run("tumble", duration_s=60.0)
-    down_b = dcm_batch(r.motion.q_nb)[:, 2, :]
+    down_b = dcms_from_quats(r.motion.q_nb)[:, 2, :]
     octant = (down_b > 0).astype(int) @ np.array([1, 2, 4])
     counts = np.bincount(octant, minlength=8)
     assert counts.min() > 0.03 * octant.size
     assert np.all(r.motion.throttle_cmd_01 == 0.0)
     p = run("pan", duration_s=20.0)
-    yaw = np.unwrap(euler_batch(p.motion.q_nb)[:, 2])
+    yaw = np.unwrap(euler_from_quats(p.motion.q_nb)[:, 2])
     assert yaw[-1] - yaw[0] == pytest.approx(2 * np.pi, abs=0.01)
-    np.testing.assert_allclose(euler_batch(p.motion.q_nb)[:, :2], 0.0, atol=1e-9)  # level
+    np.testing.assert_allclose(euler_from_quats(p.motion.q_nb)[:, :2], 0.0, atol=1e-9)  # level
     assert np.all(p.motion.throttle_cmd_01 == 1.0)
 
 

@@ -1,0 +1,25 @@
+"""Shared test helpers."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+
+
+def split_tlog_records(data: bytes) -> list[bytes]:
+    """The records of a clean tlog of MAVLink 2 packets, each an 8-byte big-endian stamp (microseconds since
+    the Unix epoch) + one packet (length from its header, + 13 signature bytes if flagged signed)."""
+    out, p = [], 0
+    while p < len(data):
+        n = 8 + 12 + data[p + 9] + (13 if data[p + 10] & 1 else 0)
+        out.append(data[p : p + n])
+        p += n
+    return out
+
+
+@pytest.fixture(scope="session")
+def split_tlog() -> Callable[[bytes], list[bytes]]:
+    """:func:`split_tlog_records` as a fixture (test modules do not import conftest). Record ``r``'s stamp
+    is ``int.from_bytes(r[:8], "big") * 1e-6`` s, its packet ``r[8:]``."""
+    return split_tlog_records
