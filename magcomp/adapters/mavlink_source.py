@@ -30,7 +30,7 @@ crc_extra (the dialect module's CRC function, i.e. fastcrc when pymavlink uses i
 precompiled ``Struct`` (zero-truncated MAVLink 2 payloads padded with zeros) into a named-tuple view in wire
 order with pymavlink's field values (arrays as lists, char[N] as str); other ids are skipped unread. Same
 messages, values and counts as ``MAVLink.decode`` (tests/unit/test_sources_fastpath.py); on a 600 s simulated
-tlog the whole source (decode + conversion + throttle) takes ~0.35x the wall time of ``mavlink_connection`` +
+tlog the whole source (decode + conversion + throttle) takes ~0.3x the wall time of ``mavlink_connection`` +
 ``recv_msg`` merely parsing it (benchmarks/source_speed.py). Signatures of signed frames are not checked.
 """
 
@@ -39,6 +39,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import operator
 import os
 import re
 import stat
@@ -73,6 +74,7 @@ from magcomp.core.types import (
     Series,
     TemperatureSample,
     ThrottleSample,
+    Vec3,
 )
 from magcomp.errors import InputError
 
@@ -119,6 +121,8 @@ WANTED_DATAFLASH = (
     "MSG",
 )
 _SERVO_FIELDS = tuple(f"servo{i}_raw" for i in range(1, 17))
+_IMU_SENSOR_NAMES = tuple(f"imu{i}" for i in range(256))  # RAW_IMU.id is a uint8
+_servo_values = operator.attrgetter(*_SERVO_FIELDS)
 _RC_FIELDS = tuple(f"chan{i}_raw" for i in range(1, 19))
 _PWM_COLUMN = re.compile(r"^(?:C|Ch|Chan)(\d+)$")
 
@@ -195,6 +199,85 @@ def _vec(x: float, y: float, z: float, scale: float = 1.0) -> np.ndarray:
     return np.array([x * scale, y * scale, z * scale], dtype=np.float64)
 
 
+#: the dataclass slots behind the public vector fields (set directly: the classes are frozen)
+_IMU_T, _IMU_GYRO, _IMU_ACCEL, _IMU_INDEX = (
+    ImuSample.__dict__[name] for name in ("t_s", "gyro_b_rad_s", "accel_b_m_s2", "imu_index")
+)
+_MAG_T, _MAG_FIELD, _MAG_INDEX = (MagSample.__dict__[name] for name in ("t_s", "field_b_mgauss", "mag_index"))
+_set = object.__setattr__  # the frozen dataclasses' __setattr__ refuses every attribute
+Float3 = tuple[float, float, float]
+
+
+class WireImuSample(ImuSample):
+    """An :class:`ImuSample` decoded from a message, whose vectors stay three floats (``gyro_xyz``,
+    ``accel_xyz``) until the array fields are first read (then built once, with the same values).
+
+    Most samples of a replay only ever reach the pipeline, which works on floats: building two numpy
+    arrays per message that nobody reads was ~10 % of a replay. Everything else sees an ImuSample
+    (isinstance, fields, ``dataclasses.replace``, pickling and copying as a plain ImuSample). The
+    constructor takes the public field names; vectors given as arrays are read as floats."""
+
+    __slots__ = ("accel_xyz", "gyro_xyz")
+    gyro_xyz: Float3
+    accel_xyz: Float3
+
+    def __init__(
+        self, t_s: float, gyro_b_rad_s: Float3 | Vec3, accel_b_m_s2: Float3 | Vec3, imu_index: int = 0
+    ) -> None:
+        _IMU_T.__set__(self, t_s)
+        _IMU_INDEX.__set__(self, imu_index)
+        _set(self, "gyro_xyz", _floats(gyro_b_rad_s))
+        _set(self, "accel_xyz", _floats(accel_b_m_s2))
+
+    @property  # type: ignore[override]
+    def gyro_b_rad_s(self) -> np.ndarray:
+        return _lazy_vec(self, _IMU_GYRO, self.gyro_xyz)
+
+    @property  # type: ignore[override]
+    def accel_b_m_s2(self) -> np.ndarray:
+        return _lazy_vec(self, _IMU_ACCEL, self.accel_xyz)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return ImuSample, (self.t_s, self.gyro_b_rad_s, self.accel_b_m_s2, self.imu_index)
+
+
+class WireMagSample(MagSample):
+    """A :class:`MagSample` decoded from a message, whose field stays three floats (``field_xyz``) until
+    ``field_b_mgauss`` is first read (see :class:`WireImuSample`)."""
+
+    __slots__ = ("field_xyz",)
+    field_xyz: Float3
+
+    def __init__(self, t_s: float, field_b_mgauss: Float3 | Vec3, mag_index: int = 0) -> None:
+        _MAG_T.__set__(self, t_s)
+        _MAG_INDEX.__set__(self, mag_index)
+        _set(self, "field_xyz", _floats(field_b_mgauss))
+
+    @property  # type: ignore[override]
+    def field_b_mgauss(self) -> np.ndarray:
+        return _lazy_vec(self, _MAG_FIELD, self.field_xyz)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return MagSample, (self.t_s, self.field_b_mgauss, self.mag_index)
+
+
+def _floats(v: Float3 | Vec3) -> Float3:
+    """Three Python floats (as given when they are; arrays, e.g. from ``dataclasses.replace``, converted)."""
+    if type(v) is tuple:
+        return v
+    return float(v[0]), float(v[1]), float(v[2])
+
+
+def _lazy_vec(sample: Any, slot: Any, xyz: Float3) -> np.ndarray:
+    """The array in ``slot`` of ``sample``, built from ``xyz`` on first use (the same object afterwards)."""
+    try:
+        return slot.__get__(sample)  # type: ignore[no-any-return]
+    except AttributeError:
+        arr = np.array(xyz, dtype=np.float64)
+        slot.__set__(sample, arr)
+        return arr
+
+
 class _Converter:
     """Turns decoded messages (MAVLink or DataFlash) into records; holds the clock and what is known so
     far."""
@@ -220,18 +303,17 @@ class _Converter:
         return handler(msg) if handler is not None else []
 
     def _imu_mag(self, origin: str, t_s: float, msg: Any, index: int) -> list[tuple[str, Record]]:
-        gyro = np.array((msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3))  # mrad/s -> rad/s
-        accel = np.array((msg.xacc * _MG_TO_M_S2, msg.yacc * _MG_TO_M_S2, msg.zacc * _MG_TO_M_S2))  # mG
-        out: list[tuple[str, Record]] = [(origin, ImuSample(t_s, gyro, accel, index))]
+        gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)  # mrad/s -> rad/s
+        accel = (msg.xacc * _MG_TO_M_S2, msg.yacc * _MG_TO_M_S2, msg.zacc * _MG_TO_M_S2)  # mG
+        out: list[tuple[str, Record]] = [(origin, WireImuSample(t_s, gyro, accel, index))]
         xmag, ymag, zmag = msg.xmag, msg.ymag, msg.zmag
         if not (xmag or ymag or zmag):  # (0, 0, 0): no compass data in this message
             self.counts["mag_zero"] += 1
         elif self.mag_index is None or self.mag_index == index:
-            mag = np.array((xmag, ymag, zmag), dtype=np.float64)  # mgauss
-            out.append((origin, MagSample(t_s, mag, index)))
+            out.append((origin, WireMagSample(t_s, (float(xmag), float(ymag), float(zmag)), index)))  # mgauss
         temp = getattr(msg, "temperature", 0)
         if temp:  # 0 = not provided (common.xml)
-            out.append((origin, TemperatureSample(t_s, temp * 0.01, f"imu{index}")))
+            out.append((origin, TemperatureSample(t_s, temp * 0.01, _IMU_SENSOR_NAMES[index])))
         return out
 
     def _m_RAW_IMU(self, msg: Any) -> list[tuple[str, Record]]:
@@ -269,10 +351,17 @@ class _Converter:
         if t_s is None:
             return []
         base = 8 * int(msg.port)
-        for i, name in enumerate(_SERVO_FIELDS if base == 0 else _SERVO_FIELDS[:8], start=1):
-            value = getattr(msg, name, 0)
-            if i <= 8 or value:  # servo9..16 are an extension: 0 when the sender does not fill them
-                self.servo_pwm[base + i] = float(value)
+        try:
+            values = _servo_values(msg)
+        except AttributeError:  # a message class without the servo9..16 extension
+            values = tuple(getattr(msg, name, 0) for name in _SERVO_FIELDS)
+        pwm = self.servo_pwm
+        for channel, value in enumerate(values[:8], start=base + 1):
+            pwm[channel] = float(value)
+        if base == 0:
+            for channel, value in enumerate(values[8:], start=9):
+                if value:  # servo9..16 are an extension: 0 when the sender does not fill them
+                    pwm[channel] = float(value)
         return [("SERVO_OUTPUT_RAW", PwmRecord(t_s, "servo", dict(self.servo_pwm)))]
 
     def _m_RC_CHANNELS(self, msg: Any) -> list[tuple[str, Record]]:

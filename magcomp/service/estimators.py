@@ -23,6 +23,8 @@ from magcomp.service.fastpath import supports as fast_supports
 
 F64 = NDArray[np.float64]
 
+_DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
+
 
 def earth_field(cfg: Config) -> F64:
     """WMM-2025 Earth field (N, E, D) mgauss at the configured location and date."""
@@ -195,9 +197,11 @@ class HeadingFilter:
         if self.tau_s <= 0.0 or self.psi_deg is None or not math.isfinite(yaw_rate_rad_s) or dt_s <= 0.0:
             self.psi_deg = psi_meas_deg
             return psi_meas_deg
-        pred = self.psi_deg + math.degrees(yaw_rate_rad_s * dt_s)
+        pred = self.psi_deg + yaw_rate_rad_s * dt_s * _DEG_PER_RAD  # as math.degrees
         innov = (psi_meas_deg - pred + 180.0) % 360.0 - 180.0
-        gain = min(dt_s / self.tau_s, 1.0)
+        gain = dt_s / self.tau_s
+        if gain > 1.0:
+            gain = 1.0
         psi = (pred + gain * innov) % 360.0
         self.psi_deg = psi
         return psi

@@ -406,12 +406,19 @@ class FastObserver:
         yx = v1x - (a00 * v0x + a01 * v0y + a02 * v0z)
         yy = v1y - (a10 * v0x + a11 * v0y + a12 * v0z)
         yz = v1z - (a20 * v0x + a21 * v0y + a22 * v0z)
-        # excitation Gramian, eq. (21) (written out: comprehensions cost more than the arithmetic here)
+        # excitation Gramian, eq. (21) (written out: comprehensions and helper calls cost more than the
+        # arithmetic here); Phi^T Phi is symmetric: six products
+        p0, p1, p2, p3, p4, p5, p6, p7, p8 = ph
+        q0 = p0 * p0 + p3 * p3 + p6 * p6
+        q1 = p0 * p1 + p3 * p4 + p6 * p7
+        q2 = p0 * p2 + p3 * p5 + p6 * p8
+        q4 = p1 * p1 + p4 * p4 + p7 * p7
+        q5 = p1 * p2 + p4 * p5 + p7 * p8
+        q8 = p2 * p2 + p5 * p5 + p8 * p8
         g0, g1, g2, g3, g4, g5, g6, g7, g8 = self.gram
-        q0, q1, q2, q3, q4, q5, q6, q7, q8 = _ata(ph)
         g0, g1, g2 = lam_e * g0 + q0 / dt, lam_e * g1 + q1 / dt, lam_e * g2 + q2 / dt
-        g3, g4, g5 = lam_e * g3 + q3 / dt, lam_e * g4 + q4 / dt, lam_e * g5 + q5 / dt
-        g6, g7, g8 = lam_e * g6 + q6 / dt, lam_e * g7 + q7 / dt, lam_e * g8 + q8 / dt
+        g3, g4, g5 = lam_e * g3 + q1 / dt, lam_e * g4 + q4 / dt, lam_e * g5 + q5 / dt
+        g6, g7, g8 = lam_e * g6 + q2 / dt, lam_e * g7 + q5 / dt, lam_e * g8 + q8 / dt
         self.gram = [g0, g1, g2, g3, g4, g5, g6, g7, g8]
         gw = lam_e * self.gram_w + dt
         self.gram_w = gw
@@ -423,7 +430,6 @@ class FastObserver:
         # 5 Hz low-pass on y and on every column of Phi alike (regression prefilter): biquad, direct form II
         # transposed, 12 channels; lp_z holds z1 (12) then z2 (12). Written out channel by channel: a loop
         # or comprehensions take twice as long as this arithmetic.
-        p0, p1, p2, p3, p4, p5, p6, p7, p8 = ph
         z = self.lp_z
         if z is None or not self.lp_init:
             regs = [yx, yy, yz, *ph]
@@ -449,11 +455,17 @@ class FastObserver:
         ry = yfy - (f3 * th0 + f4 * th1 + f5 * th2)
         rz = yfz - (f6 * th0 + f7 * th1 + f8 * th2)
         j_0, j_1, j_2, j_3, j_4, j_5, j_6, j_7, j_8 = self.info
-        q0, q1, q2, q3, q4, q5, q6, q7, q8 = _ata([f0, f1, f2, f3, f4, f5, f6, f7, f8])
+        # J = lam J + Phi_f^T Phi_f + (1 - lam) J0 I
+        q0 = f0 * f0 + f3 * f3 + f6 * f6
+        q1 = f0 * f1 + f3 * f4 + f6 * f7
+        q2 = f0 * f2 + f3 * f5 + f6 * f8
+        q4 = f1 * f1 + f4 * f4 + f7 * f7
+        q5 = f1 * f2 + f4 * f5 + f7 * f8
+        q8 = f2 * f2 + f5 * f5 + f8 * f8
         info_new = [
             lam * j_0 + q0 + j0, lam * j_1 + q1, lam * j_2 + q2,
-            lam * j_3 + q3, lam * j_4 + q4 + j0, lam * j_5 + q5,
-            lam * j_6 + q6, lam * j_7 + q7, lam * j_8 + q8 + j0,
+            lam * j_3 + q1, lam * j_4 + q4 + j0, lam * j_5 + q5,
+            lam * j_6 + q2, lam * j_7 + q5, lam * j_8 + q8 + j0,
         ]  # fmt: skip
         # RLS with regularised forgetting: d_theta = J^-1 Phi_f^T r
         gx = f0 * rx + f3 * ry + f6 * rz
@@ -508,15 +520,3 @@ class FastObserver:
         if all_conv:
             flags |= FLAG_THETA_CONVERGED
         return FastStepInfo("ok", flags, all_conv, not obs2, math.sqrt(rr), math.nan, g_upper)
-
-
-def _ata(m: Vec) -> Vec:
-    """M^T M of a row-major 3x3."""
-    m0, m1, m2, m3, m4, m5, m6, m7, m8 = m
-    x00 = m0 * m0 + m3 * m3 + m6 * m6
-    x01 = m0 * m1 + m3 * m4 + m6 * m7
-    x02 = m0 * m2 + m3 * m5 + m6 * m8
-    x11 = m1 * m1 + m4 * m4 + m7 * m7
-    x12 = m1 * m2 + m4 * m5 + m7 * m8
-    x22 = m2 * m2 + m5 * m5 + m8 * m8
-    return [x00, x01, x02, x01, x11, x12, x02, x12, x22]

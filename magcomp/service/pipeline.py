@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
+from magcomp.adapters.mavlink_source import WireImuSample, WireMagSample
 from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.mahony import MahonyParams, mahony_init
 from magcomp.core.types import (
@@ -58,7 +59,9 @@ from magcomp.core.types import (
     HeartbeatSample,
     ImuSample,
     MagSample,
+    PowerSample,
     Sample,
+    TemperatureSample,
     ThrottleSample,
 )
 from magcomp.service import estimators as est_core
@@ -239,7 +242,9 @@ class CompassCorrector:
         self.dirty = True
         return True
 
-    def collect_calibration(self, down_b: F64 | tuple[float, float, float], field_raw: F64) -> bool:
+    def collect_calibration(
+        self, down_b: F64 | tuple[float, float, float], field_raw: F64 | tuple[float, float, float]
+    ) -> bool:
         """Add one (down vector, raw field) pair at zero throttle and refit now and then (eq. (3)).
 
         The first (linear) fit that the DPI module accepts is adopted at once; later fits on more samples
@@ -354,6 +359,7 @@ class Pipeline:
         self._gyro_sat = cfg.input.gyro_saturation_rad_s
         self._dt_min = cfg.observer.dt_min_s
         self._dt_max = cfg.observer.dt_max_s
+        self._save_interval_s = cfg.state.save_interval_s
         self._att_mahony = cfg.input.attitude == "mahony"
         # attitude of the latest IMU / ATTITUDE sample, derived once for every compass (see _attitude)
         self._att_cache: _Attitude | None = None
@@ -392,14 +398,28 @@ class Pipeline:
         :meth:`last_estimate` (for consumers that only count, or need only some estimates)."""
         self.counts["samples"] += 1
         kind = type(sample)
-        if kind is MagSample:
-            return self._on_mag(sample)  # type: ignore[arg-type]
-        if kind is ImuSample:
-            self._on_imu(sample)  # type: ignore[arg-type]
+        # samples decoded by the MAVLink source carry their vectors as floats (no arrays built or read);
+        # type(sample) spelt out so that mypy narrows it
+        if type(sample) is WireMagSample:
+            vx, vy, vz = sample.field_xyz
+            return self._on_mag(sample, vx, vy, vz)
+        if type(sample) is WireImuSample:
+            if sample.imu_index == 0:  # the attitude comes from the primary IMU
+                self._on_imu(sample.t_s, *sample.gyro_xyz, *sample.accel_xyz)
+        elif kind is TemperatureSample or kind is PowerSample:  # not used here (one per IMU message)
+            pass
         elif kind is ThrottleSample:
             self._on_throttle(sample)  # type: ignore[arg-type]
         elif kind is AttitudeSample:
             self._on_attitude(sample)  # type: ignore[arg-type]
+        elif isinstance(sample, MagSample):
+            v = sample.field_b_mgauss
+            return self._on_mag(sample, float(v[0]), float(v[1]), float(v[2]))
+        elif isinstance(sample, ImuSample):
+            if sample.imu_index == 0:
+                g, a = sample.gyro_b_rad_s, sample.accel_b_m_s2
+                self._on_imu(sample.t_s, float(g[0]), float(g[1]), float(g[2]),
+                             float(a[0]), float(a[1]), float(a[2]))  # fmt: skip
         elif kind is HeartbeatSample and self.system_id is None:
             self.system_id = int(sample.system_id)  # type: ignore[union-attr]
         return False
@@ -408,7 +428,7 @@ class Pipeline:
         """The estimate of the last magnetometer sample for which :meth:`feed` returned True."""
         if self._last is None:
             raise ValueError("no estimate published yet")
-        t, idx, heading, heading_raw, theta, bias, thr, flags, v, corrected, info = self._last
+        t, idx, heading, heading_raw, theta, bias, thr, flags, sample, corrected, info = self._last
         return HeadingEstimate(
             t_s=t,
             mag_index=idx,
@@ -418,7 +438,7 @@ class Pipeline:
             bias_mgauss=np.array(bias, dtype=float),
             throttle_01=thr,
             flags=flags,
-            field_raw_mgauss=v,
+            field_raw_mgauss=sample.field_b_mgauss,
             field_cal_mgauss=np.array(corrected, dtype=float),
             residual_norm_mgauss=float("nan") if info is None else info.residual_norm_mgauss,
             excitation=float("nan") if info is None else info.excitation,
@@ -495,14 +515,9 @@ class Pipeline:
         self._att_roll, self._att_pitch = s.roll_rad, s.pitch_rad
         self._att_cache = None
 
-    def _on_imu(self, s: ImuSample) -> None:
-        if s.imu_index != 0:  # the attitude comes from the primary IMU
-            return
+    def _on_imu(self, t: float, gx: float, gy: float, gz: float, ax: float, ay: float, az: float) -> None:
+        """A sample of the primary IMU: body rate (rad/s) and specific force (m/s^2)."""
         self.counts["imu"] += 1
-        g, a = s.gyro_b_rad_s, s.accel_b_m_s2
-        gx, gy, gz = float(g[0]), float(g[1]), float(g[2])
-        ax, ay, az = float(a[0]), float(a[1]), float(a[2])
-        t = s.t_s
         if not all(map(math.isfinite, (t, gx, gy, gz, ax, ay, az))):
             self.counts["non_finite"] += 1
             return
@@ -526,7 +541,7 @@ class Pipeline:
         # tilt restarts from the accelerometer (gyro bias kept) and must settle again before the
         # calibration uses it
         try:
-            fresh = mahony_init(a)
+            fresh = mahony_init(np.array((ax, ay, az)))
         except ValueError:
             self.counts["non_finite"] += 1
             return
@@ -574,14 +589,13 @@ class Pipeline:
         self._att_cache = a
         return a
 
-    def _on_mag(self, s: MagSample) -> bool:
+    def _on_mag(self, s: MagSample, vx: float, vy: float, vz: float) -> bool:
+        """A magnetometer sample, whose field (mgauss) the caller has read as floats."""
         self.counts["mag"] += 1
         idx = s.mag_index
         if self._compasses and idx not in self._compasses:
             return False
-        v = s.field_b_mgauss
         t = s.t_s
-        vx, vy, vz = float(v[0]), float(v[1]), float(v[2])
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(vz)):
             self.counts["non_finite"] += 1
             return False
@@ -637,7 +651,7 @@ class Pipeline:
             at_rest = not have_thr or thr <= self.cfg.calibration.max_throttle_01
             if not at_rest:
                 c.freeze_calibration()
-            elif down is not None and gyro_fresh and c.collect_calibration(down, v):
+            elif down is not None and gyro_fresh and c.collect_calibration(down, (vx, vy, vz)):
                 assert c.calibration is not None
                 rms = c.calibration.residual_rms_mgauss
                 if c.n_cal_fits == 1:
@@ -686,12 +700,13 @@ class Pipeline:
             c.hdg_filter.reset()
             c.hdg_raw_filter.reset()
         # Euler yaw rate from body rates (ZYX), as est_core.yaw_rate_rad_s
-        yaw_rate = math.nan if abs(cp) < 0.25 else (self._gyro[1] * sr + self._gyro[2] * cr) / cp
+        _, gy, gz = self._gyro
+        yaw_rate = math.nan if abs(cp) < 0.25 else (gy * sr + gz * cr) / cp
         dt_h = 0.0 if prev_t is None or reset else t - prev_t
         heading_raw = c.hdg_raw_filter.update(psi_raw, yaw_rate, dt_h)
         heading = c.hdg_filter.update(psi, yaw_rate, dt_h) if have_thr else heading_raw
         # ---- state persistence on message time
-        if c.dirty and (c.last_saved_t is None or t - c.last_saved_t >= self.cfg.state.save_interval_s):
+        if c.dirty and (c.last_saved_t is None or t - c.last_saved_t >= self._save_interval_s):
             self._save(c, t)
         # ---- output decimation on message time
         if self._out_period > 0.0:
@@ -701,7 +716,7 @@ class Pipeline:
         c.n_out += 1
         self.counts["estimates"] += 1
         # the estimate itself is built by last_estimate(), only when someone asks for it
-        self._last = (t, idx, heading, heading_raw, (th0, th1, th2), (bx, by, bz), thr, flags, v,
+        self._last = (t, idx, heading, heading_raw, (th0, th1, th2), (bx, by, bz), thr, flags, s,
                       (cx, cy, cz), info)  # fmt: skip
         return True
 
