@@ -6,8 +6,14 @@ current-induced bias. A log rarely says where that happened; this module finds i
 
 1. stationary = the gyro vector, averaged over ``smooth_s`` (vibration cancels in the mean, a real
    rotation does not), has a norm below ``max_rate_rad_s``;
-2. the attitude (when given) stays within ``max_attitude_change_rad`` of the window's first sample, which
-   rejects slow pans the rate test would let through;
+2. the attitude (when given) stays within ``max_attitude_change_rad`` (roll, pitch) of the window's
+   first sample, which rejects slow pans the rate test would let through. Yaw is special: an autopilot's
+   yaw is fused from the very compass whose current-induced bias we measure, so on a bench sweep it swings
+   with throttle (by up to Table III's 18.6 deg) while the vehicle does not turn. Yaw is therefore tested
+   after removing its least-squares fit on throttle^2: a window whose residual yaw spans more than
+   ``max_yaw_residual_rad`` is a pan and is dropped. The autopilot's filter lag leaves a hysteresis
+   (7.6 deg span on the simulated bench log of replay_logs/); a pan at 0.03 rad/s with a simultaneous
+   sweep leaves 11.9 deg;
 3. the throttle spans at least ``min_throttle_span`` inside the window.
 
 Among the candidates the best is the one with the most information about theta,
@@ -37,6 +43,7 @@ class SegmentParams:
     max_rate_rad_s: float = 0.05
     smooth_s: float = 1.0
     max_attitude_change_rad: float = math.radians(3.0)
+    max_yaw_residual_rad: float = math.radians(9.5)
     min_throttle_span: float = 0.3
     min_duration_s: float = 5.0
     edge_margin_s: float = 0.5
@@ -87,21 +94,34 @@ def _runs(t: F64, mask: NDArray[np.bool_], max_gap_s: float) -> list[tuple[float
 
 
 def _split_by_attitude(
-    a: float, b: float, att_t: F64, att: F64, tol_rad: float
+    a: float, b: float, att_t: F64, att: F64, tol_rad: float, yaw_tol_rad: float, thr_t: F64, thr: F64
 ) -> list[tuple[float, float]]:
-    """Split [a, b] wherever the attitude leaves ``tol_rad`` of the current piece's first sample."""
+    """Split [a, b] wherever roll or pitch leaves ``tol_rad`` of the current piece's first sample; then drop
+    each piece whose yaw, less its least-squares fit on [1, throttle^2], spans more than ``yaw_tol_rad``
+    (a slow pan: it turns steadily, so cutting it into shorter pieces would not make it stationary).
+    """
     sel = (att_t >= a) & (att_t <= b)
     if not np.any(sel):
         return [(a, b)]
     ts, ang = att_t[sel], np.unwrap(att[sel], axis=0)
-    pieces: list[tuple[float, float]] = []
+    bounds: list[tuple[int, int]] = []
     first = 0
-    piece_start = a
     for i in range(1, len(ts)):
-        if np.max(np.abs(ang[i] - ang[first])) > tol_rad:
-            pieces.append((piece_start, float(ts[i - 1])))
-            first, piece_start = i, float(ts[i])
-    pieces.append((piece_start, b))
+        if np.any(np.abs(ang[i, :2] - ang[first, :2]) > tol_rad):
+            bounds.append((first, i - 1))
+            first = i
+    bounds.append((first, len(ts) - 1))
+    pieces: list[tuple[float, float]] = []
+    for k, (i0, i1) in enumerate(bounds):
+        yaw = ang[i0 : i1 + 1, 2]
+        if yaw.shape[0] > 2 and thr_t.shape[0] > 1:
+            d2 = np.interp(ts[i0 : i1 + 1], thr_t, np.nan_to_num(thr)) ** 2
+            x = np.column_stack([np.ones_like(d2), d2])
+            coef, *_ = np.linalg.lstsq(x, yaw, rcond=None)
+            yaw = yaw - x @ coef
+        if yaw.shape[0] and float(np.ptp(yaw)) > yaw_tol_rad:
+            continue
+        pieces.append((a if k == 0 else float(ts[i0]), b if k == len(bounds) - 1 else float(ts[i1])))
     return pieces
 
 
@@ -131,8 +151,12 @@ def find_stationary_segments(
     if attitude_t_s is not None and attitude_rad is not None:
         att_t = np.asarray(attitude_t_s, dtype=float)
         att = np.asarray(attitude_rad, dtype=float)
-        tol = p.max_attitude_change_rad
-        windows = [piece for a, b in windows for piece in _split_by_attitude(a, b, att_t, att, tol)]
+        tol, yaw_tol = p.max_attitude_change_rad, p.max_yaw_residual_rad
+        windows = [
+            piece
+            for a, b in windows
+            for piece in _split_by_attitude(a, b, att_t, att, tol, yaw_tol, thr_t, thr)
+        ]
     out: list[Segment] = []
     for a, b in windows:
         a2, b2 = a + p.edge_margin_s, b - p.edge_margin_s
