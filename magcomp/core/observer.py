@@ -80,7 +80,7 @@ Variant = Literal["paper", "delta_dot"]
 Prefilter = Literal["none", "field", "inputs", "regression"]
 RateInterp = Literal["quadratic", "trapezoid", "hold"]
 
-_NO_THROTTLE_D2 = 1e-4  # delta^2 below this (delta < 1 %): theta has no effect on v
+NO_THROTTLE_D2 = 1e-4  # delta^2 below this (delta < 1 %): theta has no effect on v
 
 
 @dataclass(frozen=True)
@@ -503,7 +503,7 @@ def observer_step(
     std = np.sqrt(np.diag(info_inv) * resid_var)
     tol = p.converge_std_mgauss + p.converge_rel * float(np.linalg.norm(theta_new))
     conv = (excited >= p.converge_min_excited_s) & (std <= tol)
-    if d2_1 < _NO_THROTTLE_D2:
+    if d2_1 < NO_THROTTLE_D2:
         flags |= FLAG_NO_THROTTLE
 
     new = ObserverState(

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.mahony import MahonyParams
-from magcomp.core.observer import ObserverParams, ObserverState
+from magcomp.core.observer import NO_THROTTLE_D2, ObserverParams, ObserverState
 from magcomp.core.types import (
     FLAG_INPUTS_STALE,
     FLAG_NO_THROTTLE,
@@ -34,7 +34,6 @@ from magcomp.core.types import (
 F64 = NDArray[np.float64]
 Vec = list[float]
 
-_NO_THROTTLE_D2 = 1e-4  # as magcomp.core.observer._NO_THROTTLE_D2
 
 
 def supports(p: ObserverParams) -> bool:
@@ -503,7 +502,7 @@ class FastObserver:
             e2 >= need_s and math.sqrt(ji[8] * rv) <= tol,
         )
         self.converged = conv
-        if d2 < _NO_THROTTLE_D2:
+        if d2 < NO_THROTTLE_D2:
             flags |= FLAG_NO_THROTTLE
         self.theta = [t0n, t1n, t2n]
         self.info = info_new
