@@ -95,6 +95,28 @@ class ParamSample:
     value: float
 
 
+@dataclass(frozen=True, slots=True)
+class PositionSample:
+    """Vehicle position from GNSS (WGS-84 degrees, altitude above mean sea level in m) and, when the
+    source carries it, the UTC date as a decimal year (for the WMM epoch); NaN when unknown.
+    ``fix_ok``: a 3D fix (or better) that the position can be trusted for the Earth-field model."""
+
+    t_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    decimal_year: float = float("nan")
+    fix_ok: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class TimeSample:
+    """UTC wall-clock time of the vehicle (SYSTEM_TIME, GPS week/ms) as a decimal year."""
+
+    t_s: float
+    decimal_year: float
+
+
 Sample = (
     ImuSample
     | MagSample
@@ -104,6 +126,8 @@ Sample = (
     | TemperatureSample
     | HeartbeatSample
     | ParamSample
+    | PositionSample
+    | TimeSample
 )
 
 
@@ -151,6 +175,9 @@ class LogData:
     vehicle_type: int = -1
     autopilot: int = -1
     counts: dict[str, int] = field(default_factory=dict)
+    # GNSS position: lat_deg, lon_deg, alt_m (n, 3); decimal_year of the log (NaN when unknown)
+    position: Series = field(default_factory=lambda: Series.empty(3))
+    decimal_year: float = float("nan")
 
 
 # Bits of HeadingEstimate.flags and of MAGCOMP_HEADING.flags
