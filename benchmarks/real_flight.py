@@ -74,12 +74,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("log", nargs="?", default=str(DEFAULT_LOG))
     ap.add_argument("--config")
+    ap.add_argument("--causal", action="store_true", help="one pass, as the live daemon")
     args = ap.parse_args()
     if not Path(args.log).exists():
         print(f"{args.log}: not found (the measured logs live in ../shared/data/measured)", file=sys.stderr)
         return 2
     cfg = load_config(args.config)
-    rep = replay_log(args.log, cfg, keep_estimates=True)
+    rep = replay_log(args.log, cfg, keep_estimates=True, two_pass=not args.causal)
     errs = heading_errors(rep.estimates)
     print(json.dumps(errs, indent=2))
     for c in rep.summary["compasses"]:

@@ -19,7 +19,7 @@ from typing import Any
 
 from magcomp.errors import InputError
 
-ATTITUDE_SOURCES = ("mahony", "autopilot")
+ATTITUDE_SOURCES = ("auto", "mahony", "autopilot")
 CALIBRATION_MODES = ("auto", "learn", "stored", "none")
 INFLIGHT_REFERENCES = ("auto", "absolute", "relative")
 OBSERVER_FORMS = ("default", "paper", "delta_dot", "regression")
@@ -41,7 +41,7 @@ class InputConfig:
 
     throttle_source: str = "auto"
     compasses: tuple[int, ...] = ()
-    attitude: str = "mahony"
+    attitude: str = "auto"
     saturation_mgauss: float = 8000.0
     gyro_saturation_rad_s: float = 34.0
     stale_s: float = 0.5
@@ -114,19 +114,19 @@ class InflightConfig:
     attitude, yaw included, is trusted), ``relative`` (only rotations from the gyro / attitude are used).
     rotation: where the relative form's rotations come from: ``auto`` (the autopilot's attitude when it
     streams one, else the integrated gyro), ``gyro`` or ``attitude``.
-    per_motor: ``auto`` (per-motor vectors when motor outputs are known) or ``off`` (the paper's eq. (11)).
+    per_motor: ``off`` (the paper's eq. (11)) or ``auto`` (per-motor vectors when motor outputs are known).
     max_rate_hz: samples per second and compass fed to the estimator (consecutive samples at higher rates
-    carry nearly the same information). absolute_settle_s: the autopilot's yaw is used only this long after
-    the motors start (autopilots realign yaw at take-off; on the ground it can be tens of degrees off).
+    carry nearly the same information). absolute_settle_s: the autopilot's yaw is used only with the motors
+    running and this long after they start (before arming its yaw can be tens of degrees off).
     sigma_*: the prior around the autopilot's own calibration (see InflightParams).
     """
 
     enabled: bool = True
     reference: str = "auto"
     rotation: str = "auto"
-    per_motor: str = "auto"
+    per_motor: str = "off"
     max_rate_hz: float = 10.0
-    absolute_settle_s: float = 10.0
+    absolute_settle_s: float = 0.0
     sigma_a_calibrated: float = 0.05
     sigma_a_uncalibrated: float = 0.3
     sigma_d_calibrated_mgauss: float = 50.0

@@ -54,6 +54,8 @@ GATE_CHI2_3DOF = 30.66
 #: the smallest residual scale the gate assumes (mgauss): unmodelled effects of 10-20 mgauss are common on
 #: real vehicles (docs/measured-data.md), and a glitch worth rejecting is larger than that
 GATE_SIGMA_FLOOR_MGAUSS = 20.0
+#: a stored estimate's standard deviation is widened by this factor when a new run starts from it
+WARM_INFLATE = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,7 +151,10 @@ class InflightEstimator:
         n_motors: int,
         p: InflightParams | None = None,
         field_norm_mgauss: float = 500.0,
+        warm: tuple[F64, F64] | None = None,
     ) -> None:
+        """``warm``: (mean, standard deviation) of every parameter from an earlier run (the state store),
+        used as the prior instead of the autopilot's calibration."""
         self.mode: InflightMode = mode
         self.field_norm_mgauss = field_norm_mgauss
         self.n_motors = n_motors
@@ -166,6 +171,9 @@ class InflightEstimator:
         prior_sd[k + 3 : k + 6] = self.p.sigma_theta_mgauss
         prior_sd[k + 6 :] = self.p.sigma_motor_mgauss
         self._k = k
+        if warm is not None and warm[0].shape == (n,) and warm[1].shape == (n,):
+            prior_mean = np.asarray(warm[0], dtype=float).copy()
+            prior_sd = np.maximum(np.asarray(warm[1], dtype=float), 1e-6)
         self.prior_mean = prior_mean
         self.prior_info = np.diag(1.0 / prior_sd**2)
         self.info = np.zeros((n, n))  # data information, unit weight
@@ -286,6 +294,16 @@ class InflightEstimator:
         if self._solution is None:  # a singular system even with the prior: cannot happen with finite data
             raise ValueError("in-flight estimate is singular")
         return self._solution
+
+    def state(self, inflate: float = WARM_INFLATE) -> tuple[F64, F64]:
+        """(mean, standard deviation) of the parameters to start a later run from: the posterior, its
+        standard deviation multiplied by ``inflate`` (the vehicle may have changed since: a new battery
+        position, a moved wire) and never below a tenth of the prior's."""
+        self.solve()
+        cov = self._cov if self._cov is not None else np.linalg.inv(self.prior_info)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
+        floor = 0.1 / np.sqrt(np.diag(self.prior_info))
+        return self._theta.copy(), np.maximum(sd, floor)
 
     def predict_rows(self, rows: F64) -> F64:
         """rows @ current parameter vector (for residuals)."""

@@ -176,8 +176,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             )
             lines.append(
                 f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "
-                f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) +- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) "
-                f"mgauss ({conv}){_time_text(c)}"
+                f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) "
+                f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss ({conv}){_time_text(c)}"
             )
             continue
         lines.append(

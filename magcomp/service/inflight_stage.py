@@ -57,7 +57,10 @@ class InflightStage:
         why: str,
         calibrated: bool | None,
         field_norm_mgauss: float,
+        warm: dict[str, object] | None = None,
     ) -> None:
+        """``warm``: a stored in-flight state (form, n_motors, mean, sd) to start from; used only when its
+        form is this compass's form (else the autopilot's calibration is the prior, as on a first run)."""
         self.mag_index = mag_index
         self.cfg = cfg
         self.mode: InflightMode = mode
@@ -87,6 +90,22 @@ class InflightStage:
         self.yaw_max = -math.inf
         self._yaw_prev: float | None = None
         self._yaw_unwrapped = 0.0
+        self.warm_started = False
+        self._warm: tuple[F64, F64] | None = None
+        if warm is not None and warm.get("form") == mode:
+            self.n_motors = int(warm["n_motors"])  # type: ignore[call-overload]
+            self._warm = (
+                np.asarray(warm["mean"], dtype=float),
+                np.asarray(warm["sd"], dtype=float),
+            )
+            self.est = InflightEstimator(mode, self.n_motors, self.params, field_norm_mgauss, self._warm)
+            if self.est.prior_mean.shape == self._warm[0].shape and np.array_equal(
+                self.est.prior_mean, self._warm[0]
+            ):
+                self.warm_started = True
+                self.applied = True
+            else:
+                self.est, self.n_motors, self._warm = None, -1, None
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -98,7 +117,7 @@ class InflightStage:
         """The Earth field changed (a GPS fix after the configured fallback): absolute rows made against
         the old field are dropped."""
         self.field_norm_mgauss = field_norm_mgauss
-        if self.mode == "absolute":
+        if self.mode == "absolute" and not self.warm_started:
             self.est = None
             self.solution = None
             self.applied = False
@@ -134,7 +153,9 @@ class InflightStage:
             use = self.cfg.per_motor == "auto" and 2 <= len(motors_01) <= 8
             self.n_motors = len(motors_01) if use else 0
         if self.est is None:
-            self.est = InflightEstimator(self.mode, self.n_motors, self.params, self.field_norm_mgauss)
+            self.est = InflightEstimator(
+                self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
+            )
         mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
@@ -175,7 +196,7 @@ class InflightStage:
         est = self.est
         state = "uncorrected"
         out: InflightOutput | None = None
-        if est is not None and est.n >= 10:
+        if est is not None and (est.n >= 10 or self.warm_started):
             sol = est.solve()
             self.solution = sol
             state = "learning"
@@ -208,6 +229,13 @@ class InflightStage:
         self._last_t = t_s
         return out
 
+    def state(self) -> dict[str, object] | None:
+        """What the state store keeps to start the next run from (None before any estimate)."""
+        if self.est is None or (self.est.n == 0 and not self.warm_started):
+            return None
+        mean, sd = self.est.state()
+        return {"form": self.mode, "n_motors": self.n_motors, "mean": mean.tolist(), "sd": sd.tolist()}
+
     # ----------------------------------------------------------------------------------------- summary
 
     def why_not(self) -> str:
@@ -239,6 +267,7 @@ class InflightStage:
             "form_why": self.why,
             "calibrated_by_autopilot": self.calibrated_by_autopilot,
             "applied": self.applied,
+            "started_from_stored_state": self.warm_started,
             "applied_from_t_s": self.first_applied_t,
             "why_not_applied": None if self.applied else self.why_not(),
             "samples_used": 0 if est is None else est.n,

@@ -159,6 +159,8 @@ class CompassCorrector:
                 float(info.get("coverage", float("nan"))),
                 int(info.get("n", 0)),
             )
+        # an in-flight calibration from an earlier run (or an earlier pass over the same log)
+        self.stored_inflight = stored.inflight if (stored is not None and mode != "learn") else None
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
         self.theta_est = est_core.ThetaEstimator(cfg, theta0)
         # observer inputs waiting for the throttle at their time: (t_s, gyro, calibrated field);
@@ -300,14 +302,19 @@ class CompassCorrector:
                 "n": float(self.calibration.n),
             }
         keep = self.calibration is not None and self.calibration.source != "identity"
+        inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
+        theta = np.asarray(self.theta_est.theta_mgauss, dtype=float)
+        if self.inflight is not None and self.inflight.solution is not None:
+            theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)
         return CompassState(
             system_id=system_id,
             mag_index=self.mag_index,
             calib_l=self.calib_l if keep else None,
             calib_d=self.calib_d if keep else None,
-            theta_mgauss=np.asarray(self.theta_est.theta_mgauss, dtype=float),
+            theta_mgauss=theta,
             t_s=t_s,
             calib_info=info,
+            inflight=inflight,
         )
 
 
@@ -380,7 +387,12 @@ class Pipeline:
         self._dt_min = cfg.observer.dt_min_s
         self._dt_max = cfg.observer.dt_max_s
         self._save_interval_s = cfg.state.save_interval_s
-        self._att_mahony = cfg.input.attitude == "mahony"
+        self._att_mahony = cfg.input.attitude in ("mahony", "auto")
+        # auto: the heading's roll and pitch from the autopilot's ATTITUDE while it streams (its estimator
+        # compensates flight accelerations with GPS; a gyro+accelerometer filter tilts by several degrees in
+        # accelerated flight, and with a 60-70 deg inclination each degree of tilt is 2-3 deg of heading);
+        # the DPI down vector always from the own Mahony filter (sec. II-A)
+        self._att_auto = cfg.input.attitude == "auto"
         # attitude of the latest IMU / ATTITUDE sample, derived once for every compass (see _attitude)
         self._att_cache: _Attitude | None = None
         # the numbers of the last published estimate (see last_estimate)
@@ -627,6 +639,10 @@ class Pipeline:
             d = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
             roll = math.atan2(d[1], d[2])
             pitch = -math.asin(max(-1.0, min(1.0, d[0])))
+            att_t, imu_t = self._att_t, self._imu_t
+            fresh = att_t is not None and imu_t is not None and abs(imu_t - att_t) <= self._stale_s
+            if self._att_auto and fresh:
+                roll, pitch = self._att_roll, self._att_pitch
             if self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S:
                 down = d
         else:
@@ -839,7 +855,9 @@ class Pipeline:
                 mode = "absolute" if icfg.reference == "absolute" else "relative"
                 why = "set in the configuration ([inflight] reference)"
             cal = calibrated_by_autopilot(self._params, c.mag_index)
-            st = InflightStage(c.mag_index, icfg, mode, why, cal, float(np.linalg.norm(self._earth_ned)))
+            st = InflightStage(
+                c.mag_index, icfg, mode, why, cal, float(np.linalg.norm(self._earth_ned)), c.stored_inflight
+            )
             c.inflight = st
             self._text(t, f"compass {c.mag_index}: no hand-rotation calibration; learning calibration and "
                           f"theta in flight ({mode} form: {why})")
@@ -874,6 +892,7 @@ class Pipeline:
                     st.reset_pairs()
                     c.rel_source = src
             st.feed(t, np.array((vx, vy, vz)), thr, self._motors, r_abs, self._earth_ned, r_rel)
+            c.dirty = True
         return st.output(t, (vx, vy, vz), self._thr, self._motors)
 
     def _refined_text(self, c: CompassCorrector, t: float) -> None:
@@ -986,10 +1005,10 @@ class Pipeline:
     def _status(self, c: CompassCorrector) -> tuple[str, str]:
         """(corrected | uncorrected, why) for the summary: one phrase a user can act on."""
         if self._thr_t is None:
-            why = "disabled in the configuration" if not self._use_throttle else "no throttle samples in the input"
+            why = "disabled in the configuration" if not self._use_throttle else "none in the input"
             return "uncorrected", f"no throttle source ({why})"
         if c.calibration is not None:
-            return "corrected", f"calibration {c.calibration.source}, theta online (paper's observer, eq. (20))"
+            return "corrected", f"calibration {c.calibration.source}, theta by the observer of eq. (20)"
         st = c.inflight
         if st is not None and st.applied:
             return "corrected", f"calibration and theta learned in flight ({st.mode} form)"

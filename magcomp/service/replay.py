@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
+from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, TlogWriter
@@ -58,6 +58,38 @@ class ReplayReport:
         return out
 
 
+class MemoryStore:
+    """A state store in memory (the first pass of a two-pass replay hands its states to the second)."""
+
+    def __init__(self) -> None:
+        self.states: dict[tuple[int, int], CompassState] = {}
+        self.warnings: list[str] = []
+
+    def save(self, state: CompassState) -> None:
+        self.states[(state.system_id, state.mag_index)] = state
+
+    def load(self, system_id: int, mag_index: int) -> CompassState | None:
+        return self.states.get((system_id, mag_index))
+
+
+def learn_pass(path: str | Path, cfg: Config) -> MemoryStore:
+    """First pass of a two-pass replay: the whole log through the pipeline, outputs discarded, the final
+    state of every compass kept (what a live run would save at the end of this flight)."""
+    from magcomp.adapters.mavlink_source import open_source
+
+    store = MemoryStore()
+    source = open_source(path, throttle_source=source_throttle(cfg))
+    pipeline = Pipeline(cfg, store=store)  # type: ignore[arg-type]
+    feed = pipeline.feed
+    try:
+        for sample in source.samples():
+            feed(sample)
+    finally:
+        source.close()
+        pipeline.close()
+    return store
+
+
 def source_throttle(cfg: Config) -> str:
     """The throttle option for the source (``none`` is handled by the pipeline, which ignores throttle)."""
     return "auto" if cfg.input.throttle_source == "none" else cfg.input.throttle_source
@@ -72,6 +104,7 @@ def replay_log(
     keep_estimates: bool = False,
     on_estimate: Callable[[HeadingEstimate], None] | None = None,
     on_text: Callable[[float, str], None] | None = None,
+    two_pass: bool = False,
 ) -> ReplayReport:
     """Run ``path`` (tlog, raw MAVLink, DataFlash .bin/.log) through the pipeline.
 
@@ -84,6 +117,14 @@ def replay_log(
     from magcomp.adapters.mavlink_source import open_source
 
     t_wall = time.perf_counter()
+    if two_pass and store is None:
+        # the log is known whole: learn from all of it first, then replay from the state it ends with (as a
+        # live run would start from yesterday's saved state); a ^C here leaves a one-pass replay
+        try:
+            store = learn_pass(path, cfg)  # type: ignore[assignment]
+        except KeyboardInterrupt:
+            store = None
+            two_pass = False
     source = open_source(path, throttle_source=source_throttle(cfg))
     pipeline = Pipeline(cfg, store=store, on_text=on_text)
     writer = TlogWriter(emit) if emit is not None else None
@@ -131,9 +172,11 @@ def replay_log(
         if writer is not None:
             writer.close()
         pipeline.close()
+    summary = pipeline.summary()
+    summary["passes"] = 2 if two_pass and isinstance(store, MemoryStore) else 1
     return ReplayReport(
         path=str(path),
-        summary=pipeline.summary(),
+        summary=summary,
         source_counts=dict(source.counts),
         wall_s=time.perf_counter() - t_wall,
         n_estimates=n,
