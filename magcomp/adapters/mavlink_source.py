@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_unix
 from magcomp.adapters.throttle import (
     FIXED_WING_TYPES,
     MULTIROTOR_TYPES,
@@ -69,11 +70,13 @@ from magcomp.core.types import (
     LogData,
     MagSample,
     ParamSample,
+    PositionSample,
     PowerSample,
     Sample,
     Series,
     TemperatureSample,
     ThrottleSample,
+    TimeSample,
     Vec3,
 )
 from magcomp.errors import InputError
@@ -102,6 +105,9 @@ WANTED_MAVLINK = (
     "SCALED_IMU2",
     "SCALED_IMU3",
     "BATTERY_STATUS",
+    "GPS_RAW_INT",
+    "GLOBAL_POSITION_INT",
+    "SYSTEM_TIME",
 )
 WANTED_DATAFLASH = (
     "MAG",
@@ -119,6 +125,9 @@ WANTED_DATAFLASH = (
     "BAT2",
     "PARM",
     "MSG",
+    "GPS",
+    "GPS2",
+    "POS",
 )
 _SERVO_FIELDS = tuple(f"servo{i}_raw" for i in range(1, 17))
 _IMU_SENSOR_NAMES = tuple(f"imu{i}" for i in range(256))  # RAW_IMU.id is a uint8
@@ -419,6 +428,26 @@ class _Converter:
         name = name.rstrip("\x00")
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, float(msg.param_value)))]
 
+    # --- position and UTC time (for the Earth-field model at the vehicle) ----------------------------------
+    # Stamped with the latest source time: GPS_RAW_INT.time_usec may be Unix time or time since boot, and
+    # a position needs no sub-second timing.
+    def _m_GPS_RAW_INT(self, msg: Any) -> list[tuple[str, Record]]:
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7  # degE7
+        fix_ok = int(msg.fix_type) >= 3 and (msg.lat != 0 or msg.lon != 0) and abs(lat) <= 90.0
+        year = decimal_year_from_unix(msg.time_usec * 1e-6)  # NaN for time since boot
+        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, year, fix_ok)  # alt mm MSL
+        return [("GPS_RAW_INT", pos)]
+
+    def _m_GLOBAL_POSITION_INT(self, msg: Any) -> list[tuple[str, Record]]:
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        fix_ok = (msg.lat != 0 or msg.lon != 0) and abs(lat) <= 90.0  # (0, 0) before the EKF has an origin
+        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, fix_ok=fix_ok)  # alt mm MSL
+        return [("GLOBAL_POSITION_INT", pos)]
+
+    def _m_SYSTEM_TIME(self, msg: Any) -> list[tuple[str, Record]]:
+        year = decimal_year_from_unix(msg.time_unix_usec * 1e-6)  # 0 / 1970 / 1980: clock not set
+        return [] if math.isnan(year) else [("SYSTEM_TIME", TimeSample(self.clock.last_t_s, year))]
+
     # --- DataFlash -----------------------------------------------------------------------------------------
     def _df_values(self, msg: Any) -> SimpleNamespace:
         """Field values of a DFReader message, read once through cached converters.
@@ -456,6 +485,8 @@ class _Converter:
             return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), float(v.Value)))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))
+        if mtype in ("GPS", "GPS2", "POS"):
+            return self._df_position(v)
         if hasattr(v, "TimeUS"):
             raw_s = v.TimeUS * 1e-6
         elif hasattr(v, "TimeMS"):
@@ -500,6 +531,32 @@ class _Converter:
                 return []
             return [(base, PowerSample(t_s, volt, curr, index))]
         return []
+
+    def _df_position(self, v: Any) -> list[tuple[str, Record]]:
+        """DataFlash GPS/GPS2 (Status >= 3 is a 3D fix; GPS week + ms of week -> UTC) and POS (EKF position).
+
+        Old logs (ArduPilot <= 3.3) have TimeMS = GPS time of week, Week, and T = time since boot (ms);
+        newer ones TimeUS, GMS and GWk. Lat/Lng are degrees after DFReader's 1e-7 multiplier; an integer
+        column without it (text logs) is degE7. Stamped with the latest source time (see GPS_RAW_INT)."""
+        lat, lon = getattr(v, "Lat", math.nan), getattr(v, "Lng", math.nan)
+        alt = float(getattr(v, "Alt", math.nan))
+        if isinstance(lat, int) and isinstance(lon, int) and (abs(lat) > 180 or abs(lon) > 360):
+            lat, lon = lat * 1e-7, lon * 1e-7
+        lat, lon = float(lat), float(lon)
+        if not _finite(lat, lon):
+            self.counts["nonfinite"] += 1
+            return []
+        known = (lat != 0.0 or lon != 0.0) and abs(lat) <= 90.0 and abs(lon) <= 180.0
+        if v.mtype == "POS":
+            return [("POS", PositionSample(self.clock.last_t_s, lat, lon, alt, fix_ok=known))]
+        if hasattr(v, "GWk"):
+            year = decimal_year_from_gps(float(v.GWk), float(v.GMS))
+        elif hasattr(v, "Week") and hasattr(v, "TimeMS"):
+            year = decimal_year_from_gps(float(v.Week), float(v.TimeMS))
+        else:
+            year = math.nan
+        fix_ok = known and int(getattr(v, "Status", 0)) >= 3
+        return [("GPS", PositionSample(self.clock.last_t_s, lat, lon, alt, year, fix_ok))]
 
     def _df_msg(self, text: str) -> list[tuple[str, Record]]:
         lowered = text.lower()
@@ -1124,7 +1181,11 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
     temp: dict[str, list[tuple[float, float]]] = {}
     pwm: dict[str, list[PwmRecord]] = {"servo": [], "rc": []}
     thr: dict[str, list[tuple[float, float]]] = {"vfr_hud": [], "ctun": []}
+    gnss = _GnssCollector()
     for origin, rec in records:
+        if isinstance(rec, PositionSample | TimeSample):
+            gnss.add(origin, rec)
+            continue
         if isinstance(rec, MagSample):
             mag.setdefault((origin, rec.mag_index), []).append((rec.t_s, rec.field_b_mgauss))
         elif isinstance(rec, ImuSample):
@@ -1172,10 +1233,40 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
     if temp_key is not None:
         data.temperature_degc = _series(temp[temp_key])
     _collect_throttle(data, source, pwm, thr)
+    gnss.fill(data)
     data.counts = dict(counts)
     if not data.mag and not len(data.attitude_rad) and not data.imu_t_s.size:
         raise InputError(f"{source.target}: no magnetometer, IMU or attitude data in the log")
     return data
+
+
+class _GnssCollector:
+    """Positions (3D fixes only) and UTC dates of a whole log, for :class:`LogData`.
+
+    The receiver's own position (GPS_RAW_INT, DataFlash GPS, ULog vehicle_gps_position) is preferred to the
+    estimator's (GLOBAL_POSITION_INT, POS, vehicle_global_position); the date is the median of every valid
+    one (GPS time, SYSTEM_TIME, ULog time_utc_usec)."""
+
+    RECEIVER = frozenset({"GPS_RAW_INT", "GPS", "vehicle_gps_position", "sensor_gps"})
+
+    def __init__(self) -> None:
+        self.rows: dict[bool, list[tuple[float, tuple[float, float, float]]]] = {True: [], False: []}
+        self.years: list[float] = []
+
+    def add(self, origin: str, rec: PositionSample | TimeSample) -> None:
+        year = rec.decimal_year
+        if isinstance(rec, PositionSample):
+            if not rec.fix_ok:
+                return
+            self.rows[origin in self.RECEIVER].append((rec.t_s, (rec.lat_deg, rec.lon_deg, rec.alt_m)))
+        if math.isfinite(year):
+            self.years.append(year)
+
+    def fill(self, data: LogData) -> None:
+        rows = self.rows[True] or self.rows[False]
+        data.position = _series(rows, 3)
+        if self.years:
+            data.decimal_year = float(np.median(self.years))
 
 
 def _collect_throttle(
