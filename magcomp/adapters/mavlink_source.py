@@ -48,7 +48,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -80,6 +80,9 @@ from magcomp.core.types import (
     Vec3,
 )
 from magcomp.errors import InputError
+
+if TYPE_CHECKING:
+    from magcomp.adapters.ulog_source import UlogSource
 
 G_M_S2 = 9.80665
 _MG_TO_M_S2 = G_M_S2 * 1e-3
@@ -883,6 +886,20 @@ def _is_live(target: str) -> bool:
         return False
 
 
+def _is_ulog(target: str) -> bool:
+    """A ULog file: ``.ulg`` or the ULog magic, read from a regular file only (never from a link)."""
+    if _is_live(target):
+        return False
+    path = Path(target)
+    if path.suffix.lower() == ".ulg":
+        return path.is_file()
+    try:
+        with path.open("rb") as f:
+            return f.read(4) == b"ULog"
+    except OSError:
+        return False
+
+
 class MavSource:
     """One source of typed samples. Use :func:`open_source`.
 
@@ -1113,24 +1130,27 @@ def open_source(
     undo_motor_comp: bool = True,
     baud: int = 57600,
     live_timeout_s: float = 0.5,
-) -> MavSource:
-    """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log) or a live link URL.
+) -> MavSource | UlogSource:
+    """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log, PX4 .ulg) or a live link URL.
 
     Links: ``udpin:0.0.0.0:14550``, ``udpout:host:port``, ``tcp:host:port``, ``tcpin:0.0.0.0:5760``,
     ``/dev/ttyACM0:115200`` or ``serial:/dev/ttyUSB0:57600``. Raises InputError for a missing, empty or
-    unrecognisable file. ``mag_index`` restricts MagSamples to one compass. ``.ulg`` is read by
-    :func:`load_log`.
+    unrecognisable file. ``mag_index`` restricts MagSamples to one compass. A ``.ulg`` gives a
+    :class:`~magcomp.adapters.ulog_source.UlogSource` (same interface, no link).
     """
+    target = os.fspath(url_or_path)
+    if _is_ulog(target):
+        from magcomp.adapters.ulog_source import UlogSource
+
+        return UlogSource(target, throttle_source=throttle_source, mag_index=mag_index)
     source = MavSource(
-        os.fspath(url_or_path),
+        target,
         throttle_source=throttle_source,
         mag_index=mag_index,
         undo_motor_comp=undo_motor_comp,
         baud=baud,
         live_timeout_s=live_timeout_s,
     )
-    if source._kind == "ulog":
-        raise InputError(f"{url_or_path}: PX4 ULog files can only be loaded whole (load_log), not streamed")
     return source
 
 
@@ -1160,13 +1180,15 @@ def load_log(
     ``auto`` throttle source from the final vehicle type and parameters.
     """
     target = os.fspath(path)
+    if _is_ulog(target):
+        from magcomp.adapters.ulog_source import load_ulog
+
+        return load_ulog(target, throttle_source, mag_index)
     source = MavSource(
         target, throttle_source=throttle_source, mag_index=mag_index, undo_motor_comp=undo_motor_comp
     )
     if source._kind == "live":
         raise InputError(f"{target}: load_log reads files; use open_source for live links")
-    if source._kind == "ulog":
-        return _load_ulog(Path(target), mag_index=mag_index)
     try:
         return _collect(source, source.records())
     finally:
@@ -1300,61 +1322,3 @@ def _collect_throttle(
     data.throttle_01 = _series(rows)
     if data.vehicle_type in FIXED_WING_TYPES and resolved.kind == "servo":
         data.motors_01 = Series(data.throttle_01.t_s, data.throttle_01.values[:, None])
-
-
-def _load_ulog(path: Path, *, mag_index: int | None) -> LogData:
-    """PX4 ULog (optional, needs pyulog): sensor_combined (gyro, accel, magnetometer_ga -> mgauss), attitude,
-    actuator_outputs (mean of outputs 0-3 as motors, PWM 1000-2000 us), battery_status. Time: timestamp
-    (us)."""
-    try:
-        from pyulog import ULog
-    except ImportError:
-        raise InputError("reading .ulg needs pyulog (pip install 'magcomp[ulog]')") from None
-    try:
-        with _quiet():
-            ulog = ULog(str(path))
-    except Exception as exc:
-        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__})") from None
-    topics = {(d.name, d.multi_id): d.data for d in ulog.data_list}
-    data = LogData(
-        source=str(path), params={k: float(v) for k, v in ulog.initial_parameters.items()}, autopilot=12
-    )
-    sc = topics.get(("sensor_combined", 0))
-    if sc is not None:
-        t = sc["timestamp"] * 1e-6
-        data.imu_t_s = t
-        data.gyro_rad_s = np.column_stack([sc[f"gyro_rad[{i}]"] for i in range(3)]).astype(np.float64)
-        acc_key = "accelerometer_m_s2" if "accelerometer_m_s2[0]" in sc else "accelerometer_m_s"
-        if f"{acc_key}[0]" in sc:
-            data.accel_m_s2 = np.column_stack([sc[f"{acc_key}[{i}]"] for i in range(3)]).astype(np.float64)
-        if "magnetometer_ga[0]" in sc and mag_index in (None, 0):
-            field = (
-                np.column_stack([sc[f"magnetometer_ga[{i}]"] for i in range(3)]) * 1000.0
-            )  # gauss -> mgauss
-            keep = np.isfinite(field).all(axis=1) & (np.diff(t, prepend=-np.inf) != 0)
-            data.mag[0] = Series(t[keep], field[keep].astype(np.float64))
-    att = topics.get(("vehicle_attitude", 0))
-    if att is not None and "q[0]" in att:
-        from magcomp.core.rotations import euler_from_quat
-
-        q = np.column_stack([att[f"q[{i}]"] for i in range(4)]).astype(np.float64)
-        eul = np.array([euler_from_quat(qi) for qi in q])
-        data.attitude_rad = Series(att["timestamp"] * 1e-6, eul)
-    out = topics.get(("actuator_outputs", 0))
-    if out is not None and "output[0]" in out:
-        pwm = np.column_stack([out[f"output[{i}]"] for i in range(4)]).astype(np.float64)
-        motors = np.clip((pwm - 1000.0) / 1000.0, 0.0, 1.0)
-        t_out = out["timestamp"] * 1e-6
-        data.motors_01 = Series(t_out, motors)
-        data.throttle_01 = Series(t_out, motors.mean(axis=1))
-        data.throttle_source = "motors:1,2,3,4"
-    bat = topics.get(("battery_status", 0))
-    if bat is not None:
-        data.voltage_v = Series(bat["timestamp"] * 1e-6, bat["voltage_v"].astype(np.float64))
-        data.current_a = Series(bat["timestamp"] * 1e-6, bat["current_a"].astype(np.float64))
-    status = topics.get(("vehicle_status", 0))
-    if status is not None and "vehicle_type" in status:
-        data.vehicle_type = 2 if int(status["vehicle_type"][-1]) == 1 else 1  # PX4 rotary wing / fixed wing
-    if not data.mag and not data.imu_t_s.size:
-        raise InputError(f"{path}: no sensor_combined data in the ULog file")
-    return data

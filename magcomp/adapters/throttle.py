@@ -172,3 +172,33 @@ def throttle_from_pwm(
     if not outs:
         return None
     return sum(outs) / len(outs), tuple(outs)
+
+
+# --- PX4 (ULog actuator_outputs, MAVLink SERVO_OUTPUT_RAW of a PX4 vehicle) ---------------------------------
+PX4_MOTOR_FUNCTIONS = range(101, 113)  # PWM_MAIN_FUNCn / PWM_AUX_FUNCn Motor1..Motor12 (PX4 >= 1.13)
+
+
+def px4_motor_channels(params: Mapping[str, float]) -> tuple[int, ...]:
+    """Main outputs whose PWM_MAIN_FUNCn is a motor (101-112), ordered by motor number; () when unknown
+    (PX4 before 1.13 has no output functions: its mixers put the motors of a multirotor on outputs 1..n)."""
+    found: list[tuple[float, int]] = []
+    for n in range(1, 17):
+        fn = params.get(f"PWM_MAIN_FUNC{n}")
+        if fn is not None and int(fn) in PX4_MOTOR_FUNCTIONS:
+            found.append((fn, n))
+    return tuple(n for _, n in sorted(found))
+
+
+def px4_pwm_range(params: Mapping[str, float], channel: int) -> tuple[float, float]:
+    """PWM range (us) of PX4 main output ``channel`` (1-based): PWM_MAIN_MINn/MAXn (PX4 >= 1.13, and the
+    per-channel overrides of older versions, -1 = unset), else PWM_MAIN_MIN/MAX (1.11-1.12), else PWM_MIN/MAX
+    (before 1.11), else 1000-2000 us."""
+    for lo_name, hi_name in (
+        (f"PWM_MAIN_MIN{channel}", f"PWM_MAIN_MAX{channel}"),
+        ("PWM_MAIN_MIN", "PWM_MAIN_MAX"),
+        ("PWM_MIN", "PWM_MAX"),
+    ):
+        lo, hi = params.get(lo_name), params.get(hi_name)
+        if lo is not None and hi is not None and hi > lo > 0:
+            return float(lo), float(hi)
+    return DEFAULT_PWM_MIN, DEFAULT_PWM_MAX
