@@ -89,6 +89,10 @@ _MG_TO_M_S2 = G_M_S2 * 1e-3
 RESET_JUMP_S = 5.0  # a timestamp this far behind the newest one is an autopilot reboot
 U32_WRAP_S = 4294.967296  # SERVO_OUTPUT_RAW.time_usec is uint32
 MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_PX4 = 12
+HIGHRES_ACCEL_GYRO = 0x3F  # HIGHRES_IMU_UPDATED_FLAGS: X/Y/Z ACC (1, 2, 4), X/Y/Z GYRO (8, 16, 32)
+HIGHRES_MAG = 0x1C0  # X/Y/Z MAG (64, 128, 256)
+HIGHRES_TEMPERATURE = 0x1000
 MAV_TYPE_GCS = 6
 MAGIC_V1 = 0xFE
 MAGIC_V2 = 0xFD
@@ -111,6 +115,9 @@ WANTED_MAVLINK = (
     "GPS_RAW_INT",
     "GLOBAL_POSITION_INT",
     "SYSTEM_TIME",
+    "HIGHRES_IMU",
+    "ATTITUDE_QUATERNION",
+    "ACTUATOR_OUTPUT_STATUS",
 )
 WANTED_DATAFLASH = (
     "MAG",
@@ -300,6 +307,10 @@ class _Converter:
         self.mag_index = mag_index
         self.undo_motor_comp = undo_motor_comp
         self.seen_raw_imu = False
+        self.seen_highres_imu = False  # PX4: HIGHRES_IMU is IMU 0; SCALED_IMU then adds only its compass
+        self.seen_scaled_mag0 = False  # a compass 0 in SCALED_IMU shadows HIGHRES_IMU's
+        self.seen_attitude = False  # ATTITUDE shadows ATTITUDE_QUATERNION
+        self.seen_servo_output = False  # SERVO_OUTPUT_RAW shadows ACTUATOR_OUTPUT_STATUS
         self.sys_status_current = False
         self.servo_pwm: dict[int, float] = {}
         self.vehicle_type = -1
@@ -338,7 +349,12 @@ class _Converter:
             self.counts["scaled_imu_shadowed"] += 1
             return []
         t_s = self.clock.stamp("SCALED_IMU", msg.time_boot_ms * 1e-3)
-        return [] if t_s is None else self._imu_mag("SCALED_IMU", t_s, msg, 0)
+        if t_s is None:
+            return []
+        out = self._imu_mag("SCALED_IMU", t_s, msg, 0)
+        return (
+            self._px4_scaled_imu(out) if self.seen_highres_imu or self.autopilot == MAV_AUTOPILOT_PX4 else out
+        )
 
     def _m_SCALED_IMU2(self, msg: Any) -> list[tuple[str, Record]]:
         t_s = self.clock.stamp("SCALED_IMU2", msg.time_boot_ms * 1e-3)
@@ -355,10 +371,12 @@ class _Converter:
         t_s = self.clock.stamp("ATTITUDE", msg.time_boot_ms * 1e-3)
         if t_s is None:
             return []
+        self.seen_attitude = True
         rates = _vec(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
         return [("ATTITUDE", AttitudeSample(t_s, float(msg.roll), float(msg.pitch), float(msg.yaw), rates))]
 
     def _m_SERVO_OUTPUT_RAW(self, msg: Any) -> list[tuple[str, Record]]:
+        self.seen_servo_output = True
         t_s = self.clock.stamp("SERVO_OUTPUT_RAW", self.clock.unwrap_u32_us(msg.time_usec))
         if t_s is None:
             return []
@@ -430,6 +448,85 @@ class _Converter:
             name = name.decode("ascii", "replace")
         name = name.rstrip("\x00")
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, float(msg.param_value)))]
+
+    # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
+    def _px4_scaled_imu(self, out: list[tuple[str, Record]]) -> list[tuple[str, Record]]:
+        """SCALED_IMU of a vehicle that also sends HIGHRES_IMU: its compass only (mgauss, as ArduPilot's;
+        it then shadows HIGHRES_IMU's compass 0), not a second IMU 0 stream."""
+        kept: list[tuple[str, Record]] = []
+        for origin, rec in out:
+            if isinstance(rec, ImuSample):
+                if self.seen_highres_imu:
+                    continue
+            elif isinstance(rec, MagSample):
+                self.seen_scaled_mag0 = True
+            kept.append((origin, rec))
+        return kept
+
+    def _m_HIGHRES_IMU(self, msg: Any) -> list[tuple[str, Record]]:
+        """accel m/s^2, gyro rad/s, mag gauss -> mgauss; only the fields ``fields_updated`` flags as new."""
+        self.seen_highres_imu = True
+        updated = int(msg.fields_updated)
+        t_s = self.clock.stamp("HIGHRES_IMU", msg.time_usec * 1e-6)
+        if t_s is None:
+            return []
+        out: list[tuple[str, Record]] = []
+        index = int(getattr(msg, "id", 0))
+        if updated & HIGHRES_ACCEL_GYRO == HIGHRES_ACCEL_GYRO:
+            gyro = (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro))
+            accel = (float(msg.xacc), float(msg.yacc), float(msg.zacc))
+            if _finite(*gyro, *accel):
+                out.append(("HIGHRES_IMU", WireImuSample(t_s, gyro, accel, index)))
+            else:
+                self.counts["nonfinite"] += 1
+        if updated & HIGHRES_MAG == HIGHRES_MAG:
+            mag = (msg.xmag * 1000.0, msg.ymag * 1000.0, msg.zmag * 1000.0)  # gauss -> mgauss
+            if self.seen_scaled_mag0:
+                self.counts["highres_mag_shadowed"] += 1
+            elif not _finite(*mag):
+                self.counts["nonfinite"] += 1
+            elif not any(mag):
+                self.counts["mag_zero"] += 1
+            elif self.mag_index is None or self.mag_index == index:
+                out.append(("HIGHRES_IMU", WireMagSample(t_s, mag, index)))
+        if updated & HIGHRES_TEMPERATURE and math.isfinite(msg.temperature):
+            out.append(
+                ("HIGHRES_IMU", TemperatureSample(t_s, float(msg.temperature), _IMU_SENSOR_NAMES[index]))
+            )
+        return out
+
+    def _m_ATTITUDE_QUATERNION(self, msg: Any) -> list[tuple[str, Record]]:
+        if self.seen_attitude:
+            return []
+        q = (msg.q1, msg.q2, msg.q3, msg.q4)  # w, x, y, z
+        if not _finite(*q, msg.rollspeed, msg.pitchspeed, msg.yawspeed) or sum(v * v for v in q) < 0.25:
+            self.counts["nonfinite"] += 1
+            return []
+        t_s = self.clock.stamp("ATTITUDE_QUATERNION", msg.time_boot_ms * 1e-3)
+        if t_s is None:
+            return []
+        from magcomp.core.rotations import euler_from_quat
+
+        norm = math.sqrt(sum(v * v for v in q))
+        roll, pitch, yaw = euler_from_quat(np.array(q, dtype=np.float64) / norm)
+        rates = _vec(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+        return [("ATTITUDE", AttitudeSample(t_s, float(roll), float(pitch), float(yaw), rates))]
+
+    def _m_ACTUATOR_OUTPUT_STATUS(self, msg: Any) -> list[tuple[str, Record]]:
+        """PX4's actuator outputs (PWM us on PWM outputs), as servo channels 1..32 while no
+        SERVO_OUTPUT_RAW is seen; inactive outputs (``active`` bit clear) are left out."""
+        if self.seen_servo_output:
+            return []
+        t_s = self.clock.stamp("ACTUATOR_OUTPUT_STATUS", msg.time_usec * 1e-6)
+        if t_s is None:
+            return []
+        active = int(msg.active)
+        pwm = {
+            ch: float(v)
+            for ch, v in enumerate(msg.actuator, start=1)
+            if active >> (ch - 1) & 1 and math.isfinite(v)
+        }
+        return [("ACTUATOR_OUTPUT_STATUS", PwmRecord(t_s, "servo", pwm))]
 
     # --- position and UTC time (for the Earth-field model at the vehicle) ----------------------------------
     # Stamped with the latest source time: GPS_RAW_INT.time_usec may be Unix time or time since boot, and
@@ -1195,6 +1292,10 @@ def load_log(
         source.close()
 
 
+# compass 0 in several messages: RAW_IMU, then SCALED_IMU and the rest, then PX4's HIGHRES_IMU (calibrated)
+_MAG_ORIGIN_RANK = {"RAW_IMU": 0, "HIGHRES_IMU": 2}
+
+
 def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogData:
     mag: dict[tuple[str, int], list[tuple[float, Any]]] = {}
     imu: dict[str, list[ImuSample]] = {}
@@ -1233,13 +1334,13 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
     )
     # compass 0: RAW_IMU wins over SCALED_IMU (ArduPilot sends the same compass in both)
     by_index: dict[int, list[tuple[float, Any]]] = {}
-    for (_origin, index), rows in sorted(mag.items(), key=lambda kv: kv[0][0] != "RAW_IMU"):
+    for (_origin, index), rows in sorted(mag.items(), key=lambda kv: _MAG_ORIGIN_RANK.get(kv[0][0], 1)):
         if index in by_index:
             counts["scaled_imu_shadowed"] += len(rows)
             continue
         by_index[index] = rows
     data.mag = {i: _series(rows, 3) for i, rows in sorted(by_index.items())}
-    imu_origin = next((o for o in ("RAW_IMU", "SCALED_IMU", "IMU") if o in imu), None)
+    imu_origin = next((o for o in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "IMU") if o in imu), None)
     if imu_origin is not None:
         rows_imu = sorted(imu[imu_origin], key=lambda s: s.t_s)
         data.imu_t_s = np.array([s.t_s for s in rows_imu])
