@@ -20,6 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", metavar="LOG", help=".tlog, ArduPilot DataFlash .bin/.log, or PX4 .ulg")
     parser.add_argument("--json", metavar="OUT.json", help="write the diagnosis as JSON")
     parser.add_argument("--report", metavar="OUT.md", help="write a Markdown report with PNG plots beside it")
+    parser.add_argument(
+        "--params-out",
+        metavar="FILE",
+        help="write the compensation parameters for the log's autopilot (PX4 CAL_MAGn_*COMP or ArduPilot "
+        "COMPASS_MOT*): FILE.params for QGroundControl, FILE.param for Mission Planner",
+    )
     parser.add_argument("--mag-index", type=int, default=None, help="primary compass (default: the first)")
     parser.add_argument(
         "--throttle-source",
@@ -202,6 +208,20 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     viz.close()
 
 
+def _write_params(path: str, d: Any, autopilot: int) -> None:
+    from magcomp.adapters.param_files import MAV_AUTOPILOT_PX4, compensation_params, write_param_file
+
+    params, notes = compensation_params([(c.index, c.autopilot) for c in d.compasses], d.primary, autopilot)
+    px4 = autopilot == MAV_AUTOPILOT_PX4
+    for note in notes:
+        print(f"note: {note}")
+    if not params:
+        print(f"note: no compensation parameters to write to {path}")
+        return
+    kind = write_param_file(path, params, stack="PX4 Pro" if px4 else "ArduPilot")
+    print(f"wrote {path}: {len(params)} {'PX4' if px4 else 'ArduPilot'} parameters for {kind}")
+
+
 def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.diagnosis.engine import diagnose
@@ -219,7 +239,12 @@ def execute(args: argparse.Namespace) -> int:
     inputs = (args.log, args.truth)
     check_output_path(args.json, "--json", inputs)
     check_output_path(args.report, "--report", inputs, makes_parents=True)
-    check_distinct_outputs(json=args.json, report=args.report)
+    check_output_path(args.params_out, "--params-out", inputs)
+    check_distinct_outputs(json=args.json, report=args.report, params_out=args.params_out)
+    if args.params_out and Path(args.params_out).suffix.lower() not in (".params", ".param"):
+        raise InputError(
+            f"--params-out {args.params_out}: use .params (QGroundControl) or .param (Mission Planner)"
+        )
     if args.rerun:
         from magcomp.adapters.rerun_viz import parse_mode
 
@@ -239,6 +264,8 @@ def execute(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
         print(f"wrote {args.json}")
+    if args.params_out:
+        _write_params(args.params_out, d, log.autopilot)
     if args.report:
         from magcomp.diagnosis.report import write_report
 

@@ -1,4 +1,4 @@
-"""`magcomp replay`: run the whole pipeline over a tlog or DataFlash log as fast as the machine goes."""
+"""`magcomp replay`: run the whole pipeline over a tlog, DataFlash log or ULog as fast as the machine goes."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from magcomp.adapters.rerun_viz import add_rerun_argument
 
-    parser.add_argument("log", metavar="LOG", help=".tlog, raw MAVLink, or ArduPilot DataFlash .bin/.log")
+    parser.add_argument(
+        "log", metavar="LOG", help=".tlog, raw MAVLink, ArduPilot DataFlash .bin/.log, or PX4 .ulg"
+    )
     parser.add_argument("--emit", metavar="OUT.tlog", help="write every published MAGCOMP_HEADING to a tlog")
     parser.add_argument("--json", metavar="SUMMARY.json", help="write a JSON summary: counts, theta")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")

@@ -708,8 +708,13 @@ def diagnose(
                     / max(o.extended.field_strength_mgauss, 1e-9)
                 ),
             )
-            rel_ref = float(np.linalg.norm(ref.extended.theta_mgauss)) / ref.extended.field_strength_mgauss
-            rel_c = float(np.linalg.norm(c.extended.theta_mgauss)) / c.extended.field_strength_mgauss
+            # field strength 0: no calibration observable (a bench log without rotation)
+            rel_ref = float(np.linalg.norm(ref.extended.theta_mgauss)) / max(
+                ref.extended.field_strength_mgauss, 1e-9
+            )
+            rel_c = float(np.linalg.norm(c.extended.theta_mgauss)) / max(
+                c.extended.field_strength_mgauss, 1e-9
+            )
             if rel_ref < 0.5 * rel_c:
                 ref_yaw = compass_yaw_rad(ref.data, ref.extended)
                 c.heading = heading_errors(

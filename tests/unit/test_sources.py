@@ -400,17 +400,8 @@ def test_fast_tlog_reader_sees_every_message_mavutil_sees(tmp_path: Path) -> Non
             pitchspeed=0.0,
             yawspeed=0.0,
         )
-        w.add(
-            "GLOBAL_POSITION_INT",
-            time_boot_ms=k * 20,
-            lat=0,
-            lon=0,
-            alt=0,
-            relative_alt=0,
-            vx=0,
-            vy=0,
-            vz=0,
-            hdg=0,
+        w.add(  # a message the reader does not need
+            "LOCAL_POSITION_NED", time_boot_ms=k * 20, x=0.0, y=0.0, z=0.0, vx=0.0, vy=0.0, vz=0.0
         )
     path = w.write(tmp_path / "speed.tlog")
     from pymavlink import mavutil
