@@ -468,6 +468,8 @@ def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -
             loc_changes[key] = number
         elif key == "vehicle":
             run_changes[key] = text.strip()
+            if config.scenario == "ordinary" and run_changes[key] != "multirotor":
+                raise InputError("scenario ordinary is a multirotor flight (use scenario flight for a plane)")
         elif key in ("seed", "n_compasses"):
             run_changes[key] = _parse_value(key, text, "int")
         elif key == "duration_s":
