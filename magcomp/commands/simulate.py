@@ -17,6 +17,7 @@ _SCENARIOS = (
     "flight",
     "paper",
     "ordinary",
+    "ordinary_plane",
     "flight_fixedwing",
     "flight_multirotor",
 )
@@ -115,8 +116,9 @@ def _config(args: argparse.Namespace) -> object:
     kwargs: dict[str, object] = {}
     if args.vehicle is not None:
         kwargs["vehicle"] = args.vehicle
-    if args.scenario == "ordinary" and args.vehicle == "fixedwing":
-        raise InputError("scenario ordinary is a multirotor flight: drop --vehicle fixedwing")
+    fixed = {"ordinary": "multirotor", "ordinary_plane": "fixedwing"}.get(args.scenario)
+    if fixed is not None and args.vehicle not in (None, fixed):
+        raise InputError(f"scenario {args.scenario} is a {fixed} flight: drop --vehicle {args.vehicle}")
     config = SimConfig(
         scenario=args.scenario,
         duration_s=args.duration,

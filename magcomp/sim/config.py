@@ -5,6 +5,7 @@ Quick reference (ordinary flight and variation knobs; issues 9 and 10)
 CLI::
 
     magcomp simulate --scenario ordinary --out f.tlog                 # 300 s multirotor flight, 50 Hz
+    magcomp simulate --scenario ordinary_plane --out f.tlog           # the same for a fixed wing
     magcomp simulate --scenario ordinary --set telemetry_hz=2 --out f.tlog  # RAW_IMU, ATTITUDE at 2 Hz
     magcomp simulate --scenario ordinary --set mag_hz=10 --set raw_imu_hz=50 --set attitude_hz=10 ...
     --set yaw_source=truth            # ATTITUDE yaw steered by GPS yaw (not the disturbed compass)
@@ -31,13 +32,18 @@ API::
 Rates: ``imu_hz`` is the autopilot's loop (sensor sampling, attitude filter); ``raw_imu_hz`` the
 RAW_IMU/SCALED_IMU2/3 message rate (SR*_RAW_SENS; IMU and compass travel together); ``mag_hz`` the
 compass's own update rate (values held in between); ``attitude_hz`` ATTITUDE. A rate above the loop
-raises the loop (``apply_settings``). Truth files (``--out f.tlog`` -> f.truth.json / f.truth.npz): per
-compass ``logged_frame`` {L, d_mgauss, theta_logged_mgauss, autopilot {A, offsets_mgauss, residual...}},
-``earth_field_ned_mgauss``, ``location``, ``start_unix_s``; npz ``heading_true_deg``,
-``heading_mag_deg``, ``autopilot_yaw_error_deg``, ``gps_lat_lon_alt`` at the loop instants.
-The ``ordinary`` scenario: GPS_RAW_INT + GLOBAL_POSITION_INT (5 Hz) and SYSTEM_TIME (1 Hz, UTC of the
-WMM date), the autopilot's calibration (10 mgauss residual hard iron, 2 % soft iron) and COMPASS_OFS/
-DIA/ODI/EXTERNAL/PRIMARY/MOTCT parameters. Pre-knob scenarios with default knobs are byte-identical.
+raises the loop (``apply_settings``) but leaves the other message rates as they were (so ``mag_hz=100``
+alone gives 100 Hz compass updates inside 50 Hz RAW_IMU; add ``raw_imu_hz=100``).
+
+Truth files (``--out f.tlog`` -> f.truth.json / f.truth.npz): per compass ``logged_frame`` {L, d_mgauss,
+theta_logged_mgauss, autopilot {A, offsets_mgauss, residual_hard_iron_mgauss, ...}}, and
+``earth_field_ned_mgauss``, ``location``, ``start_unix_s``; npz ``heading_true_deg``, ``heading_mag_deg``,
+``autopilot_yaw_error_deg``, ``gps_lat_lon_alt``, ``mag_sensor_mgauss`` at the loop instants.
+
+The ``ordinary`` / ``ordinary_plane`` scenarios: GPS_RAW_INT + GLOBAL_POSITION_INT (5 Hz) and SYSTEM_TIME
+(1 Hz, UTC of the WMM date), the autopilot's calibration (10 mgauss residual hard iron, 2 % soft iron) and
+COMPASS_OFS/DIA/ODI/EXTERNAL/PRIMARY/MOTCT parameters. Pre-knob scenarios with default knobs are
+byte-identical to their output before the knobs existed.
 
 Everything here is a frozen dataclass validated once in ``__post_init__``; bad values raise
 :class:`magcomp.errors.InputError` with a one-line message (the CLI prints it as is).
@@ -110,6 +116,7 @@ SCENARIOS: Mapping[str, float] = MappingProxyType(
         "flight": 120.0,
         "paper": 133.0,
         "ordinary": 300.0,
+        "ordinary_plane": 300.0,
     }
 )
 SCENARIO_ALIASES: Mapping[str, tuple[str, str]] = MappingProxyType(
@@ -117,7 +124,11 @@ SCENARIO_ALIASES: Mapping[str, tuple[str, str]] = MappingProxyType(
 )
 VEHICLES = ("fixedwing", "multirotor")
 #: Scenarios added with the variation knobs; everything else keeps its pre-knob output byte for byte.
-EXTENDED_SCENARIOS = frozenset({"ordinary"})
+EXTENDED_SCENARIOS = frozenset({"ordinary", "ordinary_plane"})
+#: scenarios that fix the airframe
+SCENARIO_VEHICLE: Mapping[str, str] = MappingProxyType(
+    {"ordinary": "multirotor", "ordinary_plane": "fixedwing"}
+)
 YAW_SOURCES = ("compass", "truth")
 #: The autopilot's own compass calibration error when it is on and not set: a typical onboard calibration
 #: leaves ~5-30 mgauss of offset error and a few % of scale error (10 mgauss: ~2.3 deg of heading at
@@ -293,8 +304,8 @@ class SimConfig:
             base, vehicle = SCENARIO_ALIASES[self.scenario]
             object.__setattr__(self, "scenario", base)
             object.__setattr__(self, "vehicle", vehicle)
-        if self.scenario == "ordinary":  # always a multirotor flight
-            object.__setattr__(self, "vehicle", "multirotor")
+        if self.scenario in SCENARIO_VEHICLE:  # ordinary: a multirotor; ordinary_plane: a fixed wing
+            object.__setattr__(self, "vehicle", SCENARIO_VEHICLE[self.scenario])
         if self.scenario not in SCENARIOS:
             names = ", ".join([*SCENARIOS, *SCENARIO_ALIASES])
             raise InputError(f"unknown scenario {self.scenario!r} (choose from {names})")
@@ -468,8 +479,11 @@ def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -
             loc_changes[key] = number
         elif key == "vehicle":
             run_changes[key] = text.strip()
-            if config.scenario == "ordinary" and run_changes[key] != "multirotor":
-                raise InputError("scenario ordinary is a multirotor flight (use scenario flight for a plane)")
+            fixed = SCENARIO_VEHICLE.get(config.scenario)
+            if fixed is not None and run_changes[key] != fixed:
+                raise InputError(
+                    f"scenario {config.scenario} is a {fixed} flight; choose the scenario instead"
+                )
         elif key in ("seed", "n_compasses"):
             run_changes[key] = _parse_value(key, text, "int")
         elif key == "duration_s":

@@ -17,6 +17,8 @@ Scenarios (the paper's experiments, sec. III):
     ordinary  an ordinary multirotor flight (issue 9): motors off on the ground briefly, take-off, hover,
             full 360 deg yaw turns at hover and circles in forward flight, climbs and descents, forward
             flight tilted 10-25 deg by drag and turns, landing; no hand rotation
+    ordinary_plane  the same for a fixed wing: take-off roll, climb, cruise, loiter circles (full 360 deg
+            turns both ways), climbing turn, glide, landing and roll-out
 """
 
 from __future__ import annotations
@@ -230,6 +232,8 @@ def build_motion(
     """Truth motion and throttle for one scenario (see the module docstring)."""
     if scenario == "ordinary":
         return _ordinary_multirotor(duration_s, dt_s, rng)
+    if scenario == "ordinary_plane":
+        return _ordinary_fixedwing(duration_s, dt_s, rng)
     if scenario == "flight":
         return (
             _flight_multirotor(duration_s, dt_s)
@@ -493,4 +497,83 @@ def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generato
     thr = np.where(off, 0.0, _smooth(thr, dt_s, 0.5))
     thr = np.clip(thr, 0.0, 0.95)
     motion = _finish_path(dt_s, roll, pitch, yaw, vel, alt, thr, np.abs(u), "multirotor")
+    return dataclasses.replace(motion, segment=seg, segment_names=names)
+
+
+# ordinary plane flight: (name, duration s, airspeed m/s, full turns (signed), climb m/s, throttle)
+ORDINARY_PLANE_PLAN: tuple[tuple[str, float, float, float, float, float], ...] = (
+    ("ground_off", 4.0, 0.0, 0.0, 0.0, 0.0),
+    ("takeoff_roll", 6.0, 14.0, 0.0, 0.0, 1.0),
+    ("climb", 25.0, 15.0, 0.0, 3.0, 0.9),
+    ("cruise", 25.0, 16.0, 0.0, 0.0, 0.6),
+    ("circles", 40.0, 15.0, 2.0, 0.0, 0.65),
+    ("cruise", 15.0, 17.0, 0.0, 0.0, 0.7),
+    ("climbing_turn", 25.0, 15.0, 1.0, 2.0, 0.85),
+    ("glide", 25.0, 13.0, 0.0, -2.5, 0.15),
+    ("circles", 40.0, 15.0, -2.0, 0.0, 0.6),
+    ("cruise", 20.0, 16.0, 0.0, 0.0, 0.55),
+    ("approach", 40.0, 13.0, 0.0, -2.0, 0.3),
+    ("rollout", 8.0, 0.0, 0.0, 0.0, 0.0),
+    ("ground_off", 4.0, 0.0, 0.0, 0.0, 0.0),
+)
+PLANE_INCIDENCE_RAD = 0.06  # pitch = flight-path angle + incidence in flight
+
+
+def _ordinary_fixedwing(duration_s: float, dt_s: float, rng: np.random.Generator) -> Motion:
+    """Ordinary plane flight (ORDINARY_PLANE_PLAN), scaled to ``duration_s`` like the multirotor one (full
+    turns kept, speeds and climb rates kept). Coordinated turns, roll = atan(V psi_dot / g); pitch =
+    flight-path angle + incidence; throttle per phase plus a small seeded gust component; level on the
+    ground. Ends on the ground, stopped, at the take-off altitude."""
+    nominal = sum(row[1] for row in ORDINARY_PLANE_PLAN)
+    scale = duration_s / nominal
+    n = max(2, round(duration_s / dt_s))
+    names = tuple(dict.fromkeys(row[0] for row in ORDINARY_PLANE_PLAN))
+    durs = np.array([row[1] for row in ORDINARY_PLANE_PLAN]) * scale
+    edges = np.round(np.concatenate([[0.0], np.cumsum(durs)]) / dt_s).astype(np.int64)
+    edges[-1] = n
+    v = np.zeros(n)
+    yaw_rate = np.zeros(n)
+    climb = np.zeros(n)
+    thr = np.zeros(n)
+    seg = np.zeros(n, dtype=np.int64)
+    ground = np.zeros(n, dtype=bool)
+    for (name, _, speed, turns, vz, throttle), a, b in zip(
+        ORDINARY_PLANE_PLAN, edges[:-1], edges[1:], strict=True
+    ):
+        if b <= a:
+            continue
+        seg[a:b] = names.index(name)
+        v[a:b] = speed
+        climb[a:b] = vz
+        thr[a:b] = throttle
+        if turns:
+            k = math.copysign(max(1.0, round(abs(turns) * scale)), turns)
+            yaw_rate[a:b] = 2.0 * math.pi * k / ((b - a) * dt_s)
+        ground[a:b] = name in ("ground_off", "takeoff_roll", "rollout")
+    off = seg == names.index("ground_off")
+    v = _smooth(v, dt_s, 4.0)
+    v[off] = 0.0  # standing, motor off
+    v = _smooth(v, dt_s, 0.5)
+    near_ground = np.convolve(ground.astype(float), np.ones(2 * round(1.0 / dt_s) + 1), mode="same") > 0
+    climb[near_ground] = 0.0
+    climb = _smooth(climb, dt_s, 2.0)
+    climb[ground] = 0.0
+    desc = climb < 0.0
+    alt = np.cumsum(climb) * dt_s
+    if desc.any() and alt[-1] != 0.0:
+        climb[desc] -= alt[-1] / (desc.sum() * dt_s)
+        alt = np.maximum(np.cumsum(climb) * dt_s, 0.0)
+    psi_dot = _smooth(yaw_rate, dt_s, 2.0)
+    psi_dot[ground] = 0.0
+    yaw = math.radians(-30.0) + np.cumsum(psi_dot) * dt_s
+    gust = _smooth(rng.normal(0.0, 1.0, n), dt_s, 1.0)
+    gust *= 0.02 / max(float(np.std(gust)), 1e-12)
+    thr = np.clip(_smooth(thr, dt_s, 0.6) + np.where(ground, 0.0, np.clip(gust, -0.04, 0.04)), 0.0, 1.0)
+    thr[off] = 0.0
+    gamma = np.arcsin(np.clip(climb / np.maximum(v, 1.0), -0.5, 0.5))
+    roll = np.where(ground, 0.0, np.arctan(v * psi_dot / STANDARD_GRAVITY_M_S2))
+    airborne_weight = _smooth((~ground).astype(float), dt_s, 1.0)
+    pitch = (gamma + PLANE_INCIDENCE_RAD) * airborne_weight
+    vel = v[:, None] * np.stack([np.cos(gamma) * np.cos(yaw), np.cos(gamma) * np.sin(yaw), -np.sin(gamma)], 1)
+    motion = _finish_path(dt_s, roll, pitch, yaw, vel, alt, thr, v, "fixedwing")
     return dataclasses.replace(motion, segment=seg, segment_names=names)

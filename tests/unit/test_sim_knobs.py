@@ -115,7 +115,7 @@ def test_rates_raise_the_loop_only_when_needed() -> None:
         ("primary_compass=2", "needs at least 3 compasses"),
         ("seed=-1", "seed"),
         ("seed=1.5", "whole number"),
-        ("vehicle=fixedwing", "multirotor"),
+        ("vehicle=fixedwing", "multirotor flight"),
         ("decimal_year=2031", "WMM-2025"),
         ("mag_ar1_sigma_mgauss=nan", "finite"),
     ],

@@ -190,3 +190,26 @@ def test_calibration_error_sizes_change_the_residual_not_its_draw() -> None:
         large.ap_calibration[0].soft_iron_error, 5.0 * small.ap_calibration[0].soft_iron_error
     )
     np.testing.assert_array_equal(small.samples.gyro_rad_s, large.samples.gyro_rad_s)  # other draws unchanged
+
+
+def test_ordinary_plane_flight_turns_climbs_and_lands_on_its_throttle() -> None:
+    r = simulate(SimConfig(scenario="ordinary_plane", duration_s=150.0, seed=3))
+    m = r.motion
+    assert r.config.vehicle == "fixedwing" and m.motors_cmd_01.shape[1] == 1
+    thr = m.throttle_cmd_01
+    speed = np.linalg.norm(m.vel_n_m_s, axis=1)
+    off = thr == 0.0
+    assert off[0] and off[-1] and off.sum() * m.dt_s < 10.0  # motor off briefly, on the ground only
+    assert np.all(m.alt_m[off] < 0.05) and np.all(speed[off] < 7.0)
+    assert speed[0] == 0.0 and speed[-1] < 0.1  # standing at both ends
+    airborne = m.alt_m > 2.0
+    assert thr[airborne].min() < 0.25 and thr[airborne].max() > 0.85  # glide and climb
+    yaw = np.unwrap(r.euler_rad[:, 2])
+    circles = segment_mask(r, "circles")
+    starts = np.flatnonzero(np.diff(np.concatenate([[0], circles.astype(int)])) == 1)
+    ends = np.flatnonzero(np.diff(np.concatenate([circles.astype(int), [0]])) == -1)
+    assert all(abs(yaw[e] - yaw[s]) >= 2 * math.pi * 0.95 for s, e in zip(starts, ends, strict=True))
+    # coordinated turns: bank = atan(V psi_dot / g)
+    roll = np.degrees(r.euler_rad[circles, 0])
+    assert 10.0 < np.median(np.abs(roll)) < 35.0
+    assert r.config.gps and r.config.ap_calibration
