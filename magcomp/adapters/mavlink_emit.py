@@ -101,8 +101,111 @@ def _pwm(x01: F64) -> NDArray[np.int64]:
     return np.round(1000.0 + 1000.0 * np.clip(x01, 0.0, 1.0)).astype(np.int64)
 
 
-def build_messages(result: SimResult) -> list[tuple[float, int, Any]]:
-    """All messages as (boot time s, priority, unpacked MAVLink message object), in send order."""
+def _compass_params(result: SimResult) -> list[tuple[str, float]]:
+    """ArduPilot's compass parameters for the autopilot's own calibration (logged = A (raw + OFS), A the
+    symmetric matrix of DIA/ODI), the primary compass, which compasses are external, and COMPASS_MOTCT = 0
+    (no onboard motor compensation)."""
+    out: list[tuple[str, float]] = []
+    var = result.config.variation
+    if result.ap_calibration is not None:
+        for j, cal in enumerate(result.ap_calibration):
+            k = "" if j == 0 else str(j + 1)
+            ofs, a = cal.offsets_mgauss, cal.a_matrix
+            out += [(f"COMPASS_OFS{k}_{ax}", float(ofs[i])) for i, ax in enumerate("XYZ")]
+            out += [(f"COMPASS_DIA{k}_{ax}", float(a[i, i])) for i, ax in enumerate("XYZ")]
+            out += [(f"COMPASS_ODI{k}_X", float(a[0, 1])), (f"COMPASS_ODI{k}_Y", float(a[0, 2]))]
+            out += [(f"COMPASS_ODI{k}_Z", float(a[1, 2]))]
+    for j in range(len(result.compasses)):
+        name = "COMPASS_EXTERNAL" if j == 0 else f"COMPASS_EXTERN{j + 1}"
+        out.append((name, 1.0 if (j == 0 and var.external_compass0) else 0.0))
+    out += [
+        ("COMPASS_PRIMARY", float(var.primary_compass)),
+        ("COMPASS_USE", 1.0 if var.yaw_source == "compass" else 0.0),
+        ("COMPASS_MOTCT", 0.0),
+    ]
+    return out
+
+
+def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, int, Any]]:
+    """GPS_RAW_INT and GLOBAL_POSITION_INT at gps_hz, SYSTEM_TIME (UTC = start_unix_s + boot time) at
+    system_time_hz. With yaw_source = truth, GPS_RAW_INT carries the (GPS) yaw."""
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    s = result.samples
+    cfg = result.config
+    assert s.gps_lat_deg is not None and s.gps_lon_deg is not None
+    assert s.gps_alt_msl_m is not None and s.gps_vel_n_m_s is not None
+    n = s.t_s.size
+    t = s.t_s
+    alt0 = cfg.location.alt_m
+    yaw_true_deg = np.degrees(s.attitude_rad[:, 2])
+    if cfg.variation.yaw_source == "truth":
+        from magcomp.core.rotations import euler_from_quats
+
+        yaw_true_deg = np.degrees(euler_from_quats(result.motion.q_nb[s.truth_index])[:, 2])
+    events: list[tuple[float, int, Any]] = []
+    for i in _rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.gps_hz, cfg.rates.imu_hz)):
+        lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
+        alt_mm = round(float(s.gps_alt_msl_m[i]) * 1000.0)
+        v = s.gps_vel_n_m_s[i]
+        ground = math.hypot(float(v[0]), float(v[1]))
+        cog = round(math.degrees(math.atan2(float(v[1]), float(v[0]))) * 100.0) % 36000 if ground > 0.5 else 0
+        gps_yaw = 0
+        if cfg.variation.yaw_source == "truth":
+            gps_yaw = round(float(yaw_true_deg[i]) * 100.0) % 36000 or 36000  # 0 = unknown, north = 36000
+        t_us = round(float(t[i]) * 1e6)
+        events.append(
+            (
+                float(t[i]),
+                10,
+                apm.MAVLink_gps_raw_int_message(
+                    t_us,
+                    3,
+                    lat,
+                    lon,
+                    alt_mm,
+                    80,
+                    120,
+                    round(ground * 100.0),
+                    cog,
+                    14,
+                    alt_mm,
+                    800,
+                    1200,
+                    150,
+                    0,
+                    gps_yaw,
+                ),
+            )
+        )
+        hdg = round(float(np.degrees(s.attitude_rad[i, 2])) * 100.0) % 36000
+        events.append(
+            (
+                float(t[i]),
+                11,
+                apm.MAVLink_global_position_int_message(
+                    round(float(t[i]) * 1e3),
+                    lat,
+                    lon,
+                    alt_mm,
+                    round((float(s.gps_alt_msl_m[i]) - alt0) * 1000.0),
+                    round(float(v[0]) * 100.0),
+                    round(float(v[1]) * 100.0),
+                    round(float(v[2]) * 100.0),
+                    hdg,
+                ),
+            )
+        )
+    for i in _rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.system_time_hz, cfg.rates.imu_hz)):
+        unix_us = round((start_unix_s + float(t[i])) * 1e6)
+        events.append((float(t[i]), 12, apm.MAVLink_system_time_message(unix_us, round(float(t[i]) * 1e3))))
+    return events
+
+
+def build_messages(result: SimResult, start_unix_s: float | None = None) -> list[tuple[float, int, Any]]:
+    """All messages as (boot time s, priority, unpacked MAVLink message object), in send order.
+
+    start_unix_s: UTC of boot for SYSTEM_TIME (default :func:`default_start_unix_s`, the config's date)."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
     cfg = result.config
@@ -115,6 +218,8 @@ def build_messages(result: SimResult) -> list[tuple[float, int, Any]]:
     t_first = float(t[0])
 
     params = _servo_params(cfg.vehicle)
+    if not cfg.legacy:
+        params += _compass_params(result)
     for i, (name, value) in enumerate(params):
         events.append(
             (
@@ -145,7 +250,8 @@ def build_messages(result: SimResult) -> list[tuple[float, int, Any]]:
     temp_cdeg = np.round(s.imu_temp_degc * 100.0).astype(np.int64)
     t_us = np.round(t * 1e6).astype(np.int64)
     t_ms = np.round(t * 1e3).astype(np.int64)
-    for i in range(n):
+    raw_rows = range(n) if rates.raw_imu_hz is None else _rate_indices(n, rates.imu_hz, rates.raw_imu_hz)
+    for i in raw_rows:
         a, w, m = acc_mg[0, i], gyro_mrad[0, i], mag[0, i]
         events.append(
             (
@@ -292,6 +398,10 @@ def build_messages(result: SimResult) -> list[tuple[float, int, Any]]:
                 ),
             )
         )
+    if cfg.gps:
+        events += _gps_messages(
+            result, default_start_unix_s(result) if start_unix_s is None else start_unix_s
+        )
     events.sort(key=lambda e: (e[0], e[1]))
     return events
 
@@ -397,7 +507,11 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
 
 
 def encode_stream(
-    result: SimResult, src_system: int = 1, src_component: int = 1, flavour: str = "ardupilot"
+    result: SimResult,
+    src_system: int = 1,
+    src_component: int = 1,
+    start_unix_s: float | None = None,
+    flavour: str = "ardupilot",
 ) -> list[tuple[float, bytes]]:
     """Packed MAVLink 2 packets in send order: (boot time s, bytes); sequence numbers run 0..255.
     ``flavour``: ``ardupilot`` (:func:`build_messages`) or ``px4`` (:func:`build_px4_messages`)."""
@@ -406,8 +520,9 @@ def encode_stream(
     if flavour not in ("ardupilot", "px4"):
         raise InputError(f"MAVLink flavour {flavour!r}: ardupilot or px4")
     mav = apm.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
-    build = build_px4_messages if flavour == "px4" else build_messages
-    return [(t, bytes(msg.pack(mav))) for t, _, msg in build(result)]
+    if flavour == "px4":
+        return [(t, bytes(msg.pack(mav))) for t, _, msg in build_px4_messages(result)]
+    return [(t, bytes(msg.pack(mav))) for t, _, msg in build_messages(result, start_unix_s)]
 
 
 def write_tlog(
@@ -418,7 +533,7 @@ def write_tlog(
 ) -> int:
     """Write the stream as a tlog (8-byte big-endian UNIX usec + packet per record). Returns the count."""
     start = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
-    packets = encode_stream(result, flavour=flavour)
+    packets = encode_stream(result, start_unix_s=start, flavour=flavour)
     chunks = []
     for t, pkt in packets:
         chunks.append(round((start + t) * 1e6).to_bytes(8, "big"))
@@ -437,8 +552,64 @@ def truth_paths(out_path: str | os.PathLike[str]) -> tuple[Path, Path]:
     return stem.with_name(stem.name + ".truth.json"), stem.with_name(stem.name + ".truth.npz")
 
 
+_NEW_RATE_KEYS = ("raw_imu_hz", "mag_hz", "gps_hz", "system_time_hz")
+
+
 def truth_summary(result: SimResult) -> dict[str, Any]:
-    """The run's parameters and truth constants, JSON-able (lists for arrays)."""
+    """The run's parameters and truth constants, JSON-able (lists for arrays).
+
+    Runs that use the newer scenarios or knobs (``config.legacy`` False) also get: ``variation`` (the
+    knobs), the effective message rates, ``heading_reference`` and, per compass, ``logged_frame``: the
+    true calibration ``L``, ``d_mgauss`` of the LOGGED field (``L logged - d = u + B + D``, body frame) and
+    theta in that frame, plus the autopilot's calibration when it applies one. Frames of theta:
+    ``theta_mgauss`` is the body (= calibrated) frame the pipeline estimates in after its own (L, d);
+    ``theta_logged_mgauss`` = L^-1 theta is the frame of the RAW_IMU/SCALED_IMU values;
+    ``theta_raw_mgauss`` = K theta is the sensor's frame before any calibration.
+    """
+    summary = _truth_summary_base(result)
+    if result.config.legacy:
+        for key in _NEW_RATE_KEYS:
+            summary["rates_hz"].pop(key, None)
+        return summary
+    cfg = result.config
+    summary["variation"] = asdict(cfg.variation)
+    summary["rates_hz"]["raw_imu_hz"] = cfg.rates.raw_imu_rate
+    summary["rates_hz"]["mag_hz"] = cfg.rates.mag_rate
+    summary["gps"] = cfg.gps
+    summary["start_unix_s"] = default_start_unix_s(result)
+    summary["heading_reference"] = (
+        "GPS yaw (truth)"
+        if cfg.variation.yaw_source == "truth"
+        else f"compass {cfg.variation.primary_compass}"
+        + (" with the autopilot's calibration" if result.ap_calibration is not None else "")
+    )
+    summary["frames"] = (
+        "theta_mgauss: body frame (what L logged - d gives); theta_logged_mgauss: frame of the logged "
+        "RAW_IMU/SCALED_IMU values; theta_raw_mgauss: raw sensor frame (K theta)"
+    )
+    for j, entry in enumerate(summary["compasses"]):
+        l_matrix, d = result.true_calibration(j)
+        frame: dict[str, Any] = {
+            "L": l_matrix.tolist(),
+            "d_mgauss": d.tolist(),
+            "theta_logged_mgauss": result.theta_logged_mgauss(j).tolist(),
+            "model": "L logged - d = u + B + drift (body frame, noise aside)",
+        }
+        if result.ap_calibration is not None:
+            cal = result.ap_calibration[j]
+            frame["autopilot"] = {
+                "A": cal.a_matrix.tolist(),
+                "offsets_mgauss": cal.offsets_mgauss.tolist(),
+                "residual_hard_iron_mgauss": cal.residual_hard_iron_mgauss.tolist(),
+                "soft_iron_error": cal.soft_iron_error.tolist(),
+                "model": "logged = A (raw + offsets), rounded to 1 mgauss",
+            }
+        entry["logged_frame"] = frame
+        entry["external"] = bool(j == 0 and cfg.variation.external_compass0)
+    return summary
+
+
+def _truth_summary_base(result: SimResult) -> dict[str, Any]:
     cfg = result.config
     return {
         "generator": "magcomp simulate",
@@ -481,10 +652,14 @@ def truth_summary(result: SimResult) -> dict[str, Any]:
 
 
 def truth_arrays(result: SimResult) -> dict[str, F64]:
-    """Truth at the sample instants: the arrays written to ``FILE.truth.npz``."""
+    """Truth at the sample instants (the loop grid, imu_hz): the arrays written to ``FILE.truth.npz``.
+
+    Non-legacy runs add heading_true_deg (true heading, deg from true north), autopilot_yaw_error_deg
+    (ATTITUDE yaw - true yaw), mag_logged_mgauss (J, n, 3; what the messages carry at the loop grid),
+    mag_sensor_mgauss (raw readings, with the autopilot's calibration on), gps_lat_lon_alt (n, 3)."""
     pick = result.truth_at_samples
     euler = pick(result.euler_rad)
-    return {
+    arrays = {
         "t_s": result.samples.t_s,
         "q_nb": pick(result.motion.q_nb),
         "euler_rad": euler,
@@ -506,6 +681,18 @@ def truth_arrays(result: SimResult) -> dict[str, F64]:
         "autopilot_euler_rad": result.samples.attitude_rad,
         "segment": result.motion.segment[result.samples.truth_index].astype(np.float64),
     }
+    if result.config.legacy:
+        return arrays
+    s = result.samples
+    yaw_err = np.degrees(s.attitude_rad[:, 2] - euler[:, 2])
+    arrays["heading_true_deg"] = np.mod(np.degrees(euler[:, 2]), 360.0)
+    arrays["autopilot_yaw_error_deg"] = (yaw_err + 180.0) % 360.0 - 180.0
+    arrays["mag_logged_mgauss"] = s.mag_mgauss
+    if s.mag_sensor_mgauss is not None:
+        arrays["mag_sensor_mgauss"] = s.mag_sensor_mgauss
+    if s.gps_lat_deg is not None and s.gps_lon_deg is not None and s.gps_alt_msl_m is not None:
+        arrays["gps_lat_lon_alt"] = np.stack([s.gps_lat_deg, s.gps_lon_deg, s.gps_alt_msl_m], axis=1)
+    return arrays
 
 
 def write_truth(

@@ -16,6 +16,8 @@ _SCENARIOS = (
     "bench",
     "flight",
     "paper",
+    "ordinary",
+    "ordinary_plane",
     "flight_fixedwing",
     "flight_multirotor",
 )
@@ -62,6 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--attitude-rate", type=float, default=25.0, help="ATTITUDE and SERVO rate Hz (default 25)"
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        dest="settings",
+        help="variation knob, repeatable (see magcomp/sim/config.py): e.g. telemetry_hz=2, mag_hz=10, "
+        "yaw_source=truth, external_compass0=on, ap_cal_hard_iron_mgauss=30, mag_ar1_sigma_mgauss=3, "
+        "att_roll_bias_deg=1, lat_deg=46.05, decimal_year=2026.3",
+    )
     out = parser.add_mutually_exclusive_group(required=True)
     out.add_argument(
         "--out",
@@ -78,7 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _config(args: argparse.Namespace) -> object:
-    from magcomp.sim.config import Location, Rates, SimConfig, parse_effect
+    from magcomp.sim.config import Location, Rates, SimConfig, apply_settings, parse_effect
 
     effects: dict[str, float] = {}
     for text in args.effect:
@@ -108,7 +120,10 @@ def _config(args: argparse.Namespace) -> object:
     kwargs: dict[str, object] = {}
     if args.vehicle is not None:
         kwargs["vehicle"] = args.vehicle
-    return SimConfig(
+    fixed = {"ordinary": "multirotor", "ordinary_plane": "fixedwing"}.get(args.scenario)
+    if fixed is not None and args.vehicle not in (None, fixed):
+        raise InputError(f"scenario {args.scenario} is a {fixed} flight: drop --vehicle {args.vehicle}")
+    config = SimConfig(
         scenario=args.scenario,
         duration_s=args.duration,
         seed=args.seed,
@@ -118,6 +133,7 @@ def _config(args: argparse.Namespace) -> object:
         n_compasses=args.compasses,
         **kwargs,  # type: ignore[arg-type]
     )
+    return apply_settings(config, args.settings) if args.settings else config
 
 
 def execute(args: argparse.Namespace) -> int:

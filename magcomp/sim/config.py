@@ -1,5 +1,50 @@
 """Configuration of the synthetic vehicle: scenario, hidden effects, location, rates, sensor errors.
 
+Quick reference (ordinary flight and variation knobs; issues 9 and 10)
+----------------------------------------------------------------------
+CLI::
+
+    magcomp simulate --scenario ordinary --out f.tlog                 # 300 s multirotor flight, 50 Hz
+    magcomp simulate --scenario ordinary_plane --out f.tlog           # the same for a fixed wing
+    magcomp simulate --scenario ordinary --set telemetry_hz=2 --out f.tlog  # RAW_IMU, ATTITUDE at 2 Hz
+    magcomp simulate --scenario ordinary --set mag_hz=10 --set raw_imu_hz=50 --set attitude_hz=10 ...
+    --set yaw_source=truth            # ATTITUDE yaw steered by GPS yaw (not the disturbed compass)
+    --set external_compass0=on        # compass 0 external (theta ~ 0, the autopilot's primary), compass 1
+                                      # internal with the configured theta (like log171)
+    --set ap_cal_hard_iron_mgauss=30 --set ap_cal_soft_iron=0.04   # the autopilot's calibration error
+    --set ap_calibration=off          # log the raw readings (what the paper scenarios do)
+    --set lat_deg=46.05 --set lon_deg=14.5 --set alt_m=300 --set decimal_year=2026.4   # WMM place/date
+    --set mag_ar1_sigma_mgauss=3 --set mag_ar1_tau_s=5 --set mag_rw_mgauss_per_sqrt_s=0.2
+    --set mag_lsb_mgauss=3 --set mag_noise_scale=0.5 --set att_roll_bias_deg=1.5 --set att_yaw_bias_deg=2
+    --set seed=7 --set vehicle=multirotor --set n_compasses=3 --set gps=on
+
+API::
+
+    from magcomp.sim import SimConfig, simulate
+    from magcomp.sim.config import apply_settings
+    cfg = apply_settings(SimConfig(scenario="ordinary", duration_s=120.0), ["telemetry_hz=10"])
+    r = simulate(cfg)
+    L, d = r.true_calibration(j)    # L logged - d = true body field (Earth + bias), compass j
+    r.compasses[j].theta_mgauss     # theta, body frame (after L, d: what the pipeline should find)
+    r.theta_logged_mgauss(j)        # theta in the frame of the logged RAW_IMU/SCALED_IMU values
+    r.earth_field_ned_mgauss        # the WMM field at cfg.location (unless earth_field_ned_mgauss given)
+
+Rates: ``imu_hz`` is the autopilot's loop (sensor sampling, attitude filter); ``raw_imu_hz`` the
+RAW_IMU/SCALED_IMU2/3 message rate (SR*_RAW_SENS; IMU and compass travel together); ``mag_hz`` the
+compass's own update rate (values held in between); ``attitude_hz`` ATTITUDE. A rate above the loop
+raises the loop (``apply_settings``) but leaves the other message rates as they were (so ``mag_hz=100``
+alone gives 100 Hz compass updates inside 50 Hz RAW_IMU; add ``raw_imu_hz=100``).
+
+Truth files (``--out f.tlog`` -> f.truth.json / f.truth.npz): per compass ``logged_frame`` {L, d_mgauss,
+theta_logged_mgauss, autopilot {A, offsets_mgauss, residual_hard_iron_mgauss, ...}}, and
+``earth_field_ned_mgauss``, ``location``, ``start_unix_s``; npz ``heading_true_deg``, ``heading_mag_deg``,
+``autopilot_yaw_error_deg``, ``gps_lat_lon_alt``, ``mag_sensor_mgauss`` at the loop instants.
+
+The ``ordinary`` / ``ordinary_plane`` scenarios: GPS_RAW_INT + GLOBAL_POSITION_INT (5 Hz) and SYSTEM_TIME
+(1 Hz, UTC of the WMM date), the autopilot's calibration (10 mgauss residual hard iron, 2 % soft iron) and
+COMPASS_OFS/DIA/ODI/EXTERNAL/PRIMARY/MOTCT parameters. Pre-knob scenarios with default knobs are
+byte-identical to their output before the knobs existed.
+
 Everything here is a frozen dataclass validated once in ``__post_init__``; bad values raise
 :class:`magcomp.errors.InputError` with a one-line message (the CLI prints it as is).
 
@@ -37,10 +82,12 @@ mechanism that the paper's model, eq. (11) ``B = theta * delta_t^2``, ignores:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import Any
 
 from magcomp.errors import InputError
 
@@ -68,12 +115,26 @@ SCENARIOS: Mapping[str, float] = MappingProxyType(
         "bench": 60.0,
         "flight": 120.0,
         "paper": 133.0,
+        "ordinary": 300.0,
+        "ordinary_plane": 300.0,
     }
 )
 SCENARIO_ALIASES: Mapping[str, tuple[str, str]] = MappingProxyType(
     {"flight_fixedwing": ("flight", "fixedwing"), "flight_multirotor": ("flight", "multirotor")}
 )
 VEHICLES = ("fixedwing", "multirotor")
+#: Scenarios added with the variation knobs; everything else keeps its pre-knob output byte for byte.
+EXTENDED_SCENARIOS = frozenset({"ordinary", "ordinary_plane"})
+#: scenarios that fix the airframe
+SCENARIO_VEHICLE: Mapping[str, str] = MappingProxyType(
+    {"ordinary": "multirotor", "ordinary_plane": "fixedwing"}
+)
+YAW_SOURCES = ("compass", "truth")
+#: The autopilot's own compass calibration error when it is on and not set: a typical onboard calibration
+#: leaves ~5-30 mgauss of offset error and a few % of scale error (10 mgauss: ~2.3 deg of heading at
+#: a 250 mgauss horizontal field).
+DEFAULT_AP_CAL_HARD_IRON_MGAUSS = 10.0
+DEFAULT_AP_CAL_SOFT_IRON = 0.02
 
 
 @dataclass(frozen=True)
@@ -108,6 +169,10 @@ class Rates:
     vfr_hud_hz: float = 10.0
     power_hz: float = 10.0
     heartbeat_hz: float = 1.0
+    raw_imu_hz: float | None = None
+    mag_hz: float | None = None
+    gps_hz: float = 5.0
+    system_time_hz: float = 1.0
 
     def __post_init__(self) -> None:
         if self.truth_hz < 200.0:
@@ -119,6 +184,91 @@ class Rates:
             value = getattr(self, name)
             if not (0.0 < value <= self.imu_hz):
                 raise InputError(f"rate {name}={value} Hz must be in (0, imu_hz={self.imu_hz}]")
+        for name in ("raw_imu_hz", "mag_hz"):
+            value = getattr(self, name)
+            if value is not None and not (0.0 < value <= self.imu_hz):
+                raise InputError(f"rate {name}={value} Hz must be in (0, loop rate imu_hz={self.imu_hz}]")
+        for name in ("gps_hz", "system_time_hz"):
+            if not (0.0 < getattr(self, name) <= 50.0):
+                raise InputError(f"rate {name}={getattr(self, name)} Hz must be in (0, 50]")
+
+    @property
+    def raw_imu_rate(self) -> float:
+        """RAW_IMU / SCALED_IMU2/3 message rate (ArduPilot's SR*_RAW_SENS), Hz."""
+        return float(self.imu_hz if self.raw_imu_hz is None else self.raw_imu_hz)
+
+    @property
+    def mag_rate(self) -> float:
+        """Compass update rate, Hz (each value held until the next update)."""
+        return float(self.imu_hz if self.mag_hz is None else self.mag_hz)
+
+
+@dataclass(frozen=True)
+class Variation:
+    """Knobs that vary what the simulator assumed (issue 10's false-alarm study, issue 9's ordinary flight).
+
+    Every default reproduces the pre-knob output exactly, except that ``None`` means "the scenario's
+    default" (the ``ordinary`` scenario turns the autopilot calibration and GPS on).
+
+    mag_ar1_sigma_mgauss, mag_ar1_tau_s: AR(1) (first-order Gauss-Markov) compass noise, stationary sigma
+        and correlation time, raw sensor frame, on top of the white noise
+    mag_rw_mgauss_per_sqrt_s: random-walk compass noise (sigma grows as VALUE * sqrt(t))
+    mag_noise_scale: multiplies each compass's white-noise sigma (1 = 8 / 3 / 5 mgauss)
+    mag_lsb_mgauss: sensor quantisation step for every compass (None: 1.5 / 1.0 / 1.0 mgauss)
+    ap_calibration: the autopilot applies its own calibration before logging (ArduPilot RAW_IMU / MAG)
+    ap_cal_hard_iron_mgauss: residual hard iron left by that calibration, |h| in the logged frame
+    ap_cal_soft_iron: rms of the symmetric soft-iron/scale error E of that calibration (fraction)
+    yaw_source: ``compass`` (the autopilot fuses its primary compass, uncompensated) or ``truth`` (GPS yaw)
+    primary_compass: the compass the autopilot fuses (index)
+    external_compass0: compass 0 is an external (GPS-mast) compass far from the wires, theta ~ 0, and
+        compass 1 is the internal one with the configured theta
+    att_roll_bias_deg, att_pitch_bias_deg, att_yaw_bias_deg: constant errors of the reported ATTITUDE
+    att_noise_deg: white noise on each reported ATTITUDE angle
+    gps: emit GPS_RAW_INT, GLOBAL_POSITION_INT and SYSTEM_TIME
+    """
+
+    mag_ar1_sigma_mgauss: float = 0.0
+    mag_ar1_tau_s: float = 2.0
+    mag_rw_mgauss_per_sqrt_s: float = 0.0
+    mag_noise_scale: float = 1.0
+    mag_lsb_mgauss: float | None = None
+    ap_calibration: bool | None = None
+    ap_cal_hard_iron_mgauss: float | None = None
+    ap_cal_soft_iron: float | None = None
+    yaw_source: str = "compass"
+    primary_compass: int = 0
+    external_compass0: bool = False
+    att_roll_bias_deg: float = 0.0
+    att_pitch_bias_deg: float = 0.0
+    att_yaw_bias_deg: float = 0.0
+    att_noise_deg: float = 0.0
+    gps: bool | None = None
+
+    def __post_init__(self) -> None:
+        bounds = {
+            "mag_ar1_sigma_mgauss": (0.0, 100.0),
+            "mag_ar1_tau_s": (0.01, 1000.0),
+            "mag_rw_mgauss_per_sqrt_s": (0.0, 10.0),
+            "mag_noise_scale": (0.0, 10.0),
+            "att_roll_bias_deg": (-10.0, 10.0),
+            "att_pitch_bias_deg": (-10.0, 10.0),
+            "att_yaw_bias_deg": (-30.0, 30.0),
+            "att_noise_deg": (0.0, 10.0),
+        }
+        for name, (lo, hi) in bounds.items():
+            v = getattr(self, name)
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise InputError(f"{name}={v}: must be in [{lo}, {hi}]")
+        if self.mag_lsb_mgauss is not None and not (0.0 < self.mag_lsb_mgauss <= 50.0):
+            raise InputError(f"mag_lsb_mgauss={self.mag_lsb_mgauss}: must be in (0, 50]")
+        if self.ap_cal_hard_iron_mgauss is not None and not (0.0 <= self.ap_cal_hard_iron_mgauss <= 200.0):
+            raise InputError(f"ap_cal_hard_iron_mgauss={self.ap_cal_hard_iron_mgauss}: must be in [0, 200]")
+        if self.ap_cal_soft_iron is not None and not (0.0 <= self.ap_cal_soft_iron <= 0.2):
+            raise InputError(f"ap_cal_soft_iron={self.ap_cal_soft_iron}: must be in [0, 0.2]")
+        if self.yaw_source not in YAW_SOURCES:
+            raise InputError(f"yaw_source={self.yaw_source!r}: choose from {', '.join(YAW_SOURCES)}")
+        if not 0 <= self.primary_compass <= 2:
+            raise InputError(f"primary_compass={self.primary_compass}: must be 0, 1 or 2")
 
 
 @dataclass(frozen=True)
@@ -147,12 +297,15 @@ class SimConfig:
     t0_s: float = 5.0
     theta_mgauss: tuple[float, float, float] = (-61.0, 26.4, -1.2)
     earth_field_ned_mgauss: tuple[float, float, float] | None = None
+    variation: Variation = field(default_factory=Variation)
 
     def __post_init__(self) -> None:
         if self.scenario in SCENARIO_ALIASES:
             base, vehicle = SCENARIO_ALIASES[self.scenario]
             object.__setattr__(self, "scenario", base)
             object.__setattr__(self, "vehicle", vehicle)
+        if self.scenario in SCENARIO_VEHICLE:  # ordinary: a multirotor; ordinary_plane: a fixed wing
+            object.__setattr__(self, "vehicle", SCENARIO_VEHICLE[self.scenario])
         if self.scenario not in SCENARIOS:
             names = ", ".join([*SCENARIOS, *SCENARIO_ALIASES])
             raise InputError(f"unknown scenario {self.scenario!r} (choose from {names})")
@@ -180,6 +333,45 @@ class SimConfig:
         if effects.get("throttle_offset", 0.0) >= 0.5:
             raise InputError("effect throttle_offset must be below 0.5")
         object.__setattr__(self, "effects", MappingProxyType(effects))
+        var = self.variation
+        if var.primary_compass >= self.n_compasses:
+            need = var.primary_compass + 1
+            raise InputError(f"primary_compass={var.primary_compass} needs at least {need} compasses")
+        if var.external_compass0 and self.n_compasses < 2:
+            raise InputError("external_compass0 needs at least 2 compasses (compass 1 is the internal one)")
+
+    @property
+    def legacy(self) -> bool:
+        """True when the run is one of the pre-knob scenarios with every knob at its default: its output
+        (tlog, truth files) is then byte-identical to what the simulator wrote before the knobs existed."""
+        return (
+            self.scenario not in EXTENDED_SCENARIOS
+            and self.variation == Variation()
+            and self.rates.raw_imu_hz is None
+            and self.rates.mag_hz is None
+        )
+
+    @property
+    def ap_calibration(self) -> bool:
+        """The autopilot calibrates the compasses before logging them (default: on for ``ordinary``)."""
+        v = self.variation.ap_calibration
+        return self.scenario in EXTENDED_SCENARIOS if v is None else bool(v)
+
+    @property
+    def ap_cal_hard_iron_mgauss(self) -> float:
+        v = self.variation.ap_cal_hard_iron_mgauss
+        return DEFAULT_AP_CAL_HARD_IRON_MGAUSS if v is None else float(v)
+
+    @property
+    def ap_cal_soft_iron(self) -> float:
+        v = self.variation.ap_cal_soft_iron
+        return DEFAULT_AP_CAL_SOFT_IRON if v is None else float(v)
+
+    @property
+    def gps(self) -> bool:
+        """GPS_RAW_INT / GLOBAL_POSITION_INT / SYSTEM_TIME in the output (default: on for ``ordinary``)."""
+        v = self.variation.gps
+        return self.scenario in EXTENDED_SCENARIOS if v is None else bool(v)
 
     @property
     def duration(self) -> float:
@@ -207,3 +399,136 @@ def parse_effect(text: str) -> tuple[str, float]:
     except ValueError:
         raise InputError(f"--effect {text!r}: VALUE must be a number") from None
     return name, v
+
+
+#: ``--set`` keys that are not Variation fields: rates (Hz) and run-level settings
+RATE_KEYS = ("mag_hz", "raw_imu_hz", "attitude_hz", "gps_hz", "loop_hz", "telemetry_hz")
+RUN_KEYS = ("seed", "vehicle", "n_compasses", "duration_s", "lat_deg", "lon_deg", "alt_m", "decimal_year")
+
+
+def setting_keys() -> tuple[str, ...]:
+    """Every key :func:`apply_settings` accepts."""
+    return (*RATE_KEYS, *RUN_KEYS, *(f.name for f in dataclasses.fields(Variation)))
+
+
+def _parse_value(key: str, text: str, kind: object) -> object:
+    text = text.strip()
+    lowered = text.lower()
+    if "None" in str(kind) and lowered in ("none", "default", ""):
+        return None
+    if "bool" in str(kind):
+        if lowered in ("1", "true", "yes", "on"):
+            return True
+        if lowered in ("0", "false", "no", "off"):
+            return False
+        raise InputError(f"--set {key}={text}: expected on/off (1/0, true/false)")
+    if "str" in str(kind):
+        return text
+    try:
+        number = float(text)
+    except ValueError:
+        raise InputError(f"--set {key}={text}: VALUE must be a number") from None
+    if not math.isfinite(number):
+        raise InputError(f"--set {key}={text}: VALUE must be finite")
+    if "int" in str(kind) and "float" not in str(kind):
+        if number != int(number):
+            raise InputError(f"--set {key}={text}: VALUE must be a whole number")
+        return int(number)
+    return number
+
+
+def _loop_rate_for(truth_hz: float, needed_hz: float) -> float:
+    """The slowest autopilot loop rate that divides truth_hz and is at least needed_hz."""
+    for k in range(int(truth_hz), 0, -1):
+        rate = truth_hz / k
+        if rate >= needed_hz - 1e-9:
+            return rate
+    raise InputError(f"rate {needed_hz} Hz above the truth rate {truth_hz} Hz")
+
+
+def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -> SimConfig:
+    """A copy of ``config`` with ``KEY=VALUE`` settings (``--set``) applied; see the module docstring.
+
+    Rates: a rate above the autopilot loop (``imu_hz``, default 50 Hz) raises the loop to the slowest rate
+    that divides the truth rate and carries it (e.g. mag_hz=100 -> a 100 Hz loop). ``telemetry_hz=R`` sets
+    RAW_IMU, ATTITUDE and SERVO_OUTPUT_RAW to R Hz and RC/VFR_HUD/power to min(R, 10) Hz, like a telemetry
+    link's SR*_ stream rates."""
+    pairs: dict[str, str] = {}
+    items: list[tuple[str, str]] = (
+        list(settings.items()) if isinstance(settings, Mapping) else [_split(text) for text in settings]
+    )
+    for key, value in items:
+        pairs[key.strip()] = value
+    kinds = {f.name: f.type for f in dataclasses.fields(Variation)}
+    var_changes: dict[str, Any] = {}
+    rate_changes: dict[str, float] = {}
+    run_changes: dict[str, Any] = {}
+    loc_changes: dict[str, float] = {}
+    for key, text in pairs.items():
+        if key in kinds:
+            var_changes[key] = _parse_value(key, text, kinds[key])
+        elif key in RATE_KEYS:
+            rate = _parse_value(key, text, "float")
+            assert isinstance(rate, float)
+            if not 0.0 < rate <= 200.0:
+                raise InputError(f"--set {key}={text}: rate must be in (0, 200] Hz")
+            rate_changes[key] = rate
+        elif key in ("lat_deg", "lon_deg", "alt_m", "decimal_year"):
+            number = _parse_value(key, text, "float")
+            assert isinstance(number, float)
+            loc_changes[key] = number
+        elif key == "vehicle":
+            run_changes[key] = text.strip()
+            fixed = SCENARIO_VEHICLE.get(config.scenario)
+            if fixed is not None and run_changes[key] != fixed:
+                raise InputError(
+                    f"scenario {config.scenario} is a {fixed} flight; choose the scenario instead"
+                )
+        elif key in ("seed", "n_compasses"):
+            run_changes[key] = _parse_value(key, text, "int")
+        elif key == "duration_s":
+            run_changes[key] = _parse_value(key, text, "float")
+        else:
+            raise InputError(f"unknown setting {key!r} (choose from {', '.join(setting_keys())})")
+    if run_changes.get("seed", 0) < 0:
+        raise InputError("--set seed: must be >= 0")
+    rates = config.rates
+    if rate_changes:
+        kw: dict[str, float | None] = {}
+        tele = rate_changes.pop("telemetry_hz", None)
+        if tele is not None:
+            kw.update(
+                raw_imu_hz=tele, attitude_hz=tele, servo_hz=tele, rc_hz=min(tele, 10.0),
+                vfr_hud_hz=min(tele, 10.0), power_hz=min(tele, 10.0), heartbeat_hz=min(tele, 1.0),
+            )  # fmt: skip
+        loop = rate_changes.pop("loop_hz", None)
+        kw.update(rate_changes)
+        current = dataclasses.asdict(rates)
+        current.update(kw)
+        capped = ("attitude_hz", "servo_hz", "rc_hz", "vfr_hud_hz", "power_hz", "heartbeat_hz")
+        needed = max(float(current[k]) for k in (*capped, "raw_imu_hz", "mag_hz") if current[k] is not None)
+        loop_hz = (
+            float(loop) if loop is not None else max(rates.imu_hz, _loop_rate_for(rates.truth_hz, needed))
+        )
+        current["imu_hz"] = loop_hz
+        if loop is None and loop_hz != rates.imu_hz and rates.raw_imu_hz is None and "raw_imu_hz" not in kw:
+            current["raw_imu_hz"] = rates.imu_hz  # raising the loop leaves the RAW_IMU rate where it was
+        if loop is None and loop_hz != rates.imu_hz and rates.mag_hz is None and "mag_hz" not in kw:
+            current["mag_hz"] = rates.imu_hz
+        rates = Rates(**current)  # type: ignore[arg-type]
+    location = dataclasses.replace(config.location, **loc_changes) if loc_changes else config.location
+    variation = dataclasses.replace(config.variation, **var_changes) if var_changes else config.variation
+    return dataclasses.replace(
+        config,
+        rates=rates,
+        location=location,
+        variation=variation,
+        **run_changes,  # type: ignore[arg-type]
+    )
+
+
+def _split(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise InputError(f"--set {text!r}: expected KEY=VALUE, e.g. mag_hz=10")
+    return key, value

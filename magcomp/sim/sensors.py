@@ -130,11 +130,92 @@ def quantize(x: F64, step: float) -> F64:
     return np.round(x / step) * step
 
 
-def measure_mag(c: CompassTruth, field_b_mgauss: F64, rng: np.random.Generator) -> F64:
-    """eq. (1): v = K u' + b + n for the true body field u' (n, 3), quantised; mgauss (integers)."""
+def measure_mag(
+    c: CompassTruth, field_b_mgauss: F64, rng: np.random.Generator, extra_noise_mgauss: F64 | None = None
+) -> F64:
+    """eq. (1): v = K u' + b + n for the true body field u' (n, 3), quantised; mgauss (integers).
+
+    extra_noise_mgauss (n, 3): coloured noise added to the white noise (raw sensor frame), or None."""
     v = field_b_mgauss @ c.k_matrix.T + c.b_mgauss  # eq. (1)
     v = v + rng.normal(0.0, c.noise_mgauss, v.shape)
+    if extra_noise_mgauss is not None:
+        v = v + extra_noise_mgauss
     return np.round(quantize(v, c.lsb_mgauss))  # sensor LSB, then the message's 1 mgauss
+
+
+def coloured_noise(
+    n: int, dt_s: float, ar1_sigma: float, ar1_tau_s: float, rw_per_sqrt_s: float, rng: np.random.Generator
+) -> F64:
+    """(n, 3) AR(1) noise (first-order Gauss-Markov, exact discretisation: stationary sigma ``ar1_sigma``,
+    correlation time ``ar1_tau_s``) plus a random walk whose sigma grows as ``rw_per_sqrt_s * sqrt(t)``."""
+    from scipy.signal import lfilter
+
+    phi = math.exp(-dt_s / ar1_tau_s)
+    w = rng.normal(0.0, 1.0, (n, 3))
+    x0 = rng.normal(0.0, ar1_sigma, 3)
+    ar, _ = lfilter([ar1_sigma * math.sqrt(1.0 - phi * phi)], [1.0, -phi], w, axis=0, zi=(phi * x0)[None, :])
+    walk = np.cumsum(rng.normal(0.0, rw_per_sqrt_s * math.sqrt(dt_s), (n, 3)), axis=0)
+    return np.asarray(ar) + walk
+
+
+@dataclass(frozen=True)
+class AutopilotCalibration:
+    """The autopilot's own compass calibration and what it leaves (ArduPilot: COMPASS_OFS/DIA/ODI).
+
+    The autopilot logs ``logged = A (v - b_ap)`` for the raw reading v (ArduPilot adds COMPASS_OFS =
+    -b_ap, then multiplies by the symmetric DIA/ODI matrix A). With K, b of eq. (1):
+        logged = A K (u + B + D) + A (b - b_ap) + A n
+    so the true calibration of the LOGGED field, in the sense of eq. (2), is
+        L = (A K)^-1,  d = K^-1 (b - b_ap):   L logged - d = u + B + D (+ L A n)
+    and theta in the logged frame is ``theta_logged = A K theta``. An ellipsoid fit cannot see the
+    misalignment part of K, so even a perfect autopilot calibration leaves L a small rotation.
+
+    a_matrix: A (symmetric); b_ap_mgauss: the autopilot's hard-iron estimate (raw frame);
+    residual_hard_iron_mgauss: A (b - b_ap), the offset error as it appears in the logged frame;
+    soft_iron_error: E of A = S^-1/2 (I + E) S^-1/2 (S: the symmetric part of K)
+    """
+
+    a_matrix: F64
+    b_ap_mgauss: F64
+    residual_hard_iron_mgauss: F64
+    soft_iron_error: F64
+    l_matrix: F64
+    d_mgauss: F64
+    theta_logged_mgauss: F64
+
+    @property
+    def offsets_mgauss(self) -> F64:
+        """ArduPilot's COMPASS_OFS (added to the raw reading): -b_ap."""
+        return -self.b_ap_mgauss
+
+
+def autopilot_calibration(
+    c: CompassTruth, hard_iron_mgauss: float, soft_iron_rms: float, rng: np.random.Generator
+) -> AutopilotCalibration:
+    """Draw the autopilot's calibration of compass ``c`` with a residual hard iron of norm
+    ``hard_iron_mgauss`` (random direction, logged frame) and a symmetric soft-iron error E with rms
+    ``soft_iron_rms`` on the diagonal (half on the off-diagonal). The draws do not depend on the sizes."""
+    e = rng.normal(0.0, 1.0, (3, 3))
+    e = soft_iron_rms * (e + e.T) / 2.0 * np.where(np.eye(3) > 0, math.sqrt(2.0), 1.0) / math.sqrt(2.0)
+    h_dir = rng.normal(0.0, 1.0, 3)
+    h = hard_iron_mgauss * h_dir / np.linalg.norm(h_dir)
+    w, v = np.linalg.eigh(c.k_matrix @ c.k_matrix.T)  # K K^T = S^2 (S symmetric part of K)
+    s_inv_half = v @ np.diag(w**-0.25) @ v.T
+    a = s_inv_half @ (np.eye(3) + e) @ s_inv_half
+    a = (a + a.T) / 2.0
+    b_ap = c.b_mgauss - np.linalg.solve(a, h)
+    ak = a @ c.k_matrix
+    l_matrix = np.linalg.inv(ak)
+    d = np.asarray(np.linalg.solve(c.k_matrix, c.b_mgauss - b_ap), dtype=np.float64)
+    return AutopilotCalibration(
+        a_matrix=a,
+        b_ap_mgauss=b_ap,
+        residual_hard_iron_mgauss=h,
+        soft_iron_error=e,
+        l_matrix=l_matrix,
+        d_mgauss=d,
+        theta_logged_mgauss=ak @ c.theta_mgauss,
+    )
 
 
 def measure_gyro(c: CompassTruth, omega_b_rad_s: F64, rng: np.random.Generator) -> F64:

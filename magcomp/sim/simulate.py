@@ -15,6 +15,7 @@ earth_field_ned_mgauss (NED, mgauss).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -28,7 +29,10 @@ from magcomp.sim.autopilot import AutopilotParams, run_autopilot
 from magcomp.sim.config import SimConfig
 from magcomp.sim.powertrain import PowertrainParams, PowertrainTruth, simulate_powertrain
 from magcomp.sim.sensors import (
+    AutopilotCalibration,
     CompassTruth,
+    autopilot_calibration,
+    coloured_noise,
     make_compasses,
     measure_accel,
     measure_gyro,
@@ -51,6 +55,11 @@ class SimSamples:
     (J, n, 3); imu_temp_degc (J, n); throttle_01 (n,) logged command; motors_01 (n, m); voltage_v,
     current_a (n,); attitude_rad (n, 3) autopilot roll, pitch, yaw; airspeed_m_s, groundspeed_m_s, alt_m,
     climb_m_s (n,).
+
+    mag_mgauss is what the messages carry: the raw reading, or, with the autopilot's calibration on, the
+    calibrated field ``A (v - b_ap)`` rounded to 1 mgauss; mag_sensor_mgauss is then the raw reading v.
+    With GPS on: gps_lat_deg, gps_lon_deg, gps_alt_msl_m (n,), gps_vel_n_m_s (n, 3) (truth, no GNSS noise;
+    altitude above the ellipsoid = MSL here, the geoid separation is taken as 0).
     """
 
     t_s: F64
@@ -68,6 +77,11 @@ class SimSamples:
     groundspeed_m_s: F64
     alt_m: F64
     climb_m_s: F64
+    mag_sensor_mgauss: F64 | None = None
+    gps_lat_deg: F64 | None = None
+    gps_lon_deg: F64 | None = None
+    gps_alt_msl_m: F64 | None = None
+    gps_vel_n_m_s: F64 | None = None
 
 
 @dataclass(frozen=True)
@@ -92,6 +106,23 @@ class SimResult:
     declination_deg: float
     samples: SimSamples
     effect_params: dict[str, object] = field(default_factory=dict)
+    ap_calibration: tuple[AutopilotCalibration, ...] | None = None
+
+    def true_calibration(self, j: int) -> tuple[F64, F64]:
+        """(L, d) of eq. (2) for the LOGGED field of compass j: ``L logged - d = u + B + D`` (body frame,
+        noise aside). Without the autopilot's calibration the logged field is the raw reading: L = K^-1,
+        d = K^-1 b."""
+        if self.ap_calibration is not None:
+            cal = self.ap_calibration[j]
+            return cal.l_matrix, cal.d_mgauss
+        c = self.compasses[j]
+        l_matrix = np.asarray(np.linalg.inv(c.k_matrix), dtype=np.float64)
+        return l_matrix, l_matrix @ c.b_mgauss
+
+    def theta_logged_mgauss(self, j: int) -> F64:
+        """theta of compass j in the frame of the logged field (= L^-1 theta)."""
+        l_matrix, _ = self.true_calibration(j)
+        return np.asarray(np.linalg.solve(l_matrix, self.compasses[j].theta_mgauss), dtype=np.float64)
 
     @property
     def t0_s(self) -> float:
@@ -126,6 +157,9 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     """
     rng = np.random.default_rng(config.seed) if rng is None else rng
     rng_motion, rng_params, rng_noise = rng.spawn(3)
+    # the knobs draw from their own streams, so a pre-knob run's draws are unchanged
+    rng_cal, rng_cnoise, rng_att = rng.spawn(1)[0].spawn(3)
+    var = config.variation
     rates = config.rates
     dt = 1.0 / rates.truth_hz
     motion = build_motion(config.scenario, config.duration, config.vehicle, dt, rng_motion)
@@ -142,6 +176,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         effects.get("per_motor", 0.0),
         rng_params,
     )
+    compasses = _vary_compasses(config, compasses)
     pt_params = PowertrainParams(current_max_a=40.0 if multirotor else 20.0)
     command = motion.motors_cmd_01 if per_motor else motion.throttle_cmd_01[:, None]
     power = simulate_powertrain(motion.t_s, command, dt, effects, pt_params)
@@ -163,29 +198,72 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     idx = np.arange(0, n, step)
     gyro = np.stack([measure_gyro(c, motion.omega_b_rad_s[idx], rng_noise) for c in compasses])
     accel = np.stack([measure_accel(c, f_b[idx], rng_noise) for c in compasses])
+    coloured = var.mag_ar1_sigma_mgauss > 0.0 or var.mag_rw_mgauss_per_sqrt_s > 0.0
     mag = np.stack(
         [
-            measure_mag(c, field_b[idx] + bias[j, idx] + drift[j, idx], rng_noise)
+            measure_mag(
+                c,
+                field_b[idx] + bias[j, idx] + drift[j, idx],
+                rng_noise,
+                coloured_noise(
+                    idx.size,
+                    step * dt,
+                    var.mag_ar1_sigma_mgauss,
+                    var.mag_ar1_tau_s,
+                    var.mag_rw_mgauss_per_sqrt_s,
+                    rng_cnoise,
+                )
+                if coloured
+                else None,
+            )
             for j, c in enumerate(compasses)
         ]
     )
+    if rates.mag_hz is not None:  # the compass updates at mag_hz; the autopilot holds its last value
+        mag = mag[:, _hold_index(idx.size, rates.imu_hz, rates.mag_rate)]
     imu_temp = np.stack([power.temp_imu_degc[idx] + 0.7 * j for j in range(len(compasses))])
     imu_temp = np.round(imu_temp + rng_noise.normal(0.0, 0.05, imu_temp.shape), 2)
 
     c0 = compasses[0]
-    mag_cal0 = np.linalg.solve(c0.k_matrix, (mag[0] - c0.b_mgauss).T).T  # eq. (2), motor-off calibration
+    ap_cal = None
+    if config.ap_calibration:
+        ap_cal = tuple(
+            autopilot_calibration(c, config.ap_cal_hard_iron_mgauss, config.ap_cal_soft_iron, rng_cal)
+            for c in compasses
+        )
+    primary = var.primary_compass
+    cp = compasses[primary]
+    if ap_cal is not None:  # the autopilot steers by the field it logs: its own calibration, in float
+        mag_ap = (mag[primary] - ap_cal[primary].b_ap_mgauss) @ ap_cal[primary].a_matrix.T
+    else:
+        mag_ap = np.linalg.solve(cp.k_matrix, (mag[primary] - cp.b_mgauss).T).T  # eq. (2), motor-off cal.
     decl = declination_rad(m_n)
+    yaw_ref = euler_from_quats(motion.q_nb[idx])[:, 2] if var.yaw_source == "truth" else None
     att_q = run_autopilot(
         motion.q_nb[0],
         gyro[0] - c0.gyro_bias_rad_s,
         accel[0],
-        mag_cal0,
+        mag_ap,
         motion.accel_n_m_s2[idx],
         step * dt,
         decl,
         AutopilotParams(),
+        yaw_ref_rad=yaw_ref,
     )
     attitude = euler_from_quats(att_q)
+    att_bias = np.radians([var.att_roll_bias_deg, var.att_pitch_bias_deg, var.att_yaw_bias_deg])
+    if att_bias.any() or var.att_noise_deg > 0.0:
+        attitude = attitude + att_bias + rng_att.normal(0.0, math.radians(var.att_noise_deg), attitude.shape)
+        attitude[:, 2] = (attitude[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        attitude[:, 1] = np.clip(attitude[:, 1], -math.pi / 2.0, math.pi / 2.0)
+    mag_sensor = None
+    if ap_cal is not None:
+        mag_sensor = mag
+        logged = [(mag[j] - cal.b_ap_mgauss) @ cal.a_matrix.T for j, cal in enumerate(ap_cal)]
+        mag = np.round(np.stack(logged))  # RAW_IMU carries whole mgauss
+    gps: dict[str, F64] = {}
+    if config.gps:
+        gps = _gps_track(config, motion.vel_n_m_s, motion.alt_m, dt, idx)
 
     voltage = np.round(power.voltage_v[idx] + rng_noise.normal(0.0, 0.01, idx.size), 3)
     noisy_current: F64 = power.current_a[idx] + rng_noise.normal(0.0, 0.05, idx.size)
@@ -207,6 +285,11 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         groundspeed_m_s=np.hypot(vel[:, 0], vel[:, 1]),
         alt_m=motion.alt_m[idx],
         climb_m_s=-vel[:, 2],
+        mag_sensor_mgauss=mag_sensor,
+        gps_lat_deg=gps.get("lat_deg"),
+        gps_lon_deg=gps.get("lon_deg"),
+        gps_alt_msl_m=gps.get("alt_msl_m"),
+        gps_vel_n_m_s=gps.get("vel_n_m_s"),
     )
     effect_params: dict[str, object] = {name: float(v) for name, v in effects.items()}
     if drift_k:
@@ -229,4 +312,61 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         declination_deg=math.degrees(decl),
         samples=samples,
         effect_params=effect_params,
+        ap_calibration=ap_cal,
     )
+
+
+#: compass 0 as an external (GPS-mast) compass: this far from the power wires, theta falls as (r0 / r)^2
+EXTERNAL_COMPASS_DISTANCE_M = 0.40
+
+
+def _vary_compasses(config: SimConfig, compasses: tuple[CompassTruth, ...]) -> tuple[CompassTruth, ...]:
+    """Apply the knobs that change the compasses themselves (layout, noise level, quantisation)."""
+    var = config.variation
+    out = list(compasses)
+    if var.external_compass0:
+        theta_cfg = np.asarray(config.theta_mgauss, dtype=float)
+        r0, r_ext = compasses[0].distance_m, EXTERNAL_COMPASS_DISTANCE_M
+        for j, (theta, dist) in enumerate([(theta_cfg * (r0 / r_ext) ** 2, r_ext), (theta_cfg, r0)]):
+            c = out[j]
+            size = max(float(np.linalg.norm(c.theta_mgauss)), 1e-12)
+            spread = (c.theta_motor_mgauss - c.theta_mgauss) / size
+            out[j] = dataclasses.replace(
+                c,
+                theta_mgauss=theta,
+                theta_raw_mgauss=c.k_matrix @ theta,
+                theta_motor_mgauss=theta + spread * float(np.linalg.norm(theta)),
+                distance_m=dist,
+            )
+    if var.mag_noise_scale != 1.0 or var.mag_lsb_mgauss is not None:
+        out = [
+            dataclasses.replace(
+                c,
+                noise_mgauss=c.noise_mgauss * var.mag_noise_scale,
+                lsb_mgauss=c.lsb_mgauss if var.mag_lsb_mgauss is None else float(var.mag_lsb_mgauss),
+            )
+            for c in out
+        ]
+    return tuple(out)
+
+
+def _hold_index(n: int, loop_hz: float, update_hz: float) -> NDArray[np.int64]:
+    """Row of the last update (at k / update_hz) at or before each loop sample i / loop_hz."""
+    t = np.arange(n) / loop_hz
+    k = np.floor(t * update_hz + 1e-9)
+    return np.minimum(np.floor(k / update_hz * loop_hz + 1e-9).astype(np.int64), n - 1)
+
+
+EARTH_RADIUS_M = 6_378_137.0
+
+
+def _gps_track(
+    config: SimConfig, vel_n: F64, alt_m: F64, dt_s: float, idx: NDArray[np.int64]
+) -> dict[str, F64]:
+    """Latitude/longitude from the integrated NED velocity around the configured location (flat-Earth
+    local tangent plane: metres to degrees with the WGS-84 equatorial radius), altitude = location + climb."""
+    pos = np.concatenate([np.zeros((1, 3)), np.cumsum(vel_n[:-1], axis=0) * dt_s])[idx]
+    loc = config.location
+    lat = loc.lat_deg + np.degrees(pos[:, 0] / EARTH_RADIUS_M)
+    lon = loc.lon_deg + np.degrees(pos[:, 1] / (EARTH_RADIUS_M * math.cos(math.radians(loc.lat_deg))))
+    return {"lat_deg": lat, "lon_deg": lon, "alt_msl_m": loc.alt_m + alt_m[idx], "vel_n_m_s": vel_n[idx]}

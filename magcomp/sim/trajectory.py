@@ -14,10 +14,16 @@ Scenarios (the paper's experiments, sec. III):
     bench   stationary throttle staircase up and down, twice (Fig. 7 / Table II)
     flight  fixed-wing or multirotor flight with turns, climbs and throttle changes
     paper   tumble, spin, pan, ramp and step in one run (the paper's whole experiment)
+    ordinary  an ordinary multirotor flight (issue 9): motors off on the ground briefly, take-off, hover,
+            full 360 deg yaw turns at hover and circles in forward flight, climbs and descents, forward
+            flight tilted 10-25 deg by drag and turns, landing; no hand rotation
+    ordinary_plane  the same for a fixed wing: take-off roll, climb, cruise, loiter circles (full 360 deg
+            turns both ways), climbing turn, glide, landing and roll-out
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -224,6 +230,10 @@ def build_motion(
     scenario: str, duration_s: float, vehicle: str, dt_s: float, rng: np.random.Generator
 ) -> Motion:
     """Truth motion and throttle for one scenario (see the module docstring)."""
+    if scenario == "ordinary":
+        return _ordinary_multirotor(duration_s, dt_s, rng)
+    if scenario == "ordinary_plane":
+        return _ordinary_fixedwing(duration_s, dt_s, rng)
     if scenario == "flight":
         return (
             _flight_multirotor(duration_s, dt_s)
@@ -389,3 +399,181 @@ def _flight_multirotor(duration_s: float, dt_s: float) -> Motion:
     thr = np.clip(hover * np.sqrt(g_load) + 0.03 * climb, 0.0, 0.95)
     alt = np.cumsum(climb) * dt_s
     return _finish_path(dt_s, roll, pitch, yaw, vel, alt, thr, np.abs(u), "multirotor")
+
+
+# ordinary flight: (name, duration s, forward speed m/s, full yaw turns (signed), climb m/s)
+ORDINARY_PLAN: tuple[tuple[str, float, float, float, float], ...] = (
+    ("ground_off", 4.0, 0.0, 0.0, 0.0),
+    ("ground_idle", 2.0, 0.0, 0.0, 0.0),
+    ("takeoff", 8.0, 0.0, 0.0, 2.5),
+    ("hover", 10.0, 0.0, 0.0, 0.0),
+    ("hover_yaw", 36.0, 0.0, 3.0, 0.0),
+    ("hover", 5.0, 0.0, 0.0, 0.0),
+    ("cruise", 25.0, 9.0, 0.0, 0.0),
+    ("circles", 40.0, 8.0, 2.0, 0.0),
+    ("climb_forward", 15.0, 6.0, 0.0, 3.0),
+    ("cruise_fast", 20.0, 10.0, 0.0, 0.0),
+    ("circles", 36.0, 8.0, -2.0, 0.0),
+    ("descent_forward", 20.0, 5.0, 0.0, -2.0),
+    ("hover", 8.0, 0.0, 0.0, 0.0),
+    ("climb", 10.0, 0.0, 0.0, 4.0),
+    ("hover_yaw", 18.0, 0.0, -2.0, 0.0),
+    ("descent", 18.0, 0.0, 0.0, -2.5),
+    ("landing", 20.0, 0.0, 0.0, -1.0),
+    ("ground_idle", 3.0, 0.0, 0.0, 0.0),
+    ("ground_off", 3.0, 0.0, 0.0, 0.0),
+)
+ORDINARY_NOMINAL_S = sum(row[1] for row in ORDINARY_PLAN)
+HOVER_THROTTLE = 0.5
+IDLE_THROTTLE = 0.15  # ArduCopter's MOT_SPIN_ARM-like idle on the ground before take-off / after landing
+CLIMB_THROTTLE_PER_M_S = 0.055  # extra collective per m/s of climb (induced + vertical drag), empirical
+DRAG_PER_M = 0.036  # horizontal drag acceleration = DRAG_PER_M * v^2: tilt 16 deg at 9 m/s, 20 at 10 m/s
+
+
+def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generator) -> Motion:
+    """Ordinary multirotor flight (see ORDINARY_PLAN): segment durations scale with ``duration_s`` (nominal
+    301 s); the number of full yaw turns is kept (at least one per turning segment), speeds and climb rates
+    are kept, so altitudes scale. Tilt comes from the thrust needed against gravity, drag (v^2) and the
+    turn's centripetal acceleration; collective = hover * sqrt(|thrust| / g) + climb term + a small gusty
+    component (+-0.02, seeded). Velocity is along the heading (circles turn the vehicle through 360 deg).
+    Ends on the ground at the altitude it started from."""
+    scale = duration_s / ORDINARY_NOMINAL_S
+    n = max(2, round(duration_s / dt_s))
+    names = tuple(dict.fromkeys(row[0] for row in ORDINARY_PLAN))
+    durs = np.array([row[1] for row in ORDINARY_PLAN]) * scale
+    edges = np.round(np.concatenate([[0.0], np.cumsum(durs)]) / dt_s).astype(np.int64)
+    edges[-1] = n
+    u = np.zeros(n)
+    yaw_rate = np.zeros(n)
+    climb = np.zeros(n)
+    seg = np.zeros(n, dtype=np.int64)
+    ground = np.zeros(n, dtype=bool)
+    off = np.zeros(n, dtype=bool)
+    for (name, _, speed, turns, vz), a, b in zip(ORDINARY_PLAN, edges[:-1], edges[1:], strict=True):
+        if b <= a:
+            continue
+        seg[a:b] = names.index(name)
+        u[a:b] = speed
+        climb[a:b] = vz
+        if turns:
+            k = math.copysign(max(1.0, round(abs(turns) * scale)), turns)
+            yaw_rate[a:b] = 2.0 * math.pi * k / ((b - a) * dt_s)
+        ground[a:b] = name.startswith("ground")
+        off[a:b] = name == "ground_off"
+    u = _smooth(u, dt_s, 6.0)
+    # no climb within 1 s of the ground phases, so that the smoothed climb is zero where it meets them
+    near_ground = np.convolve(ground.astype(float), np.ones(2 * round(1.0 / dt_s) + 1), mode="same") > 0
+    climb[near_ground] = 0.0
+    climb = _smooth(climb, dt_s, 2.0)
+    climb[ground] = 0.0
+    yaw_rate = _smooth(yaw_rate, dt_s, 1.5)
+    yaw = math.radians(40.0) + np.cumsum(yaw_rate) * dt_s
+    alt = np.cumsum(climb) * dt_s
+    # land exactly where it took off: spread the (smoothing) altitude residual over the descents
+    desc = climb < 0.0
+    if desc.any() and alt[-1] != 0.0:
+        climb[desc] -= alt[-1] / (desc.sum() * dt_s)
+        alt = np.maximum(np.cumsum(climb) * dt_s, 0.0)
+    vel = np.stack([u * np.cos(yaw), u * np.sin(yaw), -climb], axis=1)
+    acc = np.gradient(vel, dt_s, axis=0)
+    drag = DRAG_PER_M * np.abs(u)[:, None] * vel * np.array([1.0, 1.0, 0.0])
+    f_n = acc + drag - np.array([0.0, 0.0, STANDARD_GRAVITY_M_S2])  # specific force the thrust provides
+    f_n[ground] = np.array([0.0, 0.0, -STANDARD_GRAVITY_M_S2])  # on the ground: level, at rest
+    d = -f_n / np.linalg.norm(f_n, axis=1, keepdims=True)  # body z axis in NED
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    d_h = np.stack([cy * d[:, 0] + sy * d[:, 1], -sy * d[:, 0] + cy * d[:, 1], d[:, 2]], axis=1)
+    # wind: a slow, seeded wobble of about 1.5 deg rms in roll and pitch while airborne
+    wobble = np.stack([_smooth(rng.normal(0.0, 1.0, n), dt_s, 2.0) for _ in range(2)], axis=1)
+    wobble *= math.radians(1.5) / np.maximum(wobble.std(axis=0), 1e-12)
+    wobble[ground] = 0.0
+    wobble = np.stack([_smooth(wobble[:, i], dt_s, 1.0) for i in range(2)], axis=1)
+    roll = _smooth(-np.arcsin(np.clip(d_h[:, 1], -1.0, 1.0)), dt_s, 0.5) + wobble[:, 0]
+    pitch = _smooth(np.arctan2(d_h[:, 0], d_h[:, 2]), dt_s, 0.5) + wobble[:, 1]
+    g_load = np.linalg.norm(f_n, axis=1) / STANDARD_GRAVITY_M_S2
+    gust = _smooth(rng.normal(0.0, 1.0, n), dt_s, 1.0)
+    gust *= 0.02 / max(float(np.std(gust)), 1e-12)
+    thr = HOVER_THROTTLE * np.sqrt(g_load) + CLIMB_THROTTLE_PER_M_S * climb + np.clip(gust, -0.04, 0.04)
+    thr = np.where(ground, IDLE_THROTTLE, thr)
+    thr = np.where(off, 0.0, _smooth(thr, dt_s, 0.5))
+    thr = np.clip(thr, 0.0, 0.95)
+    motion = _finish_path(dt_s, roll, pitch, yaw, vel, alt, thr, np.abs(u), "multirotor")
+    return dataclasses.replace(motion, segment=seg, segment_names=names)
+
+
+# ordinary plane flight: (name, duration s, airspeed m/s, full turns (signed), climb m/s, throttle)
+ORDINARY_PLANE_PLAN: tuple[tuple[str, float, float, float, float, float], ...] = (
+    ("ground_off", 4.0, 0.0, 0.0, 0.0, 0.0),
+    ("takeoff_roll", 6.0, 14.0, 0.0, 0.0, 1.0),
+    ("climb", 25.0, 15.0, 0.0, 3.0, 0.9),
+    ("cruise", 25.0, 16.0, 0.0, 0.0, 0.6),
+    ("circles", 40.0, 15.0, 2.0, 0.0, 0.65),
+    ("cruise", 15.0, 17.0, 0.0, 0.0, 0.7),
+    ("climbing_turn", 25.0, 15.0, 1.0, 2.0, 0.85),
+    ("glide", 25.0, 13.0, 0.0, -2.5, 0.15),
+    ("circles", 40.0, 15.0, -2.0, 0.0, 0.6),
+    ("cruise", 20.0, 16.0, 0.0, 0.0, 0.55),
+    ("approach", 40.0, 13.0, 0.0, -2.0, 0.3),
+    ("rollout", 8.0, 0.0, 0.0, 0.0, 0.0),
+    ("ground_off", 4.0, 0.0, 0.0, 0.0, 0.0),
+)
+PLANE_INCIDENCE_RAD = 0.06  # pitch = flight-path angle + incidence in flight
+
+
+def _ordinary_fixedwing(duration_s: float, dt_s: float, rng: np.random.Generator) -> Motion:
+    """Ordinary plane flight (ORDINARY_PLANE_PLAN), scaled to ``duration_s`` like the multirotor one (full
+    turns kept, speeds and climb rates kept). Coordinated turns, roll = atan(V psi_dot / g); pitch =
+    flight-path angle + incidence; throttle per phase plus a small seeded gust component; level on the
+    ground. Ends on the ground, stopped, at the take-off altitude."""
+    nominal = sum(row[1] for row in ORDINARY_PLANE_PLAN)
+    scale = duration_s / nominal
+    n = max(2, round(duration_s / dt_s))
+    names = tuple(dict.fromkeys(row[0] for row in ORDINARY_PLANE_PLAN))
+    durs = np.array([row[1] for row in ORDINARY_PLANE_PLAN]) * scale
+    edges = np.round(np.concatenate([[0.0], np.cumsum(durs)]) / dt_s).astype(np.int64)
+    edges[-1] = n
+    v = np.zeros(n)
+    yaw_rate = np.zeros(n)
+    climb = np.zeros(n)
+    thr = np.zeros(n)
+    seg = np.zeros(n, dtype=np.int64)
+    ground = np.zeros(n, dtype=bool)
+    for (name, _, speed, turns, vz, throttle), a, b in zip(
+        ORDINARY_PLANE_PLAN, edges[:-1], edges[1:], strict=True
+    ):
+        if b <= a:
+            continue
+        seg[a:b] = names.index(name)
+        v[a:b] = speed
+        climb[a:b] = vz
+        thr[a:b] = throttle
+        if turns:
+            k = math.copysign(max(1.0, round(abs(turns) * scale)), turns)
+            yaw_rate[a:b] = 2.0 * math.pi * k / ((b - a) * dt_s)
+        ground[a:b] = name in ("ground_off", "takeoff_roll", "rollout")
+    off = seg == names.index("ground_off")
+    v = _smooth(v, dt_s, 4.0)
+    v[off] = 0.0  # standing, motor off
+    v = _smooth(v, dt_s, 0.5)
+    near_ground = np.convolve(ground.astype(float), np.ones(2 * round(1.0 / dt_s) + 1), mode="same") > 0
+    climb[near_ground] = 0.0
+    climb = _smooth(climb, dt_s, 2.0)
+    climb[ground] = 0.0
+    desc = climb < 0.0
+    alt = np.cumsum(climb) * dt_s
+    if desc.any() and alt[-1] != 0.0:
+        climb[desc] -= alt[-1] / (desc.sum() * dt_s)
+        alt = np.maximum(np.cumsum(climb) * dt_s, 0.0)
+    psi_dot = _smooth(yaw_rate, dt_s, 2.0)
+    psi_dot[ground] = 0.0
+    yaw = math.radians(-30.0) + np.cumsum(psi_dot) * dt_s
+    gust = _smooth(rng.normal(0.0, 1.0, n), dt_s, 1.0)
+    gust *= 0.02 / max(float(np.std(gust)), 1e-12)
+    thr = np.clip(_smooth(thr, dt_s, 0.6) + np.where(ground, 0.0, np.clip(gust, -0.04, 0.04)), 0.0, 1.0)
+    thr[off] = 0.0
+    gamma = np.arcsin(np.clip(climb / np.maximum(v, 1.0), -0.5, 0.5))
+    roll = np.where(ground, 0.0, np.arctan(v * psi_dot / STANDARD_GRAVITY_M_S2))
+    airborne_weight = _smooth((~ground).astype(float), dt_s, 1.0)
+    pitch = (gamma + PLANE_INCIDENCE_RAD) * airborne_weight
+    vel = v[:, None] * np.stack([np.cos(gamma) * np.cos(yaw), np.cos(gamma) * np.sin(yaw), -np.sin(gamma)], 1)
+    motion = _finish_path(dt_s, roll, pitch, yaw, vel, alt, thr, v, "fixedwing")
+    return dataclasses.replace(motion, segment=seg, segment_names=names)

@@ -100,8 +100,9 @@ def test_unusable_file_one_line_error_nonzero_exit(tmp_path: Path, kind: str) ->
 # ------------------------------------------------------------------------------------- damage in a log
 
 
-def test_garbage_bytes_between_packets_are_skipped_and_change_nothing(clean: tuple[Path, list[bytes]],
-                                                                      tmp_path: Path) -> None:
+def test_garbage_bytes_between_packets_are_skipped_and_change_nothing(
+    clean: tuple[Path, list[bytes]], tmp_path: Path
+) -> None:
     _, recs = clean
     base, _ = replay_records(tmp_path, "a.tlog", recs)
     rng = np.random.default_rng(5)
@@ -164,8 +165,9 @@ def test_gap_resets_the_observer_and_headings_continue(
     assert all(math.isfinite(e.heading_deg) for e in got)
 
 
-def test_no_throttle_source_headings_flow_flagged_uncorrected(clean: tuple[Path, list[bytes]],
-                                                              tmp_path: Path) -> None:
+def test_no_throttle_source_headings_flow_flagged_uncorrected(
+    clean: tuple[Path, list[bytes]], tmp_path: Path
+) -> None:
     _, recs = clean
     keep = [r for r in recs if msg_id(r) not in (SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD)]
     p = tmp_path / "nothr.tlog"

@@ -41,7 +41,13 @@ def _scenario(rng: np.random.Generator, sweep: bool) -> dict[str, np.ndarray]:
     gyro = omega + 0.002 * rng.standard_normal(omega.shape)
     euler = np.array([euler_from_quat(qi) for qi in q])
     return {
-        "t": t, "field": field, "accel": accel, "gyro": gyro, "euler": euler, "omega": omega, "thr": throttle,
+        "t": t,
+        "field": field,
+        "accel": accel,
+        "gyro": gyro,
+        "euler": euler,
+        "omega": omega,
+        "thr": throttle,
     }
 
 
@@ -54,8 +60,14 @@ def _write_tlog(path: Path, s: dict[str, np.ndarray]) -> None:
     for i, t in enumerate(s["t"]):
         us = round(t * 1e6) + BOOT_OFFSET_US
         f, a, g = s["field"][i], s["accel"][i] / G * 1000.0, s["gyro"][i] * 1000.0
-        events.append((t, apm.MAVLink_raw_imu_message(
-            us, *[round(x) for x in a], *[round(x) for x in g], *[round(x) for x in f], 0, 0)))
+        events.append(
+            (
+                t,
+                apm.MAVLink_raw_imu_message(
+                    us, *[round(x) for x in a], *[round(x) for x in g], *[round(x) for x in f], 0, 0
+                ),
+            )
+        )
         if i % 2 == 0:
             e, w = s["euler"][i], s["omega"][i]
             events.append((t, apm.MAVLink_attitude_message(us // 1000, *e, *w)))

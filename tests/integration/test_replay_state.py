@@ -45,8 +45,9 @@ def logs(
     return whole, tail, result
 
 
-def test_state_survives_restart_and_corrects_from_the_first_sample(logs: tuple[Path, Path, object],
-                                                                   tmp_path: Path) -> None:
+def test_state_survives_restart_and_corrects_from_the_first_sample(
+    logs: tuple[Path, Path, object], tmp_path: Path
+) -> None:
     whole, tail, result = logs
     first = replay_log(whole, cfg(), store=StateStore(tmp_path))
     assert {c["calibration"]["source"] for c in first.summary["compasses"]} == {"learned"}

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import socket
 import threading
@@ -261,3 +262,151 @@ def test_live_link_plays_the_stream_and_records_what_comes_back() -> None:
     assert len(got) == report.sent
     assert report.received.get("HEARTBEAT", 0) >= 1
     assert report.wall_s < 10.0 * 3.0 / 20.0 + 2.0  # paced, not real time
+
+
+# --- ordinary flight and variation knobs (issues 9 and 10) ------------------------------------------------
+
+
+def ordinary_tlog(
+    tmp: Path, settings: list[str], duration_s: float = 20.0, seed: int = 2
+) -> tuple[SimResult, Path, dict[str, list[Any]]]:
+    from magcomp.sim.config import apply_settings
+
+    cfg = apply_settings(SimConfig(scenario="ordinary", duration_s=duration_s, seed=seed), settings)
+    result = simulate(cfg)
+    path = tmp / "ordinary.tlog"
+    write_tlog(result, path)
+    write_truth(result, path)
+    return result, path, decode(path)
+
+
+def message_rate_hz(msgs: list[Any]) -> float:
+    t = np.array(
+        [m.time_usec * 1e-6 if hasattr(m, "time_usec") else m.time_boot_ms * 1e-3 for m in msgs], dtype=float
+    )
+    return (len(t) - 1) / (t[-1] - t[0])
+
+
+@pytest.mark.parametrize(
+    ("settings", "expected"),
+    [
+        (["telemetry_hz=1"], {"RAW_IMU": 1.0, "SCALED_IMU2": 1.0, "ATTITUDE": 1.0, "mag": 1.0}),
+        (["telemetry_hz=10"], {"RAW_IMU": 10.0, "ATTITUDE": 10.0, "mag": 10.0}),
+        ([], {"RAW_IMU": 50.0, "ATTITUDE": 25.0, "mag": 50.0}),
+        (["raw_imu_hz=50", "mag_hz=10", "attitude_hz=1"], {"RAW_IMU": 50.0, "ATTITUDE": 1.0, "mag": 10.0}),
+        (["raw_imu_hz=1", "attitude_hz=50"], {"RAW_IMU": 1.0, "ATTITUDE": 50.0, "mag": 1.0}),
+        (
+            ["mag_hz=100", "raw_imu_hz=100", "attitude_hz=10"],
+            {"RAW_IMU": 100.0, "ATTITUDE": 10.0, "mag": 100.0},
+        ),
+        (
+            ["raw_imu_hz=3", "attitude_hz=7", "gps_hz=2"],
+            {"RAW_IMU": 3.0, "ATTITUDE": 7.0, "GPS_RAW_INT": 2.0},
+        ),
+    ],
+)
+def test_telemetry_rates_are_what_was_asked(
+    tmp_path: Path, settings: list[str], expected: dict[str, float]
+) -> None:
+    _, _, msgs = ordinary_tlog(tmp_path, settings)
+    for name, rate in expected.items():
+        if name == "mag":  # distinct compass values inside RAW_IMU (a held value repeats)
+            raw = msgs["RAW_IMU"]
+            mag = mag_of(raw)
+            changes = np.any(np.diff(mag, axis=0) != 0, axis=1)
+            t = np.array([m.time_usec for m in raw]) * 1e-6
+            got = (changes.sum()) / (t[-1] - t[0])
+        else:
+            got = message_rate_hz(msgs[name])
+        assert got == pytest.approx(rate, rel=0.05), name
+
+
+def test_ordinary_tlog_gps_position_time_and_wmm_field(tmp_path: Path) -> None:
+    from magcomp.geomag import decimal_year, earth_field_ned_mgauss
+
+    lat0, lon0, alt0, year = -33.87, 151.21, 40.0, 2027.25
+    settings = [f"lat_deg={lat0}", f"lon_deg={lon0}", f"alt_m={alt0}", f"decimal_year={year}"]
+    result, path, msgs = ordinary_tlog(tmp_path, settings, duration_s=60.0)
+    gps = msgs["GPS_RAW_INT"]
+    pos = msgs["GLOBAL_POSITION_INT"]
+    assert {m.fix_type for m in gps} == {3}
+    lat = np.array([m.lat for m in gps]) * 1e-7
+    lon = np.array([m.lon for m in gps]) * 1e-7
+    alt = np.array([m.alt for m in gps]) * 1e-3
+    assert np.abs(lat - lat0).max() < 0.01 and np.abs(lon - lon0).max() < 0.01  # within ~1 km
+    rel = np.array([m.relative_alt for m in pos]) * 1e-3
+    np.testing.assert_allclose(alt - alt0, rel, atol=2e-3)
+    assert rel.min() > -0.05 and rel.max() > 10.0 and abs(rel[-1]) < 0.05  # took off and landed
+    # successive fixes move as the reported velocity says (NED, cm/s)
+    t = np.array([m.time_boot_ms for m in pos]) * 1e-3
+    north = np.radians(lat - lat0) * 6_378_137.0
+    vn = np.array([m.vx for m in pos]) * 1e-2
+    np.testing.assert_allclose(np.diff(north), 0.5 * (vn[1:] + vn[:-1]) * np.diff(t), atol=0.05)
+    # SYSTEM_TIME: UTC at the configured date, a fixed offset from the boot clock
+    st = msgs["SYSTEM_TIME"]
+    offsets = np.array([m.time_unix_usec * 1e-6 - m.time_boot_ms * 1e-3 for m in st])
+    assert np.ptp(offsets) < 2e-3
+    when = _dt.datetime.fromtimestamp(st[0].time_unix_usec * 1e-6, tz=_dt.UTC)
+    assert decimal_year(when) == pytest.approx(year, abs=1.0 / 365.0)
+    # the simulated Earth field is the WMM at the position and date the log itself carries
+    wmm = earth_field_ned_mgauss(float(lat[0]), float(lon[0]), float(alt[0]), decimal_year(when))
+    truth = json.loads(truth_paths(path)[0].read_text())
+    np.testing.assert_allclose(truth["earth_field_ned_mgauss"], wmm, atol=1.0)
+    np.testing.assert_allclose(result.earth_field_ned_mgauss, wmm, atol=1.0)
+
+
+def test_ordinary_tlog_carries_the_autopilot_calibration_and_truth_maps_it_back(tmp_path: Path) -> None:
+    settings = [
+        "mag_noise_scale=0",
+        "mag_lsb_mgauss=0.01",
+        "ap_cal_hard_iron_mgauss=25",
+        "ap_cal_soft_iron=0.03",
+    ]
+    settings.append("n_compasses=3")
+    _, path, msgs = ordinary_tlog(tmp_path, settings)
+    params = {m.param_id: m.param_value for m in msgs["PARAM_VALUE"]}
+    assert params["COMPASS_MOTCT"] == 0.0 and params["COMPASS_PRIMARY"] == 0.0
+    truth = json.loads(truth_paths(path)[0].read_text())
+    arrays = np.load(truth_paths(path)[1])
+    raw_t = np.array([m.time_usec for m in msgs["RAW_IMU"]]) * 1e-6
+    rows = np.searchsorted(arrays["t_s"], raw_t - 1e-7)
+    for j, (name, suffix) in enumerate((("RAW_IMU", ""), ("SCALED_IMU2", "2"), ("SCALED_IMU3", "3"))):
+        ofs = np.array([params[f"COMPASS_OFS{suffix}_{ax}"] for ax in "XYZ"])
+        dia = [params[f"COMPASS_DIA{suffix}_{ax}"] for ax in "XYZ"]
+        odi = [params[f"COMPASS_ODI{suffix}_{ax}"] for ax in "XYZ"]
+        a = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+        logged = mag_of(msgs[name])
+        raw = arrays["mag_sensor_mgauss"][j][rows]
+        # ArduPilot's correction: field = A (raw + OFS), then whole mgauss on the link
+        np.testing.assert_allclose(logged, (raw + ofs) @ a.T, atol=0.5 + 1e-3)
+        frame = truth["compasses"][j]["logged_frame"]
+        body = logged @ np.array(frame["L"]).T - np.array(frame["d_mgauss"])
+        field = arrays["field_earth_b_mgauss"][rows] + arrays["bias_mgauss"][j][rows]
+        assert np.abs(body - field).max() < 1.5  # 1 mgauss rounding through L
+        assert np.linalg.norm(frame["autopilot"]["residual_hard_iron_mgauss"]) == pytest.approx(25.0)
+    yaw_err = arrays["autopilot_yaw_error_deg"]
+    att = np.array([m.yaw for m in msgs["ATTITUDE"]])
+    assert np.abs(yaw_err).max() < 30.0 and att.size > 0
+
+
+def test_pre_knob_outputs_are_unchanged(tmp_path: Path) -> None:
+    """The shipped sample logs (scripts/make_replay_logs.py) regenerate byte for byte: the knobs at their
+    defaults change nothing in the existing scenarios."""
+    root = Path(__file__).resolve().parents[2] / "replay_logs"
+    if not (root / "bench_clean.tlog").exists():
+        pytest.skip("replay_logs/ not in this checkout")
+    for stem, cfg in (
+        ("bench_clean", SimConfig(scenario="bench", vehicle="fixedwing", duration_s=40.0, seed=1)),
+        (
+            "flight_multirotor_clean",
+            SimConfig(scenario="flight", vehicle="multirotor", duration_s=45.0, seed=2),
+        ),
+    ):
+        assert cfg.legacy
+        result = simulate(cfg)
+        path = tmp_path / f"{stem}.tlog"
+        write_tlog(result, path)
+        write_truth(result, path, single_precision=True)
+        assert path.read_bytes() == (root / f"{stem}.tlog").read_bytes(), stem
+        json_path = truth_paths(path)[0]
+        assert json_path.read_text() == (root / json_path.name).read_text(), stem

@@ -102,8 +102,10 @@ def test_offline_fit_snr_all_axes_within_1db_of_table2_on_a_long_bench_run() -> 
     # so even the z row's -17.0 dB is determined by the data and must come back within 1 dB.
     rng = np.random.default_rng(11)
     delta = np.tile(_table2_sweep(), 200)
-    field = np.array([210.0, -35.0, 400.0]) + np.outer(delta**2, THETA) + SIGMA * rng.standard_normal(
-        (len(delta), 3)
+    field = (
+        np.array([210.0, -35.0, 400.0])
+        + np.outer(delta**2, THETA)
+        + SIGMA * rng.standard_normal((len(delta), 3))
     )
     fit = fit_bias_offline(delta, field, rng=np.random.default_rng(2), n_monte_carlo=20)
     np.testing.assert_allclose(fit.snr_db, SNR_TABLE, atol=1.0)

@@ -19,8 +19,11 @@ def _stream(rng: np.random.Generator, n: int, irregular: bool) -> tuple[np.ndarr
     theta = np.array([-61.0, 26.4, -8.0])
     b_ned = np.array([240.0, -20.0, 420.0])
     q = quat_from_euler(0.2, -0.1, 1.0)
-    t = np.cumsum(rng.choice([0.02, 0.04, 0.3, 0.0005], size=n, p=[0.85, 0.1, 0.03, 0.02])) if irregular \
+    t = (
+        np.cumsum(rng.choice([0.02, 0.04, 0.3, 0.0005], size=n, p=[0.85, 0.1, 0.03, 0.02]))
+        if irregular
         else np.arange(n) * 0.02
+    )
     f = rng.uniform(0.2, 0.8, (3, 2))
     gyro, field, thr, acc = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n), np.zeros((n, 3))
     for k in range(n):

@@ -25,7 +25,11 @@ from magcomp.core.types import ImuSample
 
 
 def _rotating_vehicle(
-    rng: np.random.Generator, duration_s: float, rate_hz: float, bias_b: np.ndarray, gyro_noise: float,
+    rng: np.random.Generator,
+    duration_s: float,
+    rate_hz: float,
+    bias_b: np.ndarray,
+    gyro_noise: float,
     accel_noise: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Hand-rotation-like motion: smooth body rates on all axes. Returns t, q_true, gyro, accel."""

@@ -63,8 +63,13 @@ def earth_field_b(euler: np.ndarray) -> np.ndarray:
 
 
 def scenario(
-    fs_hz: float, t_end_s: float, theta: np.ndarray = THETA, pure_yaw: bool = False,
-    throttle: Callable[[np.ndarray], np.ndarray] | None = None, noise_mgauss: float = 0.0, seed: int = 0,
+    fs_hz: float,
+    t_end_s: float,
+    theta: np.ndarray = THETA,
+    pure_yaw: bool = False,
+    throttle: Callable[[np.ndarray], np.ndarray] | None = None,
+    noise_mgauss: float = 0.0,
+    seed: int = 0,
 ) -> dict[str, np.ndarray]:
     t = np.arange(0.0, t_end_s, 1.0 / fs_hz)
     eul, w = hand_rotation(t, pure_yaw)
@@ -75,7 +80,9 @@ def scenario(
 
 
 def run(
-    p: ObserverParams, sc: dict[str, np.ndarray], theta: np.ndarray = THETA,
+    p: ObserverParams,
+    sc: dict[str, np.ndarray],
+    theta: np.ndarray = THETA,
     state: ObserverState | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[StepInfo]]:
     """theta_hat (n, 3), V of eq. (23) against the noise-free truth (n,), step infos."""
@@ -172,8 +179,9 @@ def test_discrete_step_matches_continuous_eq20_at_fine_dt(variant: str) -> None:
     t_end, dt = 3.0, 1e-3
     ts = np.arange(0.0, t_end + dt / 2, dt)
     x0 = np.concatenate([u(0.0)[3], np.zeros(3)])
-    ref = solve_ivp(lambda t, x: observer_rhs(t, x, u(t), p), (0.0, t_end), x0, t_eval=ts, rtol=1e-10,
-                    atol=1e-8)
+    ref = solve_ivp(
+        lambda t, x: observer_rhs(t, x, u(t), p), (0.0, t_end), x0, t_eval=ts, rtol=1e-10, atol=1e-8
+    )
     st = observer_init(p)
     th = np.zeros((len(ts), 3))
     for k, t in enumerate(ts):
@@ -368,8 +376,12 @@ def _warm_state(p: ObserverParams) -> ObserverState:
 
 def test_non_finite_input_leaves_state_unchanged_and_flags() -> None:
     st = _warm_state(DEFAULT)
-    for args in (([np.nan, 0, 0], [1.0, 2, 3], 0.5, 0.02), ([0, 0, 0], [1.0, np.inf, 3], 0.5, 0.02),
-                 ([0, 0, 0], [1.0, 2, 3], float("nan"), 0.02), ([0, 0, 0], [1.0, 2, 3], 0.5, float("nan"))):
+    for args in (
+        ([np.nan, 0, 0], [1.0, 2, 3], 0.5, 0.02),
+        ([0, 0, 0], [1.0, np.inf, 3], 0.5, 0.02),
+        ([0, 0, 0], [1.0, 2, 3], float("nan"), 0.02),
+        ([0, 0, 0], [1.0, 2, 3], 0.5, float("nan")),
+    ):
         new, info = observer_step(st, args[0], args[1], args[2], args[3], DEFAULT)
         assert new is st
         assert info.status == "non_finite" and info.flags & FLAG_INPUTS_STALE
@@ -410,8 +422,16 @@ def test_theta_is_clipped_to_theta_max_and_flagged(scheme: str) -> None:
 
 @pytest.mark.parametrize(
     "kwargs",
-    [{"k2": 0.0}, {"k1_1_s": -1.0}, {"scheme": "kalman"}, {"variant": "x"}, {"scheme": "observer"},
-     {"dt_min_s": 0.3}, {"forget_s": 0.0}, {"rate_interp": "cubic"}],
+    [
+        {"k2": 0.0},
+        {"k1_1_s": -1.0},
+        {"scheme": "kalman"},
+        {"variant": "x"},
+        {"scheme": "observer"},
+        {"dt_min_s": 0.3},
+        {"forget_s": 0.0},
+        {"rate_interp": "cubic"},
+    ],
 )
 def test_invalid_params_raise_input_error(kwargs: dict[str, object]) -> None:
     with pytest.raises(InputError):
