@@ -5,7 +5,9 @@ and retried every ``link.reconnect_s``; silence on the master is logged once per
 :class:`~magcomp.service.pipeline.Pipeline` object lives across reconnects, so calibration and theta
 carry over (and a rebooted autopilot's clock reset is absorbed by the pipeline). State is saved on the
 way out. A housekeeping thread sends a companion HEARTBEAT (``link.heartbeat_hz``), watches for
-silence and ends the run on :meth:`Daemon.stop`, so signal handlers only have to call ``stop()``.
+silence and ends the run on :meth:`Daemon.stop`. Signal handlers call :meth:`Daemon.request_stop`, which
+only sets a flag (no lock, no I/O: a handler runs between two bytecodes of the main thread, possibly
+inside a lock that thread holds); the housekeeping thread turns the flag into :meth:`stop`.
 
 Latency: for every estimate the time from the moment its magnetometer sample left the source (i.e.
 was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recorded
@@ -189,6 +191,7 @@ class Daemon:
         self.link_losses = 0
         self.source_counts: dict[str, int] = {}
         self._stop = threading.Event()
+        self._stop_requested = False  # set by signal handlers (request_stop), read by housekeeping
         self._lock = threading.Lock()  # one encoder (sequence numbers) and sinks shared with housekeeping
         self._source: Any = None
         self._sinks: list[LinkSink] = []
@@ -205,6 +208,12 @@ class Daemon:
         src = self._source
         if src is not None:
             src.close()
+
+    def request_stop(self) -> None:
+        """Ask the run to end from a signal handler: sets a flag and nothing else (async-signal-safe, so a
+        second signal while the first is being handled cannot deadlock); :meth:`run` returns within about
+        a second."""
+        self._stop_requested = True
 
     @property
     def stopped(self) -> bool:
@@ -250,6 +259,9 @@ class Daemon:
         hb_period = 1.0 / self.cfg.link.heartbeat_hz if self.cfg.link.heartbeat_hz > 0 else 0.0
         next_hb = time.monotonic()
         while not self._stop.wait(0.05):
+            if self._stop_requested:
+                self.stop()
+                break
             now = time.monotonic()
             if hb_period and now >= next_hb:
                 next_hb = now + hb_period

@@ -4,6 +4,7 @@ as the machine goes."""
 from __future__ import annotations
 
 import gc
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,6 +17,8 @@ from magcomp.adapters.state_store import StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, TlogWriter
+
+log = logging.getLogger("magcomp.replay")
 
 #: samples decoded per batch of the replay loop
 REPLAY_BATCH = 256
@@ -72,6 +75,7 @@ def replay_log(
     keep_estimates: bool = False,
     on_estimate: Callable[[HeadingEstimate], None] | None = None,
     on_text: Callable[[float, str], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> ReplayReport:
     """Run ``path`` (tlog, raw MAVLink, DataFlash .bin/.log) through the pipeline.
 
@@ -79,13 +83,15 @@ def replay_log(
     (for tests and the batch viewer). Raises :class:`~magcomp.errors.InputError` for unreadable, empty
     or non-MAVLink files; damaged parts of a readable log are skipped and counted. A ^C
     (KeyboardInterrupt) ends the replay early but keeps what was done: the state is saved, the ``emit``
-    file closed, and the report (``interrupted=True``) covers the log up to the last sample.
+    file closed, and the report (``interrupted=True``) covers the log up to the last sample. So does
+    ``should_stop`` returning True (checked once per batch of samples; e.g. a flag a signal handler sets).
     """
     from magcomp.adapters.mavlink_source import open_source
 
     t_wall = time.perf_counter()
     source = open_source(path, throttle_source=source_throttle(cfg))
     pipeline = Pipeline(cfg, store=store, on_text=on_text)
+    log.debug("replaying %s", path)
     writer = TlogWriter(emit) if emit is not None else None
     encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component) if writer else None
     kept: list[HeadingEstimate] = []
@@ -106,6 +112,9 @@ def replay_log(
         # each sample as it is decoded (the source never depends on the pipeline), 3-4 % less wall time
         # (each half of the loop runs on warm caches)
         while batch := list(islice(samples, REPLAY_BATCH)):
+            if should_stop is not None and should_stop():
+                interrupted = True
+                break
             for sample in batch:
                 if not feed(sample):
                     continue
