@@ -219,6 +219,11 @@ def execute(args: argparse.Namespace) -> int:
     inputs = (args.log, args.truth)
     check_output_path(args.json, "--json", inputs)
     check_output_path(args.report, "--report", inputs, makes_parents=True)
+    if args.report:
+        import importlib.util
+
+        if importlib.util.find_spec("matplotlib") is None:  # a core dependency, unless removed by hand
+            raise InputError("--report needs matplotlib for its plots: pip install matplotlib")
     check_distinct_outputs(json=args.json, report=args.report)
     if args.rerun:
         from magcomp.adapters.rerun_viz import parse_mode
