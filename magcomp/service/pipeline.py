@@ -55,6 +55,7 @@ from magcomp.core.types import (
     FLAG_THETA_CONVERGED,
     FLAG_Z_UNOBSERVABLE,
     AttitudeSample,
+    ClockResetSample,
     HeadingEstimate,
     HeartbeatSample,
     ImuSample,
@@ -200,6 +201,19 @@ class CompassCorrector:
         return self.calib_l is not None
 
     @property
+    def n_collected(self) -> int:
+        return self._cal_n
+
+    def fit_now(self) -> bool:
+        """Fit (eq. (3)) on the pairs collected so far; True when the fit was adopted."""
+        return self._cal_n > 0 and self._fit(refine=False)
+
+    def restart_collection(self) -> None:
+        """Drop the calibration pairs collected so far (they belong to another boot)."""
+        self._cal_n = 0
+        self._cal_next_check = self.cfg.calibration.min_samples
+
+    @property
     def collecting(self) -> bool:
         """True while (down, field) pairs are gathered: learning enabled, not frozen, room left."""
         return self._collecting and self._cal_n < self._cal_down.shape[0]
@@ -333,6 +347,7 @@ class Pipeline:
             "gyro_gated": 0,
             "time_backwards": 0,
             "clock_resets": 0,
+            "reboots": 0,
             "gaps": 0,
             "observer_resets": 0,
             "throttle_jumps": 0,
@@ -355,6 +370,7 @@ class Pipeline:
         self._gyro_raw_t = -math.inf
         self._gyro_bad_until = -math.inf
         self._imu_restart = False
+        self._boot_offset_s = 0.0  # t_s - the autopilot's own clock (changes at each reboot)
         self._att_t: float | None = None
         self._att_roll = 0.0
         self._att_pitch = 0.0
@@ -437,6 +453,8 @@ class Pipeline:
                 g, a = sample.gyro_b_rad_s, sample.accel_b_m_s2
                 self._on_imu(sample.t_s, float(g[0]), float(g[1]), float(g[2]),
                              float(a[0]), float(a[1]), float(a[2]))  # fmt: skip
+        elif kind is ClockResetSample:
+            self._on_reboot(sample)  # type: ignore[arg-type]
         elif kind is HeartbeatSample and self.system_id is None:
             self.system_id = int(sample.system_id)  # type: ignore[union-attr]
         return False
@@ -459,6 +477,7 @@ class Pipeline:
             field_cal_mgauss=np.array(corrected, dtype=float),
             residual_norm_mgauss=float("nan") if info is None else info.residual_norm_mgauss,
             excitation=float("nan") if info is None else info.excitation,
+            t_boot_s=t - self._boot_offset_s,
         )
 
     def _on_throttle(self, s: ThrottleSample) -> None:
@@ -582,6 +601,32 @@ class Pipeline:
         self._imu_t = t
         self._gyro = [gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2])]
 
+    def _on_reboot(self, s: ClockResetSample) -> None:
+        """The autopilot rebooted (issue 12): data of two boots never meet in one calibration or one
+        filter. A calibration window with a learned calibration ends here (its final fit uses this
+        boot's pairs only); one without drops the old boot's pairs and starts again. The observers'
+        filters, the heading filters, the attitude and the throttle history restart (theta kept)."""
+        self.counts["reboots"] += 1
+        self._boot_offset_s = s.offset_s
+        self._imu_restart = True
+        self._att_cache = None
+        self._thr_t = self._thr_prev_t = None
+        for c in self.correctors.values():
+            if c.collecting:
+                learned = c.calibration is not None and c.calibration.source == "learned"
+                if not learned and c.n_collected >= self.cfg.calibration.min_samples:
+                    learned = c.fit_now()  # the old boot's pairs on their own, if the DPI fit accepts them
+                if learned:
+                    c.freeze_calibration()
+                else:
+                    c.restart_collection()
+            c.queue_reset()
+            self.counts["observer_resets"] += 1
+            c.hdg_filter.reset()
+            c.hdg_raw_filter.reset()
+        self._text(s.t_s, "autopilot rebooted (its clock restarted): calibration window closed, filters "
+                          "restarted", warning=self.counts["reboots"] == 1)  # fmt: skip
+
     def _gate_gyro(self, t: float) -> None:
         """A saturated or jumping gyro sample at ``t``: gyro and attitude untrusted until GYRO_HOLDOFF_S
         after it; at the start of a bad spell the observers' filters are reset (theta kept)."""
@@ -686,10 +731,11 @@ class Pipeline:
         # ---- attitude and gyro
         down, cr, sr, cp, sp = self._attitude()
         gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self._stale_s
-        if t <= self._gyro_bad_until or self._imu_restart:  # the gyro gate: no observer, no calibration
+        if t <= self._gyro_bad_until:  # the gyro gate: no observer, no calibration
             gyro_fresh = False
             flags |= FLAG_SATURATED
-        elif not gyro_fresh:
+        elif self._imu_restart or not gyro_fresh:  # (restart: after a gyro gate or a reboot)
+            gyro_fresh = False
             flags |= FLAG_INPUTS_STALE
         # ---- calibration, eqs. (1)-(3)
         if c.collecting:
