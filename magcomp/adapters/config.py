@@ -43,7 +43,10 @@ class InputConfig:
     compasses: tuple[int, ...] = ()
     attitude: str = "auto"
     saturation_mgauss: float = 8000.0
-    gyro_saturation_rad_s: float = 34.0
+    # below the largest rate RAW_IMU / SCALED_IMU* can carry (int16 mrad/s: 32.767 rad/s), so a value
+    # clipped at the message's integer limit reads as saturated; also below the 2000 deg/s (34.9 rad/s)
+    # range of the usual MEMS gyros, where DataFlash IMU values clip
+    gyro_saturation_rad_s: float = 32.7
     stale_s: float = 0.5
     time_reset_s: float = 1.0
 

@@ -18,9 +18,11 @@ Units at this boundary (everything downstream uses them):
   motors actually disturbed.
 - Time: the message's own timestamp (time_boot_ms, time_usec, DataFlash TimeUS / TimeMS) in s. Messages
   without one (VFR_HUD, SYS_STATUS, BATTERY_STATUS, HEARTBEAT, PARAM_VALUE) get the latest time seen. A
-  jump back of more than ``RESET_JUMP_S`` is a reboot of the autopilot: an offset keeps ``t_s`` monotonic
-  and ``counts["clock_resets"]`` counts them. Smaller steps back within one message stream are dropped
-  (``counts["time_backwards"]``).
+  jump back of more than ``RESET_JUMP_S`` is a reboot of the autopilot: an offset keeps ``t_s`` monotonic,
+  ``counts["clock_resets"]`` counts them and ``samples()`` yields a ClockResetSample (the pipeline ends its
+  calibration window and filters there). A jump either way is believed only once the next timestamp
+  confirms it; a lone corrupt timestamp is dropped (``counts["time_jumps"]``). Smaller steps back within
+  one message stream are dropped (``counts["time_backwards"]``).
 - Bad input is skipped and counted, never fatal: ``bad_crc``, ``garbage_bytes``, ``truncated``,
   ``nonfinite``. A file with no usable message at all is an :class:`~magcomp.errors.InputError`.
 
@@ -65,6 +67,7 @@ from magcomp.adapters.throttle import (
 )
 from magcomp.core.types import (
     AttitudeSample,
+    ClockResetSample,
     HeartbeatSample,
     ImuSample,
     LogData,
@@ -176,24 +179,39 @@ class _Clock:
         self.max_raw_s: float | None = None
         self.last_by_stream: dict[str, float] = {}
         self.last_t_s = 0.0
+        self.pending_s: float | None = None  # a jumped timestamp waiting for a second one to confirm it
+        self.reboot_pending = False  # a reboot was detected; MavSource.samples() yields the event
 
     def stamp(self, stream: str, raw_s: float) -> float | None:
         if not math.isfinite(raw_s):
             self.counts["nonfinite"] += 1
             return None
-        if self.max_raw_s is None:
+        top = self.max_raw_s
+        if top is None:
             self.max_raw_s = raw_s
-        elif raw_s < self.max_raw_s - RESET_JUMP_S:
-            self.offset_s += self.max_raw_s - raw_s
+        elif raw_s < top - RESET_JUMP_S or raw_s > top + RESET_JUMP_S:
+            # a jump of the clock: believed only when the next timestamp (of any message) agrees with
+            # it, so that one corrupt timestamp cannot shift or stretch everything after it
+            pend = self.pending_s
+            if pend is None or abs(raw_s - pend) > RESET_JUMP_S:
+                self.pending_s = raw_s
+                self.counts["time_jumps"] += 1
+                return None
+            self.pending_s = None
+            self.counts["time_jumps"] -= 1  # confirmed: not a glitch
+            if raw_s < top:  # a reboot of the autopilot: an event for the pipeline (reboot_pending)
+                self.offset_s += top - raw_s
+                self.counts["clock_resets"] += 1
+                self.reboot_pending = True
             self.max_raw_s = raw_s
             self.last_by_stream = {}
-            self.counts["clock_resets"] += 1
         else:
+            self.pending_s = None  # this timestamp agrees with the clock: a pending jump was a glitch
             prev = self.last_by_stream.get(stream)
             if prev is not None and raw_s < prev:
                 self.counts["time_backwards"] += 1
                 return None
-            if raw_s > self.max_raw_s:
+            if raw_s > top:
                 self.max_raw_s = raw_s
         self.last_by_stream[stream] = raw_s
         t_s = raw_s + self.offset_s
@@ -1169,8 +1187,13 @@ class MavSource:
         resolved: ResolvedThrottle | None = None
         stale = True
         params = self.params
+        clock = self._conv.clock
         for handler, msg in self._messages():
-            for _, rec in handler(msg):
+            recs = handler(msg)
+            if clock.reboot_pending:
+                clock.reboot_pending = False
+                yield ClockResetSample(clock.last_t_s, clock.offset_s)
+            for _, rec in recs:
                 cls = type(rec)
                 if cls is PwmRecord or cls is ThrottleRecord:
                     assert isinstance(rec, PwmRecord | ThrottleRecord)  # for mypy (cheap: few per message)

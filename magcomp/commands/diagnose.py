@@ -245,6 +245,11 @@ def execute(args: argparse.Namespace) -> int:
         raise InputError(
             f"--params-out {args.params_out}: use .params (QGroundControl) or .param (Mission Planner)"
         )
+    if args.report:
+        import importlib.util
+
+        if importlib.util.find_spec("matplotlib") is None:  # a core dependency, unless removed by hand
+            raise InputError("--report needs matplotlib for its plots: pip install matplotlib")
     if args.rerun:
         from magcomp.adapters.rerun_viz import parse_mode
 

@@ -291,7 +291,7 @@ def test_reboot_keeps_time_monotonic_and_small_step_back_is_dropped(tmp_path: Pa
     w = TlogWriter()
     for t_ms in (100_000, 100_020, 100_010, 100_040):  # 100_010: a step back within the stream
         w.scaled_imu(2, t_ms, (1, 1, 1))
-    for t_ms in (500, 520):  # autopilot rebooted
+    for t_ms in (500, 520, 540):  # autopilot rebooted (the first new time is believed once confirmed)
         w.scaled_imu(2, t_ms, (1, 1, 1))
     path = w.write(tmp_path / "reboot.tlog")
     with open_source(path) as src:

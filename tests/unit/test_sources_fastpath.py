@@ -119,7 +119,8 @@ def extra_tail(f: Frames, t0_ms: int) -> list[bytes]:
             yawspeed=0.0,
         ),
         f.packet("SCALED_IMU2", **imu_fields(t0_ms, "time_boot_ms")),
-        f.packet("SCALED_IMU2", **imu_fields(t0_ms - 100, "time_boot_ms")),  # 0.1 s back: dropped
+        f.packet("SCALED_IMU2", **imu_fields(t0_ms + 20, "time_boot_ms")),  # confirms the clock's jump
+        f.packet("SCALED_IMU2", **imu_fields(t0_ms - 100, "time_boot_ms")),  # 0.12 s back: dropped
         f.packet(
             "BATTERY_STATUS",
             id=1,
@@ -216,6 +217,7 @@ def test_fast_path_equals_pymavlink_decode_on_simulated_tlog_with_every_message_
     assert len(early) == 5  # SCALED_IMU used before RAW_IMU appears
     assert fast_counts["scaled_imu_shadowed"] == 1
     assert fast_counts["nonfinite"] == 1
+    print("COUNTS", fast_counts)
     assert fast_counts["time_backwards"] == 1
     battery1 = [s for s in fast if _kind(s) == "PowerSample" and s.battery_index == 1]
     assert len(battery1) == 1
