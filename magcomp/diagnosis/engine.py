@@ -25,7 +25,8 @@ from numpy.typing import NDArray
 
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
-from magcomp.diagnosis.attitude import attitude_track
+from magcomp.diagnosis import gate as gate_mod
+from magcomp.diagnosis.attitude import attitude_track, with_yaw_reference
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, DriveInputs, drive_columns, effect_available, negligible
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model, initial_fit
@@ -74,6 +75,11 @@ class CompassDiagnosis:
     linear_note: str = ""
     excluded: list[tuple[float, float]] = field(default_factory=list)
     field_step: dict[str, Any] | None = None
+    gate: gate_mod.GateResult | None = None
+
+    @property
+    def observable(self) -> bool:
+        return self.gate is None or self.gate.observable
 
     def bias_mgauss(self, fit: ModelFit) -> F64:
         cols, _ = drive_columns(self.data.drive, fit.ext)
@@ -81,6 +87,23 @@ class CompassDiagnosis:
         return cols[:, rows] @ fit.coefs[rows]
 
     def to_json(self) -> dict[str, Any]:
+        out = self._result_json()
+        out["observable"] = self.observable
+        out["unobservable_why"] = "" if self.gate is None else self.gate.why
+        out["gate"] = {} if self.gate is None else self.gate.checks
+        if not self.observable:
+            # no theta, no findings, no autopilot parameters: a non-physical fit is not a result
+            for k in ("theta", "theta_baseline", "heading_error", "residual_step", "field_step_motors_off"):
+                out[k] = None
+            for k in ("findings", "suspects"):
+                out[k] = []
+            for k in ("rejected", "autopilot"):
+                out[k] = {}
+            out["linearisation"] = ""
+            out["heading_drift_deg_per_min"] = None
+        return out
+
+    def _result_json(self) -> dict[str, Any]:
         return {
             "index": self.index,
             "source": self.source,
@@ -144,6 +167,19 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         p = self.compass(self.primary)
         base, ext = p.baseline.rms_mgauss, p.extended.rms_mgauss
+        if not p.observable:
+            return {
+                "log": self.log_source,
+                "primary_compass": self.primary,
+                "observable": False,
+                "unobservable_why": p.gate.why if p.gate is not None else "",
+                "findings": [],
+                "residual_rms_baseline": _r(base),
+                "residual_rms_extended": _r(ext),
+                "gain": {},
+                "compasses": [c.to_json() for c in self.compasses],
+                "notes": self.notes,
+            }
         gain: dict[str, Any] = {
             "residual_rms_ratio": _r(base / ext) if ext > 0 else None,
             "residual_rms_reduction_pct": _r(100.0 * (1.0 - ext / base)) if base > 0 else None,
@@ -155,6 +191,8 @@ class Diagnosis:
         return {
             "log": self.log_source,
             "primary_compass": self.primary,
+            "observable": True,
+            "unobservable_why": "",
             "findings": [_finding_json(f) for f in p.findings],
             "residual_rms_baseline": _r(base),
             "residual_rms_extended": _r(ext),
@@ -660,23 +698,85 @@ def heading_errors(
 # whole log
 
 
+#: A compass can serve as the yaw reference of the others when its own full-throttle bias turns its heading
+#: by less than this (rad, |theta| / |field|): 0.05 rad = 2.9 deg, the paper's corrected heading error level.
+YAW_REFERENCE_MAX_REL = 0.05
+
+
+def _rel_theta(c: CompassDiagnosis) -> float:
+    return float(np.linalg.norm(c.extended.theta_mgauss)) / max(c.extended.field_strength_mgauss, 1e-9)
+
+
+def _rate_hz(t_s: F64) -> float:
+    return gate_mod.median_rate_hz(t_s)
+
+
+def apply_gate(
+    c: CompassDiagnosis,
+    log: LogData,
+    earth: gate_mod.EarthReference,
+    gp: gate_mod.GateParams | None = None,
+) -> None:
+    """Set ``c.gate`` from the fit and the log (see :mod:`magcomp.diagnosis.gate`)."""
+    fit = c.extended
+    c.gate = gate_mod.check(
+        stationary=c.data.attitude_source == "stationary",
+        r_nb=c.data.r_nb,
+        a_mgauss=fit.a_mgauss,
+        inc_rad=fit.inc_rad,
+        residual_rms_mgauss=fit.rms_mgauss,
+        residual_mgauss=fit.residual_mgauss,
+        throttle_01=c.data.throttle_01,
+        mag_t_s=c.data.t_s,
+        gyro_rate_hz=_rate_hz(log.imu_t_s),
+        attitude_rate_hz=_rate_hz(log.attitude_rad.t_s),
+        earth=earth,
+        p=gp,
+    )
+
+
+def _with_compass_yaw(c: CompassDiagnosis, ref: CompassDiagnosis) -> CompassData:
+    """``c``'s data with the autopilot's yaw replaced by the heading of compass ``ref`` (its extended fit)."""
+    yaw = np.unwrap(compass_yaw_rad(ref.data, ref.extended))
+    yaw_c = np.interp(c.data.t_s, ref.data.t_s, yaw)
+    r = with_yaw_reference(c.data.r_nb, yaw_c)
+    note = (
+        f"roll and pitch from the autopilot, yaw from compass {ref.index} (its full-throttle bias is "
+        f"{100 * _rel_theta(ref):.1f} % of the field, < {100 * YAW_REFERENCE_MAX_REL:.0f} %), because "
+        + c.data.attitude_note
+    )
+    return CompassData(
+        c.data.mag_index,
+        c.data.t_s,
+        c.data.field_mgauss,
+        r,
+        c.data.drive,
+        f"autopilot+compass{ref.index}",
+        note,
+    )
+
+
 def diagnose(
     log: LogData,
     primary: int | None = None,
     heading_reference: tuple[F64, F64] | None = None,
     events: list[tuple[float, str]] | None = None,
     p: SelectionParams | None = None,
+    earth: gate_mod.EarthReference | None = None,
+    gate_params: gate_mod.GateParams | None = None,
 ) -> Diagnosis:
     """Diagnose every compass of ``log``.
 
     heading_reference: (t_s, yaw_rad) of a trusted heading (e.g. simulated truth); without it the compass
     with the smallest fitted |theta| relative to the field serves as the reference for the others.
     events: (t_s, text) logged events, for the residual step report.
+    earth: the WMM field at the log's position and date (default: none known, Earth's surface range).
     """
     if not log.mag:
         raise InputError("the log has no magnetometer samples")
-    notes: list[str] = []
-    comps = []
+    earth = earth or gate_mod.NO_POSITION
+    notes: list[str] = [f"Earth field reference: {earth.source}"]
+    comps: list[CompassDiagnosis] = []
     for idx in sorted(log.mag):
         if idx in log.mag and len(log.mag[idx]) > 0:
             crash = crash_mask(log, log.mag[idx].t_s)
@@ -689,27 +789,43 @@ def diagnose(
         except InputError as exc:
             notes.append(f"compass {idx} skipped: {exc}")
             continue
-        comps.append(diagnose_compass(data, log.source, p, log, events))
+        cd = diagnose_compass(data, log.source, p, log, events)
+        apply_gate(cd, log, earth, gate_params)
+        comps.append(cd)
     if not comps:
         raise InputError("no compass has enough samples to diagnose")
+    # attitude from the autopilot (slow or no gyro): a compass far from the wires is the better yaw source
+    refs = [c for c in comps if c.observable and _rel_theta(c) < YAW_REFERENCE_MAX_REL]
+    for i, c in enumerate(comps):
+        if c.data.attitude_source != "autopilot":
+            continue
+        others = [o for o in refs if o.index != c.index]
+        if not others:
+            continue
+        ref = min(others, key=_rel_theta)
+        alt = diagnose_compass(_with_compass_yaw(c, ref), log.source, p, log, events)
+        apply_gate(alt, log, earth, gate_params)
+        if alt.baseline.rms_mgauss < c.baseline.rms_mgauss:
+            notes.append(
+                f"compass {c.index}: yaw from compass {ref.index} instead of the autopilot's "
+                f"(paper-model residual {c.baseline.rms_mgauss:.1f} -> {alt.baseline.rms_mgauss:.1f} mgauss)"
+            )
+            comps[i] = alt
     prim = primary if primary is not None else comps[0].index
     if prim not in [c.index for c in comps]:
         raise InputError(f"compass {prim} is not in the log or has too few samples")
     for c in comps:
+        if not c.observable:
+            continue
         fits = {"uncompensated": c.baseline, "paper": c.baseline, "extended": c.extended}
         if heading_reference is not None:
             c.heading = heading_errors(c.data, fits, heading_reference[0], heading_reference[1], "truth")
-        elif len(comps) > 1:
-            others = [o for o in comps if o.index != c.index]
-            ref = min(
-                others,
-                key=lambda o: (
-                    float(np.linalg.norm(o.extended.theta_mgauss))
-                    / max(o.extended.field_strength_mgauss, 1e-9)
-                ),
-            )
-            rel_ref = float(np.linalg.norm(ref.extended.theta_mgauss)) / ref.extended.field_strength_mgauss
-            rel_c = float(np.linalg.norm(c.extended.theta_mgauss)) / c.extended.field_strength_mgauss
+        else:
+            others = [o for o in comps if o.index != c.index and o.observable]
+            if not others:
+                continue
+            ref = min(others, key=_rel_theta)
+            rel_ref, rel_c = _rel_theta(ref), _rel_theta(c)
             if rel_ref < 0.5 * rel_c:
                 ref_yaw = compass_yaw_rad(ref.data, ref.extended)
                 c.heading = heading_errors(
