@@ -305,7 +305,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     if reference is not None:
         viz.log_truth_heading(reference[0], np.degrees(reference[1]) % 360.0)
     for f in c.findings:
-        viz.log_text(float(data.t_s[0]), f"finding: {f.effect} {f.params}")
+        viz.log_text(float(data.t_s[0]), f"finding: {f.label} {f.params}")
     serve_until_interrupt(viz, lambda m: print(m, flush=True))
     viz.close()
 

@@ -29,7 +29,15 @@ from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.attitude import attitude_track, with_yaw_reference
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, DriveInputs, drive_columns, effect_available, negligible
+from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, theta_halfwidth
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model, initial_fit
+from magcomp.diagnosis.rivals import (
+    GROUPS,
+    group_of,
+    indistinguishable,
+    motors_identified,
+    temperature_beats_time,
+)
 from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms
 from magcomp.diagnosis.suspects import SignalRelation, StepEvent, find_step, relate, step_at
 from magcomp.errors import InputError
@@ -47,6 +55,13 @@ class Finding:
     params: dict[str, Any]
     evidence: dict[str, Any]
     residual_rms_after: float
+    candidates: list[str] = field(default_factory=list)
+    candidate_params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """The effect's name, or "a or b" when the data cannot tell the candidates apart."""
+        return " or ".join(self.candidates) if len(self.candidates) > 1 else self.effect
 
 
 @dataclass(frozen=True)
@@ -93,7 +108,15 @@ class CompassDiagnosis:
         out["gate"] = {} if self.gate is None else self.gate.checks
         if not self.observable:
             # no theta, no findings, no autopilot parameters: a non-physical fit is not a result
-            for k in ("theta", "theta_baseline", "heading_error", "residual_step", "field_step_motors_off"):
+            for k in (
+                "theta",
+                "theta_baseline",
+                "theta_ci95_halfwidth",
+                "theta_baseline_ci95_halfwidth",
+                "heading_error",
+                "residual_step",
+                "field_step_motors_off",
+            ):
                 out[k] = None
             for k in ("findings", "suspects"):
                 out[k] = []
@@ -110,7 +133,9 @@ class CompassDiagnosis:
             "n_samples": self.data.n,
             "excluded_spans_s": [[_r(a), _r(b)] for a, b in self.excluded],
             "theta": _r(self.extended.theta_mgauss),
+            "theta_ci95_halfwidth": _r(theta_halfwidth(self.data, self.extended)),
             "theta_baseline": _r(self.baseline.theta_mgauss),
+            "theta_baseline_ci95_halfwidth": _r(theta_halfwidth(self.data, self.baseline)),
             "residual_rms_baseline": _r(self.baseline.rms_mgauss),
             "residual_rms_extended": _r(self.extended.rms_mgauss),
             "findings": [_finding_json(f) for f in self.findings],
@@ -211,13 +236,21 @@ def _r(x: Any) -> Any:
 
 
 def _finding_json(f: Finding) -> dict[str, Any]:
-    return {
-        "effect": f.effect,
+    out: dict[str, Any] = {
+        "effect": f.label,
         "cause": f.cause,
         "params": f.params,
         "evidence": f.evidence,
         "residual_rms_after": _r(f.residual_rms_after),
     }
+    if len(f.candidates) > 1:
+        out["candidates"] = f.candidates
+        out["candidate_params"] = f.candidate_params
+        out["cause"] = (
+            "The data cannot tell these causes apart (their fits differ by less than the BIC margin): "
+            + f.cause
+        )
+    return out
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -392,20 +425,41 @@ def _params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any
     e = EFFECTS[effect]
     if e.param is not None:
         out: dict[str, Any] = {e.param: _r(float(getattr(fit.ext, e.param)))}
+        ci = profile_interval(data, fit, effect)
+        if ci is not None:
+            out[f"{e.param}_ci95"] = [_r(ci[0]), _r(ci[1])]
         if effect == "voltage_sag":
             out["v_full_v"] = _r(data.drive.v_full_v)
         return out
     if effect == "temperature_drift":
         k = fit.coefs[list(fit.columns).index("temperature")]
         mag = float(np.linalg.norm(k))
-        return {"mgauss_per_degc": _r(mag), "direction": _r(k / mag if mag > 0 else k)}
+        hw = column_halfwidth(data, fit, {"temperature": 1.0})
+        return {
+            "mgauss_per_degc": _r(mag),
+            "mgauss_per_degc_ci95_halfwidth_per_axis": _r(hw),
+            "direction": _r(k / mag if mag > 0 else k),
+        }
     theta = fit.theta_mgauss
-    rows = [i for i, c in enumerate(fit.columns) if c.startswith("motor_diff")]
+    names = [c for c in fit.columns if c.startswith("motor_diff")]
+    rows = [list(fit.columns).index(c) for c in names]
     delta = np.vstack([fit.coefs[rows], -np.sum(fit.coefs[rows], axis=0, keepdims=True)])
     theta_i = theta + delta
+    hws = [column_halfwidth(data, fit, {"throttle": 1.0, c: 1.0}) for c in names]
+    hws.append(column_halfwidth(data, fit, {"throttle": 1.0, **{c: -1.0 for c in names}}))
+    hw = np.vstack(hws)
     tn = float(np.linalg.norm(theta))
     spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
-    return {"spread": _r(spread), "theta_per_motor_mgauss": [_r(row) for row in theta_i]}
+    out = {"spread": _r(spread)}
+    if motors_identified(theta_i, hw, theta):
+        out["theta_per_motor_mgauss"] = [_r(row) for row in theta_i]
+        out["theta_per_motor_ci95_halfwidth"] = [_r(row) for row in hw]
+    else:
+        out["theta_per_motor_mgauss"] = (
+            f"not identifiable: 95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f} "
+            "(the motor outputs move together); only the spread and the mean theta are meaningful"
+        )
+    return out
 
 
 def _evidence(c: Comparison, data: CompassData) -> dict[str, Any]:
@@ -462,11 +516,44 @@ def diagnose_compass(
         if cv_base is None:
             cv_base = cv_rms(data, base, p)
         c = compare(data, base, f, cv_base, p)
+        if c.significant and name == "temperature_drift":
+            wins, shape, vs_time = temperature_beats_time(data, base, f, p.min_delta_bic, p.max_nfev)
+            if not wins:
+                rejected[name] = {
+                    "delta_bic": _r(dbic),
+                    "cv_gain_pct": _r(100 * c.cv_gain),
+                    "delta_bic_vs_time_shapes": vs_time,
+                    "why": f"no better than a smooth drift {shape} with as many parameters",
+                }
+                continue
         if c.significant:
             singles.append(c)
         else:
             rejected[name] = {"delta_bic": _r(dbic), "cv_gain_pct": _r(100 * c.cv_gain), "why": "held-out"}
     singles.sort(key=lambda c: -c.cv_gain)
+    candidates: dict[str, list[str]] = {}
+    candidate_params: dict[str, dict[str, Any]] = {}
+    for group in GROUPS:
+        members = {c.fit.effects[0]: c for c in singles if group_of(c.fit.effects[0]) == group}
+        if len(members) < 2:
+            continue
+        same = indistinguishable({k: c.fit.bic for k, c in members.items()}, p.min_delta_bic)
+        if len(same) < 2:
+            continue
+        best = same[0]
+        candidates[best] = same
+        candidate_params[best] = {
+            k: _params_json(members[k].fit, k, data)
+            | {"delta_bic_vs_best": _r(members[k].fit.bic - members[best].fit.bic)}
+            for k in same
+        }
+        for k in same[1:]:
+            singles.remove(members[k])
+            rejected[k] = {
+                "delta_bic": _r(members[k].delta_bic),
+                "cv_gain_pct": _r(100 * members[k].cv_gain),
+                "why": f"cannot be told from {best} (BIC within {p.min_delta_bic:.0f}): reported as a set",
+            }
     current, cv_current = base, (cv_base if cv_base is not None else 0.0)
     kept: list[tuple[str, Comparison]] = []
     for c in singles:
@@ -496,6 +583,8 @@ def diagnose_compass(
             _params_json(extended, name, data),
             _evidence(c, data),
             c.fit.rms_mgauss,
+            candidates.get(name, []),
+            candidate_params.get(name, {}),
         )
         for name, c in kept
     ]
