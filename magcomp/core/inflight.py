@@ -179,8 +179,7 @@ class InflightEstimator:
         self.info = np.zeros((n, n))  # data information, unit weight
         self.rhs = np.zeros(n)
         self.n = 0
-        self._sum_sq = 0.0  # a-priori squared residuals (for the noise scale)
-        self._n_sq = 0
+        self._zz = 0.0  # sum of z'z (for the residual sum of squares)
         self.x0_max = 0.0  # largest delta^2 seen (for the heading uncertainty)
         self._x0_sum = 0.0
         self._x0_sq = 0.0
@@ -192,10 +191,16 @@ class InflightEstimator:
 
     @property
     def sigma_mgauss(self) -> float:
-        """Residual standard deviation per component (a-priori residuals, floored)."""
-        if self._n_sq < 10:
+        """Residual standard deviation per component at the current estimate (floored): the least-squares
+        residual sum of squares from the information form, ``z'z - 2 p'b + p'Ip``, over its degrees of
+        freedom. (A running mean of a-priori residuals would keep the large residuals of the first samples,
+        when the estimate was still the prior, and overstate the noise tenfold.)"""
+        n_dof = 3 * self.n - self.info.shape[0]
+        if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
-        return max(self.p.noise_floor_mgauss, math.sqrt(self._sum_sq / self._n_sq))
+        p = self._theta
+        rss = self._zz - 2.0 * float(p @ self.rhs) + float(p @ self.info @ p)
+        return max(self.p.noise_floor_mgauss, math.sqrt(max(rss, 0.0) / n_dof))
 
     @property
     def throttle2_std(self) -> float:
@@ -228,8 +233,7 @@ class InflightEstimator:
             if m2 > GATE_CHI2_3DOF:
                 self.n_gated += 1
                 return math.sqrt(rn2)
-        self._sum_sq += rn2 / 3.0
-        self._n_sq += 1
+        self._zz += float(z @ z)
         self.info += rows.T @ rows
         self.rhs += rows.T @ z
         self.n += 1
@@ -241,15 +245,19 @@ class InflightEstimator:
 
     def _refresh(self) -> None:
         """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""
+        # two rounds: the noise scale weighs data against the prior, and is itself the residual at the
+        # estimate (the first round's scale comes from the previous estimate)
+        for _ in range(2):
+            s2 = self.sigma_mgauss**2
+            lam = self.info / s2 + self.prior_info
+            b = self.rhs / s2 + self.prior_info @ self.prior_mean
+            try:
+                cho = np.linalg.cholesky(lam)
+            except np.linalg.LinAlgError:
+                return
+            theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
+            self._theta = theta
         s2 = self.sigma_mgauss**2
-        lam = self.info / s2 + self.prior_info
-        b = self.rhs / s2 + self.prior_info @ self.prior_mean
-        try:
-            cho = np.linalg.cholesky(lam)
-        except np.linalg.LinAlgError:
-            return
-        theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
-        self._theta = theta
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov
         self._solution = self._build(theta, cov, s2)
@@ -359,3 +367,22 @@ def calibrated_by_autopilot(params: dict[str, float], mag_index: int) -> bool | 
     if all(v is not None for v in vals):
         return any(abs(float(v)) > 0.0 for v in vals if v is not None)
     return None
+
+
+def external_compass(params: dict[str, float], mag_index: int) -> bool | None:
+    """True when the autopilot's parameters mark compass ``mag_index`` external (mounted away from the power
+    wires, e.g. on a GPS mast), False when internal, None when they do not say."""
+    if not 0 <= mag_index < len(ARDUPILOT_EXTERNAL_PARAMS):
+        return None
+    v = params.get(ARDUPILOT_EXTERNAL_PARAMS[mag_index])
+    return None if v is None else int(v) in (1, 2)
+
+
+def relative_rotation_source(params: dict[str, float], mag_index: int) -> tuple[str, str]:
+    """Where the relative form takes its rotations from: ``attitude`` (the autopilot's) when its yaw is
+    fused from this compass and this compass is external (its own bias is small, and the autopilot's yaw
+    is GPS-aided besides: better than a raw gyro integral), else ``gyro`` (the autopilot's yaw would follow
+    a disturbed compass; the integrated gyro cannot)."""
+    if external_compass(params, mag_index):
+        return "attitude", "this compass is external (little disturbed): the autopilot's GPS-aided attitude"
+    return "gyro", "the integrated gyro (an attitude steered by a disturbed compass would follow its bias)"

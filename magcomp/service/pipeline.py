@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import Config
 from magcomp.adapters.mavlink_source import WireImuSample, WireMagSample
 from magcomp.adapters.state_store import CompassState, StateStore
-from magcomp.core.inflight import calibrated_by_autopilot, yaw_reference
+from magcomp.core.inflight import calibrated_by_autopilot, relative_rotation_source, yaw_reference
 from magcomp.core.mahony import MahonyParams, mahony_init
 from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, quat_step_body_rate
 from magcomp.core.types import (
@@ -981,13 +981,14 @@ class Pipeline:
                 gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self._stale_s
                 src: tuple[str, float]
                 rot = self.cfg.inflight.rotation
-                # auto: the integrated gyro while it is fast (the autopilot's attitude is steered by a
-                # compass the currents disturb); the autopilot's attitude when the gyro is too slow
-                use_gyro = rot == "gyro" or (rot == "auto" and (fast_imu or not att_fresh))
+                if rot == "auto":
+                    rot = relative_rotation_source(self._params, c.mag_index)[0]
+                # the integrated gyro only while it is fast; the autopilot's attitude when it is too slow
+                use_gyro = (rot == "gyro" and fast_imu) or not att_fresh
                 if use_gyro and fast_imu and gyro_fresh and self._mahony is not None:
                     r_rel = dcm_from_quat(np.asarray(self._qg, dtype=float))
                     src = ("gyro", self._mahony_t0)
-                elif att_fresh and rot != "gyro":
+                elif att_fresh:
                     r_rel = dcm_from_euler(self._att_roll, self._att_pitch, self._att_yaw)
                     src = ("attitude", 0.0)
                 else:
@@ -1089,7 +1090,7 @@ class Pipeline:
                     "status": status,
                     "why": why,
                     "time_s": dict(c.time_s),
-                    "inflight": None if st is None else st.summary(),
+                    "inflight": None if st is None else {**st.summary(), "rotation": c.rel_source[0]},
                 }
             )
         lat, lon, alt, year = self._location

@@ -1,0 +1,174 @@
+"""In-flight calibration jointly with theta (magcomp.core.inflight, magcomp.service.inflight_stage).
+
+Seeded synthetic flights: random attitudes (yaw turns, +-25 deg tilt), a throttle that varies, noise of a few
+mgauss; the estimators must find the truth within tolerances that a wrong model fails.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from magcomp.adapters.config import InflightConfig
+from magcomp.core.inflight import (
+    InflightEstimator,
+    InflightParams,
+    absolute_rows,
+    calibrated_by_autopilot,
+    regressors,
+    relative_rows,
+    yaw_reference,
+)
+from magcomp.core.rotations import dcm_from_euler, quat_integrate_body_rate, quat_step_body_rate
+from magcomp.service.inflight_stage import InflightStage
+
+H_NED = np.array([230.0, 50.0, -530.0])  # Canberra-like field, mgauss
+THETA = np.array([-60.0, 25.0, 40.0])  # body frame, mgauss at full throttle
+
+
+def _flight(n: int, seed: int, throttle_varies: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R_nb (n,3,3), throttle (n,), yaw) of a smooth flight: several full yaw turns, tilt within 25 deg."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.1
+    yaw = 0.35 * t + 0.4 * np.sin(0.05 * t)
+    roll = np.radians(20.0) * np.sin(0.31 * t + rng.uniform(0, 6))
+    pitch = np.radians(15.0) * np.sin(0.23 * t + rng.uniform(0, 6))
+    thr = 0.5 + (0.25 * np.sin(0.07 * t) + 0.05 * np.sin(1.3 * t) if throttle_varies else 0.0 * t)
+    r = np.array([dcm_from_euler(a, b, c) for a, b, c in zip(roll, pitch, yaw, strict=True)])
+    return r, thr, yaw
+
+
+def _measure(r: np.ndarray, thr: np.ndarray, a_mat: np.ndarray, d: np.ndarray, seed: int, noise: float) -> np.ndarray:
+    """y = A R^T h + d + A theta throttle^2 + noise (theta in the calibrated frame, as the pipeline reports)."""
+    rng = np.random.default_rng(seed + 100)
+    u = np.einsum("nji,j->ni", r, H_NED) + np.outer(thr**2, THETA)
+    return u @ a_mat.T + d + rng.normal(0.0, noise, (len(thr), 3))
+
+
+A_TRUE = np.array([[1.03, 0.02, -0.01], [0.02, 0.97, 0.015], [-0.01, 0.015, 1.01]])
+D_TRUE = np.array([25.0, -40.0, 15.0])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_absolute_form_recovers_calibration_and_theta(seed: int) -> None:
+    r, thr, _ = _flight(3000, seed)
+    y = _measure(r, thr, A_TRUE, D_TRUE, seed, noise=3.0)
+    est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
+    for k in range(len(thr)):
+        rows, z = absolute_rows(r[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
+        est.add(rows, z, float(thr[k] ** 2))
+    sol = est.solve()
+    assert np.linalg.norm(sol.theta_mgauss - THETA) < 0.03 * np.linalg.norm(THETA)
+    l_true = np.linalg.inv(A_TRUE)
+    assert np.allclose(sol.calib_l, l_true, atol=0.01)
+    assert np.allclose(sol.calib_d, l_true @ D_TRUE, atol=3.0)
+    # the covariance is honest: the error is within 4 sigma per axis
+    assert np.all(np.abs(sol.theta_mgauss - THETA) < 4.0 * sol.theta_sigma_mgauss + 0.5)
+    assert sol.heading_sigma_deg < 1.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_relative_form_recovers_hard_iron_and_theta_without_the_yaw(seed: int) -> None:
+    """Only rotations between samples are used: a yaw reference that follows the bias cannot fool it."""
+    r, thr, _ = _flight(3000, seed)
+    y = _measure(r, thr, np.eye(3), D_TRUE, seed, noise=2.0)
+    est = InflightEstimator("relative", 0, InflightParams(), float(np.linalg.norm(H_NED)))
+    for k in range(1, len(thr)):
+        q = r[k].T @ r[k - 1]
+        x0, x1 = regressors(float(thr[k - 1]), None), regressors(float(thr[k]), None)
+        rows, z = relative_rows(q, y[k - 1], y[k], x0, x1)
+        est.add(rows, z, float(thr[k] ** 2))
+    sol = est.solve()
+    assert np.linalg.norm(sol.theta_mgauss - THETA) < 0.05 * np.linalg.norm(THETA)
+    assert np.linalg.norm(sol.calib_d[:2] - D_TRUE[:2]) < 5.0  # horizontal hard iron: what heading needs
+
+
+def test_constant_throttle_leaves_theta_at_its_prior_and_the_stage_says_why() -> None:
+    """Hard iron and theta are told apart only by throttle changes: with none, theta is not claimed."""
+    r, thr, _ = _flight(1500, 3, throttle_varies=False)
+    y = _measure(r, thr, np.eye(3), D_TRUE, 3, noise=2.0)
+    cfg = InflightConfig()
+    st = InflightStage(0, cfg, "relative", "test", True, float(np.linalg.norm(H_NED)))
+    for k in range(len(thr)):
+        st.feed(0.1 * k, y[k], float(thr[k]), (), None, None, r[k])
+        st.output(0.1 * k, tuple(y[k]), float(thr[k]), ())
+    sol = st.solution
+    assert sol is not None
+    assert np.all(sol.theta_sigma_mgauss > 100.0)  # no information: the prior's 600 mgauss, barely reduced
+    doc = st.summary()
+    assert doc["throttle2_std"] < 0.02
+    if not st.applied:
+        assert "throttle" in str(doc["why_not_applied"])
+
+
+def test_glitch_does_not_move_a_converged_estimate() -> None:
+    r, thr, _ = _flight(3000, 4)
+    y = _measure(r, thr, A_TRUE, D_TRUE, 4, noise=3.0)
+    est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
+    for k in range(len(thr)):
+        rows, z = absolute_rows(r[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
+        est.add(rows, z, float(thr[k] ** 2))
+        if k % 50 == 0:
+            est.solve()
+    before = est.solve().theta_mgauss.copy()
+    rows, z = absolute_rows(r[0].T @ H_NED, y[0] + np.array([900.0, -700.0, 400.0]), regressors(0.9, None))
+    est.add(rows, z, 0.81)
+    assert est.n_gated == 1
+    assert np.allclose(est.solve().theta_mgauss, before)
+
+
+def test_warm_start_reproduces_the_stored_estimate() -> None:
+    r, thr, _ = _flight(1500, 5)
+    y = _measure(r, thr, A_TRUE, D_TRUE, 5, noise=3.0)
+    est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), 580.0)
+    for k in range(len(thr)):
+        rows, z = absolute_rows(r[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
+        est.add(rows, z, float(thr[k] ** 2))
+    mean, sd = est.state()
+    again = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), 580.0, warm=(mean, sd))
+    sol, sol2 = est.solve(), again.solve()
+    assert np.allclose(sol2.theta_mgauss, sol.theta_mgauss, atol=1e-6)
+    assert np.allclose(sol2.calib_l, sol.calib_l, atol=1e-9)
+    assert np.all(sol2.theta_sigma_mgauss >= sol.theta_sigma_mgauss)  # widened, never narrower
+
+
+@pytest.mark.parametrize(
+    ("params", "idx", "mode"),
+    [
+        ({}, 0, "relative"),
+        ({"COMPASS_PRIMARY": 0.0, "COMPASS_EXTERNAL": 1.0}, 0, "relative"),
+        ({"COMPASS_PRIMARY": 0.0, "COMPASS_EXTERNAL": 1.0}, 1, "absolute"),
+        ({"COMPASS_PRIMARY": 0.0, "COMPASS_EXTERNAL": 0.0}, 1, "relative"),
+        ({"COMPASS_PRIMARY": 1.0, "COMPASS_EXTERN2": 2.0}, 0, "absolute"),
+        ({"EK3_SRC1_YAW": 2.0, "COMPASS_PRIMARY": 0.0}, 0, "absolute"),
+        ({"EKF2_GPS_CTRL": 15.0}, 0, "absolute"),
+        ({"EKF2_GPS_CTRL": 7.0}, 0, "relative"),
+    ],
+)
+def test_yaw_reference_from_parameters(params: dict[str, float], idx: int, mode: str) -> None:
+    got, why = yaw_reference(params, idx)
+    assert got == mode
+    assert why
+
+
+def test_calibrated_by_autopilot() -> None:
+    p = {"COMPASS_OFS_X": -97.8, "COMPASS_OFS_Y": 118.1, "COMPASS_OFS_Z": 213.2}
+    p |= {"COMPASS_OFS3_X": 0.0, "COMPASS_OFS3_Y": 0.0, "COMPASS_OFS3_Z": 0.0}
+    assert calibrated_by_autopilot(p, 0) is True
+    assert calibrated_by_autopilot(p, 2) is False
+    assert calibrated_by_autopilot(p, 1) is None
+    assert calibrated_by_autopilot({"CAL_MAG1_XOFF": 0.1, "CAL_MAG1_YOFF": 0.0, "CAL_MAG1_ZOFF": 0.0}, 1)
+
+
+def test_scalar_gyro_step_matches_the_vectorised_integrator() -> None:
+    rng = np.random.default_rng(7)
+    q = (1.0, 0.0, 0.0, 0.0)
+    qv = np.array(q)
+    for _ in range(500):
+        w = rng.normal(0.0, 2.0, 3)
+        q = quat_step_body_rate(q, w.tolist(), 0.01)
+        qv = quat_integrate_body_rate(qv, w, 0.01)
+    assert np.allclose(q, qv, atol=1e-9)
+    assert math.isclose(float(np.linalg.norm(q)), 1.0, abs_tol=1e-12)
