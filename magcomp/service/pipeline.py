@@ -333,7 +333,7 @@ class CompassCorrector:
         keep = self.calibration is not None and self.calibration.source != "identity"
         inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
         theta = np.asarray(self.theta_est.theta_mgauss, dtype=float)
-        if self.inflight is not None and self.inflight.solution is not None:
+        if self.calibration is None and self.inflight is not None and self.inflight.solution is not None:
             theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)
         return CompassState(
             system_id=system_id,
@@ -962,8 +962,8 @@ class Pipeline:
                 c.mag_index, icfg, mode, why, cal, float(np.linalg.norm(self._earth_ned)), c.stored_inflight
             )
             c.inflight = st
-            self._text(t, f"compass {c.mag_index}: no hand-rotation calibration; learning calibration and "
-                          f"theta in flight ({mode} form: {why})")
+            self._text(t, f"compass {c.mag_index}: learning calibration and theta in flight ({mode} form: "
+                          f"{why}); a motors-off hand rotation, if one comes, takes precedence")
         if reset:
             st.reset_pairs()
         thr = self._throttle_at(t)

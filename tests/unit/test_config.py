@@ -55,7 +55,7 @@ def test_config_is_frozen() -> None:
         ("[observer]\nk1 = nan\n", "[observer] k1 must be finite"),
         ("[filter]\norder = 3\n", "[filter] order must be 1 or 2, got 3"),
         ("[filter]\norder = 2.0\n", "[filter] order must be an integer"),
-        ("[input]\nattitude = 'magic'\n", "[input] attitude must be one of mahony, autopilot"),
+        ("[input]\nattitude = 'magic'\n", "[input] attitude must be one of auto, mahony, autopilot"),
         ("[input]\nthrottle_source = 'servo:x'\n", "[input] throttle_source must be"),
         ("[input]\ncompasses = [0, 9]\n", "[input] compasses must hold compass indices"),
         ("[location]\nlat_deg = 91\n", "[location] lat_deg must be in [-90, 90]"),
