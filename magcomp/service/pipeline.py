@@ -441,6 +441,7 @@ class Pipeline:
         self._motors: tuple[float, ...] = ()
         self._motors_on_t: float | None = None
         self._imu_dt: float | None = None
+        self._att_dt: float | None = None  # the autopilot attitude's usual interval (s)
         self._accel_norm = STANDARD_GRAVITY_M_S2
         # the bias-corrected gyro integrated alone (no accelerometer or compass correction): the rotation
         # between two magnetometer samples for the relative form, free of anything a compass disturbs
@@ -612,6 +613,9 @@ class Pipeline:
             return
         if self._check_time(self._att_t, s.t_s, allow_equal=True) == 1:
             return
+        if self._att_t is not None and 0.0 < s.t_s - self._att_t < 10.0:
+            dt = s.t_s - self._att_t
+            self._att_dt = dt if self._att_dt is None else self._att_dt + 0.05 * (dt - self._att_dt)
         self._att_t = s.t_s
         self._att_roll, self._att_pitch = s.roll_rad, s.pitch_rad
         self._att_yaw = s.yaw_rad if math.isfinite(s.yaw_rad) else self._att_yaw
@@ -968,7 +972,10 @@ class Pipeline:
             st.reset_pairs()
         thr = self._throttle_at(t)
         if thr is not None:
-            att_fresh = self._att_t is not None and abs(t - self._att_t) <= self._stale_s
+            # fresh: within stale_s, or within one and a half of its own interval (1-2 Hz telemetry)
+            att_dt = self._att_dt
+            att_stale_s = self._stale_s if att_dt is None else max(self._stale_s, 1.5 * att_dt)
+            att_fresh = self._att_t is not None and abs(t - self._att_t) <= att_stale_s
             r_abs = None
             if st.mode == "absolute" and att_fresh and self._motors_on_t is not None:
                 settled = t - self._motors_on_t >= self.cfg.inflight.absolute_settle_s
