@@ -211,6 +211,9 @@ def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
             _add_mag(tables, index, t, xyz)
         if tables.mag:
             tables.mag_topic = name
+            if name == "vehicle_magnetometer" and int(tables.params.get("CAL_MAG_COMP_TYP", 0)) != 0:
+                # PX4 already subtracted its own power compensation from this topic (not undone here)
+                tables.counts["px4_mag_comp_applied"] = 1
             return
     sc = topics.get("sensor_combined", {}).get(0)
     if sc is None:
