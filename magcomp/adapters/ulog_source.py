@@ -116,12 +116,17 @@ def _open_ulog(path: Path) -> Any:
     from magcomp.adapters.mavlink_source import _quiet
 
     try:
+        if path.stat().st_size == 0:
+            raise InputError(f"{path}: empty file")
         with _quiet(), path.open("rb") as f:  # our handle: closed even when pyulog raises
             return ULog(f, message_name_filter_list=list(TOPICS))
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except InputError:
+        raise
     except Exception as exc:  # pyulog raises anything from struct.error to IndexError on a damaged file
-        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {exc})") from None
+        why = (str(exc).splitlines() or [""])[0][:100]
+        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {why})") from None
 
 
 def _cols(data: Mapping[str, Any], name: str, n: int) -> F64 | None:
