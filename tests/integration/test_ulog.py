@@ -152,3 +152,37 @@ def test_measured_old_format_ulog_replay_fit_diagnose(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "throttle" in err
     assert main(["diagnose", str(path), "--json", str(tmp_path / "d.json")]) == 0
+
+
+def test_simulate_cli_writes_ulog_with_truth_and_replay_reads_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "sim.ulg"
+    args = ["simulate", "--scenario", "step", "--duration", "4", "--imu-rate", "10", "--out", str(out)]
+    assert main(args) == 0
+    assert (tmp_path / "sim.truth.json").is_file() and (tmp_path / "sim.truth.npz").is_file()
+    assert out.read_bytes()[:7] == b"ULog\x01\x12\x35"
+    capsys.readouterr()
+    assert main(["replay", str(out)]) == 0
+    n = sum(1 for s in open_source(out).samples() if isinstance(s, MagSample))
+    assert f"{n} headings" in capsys.readouterr().out and n > 0
+
+
+@pytest.mark.parametrize("mag_hz", [2.0, 10.0])
+def test_fit_on_simulated_ulog_equals_its_tlog_twin(
+    tmp_path: Path, mag_hz: float, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    result = simulate(
+        SimConfig(scenario="bench", duration_s=60.0, seed=3, vehicle="multirotor", rates=_rates(mag_hz))
+    )
+    write_sim_ulog(result, tmp_path / "b.ulg")
+    write_tlog(result, tmp_path / "b.tlog")
+    for ext in ("ulg", "tlog"):
+        assert main(["fit", str(tmp_path / f"b.{ext}"), "--json", str(tmp_path / f"{ext}.json")]) == 0
+    fu = json.loads((tmp_path / "ulg.json").read_text())
+    ft = json.loads((tmp_path / "tlog.json").read_text())
+    np.testing.assert_allclose(fu["theta"], ft["theta"], atol=0.05)
+    truth = np.asarray(result.compasses[0].theta_mgauss)
+    assert np.linalg.norm(np.asarray(fu["theta"]) - truth) < 0.25 * np.linalg.norm(truth)
