@@ -186,3 +186,33 @@ def test_fit_on_simulated_ulog_equals_its_tlog_twin(
     np.testing.assert_allclose(fu["theta"], ft["theta"], atol=0.05)
     truth = np.asarray(result.compasses[0].theta_mgauss)
     assert np.linalg.norm(np.asarray(fu["theta"]) - truth) < 0.25 * np.linalg.norm(truth)
+
+
+def test_px4_114_topics_vehicle_imu_and_actuator_motors(tmp_path: Path) -> None:
+    """PX4 >= 1.13 logs: no sensor_combined magnetometer, IMU from vehicle_imu's integrals, throttle from
+    actuator_motors (0..1, NaN = stopped) on CA_ROTOR_COUNT motors, battery current -1 = unknown."""
+    w = UlogWriter(start_us=0)
+    w.topic("vehicle_imu", [("float[3]", "delta_angle"), ("float[3]", "delta_velocity"),
+                            ("uint16_t", "delta_angle_dt"), ("uint16_t", "delta_velocity_dt")])  # fmt: skip
+    w.topic("actuator_motors", [("uint64_t", "timestamp_sample"), ("float[12]", "control")])
+    w.topic("battery_status", [("float", "voltage_v"), ("float", "current_a")])
+    w.topic("vehicle_status", [("uint8_t", "vehicle_type")])
+    w.param("CA_ROTOR_COUNT", 4, is_int=True)
+    nan = float("nan")
+    w.data("vehicle_status", 0, [0, 1])
+    for k in range(20):
+        t_us = 10_000 * (k + 1)
+        # 5000 us integrals of 0.1 rad/s and 9.8 m/s^2 about/along z
+        w.data("vehicle_imu", 0, [t_us, 0.0, 0.0, 0.0005, 0.0, 0.0, -0.049, 5000, 5000])
+        motors = [nan] * 4 if k < 5 else [0.2, 0.4, 0.6, 0.8]
+        w.data("actuator_motors", 0, [t_us, t_us, *motors, *([nan] * 8)])
+        w.data("battery_status", 0, [t_us, 16.0, -1.0 if k < 5 else 12.5])
+    path = tmp_path / "px4_114.ulg"
+    w.write(path)
+    data = load_log(path)
+    assert data.vehicle_type == 2 and data.autopilot == 12 and not data.mag
+    np.testing.assert_allclose(data.gyro_rad_s[:, 2], 0.1, rtol=1e-5)
+    np.testing.assert_allclose(data.accel_m_s2[:, 2], -9.8, rtol=1e-5)
+    assert data.throttle_source == "actuator_motors" and data.motors_01.values.shape == (20, 4)
+    np.testing.assert_allclose(data.throttle_01.values, [0.0] * 5 + [0.5] * 15, atol=1e-6)
+    assert np.isnan(data.current_a.values[:5]).all() and data.current_a.values[-1] == pytest.approx(12.5)
