@@ -216,3 +216,12 @@ def test_px4_114_topics_vehicle_imu_and_actuator_motors(tmp_path: Path) -> None:
     assert data.throttle_source == "actuator_motors" and data.motors_01.values.shape == (20, 4)
     np.testing.assert_allclose(data.throttle_01.values, [0.0] * 5 + [0.5] * 15, atol=1e-6)
     assert np.isnan(data.current_a.values[:5]).all() and data.current_a.values[-1] == pytest.approx(12.5)
+
+
+def test_compass_indices_follow_cal_mag_ids_before_instance_numbers() -> None:
+    from magcomp.adapters.ulog_source import _compass_indices
+
+    params = {"CAL_MAG0_ID": 500.0, "CAL_MAG1_ID": 700.0}
+    # instance 0 is an uncalibrated compass, instance 1 is CAL_MAG0's device, instance 2 CAL_MAG1's
+    assert _compass_indices(params, [(0, 999), (1, 500), (2, 700)]) == {1: 0, 2: 1, 0: 2}
+    assert _compass_indices({}, [(0, 0), (1, 0)]) == {0: 0, 1: 1}
