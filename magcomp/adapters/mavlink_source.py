@@ -1,13 +1,21 @@
 """Log and link sources turned into the typed samples of :mod:`magcomp.core.types`.
 
 Inputs: MAVLink ``.tlog`` and raw MAVLink streams, ArduPilot DataFlash ``.bin`` / text ``.log``, PX4 ``.ulg``
-(``load_log`` only) and live ``udp``/``tcp``/``serial`` links.
+(:mod:`magcomp.adapters.ulog_source`) and live ``udp``/``tcp``/``serial`` links.
 
 Units at this boundary (everything downstream uses them):
 - RAW_IMU / SCALED_IMU*: accel mG -> m/s^2 (x 9.80665e-3), gyro mrad/s -> rad/s, mag mgauss (ArduPilot
   units); temperature cdegC -> degC (0 means "not provided"). RAW_IMU and SCALED_IMU both carry compass 0
   in ArduPilot: once RAW_IMU has been seen, SCALED_IMU is ignored (``counts["scaled_imu_shadowed"]``).
   SCALED_IMU2/3 are compasses (and IMUs) 1 and 2. A (0, 0, 0) field is "no data" (``mag_zero``).
+- PX4 (HEARTBEAT autopilot 12): HIGHRES_IMU accel m/s^2, gyro rad/s, mag gauss -> mgauss, each only when its
+  ``fields_updated`` bits are set; its IMU 0 replaces SCALED_IMU's, and a compass in SCALED_IMU shadows
+  HIGHRES_IMU's (``highres_mag_shadowed``). ATTITUDE_QUATERNION (w, x, y, z) while no ATTITUDE is seen;
+  ACTUATOR_OUTPUT_STATUS (PWM us of the ``active`` outputs) while no SERVO_OUTPUT_RAW is seen; throttle
+  channels and ranges from PWM_MAIN_FUNCn / PWM_MAIN_MINn (see :mod:`magcomp.adapters.throttle`).
+- Position: GPS_RAW_INT (fix_type >= 3 is ``fix_ok``) and GLOBAL_POSITION_INT (lat/lon degE7, alt mm MSL),
+  DataFlash GPS/GPS2 (Status >= 3, GPS week + ms -> UTC) and POS become PositionSample; SYSTEM_TIME
+  (time_unix_usec, unset clocks ignored) a TimeSample. Stamped with the latest source time.
 - SYS_STATUS: voltage_battery mV, current_battery cA (-1 / UINT16_MAX = unknown -> NaN), battery 0.
   BATTERY_STATUS (cell voltages mV summed, current cA) is used for battery 0 only while SYS_STATUS has not
   reported a current.

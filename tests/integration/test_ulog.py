@@ -152,3 +152,76 @@ def test_measured_old_format_ulog_replay_fit_diagnose(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "throttle" in err
     assert main(["diagnose", str(path), "--json", str(tmp_path / "d.json")]) == 0
+
+
+def test_simulate_cli_writes_ulog_with_truth_and_replay_reads_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "sim.ulg"
+    args = ["simulate", "--scenario", "step", "--duration", "4", "--imu-rate", "10", "--out", str(out)]
+    assert main(args) == 0
+    assert (tmp_path / "sim.truth.json").is_file() and (tmp_path / "sim.truth.npz").is_file()
+    assert out.read_bytes()[:7] == b"ULog\x01\x12\x35"
+    capsys.readouterr()
+    assert main(["replay", str(out)]) == 0
+    n = sum(1 for s in open_source(out).samples() if isinstance(s, MagSample))
+    assert f"{n} headings" in capsys.readouterr().out and n > 0
+
+
+@pytest.mark.parametrize("mag_hz", [2.0, 10.0])
+def test_fit_on_simulated_ulog_equals_its_tlog_twin(
+    tmp_path: Path, mag_hz: float, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    result = simulate(
+        SimConfig(scenario="bench", duration_s=60.0, seed=3, vehicle="multirotor", rates=_rates(mag_hz))
+    )
+    write_sim_ulog(result, tmp_path / "b.ulg")
+    write_tlog(result, tmp_path / "b.tlog")
+    for ext in ("ulg", "tlog"):
+        assert main(["fit", str(tmp_path / f"b.{ext}"), "--json", str(tmp_path / f"{ext}.json")]) == 0
+    fu = json.loads((tmp_path / "ulg.json").read_text())
+    ft = json.loads((tmp_path / "tlog.json").read_text())
+    np.testing.assert_allclose(fu["theta"], ft["theta"], atol=0.05)
+    truth = np.asarray(result.compasses[0].theta_mgauss)
+    assert np.linalg.norm(np.asarray(fu["theta"]) - truth) < 0.25 * np.linalg.norm(truth)
+
+
+def test_px4_114_topics_vehicle_imu_and_actuator_motors(tmp_path: Path) -> None:
+    """PX4 >= 1.13 logs: no sensor_combined magnetometer, IMU from vehicle_imu's integrals, throttle from
+    actuator_motors (0..1, NaN = stopped) on CA_ROTOR_COUNT motors, battery current -1 = unknown."""
+    w = UlogWriter(start_us=0)
+    w.topic("vehicle_imu", [("float[3]", "delta_angle"), ("float[3]", "delta_velocity"),
+                            ("uint16_t", "delta_angle_dt"), ("uint16_t", "delta_velocity_dt")])  # fmt: skip
+    w.topic("actuator_motors", [("uint64_t", "timestamp_sample"), ("float[12]", "control")])
+    w.topic("battery_status", [("float", "voltage_v"), ("float", "current_a")])
+    w.topic("vehicle_status", [("uint8_t", "vehicle_type")])
+    w.param("CA_ROTOR_COUNT", 4, is_int=True)
+    nan = float("nan")
+    w.data("vehicle_status", 0, [0, 1])
+    for k in range(20):
+        t_us = 10_000 * (k + 1)
+        # 5000 us integrals of 0.1 rad/s and 9.8 m/s^2 about/along z
+        w.data("vehicle_imu", 0, [t_us, 0.0, 0.0, 0.0005, 0.0, 0.0, -0.049, 5000, 5000])
+        motors = [nan] * 4 if k < 5 else [0.2, 0.4, 0.6, 0.8]
+        w.data("actuator_motors", 0, [t_us, t_us, *motors, *([nan] * 8)])
+        w.data("battery_status", 0, [t_us, 16.0, -1.0 if k < 5 else 12.5])
+    path = tmp_path / "px4_114.ulg"
+    w.write(path)
+    data = load_log(path)
+    assert data.vehicle_type == 2 and data.autopilot == 12 and not data.mag
+    np.testing.assert_allclose(data.gyro_rad_s[:, 2], 0.1, rtol=1e-5)
+    np.testing.assert_allclose(data.accel_m_s2[:, 2], -9.8, rtol=1e-5)
+    assert data.throttle_source == "actuator_motors" and data.motors_01.values.shape == (20, 4)
+    np.testing.assert_allclose(data.throttle_01.values, [0.0] * 5 + [0.5] * 15, atol=1e-6)
+    assert np.isnan(data.current_a.values[:5]).all() and data.current_a.values[-1] == pytest.approx(12.5)
+
+
+def test_compass_indices_follow_cal_mag_ids_before_instance_numbers() -> None:
+    from magcomp.adapters.ulog_source import _compass_indices
+
+    params = {"CAL_MAG0_ID": 500.0, "CAL_MAG1_ID": 700.0}
+    # instance 0 is an uncalibrated compass, instance 1 is CAL_MAG0's device, instance 2 CAL_MAG1's
+    assert _compass_indices(params, [(0, 999), (1, 500), (2, 700)]) == {1: 0, 2: 1, 0: 2}
+    assert _compass_indices({}, [(0, 0), (1, 0)]) == {0: 0, 1: 1}

@@ -64,6 +64,7 @@ def test_mavlink_gps_global_position_and_system_time(tmp_path: Path) -> None:
     assert 2025.16 < data.decimal_year < 2025.17
 
 
+@pytest.mark.needs_shared
 def test_dataflash_gps_of_log171_is_plausible() -> None:
     path = MEASURED / "dronekit_log171_copter33_quad.bin"
     if not path.exists():
