@@ -403,6 +403,10 @@ def build_messages(result: SimResult, start_unix_s: float | None = None) -> list
             result, default_start_unix_s(result) if start_unix_s is None else start_unix_s
         )
     events.sort(key=lambda e: (e[0], e[1]))
+    loss = cfg.variation.link_loss
+    if loss > 0.0:  # a lossy telemetry link: each message lost independently (seeded), parameters kept
+        keep = np.random.default_rng([cfg.seed, 0x1055]).random(len(events)) >= loss
+        events = [e for e, k in zip(events, keep, strict=True) if k or e[1] < 0]
     return events
 
 

@@ -16,7 +16,9 @@ CLI::
     --set lat_deg=46.05 --set lon_deg=14.5 --set alt_m=300 --set decimal_year=2026.4   # WMM place/date
     --set mag_ar1_sigma_mgauss=3 --set mag_ar1_tau_s=5 --set mag_rw_mgauss_per_sqrt_s=0.2
     --set mag_lsb_mgauss=3 --set mag_noise_scale=0.5 --set att_roll_bias_deg=1.5 --set att_yaw_bias_deg=2
-    --set seed=7 --set vehicle=multirotor --set n_compasses=3 --set gps=on
+    --set seed=7 --set vehicle=multirotor --set n_compasses=3 --set gps=on --set theta_mgauss=-40,20,5
+    --set theta_scale=0.5 --set hover_throttle=0.4 --set current_max_a=60 --set link_loss=0.05
+    --set ap_kp_yaw=0.2 --set ap_kp_tilt=2 --set gyro_noise_scale=3 --set gyro_bias_scale=0
 
 API::
 
@@ -225,6 +227,15 @@ class Variation:
     att_roll_bias_deg, att_pitch_bias_deg, att_yaw_bias_deg: constant errors of the reported ATTITUDE
     att_noise_deg: white noise on each reported ATTITUDE angle
     gps: emit GPS_RAW_INT, GLOBAL_POSITION_INT and SYSTEM_TIME
+    ap_kp_yaw, ap_kp_tilt: the autopilot's complementary-filter gains (1/s; 0.5 and 1.0): how fast its
+        yaw follows the compass (or GPS yaw) and its tilt the accelerometer
+    gyro_noise_scale, gyro_bias_scale: multiply each IMU's gyro noise sigma (3 mrad/s) and bias draw
+    hover_throttle: the multirotor's hover collective in ``ordinary`` (None: 0.5)
+    current_max_a: battery current at full throttle (None: 40 A multirotor, 20 A fixed wing); the bias
+        follows theta * throttle^2 whatever the current scale
+    theta_scale: multiplies theta of every compass (theta's size; ``theta_mgauss`` sets compass 0's)
+    link_loss: fraction of messages lost on the link (each dropped independently, seeded; parameters are
+        never dropped), as in a telemetry tlog
     """
 
     mag_ar1_sigma_mgauss: float = 0.0
@@ -243,9 +254,27 @@ class Variation:
     att_yaw_bias_deg: float = 0.0
     att_noise_deg: float = 0.0
     gps: bool | None = None
+    ap_kp_yaw: float = 0.5
+    ap_kp_tilt: float = 1.0
+    gyro_noise_scale: float = 1.0
+    gyro_bias_scale: float = 1.0
+    hover_throttle: float | None = None
+    current_max_a: float | None = None
+    theta_scale: float = 1.0
+    link_loss: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.hover_throttle is not None and not (0.2 <= self.hover_throttle <= 0.7):
+            raise InputError(f"hover_throttle={self.hover_throttle}: must be in [0.2, 0.7]")
+        if self.current_max_a is not None and not (1.0 <= self.current_max_a <= 500.0):
+            raise InputError(f"current_max_a={self.current_max_a}: must be in [1, 500] A")
         bounds = {
+            "ap_kp_yaw": (0.01, 10.0),
+            "ap_kp_tilt": (0.01, 10.0),
+            "gyro_noise_scale": (0.0, 20.0),
+            "gyro_bias_scale": (0.0, 20.0),
+            "theta_scale": (0.0, 10.0),
+            "link_loss": (0.0, 0.5),
             "mag_ar1_sigma_mgauss": (0.0, 100.0),
             "mag_ar1_tau_s": (0.01, 1000.0),
             "mag_rw_mgauss_per_sqrt_s": (0.0, 10.0),
@@ -403,7 +432,17 @@ def parse_effect(text: str) -> tuple[str, float]:
 
 #: ``--set`` keys that are not Variation fields: rates (Hz) and run-level settings
 RATE_KEYS = ("mag_hz", "raw_imu_hz", "attitude_hz", "gps_hz", "loop_hz", "telemetry_hz")
-RUN_KEYS = ("seed", "vehicle", "n_compasses", "duration_s", "lat_deg", "lon_deg", "alt_m", "decimal_year")
+RUN_KEYS = (
+    "seed",
+    "vehicle",
+    "n_compasses",
+    "duration_s",
+    "theta_mgauss",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "decimal_year",
+)
 
 
 def setting_keys() -> tuple[str, ...]:
@@ -486,6 +525,12 @@ def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -
                 )
         elif key in ("seed", "n_compasses"):
             run_changes[key] = _parse_value(key, text, "int")
+        elif key == "theta_mgauss":
+            parts = text.replace(";", ",").split(",")
+            values = [_parse_value(key, part, "float") for part in parts]
+            if len(values) != 3:
+                raise InputError(f"--set theta_mgauss={text}: expected three numbers X,Y,Z (mgauss)")
+            run_changes[key] = tuple(values)
         elif key == "duration_s":
             run_changes[key] = _parse_value(key, text, "float")
         else:
