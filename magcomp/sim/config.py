@@ -91,6 +91,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
 from magcomp.errors import InputError
 
 #: name -> (value that means "off", lowest allowed, highest allowed, one-line meaning of VALUE)
@@ -485,7 +487,7 @@ def _loop_rate_for(truth_hz: float, needed_hz: float) -> float:
     raise InputError(f"rate {needed_hz} Hz above the truth rate {truth_hz} Hz")
 
 
-def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -> SimConfig:
+def apply_settings(config: SimConfig, settings: Mapping[str, object] | list[str]) -> SimConfig:
     """A copy of ``config`` with ``KEY=VALUE`` settings (``--set``) applied; see the module docstring.
 
     Rates: a rate above the autopilot loop (``imu_hz``, default 50 Hz) raises the loop to the slowest rate
@@ -494,7 +496,9 @@ def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -
     link's SR*_ stream rates."""
     pairs: dict[str, str] = {}
     items: list[tuple[str, str]] = (
-        list(settings.items()) if isinstance(settings, Mapping) else [_split(text) for text in settings]
+        [(k, v if isinstance(v, str) else str(v)) for k, v in settings.items()]
+        if isinstance(settings, Mapping)
+        else [_split(text) for text in settings]
     )
     for key, value in items:
         pairs[key.strip()] = value
@@ -577,3 +581,54 @@ def _split(text: str) -> tuple[str, str]:
     if not sep or not key.strip():
         raise InputError(f"--set {text!r}: expected KEY=VALUE, e.g. mag_hz=10")
     return key, value
+
+
+def sample_variation(rng: np.random.Generator) -> dict[str, str]:
+    """One random draw of the knobs over plausible ranges (issue 10's "deliberately varied" clean logs);
+    feed it to :func:`apply_settings`. Ranges (each independent):
+
+    rates: 40 % telemetry-like (RAW_IMU = ATTITUDE = 1, 2, 4 or 10 Hz, link loss 0-5 %), else an onboard
+    rate (RAW_IMU 10-100 Hz, compass updates 10 Hz .. the RAW_IMU rate, ATTITUDE 1-50 Hz); compass LSB
+    0.15 / 0.92 / 1.5 / 3 mgauss, white noise x0.3-2, AR(1) 0-5 mgauss with tau 0.5-10 s, random walk
+    0-0.3 mgauss/sqrt(s); autopilot yaw: 60 % its internal compass, 20 % an external compass 0, 20 % GPS
+    yaw; autopilot calibration on 80 % (residual hard iron 0-40 mgauss, soft iron 0-5 %); ATTITUDE biases
+    roll/pitch +-2 deg, yaw +-3 deg, noise 0-0.5 deg; filter gains kp_yaw 0.2-1, kp_tilt 0.5-2; gyro noise
+    x0.5-3, bias x0-2; hover throttle 0.35-0.6; theta x0.3-2; place: latitude +-60 deg, any longitude, date
+    2025.0-2029.9; seed 0-2^31. The scenario (``ordinary`` multirotor or ``ordinary_plane``) is the caller's
+    choice."""
+    out: dict[str, float | str] = {}
+    if rng.random() < 0.4:
+        out["telemetry_hz"] = float(rng.choice([1.0, 2.0, 4.0, 10.0]))
+        out["link_loss"] = round(float(rng.uniform(0.0, 0.05)), 4)
+    else:
+        raw = float(rng.choice([10.0, 20.0, 25.0, 50.0, 100.0]))
+        out["raw_imu_hz"] = raw
+        out["mag_hz"] = round(float(np.exp(rng.uniform(math.log(10.0), math.log(raw)))), 2)
+        out["attitude_hz"] = float(rng.choice([1.0, 2.0, 4.0, 10.0, 25.0, 50.0]))
+    out["mag_lsb_mgauss"] = float(rng.choice([0.15, 0.92, 1.5, 3.0]))
+    out["mag_noise_scale"] = round(float(rng.uniform(0.3, 2.0)), 3)
+    out["mag_ar1_sigma_mgauss"] = round(float(rng.uniform(0.0, 5.0)), 3)
+    out["mag_ar1_tau_s"] = round(float(np.exp(rng.uniform(math.log(0.5), math.log(10.0)))), 3)
+    out["mag_rw_mgauss_per_sqrt_s"] = round(float(rng.uniform(0.0, 0.3)), 4)
+    yaw = rng.random()
+    out["yaw_source"] = "truth" if yaw < 0.2 else "compass"
+    out["external_compass0"] = "on" if 0.2 <= yaw < 0.4 else "off"
+    out["n_compasses"] = 2 if out["external_compass0"] == "on" else int(rng.choice([1, 2, 3]))
+    out["ap_calibration"] = "on" if rng.random() < 0.8 else "off"
+    out["ap_cal_hard_iron_mgauss"] = round(float(rng.uniform(0.0, 40.0)), 2)
+    out["ap_cal_soft_iron"] = round(float(rng.uniform(0.0, 0.05)), 4)
+    out["att_roll_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
+    out["att_pitch_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
+    out["att_yaw_bias_deg"] = round(float(rng.uniform(-3.0, 3.0)), 3)
+    out["att_noise_deg"] = round(float(rng.uniform(0.0, 0.5)), 3)
+    out["ap_kp_yaw"] = round(float(rng.uniform(0.2, 1.0)), 3)
+    out["ap_kp_tilt"] = round(float(rng.uniform(0.5, 2.0)), 3)
+    out["gyro_noise_scale"] = round(float(rng.uniform(0.5, 3.0)), 3)
+    out["gyro_bias_scale"] = round(float(rng.uniform(0.0, 2.0)), 3)
+    out["hover_throttle"] = round(float(rng.uniform(0.35, 0.6)), 3)
+    out["theta_scale"] = round(float(rng.uniform(0.3, 2.0)), 3)
+    out["lat_deg"] = round(float(rng.uniform(-60.0, 60.0)), 4)
+    out["lon_deg"] = round(float(rng.uniform(-180.0, 180.0)), 4)
+    out["decimal_year"] = round(float(rng.uniform(2025.0, 2029.9)), 3)
+    out["seed"] = int(rng.integers(0, 2**31))
+    return {k: str(v) for k, v in out.items()}

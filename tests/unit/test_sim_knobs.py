@@ -3,6 +3,7 @@ guarantee that a run with every knob at its default is the pre-knob run."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -200,3 +201,23 @@ def test_link_loss_drops_that_fraction_of_messages_but_no_parameter() -> None:
     n_full, n_lossy = count(full, 1), count(lossy, 1)  # RAW_IMU
     sigma = math.sqrt(0.1 * 0.9 / n_full)
     assert n_lossy / n_full == pytest.approx(0.9, abs=4 * sigma)
+
+
+def test_sampled_variations_are_valid_and_simulate() -> None:
+    from magcomp.adapters.mavlink_emit import build_messages
+    from magcomp.sim.config import sample_variation
+
+    rng = np.random.default_rng(10)
+    draws = [sample_variation(rng) for _ in range(40)]
+    configs = [apply_settings(SimConfig(scenario="ordinary", duration_s=8.0), d) for d in draws]
+    assert not any(c.legacy for c in configs)
+    assert {c.variation.yaw_source for c in configs} == {"compass", "truth"}
+    assert any(c.variation.external_compass0 for c in configs)
+    raw_rates = [c.rates.raw_imu_rate for c in configs]
+    assert min(raw_rates) <= 2.0 and max(raw_rates) >= 50.0  # telemetry-like and onboard rates both drawn
+    for cfg in configs[:3]:
+        plane = dataclasses.replace(cfg, scenario="ordinary_plane")
+        for c in (cfg, plane):
+            assert build_messages(simulate(c))  # every draw runs end to end
+    # numbers as values work as well as strings
+    assert apply_settings(SimConfig(scenario="ordinary"), {"mag_hz": 10, "gps": False}).rates.mag_rate == 10.0
