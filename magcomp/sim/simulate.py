@@ -7,6 +7,11 @@ Pipeline (pure: no I/O; the Earth field comes from :mod:`magcomp.geomag` unless 
     motion (trajectory.py, exact SO(3) integration at truth_hz, eq. (18))
     -> powertrain (powertrain.py, eqs. (4)-(11) + hidden effects) -> bias per compass (eq. (11))
     -> sensors (sensors.py, eq. (1)) sampled at imu_hz -> autopilot attitude (autopilot.py)
+    [-> the autopilot's own compass calibration, logged = A (v - b_ap) (sensors.AutopilotCalibration),
+       when config.ap_calibration; the autopilot then steers by that calibrated field, or by GPS yaw]
+
+The variation knobs (config.Variation) draw from their own random streams, so with every knob at its
+default a pre-knob scenario reproduces its earlier output exactly (config.SimConfig.legacy).
 
 Symbol table: theta -> CompassTruth.theta_mgauss (calibrated frame, mgauss); delta_t -> throttle_01;
 B -> bias_mgauss (calibrated frame, mgauss, body); K, b -> k_matrix, b_mgauss (eq. (1)); u^e ->
