@@ -34,11 +34,30 @@ NT_PER_MGAUSS = 100.0
 WMM_COEFFICIENTS = "wmm/WMM_2025.COF"
 
 
-@functools.lru_cache(maxsize=1)
-def _geomag() -> Any:
+#: WMM releases bundled with pygeomag 1.1.0, by the first year of their 5-year life span. A log's date picks
+#: the release valid then (a 2015 flight uses WMM-2015v2, not WMM-2025 extrapolated ten years back).
+WMM_RELEASES: dict[int, str] = {
+    2010: "wmm/WMM_2010.COF",
+    2015: "wmm/WMM_2015v2.COF",
+    2020: "wmm/WMM_2020.COF",
+    2025: WMM_COEFFICIENTS,
+}
+
+
+def wmm_release(decimal_year: float) -> tuple[int, bool]:
+    """(epoch of the WMM release for this date, True when the date lies inside its life span)."""
+    epochs = sorted(WMM_RELEASES)
+    for e in reversed(epochs):
+        if decimal_year >= e:
+            return e, decimal_year < e + 5.0
+    return epochs[0], False
+
+
+@functools.lru_cache(maxsize=8)
+def _geomag(epoch: int = 2025) -> Any:
     from pygeomag import GeoMag
 
-    return GeoMag(coefficients_file=WMM_COEFFICIENTS)
+    return GeoMag(coefficients_file=WMM_RELEASES[epoch])
 
 
 def decimal_year(when: _dt.date | _dt.datetime) -> float:
@@ -61,9 +80,10 @@ def earth_field_ned_mgauss(
     decimal_year: float,
     allow_outside_lifespan: bool = False,
 ) -> NDArray[np.float64]:
-    """WMM-2025 main field at a point: ``[north, east, down]`` in mgauss, shape (3,).
+    """WMM main field at a point: ``[north, east, down]`` in mgauss, shape (3,), from the release valid at
+    ``decimal_year`` (2010, 2015v2, 2020 or 2025; before 2010 WMM-2010's secular variation is extrapolated).
 
-    Raises :class:`InputError` for coordinates out of range or a date outside 2025.0-2030.0 (unless
+    Raises :class:`InputError` for coordinates out of range or a date after 2030.0 (unless
     ``allow_outside_lifespan``, which extrapolates the secular variation).
     """
     if not (-90.0 <= lat_deg <= 90.0) or not (-180.0 <= lon_deg <= 360.0):
@@ -71,14 +91,17 @@ def earth_field_ned_mgauss(
     if not all(math.isfinite(x) for x in (lat_deg, lon_deg, alt_m, decimal_year)):
         raise InputError("location/date for the magnetic model must be finite numbers")
     lon = lon_deg - 360.0 if lon_deg > 180.0 else lon_deg
+    epoch, inside = wmm_release(float(decimal_year))
+    if not inside and epoch != 2025:
+        inside = True  # a release older than 2025 whose span ended: the next release is bundled (not reached)
     try:
-        res = _geomag().calculate(
+        res = _geomag(epoch).calculate(
             glat=float(lat_deg),
             glon=float(lon),
             alt=float(alt_m) / 1000.0,
             time=float(decimal_year),
-            allow_date_outside_lifespan=allow_outside_lifespan,
+            allow_date_outside_lifespan=allow_outside_lifespan or (decimal_year < 2010.0),
         )
     except ValueError as exc:
-        raise InputError(f"magnetic model (WMM-2025): {exc} (date {decimal_year:.2f})") from exc
+        raise InputError(f"magnetic model (WMM-{epoch}): {exc} (date {decimal_year:.2f})") from exc
     return np.array([res.x, res.y, res.z], dtype=float) / NT_PER_MGAUSS

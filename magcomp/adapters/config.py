@@ -19,8 +19,9 @@ from typing import Any
 
 from magcomp.errors import InputError
 
-ATTITUDE_SOURCES = ("mahony", "autopilot")
+ATTITUDE_SOURCES = ("auto", "mahony", "autopilot")
 CALIBRATION_MODES = ("auto", "learn", "stored", "none")
+INFLIGHT_REFERENCES = ("auto", "absolute", "relative")
 OBSERVER_FORMS = ("default", "paper", "delta_dot", "regression")
 
 
@@ -40,9 +41,12 @@ class InputConfig:
 
     throttle_source: str = "auto"
     compasses: tuple[int, ...] = ()
-    attitude: str = "mahony"
+    attitude: str = "auto"
     saturation_mgauss: float = 8000.0
-    gyro_saturation_rad_s: float = 34.0
+    # below the largest rate RAW_IMU / SCALED_IMU* can carry (int16 mrad/s: 32.767 rad/s), so a value
+    # clipped at the message's integer limit reads as saturated; also below the 2000 deg/s (34.9 rad/s)
+    # range of the usual MEMS gyros, where DataFlash IMU values clip
+    gyro_saturation_rad_s: float = 32.7
     stale_s: float = 0.5
     time_reset_s: float = 1.0
 
@@ -104,6 +108,38 @@ class CalibrationConfig:
 
 
 @dataclass(frozen=True)
+class InflightConfig:
+    """In-flight calibration jointly with theta (magcomp/core/inflight.py), for compasses that have no
+    hand-rotation (or stored) calibration: real flights.
+
+    reference: ``auto`` (from the autopilot's parameters: absolute where the autopilot's yaw comes from an
+    external compass other than this one or from GPS, else relative), ``absolute`` (the autopilot's
+    attitude, yaw included, is trusted), ``relative`` (only rotations from the gyro / attitude are used).
+    rotation: where the relative form's rotations come from: ``auto`` (the autopilot's attitude when it
+    streams one, else the integrated gyro), ``gyro`` or ``attitude``.
+    per_motor: ``off`` (the paper's eq. (11)) or ``auto`` (per-motor vectors when motor outputs are known).
+    max_rate_hz: samples per second and compass fed to the estimator (consecutive samples at higher rates
+    carry nearly the same information). absolute_settle_s: the autopilot's yaw is used only with the motors
+    running and this long after they start (before arming its yaw can be tens of degrees off).
+    sigma_*: the prior around the autopilot's own calibration (see InflightParams).
+    """
+
+    enabled: bool = True
+    reference: str = "auto"
+    rotation: str = "auto"
+    per_motor: str = "off"
+    max_rate_hz: float = 10.0
+    absolute_settle_s: float = 0.0
+    sigma_a_calibrated: float = 0.05
+    sigma_a_uncalibrated: float = 0.3
+    sigma_d_calibrated_mgauss: float = 50.0
+    sigma_d_uncalibrated_mgauss: float = 300.0
+    sigma_theta_mgauss: float = 600.0
+    heading_ok_deg: float = 2.0
+    heading_converged_deg: float = 1.0
+
+
+@dataclass(frozen=True)
 class LocationConfig:
     """Where the vehicle flies, for the WMM Earth field the calibration is scaled to."""
 
@@ -150,6 +186,7 @@ class Config:
     observer: ObserverConfig = field(default_factory=ObserverConfig)
     mahony: MahonyConfig = field(default_factory=MahonyConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    inflight: InflightConfig = field(default_factory=InflightConfig)
     location: LocationConfig = field(default_factory=LocationConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     state: StateConfig = field(default_factory=StateConfig)
@@ -204,10 +241,28 @@ _RULES: dict[tuple[str, str], tuple[Any, str]] = {
     ("calibration", "min_samples"): (lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE),
     ("calibration", "max_samples"): (lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE),
     ("calibration", "check_every"): (lambda v: v >= 1, "be >= 1"),
+    ("inflight", "reference"): (
+        lambda v: v in INFLIGHT_REFERENCES,
+        f"be one of {', '.join(INFLIGHT_REFERENCES)}",
+    ),
+    ("inflight", "per_motor"): (lambda v: v in ("auto", "off"), "be auto or off"),
+    ("inflight", "rotation"): (lambda v: v in ("auto", "gyro", "attitude"), "be auto, gyro or attitude"),
+    ("inflight", "max_rate_hz"): (lambda v: 0.0 < v <= 1000.0, "be in (0, 1000] Hz"),
+    ("inflight", "absolute_settle_s"): (_non_negative, "be >= 0"),
+    ("inflight", "sigma_a_calibrated"): (lambda v: 0.0 < v <= 1.0, "be in (0, 1]"),
+    ("inflight", "sigma_a_uncalibrated"): (lambda v: 0.0 < v <= 1.0, "be in (0, 1]"),
+    ("inflight", "sigma_d_calibrated_mgauss"): (_positive, "be > 0"),
+    ("inflight", "sigma_d_uncalibrated_mgauss"): (_positive, "be > 0"),
+    ("inflight", "sigma_theta_mgauss"): (_positive, "be > 0"),
+    ("inflight", "heading_ok_deg"): (lambda v: 0.0 < v <= 90.0, "be in (0, 90] deg"),
+    ("inflight", "heading_converged_deg"): (lambda v: 0.0 < v <= 90.0, "be in (0, 90] deg"),
     ("location", "lat_deg"): (lambda v: -90.0 <= v <= 90.0, "be in [-90, 90]"),
     ("location", "lon_deg"): (lambda v: -180.0 <= v <= 360.0, "be in [-180, 360]"),
     ("location", "alt_m"): (lambda v: -1000.0 <= v <= 100000.0, "be in [-1000, 100000] m"),
-    ("location", "decimal_year"): (lambda v: 2025.0 <= v < 2030.0, "be in [2025, 2030) (WMM-2025 validity)"),
+    ("location", "decimal_year"): (
+        lambda v: 2010.0 <= v < 2030.0,
+        "be in [2010, 2030) (WMM 2010-2025 validity)",
+    ),
     ("output", "rate_hz"): (_non_negative, "be >= 0 (0 = every magnetometer sample)"),
     ("output", "heading_tau_s"): (lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)"),
     ("output", "source_system"): (lambda v: 0 <= v <= 255, "be in 0..255 (0 = the vehicle's own id)"),

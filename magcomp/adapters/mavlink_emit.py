@@ -410,20 +410,134 @@ def build_messages(result: SimResult, start_unix_s: float | None = None) -> list
     return events
 
 
-def encode_stream(
-    result: SimResult, src_system: int = 1, src_component: int = 1, start_unix_s: float | None = None
-) -> list[tuple[float, bytes]]:
-    """Packed MAVLink 2 packets in send order: (boot time s, bytes); sequence numbers run 0..255."""
+MAV_AUTOPILOT_PX4 = 12
+PX4_FN_MOTOR1 = 101  # PWM_MAIN_FUNCn Motor1
+HIGHRES_ALL_IMU = 0x3F | 0x1000  # accel, gyro, temperature
+HIGHRES_MAG = 0x1C0
+
+
+def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
+    """The same vehicle as a PX4 autopilot sends it (MAV_AUTOPILOT_PX4): PARAM_VALUE PWM_MAIN_FUNCn/MINn/
+    MAXn and CAL_MAGn_ID; HIGHRES_IMU (imu_hz: accel m/s^2, gyro rad/s, compass 0 in gauss, fields_updated);
+    SCALED_IMU2/3 (compasses 1, 2 in mgauss); ATTITUDE_QUATERNION; ACTUATOR_OUTPUT_STATUS (PWM us);
+    BATTERY_STATUS; GPS_RAW_INT and SYSTEM_TIME (power_hz). Same quantisation as the ArduPilot stream."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
+    from magcomp.core.rotations import quats_from_euler
+
+    cfg = result.config
+    s = result.samples
+    rates = cfg.rates
+    n = s.t_s.size
+    t = s.t_s
+    multirotor = cfg.vehicle == "multirotor"
+    events: list[tuple[float, int, Any]] = []
+    t_first = float(t[0])
+    motor_channels = (1, 2, 3, 4) if multirotor else (3,)
+    params: list[tuple[str, float]] = []
+    for ch in range(1, 9):
+        fn = PX4_FN_MOTOR1 + motor_channels.index(ch) if ch in motor_channels else 0
+        params += [
+            (f"PWM_MAIN_FUNC{ch}", float(fn)),
+            (f"PWM_MAIN_MIN{ch}", 1000.0),
+            (f"PWM_MAIN_MAX{ch}", 2000.0),
+        ]
+    for i, (name, value) in enumerate(params):
+        msg = apm.MAVLink_param_value_message(name.encode(), value, MAV_PARAM_TYPE_REAL32, len(params), i)
+        events.append((t_first, -1, msg))
+    for i in _rate_indices(n, rates.imu_hz, rates.heartbeat_hz):
+        hb = apm.MAVLink_heartbeat_message(
+            MAV_TYPE_QUADROTOR if multirotor else MAV_TYPE_FIXED_WING,
+            MAV_AUTOPILOT_PX4,
+            MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MAV_MODE_FLAG_SAFETY_ARMED,
+            0,
+            MAV_STATE_ACTIVE,
+            3,
+        )
+        events.append((float(t[i]), 0, hb))
+    g = STANDARD_GRAVITY_M_S2
+    acc = np.round(s.accel_m_s2 / g * 1000.0) * g / 1000.0
+    gyro = np.round(s.gyro_rad_s * 1000.0) / 1000.0
+    mag = np.round(s.mag_mgauss).astype(np.int64)
+    t_us = np.round(t * 1e6).astype(np.int64)
+    t_ms = np.round(t * 1e3).astype(np.int64)
+    for i in range(n):
+        a, w, m = acc[0, i], gyro[0, i], mag[0, i]
+        events.append((float(t[i]), 1, apm.MAVLink_highres_imu_message(
+            int(t_us[i]), *(float(v) for v in a), *(float(v) for v in w), *(float(v) * 1e-3 for v in m),
+            1013.25, 0.0, 0.0, float(s.imu_temp_degc[0, i]), HIGHRES_ALL_IMU | HIGHRES_MAG, 0)))  # fmt: skip
+        for j in range(1, mag.shape[0]):
+            cls = apm.MAVLink_scaled_imu2_message if j == 1 else apm.MAVLink_scaled_imu3_message
+            aj = np.round(s.accel_m_s2[j, i] / g * 1000.0).astype(np.int64)
+            wj = np.round(s.gyro_rad_s[j, i] * 1000.0).astype(np.int64)
+            events.append((float(t[i]), 1 + j, cls(int(t_ms[i]), *(int(v) for v in aj), *(int(v) for v in wj),
+                                                   *(int(v) for v in mag[j, i]), 0)))  # fmt: skip
+    att = s.attitude_rad
+    q = quats_from_euler(att[:, 0], att[:, 1], att[:, 2])
+    rates_b = s.gyro_rad_s[0] - result.compasses[0].gyro_bias_rad_s
+    for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
+        qi, wi = (float(v) for v in q[i]), (float(v) for v in rates_b[i])
+        events.append(
+            (float(t[i]), 4, apm.MAVLink_attitude_quaternion_message(int(t_ms[i]), *qi, *wi, [0.0] * 4))
+        )
+    motors_pwm = _pwm(s.motors_01)
+    thr_pwm = _pwm(s.throttle_01)
+    for i in _rate_indices(n, rates.imu_hz, rates.servo_hz):
+        out = [900.0] * 32
+        if multirotor:
+            out[0:4] = [float(v) for v in motors_pwm[i, :4]]
+        else:
+            out[2] = float(thr_pwm[i])
+        events.append((float(t[i]), 5, apm.MAVLink_actuator_output_status_message(int(t_us[i]), 0xFF, out)))
+    loc = cfg.location
+    start_unix = default_start_unix_s(result)
+    for i in _rate_indices(n, rates.imu_hz, rates.power_hz):
+        mv = round(float(s.voltage_v[i]) * 1000.0)
+        ca = round(float(s.current_a[i]) * 100.0)
+        events.append((float(t[i]), 8, apm.MAVLink_battery_status_message(
+            0, 0, MAV_BATTERY_TYPE_LIPO, INT16_UNKNOWN, [mv] + [UINT16_UNUSED] * 9, ca, -1, -1, -1, 0,
+            MAV_BATTERY_CHARGE_STATE_OK)))  # fmt: skip
+        lat_e7, lon_e7, alt_mm = (
+            round(loc.lat_deg * 1e7),
+            round(loc.lon_deg * 1e7),
+            round(float(s.alt_m[i]) * 1e3),
+        )
+        gps = apm.MAVLink_gps_raw_int_message(int(t_us[i]), 3, lat_e7, lon_e7, alt_mm, 100, 150, 0, 0, 12)
+        events.append((float(t[i]), 9, gps))
+        unix_us = round((start_unix + float(t[i])) * 1e6)
+        events.append((float(t[i]), 10, apm.MAVLink_system_time_message(unix_us, int(t_ms[i]) & 0xFFFFFFFF)))
+    events.sort(key=lambda e: (e[0], e[1]))
+    return events
+
+
+def encode_stream(
+    result: SimResult,
+    src_system: int = 1,
+    src_component: int = 1,
+    start_unix_s: float | None = None,
+    flavour: str = "ardupilot",
+) -> list[tuple[float, bytes]]:
+    """Packed MAVLink 2 packets in send order: (boot time s, bytes); sequence numbers run 0..255.
+    ``flavour``: ``ardupilot`` (:func:`build_messages`) or ``px4`` (:func:`build_px4_messages`)."""
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    if flavour not in ("ardupilot", "px4"):
+        raise InputError(f"MAVLink flavour {flavour!r}: ardupilot or px4")
     mav = apm.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
+    if flavour == "px4":
+        return [(t, bytes(msg.pack(mav))) for t, _, msg in build_px4_messages(result)]
     return [(t, bytes(msg.pack(mav))) for t, _, msg in build_messages(result, start_unix_s)]
 
 
-def write_tlog(result: SimResult, path: str | os.PathLike[str], start_unix_s: float | None = None) -> int:
+def write_tlog(
+    result: SimResult,
+    path: str | os.PathLike[str],
+    start_unix_s: float | None = None,
+    flavour: str = "ardupilot",
+) -> int:
     """Write the stream as a tlog (8-byte big-endian UNIX usec + packet per record). Returns the count."""
     start = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
-    packets = encode_stream(result, start_unix_s=start)
+    packets = encode_stream(result, start_unix_s=start, flavour=flavour)
     chunks = []
     for t, pkt in packets:
         chunks.append(round((start + t) * 1e6).to_bytes(8, "big"))
@@ -631,11 +745,12 @@ def stream_to_link(
     speed: float = 1.0,
     stop: Callable[[], bool] | None = None,
     keep_received: int = 50,
+    flavour: str = "ardupilot",
 ) -> LinkReport:
     """Play the stream to a live endpoint in (simulated) real time divided by ``speed`` (<= 0: no pacing),
     acting as the flight controller: whatever the peer sends back is read, counted by type, and the first
     ``keep_received`` messages are kept. ``stop()`` returning True ends the run early."""
-    packets = encode_stream(result)
+    packets = encode_stream(result, flavour=flavour)
     conn = _open_link(url)
     received: dict[str, int] = {}
     first: list[dict[str, Any]] = []

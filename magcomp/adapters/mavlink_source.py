@@ -18,9 +18,11 @@ Units at this boundary (everything downstream uses them):
   motors actually disturbed.
 - Time: the message's own timestamp (time_boot_ms, time_usec, DataFlash TimeUS / TimeMS) in s. Messages
   without one (VFR_HUD, SYS_STATUS, BATTERY_STATUS, HEARTBEAT, PARAM_VALUE) get the latest time seen. A
-  jump back of more than ``RESET_JUMP_S`` is a reboot of the autopilot: an offset keeps ``t_s`` monotonic
-  and ``counts["clock_resets"]`` counts them. Smaller steps back within one message stream are dropped
-  (``counts["time_backwards"]``).
+  jump back of more than ``RESET_JUMP_S`` is a reboot of the autopilot: an offset keeps ``t_s`` monotonic,
+  ``counts["clock_resets"]`` counts them and ``samples()`` yields a ClockResetSample (the pipeline ends its
+  calibration window and filters there). A jump either way is believed only once the next timestamp
+  confirms it; a lone corrupt timestamp is dropped (``counts["time_jumps"]``). Smaller steps back within
+  one message stream are dropped (``counts["time_backwards"]``).
 - Bad input is skipped and counted, never fatal: ``bad_crc``, ``garbage_bytes``, ``truncated``,
   ``nonfinite``. A file with no usable message at all is an :class:`~magcomp.errors.InputError`.
 
@@ -48,10 +50,11 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_unix
 from magcomp.adapters.throttle import (
     FIXED_WING_TYPES,
     MULTIROTOR_TYPES,
@@ -64,25 +67,35 @@ from magcomp.adapters.throttle import (
 )
 from magcomp.core.types import (
     AttitudeSample,
+    ClockResetSample,
     HeartbeatSample,
     ImuSample,
     LogData,
     MagSample,
     ParamSample,
+    PositionSample,
     PowerSample,
     Sample,
     Series,
     TemperatureSample,
     ThrottleSample,
+    TimeSample,
     Vec3,
 )
 from magcomp.errors import InputError
+
+if TYPE_CHECKING:
+    from magcomp.adapters.ulog_source import UlogSource
 
 G_M_S2 = 9.80665
 _MG_TO_M_S2 = G_M_S2 * 1e-3
 RESET_JUMP_S = 5.0  # a timestamp this far behind the newest one is an autopilot reboot
 U32_WRAP_S = 4294.967296  # SERVO_OUTPUT_RAW.time_usec is uint32
 MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_PX4 = 12
+HIGHRES_ACCEL_GYRO = 0x3F  # HIGHRES_IMU_UPDATED_FLAGS: X/Y/Z ACC (1, 2, 4), X/Y/Z GYRO (8, 16, 32)
+HIGHRES_MAG = 0x1C0  # X/Y/Z MAG (64, 128, 256)
+HIGHRES_TEMPERATURE = 0x1000
 MAV_TYPE_GCS = 6
 MAGIC_V1 = 0xFE
 MAGIC_V2 = 0xFD
@@ -102,6 +115,12 @@ WANTED_MAVLINK = (
     "SCALED_IMU2",
     "SCALED_IMU3",
     "BATTERY_STATUS",
+    "GPS_RAW_INT",
+    "GLOBAL_POSITION_INT",
+    "SYSTEM_TIME",
+    "HIGHRES_IMU",
+    "ATTITUDE_QUATERNION",
+    "ACTUATOR_OUTPUT_STATUS",
 )
 WANTED_DATAFLASH = (
     "MAG",
@@ -119,6 +138,9 @@ WANTED_DATAFLASH = (
     "BAT2",
     "PARM",
     "MSG",
+    "GPS",
+    "GPS2",
+    "POS",
 )
 _SERVO_FIELDS = tuple(f"servo{i}_raw" for i in range(1, 17))
 _IMU_SENSOR_NAMES = tuple(f"imu{i}" for i in range(256))  # RAW_IMU.id is a uint8
@@ -157,24 +179,39 @@ class _Clock:
         self.max_raw_s: float | None = None
         self.last_by_stream: dict[str, float] = {}
         self.last_t_s = 0.0
+        self.pending_s: float | None = None  # a jumped timestamp waiting for a second one to confirm it
+        self.reboot_pending = False  # a reboot was detected; MavSource.samples() yields the event
 
     def stamp(self, stream: str, raw_s: float) -> float | None:
         if not math.isfinite(raw_s):
             self.counts["nonfinite"] += 1
             return None
-        if self.max_raw_s is None:
+        top = self.max_raw_s
+        if top is None:
             self.max_raw_s = raw_s
-        elif raw_s < self.max_raw_s - RESET_JUMP_S:
-            self.offset_s += self.max_raw_s - raw_s
+        elif raw_s < top - RESET_JUMP_S or raw_s > top + RESET_JUMP_S:
+            # a jump of the clock: believed only when the next timestamp (of any message) agrees with
+            # it, so that one corrupt timestamp cannot shift or stretch everything after it
+            pend = self.pending_s
+            if pend is None or abs(raw_s - pend) > RESET_JUMP_S:
+                self.pending_s = raw_s
+                self.counts["time_jumps"] += 1
+                return None
+            self.pending_s = None
+            self.counts["time_jumps"] -= 1  # confirmed: not a glitch
+            if raw_s < top:  # a reboot of the autopilot: an event for the pipeline (reboot_pending)
+                self.offset_s += top - raw_s
+                self.counts["clock_resets"] += 1
+                self.reboot_pending = True
             self.max_raw_s = raw_s
             self.last_by_stream = {}
-            self.counts["clock_resets"] += 1
         else:
+            self.pending_s = None  # this timestamp agrees with the clock: a pending jump was a glitch
             prev = self.last_by_stream.get(stream)
             if prev is not None and raw_s < prev:
                 self.counts["time_backwards"] += 1
                 return None
-            if raw_s > self.max_raw_s:
+            if raw_s > top:
                 self.max_raw_s = raw_s
         self.last_by_stream[stream] = raw_s
         t_s = raw_s + self.offset_s
@@ -288,6 +325,10 @@ class _Converter:
         self.mag_index = mag_index
         self.undo_motor_comp = undo_motor_comp
         self.seen_raw_imu = False
+        self.seen_highres_imu = False  # PX4: HIGHRES_IMU is IMU 0; SCALED_IMU then adds only its compass
+        self.seen_scaled_mag0 = False  # a compass 0 in SCALED_IMU shadows HIGHRES_IMU's
+        self.seen_attitude = False  # ATTITUDE shadows ATTITUDE_QUATERNION
+        self.seen_servo_output = False  # SERVO_OUTPUT_RAW shadows ACTUATOR_OUTPUT_STATUS
         self.sys_status_current = False
         self.servo_pwm: dict[int, float] = {}
         self.vehicle_type = -1
@@ -326,7 +367,12 @@ class _Converter:
             self.counts["scaled_imu_shadowed"] += 1
             return []
         t_s = self.clock.stamp("SCALED_IMU", msg.time_boot_ms * 1e-3)
-        return [] if t_s is None else self._imu_mag("SCALED_IMU", t_s, msg, 0)
+        if t_s is None:
+            return []
+        out = self._imu_mag("SCALED_IMU", t_s, msg, 0)
+        return (
+            self._px4_scaled_imu(out) if self.seen_highres_imu or self.autopilot == MAV_AUTOPILOT_PX4 else out
+        )
 
     def _m_SCALED_IMU2(self, msg: Any) -> list[tuple[str, Record]]:
         t_s = self.clock.stamp("SCALED_IMU2", msg.time_boot_ms * 1e-3)
@@ -343,10 +389,12 @@ class _Converter:
         t_s = self.clock.stamp("ATTITUDE", msg.time_boot_ms * 1e-3)
         if t_s is None:
             return []
+        self.seen_attitude = True
         rates = _vec(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
         return [("ATTITUDE", AttitudeSample(t_s, float(msg.roll), float(msg.pitch), float(msg.yaw), rates))]
 
     def _m_SERVO_OUTPUT_RAW(self, msg: Any) -> list[tuple[str, Record]]:
+        self.seen_servo_output = True
         t_s = self.clock.stamp("SERVO_OUTPUT_RAW", self.clock.unwrap_u32_us(msg.time_usec))
         if t_s is None:
             return []
@@ -419,6 +467,105 @@ class _Converter:
         name = name.rstrip("\x00")
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, float(msg.param_value)))]
 
+    # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
+    def _px4_scaled_imu(self, out: list[tuple[str, Record]]) -> list[tuple[str, Record]]:
+        """SCALED_IMU of a vehicle that also sends HIGHRES_IMU: its compass only (mgauss, as ArduPilot's;
+        it then shadows HIGHRES_IMU's compass 0), not a second IMU 0 stream."""
+        kept: list[tuple[str, Record]] = []
+        for origin, rec in out:
+            if isinstance(rec, ImuSample):
+                if self.seen_highres_imu:
+                    continue
+            elif isinstance(rec, MagSample):
+                self.seen_scaled_mag0 = True
+            kept.append((origin, rec))
+        return kept
+
+    def _m_HIGHRES_IMU(self, msg: Any) -> list[tuple[str, Record]]:
+        """accel m/s^2, gyro rad/s, mag gauss -> mgauss; only the fields ``fields_updated`` flags as new."""
+        self.seen_highres_imu = True
+        updated = int(msg.fields_updated)
+        t_s = self.clock.stamp("HIGHRES_IMU", msg.time_usec * 1e-6)
+        if t_s is None:
+            return []
+        out: list[tuple[str, Record]] = []
+        index = int(getattr(msg, "id", 0))
+        if updated & HIGHRES_ACCEL_GYRO == HIGHRES_ACCEL_GYRO:
+            gyro = (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro))
+            accel = (float(msg.xacc), float(msg.yacc), float(msg.zacc))
+            if _finite(*gyro, *accel):
+                out.append(("HIGHRES_IMU", WireImuSample(t_s, gyro, accel, index)))
+            else:
+                self.counts["nonfinite"] += 1
+        if updated & HIGHRES_MAG == HIGHRES_MAG:
+            mag = (msg.xmag * 1000.0, msg.ymag * 1000.0, msg.zmag * 1000.0)  # gauss -> mgauss
+            if self.seen_scaled_mag0:
+                self.counts["highres_mag_shadowed"] += 1
+            elif not _finite(*mag):
+                self.counts["nonfinite"] += 1
+            elif not any(mag):
+                self.counts["mag_zero"] += 1
+            elif self.mag_index is None or self.mag_index == index:
+                out.append(("HIGHRES_IMU", WireMagSample(t_s, mag, index)))
+        if updated & HIGHRES_TEMPERATURE and math.isfinite(msg.temperature):
+            out.append(
+                ("HIGHRES_IMU", TemperatureSample(t_s, float(msg.temperature), _IMU_SENSOR_NAMES[index]))
+            )
+        return out
+
+    def _m_ATTITUDE_QUATERNION(self, msg: Any) -> list[tuple[str, Record]]:
+        if self.seen_attitude:
+            return []
+        q = (msg.q1, msg.q2, msg.q3, msg.q4)  # w, x, y, z
+        if not _finite(*q, msg.rollspeed, msg.pitchspeed, msg.yawspeed) or sum(v * v for v in q) < 0.25:
+            self.counts["nonfinite"] += 1
+            return []
+        t_s = self.clock.stamp("ATTITUDE_QUATERNION", msg.time_boot_ms * 1e-3)
+        if t_s is None:
+            return []
+        from magcomp.core.rotations import euler_from_quat
+
+        norm = math.sqrt(sum(v * v for v in q))
+        roll, pitch, yaw = euler_from_quat(np.array(q, dtype=np.float64) / norm)
+        rates = _vec(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+        return [("ATTITUDE", AttitudeSample(t_s, float(roll), float(pitch), float(yaw), rates))]
+
+    def _m_ACTUATOR_OUTPUT_STATUS(self, msg: Any) -> list[tuple[str, Record]]:
+        """PX4's actuator outputs (PWM us on PWM outputs), as servo channels 1..32 while no
+        SERVO_OUTPUT_RAW is seen; inactive outputs (``active`` bit clear) are left out."""
+        if self.seen_servo_output:
+            return []
+        t_s = self.clock.stamp("ACTUATOR_OUTPUT_STATUS", msg.time_usec * 1e-6)
+        if t_s is None:
+            return []
+        active = int(msg.active)
+        pwm = {
+            ch: float(v)
+            for ch, v in enumerate(msg.actuator, start=1)
+            if active >> (ch - 1) & 1 and math.isfinite(v)
+        }
+        return [("ACTUATOR_OUTPUT_STATUS", PwmRecord(t_s, "servo", pwm))]
+
+    # --- position and UTC time (for the Earth-field model at the vehicle) ----------------------------------
+    # Stamped with the latest source time: GPS_RAW_INT.time_usec may be Unix time or time since boot, and
+    # a position needs no sub-second timing.
+    def _m_GPS_RAW_INT(self, msg: Any) -> list[tuple[str, Record]]:
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7  # degE7
+        fix_ok = int(msg.fix_type) >= 3 and (msg.lat != 0 or msg.lon != 0) and abs(lat) <= 90.0
+        year = decimal_year_from_unix(msg.time_usec * 1e-6)  # NaN for time since boot
+        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, year, fix_ok)  # alt mm MSL
+        return [("GPS_RAW_INT", pos)]
+
+    def _m_GLOBAL_POSITION_INT(self, msg: Any) -> list[tuple[str, Record]]:
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        fix_ok = (msg.lat != 0 or msg.lon != 0) and abs(lat) <= 90.0  # (0, 0) before the EKF has an origin
+        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, fix_ok=fix_ok)  # alt mm MSL
+        return [("GLOBAL_POSITION_INT", pos)]
+
+    def _m_SYSTEM_TIME(self, msg: Any) -> list[tuple[str, Record]]:
+        year = decimal_year_from_unix(msg.time_unix_usec * 1e-6)  # 0 / 1970 / 1980: clock not set
+        return [] if math.isnan(year) else [("SYSTEM_TIME", TimeSample(self.clock.last_t_s, year))]
+
     # --- DataFlash -----------------------------------------------------------------------------------------
     def _df_values(self, msg: Any) -> SimpleNamespace:
         """Field values of a DFReader message, read once through cached converters.
@@ -456,6 +603,8 @@ class _Converter:
             return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), float(v.Value)))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))
+        if mtype in ("GPS", "GPS2", "POS"):
+            return self._df_position(v)
         if hasattr(v, "TimeUS"):
             raw_s = v.TimeUS * 1e-6
         elif hasattr(v, "TimeMS"):
@@ -500,6 +649,32 @@ class _Converter:
                 return []
             return [(base, PowerSample(t_s, volt, curr, index))]
         return []
+
+    def _df_position(self, v: Any) -> list[tuple[str, Record]]:
+        """DataFlash GPS/GPS2 (Status >= 3 is a 3D fix; GPS week + ms of week -> UTC) and POS (EKF position).
+
+        Old logs (ArduPilot <= 3.3) have TimeMS = GPS time of week, Week, and T = time since boot (ms);
+        newer ones TimeUS, GMS and GWk. Lat/Lng are degrees after DFReader's 1e-7 multiplier; an integer
+        column without it (text logs) is degE7. Stamped with the latest source time (see GPS_RAW_INT)."""
+        lat, lon = getattr(v, "Lat", math.nan), getattr(v, "Lng", math.nan)
+        alt = float(getattr(v, "Alt", math.nan))
+        if isinstance(lat, int) and isinstance(lon, int) and (abs(lat) > 180 or abs(lon) > 360):
+            lat, lon = lat * 1e-7, lon * 1e-7
+        lat, lon = float(lat), float(lon)
+        if not _finite(lat, lon):
+            self.counts["nonfinite"] += 1
+            return []
+        known = (lat != 0.0 or lon != 0.0) and abs(lat) <= 90.0 and abs(lon) <= 180.0
+        if v.mtype == "POS":
+            return [("POS", PositionSample(self.clock.last_t_s, lat, lon, alt, fix_ok=known))]
+        if hasattr(v, "GWk"):
+            year = decimal_year_from_gps(float(v.GWk), float(v.GMS))
+        elif hasattr(v, "Week") and hasattr(v, "TimeMS"):
+            year = decimal_year_from_gps(float(v.Week), float(v.TimeMS))
+        else:
+            year = math.nan
+        fix_ok = known and int(getattr(v, "Status", 0)) >= 3
+        return [("GPS", PositionSample(self.clock.last_t_s, lat, lon, alt, year, fix_ok))]
 
     def _df_msg(self, text: str) -> list[tuple[str, Record]]:
         lowered = text.lower()
@@ -826,6 +1001,20 @@ def _is_live(target: str) -> bool:
         return False
 
 
+def _is_ulog(target: str) -> bool:
+    """A ULog file: ``.ulg`` or the ULog magic, read from a regular file only (never from a link)."""
+    if _is_live(target):
+        return False
+    path = Path(target)
+    if path.suffix.lower() == ".ulg":
+        return path.is_file()
+    try:
+        with path.open("rb") as f:
+            return f.read(4) == b"ULog"
+    except OSError:
+        return False
+
+
 class MavSource:
     """One source of typed samples. Use :func:`open_source`.
 
@@ -998,8 +1187,13 @@ class MavSource:
         resolved: ResolvedThrottle | None = None
         stale = True
         params = self.params
+        clock = self._conv.clock
         for handler, msg in self._messages():
-            for _, rec in handler(msg):
+            recs = handler(msg)
+            if clock.reboot_pending:
+                clock.reboot_pending = False
+                yield ClockResetSample(clock.last_t_s, clock.offset_s)
+            for _, rec in recs:
                 cls = type(rec)
                 if cls is PwmRecord or cls is ThrottleRecord:
                     assert isinstance(rec, PwmRecord | ThrottleRecord)  # for mypy (cheap: few per message)
@@ -1056,24 +1250,27 @@ def open_source(
     undo_motor_comp: bool = True,
     baud: int = 57600,
     live_timeout_s: float = 0.5,
-) -> MavSource:
-    """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log) or a live link URL.
+) -> MavSource | UlogSource:
+    """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log, PX4 .ulg) or a live link URL.
 
     Links: ``udpin:0.0.0.0:14550``, ``udpout:host:port``, ``tcp:host:port``, ``tcpin:0.0.0.0:5760``,
     ``/dev/ttyACM0:115200`` or ``serial:/dev/ttyUSB0:57600``. Raises InputError for a missing, empty or
-    unrecognisable file. ``mag_index`` restricts MagSamples to one compass. ``.ulg`` is read by
-    :func:`load_log`.
+    unrecognisable file. ``mag_index`` restricts MagSamples to one compass. A ``.ulg`` gives a
+    :class:`~magcomp.adapters.ulog_source.UlogSource` (same interface, no link).
     """
+    target = os.fspath(url_or_path)
+    if _is_ulog(target):
+        from magcomp.adapters.ulog_source import UlogSource
+
+        return UlogSource(target, throttle_source=throttle_source, mag_index=mag_index)
     source = MavSource(
-        os.fspath(url_or_path),
+        target,
         throttle_source=throttle_source,
         mag_index=mag_index,
         undo_motor_comp=undo_motor_comp,
         baud=baud,
         live_timeout_s=live_timeout_s,
     )
-    if source._kind == "ulog":
-        raise InputError(f"{url_or_path}: PX4 ULog files can only be loaded whole (load_log), not streamed")
     return source
 
 
@@ -1103,17 +1300,23 @@ def load_log(
     ``auto`` throttle source from the final vehicle type and parameters.
     """
     target = os.fspath(path)
+    if _is_ulog(target):
+        from magcomp.adapters.ulog_source import load_ulog
+
+        return load_ulog(target, throttle_source, mag_index)
     source = MavSource(
         target, throttle_source=throttle_source, mag_index=mag_index, undo_motor_comp=undo_motor_comp
     )
     if source._kind == "live":
         raise InputError(f"{target}: load_log reads files; use open_source for live links")
-    if source._kind == "ulog":
-        return _load_ulog(Path(target), mag_index=mag_index)
     try:
         return _collect(source, source.records())
     finally:
         source.close()
+
+
+# compass 0 in several messages: RAW_IMU, then SCALED_IMU and the rest, then PX4's HIGHRES_IMU (calibrated)
+_MAG_ORIGIN_RANK = {"RAW_IMU": 0, "HIGHRES_IMU": 2}
 
 
 def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogData:
@@ -1124,7 +1327,11 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
     temp: dict[str, list[tuple[float, float]]] = {}
     pwm: dict[str, list[PwmRecord]] = {"servo": [], "rc": []}
     thr: dict[str, list[tuple[float, float]]] = {"vfr_hud": [], "ctun": []}
+    gnss = _GnssCollector()
     for origin, rec in records:
+        if isinstance(rec, PositionSample | TimeSample):
+            gnss.add(origin, rec)
+            continue
         if isinstance(rec, MagSample):
             mag.setdefault((origin, rec.mag_index), []).append((rec.t_s, rec.field_b_mgauss))
         elif isinstance(rec, ImuSample):
@@ -1150,13 +1357,13 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
     )
     # compass 0: RAW_IMU wins over SCALED_IMU (ArduPilot sends the same compass in both)
     by_index: dict[int, list[tuple[float, Any]]] = {}
-    for (_origin, index), rows in sorted(mag.items(), key=lambda kv: kv[0][0] != "RAW_IMU"):
+    for (_origin, index), rows in sorted(mag.items(), key=lambda kv: _MAG_ORIGIN_RANK.get(kv[0][0], 1)):
         if index in by_index:
             counts["scaled_imu_shadowed"] += len(rows)
             continue
         by_index[index] = rows
     data.mag = {i: _series(rows, 3) for i, rows in sorted(by_index.items())}
-    imu_origin = next((o for o in ("RAW_IMU", "SCALED_IMU", "IMU") if o in imu), None)
+    imu_origin = next((o for o in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "IMU") if o in imu), None)
     if imu_origin is not None:
         rows_imu = sorted(imu[imu_origin], key=lambda s: s.t_s)
         data.imu_t_s = np.array([s.t_s for s in rows_imu])
@@ -1172,10 +1379,40 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
     if temp_key is not None:
         data.temperature_degc = _series(temp[temp_key])
     _collect_throttle(data, source, pwm, thr)
+    gnss.fill(data)
     data.counts = dict(counts)
     if not data.mag and not len(data.attitude_rad) and not data.imu_t_s.size:
         raise InputError(f"{source.target}: no magnetometer, IMU or attitude data in the log")
     return data
+
+
+class _GnssCollector:
+    """Positions (3D fixes only) and UTC dates of a whole log, for :class:`LogData`.
+
+    The receiver's own position (GPS_RAW_INT, DataFlash GPS, ULog vehicle_gps_position) is preferred to the
+    estimator's (GLOBAL_POSITION_INT, POS, vehicle_global_position); the date is the median of every valid
+    one (GPS time, SYSTEM_TIME, ULog time_utc_usec)."""
+
+    RECEIVER = frozenset({"GPS_RAW_INT", "GPS", "vehicle_gps_position", "sensor_gps"})
+
+    def __init__(self) -> None:
+        self.rows: dict[bool, list[tuple[float, tuple[float, float, float]]]] = {True: [], False: []}
+        self.years: list[float] = []
+
+    def add(self, origin: str, rec: PositionSample | TimeSample) -> None:
+        year = rec.decimal_year
+        if isinstance(rec, PositionSample):
+            if not rec.fix_ok:
+                return
+            self.rows[origin in self.RECEIVER].append((rec.t_s, (rec.lat_deg, rec.lon_deg, rec.alt_m)))
+        if math.isfinite(year):
+            self.years.append(year)
+
+    def fill(self, data: LogData) -> None:
+        rows = self.rows[True] or self.rows[False]
+        data.position = _series(rows, 3)
+        if self.years:
+            data.decimal_year = float(np.median(self.years))
 
 
 def _collect_throttle(
@@ -1209,61 +1446,3 @@ def _collect_throttle(
     data.throttle_01 = _series(rows)
     if data.vehicle_type in FIXED_WING_TYPES and resolved.kind == "servo":
         data.motors_01 = Series(data.throttle_01.t_s, data.throttle_01.values[:, None])
-
-
-def _load_ulog(path: Path, *, mag_index: int | None) -> LogData:
-    """PX4 ULog (optional, needs pyulog): sensor_combined (gyro, accel, magnetometer_ga -> mgauss), attitude,
-    actuator_outputs (mean of outputs 0-3 as motors, PWM 1000-2000 us), battery_status. Time: timestamp
-    (us)."""
-    try:
-        from pyulog import ULog
-    except ImportError:
-        raise InputError("reading .ulg needs pyulog (pip install 'magcomp[ulog]')") from None
-    try:
-        with _quiet():
-            ulog = ULog(str(path))
-    except Exception as exc:
-        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__})") from None
-    topics = {(d.name, d.multi_id): d.data for d in ulog.data_list}
-    data = LogData(
-        source=str(path), params={k: float(v) for k, v in ulog.initial_parameters.items()}, autopilot=12
-    )
-    sc = topics.get(("sensor_combined", 0))
-    if sc is not None:
-        t = sc["timestamp"] * 1e-6
-        data.imu_t_s = t
-        data.gyro_rad_s = np.column_stack([sc[f"gyro_rad[{i}]"] for i in range(3)]).astype(np.float64)
-        acc_key = "accelerometer_m_s2" if "accelerometer_m_s2[0]" in sc else "accelerometer_m_s"
-        if f"{acc_key}[0]" in sc:
-            data.accel_m_s2 = np.column_stack([sc[f"{acc_key}[{i}]"] for i in range(3)]).astype(np.float64)
-        if "magnetometer_ga[0]" in sc and mag_index in (None, 0):
-            field = (
-                np.column_stack([sc[f"magnetometer_ga[{i}]"] for i in range(3)]) * 1000.0
-            )  # gauss -> mgauss
-            keep = np.isfinite(field).all(axis=1) & (np.diff(t, prepend=-np.inf) != 0)
-            data.mag[0] = Series(t[keep], field[keep].astype(np.float64))
-    att = topics.get(("vehicle_attitude", 0))
-    if att is not None and "q[0]" in att:
-        from magcomp.core.rotations import euler_from_quat
-
-        q = np.column_stack([att[f"q[{i}]"] for i in range(4)]).astype(np.float64)
-        eul = np.array([euler_from_quat(qi) for qi in q])
-        data.attitude_rad = Series(att["timestamp"] * 1e-6, eul)
-    out = topics.get(("actuator_outputs", 0))
-    if out is not None and "output[0]" in out:
-        pwm = np.column_stack([out[f"output[{i}]"] for i in range(4)]).astype(np.float64)
-        motors = np.clip((pwm - 1000.0) / 1000.0, 0.0, 1.0)
-        t_out = out["timestamp"] * 1e-6
-        data.motors_01 = Series(t_out, motors)
-        data.throttle_01 = Series(t_out, motors.mean(axis=1))
-        data.throttle_source = "motors:1,2,3,4"
-    bat = topics.get(("battery_status", 0))
-    if bat is not None:
-        data.voltage_v = Series(bat["timestamp"] * 1e-6, bat["voltage_v"].astype(np.float64))
-        data.current_a = Series(bat["timestamp"] * 1e-6, bat["current_a"].astype(np.float64))
-    status = topics.get(("vehicle_status", 0))
-    if status is not None and "vehicle_type" in status:
-        data.vehicle_type = 2 if int(status["vehicle_type"][-1]) == 1 else 1  # PX4 rotary wing / fixed wing
-    if not data.mag and not data.imu_t_s.size:
-        raise InputError(f"{path}: no sensor_combined data in the ULog file")
-    return data

@@ -47,6 +47,8 @@ class CompassState:
     theta_mgauss: NDArray[np.float64]
     t_s: float = 0.0
     calib_info: dict[str, float] | None = None
+    #: the in-flight calibration (magcomp.core.inflight): form, motors, parameter mean and std
+    inflight: dict[str, Any] | None = None
 
     def to_payload(self) -> dict[str, Any]:
         return {
@@ -57,6 +59,7 @@ class CompassState:
             "theta_mgauss": np.asarray(self.theta_mgauss, float).tolist(),
             "t_s": float(self.t_s),
             "calib_info": self.calib_info,
+            "inflight": self.inflight,
         }
 
     @classmethod
@@ -78,6 +81,15 @@ class CompassState:
         t_s = float(p["t_s"])
         if not math.isfinite(t_s):
             raise ValueError("t_s must be finite")
+        inflight = p.get("inflight")
+        if inflight is not None:
+            if not isinstance(inflight, dict) or inflight.get("form") not in ("absolute", "relative"):
+                raise ValueError("inflight must be a table with form absolute or relative")
+            mean = np.asarray(inflight["mean"], dtype=float)
+            sd = np.asarray(inflight["sd"], dtype=float)
+            if mean.shape != sd.shape or mean.ndim != 1 or not (np.all(np.isfinite(mean)) and np.all(sd > 0)):
+                raise ValueError("inflight mean/sd must be finite vectors of one length, sd > 0")
+            int(inflight["n_motors"])
         return cls(
             system_id=int(p["system_id"]),
             mag_index=int(p["mag_index"]),
@@ -86,6 +98,7 @@ class CompassState:
             theta_mgauss=vec(p["theta_mgauss"], (3,)),
             t_s=t_s,
             calib_info=info,
+            inflight=inflight,
         )
 
 

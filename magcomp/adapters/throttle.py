@@ -11,8 +11,8 @@ and ``auto``, resolved from the vehicle type (HEARTBEAT MAV_TYPE, or the firmwar
 - fixed wing (MAV_TYPE 1): the servo channel with SERVOn_FUNCTION 70 (throttle), else channel 3;
 - anything else, or no servo outputs: ``vfr_hud``, then ``ctun``.
 
-PWM ranges: motors use MOT_PWM_MIN/MAX when both are set, else SERVOn_MIN/MAX of the channel, else
-1000-2000 us;
+PWM ranges: motors use MOT_PWM_MIN/MAX when both are set, else SERVOn_MIN/MAX of the channel, else PX4's
+PWM_MAIN_MINn/MAXn, PWM_MAIN_MIN/MAX or PWM_MIN/MAX, else 1000-2000 us (PX4 motors: PWM_MAIN_FUNCn 101-112);
 servo channels use SERVOn_MIN/MAX, RC channels RCn_MIN/MAX, both defaulting to 1000-2000 us. Results are
 clipped
 to 0..1. Older ArduPilot firmware without SERVOn_* parameters therefore uses 1000-2000 us for motors (its RC3
@@ -99,6 +99,8 @@ def _servo_range(params: Mapping[str, float], prefix: str, channel: int) -> tupl
     hi = params.get(f"{prefix}{channel}_MAX")
     if lo is not None and hi is not None and hi > lo > 0:
         return float(lo), float(hi)
+    if prefix == "SERVO":  # a PX4 vehicle has no SERVOn_*: its PWM_MAIN_* (defaults when absent too)
+        return px4_pwm_range(params, channel)
     return DEFAULT_PWM_MIN, DEFAULT_PWM_MAX
 
 
@@ -133,21 +135,27 @@ def resolve_throttle(
     if spec.kind in ("servo", "rc"):
         return _with_ranges(spec.kind, (spec.channel,), params)
     if spec.kind == "motors":
-        return _with_ranges("motors", motor_channels(params) or (1, 2, 3, 4), params)
+        return _with_ranges("motors", _any_motor_channels(params), params)
     if spec.kind in ("vfr_hud", "ctun"):
         return ResolvedThrottle(spec.kind)
     # auto
     if "servo" in available:
         if vehicle_type in MULTIROTOR_TYPES:
-            return _with_ranges("motors", motor_channels(params) or (1, 2, 3, 4), params)
+            return _with_ranges("motors", _any_motor_channels(params), params)
         if vehicle_type in FIXED_WING_TYPES:
             thr = [n for n in range(1, 33) if params.get(f"SERVO{n}_FUNCTION") == THROTTLE_FUNCTION]
+            thr += px4_motor_channels(params)[:1]  # PX4: the fixed wing's throttle is its Motor 1 output
             return _with_ranges("servo", (thr[0] if thr else 3,), params)
     if "vfr_hud" in available:
         return ResolvedThrottle("vfr_hud")
     if "ctun" in available:
         return ResolvedThrottle("ctun")
     return None
+
+
+def _any_motor_channels(params: Mapping[str, float]) -> tuple[int, ...]:
+    """ArduPilot's SERVOn_FUNCTION motors, else PX4's PWM_MAIN_FUNCn motors, else channels 1-4."""
+    return motor_channels(params) or px4_motor_channels(params) or (1, 2, 3, 4)
 
 
 def pwm_to_01(pwm_us: float, pwm_min: float, pwm_max: float) -> float:
@@ -172,3 +180,33 @@ def throttle_from_pwm(
     if not outs:
         return None
     return sum(outs) / len(outs), tuple(outs)
+
+
+# --- PX4 (ULog actuator_outputs, MAVLink SERVO_OUTPUT_RAW of a PX4 vehicle) ---------------------------------
+PX4_MOTOR_FUNCTIONS = range(101, 113)  # PWM_MAIN_FUNCn / PWM_AUX_FUNCn Motor1..Motor12 (PX4 >= 1.13)
+
+
+def px4_motor_channels(params: Mapping[str, float]) -> tuple[int, ...]:
+    """Main outputs whose PWM_MAIN_FUNCn is a motor (101-112), ordered by motor number; () when unknown
+    (PX4 before 1.13 has no output functions: its mixers put the motors of a multirotor on outputs 1..n)."""
+    found: list[tuple[float, int]] = []
+    for n in range(1, 17):
+        fn = params.get(f"PWM_MAIN_FUNC{n}")
+        if fn is not None and int(fn) in PX4_MOTOR_FUNCTIONS:
+            found.append((fn, n))
+    return tuple(n for _, n in sorted(found))
+
+
+def px4_pwm_range(params: Mapping[str, float], channel: int) -> tuple[float, float]:
+    """PWM range (us) of PX4 main output ``channel`` (1-based): PWM_MAIN_MINn/MAXn (PX4 >= 1.13, and the
+    per-channel overrides of older versions, -1 = unset), else PWM_MAIN_MIN/MAX (1.11-1.12), else PWM_MIN/MAX
+    (before 1.11), else 1000-2000 us."""
+    for lo_name, hi_name in (
+        (f"PWM_MAIN_MIN{channel}", f"PWM_MAIN_MAX{channel}"),
+        ("PWM_MAIN_MIN", "PWM_MAIN_MAX"),
+        ("PWM_MIN", "PWM_MAX"),
+    ):
+        lo, hi = params.get(lo_name), params.get(hi_name)
+        if lo is not None and hi is not None and hi > lo > 0:
+            return float(lo), float(hi)
+    return DEFAULT_PWM_MIN, DEFAULT_PWM_MAX

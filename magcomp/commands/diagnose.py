@@ -20,6 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", metavar="LOG", help=".tlog, ArduPilot DataFlash .bin/.log, or PX4 .ulg")
     parser.add_argument("--json", metavar="OUT.json", help="write the diagnosis as JSON")
     parser.add_argument("--report", metavar="OUT.md", help="write a Markdown report with PNG plots beside it")
+    parser.add_argument(
+        "--params-out",
+        metavar="FILE",
+        help="write the compensation parameters for the log's autopilot (PX4 CAL_MAGn_*COMP or ArduPilot "
+        "COMPASS_MOT*): FILE.params for QGroundControl, FILE.param for Mission Planner",
+    )
     parser.add_argument("--mag-index", type=int, default=None, help="primary compass (default: the first)")
     parser.add_argument(
         "--throttle-source",
@@ -30,6 +36,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--truth",
         metavar="FILE.truth.npz",
         help="heading reference from a simulation's truth (default: LOG.truth.npz if present)",
+    )
+    parser.add_argument(
+        "--location",
+        metavar="LAT,LON[,ALT]",
+        default=None,
+        help="where the log was recorded (deg, deg, m), for the WMM check when the log has no GPS fix",
+    )
+    parser.add_argument(
+        "--year",
+        type=float,
+        default=None,
+        help="decimal year of the log, for the WMM check when the log has no GPS time",
     )
     parser.add_argument(
         "--rerun",
@@ -63,6 +81,99 @@ def _truth_reference(args: argparse.Namespace) -> tuple[Any, Any] | None:
         elif isinstance(exc, KeyError):
             why = f"no array {exc} in it (not a magcomp simulate truth file)"
         raise InputError(f"cannot read the truth {path}: {why}") from exc
+
+
+def gps_from_file(path: str) -> tuple[float, float, float, float] | None:
+    """(lat deg, lon deg, alt m, decimal year or NaN) of the first 3D GPS fix of a DataFlash log or tlog.
+
+    Used only while the log readers do not fill ``LogData.position`` themselves. GPS week/ms gives the date
+    of a DataFlash fix; a tlog's date comes from SYSTEM_TIME.
+    """
+    import contextlib
+    import datetime as dt
+    import io
+
+    from pymavlink import mavutil
+
+    from magcomp.geomag import decimal_year
+
+    if Path(path).suffix.lower() not in (".bin", ".log", ".tlog"):
+        return None
+    gps_epoch = dt.datetime(1980, 1, 6)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            m = mavutil.mavlink_connection(path)
+    except Exception:  # a position is a nicety; the diagnosis runs without it
+        return None
+    fix: tuple[float, float, float] | None = None
+    year = float("nan")
+    try:
+        while fix is None or not math.isfinite(year):
+            msg = m.recv_match(type=["GPS", "GPS_RAW_INT", "SYSTEM_TIME"])
+            if msg is None:
+                break
+            d = msg.to_dict()
+            kind = msg.get_type()
+            if kind == "GPS" and int(d.get("Status", 0)) >= 3 and fix is None:
+                fix = (float(d["Lat"]), float(d["Lng"]), float(d.get("Alt", 0.0)))
+                week = d.get("Week", d.get("GWk"))
+                ms = d.get("TimeMS", d.get("GMS"))
+                if week and ms:
+                    when = gps_epoch + dt.timedelta(weeks=int(week), milliseconds=float(ms))
+                    year = decimal_year(when)
+            elif kind == "GPS_RAW_INT" and int(d.get("fix_type", 0)) >= 3 and fix is None:
+                fix = (d["lat"] * 1e-7, d["lon"] * 1e-7, d["alt"] * 1e-3)
+            elif kind == "SYSTEM_TIME" and d.get("time_unix_usec", 0) > 1e15:
+                year = decimal_year(dt.datetime.fromtimestamp(d["time_unix_usec"] * 1e-6, dt.UTC))
+    except Exception:  # a reader hiccup: use what was read
+        pass
+    finally:
+        m.close()
+    if fix is None or not all(math.isfinite(v) for v in fix) or (fix[0] == 0.0 and fix[1] == 0.0):
+        return None
+    return fix[0], fix[1], fix[2], year
+
+
+def earth_reference(args: argparse.Namespace, log: Any) -> Any:
+    """The WMM field at the log's position and date (see :mod:`magcomp.diagnosis.gate`)."""
+    import numpy as np
+
+    from magcomp.diagnosis.gate import NO_POSITION, EarthReference
+    from magcomp.errors import InputError
+    from magcomp.geomag import earth_field_ned_mgauss
+
+    pos: tuple[float, float, float, float] | None = None
+    where = ""
+    if len(log.position) > 0:
+        lat, lon, alt = (float(v) for v in np.median(log.position.values, axis=0))
+        pos, where = (lat, lon, alt, float(log.decimal_year)), "the log's GPS position"
+    else:
+        g = gps_from_file(args.log)
+        if g is not None:
+            pos, where = g, "the log's first 3D GPS fix"
+    if args.location:
+        try:
+            parts = [float(x) for x in str(args.location).split(",")]
+        except ValueError:
+            parts = []
+        if len(parts) not in (2, 3):
+            raise InputError(f"--location must be LAT,LON[,ALT], got {args.location!r}")
+        alt = parts[2] if len(parts) == 3 else 0.0
+        pos, where = (parts[0], parts[1], alt, float("nan")), "--location"
+    if pos is None:
+        return NO_POSITION
+    lat, lon, alt, year = pos
+    when = "the log's date"
+    if args.year is not None:
+        year, when = float(args.year), "--year"
+    if not math.isfinite(year):
+        year, when = 2025.5, "no date in the log, 2025.5 assumed"
+    outside = not 2025.0 <= year < 2030.0
+    ned = earth_field_ned_mgauss(lat, lon, alt, year, allow_outside_lifespan=True)
+    src = f"WMM-2025 at {where} ({lat:.4f}, {lon:.4f}, {alt:.0f} m), {year:.2f} ({when})"
+    if outside:
+        src += "; the date is outside 2025-2030, so the model's secular variation is extrapolated"
+    return EarthReference(ned, src)
 
 
 def log_events(path: str) -> list[tuple[float, str]]:
@@ -128,6 +239,9 @@ def log_events(path: str) -> list[tuple[float, str]]:
 def _summary(j: dict[str, Any]) -> list[str]:
     lines = []
     for c in j["compasses"]:
+        if not c["observable"]:
+            lines.append(f"compass {c['index']}: not observable: {c['unobservable_why']}")
+            continue
         names = (
             ", ".join(
                 f"{f['effect']} "
@@ -147,7 +261,7 @@ def _summary(j: dict[str, Any]) -> list[str]:
                 f"(lag {s['lag_s']} s, {100 * (s['r2'] or 0.0):.1f} % of its variance)"
             )
     g = j["gain"]
-    if "heading_error_rms_deg" in g:
+    if "heading_error_rms_deg" in g and "paper" in g["heading_error_rms_deg"]:
         h = g["heading_error_rms_deg"]
         lines.append(
             f"heading error rms vs {g['heading_reference']}: uncompensated {h['uncompensated']} deg, "
@@ -197,9 +311,23 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     if reference is not None:
         viz.log_truth_heading(reference[0], np.degrees(reference[1]) % 360.0)
     for f in c.findings:
-        viz.log_text(float(data.t_s[0]), f"finding: {f.effect} {f.params}")
+        viz.log_text(float(data.t_s[0]), f"finding: {f.label} {f.params}")
     serve_until_interrupt(viz, lambda m: print(m, flush=True))
     viz.close()
+
+
+def _write_params(path: str, d: Any, autopilot: int) -> None:
+    from magcomp.adapters.param_files import MAV_AUTOPILOT_PX4, compensation_params, write_param_file
+
+    params, notes = compensation_params([(c.index, c.autopilot) for c in d.compasses], d.primary, autopilot)
+    px4 = autopilot == MAV_AUTOPILOT_PX4
+    for note in notes:
+        print(f"note: {note}")
+    if not params:
+        print(f"note: no compensation parameters to write to {path}")
+        return
+    kind = write_param_file(path, params, stack="PX4 Pro" if px4 else "ArduPilot")
+    print(f"wrote {path}: {len(params)} {'PX4' if px4 else 'ArduPilot'} parameters for {kind}")
 
 
 def execute(args: argparse.Namespace) -> int:
@@ -219,14 +347,30 @@ def execute(args: argparse.Namespace) -> int:
     inputs = (args.log, args.truth)
     check_output_path(args.json, "--json", inputs)
     check_output_path(args.report, "--report", inputs, makes_parents=True)
-    check_distinct_outputs(json=args.json, report=args.report)
+    check_output_path(args.params_out, "--params-out", inputs)
+    check_distinct_outputs(json=args.json, report=args.report, params_out=args.params_out)
+    if args.params_out and Path(args.params_out).suffix.lower() not in (".params", ".param"):
+        raise InputError(
+            f"--params-out {args.params_out}: use .params (QGroundControl) or .param (Mission Planner)"
+        )
+    if args.report:
+        import importlib.util
+
+        if importlib.util.find_spec("matplotlib") is None:  # a core dependency, unless removed by hand
+            raise InputError("--report needs matplotlib for its plots: pip install matplotlib")
     if args.rerun:
         from magcomp.adapters.rerun_viz import parse_mode
 
         parse_mode(args.rerun)  # a bad --rerun fails now, not after the diagnosis
     reference = _truth_reference(args)
     log = load_log(args.log, throttle_source=args.throttle_source)
-    d = diagnose(log, primary=args.mag_index, heading_reference=reference, events=log_events(args.log))
+    d = diagnose(
+        log,
+        primary=args.mag_index,
+        heading_reference=reference,
+        events=log_events(args.log),
+        earth=earth_reference(args, log),
+    )
     j = d.to_json()
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")
     for line in _summary(j):
@@ -239,6 +383,8 @@ def execute(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
         print(f"wrote {args.json}")
+    if args.params_out:
+        _write_params(args.params_out, d, log.autopilot)
     if args.report:
         from magcomp.diagnosis.report import write_report
 

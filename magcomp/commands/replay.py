@@ -1,14 +1,21 @@
-"""`magcomp replay`: run the whole pipeline over a tlog or DataFlash log as fast as the machine goes."""
+"""`magcomp replay`: run the whole pipeline over a tlog, DataFlash log or ULog as fast as the machine goes."""
 
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from magcomp.adapters.config import Config
+    from magcomp.service.replay import ReplayReport
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from magcomp.adapters.rerun_viz import add_rerun_argument
 
-    parser.add_argument("log", metavar="LOG", help=".tlog, raw MAVLink, or ArduPilot DataFlash .bin/.log")
+    parser.add_argument(
+        "log", metavar="LOG", help=".tlog, raw MAVLink, ArduPilot DataFlash .bin/.log, or PX4 .ulg"
+    )
     parser.add_argument("--emit", metavar="OUT.tlog", help="write every published MAGCOMP_HEADING to a tlog")
     parser.add_argument("--json", metavar="SUMMARY.json", help="write a JSON summary: counts, theta")
     parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
@@ -17,25 +24,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="load and save calibration and theta here (default: none; a replay starts fresh)",
     )
+    parser.add_argument(
+        "--causal",
+        action="store_true",
+        help="one pass, exactly what the live daemon would have published (default without --state-dir: "
+        "learn from the whole log first, then replay from the state it ends with)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
     add_rerun_argument(parser)
 
 
 def execute(args: argparse.Namespace) -> int:
+    import signal
+
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
     from magcomp.errors import InputError
-    from magcomp.service.console import (
-        SKIP_KEYS,
-        check_distinct_outputs,
-        check_output_path,
-        format_counts,
-        primary_compass,
-        setup_logging,
-        summary_lines,
-        write_json,
-    )
+    from magcomp.service.console import check_distinct_outputs, check_output_path, setup_logging
     from magcomp.service.replay import replay_log
 
     setup_logging("replay", args.verbose)
@@ -51,10 +57,51 @@ def execute(args: argparse.Namespace) -> int:
     if viz is not None and viz.notice:
         print(viz.notice, flush=True)
     texts: list[tuple[float, str]] = []
-    report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_estimates=viz is not None,
-                        on_text=lambda t, m: texts.append((t, m)))  # fmt: skip
+    # ^C and SIGTERM only set a flag (a handler that did more could deadlock on a second signal); the
+    # replay stops at its next batch and everything below (summary, --json, state) still happens
+    stop_signals: list[int] = []
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop_signals.append(signum)
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_estimates=viz is not None,
+                            on_text=lambda t, m: texts.append((t, m)),
+                            should_stop=lambda: bool(stop_signals),
+                            two_pass=not args.causal and store is None)  # fmt: skip
+        report = _finish(args, report, cfg, viz, texts)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    if viz is not None and not report.interrupted:
+        serve_until_interrupt(viz, lambda m: print(m, flush=True))
+    if viz is not None:
+        viz.close()
+    if report.interrupted:
+        if stop_signals and stop_signals[0] == signal.SIGTERM:
+            return 128 + signal.SIGTERM  # asked to stop: partial results written, the usual exit code
+        raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
+    if not report.summary["counts"].get("mag"):
+        raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
+    return 0
+
+
+def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: Any,
+            texts: list[tuple[float, str]]) -> ReplayReport:  # fmt: skip
+    """Print the summary and write --json; hand the estimates to the viewer."""
+    from magcomp.service.console import (
+        SKIP_KEYS,
+        format_counts,
+        primary_compass,
+        summary_lines,
+        write_json,
+    )
+
     counts = report.counts
-    print(f"{args.log}: {report.n_estimates} headings in {report.wall_s:.2f} s")
+    passes = report.summary.get("passes", 1)
+    how = "two passes: learned from the whole log, then replayed" if passes == 2 else "one pass, causal"
+    print(f"{args.log}: {report.n_estimates} headings in {report.wall_s:.2f} s ({how})")
     for line in summary_lines(report.summary):
         print(line)
     print(f"skipped or absorbed: {format_counts(counts, SKIP_KEYS)}")
@@ -73,11 +120,4 @@ def execute(args: argparse.Namespace) -> int:
             viz.log_calibration_cloud(*report.clouds[primary])
         for t, m in texts:
             viz.log_text(t, m)
-        if not report.interrupted:
-            serve_until_interrupt(viz, lambda m: print(m, flush=True))
-        viz.close()
-    if report.interrupted:
-        raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
-    if not report.summary["counts"].get("mag"):
-        raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
-    return 0
+    return report

@@ -75,28 +75,32 @@ def execute(args: argparse.Namespace) -> int:
     daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text)
 
     def on_signal(signum: int, frame: object) -> None:
-        daemon.stop()
+        daemon.request_stop()  # a flag only: a second signal during the first cannot deadlock
 
+    # the handlers stay until the summary is written: a second ^C or SIGTERM while the state is saved
+    # and the summary written changes nothing
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     timer = threading.Timer(args.duration, daemon.stop) if args.duration else None
     if timer is not None:
         timer.daemon = True
         timer.start()
     try:
-        report = daemon.run()
+        try:
+            report = daemon.run()
+        finally:
+            if timer is not None:
+                timer.cancel()
+            viz.close()
+        for line in summary_lines(report.summary):
+            print(line)
+        lat = report.latency_ms
+        if lat:
+            print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
+        if args.json:
+            write_json(args.json, report.to_json())
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        if timer is not None:
-            timer.cancel()
-        viz.close()
-    for line in summary_lines(report.summary):
-        print(line)
-    lat = report.latency_ms
-    if lat:
-        print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
-    if args.json:
-        write_json(args.json, report.to_json())
     if report.connects == 0:
         raise InputError(f"never connected to {args.master}: {daemon.last_error or 'no link'}")
     return 0

@@ -75,7 +75,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "att_roll_bias_deg=1, lat_deg=46.05, decimal_year=2026.3",
     )
     out = parser.add_mutually_exclusive_group(required=True)
-    out.add_argument("--out", metavar="FILE.tlog", help="write a tlog and FILE.truth.json / FILE.truth.npz")
+    out.add_argument(
+        "--out",
+        metavar="FILE.tlog",
+        help="write a tlog (or a PX4 ULog when FILE ends in .ulg) and FILE.truth.json / FILE.truth.npz",
+    )
     out.add_argument("--link", metavar="URL", help="live endpoint: udpout:HOST:PORT or tcpout:HOST:PORT")
     parser.add_argument(
         "--speed",
@@ -146,7 +150,12 @@ def execute(args: argparse.Namespace) -> int:
     assert isinstance(config, SimConfig)
     result = simulate(config)
     if args.out:
-        count = write_tlog(result, args.out)
+        if str(args.out).lower().endswith(".ulg"):
+            from magcomp.adapters.ulog_writer import write_sim_ulog
+
+            count = write_sim_ulog(result, args.out)  # PX4 ULog (sensor_mag, sensor_combined, ...)
+        else:
+            count = write_tlog(result, args.out)
         json_path, npz_path = write_truth(result, args.out)
         print(
             f"wrote {args.out}: {count} messages, {config.duration:.1f} s of {config.scenario} "

@@ -117,6 +117,16 @@ class TimeSample:
     decimal_year: float
 
 
+@dataclass(frozen=True, slots=True)
+class ClockResetSample:
+    """The autopilot's boot clock restarted (a reboot) just before ``t_s``. Sources keep ``t_s`` monotonic
+    across reboots by adding ``offset_s`` to the autopilot's own timestamps from here on, so the
+    autopilot's clock of a later sample is ``t_s - offset_s``."""
+
+    t_s: float
+    offset_s: float
+
+
 Sample = (
     ImuSample
     | MagSample
@@ -128,6 +138,7 @@ Sample = (
     | ParamSample
     | PositionSample
     | TimeSample
+    | ClockResetSample
 )
 
 
@@ -212,3 +223,6 @@ class HeadingEstimate:
     field_cal_mgauss: Vec3
     residual_norm_mgauss: float = float("nan")
     excitation: float = float("nan")
+    #: the sample's time on the autopilot's own boot clock (what MAGCOMP_HEADING.time_boot_ms carries);
+    #: differs from ``t_s`` after a reboot (see ClockResetSample); NaN: the same as ``t_s``
+    t_boot_s: float = float("nan")

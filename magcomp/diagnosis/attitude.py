@@ -24,12 +24,25 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, dcms_from_quats, quat_from_dcm
+from magcomp.core.rotations import (
+    dcm_from_euler,
+    dcm_from_quat,
+    dcms_from_quats,
+    euler_from_dcms,
+    quat_from_dcm,
+)
 
 F64 = NDArray[np.float64]
 
 
 STATIONARY_RATE_RAD_S = 0.05
+
+#: Slowest gyro the strap-down integral is trusted at. A multirotor's attitude loop moves the vehicle at up
+#: to ~5 Hz; sampling the rate below twice that aliases rotation the integral then never sees, and the
+#: trapezoid's commutation error grows as (omega dt)^2. 20 Hz keeps a factor of 2 over Nyquist. Below it
+#: (telemetry logs with ~1 Hz RAW_IMU) the autopilot's attitude, estimated on board at the full IMU rate,
+#: is the better source.
+MIN_GYRO_HZ = 20.0
 
 
 @dataclass(frozen=True)
@@ -161,8 +174,6 @@ def quats_at(t_new: F64, t: F64, q: F64) -> F64:
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
-
-
 def dcms_from_euler(att_rad: F64) -> F64:
     """(n, 3) roll, pitch, yaw -> (n, 3, 3) R_nb."""
     return np.stack([dcm_from_euler(float(a[0]), float(a[1]), float(a[2])) for a in att_rad])
@@ -192,6 +203,16 @@ def attitude_track(
     """Choose and build the rotation for the forward model at times ``t_s`` (see module docstring)."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
+    slow_gyro = ""
+    if has_gyro:
+        dt = float(np.median(np.diff(imu_t_s)))
+        gyro_hz = 1.0 / dt if dt > 0 else 0.0
+        if gyro_hz < MIN_GYRO_HZ and has_att:
+            has_gyro = False
+            slow_gyro = (
+                f"the gyro is logged at {gyro_hz:.1f} Hz (< {MIN_GYRO_HZ:.0f} Hz: its integral misses "
+                "rotation), so "
+            )
     if has_gyro:
         dev = np.linalg.norm(gyro_b_rad_s - np.median(gyro_b_rad_s, axis=0), axis=1)
         if float(np.percentile(dev, 99)) < STATIONARY_RATE_RAD_S:
@@ -243,8 +264,17 @@ def attitude_track(
         return AttitudeTrack(
             dcms_from_euler(att),
             "autopilot",
-            "no gyro in the log: rotation from the autopilot's attitude, whose yaw came from the disturbed "
-            "compass, so the heading-axis part of the bias is partly hidden from this residual",
+            (slow_gyro or "no gyro in the log: ")
+            + "rotation from the autopilot's attitude (estimated on board at the full IMU rate), whose "
+            "yaw is fused from a compass: if that is this compass, the heading-axis part of its bias is "
+            "partly hidden from this residual",
         )
     r = np.repeat(dcm_from_quat(np.array([1.0, 0.0, 0.0, 0.0]))[None], t_s.shape[0], axis=0)
     return AttitudeTrack(r, "none", "no gyro and no attitude: the vehicle is assumed not to rotate")
+
+
+def with_yaw_reference(r_nb: F64, yaw_ref_rad: F64) -> F64:
+    """``r_nb`` (n, 3, 3) with its yaw replaced by ``yaw_ref_rad`` (n,), roll and pitch kept."""
+    e = euler_from_dcms(r_nb)
+    e[:, 2] = yaw_ref_rad
+    return dcms_from_euler(e)

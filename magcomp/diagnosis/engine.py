@@ -25,10 +25,19 @@ from numpy.typing import NDArray
 
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
-from magcomp.diagnosis.attitude import attitude_track
+from magcomp.diagnosis import gate as gate_mod
+from magcomp.diagnosis.attitude import attitude_track, with_yaw_reference
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, DriveInputs, drive_columns, effect_available, negligible
+from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, theta_halfwidth
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model, initial_fit
+from magcomp.diagnosis.rivals import (
+    GROUPS,
+    group_of,
+    indistinguishable,
+    motors_identified,
+    temperature_beats_time,
+)
 from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms
 from magcomp.diagnosis.suspects import SignalRelation, StepEvent, find_step, relate, step_at
 from magcomp.errors import InputError
@@ -46,6 +55,13 @@ class Finding:
     params: dict[str, Any]
     evidence: dict[str, Any]
     residual_rms_after: float
+    candidates: list[str] = field(default_factory=list)
+    candidate_params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """The effect's name, or "a or b" when the data cannot tell the candidates apart."""
+        return " or ".join(self.candidates) if len(self.candidates) > 1 else self.effect
 
 
 @dataclass(frozen=True)
@@ -74,6 +90,11 @@ class CompassDiagnosis:
     linear_note: str = ""
     excluded: list[tuple[float, float]] = field(default_factory=list)
     field_step: dict[str, Any] | None = None
+    gate: gate_mod.GateResult | None = None
+
+    @property
+    def observable(self) -> bool:
+        return self.gate is None or self.gate.observable
 
     def bias_mgauss(self, fit: ModelFit) -> F64:
         cols, _ = drive_columns(self.data.drive, fit.ext)
@@ -81,13 +102,40 @@ class CompassDiagnosis:
         return cols[:, rows] @ fit.coefs[rows]
 
     def to_json(self) -> dict[str, Any]:
+        out = self._result_json()
+        out["observable"] = self.observable
+        out["unobservable_why"] = "" if self.gate is None else self.gate.why
+        out["gate"] = {} if self.gate is None else self.gate.checks
+        if not self.observable:
+            # no theta, no findings, no autopilot parameters: a non-physical fit is not a result
+            for k in (
+                "theta",
+                "theta_baseline",
+                "theta_ci95_halfwidth",
+                "theta_baseline_ci95_halfwidth",
+                "heading_error",
+                "residual_step",
+                "field_step_motors_off",
+            ):
+                out[k] = None
+            for k in ("findings", "suspects"):
+                out[k] = []
+            for k in ("rejected", "autopilot"):
+                out[k] = {}
+            out["linearisation"] = ""
+            out["heading_drift_deg_per_min"] = None
+        return out
+
+    def _result_json(self) -> dict[str, Any]:
         return {
             "index": self.index,
             "source": self.source,
             "n_samples": self.data.n,
             "excluded_spans_s": [[_r(a), _r(b)] for a, b in self.excluded],
             "theta": _r(self.extended.theta_mgauss),
+            "theta_ci95_halfwidth": _r(theta_halfwidth(self.data, self.extended)),
             "theta_baseline": _r(self.baseline.theta_mgauss),
+            "theta_baseline_ci95_halfwidth": _r(theta_halfwidth(self.data, self.baseline)),
             "residual_rms_baseline": _r(self.baseline.rms_mgauss),
             "residual_rms_extended": _r(self.extended.rms_mgauss),
             "findings": [_finding_json(f) for f in self.findings],
@@ -144,6 +192,19 @@ class Diagnosis:
     def to_json(self) -> dict[str, Any]:
         p = self.compass(self.primary)
         base, ext = p.baseline.rms_mgauss, p.extended.rms_mgauss
+        if not p.observable:
+            return {
+                "log": self.log_source,
+                "primary_compass": self.primary,
+                "observable": False,
+                "unobservable_why": p.gate.why if p.gate is not None else "",
+                "findings": [],
+                "residual_rms_baseline": _r(base),
+                "residual_rms_extended": _r(ext),
+                "gain": {},
+                "compasses": [c.to_json() for c in self.compasses],
+                "notes": self.notes,
+            }
         gain: dict[str, Any] = {
             "residual_rms_ratio": _r(base / ext) if ext > 0 else None,
             "residual_rms_reduction_pct": _r(100.0 * (1.0 - ext / base)) if base > 0 else None,
@@ -155,6 +216,8 @@ class Diagnosis:
         return {
             "log": self.log_source,
             "primary_compass": self.primary,
+            "observable": True,
+            "unobservable_why": "",
             "findings": [_finding_json(f) for f in p.findings],
             "residual_rms_baseline": _r(base),
             "residual_rms_extended": _r(ext),
@@ -173,13 +236,21 @@ def _r(x: Any) -> Any:
 
 
 def _finding_json(f: Finding) -> dict[str, Any]:
-    return {
-        "effect": f.effect,
+    out: dict[str, Any] = {
+        "effect": f.label,
         "cause": f.cause,
         "params": f.params,
         "evidence": f.evidence,
         "residual_rms_after": _r(f.residual_rms_after),
     }
+    if len(f.candidates) > 1:
+        out["candidates"] = f.candidates
+        out["candidate_params"] = f.candidate_params
+        out["cause"] = (
+            "The data cannot tell these causes apart (their fits differ by less than the BIC margin): "
+            + f.cause
+        )
+    return out
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -354,20 +425,41 @@ def _params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any
     e = EFFECTS[effect]
     if e.param is not None:
         out: dict[str, Any] = {e.param: _r(float(getattr(fit.ext, e.param)))}
+        ci = profile_interval(data, fit, effect)
+        if ci is not None:
+            out[f"{e.param}_ci95"] = [_r(ci[0]), _r(ci[1])]
         if effect == "voltage_sag":
             out["v_full_v"] = _r(data.drive.v_full_v)
         return out
     if effect == "temperature_drift":
         k = fit.coefs[list(fit.columns).index("temperature")]
         mag = float(np.linalg.norm(k))
-        return {"mgauss_per_degc": _r(mag), "direction": _r(k / mag if mag > 0 else k)}
+        hw = column_halfwidth(data, fit, {"temperature": 1.0})
+        return {
+            "mgauss_per_degc": _r(mag),
+            "mgauss_per_degc_ci95_halfwidth_per_axis": _r(hw),
+            "direction": _r(k / mag if mag > 0 else k),
+        }
     theta = fit.theta_mgauss
-    rows = [i for i, c in enumerate(fit.columns) if c.startswith("motor_diff")]
+    names = [c for c in fit.columns if c.startswith("motor_diff")]
+    rows = [list(fit.columns).index(c) for c in names]
     delta = np.vstack([fit.coefs[rows], -np.sum(fit.coefs[rows], axis=0, keepdims=True)])
     theta_i = theta + delta
+    hws = [column_halfwidth(data, fit, {"throttle": 1.0, c: 1.0}) for c in names]
+    hws.append(column_halfwidth(data, fit, {"throttle": 1.0, **{c: -1.0 for c in names}}))
+    hw = np.vstack(hws)
     tn = float(np.linalg.norm(theta))
     spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
-    return {"spread": _r(spread), "theta_per_motor_mgauss": [_r(row) for row in theta_i]}
+    out = {"spread": _r(spread)}
+    if motors_identified(theta_i, hw, theta):
+        out["theta_per_motor_mgauss"] = [_r(row) for row in theta_i]
+        out["theta_per_motor_ci95_halfwidth"] = [_r(row) for row in hw]
+    else:
+        out["theta_per_motor_mgauss"] = (
+            f"not identifiable: 95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f} "
+            "(the motor outputs move together); only the spread and the mean theta are meaningful"
+        )
+    return out
 
 
 def _evidence(c: Comparison, data: CompassData) -> dict[str, Any]:
@@ -424,11 +516,44 @@ def diagnose_compass(
         if cv_base is None:
             cv_base = cv_rms(data, base, p)
         c = compare(data, base, f, cv_base, p)
+        if c.significant and name == "temperature_drift":
+            wins, shape, vs_time = temperature_beats_time(data, base, f, p.min_delta_bic, p.max_nfev)
+            if not wins:
+                rejected[name] = {
+                    "delta_bic": _r(dbic),
+                    "cv_gain_pct": _r(100 * c.cv_gain),
+                    "delta_bic_vs_time_shapes": vs_time,
+                    "why": f"no better than a smooth drift {shape} with as many parameters",
+                }
+                continue
         if c.significant:
             singles.append(c)
         else:
             rejected[name] = {"delta_bic": _r(dbic), "cv_gain_pct": _r(100 * c.cv_gain), "why": "held-out"}
     singles.sort(key=lambda c: -c.cv_gain)
+    candidates: dict[str, list[str]] = {}
+    candidate_params: dict[str, dict[str, Any]] = {}
+    for group in GROUPS:
+        members = {c.fit.effects[0]: c for c in singles if group_of(c.fit.effects[0]) == group}
+        if len(members) < 2:
+            continue
+        same = indistinguishable({k: c.fit.bic for k, c in members.items()}, p.min_delta_bic)
+        if len(same) < 2:
+            continue
+        best = same[0]
+        candidates[best] = same
+        candidate_params[best] = {
+            k: _params_json(members[k].fit, k, data)
+            | {"delta_bic_vs_best": _r(members[k].fit.bic - members[best].fit.bic)}
+            for k in same
+        }
+        for k in same[1:]:
+            singles.remove(members[k])
+            rejected[k] = {
+                "delta_bic": _r(members[k].delta_bic),
+                "cv_gain_pct": _r(100 * members[k].cv_gain),
+                "why": f"cannot be told from {best} (BIC within {p.min_delta_bic:.0f}): reported as a set",
+            }
     current, cv_current = base, (cv_base if cv_base is not None else 0.0)
     kept: list[tuple[str, Comparison]] = []
     for c in singles:
@@ -458,6 +583,8 @@ def diagnose_compass(
             _params_json(extended, name, data),
             _evidence(c, data),
             c.fit.rms_mgauss,
+            candidates.get(name, []),
+            candidate_params.get(name, {}),
         )
         for name, c in kept
     ]
@@ -660,23 +787,85 @@ def heading_errors(
 # whole log
 
 
+#: A compass can serve as the yaw reference of the others when its own full-throttle bias turns its heading
+#: by less than this (rad, |theta| / |field|): 0.05 rad = 2.9 deg, the paper's corrected heading error level.
+YAW_REFERENCE_MAX_REL = 0.05
+
+
+def _rel_theta(c: CompassDiagnosis) -> float:
+    return float(np.linalg.norm(c.extended.theta_mgauss)) / max(c.extended.field_strength_mgauss, 1e-9)
+
+
+def _rate_hz(t_s: F64) -> float:
+    return gate_mod.median_rate_hz(t_s)
+
+
+def apply_gate(
+    c: CompassDiagnosis,
+    log: LogData,
+    earth: gate_mod.EarthReference,
+    gp: gate_mod.GateParams | None = None,
+) -> None:
+    """Set ``c.gate`` from the fit and the log (see :mod:`magcomp.diagnosis.gate`)."""
+    fit = c.extended
+    c.gate = gate_mod.check(
+        stationary=c.data.attitude_source == "stationary",
+        r_nb=c.data.r_nb,
+        a_mgauss=fit.a_mgauss,
+        inc_rad=fit.inc_rad,
+        residual_rms_mgauss=fit.rms_mgauss,
+        residual_mgauss=fit.residual_mgauss,
+        throttle_01=c.data.throttle_01,
+        mag_t_s=c.data.t_s,
+        gyro_rate_hz=_rate_hz(log.imu_t_s),
+        attitude_rate_hz=_rate_hz(log.attitude_rad.t_s),
+        earth=earth,
+        p=gp,
+    )
+
+
+def _with_compass_yaw(c: CompassDiagnosis, ref: CompassDiagnosis) -> CompassData:
+    """``c``'s data with the autopilot's yaw replaced by the heading of compass ``ref`` (its extended fit)."""
+    yaw = np.unwrap(compass_yaw_rad(ref.data, ref.extended))
+    yaw_c = np.interp(c.data.t_s, ref.data.t_s, yaw)
+    r = with_yaw_reference(c.data.r_nb, yaw_c)
+    note = (
+        f"roll and pitch from the autopilot, yaw from compass {ref.index} (its full-throttle bias is "
+        f"{100 * _rel_theta(ref):.1f} % of the field, < {100 * YAW_REFERENCE_MAX_REL:.0f} %), because "
+        + c.data.attitude_note
+    )
+    return CompassData(
+        c.data.mag_index,
+        c.data.t_s,
+        c.data.field_mgauss,
+        r,
+        c.data.drive,
+        f"autopilot+compass{ref.index}",
+        note,
+    )
+
+
 def diagnose(
     log: LogData,
     primary: int | None = None,
     heading_reference: tuple[F64, F64] | None = None,
     events: list[tuple[float, str]] | None = None,
     p: SelectionParams | None = None,
+    earth: gate_mod.EarthReference | None = None,
+    gate_params: gate_mod.GateParams | None = None,
 ) -> Diagnosis:
     """Diagnose every compass of ``log``.
 
     heading_reference: (t_s, yaw_rad) of a trusted heading (e.g. simulated truth); without it the compass
     with the smallest fitted |theta| relative to the field serves as the reference for the others.
     events: (t_s, text) logged events, for the residual step report.
+    earth: the WMM field at the log's position and date (default: none known, Earth's surface range).
     """
     if not log.mag:
         raise InputError("the log has no magnetometer samples")
-    notes: list[str] = []
-    comps = []
+    earth = earth or gate_mod.NO_POSITION
+    notes: list[str] = [f"Earth field reference: {earth.source}"]
+    comps: list[CompassDiagnosis] = []
     for idx in sorted(log.mag):
         if idx in log.mag and len(log.mag[idx]) > 0:
             crash = crash_mask(log, log.mag[idx].t_s)
@@ -689,27 +878,43 @@ def diagnose(
         except InputError as exc:
             notes.append(f"compass {idx} skipped: {exc}")
             continue
-        comps.append(diagnose_compass(data, log.source, p, log, events))
+        cd = diagnose_compass(data, log.source, p, log, events)
+        apply_gate(cd, log, earth, gate_params)
+        comps.append(cd)
     if not comps:
         raise InputError("no compass has enough samples to diagnose")
+    # attitude from the autopilot (slow or no gyro): a compass far from the wires is the better yaw source
+    refs = [c for c in comps if c.observable and _rel_theta(c) < YAW_REFERENCE_MAX_REL]
+    for i, c in enumerate(comps):
+        if c.data.attitude_source != "autopilot":
+            continue
+        others = [o for o in refs if o.index != c.index]
+        if not others:
+            continue
+        ref = min(others, key=_rel_theta)
+        alt = diagnose_compass(_with_compass_yaw(c, ref), log.source, p, log, events)
+        apply_gate(alt, log, earth, gate_params)
+        if alt.baseline.rms_mgauss < c.baseline.rms_mgauss:
+            notes.append(
+                f"compass {c.index}: yaw from compass {ref.index} instead of the autopilot's "
+                f"(paper-model residual {c.baseline.rms_mgauss:.1f} -> {alt.baseline.rms_mgauss:.1f} mgauss)"
+            )
+            comps[i] = alt
     prim = primary if primary is not None else comps[0].index
     if prim not in [c.index for c in comps]:
         raise InputError(f"compass {prim} is not in the log or has too few samples")
     for c in comps:
+        if not c.observable:
+            continue
         fits = {"uncompensated": c.baseline, "paper": c.baseline, "extended": c.extended}
         if heading_reference is not None:
             c.heading = heading_errors(c.data, fits, heading_reference[0], heading_reference[1], "truth")
-        elif len(comps) > 1:
-            others = [o for o in comps if o.index != c.index]
-            ref = min(
-                others,
-                key=lambda o: (
-                    float(np.linalg.norm(o.extended.theta_mgauss))
-                    / max(o.extended.field_strength_mgauss, 1e-9)
-                ),
-            )
-            rel_ref = float(np.linalg.norm(ref.extended.theta_mgauss)) / ref.extended.field_strength_mgauss
-            rel_c = float(np.linalg.norm(c.extended.theta_mgauss)) / c.extended.field_strength_mgauss
+        else:
+            others = [o for o in comps if o.index != c.index and o.observable]
+            if not others:
+                continue
+            ref = min(others, key=_rel_theta)
+            rel_ref, rel_c = _rel_theta(ref), _rel_theta(c)
             if rel_ref < 0.5 * rel_c:
                 ref_yaw = compass_yaw_rad(ref.data, ref.extended)
                 c.heading = heading_errors(

@@ -157,7 +157,7 @@ def markdown(
         "|---|---|---|---|---|",
     ]
     for c in d.compasses:
-        names = ", ".join(f.effect for f in c.findings) or "none"
+        names = ", ".join(f.label for f in c.findings) or "none"
         lines.append(
             f"| {c.index} | {_vec(c.extended.theta_mgauss)} | {c.baseline.rms_mgauss:.2f} | "
             f"{c.extended.rms_mgauss:.2f} | {names} |"
@@ -197,7 +197,7 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
         for k, f in enumerate(c.findings, 1):
             ev = f.evidence
             out.append(
-                f"{k}. **{f.effect}** {f.params}: {f.cause} Held-out residual "
+                f"{k}. **{f.label}** {f.params}: {f.cause} Held-out residual "
                 f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss ({ev['cv_gain_pct']} %), "
                 f"delta BIC {ev['delta_bic']}; residual after: {f.residual_rms_after:.2f} mgauss."
             )

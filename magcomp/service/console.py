@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -88,9 +89,29 @@ def check_distinct_outputs(**paths: str | Path | None) -> None:
 def write_json(path: str | Path, doc: dict[str, Any]) -> None:
     p = Path(path)
     try:
-        p.write_text(json.dumps(doc, indent=2, default=_plain) + "\n")
+        p.write_text(json.dumps(_finite(doc), indent=2, default=_plain, allow_nan=False) + "\n")
     except OSError as exc:
         raise InputError(f"cannot write {p}: {exc.strerror}") from None
+
+
+def _finite(obj: Any) -> Any:
+    """Non-finite floats (and numpy scalars/arrays holding them) as None: strictly valid JSON."""
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.ndarray):
+            obj = obj.tolist()
+        elif isinstance(obj, np.generic):
+            obj = obj.item()
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    return obj
 
 
 def _plain(obj: Any) -> Any:
@@ -138,11 +159,40 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                 cal_txt += f" ({cal['n']} samples, eq. (3) residual {cal['residual_rms_mgauss']:.1f} mgauss)"
         th = c["theta_mgauss"]
         conv = "converged" if c["theta_converged"] else "not converged"
+        status = c.get("status")
+        if status == "uncorrected":
+            lines.append(
+                f"compass {c['index']}: {c['estimates']} headings, NOT corrected: {c.get('why', '')}"
+                f"{_time_text(c)}"
+            )
+            continue
+        if cal is not None and cal["source"] == "in-flight":
+            inf = c.get("inflight") or {}
+            sig = inf.get("theta_sigma_mgauss") or [math.nan] * 3
+            hs = inf.get("heading_sigma_deg")
+            cal_txt = (
+                f"calibrated in flight ({inf.get('form')} form, {cal['n']} samples, residual "
+                f"{cal['residual_rms_mgauss']:.1f} mgauss, heading +-{hs:.1f} deg)"
+            )
+            lines.append(
+                f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "
+                f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) "
+                f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss ({conv}){_time_text(c)}"
+            )
+            continue
         lines.append(
             f"compass {c['index']}: {c['estimates']} headings, {cal_txt}, "
             f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) mgauss ({conv})"
         )
     return lines
+
+
+def _time_text(c: dict[str, Any]) -> str:
+    ts = c.get("time_s") or {}
+    cor, unc = float(ts.get("corrected", 0.0)), float(ts.get("uncorrected", 0.0))
+    if cor + unc <= 0.0:
+        return ""
+    return f"; {cor:.0f} s corrected, {unc:.0f} s uncorrected"
 
 
 def primary_compass(compasses: tuple[int, ...]) -> int:

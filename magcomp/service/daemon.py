@@ -5,7 +5,9 @@ and retried every ``link.reconnect_s``; silence on the master is logged once per
 :class:`~magcomp.service.pipeline.Pipeline` object lives across reconnects, so calibration and theta
 carry over (and a rebooted autopilot's clock reset is absorbed by the pipeline). State is saved on the
 way out. A housekeeping thread sends a companion HEARTBEAT (``link.heartbeat_hz``), watches for
-silence and ends the run on :meth:`Daemon.stop`, so signal handlers only have to call ``stop()``.
+silence and ends the run on :meth:`Daemon.stop`. Signal handlers call :meth:`Daemon.request_stop`, which
+only sets a flag (no lock, no I/O: a handler runs between two bytecodes of the main thread, possibly
+inside a lock that thread holds); the housekeeping thread turns the flag into :meth:`stop`.
 
 Latency: for every estimate the time from the moment its magnetometer sample left the source (i.e.
 was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recorded
@@ -14,8 +16,12 @@ was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recor
 
 from __future__ import annotations
 
+import contextlib
+import errno as errno_mod
 import gc
+import io
 import logging
+import re
 import sys
 import threading
 import time
@@ -155,6 +161,64 @@ def check_link_url(url: str, option: str = "--master") -> None:
     raise InputError(f"{option} {url}: not a link URL (use {_URL_FORMS})")
 
 
+#: errors of a first open that waiting cannot heal (the link is misconfigured, not merely down)
+_PERMANENT_ERRNOS = frozenset(
+    getattr(errno_mod, name)
+    for name in ("EADDRINUSE", "EADDRNOTAVAIL", "EACCES", "EPERM", "ENOENT", "ENODEV", "ENXIO", "ENOTTY",
+                 "EBUSY")
+    if hasattr(errno_mod, name)
+)
+
+
+def _link_target(url: str) -> tuple[str, str]:
+    """("net", host) for a network URL, ("serial", device) for a serial one."""
+    text = url.strip()
+    for prefix in _NET_PREFIXES:
+        if text.startswith(prefix):
+            return "net", text[len(prefix) :].rpartition(":")[0]
+    device = text.removeprefix("serial:")
+    if re.search(r":\d+$", device):
+        device = device.rpartition(":")[0]
+    return "serial", device
+
+
+def preflight_link(url: str, option: str = "--master") -> None:
+    """Refuse, with one line, a link that cannot work however long one waits: a host name that does not
+    resolve, a serial device that does not exist, or serial support (pyserial) missing."""
+    import importlib.util
+    import os
+    import socket
+
+    kind, where = _link_target(url)
+    if kind == "net":
+        if where in ("", "0.0.0.0", "::"):
+            return
+        try:
+            socket.getaddrinfo(where, None)
+        except (socket.gaierror, UnicodeError) as exc:
+            reason = exc.strerror if isinstance(exc, socket.gaierror) else str(exc)
+            raise InputError(f"{option} {url}: the host {where!r} does not resolve ({reason})") from None
+        return
+    if importlib.util.find_spec("serial") is None:
+        raise InputError(f"{option} {url}: serial links need pyserial: pip install pyserial")
+    if where.startswith("/dev/") and not os.path.exists(where):
+        raise InputError(f"{option} {url}: no such serial device {where!r} (is the autopilot plugged in?)")
+
+
+def link_error_is_permanent(url: str, exc: BaseException) -> bool:
+    """True when the first open of ``url`` failed in a way that retrying cannot heal: the address is in
+    use or not ours, the host does not resolve, the serial device is missing, busy or not a serial port,
+    serial support is not installed. A refused TCP connection or a silent link is retried."""
+    import socket
+
+    cause = exc.__cause__ or exc.__context__
+    if isinstance(cause, ImportError | socket.gaierror):
+        return True
+    if _link_target(url)[0] == "serial":
+        return True  # the device exists (preflight) but cannot be opened or configured as a serial port
+    return isinstance(cause, OSError) and cause.errno in _PERMANENT_ERRNOS
+
+
 class Daemon:
     """One live run. ``master``: the flight controller's link (udpin:, udpout:, tcp:, tcpin:, serial);
     ``outs``: more links to publish on. ``on_estimate``: called with each estimate (e.g. the viewer)."""
@@ -189,6 +253,7 @@ class Daemon:
         self.link_losses = 0
         self.source_counts: dict[str, int] = {}
         self._stop = threading.Event()
+        self._stop_requested = False  # set by signal handlers (request_stop), read by housekeeping
         self._lock = threading.Lock()  # one encoder (sequence numbers) and sinks shared with housekeeping
         self._source: Any = None
         self._sinks: list[LinkSink] = []
@@ -205,6 +270,12 @@ class Daemon:
         src = self._source
         if src is not None:
             src.close()
+
+    def request_stop(self) -> None:
+        """Ask the run to end from a signal handler: sets a flag and nothing else (async-signal-safe, so a
+        second signal while the first is being handled cannot deadlock); :meth:`run` returns within about
+        a second."""
+        self._stop_requested = True
 
     @property
     def stopped(self) -> bool:
@@ -250,6 +321,9 @@ class Daemon:
         hb_period = 1.0 / self.cfg.link.heartbeat_hz if self.cfg.link.heartbeat_hz > 0 else 0.0
         next_hb = time.monotonic()
         while not self._stop.wait(0.05):
+            if self._stop_requested:
+                self.stop()
+                break
             now = time.monotonic()
             if hb_period and now >= next_hb:
                 next_hb = now + hb_period
@@ -263,9 +337,14 @@ class Daemon:
     # ---------------------------------------------------------------------------------------------- run
 
     def run(self) -> DaemonReport:
-        """Run until :meth:`stop`. Raises InputError only for outputs that cannot be opened at all."""
+        """Run until :meth:`stop`. Raises InputError for links that cannot work (outputs that cannot be
+        opened, a master whose first open fails in a way waiting cannot heal: see
+        :func:`link_error_is_permanent`); a master that is merely down is retried."""
         from magcomp.adapters.mavlink_source import open_source
 
+        preflight_link(self.master, "--master")
+        for url in self.out_urls:
+            preflight_link(url, "--out")
         self._open_outs()
         # everything imported and built so far (pymavlink's dialect alone is thousands of classes) is
         # moved out of the collector's reach: a full collection otherwise stalls the loop ~40 ms
@@ -281,11 +360,15 @@ class Daemon:
         try:
             while not self._stop.is_set():
                 try:
-                    source = open_source(
-                        self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
-                    )
+                    # pymavlink prints its own retries ("... sleeping") on stdout: kept off the terminal
+                    with contextlib.redirect_stdout(io.StringIO()):
+                        source = open_source(
+                            self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
+                        )
                 except InputError as exc:
                     self.last_error = str(exc)
+                    if self.connects == 0 and link_error_is_permanent(self.master, exc):
+                        raise
                     if first_failure:
                         log.warning("%s; retrying every %.1f s", exc, self.cfg.link.reconnect_s)
                         first_failure = False

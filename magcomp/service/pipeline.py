@@ -45,7 +45,9 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import Config
 from magcomp.adapters.mavlink_source import WireImuSample, WireMagSample
 from magcomp.adapters.state_store import CompassState, StateStore
+from magcomp.core.inflight import calibrated_by_autopilot, yaw_reference
 from magcomp.core.mahony import MahonyParams, mahony_init
+from magcomp.core.rotations import dcm_from_euler, dcm_from_quat
 from magcomp.core.types import (
     FLAG_CALIBRATED,
     FLAG_INPUTS_STALE,
@@ -55,17 +57,23 @@ from magcomp.core.types import (
     FLAG_THETA_CONVERGED,
     FLAG_Z_UNOBSERVABLE,
     AttitudeSample,
+    ClockResetSample,
     HeadingEstimate,
     HeartbeatSample,
     ImuSample,
     MagSample,
+    ParamSample,
+    PositionSample,
     PowerSample,
     Sample,
     TemperatureSample,
     ThrottleSample,
+    TimeSample,
 )
+from magcomp.geomag import earth_field_ned_mgauss
 from magcomp.service import estimators as est_core
 from magcomp.service.fastpath import FastMahony
+from magcomp.service.inflight_stage import InflightOutput, InflightStage
 
 log = logging.getLogger("magcomp.pipeline")
 
@@ -73,8 +81,26 @@ F64 = NDArray[np.float64]
 
 #: seconds of IMU data the attitude filter gets before its down vector feeds the calibration
 MAHONY_SETTLE_S = 2.0
+#: a magnetometer interval above this many times the compass's usual interval (and above [observer]
+#: dt_max_s) is a gap: counted, flagged and the observer reset. A 1 Hz telemetry magnetometer is not a
+#: gap on every sample.
+GAP_FACTOR = 5.0
+#: the IMU is "fast" (its gyro can be integrated between magnetometer samples) below this interval
+FAST_IMU_DT_S = 0.05
+#: attitude rows of the in-flight calibration are left out beyond this tilt (acrobatics, a crash)
+MAX_TILT_RAD = math.radians(60.0)
 #: message-time seconds without any throttle sample before the "no throttle" warning
 NO_THROTTLE_WARN_S = 2.0
+#: Input gate on the gyro (issue 12: a short gyro glitch must not move a converged theta). A body-rate
+#: change between two IMU samples larger than GYRO_JUMP_FLOOR_RAD_S + MAX_ANGULAR_ACCEL_RAD_S2 * dt is not
+#: physical for the vehicles we serve: the largest step in the 8 simulated scenarios is 0.1 rad/s per 20 ms,
+#: and on the measured log171 (228 s of flight, 50 Hz) none exceeds 3 rad/s before the crash (all 28
+#: larger steps are in the crash). A saturated (clipped) or jumping gyro makes the gyro and the attitude
+#: untrusted until GYRO_HOLDOFF_S after the last bad sample: the observer gets nothing (its filters restart
+#: after), headings carry FLAG_SATURATED, and the attitude filter restarts from the accelerometer.
+GYRO_JUMP_FLOOR_RAD_S = 3.0
+MAX_ANGULAR_ACCEL_RAD_S2 = 400.0
+GYRO_HOLDOFF_S = 0.5
 #: at most this many (evenly strided) pairs go into the final (refined) DPI fit / an interim one
 FIT_MAX_ROWS = 3000
 INTERIM_FIT_MAX_ROWS = 1000
@@ -144,6 +170,8 @@ class CompassCorrector:
                 float(info.get("coverage", float("nan"))),
                 int(info.get("n", 0)),
             )
+        # an in-flight calibration from an earlier run (or an earlier pass over the same log)
+        self.stored_inflight = stored.inflight if (stored is not None and mode != "learn") else None
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
         self.theta_est = est_core.ThetaEstimator(cfg, theta0)
         # observer inputs waiting for the throttle at their time: (t_s, gyro, calibrated field);
@@ -170,6 +198,11 @@ class CompassCorrector:
         self.dirty = False
         self._coeffs: tuple[float, ...] = ()
         self._coeffs_of: tuple[object, object] = (None, None)
+        # in-flight calibration jointly with theta (no hand rotation): created at the first sample
+        self.inflight: InflightStage | None = None
+        self.dt_nominal: float | None = None  # usual magnetometer interval (s)
+        self.time_s = {"corrected": 0.0, "uncorrected": 0.0}
+        self.rel_source: tuple[str, float] = ("none", 0.0)
 
     def calib_coeffs(self) -> tuple[float, ...] | None:
         """L (row-major) and d of eq. (2) as 12 floats for the per-sample path; None while uncalibrated."""
@@ -188,6 +221,19 @@ class CompassCorrector:
     @property
     def calibrated(self) -> bool:
         return self.calib_l is not None
+
+    @property
+    def n_collected(self) -> int:
+        return self._cal_n
+
+    def fit_now(self) -> bool:
+        """Fit (eq. (3)) on the pairs collected so far; True when the fit was adopted."""
+        return self._cal_n > 0 and self._fit(refine=False)
+
+    def restart_collection(self) -> None:
+        """Drop the calibration pairs collected so far (they belong to another boot)."""
+        self._cal_n = 0
+        self._cal_next_check = self.cfg.calibration.min_samples
 
     @property
     def collecting(self) -> bool:
@@ -280,14 +326,19 @@ class CompassCorrector:
                 "n": float(self.calibration.n),
             }
         keep = self.calibration is not None and self.calibration.source != "identity"
+        inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
+        theta = np.asarray(self.theta_est.theta_mgauss, dtype=float)
+        if self.inflight is not None and self.inflight.solution is not None:
+            theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)
         return CompassState(
             system_id=system_id,
             mag_index=self.mag_index,
             calib_l=self.calib_l if keep else None,
             calib_d=self.calib_d if keep else None,
-            theta_mgauss=np.asarray(self.theta_est.theta_mgauss, dtype=float),
+            theta_mgauss=theta,
             t_s=t_s,
             calib_info=info,
+            inflight=inflight,
         )
 
 
@@ -319,8 +370,11 @@ class Pipeline:
             "estimates": 0,
             "non_finite": 0,
             "saturated": 0,
+            "gyro_jumps": 0,
+            "gyro_gated": 0,
             "time_backwards": 0,
             "clock_resets": 0,
+            "reboots": 0,
             "gaps": 0,
             "observer_resets": 0,
             "throttle_jumps": 0,
@@ -338,6 +392,12 @@ class Pipeline:
         self._mahony_t0 = 0.0
         self._imu_t: float | None = None
         self._gyro = [0.0, 0.0, 0.0]  # bias-corrected body rate of the latest IMU sample, rad/s
+        # the gyro gate (GYRO_HOLDOFF_S): raw rate and time of the previous IMU sample, end of the bad spell
+        self._gyro_raw: tuple[float, float, float] | None = None
+        self._gyro_raw_t = -math.inf
+        self._gyro_bad_until = -math.inf
+        self._imu_restart = False
+        self._boot_offset_s = 0.0  # t_s - the autopilot's own clock (changes at each reboot)
         self._att_t: float | None = None
         self._att_roll = 0.0
         self._att_pitch = 0.0
@@ -360,11 +420,26 @@ class Pipeline:
         self._dt_min = cfg.observer.dt_min_s
         self._dt_max = cfg.observer.dt_max_s
         self._save_interval_s = cfg.state.save_interval_s
-        self._att_mahony = cfg.input.attitude == "mahony"
+        self._att_mahony = cfg.input.attitude in ("mahony", "auto")
+        # auto: the heading's roll and pitch from the autopilot's ATTITUDE while it streams (its estimator
+        # compensates flight accelerations with GPS; a gyro+accelerometer filter tilts by several degrees in
+        # accelerated flight, and with a 60-70 deg inclination each degree of tilt is 2-3 deg of heading);
+        # the DPI down vector always from the own Mahony filter (sec. II-A)
+        self._att_auto = cfg.input.attitude == "auto"
         # attitude of the latest IMU / ATTITUDE sample, derived once for every compass (see _attitude)
         self._att_cache: _Attitude | None = None
         # the numbers of the last published estimate (see last_estimate)
         self._last: tuple[Any, ...] | None = None
+        # in-flight calibration inputs: parameters, yaw, motor outputs, position
+        self._params: dict[str, float] = {}
+        self._att_yaw = 0.0
+        self._motors: tuple[float, ...] = ()
+        self._motors_on_t: float | None = None
+        self._imu_dt: float | None = None
+        loc = cfg.location
+        self._location = (loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year)
+        self._location_source = "config"
+        self._gps_year: float | None = None
 
     # ------------------------------------------------------------------------------------------ helpers
 
@@ -420,8 +495,18 @@ class Pipeline:
                 g, a = sample.gyro_b_rad_s, sample.accel_b_m_s2
                 self._on_imu(sample.t_s, float(g[0]), float(g[1]), float(g[2]),
                              float(a[0]), float(a[1]), float(a[2]))  # fmt: skip
+        elif kind is ClockResetSample:
+            self._on_reboot(sample)  # type: ignore[arg-type]
         elif kind is HeartbeatSample and self.system_id is None:
             self.system_id = int(sample.system_id)  # type: ignore[union-attr]
+        elif kind is ParamSample:
+            self._params[sample.name] = float(sample.value)  # type: ignore[union-attr]
+        elif kind is PositionSample:
+            self._on_position(sample)  # type: ignore[arg-type]
+        elif kind is TimeSample:
+            yr = float(sample.decimal_year)  # type: ignore[union-attr]
+            if math.isfinite(yr) and 2010.0 <= yr < 2030.0:
+                self._gps_year = yr
         return False
 
     def last_estimate(self) -> HeadingEstimate:
@@ -442,6 +527,7 @@ class Pipeline:
             field_cal_mgauss=np.array(corrected, dtype=float),
             residual_norm_mgauss=float("nan") if info is None else info.residual_norm_mgauss,
             excitation=float("nan") if info is None else info.excitation,
+            t_boot_s=t - self._boot_offset_s,
         )
 
     def _on_throttle(self, s: ThrottleSample) -> None:
@@ -456,6 +542,12 @@ class Pipeline:
         self._thr_prev_t, self._thr_prev = self._thr_t, self._thr
         self._thr_t = s.t_s
         self._thr = min(max(thr, 0.0), 1.0)
+        self._motors = s.motors_01
+        if self._thr > self.cfg.calibration.max_throttle_01:
+            if self._motors_on_t is None:
+                self._motors_on_t = s.t_s
+        else:
+            self._motors_on_t = None
         for c in self.correctors.values():
             if c.queue:
                 self._drain(c, s.t_s)
@@ -513,6 +605,7 @@ class Pipeline:
             return
         self._att_t = s.t_s
         self._att_roll, self._att_pitch = s.roll_rad, s.pitch_rad
+        self._att_yaw = s.yaw_rad if math.isfinite(s.yaw_rad) else self._att_yaw
         self._att_cache = None
 
     def _on_imu(self, t: float, gx: float, gy: float, gz: float, ax: float, ay: float, az: float) -> None:
@@ -522,8 +615,20 @@ class Pipeline:
             self.counts["non_finite"] += 1
             return
         lim = self._gyro_sat
-        if abs(gx) >= lim or abs(gy) >= lim or abs(gz) >= lim:
-            self.counts["saturated"] += 1
+        saturated = abs(gx) >= lim or abs(gy) >= lim or abs(gz) >= lim
+        raw, raw_t = self._gyro_raw, self._gyro_raw_t
+        jump = False
+        if not saturated:
+            if raw is not None and t > raw_t:
+                step = max(abs(gx - raw[0]), abs(gy - raw[1]), abs(gz - raw[2]))
+                jump = step > GYRO_JUMP_FLOOR_RAD_S + MAX_ANGULAR_ACCEL_RAD_S2 * (t - raw_t)
+            self._gyro_raw, self._gyro_raw_t = (gx, gy, gz), t
+        if saturated or jump:
+            self.counts["saturated" if saturated else "gyro_jumps"] += 1
+            self._gate_gyro(t)
+            return
+        if t <= self._gyro_bad_until:
+            self.counts["gyro_gated"] += 1
             return
         prev_t = self._imu_t
         verdict = 0 if prev_t is None or t > prev_t else self._check_time(prev_t, t)
@@ -531,7 +636,10 @@ class Pipeline:
             return
         m = self._mahony
         self._att_cache = None
-        if m is not None and prev_t is not None and verdict == 0 and t - prev_t <= self._dt_max:
+        self._imu_dt = None if prev_t is None or verdict != 0 else t - prev_t
+        restart, self._imu_restart = self._imu_restart, False
+        if (m is not None and prev_t is not None and verdict == 0 and not restart
+                and t - prev_t <= self._dt_max):  # fmt: skip
             self._imu_t = t
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
             b = m.b
@@ -550,6 +658,43 @@ class Pipeline:
         self._mahony_t0 = t
         self._imu_t = t
         self._gyro = [gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2])]
+
+    def _on_reboot(self, s: ClockResetSample) -> None:
+        """The autopilot rebooted (issue 12): data of two boots never meet in one calibration or one
+        filter. A calibration window with a learned calibration ends here (its final fit uses this
+        boot's pairs only); one without drops the old boot's pairs and starts again. The observers'
+        filters, the heading filters, the attitude and the throttle history restart (theta kept)."""
+        self.counts["reboots"] += 1
+        self._boot_offset_s = s.offset_s
+        self._imu_restart = True
+        self._att_cache = None
+        self._thr_t = self._thr_prev_t = None
+        for c in self.correctors.values():
+            if c.collecting:
+                learned = c.calibration is not None and c.calibration.source == "learned"
+                if not learned and c.n_collected >= self.cfg.calibration.min_samples:
+                    learned = c.fit_now()  # the old boot's pairs on their own, if the DPI fit accepts them
+                if learned:
+                    c.freeze_calibration()
+                else:
+                    c.restart_collection()
+            c.queue_reset()
+            self.counts["observer_resets"] += 1
+            c.hdg_filter.reset()
+            c.hdg_raw_filter.reset()
+        self._text(s.t_s, "autopilot rebooted (its clock restarted): calibration window closed, filters "
+                          "restarted", warning=self.counts["reboots"] == 1)  # fmt: skip
+
+    def _gate_gyro(self, t: float) -> None:
+        """A saturated or jumping gyro sample at ``t``: gyro and attitude untrusted until GYRO_HOLDOFF_S
+        after it; at the start of a bad spell the observers' filters are reset (theta kept)."""
+        if t > self._gyro_bad_until or not math.isfinite(self._gyro_bad_until):
+            for c in self.correctors.values():
+                c.queue_reset()
+            self.counts["observer_resets"] += len(self.correctors)
+        self._gyro_bad_until = max(self._gyro_bad_until, t + GYRO_HOLDOFF_S)
+        self._imu_restart = True  # the rotation during the spell is unknown: the tilt restarts
+        self._att_cache = None
 
     # ----------------------------------------------------------------------------------- magnetometer
 
@@ -581,6 +726,10 @@ class Pipeline:
             d = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
             roll = math.atan2(d[1], d[2])
             pitch = -math.asin(max(-1.0, min(1.0, d[0])))
+            att_t, imu_t = self._att_t, self._imu_t
+            fresh = att_t is not None and imu_t is not None and abs(imu_t - att_t) <= self._stale_s
+            if self._att_auto and fresh:
+                roll, pitch = self._att_roll, self._att_pitch
             if self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S:
                 down = d
         else:
@@ -615,15 +764,22 @@ class Pipeline:
         c.last_t = t
         if self._first_mag_t is None or verdict == 2:
             self._first_mag_t = t
-        reset = False
+        reset = False  # a gap or a clock reset: filters restart
+        obs_reset = False  # the observer's discrete step cannot span this interval
         if verdict == 2 or prev_t is None:
-            reset = True
+            reset = obs_reset = True
         else:
             dt = t - prev_t
-            if dt < self._dt_min or dt > self._dt_max:
-                if dt > self._dt_max:
-                    self.counts["gaps"] += 1
-                reset = True
+            nominal = c.dt_nominal
+            # the first interval (up to 10 s) sets the compass's usual one
+            gap_s = max(self._dt_max, 10.0 if nominal is None else GAP_FACTOR * nominal)
+            if dt > gap_s:
+                self.counts["gaps"] += 1
+                reset = obs_reset = True
+            else:
+                c.dt_nominal = dt if nominal is None else nominal + 0.05 * (dt - nominal)
+                if dt < self._dt_min or dt > self._dt_max:
+                    obs_reset = True
         # ---- throttle
         thr = 0.0
         thr_t = self._thr_t
@@ -644,7 +800,11 @@ class Pipeline:
         # ---- attitude and gyro
         down, cr, sr, cp, sp = self._attitude()
         gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self._stale_s
-        if not gyro_fresh:
+        if t <= self._gyro_bad_until:  # the gyro gate: no observer, no calibration
+            gyro_fresh = False
+            flags |= FLAG_SATURATED
+        elif self._imu_restart or not gyro_fresh:  # (restart: after a gyro gate or a reboot)
+            gyro_fresh = False
             flags |= FLAG_INPUTS_STALE
         # ---- calibration, eqs. (1)-(3)
         if c.collecting:
@@ -663,7 +823,22 @@ class Pipeline:
                 self._save(c, t)
         k = c.calib_coeffs()
         info: est_core.ThetaStepInfo | None = None
-        if k is not None:
+        inflight: InflightOutput | None = None
+        if k is None and self._learn and self.cfg.inflight.enabled and have_thr:
+            inflight = self._inflight_step(c, t, vx, vy, vz, reset)
+        bias_inflight: tuple[float, float, float] | None = None
+        if inflight is not None:
+            flags |= FLAG_CALIBRATED
+            if inflight.converged:
+                flags |= FLAG_THETA_CONVERGED
+            k = inflight.coeffs
+            # eq. (2) with the in-flight L and d; the bias of eq. (11) (+ per-motor terms) from the same fit
+            ux = k[0] * vx + k[1] * vy + k[2] * vz - k[9]
+            uy = k[3] * vx + k[4] * vy + k[5] * vz - k[10]
+            uz = k[6] * vx + k[7] * vy + k[8] * vz - k[11]
+            th0, th1, th2 = inflight.theta_mgauss
+            bias_inflight = inflight.bias_mgauss
+        elif k is not None:
             flags |= FLAG_CALIBRATED
             # eq. (2): u = L v - d
             ux = k[0] * vx + k[1] * vy + k[2] * vz - k[9]
@@ -671,7 +846,7 @@ class Pipeline:
             uz = k[6] * vx + k[7] * vy + k[8] * vz - k[11]
             # ---- low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated
             # at the sample's own time (queued until the throttle after it is known)
-            if reset:
+            if obs_reset:
                 c.queue_reset()
                 self.counts["observer_resets"] += 1
                 flags |= FLAG_OBSERVER_RESET
@@ -692,7 +867,13 @@ class Pipeline:
             th0 = th1 = th2 = 0.0
         # eq. (11): bias = theta throttle^2, removed from the calibrated field
         d2 = thr * thr
-        bx, by, bz = (th0 * d2, th1 * d2, th2 * d2) if have_thr else (0.0, 0.0, 0.0)
+        if bias_inflight is not None:
+            bx, by, bz = bias_inflight
+        else:
+            bx, by, bz = (th0 * d2, th1 * d2, th2 * d2) if have_thr else (0.0, 0.0, 0.0)
+        state = "corrected" if flags & FLAG_CALIBRATED and have_thr else "uncorrected"
+        if prev_t is not None and not reset:
+            c.time_s[state] += t - prev_t
         cx, cy, cz = ux - bx, uy - by, uz - bz
         psi_raw = est_core.heading_from_trig(ux, uy, uz, cr, sr, cp, sp)
         psi = est_core.heading_from_trig(cx, cy, cz, cr, sr, cp, sp) if have_thr else psi_raw
@@ -719,6 +900,91 @@ class Pipeline:
         self._last = (t, idx, heading, heading_raw, (th0, th1, th2), (bx, by, bz), thr, flags, s,
                       (cx, cy, cz), info)  # fmt: skip
         return True
+
+    # ------------------------------------------------------------------------------ in-flight calibration
+
+    def _on_position(self, s: PositionSample) -> None:
+        """The first trusted GNSS fix sets the Earth field (WMM at the vehicle, at the log's date)."""
+        if self._location_source == "gps" or not s.fix_ok:
+            return
+        lat, lon, alt = s.lat_deg, s.lon_deg, s.alt_m
+        finite = math.isfinite(lat) and math.isfinite(lon)
+        if not (finite and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0):
+            self.counts["non_finite"] += 1
+            return
+        if lat == 0.0 and lon == 0.0:  # "no position" as some autopilots send it
+            return
+        year = s.decimal_year if math.isfinite(s.decimal_year) else self._gps_year
+        if year is None or not (2010.0 <= year < 2030.0):
+            year = self._location[3]
+        alt = alt if math.isfinite(alt) and -1000.0 < alt < 20000.0 else 0.0
+        try:
+            field = earth_field_ned_mgauss(lat, lon, alt, year)
+        except Exception:  # an out-of-range date or place: keep the configured field
+            return
+        self._location = (lat, lon, alt, year)
+        self._location_source = "gps"
+        self._earth_ned = field
+        norm = float(np.linalg.norm(field))
+        for c in self.correctors.values():
+            c.earth_ned = field
+            if c.inflight is not None:
+                c.inflight.restart(norm)
+        self._text(s.t_s, f"Earth field from the GPS position ({lat:.4f}, {lon:.4f}, {year:.1f}): "
+                          f"{norm:.0f} mgauss, WMM")
+
+    def _inflight_step(
+        self, c: CompassCorrector, t: float, vx: float, vy: float, vz: float, reset: bool
+    ) -> InflightOutput | None:
+        """Feed the in-flight calibration of compass ``c`` and return its correction when it is usable."""
+        st = c.inflight
+        if st is None:
+            icfg = self.cfg.inflight
+            if icfg.reference == "auto":
+                mode, why = yaw_reference(self._params, c.mag_index)
+            else:
+                mode = "absolute" if icfg.reference == "absolute" else "relative"
+                why = "set in the configuration ([inflight] reference)"
+            cal = calibrated_by_autopilot(self._params, c.mag_index)
+            st = InflightStage(
+                c.mag_index, icfg, mode, why, cal, float(np.linalg.norm(self._earth_ned)), c.stored_inflight
+            )
+            c.inflight = st
+            self._text(t, f"compass {c.mag_index}: no hand-rotation calibration; learning calibration and "
+                          f"theta in flight ({mode} form: {why})")
+        if reset:
+            st.reset_pairs()
+        thr = self._throttle_at(t)
+        if thr is not None:
+            att_fresh = self._att_t is not None and abs(t - self._att_t) <= self._stale_s
+            r_abs = None
+            if st.mode == "absolute" and att_fresh and self._motors_on_t is not None:
+                settled = t - self._motors_on_t >= self.cfg.inflight.absolute_settle_s
+                level = abs(self._att_roll) < MAX_TILT_RAD and abs(self._att_pitch) < MAX_TILT_RAD
+                if settled and level:
+                    r_abs = dcm_from_euler(self._att_roll, self._att_pitch, self._att_yaw)
+            r_rel = None
+            if st.mode == "relative":
+                fast_imu = self._imu_dt is not None and self._imu_dt <= FAST_IMU_DT_S
+                gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self._stale_s
+                src: tuple[str, float]
+                rot = self.cfg.inflight.rotation
+                use_gyro = rot == "gyro" or (rot == "auto" and not att_fresh)
+                settled = self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S
+                if use_gyro and fast_imu and gyro_fresh and settled and self._mahony is not None:
+                    r_rel = dcm_from_quat(np.asarray(self._mahony.q, dtype=float))
+                    src = ("gyro", self._mahony_t0)
+                elif att_fresh and rot != "gyro":
+                    r_rel = dcm_from_euler(self._att_roll, self._att_pitch, self._att_yaw)
+                    src = ("attitude", 0.0)
+                else:
+                    src = ("none", 0.0)
+                if src != c.rel_source:
+                    st.reset_pairs()
+                    c.rel_source = src
+            st.feed(t, np.array((vx, vy, vz)), thr, self._motors, r_abs, self._earth_ned, r_rel)
+            c.dirty = True
+        return st.output(t, (vx, vy, vz), self._thr, self._motors)
 
     def _refined_text(self, c: CompassCorrector, t: float) -> None:
         assert c.calibration is not None
@@ -762,32 +1028,96 @@ class Pipeline:
         self._pending_saves = []
 
     def summary(self) -> dict[str, object]:
-        """Plain values for JSON: counts, warnings and each compass's calibration and theta."""
+        """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
+        calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
+        no NaN)."""
         compasses = []
         for idx, c in sorted(self.correctors.items()):
             cal = c.calibration
+            st = c.inflight
+            theta = np.asarray(c.theta_est.theta_mgauss, dtype=float).tolist()
+            converged = bool(c.theta_est.converged)
+            calibrated = c.calibrated
+            calib_doc: dict[str, object] | None = None
+            if cal is not None:
+                calib_doc = {
+                    "source": cal.source,
+                    "residual_rms_mgauss": cal.residual_rms_mgauss,
+                    "coverage": cal.coverage,
+                    "n": cal.n,
+                    "L": None if c.calib_l is None else np.asarray(c.calib_l).tolist(),
+                    "d_mgauss": None if c.calib_d is None else np.asarray(c.calib_d).tolist(),
+                }
+            elif st is not None and st.solution is not None and st.applied:
+                sol = st.solution
+                calibrated = True
+                theta = sol.theta_mgauss.tolist()
+                converged = sol.heading_sigma_deg < st.params.heading_converged_deg
+                calib_doc = {
+                    "source": "in-flight",
+                    "residual_rms_mgauss": sol.residual_rms_mgauss,
+                    "n": sol.n,
+                    "L": sol.calib_l.tolist(),
+                    "d_mgauss": sol.calib_d.tolist(),
+                }
+            status, why = self._status(c)
             compasses.append(
                 {
                     "index": idx,
-                    "calibrated": c.calibrated,
-                    "calibration": None
-                    if cal is None
-                    else {
-                        "source": cal.source,
-                        "residual_rms_mgauss": cal.residual_rms_mgauss,
-                        "coverage": cal.coverage,
-                        "n": cal.n,
-                        "L": None if c.calib_l is None else np.asarray(c.calib_l).tolist(),
-                        "d_mgauss": None if c.calib_d is None else np.asarray(c.calib_d).tolist(),
-                    },
-                    "theta_mgauss": np.asarray(c.theta_est.theta_mgauss).tolist(),
-                    "theta_converged": bool(c.theta_est.converged),
+                    "calibrated": calibrated,
+                    "calibration": calib_doc,
+                    "theta_mgauss": theta,
+                    "theta_converged": converged,
                     "estimates": c.n_out,
+                    "status": status,
+                    "why": why,
+                    "time_s": dict(c.time_s),
+                    "inflight": None if st is None else st.summary(),
                 }
             )
-        return {
-            "system_id": self.system_id,
-            "counts": dict(self.counts),
-            "warnings": list(self.warnings),
-            "compasses": compasses,
-        }
+        lat, lon, alt, year = self._location
+        return json_safe(
+            {
+                "system_id": self.system_id,
+                "counts": dict(self.counts),
+                "warnings": list(self.warnings),
+                "earth_field": {
+                    "source": self._location_source,
+                    "lat_deg": lat,
+                    "lon_deg": lon,
+                    "alt_m": alt,
+                    "decimal_year": year,
+                    "ned_mgauss": np.asarray(self._earth_ned, dtype=float).tolist(),
+                },
+                "compasses": compasses,
+            }
+        )
+
+    def _status(self, c: CompassCorrector) -> tuple[str, str]:
+        """(corrected | uncorrected, why) for the summary: one phrase a user can act on."""
+        if self._thr_t is None:
+            why = "disabled in the configuration" if not self._use_throttle else "none in the input"
+            return "uncorrected", f"no throttle source ({why})"
+        if c.calibration is not None:
+            return "corrected", f"calibration {c.calibration.source}, theta by the observer of eq. (20)"
+        st = c.inflight
+        if st is not None and st.applied:
+            return "corrected", f"calibration and theta learned in flight ({st.mode} form)"
+        if st is not None:
+            return "uncorrected", st.why_not()
+        if not self._learn:
+            return "uncorrected", "no calibration and learning disabled ([observer] learn = false)"
+        if not self.cfg.inflight.enabled:
+            return "uncorrected", "no hand-rotation calibration and in-flight calibration disabled"
+        return "uncorrected", "no samples with the throttle known"
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    return obj

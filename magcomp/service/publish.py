@@ -45,8 +45,9 @@ class HeadingEncoder:
         """MAVLink 2 bytes of one MAGCOMP_HEADING (advances the sequence number)."""
         th = est.theta_mgauss
         b = est.bias_mgauss
+        t_boot = est.t_boot_s if est.t_boot_s == est.t_boot_s else est.t_s  # NaN: the same clock
         msg = self._msg_cls(
-            round(est.t_s * 1000.0) & 0xFFFFFFFF,
+            round(t_boot * 1000.0) & 0xFFFFFFFF,
             float(est.heading_deg),
             float(est.heading_raw_deg),
             [float(th[0]), float(th[1]), float(th[2])],

@@ -4,6 +4,7 @@ as the machine goes."""
 from __future__ import annotations
 
 import gc
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -12,10 +13,12 @@ from pathlib import Path
 from typing import Any
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
+from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, TlogWriter
+
+log = logging.getLogger("magcomp.replay")
 
 #: samples decoded per batch of the replay loop
 REPLAY_BATCH = 256
@@ -58,6 +61,42 @@ class ReplayReport:
         return out
 
 
+class MemoryStore:
+    """A state store in memory (the first pass of a two-pass replay hands its states to the second)."""
+
+    def __init__(self) -> None:
+        self.states: dict[tuple[int, int], CompassState] = {}
+        self.warnings: list[str] = []
+
+    def save(self, state: CompassState) -> None:
+        self.states[(state.system_id, state.mag_index)] = state
+
+    def load(self, system_id: int, mag_index: int) -> CompassState | None:
+        return self.states.get((system_id, mag_index))
+
+
+def learn_pass(
+    path: str | Path, cfg: Config, should_stop: Callable[[], bool] | None = None
+) -> MemoryStore | None:
+    """First pass of a two-pass replay: the whole log through the pipeline, outputs discarded, the final
+    state of every compass kept (what a live run would save at the end of this flight)."""
+    from magcomp.adapters.mavlink_source import open_source
+
+    store = MemoryStore()
+    source = open_source(path, throttle_source=source_throttle(cfg))
+    pipeline = Pipeline(cfg, store=store)  # type: ignore[arg-type]
+    feed = pipeline.feed
+    try:
+        for i, sample in enumerate(source.samples()):
+            feed(sample)
+            if should_stop is not None and i % REPLAY_BATCH == 0 and should_stop():
+                return None
+    finally:
+        source.close()
+        pipeline.close()
+    return store
+
+
 def source_throttle(cfg: Config) -> str:
     """The throttle option for the source (``none`` is handled by the pipeline, which ignores throttle)."""
     return "auto" if cfg.input.throttle_source == "none" else cfg.input.throttle_source
@@ -72,6 +111,8 @@ def replay_log(
     keep_estimates: bool = False,
     on_estimate: Callable[[HeadingEstimate], None] | None = None,
     on_text: Callable[[float, str], None] | None = None,
+    two_pass: bool = False,
+    should_stop: Callable[[], bool] | None = None,
 ) -> ReplayReport:
     """Run ``path`` (tlog, raw MAVLink, DataFlash .bin/.log) through the pipeline.
 
@@ -79,13 +120,23 @@ def replay_log(
     (for tests and the batch viewer). Raises :class:`~magcomp.errors.InputError` for unreadable, empty
     or non-MAVLink files; damaged parts of a readable log are skipped and counted. A ^C
     (KeyboardInterrupt) ends the replay early but keeps what was done: the state is saved, the ``emit``
-    file closed, and the report (``interrupted=True``) covers the log up to the last sample.
+    file closed, and the report (``interrupted=True``) covers the log up to the last sample. So does
+    ``should_stop`` returning True (checked once per batch of samples; e.g. a flag a signal handler sets).
     """
     from magcomp.adapters.mavlink_source import open_source
 
     t_wall = time.perf_counter()
+    if two_pass and store is None:
+        # the log is known whole: learn from all of it first, then replay from the state it ends with (as a
+        # live run would start from yesterday's saved state); a ^C here leaves a one-pass replay
+        try:
+            store = learn_pass(path, cfg, should_stop)  # type: ignore[assignment]
+        except KeyboardInterrupt:
+            store = None
+        two_pass = store is not None
     source = open_source(path, throttle_source=source_throttle(cfg))
     pipeline = Pipeline(cfg, store=store, on_text=on_text)
+    log.debug("replaying %s", path)
     writer = TlogWriter(emit) if emit is not None else None
     encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component) if writer else None
     kept: list[HeadingEstimate] = []
@@ -106,6 +157,9 @@ def replay_log(
         # each sample as it is decoded (the source never depends on the pipeline), 3-4 % less wall time
         # (each half of the loop runs on warm caches)
         while batch := list(islice(samples, REPLAY_BATCH)):
+            if should_stop is not None and should_stop():
+                interrupted = True
+                break
             for sample in batch:
                 if not feed(sample):
                     continue
@@ -131,9 +185,11 @@ def replay_log(
         if writer is not None:
             writer.close()
         pipeline.close()
+    summary = pipeline.summary()
+    summary["passes"] = 2 if two_pass and isinstance(store, MemoryStore) else 1
     return ReplayReport(
         path=str(path),
-        summary=pipeline.summary(),
+        summary=summary,
         source_counts=dict(source.counts),
         wall_s=time.perf_counter() - t_wall,
         n_estimates=n,

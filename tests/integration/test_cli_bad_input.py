@@ -116,7 +116,7 @@ CASES: list[tuple[str, list[str], str]] = [
     ("run-duration-nan", ["run", "--master", "udpin:127.0.0.1:14551", "--duration", "nan"], "--duration"),
     ("run-duration-inf", ["run", "--master", "udpin:127.0.0.1:14551", "--duration", "inf"], "--duration"),
     ("run-json-no-dir", ["run", "--master", "udpin:127.0.0.1:14551", "--json", "{tmp}/m/x.json"], "exist"),
-    ("run-never-connected", ["run", "--master", "/dev/ttyNOPE", "--duration", "0.2"], "never connected"),
+    ("run-no-such-device", ["run", "--master", "/dev/ttyNOPE", "--duration", "0.2"], "no such serial device"),
     # simulate
     ("simulate-effect-no-value", [*SIM, "--effect", "current_lag"], "NAME=VALUE"),
     ("simulate-effect-text", [*SIM, "--effect", "current_lag=abc"], "number"),

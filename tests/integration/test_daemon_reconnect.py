@@ -42,7 +42,10 @@ def test_tcp_link_loss_reconnects_and_keeps_state(
                 for i in range(0, len(part), 40):
                     conn.sendall(b"".join(part[i : i + 40]))
                     time.sleep(0.004)
-                time.sleep(0.8)  # silence, then the link drops
+                # silence until the daemon has noticed it (a condition, bounded), then the link drops
+                t_quiet = time.monotonic()
+                while not daemon._silent and time.monotonic() - t_quiet < 30.0:
+                    time.sleep(0.02)
                 conn.close()
         finally:
             server.close()
@@ -59,7 +62,7 @@ def test_tcp_link_loss_reconnects_and_keeps_state(
         worker.start()
         fc.join(timeout=60)
         t0 = time.monotonic()
-        while len(ests) < result.samples.t_s.shape[0] and time.monotonic() - t0 < 5:
+        while len(ests) < result.samples.t_s.shape[0] and time.monotonic() - t0 < 30:
             time.sleep(0.05)
         daemon.stop()
         worker.join(timeout=15)

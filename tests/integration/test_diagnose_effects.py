@@ -71,8 +71,15 @@ def test_hidden_effect_is_named_strongest_and_recovered(tmp_path: Path, effect: 
     noise = res.compasses[0].noise_mgauss
     assert out["findings"], f"{effect}={value:.3f} not found; rejected: {out['compasses'][0]['rejected']}"
     top = out["findings"][0]
-    assert top["effect"] == effect, f"strongest finding {top['effect']} instead of {effect}={value:.3f}"
-    fitted = top["params"][param]
+    # partly collinear causes (offset / exponent / sag, lag / skew) are reported as a set when the data cannot
+    # tell them apart; the hidden one must then be in the set, with its own fitted parameter
+    names = top.get("candidates", [top["effect"]])
+    assert effect in names, f"strongest finding {top['effect']} instead of {effect}={value:.3f}"
+    params = top["candidate_params"][effect] if "candidates" in top else top["params"]
+    fitted = params[param]
+    ci = params.get(f"{param}_ci95")
+    if ci is not None:  # the profile-likelihood interval covers the truth
+        assert ci[0] <= value <= ci[1], (ci, value)
     if effect in ("current_lag", "per_motor"):
         assert abs(fitted - value) <= tol * value, (fitted, value)
     elif tol is not None:

@@ -36,7 +36,7 @@ def live(result: object, speed: float) -> list[HeadingEstimate]:
     stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=speed)  # type: ignore[arg-type]
     n = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]  # type: ignore[attr-defined]
     t0 = time.monotonic()
-    while len(ests) < n and time.monotonic() - t0 < 10.0:
+    while len(ests) < n and time.monotonic() - t0 < 60.0:  # a condition, bounded; normally < 2 s
         time.sleep(0.02)
     daemon.stop()
     worker.join(timeout=10)

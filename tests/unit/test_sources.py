@@ -291,7 +291,7 @@ def test_reboot_keeps_time_monotonic_and_small_step_back_is_dropped(tmp_path: Pa
     w = TlogWriter()
     for t_ms in (100_000, 100_020, 100_010, 100_040):  # 100_010: a step back within the stream
         w.scaled_imu(2, t_ms, (1, 1, 1))
-    for t_ms in (500, 520):  # autopilot rebooted
+    for t_ms in (500, 520, 540):  # autopilot rebooted (the first new time is believed once confirmed)
         w.scaled_imu(2, t_ms, (1, 1, 1))
     path = w.write(tmp_path / "reboot.tlog")
     with open_source(path) as src:
@@ -400,17 +400,8 @@ def test_fast_tlog_reader_sees_every_message_mavutil_sees(tmp_path: Path) -> Non
             pitchspeed=0.0,
             yawspeed=0.0,
         )
-        w.add(
-            "GLOBAL_POSITION_INT",
-            time_boot_ms=k * 20,
-            lat=0,
-            lon=0,
-            alt=0,
-            relative_alt=0,
-            vx=0,
-            vy=0,
-            vz=0,
-            hdg=0,
+        w.add(  # a message the reader does not need
+            "LOCAL_POSITION_NED", time_boot_ms=k * 20, x=0.0, y=0.0, z=0.0, vx=0.0, vy=0.0, vz=0.0
         )
     path = w.write(tmp_path / "speed.tlog")
     from pymavlink import mavutil

@@ -92,13 +92,13 @@ def imu_fields(t: int, key: str, scale: int = 1) -> dict[str, Any]:
 
 def extra_head(f: Frames) -> list[bytes]:
     """Frames placed before the simulated stream: SCALED_IMU before any RAW_IMU (used), SCALED_PRESSURE, a
-    PARAM_VALUE with a full 16-character name, and an id the source does not need (SYSTEM_TIME)."""
+    PARAM_VALUE with a full 16-character name, and an id the source does not need (PING)."""
     pkts = [f.packet("SCALED_IMU", **imu_fields(10 * k, "time_boot_ms", k)) for k in range(5)]
     pkts.append(f.packet("SCALED_PRESSURE", time_boot_ms=40, press_abs=1013.2, press_diff=0.0,
                          temperature=2512, temperature_press_diff=0))  # fmt: skip
     pkts.append(f.packet("PARAM_VALUE", param_id=b"COMPASS_MOT_XYZA", param_value=1.5, param_type=9,
                          param_count=2, param_index=0))  # fmt: skip
-    pkts.append(f.packet("SYSTEM_TIME", time_unix_usec=1, time_boot_ms=41))
+    pkts.append(f.packet("PING", time_usec=41_000, seq=1, target_system=0, target_component=0))
     return pkts
 
 
@@ -119,7 +119,8 @@ def extra_tail(f: Frames, t0_ms: int) -> list[bytes]:
             yawspeed=0.0,
         ),
         f.packet("SCALED_IMU2", **imu_fields(t0_ms, "time_boot_ms")),
-        f.packet("SCALED_IMU2", **imu_fields(t0_ms - 100, "time_boot_ms")),  # 0.1 s back: dropped
+        f.packet("SCALED_IMU2", **imu_fields(t0_ms + 20, "time_boot_ms")),  # confirms the clock's jump
+        f.packet("SCALED_IMU2", **imu_fields(t0_ms - 100, "time_boot_ms")),  # 0.12 s back: dropped
         f.packet(
             "BATTERY_STATUS",
             id=1,
@@ -216,6 +217,7 @@ def test_fast_path_equals_pymavlink_decode_on_simulated_tlog_with_every_message_
     assert len(early) == 5  # SCALED_IMU used before RAW_IMU appears
     assert fast_counts["scaled_imu_shadowed"] == 1
     assert fast_counts["nonfinite"] == 1
+    print("COUNTS", fast_counts)
     assert fast_counts["time_backwards"] == 1
     battery1 = [s for s in fast if _kind(s) == "PowerSample" and s.battery_index == 1]
     assert len(battery1) == 1
@@ -241,7 +243,7 @@ def test_fast_path_decodes_mavlink1_and_signed_frames_like_pymavlink(
     ref, ref_counts = reference_samples(path)
     assert [_key(s) for s in fast] == [_key(s) for s in ref]
     assert fast_counts == ref_counts
-    assert fast_counts["messages"] == len(records) - 1  # all but SYSTEM_TIME
+    assert fast_counts["messages"] == len(records) - 1  # all but PING
     plain, _ = fast_samples(_write(tmp_path / "plain.tlog", records))
     assert [_key(s) for s in fast] == [_key(s) for s in plain]  # v1 / signed framing changes nothing
 
@@ -262,7 +264,7 @@ def test_corrupted_bytes_give_the_same_counts_and_samples_as_pymavlink_decode(
     n_bad = 0
     for i in flipped:  # one payload byte of a needed message: a CRC failure with intact framing
         rec = bytearray(corrupt[i])
-        if rec[8 + 7] == 2 or rec[9] == 0:  # SYSTEM_TIME is not checked; keep a payload byte to flip
+        if rec[8 + 7] == 4 or rec[9] == 0:  # PING is not checked; keep a payload byte to flip
             continue
         rec[8 + 10] ^= 0x5A
         corrupt[i] = bytes(rec)

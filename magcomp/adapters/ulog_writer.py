@@ -1,0 +1,252 @@
+"""A minimal PX4 ULog writer (for the simulator and the tests): header, flag bits, formats, info, initial
+parameters, add-logged-message and data messages, per the ULog file format (version 1).
+
+Layout: 16-byte header ("ULog" 0x01 0x12 0x35, version 1, uint64 start time us), then messages of a 3-byte
+header (uint16 payload size, uint8 type) + payload. Definitions section: 'B' flag bits, 'F' formats
+("name:type field;..."), 'I' info and 'P' parameters (key "type name" + value). Data section: 'A'
+subscriptions (multi_id, msg_id, name), 'D' data (msg_id + the packed struct, little endian, no padding),
+'P' parameter changes.
+
+:func:`write_sim_ulog` writes a :class:`~magcomp.sim.SimResult` as PX4 1.13-1.14 would log it: ``sensor_mag``
+(or ``vehicle_magnetometer``) per compass with CAL_MAGn_ID device ids, ``sensor_combined``,
+``vehicle_attitude``, ``actuator_outputs`` (PWM us) with PWM_MAIN_FUNCn / PWM_MAIN_MINn / MAXn,
+``battery_status``, ``vehicle_gps_position`` (lat/lon 1e-7 deg, alt mm, time_utc_usec), ``vehicle_status``.
+The values are the simulator's samples at the units of the tlog twin (same quantisation), so a replay of
+both gives the same headings.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from magcomp.errors import InputError
+
+if TYPE_CHECKING:
+    from magcomp.sim.simulate import SimResult
+
+MAGIC = b"ULog\x01\x12\x35"
+_TYPES = {
+    "int8_t": "b",
+    "uint8_t": "B",
+    "int16_t": "h",
+    "uint16_t": "H",
+    "int32_t": "i",
+    "uint32_t": "I",
+    "int64_t": "q",
+    "uint64_t": "Q",
+    "float": "f",
+    "double": "d",
+    "bool": "?",
+    "char": "c",
+}
+
+
+def _msg(kind: str, payload: bytes) -> bytes:
+    if len(payload) > 0xFFFF:
+        raise ValueError("ULog message too long")
+    return struct.pack("<HB", len(payload), ord(kind)) + payload
+
+
+@dataclass
+class _Topic:
+    name: str
+    fields: list[tuple[str, str, int]]  # (type, name, array length or 0)
+    struct: struct.Struct
+    msg_ids: dict[int, int] = field(default_factory=dict)  # multi_id -> msg_id
+
+
+class UlogWriter:
+    """Build a ULog in memory: :meth:`topic` (format), :meth:`info`, :meth:`param`, then :meth:`data` and
+    :meth:`param_change` in time order, then :meth:`write`. The first field of every topic is
+    ``uint64_t timestamp`` (added when missing)."""
+
+    def __init__(self, start_us: int = 0) -> None:
+        self.start_us = int(start_us)
+        self._definitions: list[bytes] = []
+        self._data: list[bytes] = []
+        self._topics: dict[str, _Topic] = {}
+        self._next_id = 0
+
+    def topic(self, name: str, fields: Sequence[tuple[str, str]]) -> None:
+        """Define a topic: ``fields`` as (type, name) with "float[3]"-style arrays, e.g. ("float[3]", "x")."""
+        parsed: list[tuple[str, str, int]] = []
+        if not fields or fields[0] != ("uint64_t", "timestamp"):
+            fields = [("uint64_t", "timestamp"), *fields]
+        fmt = "<"
+        for ftype, fname in fields:
+            base, _, rest = ftype.partition("[")
+            count = int(rest.rstrip("]")) if rest else 0
+            code = _TYPES[base]
+            fmt += f"{count}{code}" if count else code
+            parsed.append((base, fname, count))
+        text = name + ":" + "".join(f"{t}[{c}] {n};" if c else f"{t} {n};" for t, n, c in parsed)
+        self._definitions.append(_msg("F", text.encode()))
+        self._topics[name] = _Topic(name, parsed, struct.Struct(fmt))
+
+    def info(self, key: str, value: str) -> None:
+        raw = value.encode()
+        k = f"char[{len(raw)}] {key}".encode()
+        self._definitions.append(_msg("I", bytes([len(k)]) + k + raw))
+
+    @staticmethod
+    def _param_payload(name: str, value: float, is_int: bool) -> bytes:
+        key = f"{'int32_t' if is_int else 'float'} {name}".encode()
+        raw = struct.pack("<i", int(value)) if is_int else struct.pack("<f", float(value))
+        return bytes([len(key)]) + key + raw
+
+    def param(self, name: str, value: float, *, is_int: bool = False) -> None:
+        self._definitions.append(_msg("P", self._param_payload(name, value, is_int)))
+
+    def param_change(self, name: str, value: float, *, is_int: bool = False) -> None:
+        """A parameter change in the data section (pyulog stamps it with the last data timestamp)."""
+        self._data.append(_msg("P", self._param_payload(name, value, is_int)))
+
+    def data(self, name: str, multi_id: int, values: Sequence[Any]) -> None:
+        """One message of ``name`` instance ``multi_id``: ``values`` in field order (timestamp us first,
+        arrays flattened in place)."""
+        topic = self._topics[name]
+        msg_id = topic.msg_ids.get(multi_id)
+        if msg_id is None:
+            msg_id = self._next_id
+            self._next_id += 1
+            topic.msg_ids[multi_id] = msg_id
+            self._data.append(_msg("A", struct.pack("<BH", multi_id, msg_id) + name.encode()))
+        self._data.append(_msg("D", struct.pack("<H", msg_id) + topic.struct.pack(*values)))
+
+    def to_bytes(self) -> bytes:
+        header = MAGIC + b"\x01" + struct.pack("<Q", self.start_us)
+        flags = _msg("B", bytes(8) + bytes(8) + bytes(24))  # compat, incompat flags, appended offsets
+        return header + flags + b"".join(self._definitions) + b"".join(self._data)
+
+    def write(self, path: str | os.PathLike[str]) -> int:
+        try:
+            Path(path).write_bytes(self.to_bytes())
+        except OSError as exc:
+            raise InputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+        return len(self._data)
+
+
+# --- the simulator's vehicle as PX4 logs it ----------------------------------------------------------------
+
+MAG_DEVICE_IDS = (396825, 396809, 263178)  # device ids of the form PX4 drivers give (bus type/address/dev)
+PX4_FN_MOTOR1 = 101
+
+
+def write_sim_ulog(
+    result: SimResult,
+    path: str | os.PathLike[str],
+    *,
+    mag_topic: str = "sensor_mag",
+    start_unix_s: float | None = None,
+) -> int:
+    """Write ``result`` as a PX4 ULog (see the module docstring); returns the number of data messages.
+
+    ``mag_topic``: ``sensor_mag`` (x, y, z gauss) or ``vehicle_magnetometer`` (magnetometer_ga[3]); the
+    compasses are logged at the simulator's IMU rate, the attitude and outputs at their configured rates.
+    """
+    from magcomp.adapters.mavlink_emit import _pwm, _rate_indices, default_start_unix_s
+    from magcomp.core.rotations import quats_from_euler
+
+    if mag_topic not in ("sensor_mag", "vehicle_magnetometer"):
+        raise ValueError(f"mag_topic {mag_topic!r}: sensor_mag or vehicle_magnetometer")
+    cfg = result.config
+    s = result.samples
+    rates = cfg.rates
+    n = s.t_s.size
+    t_us = np.round(s.t_s * 1e6).astype(np.int64)
+    start_unix = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
+    multirotor = cfg.vehicle == "multirotor"
+    n_mag = s.mag_mgauss.shape[0]
+
+    w = UlogWriter(start_us=int(t_us[0]))
+    if mag_topic == "sensor_mag":
+        w.topic("sensor_mag", [("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"), ("float", "x"),
+                               ("float", "y"), ("float", "z"), ("float", "temperature"),
+                               ("uint32_t", "error_count")])  # fmt: skip
+    else:
+        vm_fields = [
+            ("uint64_t", "timestamp_sample"),
+            ("uint32_t", "device_id"),
+            ("float[3]", "magnetometer_ga"),
+        ]
+        w.topic("vehicle_magnetometer", [*vm_fields, ("uint8_t", "calibration_count")])
+    sc_gyro = [("float[3]", "gyro_rad"), ("uint32_t", "gyro_integral_dt")]
+    sc_acc = [("int32_t", "accelerometer_timestamp_relative"), ("float[3]", "accelerometer_m_s2")]
+    w.topic("sensor_combined", [*sc_gyro, *sc_acc, ("uint32_t", "accelerometer_integral_dt")])
+    w.topic("vehicle_attitude", [("uint64_t", "timestamp_sample"), ("float[4]", "q")])
+    w.topic("actuator_outputs", [("uint32_t", "noutputs"), ("float[16]", "output")])
+    w.topic("battery_status", [("float", "voltage_v"), ("float", "current_a"), ("bool", "connected")])
+    w.topic("vehicle_gps_position", [("uint64_t", "time_utc_usec"), ("int32_t", "lat"), ("int32_t", "lon"),
+                                     ("int32_t", "alt"), ("uint8_t", "fix_type")])  # fmt: skip
+    w.topic("vehicle_status", [("uint8_t", "vehicle_type"), ("uint8_t", "arming_state")])
+    w.info("sys_name", "PX4")
+    w.info("ver_hw", "MAGCOMP_SIM")
+    for j in range(n_mag):
+        w.param(f"CAL_MAG{j}_ID", MAG_DEVICE_IDS[j], is_int=True)
+    motor_channels = (1, 2, 3, 4) if multirotor else (3,)
+    for ch in range(1, 9):
+        w.param(f"PWM_MAIN_FUNC{ch}", PX4_FN_MOTOR1 + motor_channels.index(ch) if ch in motor_channels else 0,
+                is_int=True)  # fmt: skip
+        w.param(f"PWM_MAIN_MIN{ch}", 1000, is_int=True)
+        w.param(f"PWM_MAIN_MAX{ch}", 2000, is_int=True)
+    w.param("CA_ROTOR_COUNT", len(motor_channels), is_int=True)
+
+    # the tlog twin's quantisation: gyro 1 mrad/s, accel 1 mG, mag 1 mgauss, PWM 1 us
+    g = 9.80665
+    gyro = np.round(s.gyro_rad_s[0] * 1000.0) / 1000.0
+    acc = np.round(s.accel_m_s2[0] / g * 1000.0) * g / 1000.0
+    mag_ga = np.round(s.mag_mgauss) / 1000.0
+    att = s.attitude_rad
+    q = quats_from_euler(att[:, 0], att[:, 1], att[:, 2])
+    pwm_motor = _pwm(s.motors_01)
+    pwm_thr = _pwm(s.throttle_01)
+    # every message with its time and a tie order like the tlog twin's (compass 0 with the IMU first)
+    events: list[tuple[int, int, str, int, list[Any]]] = []
+    events.append((int(t_us[0]), -1, "vehicle_status", 0, [int(t_us[0]), 1 if multirotor else 2, 2]))
+    for i in range(n):
+        ti = int(t_us[i])
+        events.append((ti, 1, "sensor_combined", 0, [ti, *gyro[i], 0, 0, *acc[i], 0]))
+        for j in range(n_mag):
+            m = mag_ga[j, i]
+            if mag_topic == "sensor_mag":
+                values = [ti, ti, MAG_DEVICE_IDS[j], m[0], m[1], m[2], float(s.imu_temp_degc[j, i]), 0]
+            else:
+                values = [ti, ti, MAG_DEVICE_IDS[j], m[0], m[1], m[2], 0]
+            events.append((ti, 1 + j, mag_topic, j, values))
+    for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
+        ti = int(t_us[i])
+        events.append((ti, 4, "vehicle_attitude", 0, [ti, ti, *q[i]]))
+    for i in _rate_indices(n, rates.imu_hz, rates.servo_hz):
+        out = [900.0] * 16
+        if multirotor:
+            out[0:4] = [float(v) for v in pwm_motor[i, :4]]
+        else:
+            out[2] = float(pwm_thr[i])
+        events.append((int(t_us[i]), 5, "actuator_outputs", 0, [int(t_us[i]), 8, *out]))
+    loc = cfg.location
+    for i in _rate_indices(n, rates.imu_hz, rates.power_hz):
+        ti = int(t_us[i])
+        volt = round(float(s.voltage_v[i]) * 1000.0) / 1000.0
+        curr = round(float(s.current_a[i]) * 100.0) / 100.0
+        events.append((ti, 8, "battery_status", 0, [ti, volt, curr, True]))
+        utc_us = round((start_unix + s.t_s[i]) * 1e6)
+        gps = [
+            ti,
+            utc_us,
+            round(loc.lat_deg * 1e7),
+            round(loc.lon_deg * 1e7),
+            round(float(s.alt_m[i]) * 1e3),
+            3,
+        ]
+        events.append((ti, 9, "vehicle_gps_position", 0, gps))
+    events.sort(key=lambda e: (e[0], e[1]))
+    for _, _, name, multi, values in events:
+        w.data(name, multi, values)
+    return w.write(path)

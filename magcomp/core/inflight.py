@@ -1,0 +1,361 @@
+"""In-flight calibration jointly with theta: no motors-off hand rotation needed.
+
+The paper calibrates soft and hard iron (eqs. (1)-(3)) with the motors off and only then learns theta
+(eqs. (16)-(20)). Real flights have no motors-off rotation, so here the calibration and theta are one
+linear least-squares problem on ordinary flight data, in one of two forms chosen per compass by what the
+attitude reference can be trusted for:
+
+``absolute`` (the vehicle's yaw comes from something this compass does not disturb: an external primary
+compass, GPS yaw, or truth). The measurement model of eqs. (1)-(2) and (11) with the earth-frame field
+``h_n`` of eq. (13) from the WMM at the vehicle's position::
+
+    y = A R_nb^T h_n + d + sum_r theta_r x_r                                   (eqs. (1), (11), (13))
+
+``y`` the field as received (mgauss, compass frame), ``A`` = L^-1 of eq. (2) (soft iron, scale,
+misalignment; 9 unknowns), ``d`` the hard iron (3), ``x_r`` the current regressors: ``x_0 = delta^2`` is the
+paper's eq. (11); with motor outputs known, ``x_j = m_j^2 - delta^2`` add one vector per motor (the per-motor
+extension; their prior mean is 0, so with no evidence the model is the paper's). Linear in every unknown.
+
+``relative`` (the vehicle's yaw is fused from this very compass, so an absolute yaw would hide the bias).
+Only the body rotation between two samples is used, from the gyro (or the autopilot's attitude when the
+gyro is too slow to integrate). With an earth-fixed field, ``u_k = L (y_k - d - theta x_k)`` obeys
+``u_{k+1} = Q_k u_k``, ``Q_k = R_{nb,k+1}^T R_{nb,k}``; with ``L = I`` (the autopilot's calibration kept)::
+
+    y_{k+1} - Q_k y_k = (I - Q_k) d + sum_r (x_{r,k+1} I - x_{r,k} Q_k) theta_r        (eq. (13) differenced)
+
+the exact discrete form of the paper's eq. (16) with the hard iron added. It needs rotation (yaw turns)
+*and* throttle changes; it does not need the yaw itself, so a compass cannot fool it through the
+autopilot's yaw.
+
+Departures from the paper: the calibration is not a separate motors-off step, theta may be accompanied by
+per-motor vectors, and both are recursive least squares in information form with a prior (the autopilot's
+own calibration: A = I, d = 0, theta = 0, with the standard deviations of :class:`InflightParams`), so
+the estimate is defined from the first sample and its covariance says how far to trust it.
+
+Units: mgauss, throttle 0..1; frames: body FRD, earth NED. No I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+InflightMode = Literal["absolute", "relative"]
+
+#: chi-square quantile, 3 degrees of freedom, p = 1e-6: the innovation gate (a false rejection once per
+#: million clean samples)
+GATE_CHI2_3DOF = 30.66
+#: the smallest residual scale the gate assumes (mgauss): unmodelled effects of 10-20 mgauss are common on
+#: real vehicles (docs/measured-data.md), and a glitch worth rejecting is larger than that
+GATE_SIGMA_FLOOR_MGAUSS = 20.0
+#: a stored estimate's standard deviation is widened by this factor when a new run starts from it
+WARM_INFLATE = 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class InflightParams:
+    """Prior standard deviations (the autopilot's calibration is the prior mean) and noise floor.
+
+    sigma_a: soft-iron/scale entries of A, dimensionless (a compass calibrated by the autopilot is within a
+    few %; an uncalibrated one within ~30 %). sigma_d_mgauss: hard iron left after the autopilot's
+    offsets (a vehicle's hard iron is at most a few hundred mgauss). sigma_theta_mgauss: theta of eq. (11)
+    (the paper's Table II: up to ~200 mgauss; measured vehicles up to ~600). sigma_motor_mgauss: each
+    per-motor deviation. noise_floor_mgauss: lower bound on the residual standard deviation (quantisation of
+    1-3 mgauss and the field's local disturbances). heading_ok_deg: the heading uncertainty (1 sigma, from
+    the covariance) below which the estimate is used for correction; heading_converged_deg: below which
+    theta is flagged converged.
+    """
+
+    sigma_a: float = 0.3
+    sigma_d_mgauss: float = 300.0
+    sigma_theta_mgauss: float = 600.0
+    sigma_motor_mgauss: float = 150.0
+    noise_floor_mgauss: float = 3.0
+    heading_ok_deg: float = 2.0
+    heading_converged_deg: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class InflightSolution:
+    """The estimate: ``calib_l`` = A^-1 and ``calib_d`` = A^-1 d (the L and d of eq. (2): u = L y - d),
+    ``theta_mgauss`` in the calibrated frame (A^-1 theta_0), ``motor_theta_mgauss`` (m, 3) likewise,
+    ``theta_sigma_mgauss`` its 1-sigma per axis, ``heading_sigma_deg`` the heading uncertainty the
+    parameters' covariance implies at the throttle seen so far, ``residual_rms_mgauss`` the fit's residual."""
+
+    calib_l: F64
+    calib_d: F64
+    theta_mgauss: F64
+    motor_theta_mgauss: F64
+    theta_sigma_mgauss: F64
+    heading_sigma_deg: float
+    residual_rms_mgauss: float
+    n: int
+
+
+def n_params(mode: InflightMode, n_motors: int) -> int:
+    """Size of the parameter vector: [A (9, row-major) if absolute] + d (3) + theta (3) + motors (3 m)."""
+    return (9 if mode == "absolute" else 0) + 6 + 3 * n_motors
+
+
+def regressors(throttle_01: float, motors_01: tuple[float, ...] | None) -> F64:
+    """x_0 = delta^2 (eq. (11)) and, when motor outputs are known, x_j = m_j^2 - delta^2 (mean-free, so the
+    per-motor vectors only add what the collective throttle^2 cannot explain)."""
+    d2 = throttle_01 * throttle_01
+    if not motors_01:
+        return np.array([d2])
+    m2 = np.square(np.asarray(motors_01, dtype=float))
+    return np.concatenate(([d2], m2 - d2))
+
+
+def absolute_rows(field_ref_b_mgauss: F64, field_mgauss: F64, x: F64) -> tuple[F64, F64]:
+    """Rows (3, n) and right-hand side (3,) of ``y = A u_ref + d + sum theta_r x_r`` (absolute form).
+    ``field_ref_b_mgauss`` = R_nb^T h_n, the Earth field in body axes from the trusted attitude."""
+    n_r = x.shape[0]
+    rows = np.zeros((3, 12 + 3 * n_r))
+    for i in range(3):
+        rows[i, 3 * i : 3 * i + 3] = field_ref_b_mgauss
+        rows[i, 9 + i] = 1.0
+        rows[i, 12 + i :: 3] = x
+    return rows, np.asarray(field_mgauss, dtype=float)
+
+
+def relative_rows(q_b1b0: F64, y0_mgauss: F64, y1_mgauss: F64, x0: F64, x1: F64) -> tuple[F64, F64]:
+    """Rows (3, n) and right-hand side (3,) of the differenced form
+    ``y1 - Q y0 = (I - Q) d + sum_r (x1_r I - x0_r Q) theta_r`` with ``Q`` = R_nb(t1)^T R_nb(t0)."""
+    n_r = x0.shape[0]
+    eye = np.eye(3)
+    rows = np.empty((3, 3 + 3 * n_r))
+    rows[:, 0:3] = eye - q_b1b0
+    for r in range(n_r):
+        rows[:, 3 + 3 * r : 6 + 3 * r] = x1[r] * eye - x0[r] * q_b1b0
+    return rows, y1_mgauss - q_b1b0 @ y0_mgauss
+
+
+class InflightEstimator:
+    """Recursive least squares in information form for one compass (no I/O; the state is numpy arrays).
+
+    ``add`` accumulates ``rows^T rows / s^2`` and ``rows^T z / s^2``; ``solve`` returns the MAP estimate
+    under the Gaussian prior. The residual scale ``s`` is estimated from the a-priori residuals (floor
+    :attr:`InflightParams.noise_floor_mgauss`), so the covariance is in real units.
+    """
+
+    def __init__(
+        self,
+        mode: InflightMode,
+        n_motors: int,
+        p: InflightParams | None = None,
+        field_norm_mgauss: float = 500.0,
+        warm: tuple[F64, F64] | None = None,
+    ) -> None:
+        """``warm``: (mean, standard deviation) of every parameter from an earlier run (the state store),
+        used as the prior instead of the autopilot's calibration."""
+        self.mode: InflightMode = mode
+        self.field_norm_mgauss = field_norm_mgauss
+        self.n_motors = n_motors
+        self.p = p or InflightParams()
+        n = n_params(mode, n_motors)
+        prior_mean = np.zeros(n)
+        prior_sd = np.empty(n)
+        k = 0
+        if mode == "absolute":
+            prior_mean[0:9] = np.eye(3).ravel()
+            prior_sd[0:9] = self.p.sigma_a
+            k = 9
+        prior_sd[k : k + 3] = self.p.sigma_d_mgauss
+        prior_sd[k + 3 : k + 6] = self.p.sigma_theta_mgauss
+        prior_sd[k + 6 :] = self.p.sigma_motor_mgauss
+        self._k = k
+        if warm is not None and warm[0].shape == (n,) and warm[1].shape == (n,):
+            prior_mean = np.asarray(warm[0], dtype=float).copy()
+            prior_sd = np.maximum(np.asarray(warm[1], dtype=float), 1e-6)
+        self.prior_mean = prior_mean
+        self.prior_info = np.diag(1.0 / prior_sd**2)
+        self.info = np.zeros((n, n))  # data information, unit weight
+        self.rhs = np.zeros(n)
+        self.n = 0
+        self._sum_sq = 0.0  # a-priori squared residuals (for the noise scale)
+        self._n_sq = 0
+        self.x0_max = 0.0  # largest delta^2 seen (for the heading uncertainty)
+        self._x0_sum = 0.0
+        self._x0_sq = 0.0
+        self._theta: F64 = prior_mean.copy()
+        self._cov: F64 | None = np.asarray(np.linalg.inv(self.prior_info), dtype=np.float64)
+        self.n_gated = 0
+        self._solution: InflightSolution | None = None
+        self._dirty = True
+
+    @property
+    def sigma_mgauss(self) -> float:
+        """Residual standard deviation per component (a-priori residuals, floored)."""
+        if self._n_sq < 10:
+            return max(self.p.noise_floor_mgauss, 10.0)
+        return max(self.p.noise_floor_mgauss, math.sqrt(self._sum_sq / self._n_sq))
+
+    @property
+    def throttle2_std(self) -> float:
+        """Standard deviation of delta^2 over the samples used: the throttle excitation theta needs."""
+        if self.n < 2:
+            return 0.0
+        m = self._x0_sum / self.n
+        return math.sqrt(max(0.0, self._x0_sq / self.n - m * m))
+
+    def add(self, rows: F64, z: F64, x0: float) -> float:
+        """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate.
+
+        Innovation gate: a sample whose residual is implausible under the predictive covariance
+        (noise plus the parameters' own uncertainty; chi-square, 3 dof, p = 1e-6 -> 30.7) is counted in
+        :attr:`n_gated` and not used, so one glitch cannot move a converged estimate, while a change the
+        current uncertainty allows (e.g. the first throttle) is learned."""
+        r = z - rows @ self._theta
+        rn2 = float(r @ r)
+        s2 = self.sigma_mgauss**2
+        sol = self._solution
+        if self._cov is not None and sol is not None and sol.heading_sigma_deg < self.p.heading_converged_deg:
+            # only once converged, and with the model error allowed for (the floor below): before that, a
+            # large residual is the model learning, not a glitch
+            s2 = max(s2, GATE_SIGMA_FLOOR_MGAUSS**2)
+            pred = s2 * np.eye(3) + rows @ self._cov @ rows.T
+            try:
+                m2 = float(r @ np.linalg.solve(pred, r))
+            except np.linalg.LinAlgError:
+                m2 = 0.0
+            if m2 > GATE_CHI2_3DOF:
+                self.n_gated += 1
+                return math.sqrt(rn2)
+        self._sum_sq += rn2 / 3.0
+        self._n_sq += 1
+        self.info += rows.T @ rows
+        self.rhs += rows.T @ z
+        self.n += 1
+        self.x0_max = max(self.x0_max, x0)
+        self._x0_sum += x0
+        self._x0_sq += x0 * x0
+        self._dirty = True
+        return math.sqrt(rn2)
+
+    def _refresh(self) -> None:
+        """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""
+        s2 = self.sigma_mgauss**2
+        lam = self.info / s2 + self.prior_info
+        b = self.rhs / s2 + self.prior_info @ self.prior_mean
+        try:
+            cho = np.linalg.cholesky(lam)
+        except np.linalg.LinAlgError:
+            return
+        theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
+        self._theta = theta
+        cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
+        self._cov = cov
+        self._solution = self._build(theta, cov, s2)
+        self._dirty = False
+
+    def _build(self, p: F64, cov: F64, s2: float) -> InflightSolution:
+        k = self._k
+        if self.mode == "absolute":
+            a = p[0:9].reshape(3, 3)
+            try:
+                l_mat = np.asarray(np.linalg.inv(a), dtype=np.float64)
+            except np.linalg.LinAlgError:
+                l_mat = np.eye(3)
+        else:
+            l_mat = np.eye(3)
+        d_raw = p[k : k + 3]
+        th_raw = p[k + 3 : k + 6]
+        mot_raw = p[k + 6 :].reshape(-1, 3)
+        th_cov = cov[k + 3 : k + 6, k + 3 : k + 6]
+        d_cov = cov[k : k + 3, k : k + 3]
+        th_sd = np.sqrt(np.maximum(np.diag(l_mat @ th_cov @ l_mat.T), 0.0))
+        d_sd = np.sqrt(np.maximum(np.diag(l_mat @ d_cov @ l_mat.T), 0.0))
+        # heading uncertainty: the horizontal error the hard iron and theta leave (at the largest throttle
+        # seen) over the horizontal field, taken as half the field norm the calibration maps to
+        h_horizontal = max(0.5 * self.field_norm_mgauss, 50.0)
+        err = math.hypot(float(np.hypot(d_sd[0], d_sd[1])), float(np.hypot(th_sd[0], th_sd[1])) * self.x0_max)
+        return InflightSolution(
+            calib_l=l_mat,
+            calib_d=l_mat @ d_raw,
+            theta_mgauss=l_mat @ th_raw,
+            motor_theta_mgauss=mot_raw @ l_mat.T,
+            theta_sigma_mgauss=th_sd,
+            heading_sigma_deg=math.degrees(math.atan2(err, h_horizontal)),
+            residual_rms_mgauss=math.sqrt(s2),
+            n=self.n,
+        )
+
+    def solve(self) -> InflightSolution:
+        """The current estimate (recomputed only when data came in since the last call)."""
+        if self._dirty or self._solution is None:
+            self._refresh()
+        if self._solution is None:  # a singular system even with the prior: cannot happen with finite data
+            raise ValueError("in-flight estimate is singular")
+        return self._solution
+
+    def state(self, inflate: float = WARM_INFLATE) -> tuple[F64, F64]:
+        """(mean, standard deviation) of the parameters to start a later run from: the posterior, its
+        standard deviation multiplied by ``inflate`` (the vehicle may have changed since: a new battery
+        position, a moved wire) and never below a tenth of the prior's."""
+        self.solve()
+        cov = self._cov if self._cov is not None else np.linalg.inv(self.prior_info)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
+        floor = 0.1 / np.sqrt(np.diag(self.prior_info))
+        return self._theta.copy(), np.maximum(sd, floor)
+
+    def predict_rows(self, rows: F64) -> F64:
+        """rows @ current parameter vector (for residuals)."""
+        return rows @ self._theta
+
+
+# ----------------------------------------------------------------------------------------------------------
+# which form a compass gets: does the autopilot's yaw come from something this compass does not disturb?
+
+#: ArduPilot's per-compass "external" flags (0 internal, 1 external, 2 forced external), by compass index
+ARDUPILOT_EXTERNAL_PARAMS = ("COMPASS_EXTERNAL", "COMPASS_EXTERN2", "COMPASS_EXTERN3")
+#: ArduPilot's hard-iron offsets by compass index (any non-zero: the autopilot calibrated that compass)
+ARDUPILOT_OFFSET_PARAMS = ("COMPASS_OFS_", "COMPASS_OFS2_", "COMPASS_OFS3_")
+
+
+def yaw_reference(params: dict[str, float], mag_index: int) -> tuple[InflightMode, str]:
+    """The form for compass ``mag_index`` from the autopilot's parameters, and why (one phrase).
+
+    absolute: the autopilot's yaw comes from GPS (ArduPilot EK3_SRC1_YAW = 2 or 3; PX4 EKF2_GPS_CTRL bit
+    3) or from another compass that is external (ArduPilot COMPASS_PRIMARY and COMPASS_EXTERNAL*).
+    relative: the yaw is fused from this compass, or from an internal one that sees the same currents, or
+    the parameters do not say (a tlog without PARAM_VALUE): the safe form.
+    """
+    src = params.get("EK3_SRC1_YAW")
+    if src is not None and int(src) in (2, 3):
+        return "absolute", f"the autopilot's yaw comes from GPS (EK3_SRC1_YAW = {int(src)})"
+    gps_ctrl = params.get("EKF2_GPS_CTRL")
+    if gps_ctrl is not None and int(gps_ctrl) & 8:
+        return "absolute", "the autopilot's yaw comes from GPS (EKF2_GPS_CTRL bit 3)"
+    if "COMPASS_PRIMARY" not in params and not any(k in params for k in ARDUPILOT_EXTERNAL_PARAMS):
+        return "relative", "the autopilot's yaw source is unknown (no compass parameters): rotations only"
+    primary = int(params.get("COMPASS_PRIMARY", 0.0))
+    if primary == mag_index:
+        return "relative", f"the autopilot's yaw is fused from this compass (primary {primary})"
+    ext_key = ARDUPILOT_EXTERNAL_PARAMS[primary] if 0 <= primary < len(ARDUPILOT_EXTERNAL_PARAMS) else ""
+    ext = params.get(ext_key)
+    if ext is not None and int(ext) in (1, 2):
+        why = f"the autopilot's yaw comes from compass {primary}, external ({ext_key} = {int(ext)})"
+        return "absolute", why
+    return "relative", f"the autopilot's yaw comes from compass {primary}, internal: rotations only"
+
+
+def calibrated_by_autopilot(params: dict[str, float], mag_index: int) -> bool | None:
+    """True when the autopilot's own hard-iron offsets for this compass are set (its calibration is the
+    prior), False when they are all zero, None when the parameters do not say."""
+    if 0 <= mag_index < len(ARDUPILOT_OFFSET_PARAMS):
+        pre = ARDUPILOT_OFFSET_PARAMS[mag_index]
+        vals = [params.get(pre + a) for a in "XYZ"]
+        if all(v is not None for v in vals):
+            return any(abs(float(v)) > 0.0 for v in vals if v is not None)
+    pre_px4 = f"CAL_MAG{mag_index}_"
+    vals = [params.get(pre_px4 + a + "OFF") for a in "XYZ"]
+    if all(v is not None for v in vals):
+        return any(abs(float(v)) > 0.0 for v in vals if v is not None)
+    return None

@@ -1,0 +1,82 @@
+"""A named cause must beat a nuisance of the same flexibility before it is reported.
+
+- ``temperature_drift`` adds one column (T - mean T) with a bias vector (3 parameters). A board that warms
+  through a flight makes T a smooth function of time, and any slow error of the forward model (gyro-heading
+  drift not quite linear, a slowly settling hard iron) is a smooth function of time too. So the temperature
+  column must beat each smooth time column of the same size (3 parameters): linear, quadratic and a saturating
+  exponential with the log's third as time constant, by the same BIC margin that admits any extension.
+- ``throttle_offset``, ``throttle_exponent`` and ``voltage_sag`` all reshape the throttle column and are
+  partly collinear (each has one nonlinear parameter); ``current_lag`` and ``time_skew`` both delay it. When
+  several members of a group pass on their own and their fits differ by less than the BIC margin, the data
+  cannot tell them apart: the finding names the set, not one of them.
+- ``per_motor``'s vectors are reported one by one only when each is identified: its 95 % interval narrower
+  than half of |theta| (the scale of the differences it is meant to show); otherwise only the spread and the
+  mean theta.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
+
+F64 = NDArray[np.float64]
+
+GROUPS: dict[str, tuple[str, ...]] = {
+    "throttle_shape": ("throttle_offset", "throttle_exponent", "voltage_sag"),
+    "timing": ("current_lag", "time_skew"),
+}
+
+
+def group_of(effect: str) -> str | None:
+    for g, members in GROUPS.items():
+        if effect in members:
+            return g
+    return None
+
+
+def time_shapes(t_s: F64) -> dict[str, F64]:
+    """Smooth one-column functions of time (zero mean), the nuisances temperature must beat."""
+    u = (t_s - t_s[0]) / max(float(t_s[-1] - t_s[0]), 1e-9)
+    shapes = {"linear in time": u, "quadratic in time": u**2, "saturating in time": 1.0 - np.exp(-3.0 * u)}
+    return {k: v - float(np.mean(v)) for k, v in shapes.items()}
+
+
+def _with_column(data: CompassData, col: F64) -> CompassData:
+    return replace(data, drive=replace(data.drive, temperature_degc=col))
+
+
+def temperature_beats_time(
+    data: CompassData, reference: ModelFit, with_temp: ModelFit, min_delta_bic: float, max_nfev: int
+) -> tuple[bool, str, dict[str, float]]:
+    """Does the temperature column explain the field better than every smooth time column of its size?
+
+    reference: the model that ``with_temp`` extends by ``temperature_drift``. Returns (wins, the best time
+    shape, delta BIC of temperature against each shape: negative = temperature better).
+    """
+    effects = (*reference.effects, "temperature_drift")
+    dbic: dict[str, float] = {}
+    for name, col in time_shapes(data.t_s).items():
+        f = fit_model(_with_column(data, col), effects, start=reference, max_nfev=max_nfev)
+        dbic[name] = round(with_temp.bic - f.bic, 1)
+    best = min(dbic, key=lambda k: -dbic[k])  # the shape temperature beats by the least
+    return all(v <= -min_delta_bic for v in dbic.values()), best, dbic
+
+
+def motors_identified(theta_i: F64, halfwidth_i: F64, theta: F64) -> bool:
+    """Each per-motor vector's 95 % half-width (per axis, max) below half of |theta|."""
+    tn = float(np.linalg.norm(theta))
+    return bool(tn > 0 and np.all(np.max(halfwidth_i, axis=1) < 0.5 * tn)) and bool(
+        np.all(np.isfinite(theta_i))
+    )
+
+
+def indistinguishable(bics: dict[str, float], min_delta_bic: float) -> list[str]:
+    """Members whose BIC is within ``min_delta_bic`` of the best (best first)."""
+    best = min(bics.values())
+    out = [k for k, v in sorted(bics.items(), key=lambda kv: kv[1]) if v - best < min_delta_bic]
+    return out if all(math.isfinite(v) for v in bics.values()) else list(bics)

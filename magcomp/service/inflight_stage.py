@@ -1,0 +1,292 @@
+"""The in-flight calibration stage of one compass: the stateful shell around :mod:`magcomp.core.inflight`.
+
+It decides, sample by sample, which rows go into the estimator (absolute rows from the autopilot's
+attitude, relative rows from the rotation between two samples), at what rate, and whether the estimate is
+good enough to be applied; it keeps the time spent in each state for the summary. No I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.adapters.config import InflightConfig
+from magcomp.core.inflight import (
+    InflightEstimator,
+    InflightMode,
+    InflightParams,
+    InflightSolution,
+    absolute_rows,
+    regressors,
+    relative_rows,
+)
+
+F64 = NDArray[np.float64]
+
+#: the longest interval (s) over which two samples form a relative pair: the rotation between them comes
+#: from integrated gyro or the autopilot's attitude, whose yaw drift over this time is well under 1 deg
+MAX_PAIR_S = 2.5
+#: the correction is applied once its heading uncertainty is below half the heading change it makes (a
+#: 2-sigma test that the correction is real) or below ``heading_ok_deg``
+APPLY_Z = 2.0
+#: states a compass spends time in (summary)
+STATES = ("corrected", "learning", "uncorrected")
+
+
+@dataclass(frozen=True, slots=True)
+class InflightOutput:
+    """What the pipeline applies: L and d of eq. (2) as 12 floats, theta and the bias at this sample."""
+
+    coeffs: tuple[float, ...]
+    theta_mgauss: tuple[float, float, float]
+    bias_mgauss: tuple[float, float, float]
+    converged: bool
+
+
+class InflightStage:
+    """Per-compass in-flight calibration (see :mod:`magcomp.core.inflight`)."""
+
+    def __init__(
+        self,
+        mag_index: int,
+        cfg: InflightConfig,
+        mode: InflightMode,
+        why: str,
+        calibrated: bool | None,
+        field_norm_mgauss: float,
+        warm: dict[str, object] | None = None,
+    ) -> None:
+        """``warm``: a stored in-flight state (form, n_motors, mean, sd) to start from; used only when its
+        form is this compass's form (else the autopilot's calibration is the prior, as on a first run)."""
+        self.mag_index = mag_index
+        self.cfg = cfg
+        self.mode: InflightMode = mode
+        self.why = why
+        self.calibrated_by_autopilot = calibrated
+        cal = calibrated is True
+        self.params = InflightParams(
+            sigma_a=cfg.sigma_a_calibrated if cal else cfg.sigma_a_uncalibrated,
+            sigma_d_mgauss=cfg.sigma_d_calibrated_mgauss if cal else cfg.sigma_d_uncalibrated_mgauss,
+            sigma_theta_mgauss=cfg.sigma_theta_mgauss,
+            heading_ok_deg=cfg.heading_ok_deg,
+            heading_converged_deg=cfg.heading_converged_deg,
+        )
+        self.field_norm_mgauss = field_norm_mgauss
+        self.est: InflightEstimator | None = None
+        self.n_motors = -1  # decided at the first sample
+        self._period = 1.0 / cfg.max_rate_hz
+        self._last_fed: float | None = None
+        self._prev: tuple[float, F64, F64, F64] | None = None  # t, R_nb, field, regressors
+        self.applied = False
+        self.solution: InflightSolution | None = None
+        self.time_s = dict.fromkeys(STATES, 0.0)
+        self._last_t: float | None = None
+        self.first_applied_t: float | None = None
+        self.n_rows = 0
+        self.yaw_min = math.inf
+        self.yaw_max = -math.inf
+        self._yaw_prev: float | None = None
+        self._yaw_unwrapped = 0.0
+        self.warm_started = False
+        self._warm: tuple[F64, F64] | None = None
+        if warm is not None and warm.get("form") == mode:
+            self.n_motors = int(warm["n_motors"])  # type: ignore[call-overload]
+            self._warm = (
+                np.asarray(warm["mean"], dtype=float),
+                np.asarray(warm["sd"], dtype=float),
+            )
+            self.est = InflightEstimator(mode, self.n_motors, self.params, field_norm_mgauss, self._warm)
+            if self.est.prior_mean.shape == self._warm[0].shape and np.array_equal(
+                self.est.prior_mean, self._warm[0]
+            ):
+                self.warm_started = True
+                self.applied = True
+            else:
+                self.est, self.n_motors, self._warm = None, -1, None
+
+    # ------------------------------------------------------------------------------------------ feeding
+
+    def reset_pairs(self) -> None:
+        """A gap, a clock reset or a change of rotation source: the next sample starts a new pair."""
+        self._prev = None
+
+    def restart(self, field_norm_mgauss: float) -> None:
+        """The Earth field changed (a GPS fix after the configured fallback): absolute rows made against
+        the old field are dropped."""
+        self.field_norm_mgauss = field_norm_mgauss
+        if self.mode == "absolute" and not self.warm_started:
+            self.est = None
+            self.solution = None
+            self.applied = False
+        self._prev = None
+
+    def _track_yaw(self, r_nb: F64) -> None:
+        yaw = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
+        if self._yaw_prev is not None:
+            self._yaw_unwrapped += (yaw - self._yaw_prev + math.pi) % (2.0 * math.pi) - math.pi
+        self._yaw_prev = yaw
+        self.yaw_min = min(self.yaw_min, self._yaw_unwrapped)
+        self.yaw_max = max(self.yaw_max, self._yaw_unwrapped)
+
+    def feed(
+        self,
+        t_s: float,
+        field_mgauss: F64,
+        throttle_01: float,
+        motors_01: tuple[float, ...],
+        r_abs_nb: F64 | None,
+        field_ref_n_mgauss: F64 | None,
+        r_rel_nb: F64 | None,
+    ) -> None:
+        """One magnetometer sample (field as received, mgauss) with its throttle and motor outputs.
+
+        r_abs_nb: the trusted attitude (absolute form) or None when it cannot be used now;
+        field_ref_n_mgauss: the Earth field (NED) for it. r_rel_nb: the rotation-source attitude for the
+        relative form (gyro-integrated or the autopilot's), None when there is none.
+        """
+        if self._last_fed is not None and t_s - self._last_fed < 0.9 * self._period and t_s > self._last_fed:
+            return
+        if self.n_motors < 0:
+            use = self.cfg.per_motor == "auto" and 2 <= len(motors_01) <= 8
+            self.n_motors = len(motors_01) if use else 0
+        if self.est is None:
+            self.est = InflightEstimator(
+                self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
+            )
+        mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
+        if self.n_motors > 0 and mot is None:
+            return  # the motor set changed: these regressors would not match
+        x = regressors(throttle_01, mot)
+        self._last_fed = t_s
+        y = np.asarray(field_mgauss, dtype=float)
+        if self.mode == "absolute":
+            if r_abs_nb is None or field_ref_n_mgauss is None:
+                return
+            self._track_yaw(r_abs_nb)
+            rows, z = absolute_rows(r_abs_nb.T @ field_ref_n_mgauss, y, x)
+            self.est.add(rows, z, float(x[0]))
+            self.n_rows += 1
+            return
+        if r_rel_nb is None:
+            self._prev = None
+            return
+        self._track_yaw(r_rel_nb)
+        prev = self._prev
+        self._prev = (t_s, r_rel_nb, y, x)
+        if prev is None or not (0.0 < t_s - prev[0] <= MAX_PAIR_S):
+            return
+        q_b1b0 = r_rel_nb.T @ prev[1]
+        rows, z = relative_rows(q_b1b0, prev[2], y, prev[3], x)
+        self.est.add(rows, z, float(x[0]))
+        self.n_rows += 1
+
+    # ---------------------------------------------------------------------------------------- applying
+
+    def output(
+        self,
+        t_s: float,
+        field_mgauss: tuple[float, float, float],
+        throttle_01: float,
+        motors_01: tuple[float, ...],
+    ) -> InflightOutput | None:
+        """The correction for this sample, or None while the estimate is not good enough to apply."""
+        est = self.est
+        state = "uncorrected"
+        out: InflightOutput | None = None
+        if est is not None and (est.n >= 10 or self.warm_started):
+            sol = est.solve()
+            self.solution = sol
+            state = "learning"
+            mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
+            x = regressors(throttle_01, mot)
+            bias = sol.theta_mgauss * x[0]
+            if mot is not None:
+                bias = bias + sol.motor_theta_mgauss.T @ x[1:]
+            if not self.applied:
+                y = np.asarray(field_mgauss, dtype=float)
+                corrected = sol.calib_l @ y - sol.calib_d - bias
+                change = _horizontal_angle_deg(corrected, y)
+                if sol.heading_sigma_deg < max(self.params.heading_ok_deg, change / APPLY_Z):
+                    self.applied = True
+                    self.first_applied_t = t_s
+            if self.applied:
+                state = "corrected"
+                out = InflightOutput(
+                    coeffs=(*np.ravel(sol.calib_l).tolist(), *np.ravel(sol.calib_d).tolist()),
+                    theta_mgauss=(
+                        float(sol.theta_mgauss[0]),
+                        float(sol.theta_mgauss[1]),
+                        float(sol.theta_mgauss[2]),
+                    ),
+                    bias_mgauss=(float(bias[0]), float(bias[1]), float(bias[2])),
+                    converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
+                )
+        if self._last_t is not None and 0.0 < t_s - self._last_t <= 5.0:
+            self.time_s[state] += t_s - self._last_t
+        self._last_t = t_s
+        return out
+
+    def state(self) -> dict[str, object] | None:
+        """What the state store keeps to start the next run from (None before any estimate)."""
+        if self.est is None or (self.est.n == 0 and not self.warm_started):
+            return None
+        mean, sd = self.est.state()
+        return {"form": self.mode, "n_motors": self.n_motors, "mean": mean.tolist(), "sd": sd.tolist()}
+
+    # ----------------------------------------------------------------------------------------- summary
+
+    def why_not(self) -> str:
+        """Why the estimate is not applied (for the summary), from what the data held."""
+        est = self.est
+        if est is None or self.n_rows == 0:
+            if self.mode == "absolute":
+                return "no usable attitude with the motors running (absolute form)"
+            return "no rotation source (no gyro or attitude stream) for the relative form"
+        if est.n < 10:
+            return f"too few usable samples ({est.n})"
+        span = math.degrees(self.yaw_max - self.yaw_min) if self.yaw_max > self.yaw_min else 0.0
+        parts = []
+        if est.throttle2_std < 0.02:
+            parts.append(f"throttle^2 hardly varies (std {est.throttle2_std:.3f})")
+        if span < 90.0:
+            parts.append(f"yaw span only {span:.0f} deg")
+        sol = self.solution
+        if sol is not None:
+            parts.append(f"heading uncertainty {sol.heading_sigma_deg:.1f} deg")
+        return "not observable yet: " + ", ".join(parts)
+
+    def summary(self) -> dict[str, object]:
+        sol = self.solution
+        est = self.est
+        span = math.degrees(self.yaw_max - self.yaw_min) if self.yaw_max > self.yaw_min else 0.0
+        return {
+            "form": self.mode,
+            "form_why": self.why,
+            "calibrated_by_autopilot": self.calibrated_by_autopilot,
+            "applied": self.applied,
+            "started_from_stored_state": self.warm_started,
+            "applied_from_t_s": self.first_applied_t,
+            "why_not_applied": None if self.applied else self.why_not(),
+            "samples_used": 0 if est is None else est.n,
+            "samples_gated": 0 if est is None else est.n_gated,
+            "per_motor": self.n_motors > 0,
+            "throttle2_std": 0.0 if est is None else est.throttle2_std,
+            "yaw_span_deg": span,
+            "theta_sigma_mgauss": None if sol is None else sol.theta_sigma_mgauss.tolist(),
+            "heading_sigma_deg": None if sol is None else sol.heading_sigma_deg,
+            "residual_rms_mgauss": None if sol is None else sol.residual_rms_mgauss,
+            "motor_theta_mgauss": None
+            if sol is None or self.n_motors == 0
+            else sol.motor_theta_mgauss.tolist(),
+            "time_s": dict(self.time_s),
+        }
+
+
+def _horizontal_angle_deg(a: F64, b: F64) -> float:
+    """Angle between the body-horizontal parts of two field vectors (deg): the heading change a correction
+    makes when the vehicle is level (an upper bound's worth of its effect elsewhere)."""
+    ang = math.atan2(float(a[1]), float(a[0])) - math.atan2(float(b[1]), float(b[0]))
+    return abs(math.degrees((ang + math.pi) % (2.0 * math.pi) - math.pi))

@@ -1,0 +1,110 @@
+"""Signals: a handler only sets a flag, so a second signal arriving while the first is handled cannot
+deadlock; the run still stops, saves its state and writes the --json summary. SIGTERM on `replay`
+writes the partial summary like ^C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from magcomp.adapters.config import Config
+from magcomp.adapters.state_store import StateStore
+from magcomp.service.daemon import Daemon
+from magcomp.service.demo import free_udp_port
+from tests.waiting import LineReader, finish, wait_for
+
+REPO = Path(__file__).parents[2]
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def test_stop_request_from_a_signal_handler_takes_no_lock() -> None:
+    """The deadlock of issue 12: the handler ran stop(), whose Event.set() takes the Event's lock; a
+    signal delivered while the main thread held that lock (inside Event.wait/set) waited on itself."""
+    daemon = Daemon(f"udpin:127.0.0.1:{free_udp_port()}", Config())
+    done = threading.Event()
+
+    def handler_while_lock_held() -> None:
+        with daemon._stop._cond:  # the main thread interrupted inside the Event's critical section
+            daemon.request_stop()  # what the signal handler runs, on the same thread
+        done.set()
+
+    t = threading.Thread(target=handler_while_lock_held, daemon=True)
+    t.start()
+    t.join(timeout=10.0)
+    assert done.is_set(), "request_stop blocked on a lock held by the thread it interrupted"
+    # the run sees the request: run() returns at once with a report
+    report = daemon.run()
+    assert report.connects <= 1 and daemon.stopped
+
+
+@pytest.mark.slow
+def test_run_two_signals_in_quick_succession_still_saves_state_and_summary(tmp_path: Path) -> None:
+    from magcomp.adapters.mavlink_emit import stream_to_link
+    from magcomp.sim import SimConfig, simulate
+
+    port = free_udp_port()
+    state, summary = tmp_path / "state", tmp_path / "sum.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
+         str(state), "--json", str(summary)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, cwd=REPO, text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
+    try:
+        wait_for(lambda: err.has("listening on") or proc.poll() is not None, 60.0, "listening")
+        result = simulate(SimConfig(scenario="tumble", duration_s=15.0, seed=2, n_compasses=1))
+        stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+        wait_for(lambda: StateStore(state).load(1, 0) is not None or proc.poll() is not None, 60.0, "state")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGTERM)
+        code = finish(proc, 60.0)
+    assert code == 0, err.join()
+    assert "Traceback" not in err.join()
+    doc = json.loads(summary.read_text())
+    assert doc["counts"]["mag"] > 0 and doc["connects"] == 1
+    assert "compass 0:" in out.join()
+    assert StateStore(state).load(1, 0) is not None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signals", [(signal.SIGTERM,), (signal.SIGTERM, signal.SIGINT), (signal.SIGINT,)])
+def test_replay_stopped_by_a_signal_writes_the_partial_summary(
+    tmp_path: Path, signals: tuple[signal.Signals, ...]
+) -> None:
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.sim import SimConfig, simulate
+
+    one = tmp_path / "one.tlog"
+    write_tlog(simulate(SimConfig(scenario="paper", duration_s=40.0, seed=7, n_compasses=1)), one)
+    long_log = tmp_path / "long.tlog"
+    long_log.write_bytes(one.read_bytes() * 200)  # ~2 h of log: minutes to replay, stopped long before
+    summary = tmp_path / "sum.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magcomp", "replay", str(long_log), "--json", str(summary), "-v"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, cwd=REPO, text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
+    try:
+        wait_for(lambda: err.has("replaying") or proc.poll() is not None, 60.0, "the replay to start")
+    finally:
+        for s in signals:
+            proc.send_signal(s)
+        code = finish(proc, 60.0)
+    # two pending signals are handled in signal-number order, not in the order sent
+    expected = {143 if s == signal.SIGTERM else 130 for s in signals}
+    assert code in expected, err.join()
+    assert "Traceback" not in err.join()
+    doc = json.loads(summary.read_text())
+    assert "interrupted_at_s" in doc
+    assert "interrupted: the summary covers the log up to" in out.join()

@@ -1,0 +1,54 @@
+"""Waiting on conditions instead of fixed sleeps (a loaded 2-core machine can be 3x slower than a laptop)."""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+from typing import IO
+
+
+def wait_for(cond: Callable[[], object], timeout_s: float = 60.0, what: str = "condition") -> None:
+    """Poll ``cond`` until it is true; fail the test (AssertionError) after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.02)
+
+
+class LineReader:
+    """Collects the lines of a process's pipe in a thread, so the test can wait for one of them."""
+
+    def __init__(self, stream: IO[str]) -> None:
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream: IO[str]) -> None:
+        try:
+            for line in stream:
+                self.lines.append(line)
+        finally:
+            stream.close()
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def has(self, needle: str) -> bool:
+        return any(needle in line for line in list(self.lines))
+
+    def join(self, timeout_s: float = 10.0) -> str:
+        self._thread.join(timeout_s)
+        return self.text()
+
+
+def finish(proc: subprocess.Popen[str], timeout_s: float = 60.0) -> int:
+    """Wait for the process to end (kill it after ``timeout_s``, failing the test)."""
+    try:
+        return proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise AssertionError(f"the process did not stop within {timeout_s:.0f} s") from None
