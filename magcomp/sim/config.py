@@ -492,8 +492,8 @@ def apply_settings(config: SimConfig, settings: Mapping[str, object] | list[str]
 
     Rates: a rate above the autopilot loop (``imu_hz``, default 50 Hz) raises the loop to the slowest rate
     that divides the truth rate and carries it (e.g. mag_hz=100 -> a 100 Hz loop). ``telemetry_hz=R`` sets
-    RAW_IMU, ATTITUDE and SERVO_OUTPUT_RAW to R Hz and RC/VFR_HUD/power to min(R, 10) Hz, like a telemetry
-    link's SR*_ stream rates."""
+    RAW_IMU, ATTITUDE and SERVO_OUTPUT_RAW to R Hz, RC/VFR_HUD/power to min(R, 10) Hz and GPS to min(R, 5)
+    Hz, like a telemetry link's SR*_ stream rates."""
     pairs: dict[str, str] = {}
     items: list[tuple[str, str]] = (
         [(k, v if isinstance(v, str) else str(v)) for k, v in settings.items()]
@@ -549,6 +549,7 @@ def apply_settings(config: SimConfig, settings: Mapping[str, object] | list[str]
             kw.update(
                 raw_imu_hz=tele, attitude_hz=tele, servo_hz=tele, rc_hz=min(tele, 10.0),
                 vfr_hud_hz=min(tele, 10.0), power_hz=min(tele, 10.0), heartbeat_hz=min(tele, 1.0),
+                gps_hz=min(tele, 5.0),
             )  # fmt: skip
         loop = rate_changes.pop("loop_hz", None)
         kw.update(rate_changes)
