@@ -9,6 +9,9 @@ Euler angles are the aerospace ZYX sequence (yaw, pitch, roll) used by MAVLink A
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -235,3 +238,26 @@ def quat_integrate_body_rate(q_nb: ArrayLike, omega_b_rad_s: ArrayLike, dt_s: fl
 def down_b_from_quat(q_nb: ArrayLike) -> F64:
     """Unit 'down' vector in body axes: third column of ``R_e^b`` (section II-A reference vector)."""
     return dcm_from_quat(q_nb)[2, :].copy()
+
+
+def quat_step_body_rate(
+    q_nb: tuple[float, float, float, float], omega_b_rad_s: Sequence[float], dt_s: float
+) -> tuple[float, float, float, float]:
+    """One step of ``q_dot = q (x) (0, omega / 2)`` on plain floats, normalised: the exact rotation for a
+    body rate constant over ``dt_s`` (the per-sample path of the pipeline's gyro integral; the vectorised
+    :func:`quat_integrate_body_rate` is its test oracle)."""
+    wx, wy, wz = omega_b_rad_s[0], omega_b_rad_s[1], omega_b_rad_s[2]
+    rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * rate * dt_s
+    if rate > 1e-12:
+        s_ = math.sin(half) / rate
+        dw, dx, dy, dz = math.cos(half), wx * s_, wy * s_, wz * s_
+    else:
+        dw, dx, dy, dz = 1.0, 0.5 * wx * dt_s, 0.5 * wy * dt_s, 0.5 * wz * dt_s
+    w, x, y, z = q_nb
+    qw = w * dw - x * dx - y * dy - z * dz
+    qx = w * dx + x * dw + y * dz - z * dy
+    qy = w * dy - x * dz + y * dw + z * dx
+    qz = w * dz + x * dy - y * dx + z * dw
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    return (qw / n, qx / n, qy / n, qz / n)

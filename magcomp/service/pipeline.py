@@ -47,7 +47,7 @@ from magcomp.adapters.mavlink_source import WireImuSample, WireMagSample
 from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.inflight import calibrated_by_autopilot, yaw_reference
 from magcomp.core.mahony import MahonyParams, mahony_init
-from magcomp.core.rotations import dcm_from_euler, dcm_from_quat
+from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, quat_step_body_rate
 from magcomp.core.types import (
     FLAG_CALIBRATED,
     FLAG_INPUTS_STALE,
@@ -56,6 +56,7 @@ from magcomp.core.types import (
     FLAG_SATURATED,
     FLAG_THETA_CONVERGED,
     FLAG_Z_UNOBSERVABLE,
+    STANDARD_GRAVITY_M_S2,
     AttitudeSample,
     ClockResetSample,
     HeadingEstimate,
@@ -89,6 +90,10 @@ GAP_FACTOR = 5.0
 FAST_IMU_DT_S = 0.05
 #: attitude rows of the in-flight calibration are left out beyond this tilt (acrobatics, a crash)
 MAX_TILT_RAD = math.radians(60.0)
+COS_MAX_TILT = math.cos(MAX_TILT_RAD)
+#: specific force this far from 1 g is an impact (the diagnosis's crash mask uses 2.5 g; a hover never
+#: leaves 1 +- 0.5 g): the in-flight calibration takes no rows then
+IMPACT_M_S2 = 1.5 * STANDARD_GRAVITY_M_S2
 #: message-time seconds without any throttle sample before the "no throttle" warning
 NO_THROTTLE_WARN_S = 2.0
 #: Input gate on the gyro (issue 12: a short gyro glitch must not move a converged theta). A body-rate
@@ -436,6 +441,10 @@ class Pipeline:
         self._motors: tuple[float, ...] = ()
         self._motors_on_t: float | None = None
         self._imu_dt: float | None = None
+        self._accel_norm = STANDARD_GRAVITY_M_S2
+        # the bias-corrected gyro integrated alone (no accelerometer or compass correction): the rotation
+        # between two magnetometer samples for the relative form, free of anything a compass disturbs
+        self._qg: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
         loc = cfg.location
         self._location = (loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year)
         self._location_source = "config"
@@ -614,6 +623,7 @@ class Pipeline:
         if not all(map(math.isfinite, (t, gx, gy, gz, ax, ay, az))):
             self.counts["non_finite"] += 1
             return
+        self._accel_norm = math.sqrt(ax * ax + ay * ay + az * az)
         lim = self._gyro_sat
         saturated = abs(gx) >= lim or abs(gy) >= lim or abs(gz) >= lim
         raw, raw_t = self._gyro_raw, self._gyro_raw_t
@@ -644,6 +654,7 @@ class Pipeline:
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
             b = m.b
             self._gyro = [gx - b[0], gy - b[1], gz - b[2]]
+            self._qg = quat_step_body_rate(self._qg, self._gyro, t - prev_t)
             return
         # first sample, a gap or a clock reset: the rotation since the last sample is unknown, so the
         # tilt restarts from the accelerometer (gyro bias kept) and must settle again before the
@@ -656,6 +667,7 @@ class Pipeline:
         bias = np.array(m.b) if m is not None else fresh.gyro_bias_b_rad_s
         self._mahony = FastMahony(self._mahony_p, fresh.q_nb, bias)
         self._mahony_t0 = t
+        self._qg = (1.0, 0.0, 0.0, 0.0)  # the gyro integral restarts (a new epoch: no pair across it)
         self._imu_t = t
         self._gyro = [gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2])]
 
@@ -969,10 +981,11 @@ class Pipeline:
                 gyro_fresh = self._imu_t is not None and abs(t - self._imu_t) <= self._stale_s
                 src: tuple[str, float]
                 rot = self.cfg.inflight.rotation
-                use_gyro = rot == "gyro" or (rot == "auto" and not att_fresh)
-                settled = self._imu_t is not None and self._imu_t - self._mahony_t0 >= MAHONY_SETTLE_S
-                if use_gyro and fast_imu and gyro_fresh and settled and self._mahony is not None:
-                    r_rel = dcm_from_quat(np.asarray(self._mahony.q, dtype=float))
+                # auto: the integrated gyro while it is fast (the autopilot's attitude is steered by a
+                # compass the currents disturb); the autopilot's attitude when the gyro is too slow
+                use_gyro = rot == "gyro" or (rot == "auto" and (fast_imu or not att_fresh))
+                if use_gyro and fast_imu and gyro_fresh and self._mahony is not None:
+                    r_rel = dcm_from_quat(np.asarray(self._qg, dtype=float))
                     src = ("gyro", self._mahony_t0)
                 elif att_fresh and rot != "gyro":
                     r_rel = dcm_from_euler(self._att_roll, self._att_pitch, self._att_yaw)
@@ -982,6 +995,10 @@ class Pipeline:
                 if src != c.rel_source:
                     st.reset_pairs()
                     c.rel_source = src
+                if r_rel is not None and float(r_rel[2, 2]) < COS_MAX_TILT:
+                    r_rel = None  # acrobatics or a crash: no pair across it
+            if abs(self._accel_norm - STANDARD_GRAVITY_M_S2) > IMPACT_M_S2:
+                r_abs = r_rel = None  # an impact (a crash, a hard landing): the field may be disturbed too
             st.feed(t, np.array((vx, vy, vz)), thr, self._motors, r_abs, self._earth_ned, r_rel)
             c.dirty = True
         return st.output(t, (vx, vy, vz), self._thr, self._motors)

@@ -57,7 +57,9 @@ def test_reboot_in_the_calibration_window_never_mixes_two_boots(
     assert any("rebooted" in w for w in rep.summary["warnings"])
     cal = rep.summary["compasses"][0]["calibration"]
     ref = clean.summary["compasses"][0]["calibration"]
-    if cal is not None:  # learned from one boot only: as good as the clean log's (37.6 vs 8.5 before)
+    # learned from one boot only: as good as the clean log's (37.6 vs 8.5 before); a calibration learned in
+    # flight afterwards (the hand rotation cut short) is another estimator, not compared here
+    if cal is not None and cal["source"] == "learned":
         assert cal["residual_rms_mgauss"] < 1.3 * ref["residual_rms_mgauss"]
         theta = np.asarray(rep.summary["compasses"][0]["theta_mgauss"])
         truth = np.asarray(result.compasses[0].theta_mgauss)
