@@ -63,6 +63,7 @@ def main() -> int:
     ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 10.0, 50.0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="simulator knob")
+    ap.add_argument("--compass", type=int, default=0, help="compass to score (1 with external_compass0=on)")
     args = ap.parse_args()
 
     from magcomp.adapters.mavlink_emit import write_tlog
@@ -91,12 +92,13 @@ def main() -> int:
                     store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float),
                                             np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
                 orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
-            c_rms, raw_rms = rms_after_learning(result, causal.estimates)
-            t_rms, _ = rms_after_learning(result, two.estimates)
-            o_rms, _ = rms_after_learning(result, orc.estimates)
-            comp = causal.summary["compasses"][0]
+            j = args.compass
+            c_rms, raw_rms = rms_after_learning(result, causal.estimates, j)
+            t_rms, _ = rms_after_learning(result, two.estimates, j)
+            o_rms, _ = rms_after_learning(result, orc.estimates, j)
+            comp = causal.summary["compasses"][j]
             th = np.asarray(comp["theta_mgauss"], dtype=float)
-            tt = np.asarray(result.compasses[0].theta_mgauss, dtype=float)
+            tt = np.asarray(result.compasses[j].theta_mgauss, dtype=float)
             th_err = 100.0 * float(np.linalg.norm(th - tt) / np.linalg.norm(tt))
             worst.setdefault(rate, []).append((c_rms, t_rms, raw_rms, o_rms, th_err))
             print(f"{rate:7g}  {seed:4d}  {c_rms:6.2f}  {t_rms:8.2f}  {raw_rms:11.2f}  {o_rms:6.2f}  "

@@ -3,6 +3,7 @@ ULog goes through replay, fit and diagnose with one-line messages where nothing 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,13 @@ def test_simulated_ulog_replays_like_its_tlog_twin(tmp_path: Path, mag_hz: float
     write_tlog(result, tlog)
     write_sim_ulog(result, ulg)
     cfg = load_config(None)
+    # the readers are compared, so the paths that amplify the two formats' own differences are left out:
+    # the tlog carries the gyro in 1 mrad/s steps, the ULog in float32, and the in-flight calibration's first
+    # seconds on the paper's tumble (hundreds of deg/s, few samples, heading sigma ~15 deg) move by degrees
+    # between them; the hand-rotation path, compared here, does not
+    cfg = replace(
+        cfg, input=replace(cfg.input, attitude="mahony"), inflight=replace(cfg.inflight, enabled=False)
+    )
     a = replay_log(tlog, cfg, keep_estimates=True).estimates
     b = replay_log(ulg, cfg, keep_estimates=True).estimates
     assert len(a) == len(b) == 2 * result.samples.t_s.size  # two compasses, every sample published
