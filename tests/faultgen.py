@@ -44,3 +44,19 @@ def retime(records: list[bytes], new_time_s: Callable[[int, float], float]) -> l
 def record_time_s(rec: bytes) -> float:
     """The tlog stamp of a record (unix seconds)."""
     return int.from_bytes(rec[:8], "big") * 1e-6
+
+
+def rewrite(records: list[bytes], mtype: str, **fields: Any) -> list[bytes]:
+    """Records with every ``mtype`` message's ``fields`` set to the given values (re-encoded)."""
+    mod, mav = _mav()
+    out = []
+    for rec in records:
+        msg = mav.decode(bytearray(rec[8:]))
+        if msg.get_type() == mtype:
+            for name, value in fields.items():
+                setattr(msg, name, value)
+            sender = mod.MAVLink(None, srcSystem=msg.get_srcSystem(), srcComponent=msg.get_srcComponent())
+            sender.seq = msg.get_seq()
+            rec = rec[:8] + bytes(msg.pack(sender))
+        out.append(rec)
+    return out

@@ -726,7 +726,8 @@ class Pipeline:
                 not self._use_throttle or t - self._first_mag_t >= NO_THROTTLE_WARN_S
             ):
                 self._warned_no_throttle = True
-                why = "disabled in the configuration" if not self._use_throttle else "no throttle samples"
+                why = ("disabled in the configuration" if not self._use_throttle
+                       else "no throttle samples, or motor outputs without pulse widths")  # fmt: skip
                 self._text(t, f"no throttle source ({why}): headings are published uncorrected", warning=True)
         # ---- attitude and gyro
         down, cr, sr, cp, sp = self._attitude()
