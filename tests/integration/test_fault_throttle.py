@@ -18,7 +18,8 @@ def test_servo_outputs_all_zero_are_no_throttle_information(tmp_path: Path) -> N
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.sim import SimConfig, simulate
 
-    write_tlog(simulate(SimConfig(scenario="paper", duration_s=40.0, seed=5, n_compasses=1)), tmp_path / "c.tlog")
+    result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=5, n_compasses=1))
+    write_tlog(result, tmp_path / "c.tlog")
     recs = split_tlog_records((tmp_path / "c.tlog").read_bytes())
     zeros = rewrite(recs, "SERVO_OUTPUT_RAW", **{f"servo{i}_raw": 0 for i in range(1, 17)})
     (tmp_path / "z.tlog").write_bytes(b"".join(zeros))
