@@ -84,6 +84,10 @@ from magcomp.errors import InputError
 G_M_S2 = 9.80665
 _MG_TO_M_S2 = G_M_S2 * 1e-3
 RESET_JUMP_S = 5.0  # a timestamp this far behind the newest one is an autopilot reboot
+#: a timestamp this far ahead of the newest one (the streams read come at 1 Hz or faster) is believed only
+#: when the next timestamp lies within this of it: one corrupt time cannot make the stream after it look
+#: like it went backwards, nor stretch the log
+FORWARD_CONFIRM_S = 1.0
 U32_WRAP_S = 4294.967296  # SERVO_OUTPUT_RAW.time_usec is uint32
 MAV_AUTOPILOT_INVALID = 8
 MAV_TYPE_GCS = 6
@@ -170,11 +174,11 @@ class _Clock:
         top = self.max_raw_s
         if top is None:
             self.max_raw_s = raw_s
-        elif raw_s < top - RESET_JUMP_S or raw_s > top + RESET_JUMP_S:
+        elif raw_s < top - RESET_JUMP_S or raw_s > top + FORWARD_CONFIRM_S:
             # a jump of the clock: believed only when the next timestamp (of any message) agrees with
             # it, so that one corrupt timestamp cannot shift or stretch everything after it
             pend = self.pending_s
-            if pend is None or abs(raw_s - pend) > RESET_JUMP_S:
+            if pend is None or abs(raw_s - pend) > FORWARD_CONFIRM_S:
                 self.pending_s = raw_s
                 self.counts["time_jumps"] += 1
                 return None
@@ -795,7 +799,84 @@ def _quiet() -> Iterator[None]:
         yield
 
 
+_DF_HEAD = b"\xa3\x95"
+_DF_FMT_TYPE = 0x80
+_DF_FMT_LEN = 89
+
+
+def dataflash_intact_spans(data: bytes | memoryview) -> tuple[list[tuple[int, int]], int]:
+    """The byte ranges of a binary DataFlash log that hold whole messages, and how many bytes lie between
+    them (damage). A message is believed when its type is known (from the FMT messages before it) and the
+    next message header (or the end of the file) follows it exactly; anything else is skipped up to the
+    next header. pymavlink's reader stops indexing at the first unknown message type, dropping the rest
+    of a damaged log, and prints about every bad byte: it gets the intact messages only."""
+    n = len(data)
+    lengths: dict[int, int] = {_DF_FMT_TYPE: _DF_FMT_LEN}
+    spans: list[tuple[int, int]] = []
+    skipped = 0
+    find = bytes(data).find if isinstance(data, memoryview) else data.find
+    p = find(_DF_HEAD)
+    if p < 0:
+        return [], n
+    skipped += p
+    start = p
+    while p + 3 <= n:
+        mtype = data[p + 2]
+        mlen = lengths.get(mtype)
+        end = p + mlen if mlen else -1
+        if mlen and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95)):
+            if mtype == _DF_FMT_TYPE and data[p + 4] >= 3:
+                lengths[data[p + 3]] = data[p + 4]
+            p = end
+            continue
+        if mlen and end > n:  # a message cut by the end of the file
+            break
+        # damage: close the intact span and resynchronise on the next header
+        if p > start:
+            spans.append((start, p))
+        q = find(_DF_HEAD, p + 1)
+        q = n if q < 0 else q
+        skipped += q - p
+        p = start = q
+    if p > start:
+        spans.append((start, min(p, n)))
+    skipped += max(0, n - max(p, spans[-1][1] if spans else 0))
+    return spans, skipped
+
+
+def _dataflash_repaired(path: Path, counts: dict[str, int]) -> Path | None:
+    """A temporary copy of a damaged binary DataFlash log holding its intact messages only (None when the
+    log is intact, or cannot be read)."""
+    import tempfile
+
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    spans, skipped = dataflash_intact_spans(data)
+    tail = len(data) - (spans[-1][1] if spans else 0)
+    if not spans or (len(spans) == 1 and spans[0][0] == 0 and tail < 528):
+        return None  # intact (a short tail of garbage is normal at the end of a log)
+    counts["garbage_bytes"] += skipped
+    counts["dataflash_resyncs"] += len(spans) - 1
+    fd, name = tempfile.mkstemp(prefix="magcomp-", suffix=".bin")
+    with os.fdopen(fd, "wb") as f:
+        for a, b in spans:
+            f.write(data[a:b])
+    return Path(name)
+
+
 def _iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
+    repaired = None if text else _dataflash_repaired(path, counts)
+    try:
+        yield from _iter_dataflash_file(repaired or path, path, counts, text)
+    finally:
+        if repaired is not None:
+            with contextlib.suppress(OSError):
+                repaired.unlink()
+
+
+def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
     from pymavlink import DFReader
 
     try:
@@ -806,7 +887,7 @@ def _iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[
                 else DFReader.DFReader_binary(str(path), zero_time_base=False)
             )
     except (UnicodeDecodeError, ValueError, IndexError, KeyError, OSError) as exc:
-        raise InputError(f"{path}: not a readable DataFlash log ({type(exc).__name__})") from None
+        raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
     wanted = list(WANTED_DATAFLASH)
     try:
         while True:
@@ -825,7 +906,7 @@ def _iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[
     except (UnicodeDecodeError, ValueError, IndexError, KeyError) as exc:
         counts["dataflash_errors"] += 1
         if counts["messages"] == 0:
-            raise InputError(f"{path}: not a readable DataFlash log ({type(exc).__name__})") from None
+            raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
     finally:
         with contextlib.suppress(Exception):
             reader.close()
