@@ -303,7 +303,11 @@ def encode_stream(
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
     mav = apm.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
-    return [(t, bytes(msg.pack(mav))) for t, _, msg in build_messages(result)]
+    out = []
+    for i, (t, _, msg) in enumerate(build_messages(result)):
+        mav.seq = i & 0xFF  # pack() does not advance it (send() would); a receiver counts gaps in it
+        out.append((t, bytes(msg.pack(mav))))
+    return out
 
 
 def write_tlog(result: SimResult, path: str | os.PathLike[str], start_unix_s: float | None = None) -> int:

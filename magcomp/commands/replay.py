@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -33,7 +34,7 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
     from magcomp.errors import InputError
-    from magcomp.service.console import check_distinct_outputs, check_output_path, setup_logging
+    from magcomp.service.console import Progress, check_distinct_outputs, check_output_path, setup_logging
     from magcomp.service.replay import replay_log
 
     setup_logging("replay", args.verbose)
@@ -57,10 +58,18 @@ def execute(args: argparse.Namespace) -> int:
         stop_signals.append(signum)
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    t_first: list[float] = []
+
+    def on_progress(t_s: float) -> None:  # message time reached, as seconds of log
+        if not t_first:
+            t_first.append(t_s)
+        bar.goto(t_s - t_first[0])
+
     try:
-        report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_estimates=viz is not None,
-                            on_text=lambda t, m: texts.append((t, m)),
-                            should_stop=lambda: bool(stop_signals))  # fmt: skip
+        with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:
+            report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_estimates=viz is not None,
+                                on_text=lambda t, m: texts.append((t, m)),
+                                should_stop=lambda: bool(stop_signals), on_progress=on_progress)  # fmt: skip
         report = _finish(args, report, cfg, viz, texts)
     finally:
         for s, h in old.items():
@@ -74,6 +83,8 @@ def execute(args: argparse.Namespace) -> int:
             return 128 + signal.SIGTERM  # asked to stop: partial results written, the usual exit code
         raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
     if not report.summary["counts"].get("mag"):
+        if args.emit and report.emitted == 0:
+            Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
         raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
     return 0
 

@@ -128,10 +128,14 @@ def execute(args: argparse.Namespace) -> int:
     check_output_path(args.out, "--out")
     config = _config(args)
     assert isinstance(config, SimConfig)
-    result = simulate(config)
+    from magcomp.service.console import Busy
+
+    with Busy(f"simulate: {config.scenario}"):
+        result = simulate(config)
     if args.out:
-        count = write_tlog(result, args.out)
-        json_path, npz_path = write_truth(result, args.out)
+        with Busy(f"simulate: writing {args.out}"):
+            count = write_tlog(result, args.out)
+            json_path, npz_path = write_truth(result, args.out)
         print(
             f"wrote {args.out}: {count} messages, {config.duration:.1f} s of {config.scenario} "
             f"({config.vehicle}); truth: {json_path.name}, {npz_path.name}"

@@ -21,6 +21,7 @@ import errno as errno_mod
 import gc
 import io
 import logging
+import math
 import re
 import sys
 import threading
@@ -43,6 +44,11 @@ from magcomp.service.replay import source_throttle
 log = logging.getLogger("magcomp.daemon")
 
 LATENCY_RING = 200_000
+#: messages lost on the link (MAVLink sequence-number gaps) above this fraction over LOSS_WINDOW_S give a
+#: warning (at most once per LOSS_WARN_EVERY_S); every loss is counted in the summary (lost_messages)
+LOSS_WARN_FRACTION = 0.01
+LOSS_WINDOW_S = 2.0
+LOSS_WARN_EVERY_S = 30.0
 
 
 @dataclass
@@ -261,6 +267,8 @@ class Daemon:
         self._last_rx = time.monotonic()
         self._silent = False
         self._sysid_set = False
+        self._loss_seen: dict[int, tuple[int, int]] = {}
+        self._loss_warned_at = -math.inf
 
     # ------------------------------------------------------------------------------------------- control
 
@@ -320,11 +328,15 @@ class Daemon:
     def _housekeeping(self) -> None:
         hb_period = 1.0 / self.cfg.link.heartbeat_hz if self.cfg.link.heartbeat_hz > 0 else 0.0
         next_hb = time.monotonic()
+        next_loss = next_hb + LOSS_WINDOW_S
         while not self._stop.wait(0.05):
             if self._stop_requested:
                 self.stop()
                 break
             now = time.monotonic()
+            if now >= next_loss:
+                next_loss = now + LOSS_WINDOW_S
+                self._check_loss(now)
             if hb_period and now >= next_hb:
                 next_hb = now + hb_period
                 with self._lock:
@@ -333,6 +345,24 @@ class Daemon:
             if not self._silent and self._source is not None and quiet_s > self.cfg.link.silence_s:
                 self._silent = True
                 log.warning("no data from %s for %.0f s (still listening)", self.master, now - self._last_rx)
+
+    def _check_loss(self, now: float) -> None:
+        """Warn when the link lost more than LOSS_WARN_FRACTION of its messages since the last check."""
+        src = self._source
+        conn = getattr(src, "connection", None)
+        if conn is None:
+            return
+        loss, count = int(getattr(conn, "mav_loss", 0)), int(getattr(conn, "mav_count", 0))
+        last = self._loss_seen.get(id(conn), (0, 0))
+        self._loss_seen[id(conn)] = (loss, count)
+        d_loss, d_count = loss - last[0], count - last[1]
+        if d_loss <= 0 or d_loss < LOSS_WARN_FRACTION * (d_loss + d_count):
+            return
+        if now - self._loss_warned_at >= LOSS_WARN_EVERY_S:
+            self._loss_warned_at = now
+            log.warning("the link lost %d of %d messages in the last %.0f s (sequence-number gaps): the "
+                        "link or this machine is too slow for the stream", d_loss, d_loss + d_count,
+                        LOSS_WINDOW_S)  # fmt: skip
 
     # ---------------------------------------------------------------------------------------------- run
 
@@ -375,6 +405,7 @@ class Daemon:
                     self._stop.wait(self.cfg.link.reconnect_s)
                     continue
                 first_failure = True
+                conn = source.connection
                 self._source = source
                 self.connects += 1
                 self._last_rx = time.monotonic()
@@ -406,6 +437,9 @@ class Daemon:
                     with self._lock:
                         self._master_sink = None
                     self._merge_counts(source.counts)
+                    if conn is not None:  # (the link object outlives its closing: its counters too)
+                        self._merge_counts({"lost_messages": int(getattr(conn, "mav_loss", 0)),
+                                            "link_messages": int(getattr(conn, "mav_count", 0))})  # fmt: skip
                     self._source = None
                     source.close()
         finally:
@@ -413,6 +447,12 @@ class Daemon:
             sys.setswitchinterval(old_switch)
             gc.unfreeze()
             hk.join(timeout=2.0)
+            lost, got = self.source_counts.get("lost_messages", 0), self.source_counts.get("link_messages", 0)
+            if lost:
+                msg = (f"the link lost {lost} of {lost + got} messages ({100.0 * lost / (lost + got):.1f} %, "
+                       "sequence-number gaps)")  # fmt: skip
+                log.warning(msg)
+                self.pipeline.warnings.append(msg)
             self.pipeline.close()
             for sink in self._sinks:
                 sink.close()
