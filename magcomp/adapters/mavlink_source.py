@@ -1127,6 +1127,65 @@ class MavSource:
                     stale = True
                 yield rec  # type: ignore[misc]
 
+    def vehicle_samples(self) -> Iterator[tuple[tuple[int, int], Sample]]:
+        """Live links: ((system id, component id), sample) for every sender on the link, each with its
+        own clock (reboots, jumps), parameters and throttle selection: a link carrying several vehicles
+        (or components) never mixes their samples. Same samples per sender as :meth:`samples`."""
+        if self._kind != "live":
+            raise AssertionError("vehicle_samples() is for live links")  # pragma: no cover
+        streams: dict[tuple[int, int], _SenderStream] = {}
+        undo = self._conv.undo_motor_comp
+        for msg in self._live_messages():
+            key = (int(msg.get_srcSystem()), int(msg.get_srcComponent()))
+            st = streams.get(key)
+            if st is None:
+                conv = self._conv if not streams else _Converter(self.counts, mag_index=self.mag_index,
+                                                                 undo_motor_comp=undo)  # fmt: skip
+                st = streams[key] = _SenderStream(self.spec, conv, self.params if not streams else {})
+            for sample in st.push(msg):
+                yield key, sample
+
+
+class _SenderStream:
+    """The samples of one sender on a shared link (the loop of :meth:`MavSource.samples`, one message at
+    a time)."""
+
+    def __init__(self, spec: ThrottleSpec, conv: _Converter, params: dict[str, float]) -> None:
+        self.spec = spec
+        self.conv = conv
+        self.params = params
+        self.available: set[str] = set()
+        self.resolved: ResolvedThrottle | None = None
+        self.stale = True
+
+    def push(self, msg: Any) -> list[Sample]:
+        conv = self.conv
+        recs = conv.mavlink(msg)
+        out: list[Sample] = []
+        if conv.clock.reboot_pending:
+            conv.clock.reboot_pending = False
+            out.append(ClockResetSample(conv.clock.last_t_s, conv.clock.offset_s))
+        for _, rec in recs:
+            if isinstance(rec, PwmRecord | ThrottleRecord):
+                if rec.kind not in self.available:
+                    self.available.add(rec.kind)
+                    self.stale = True
+                if self.stale:
+                    self.resolved = resolve_throttle(self.spec, conv.vehicle_type, self.params,
+                                                     frozenset(self.available))  # fmt: skip
+                    self.stale = False
+                thr = _throttle_sample(self.resolved, rec)
+                if thr is not None:
+                    out.append(thr)
+                continue
+            if isinstance(rec, ParamSample):
+                self.params[rec.name] = rec.value
+                self.stale = True
+            elif isinstance(rec, HeartbeatSample):
+                self.stale = True
+            out.append(rec)
+        return out
+
 
 def _throttle_sample(
     resolved: ResolvedThrottle | None, rec: PwmRecord | ThrottleRecord

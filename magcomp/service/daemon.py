@@ -249,6 +249,12 @@ class Daemon:
         self.store = store
         self.on_estimate = on_estimate
         self.pipeline = Pipeline(cfg, store=store, on_text=on_text)
+        self._on_text = on_text
+        # one pipeline and one encoder per sender on the link, (system id, component id): several
+        # vehicles (or components) on one link each get their own clocks, calibration and theta, and
+        # their headings go out as that vehicle; the first sender gets ``self.pipeline``
+        self.pipelines: dict[tuple[int, int], Pipeline] = {}
+        self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
         # imports that would otherwise happen on the live path (the refined calibration fit's
         # scipy.optimize costs ~0.3 s the first time, holding the interpreter)
         import scipy.optimize  # noqa: F401
@@ -312,12 +318,32 @@ class Daemon:
         for sink in self._sinks:
             sink.write_packet(t_s, packet)
 
-    def _publish(self, est: HeadingEstimate, t_arrival: float) -> None:
+    def _vehicle(self, key: tuple[int, int]) -> tuple[Pipeline, HeadingEncoder]:
+        """The pipeline and encoder of a sender on the link (created at its first sample)."""
+        p = self.pipelines.get(key)
+        if p is None:
+            if not self.pipelines:
+                p, enc = self.pipeline, self.encoder
+                if p.system_id is None:
+                    p.system_id = key[0]
+            else:
+                p = Pipeline(self.cfg, store=self.store, system_id=key[0], on_text=self._on_text)
+                enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
+                log.info("another vehicle on the link: system %d component %d", *key)
+            enc.set_system(key[0])
+            self.pipelines[key] = p
+            self._encoders[key] = enc
+            return p, enc
+        return p, self._encoders[key]
+
+    def _publish(self, est: HeadingEstimate, t_arrival: float, enc: HeadingEncoder | None = None) -> None:
         with self._lock:
-            if not self._sysid_set and self.pipeline.system_id is not None:
-                self.encoder.set_system(self.pipeline.system_id)
-                self._sysid_set = True
-            self._write_all(est.t_s, self.encoder.encode(est))
+            if enc is None:
+                enc = self.encoder
+                if not self._sysid_set and self.pipeline.system_id is not None:
+                    enc.set_system(self.pipeline.system_id)
+                    self._sysid_set = True
+            self._write_all(est.t_s, enc.encode(est))
         self.latency_s.append(time.perf_counter() - t_arrival)
         self.published += 1
         if self.on_estimate is not None:
@@ -454,6 +480,9 @@ class Daemon:
                 log.warning(msg)
                 self.pipeline.warnings.append(msg)
             self.pipeline.close()
+            for p in self.pipelines.values():
+                if p is not self.pipeline:
+                    p.close()
             for sink in self._sinks:
                 sink.close()
             log.info("stopped after %d estimates", self.published)
@@ -461,24 +490,34 @@ class Daemon:
 
     def _pump(self, source: Any) -> None:
         """Samples from the source through the pipeline to the sinks until the source ends or fails."""
-        process = self.pipeline.process
-        for sample in source.samples():
+        key: tuple[int, int] | None = None
+        pipeline, enc = self.pipeline, self.encoder
+        for sender, sample in source.vehicle_samples():
             t_arrival = time.perf_counter()
             self._last_rx = time.monotonic()
             if self._silent:
                 self._silent = False
                 log.info("data from %s again", self.master)
-            est = process(sample)
+            if sender != key:
+                key = sender
+                pipeline, enc = self._vehicle(sender)
+            est = pipeline.process(sample)
             if est is not None:
-                self._publish(est, t_arrival)
+                self._publish(est, t_arrival, enc)
 
     def _merge_counts(self, counts: dict[str, int]) -> None:
         for k, v in counts.items():
             self.source_counts[k] = self.source_counts.get(k, 0) + int(v)
 
     def report(self) -> DaemonReport:
+        summary = self.pipeline.summary()
+        if len(self.pipelines) > 1:  # every vehicle on the link, each with its own summary
+            summary["vehicles"] = [
+                {"system_id": k[0], "component_id": k[1], **p.summary()}
+                for k, p in sorted(self.pipelines.items(), key=lambda kv: kv[0])
+            ]
         return DaemonReport(
-            summary=self.pipeline.summary(),
+            summary=summary,
             source_counts=dict(self.source_counts),
             connects=self.connects,
             link_losses=self.link_losses,
