@@ -77,6 +77,7 @@ def replay_log(
     on_text: Callable[[float, str], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     on_progress: Callable[[float], None] | None = None,
+    keep_clouds: bool = False,
 ) -> ReplayReport:
     """Run ``path`` (tlog, raw MAVLink, DataFlash .bin/.log) through the pipeline.
 
@@ -86,6 +87,7 @@ def replay_log(
     (KeyboardInterrupt) ends the replay early but keeps what was done: the state is saved, the ``emit``
     file closed, and the report (``interrupted=True``) covers the log up to the last sample. So does
     ``should_stop`` returning True (checked once per batch of samples; e.g. a flag a signal handler sets).
+    ``keep_clouds``: return the calibration clouds (also with ``keep_estimates``).
     ``on_progress``: called once per batch with the message time reached (s). When the replay fails
     (an unreadable log) before any heading was written, the ``emit`` file is removed, not left empty.
     """
@@ -159,7 +161,9 @@ def replay_log(
         n_estimates=n,
         emitted=writer.packets if writer is not None else 0,
         estimates=kept,
-        clouds={i: c.calibration_cloud() for i, c in pipeline.correctors.items()} if keep_estimates else {},
+        clouds={i: c.calibration_cloud() for i, c in pipeline.correctors.items()}
+        if keep_estimates or keep_clouds
+        else {},
         interrupted=interrupted,
         t_last_s=float(sample.t_s) if sample is not None else float("nan"),
     )
