@@ -44,3 +44,63 @@ def retime(records: list[bytes], new_time_s: Callable[[int, float], float]) -> l
 def record_time_s(rec: bytes) -> float:
     """The tlog stamp of a record (unix seconds)."""
     return int.from_bytes(rec[:8], "big") * 1e-6
+
+
+def rewrite(records: list[bytes], mtype: str, **fields: Any) -> list[bytes]:
+    """Records with every ``mtype`` message's ``fields`` set to the given values (re-encoded)."""
+    mod, mav = _mav()
+    out = []
+    for rec in records:
+        msg = mav.decode(bytearray(rec[8:]))
+        if msg.get_type() == mtype:
+            for name, value in fields.items():
+                setattr(msg, name, value)
+            sender = mod.MAVLink(None, srcSystem=msg.get_srcSystem(), srcComponent=msg.get_srcComponent())
+            sender.seq = msg.get_seq()
+            rec = rec[:8] + bytes(msg.pack(sender))
+        out.append(rec)
+    return out
+
+
+def _df_fmt(mtype: int, length: int, name: str, fmt: str, columns: str) -> bytes:
+    import struct
+
+    return b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", mtype, length, name.encode(), fmt.encode(),
+                                         columns.encode())  # fmt: skip
+
+
+def write_dataflash(result: Any, path: Any) -> int:
+    """A minimal ArduPilot binary DataFlash log of a simulated flight: FMT, MSG (vehicle), IMU (rad/s,
+    m/s^2), MAG (mgauss, one per compass instance) and CTUN ThO (throttle 0..1). Returns its size."""
+    import struct
+
+    import numpy as np
+
+    s = result.samples
+    t_us = np.round(s.t_s * 1e6).astype(np.int64)
+    fmts = [
+        (129, "IMU", "Qffffff", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ", "<Qffffff"),
+        (130, "MAG", "QBfff", "TimeUS,I,MagX,MagY,MagZ", "<QBfff"),
+        (131, "CTUN", "Qf", "TimeUS,ThO", "<Qf"),
+        (132, "MSG", "QZ", "TimeUS,Message", "<Q64s"),
+    ]
+    packers = {name: (mtype, struct.Struct(pk)) for mtype, name, _f, _c, pk in fmts}
+    out = bytearray()
+    for mtype, name, f, cols, pk in fmts:
+        out += _df_fmt(mtype, 3 + struct.calcsize(pk), name, f, cols)
+
+    def rec(name: str, *values: Any) -> None:
+        mtype, st = packers[name]
+        out.extend(b"\xa3\x95" + bytes([mtype]) + st.pack(*values))
+
+    rec("MSG", int(t_us[0]), b"ArduCopter V4.5.0")
+    for i in range(s.t_s.size):
+        g, a = s.gyro_rad_s[0, i], s.accel_m_s2[0, i]
+        rec("IMU", int(t_us[i]), *map(float, g), *map(float, a))
+        for k in range(s.mag_mgauss.shape[0]):
+            rec("MAG", int(t_us[i]) + k, k, *map(float, s.mag_mgauss[k, i]))
+        if i % 2 == 0:
+            rec("CTUN", int(t_us[i]) + 5, float(s.throttle_01[i]))
+    with open(path, "wb") as f:
+        f.write(out)
+    return len(out)

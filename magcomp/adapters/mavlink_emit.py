@@ -539,9 +539,12 @@ def encode_stream(
     if flavour not in ("ardupilot", "px4"):
         raise InputError(f"MAVLink flavour {flavour!r}: ardupilot or px4")
     mav = apm.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
-    if flavour == "px4":
-        return [(t, bytes(msg.pack(mav))) for t, _, msg in build_px4_messages(result)]
-    return [(t, bytes(msg.pack(mav))) for t, _, msg in build_messages(result, start_unix_s)]
+    built = build_px4_messages(result) if flavour == "px4" else build_messages(result, start_unix_s)
+    out = []
+    for i, (t, _, msg) in enumerate(built):
+        mav.seq = i & 0xFF  # pack() does not advance it (send() would); a receiver counts gaps in it
+        out.append((t, bytes(msg.pack(mav))))
+    return out
 
 
 def write_tlog(

@@ -98,6 +98,10 @@ if TYPE_CHECKING:
 G_M_S2 = 9.80665
 _MG_TO_M_S2 = G_M_S2 * 1e-3
 RESET_JUMP_S = 5.0  # a timestamp this far behind the newest one is an autopilot reboot
+#: a timestamp this far ahead of the newest one (the streams read come at 1 Hz or faster) is believed only
+#: when the next timestamp lies within this of it: one corrupt time cannot make the stream after it look
+#: like it went backwards, nor stretch the log
+FORWARD_CONFIRM_S = 1.0
 U32_WRAP_S = 4294.967296  # SERVO_OUTPUT_RAW.time_usec is uint32
 MAV_AUTOPILOT_INVALID = 8
 MAV_AUTOPILOT_PX4 = 12
@@ -197,11 +201,11 @@ class _Clock:
         top = self.max_raw_s
         if top is None:
             self.max_raw_s = raw_s
-        elif raw_s < top - RESET_JUMP_S or raw_s > top + RESET_JUMP_S:
+        elif raw_s < top - RESET_JUMP_S or raw_s > top + FORWARD_CONFIRM_S:
             # a jump of the clock: believed only when the next timestamp (of any message) agrees with
             # it, so that one corrupt timestamp cannot shift or stretch everything after it
             pend = self.pending_s
-            if pend is None or abs(raw_s - pend) > RESET_JUMP_S:
+            if pend is None or abs(raw_s - pend) > FORWARD_CONFIRM_S:
                 self.pending_s = raw_s
                 self.counts["time_jumps"] += 1
                 return None
@@ -960,7 +964,84 @@ def _quiet() -> Iterator[None]:
         yield
 
 
+_DF_HEAD = b"\xa3\x95"
+_DF_FMT_TYPE = 0x80
+_DF_FMT_LEN = 89
+
+
+def dataflash_intact_spans(data: bytes | memoryview) -> tuple[list[tuple[int, int]], int]:
+    """The byte ranges of a binary DataFlash log that hold whole messages, and how many bytes lie between
+    them (damage). A message is believed when its type is known (from the FMT messages before it) and the
+    next message header (or the end of the file) follows it exactly; anything else is skipped up to the
+    next header. pymavlink's reader stops indexing at the first unknown message type, dropping the rest
+    of a damaged log, and prints about every bad byte: it gets the intact messages only."""
+    n = len(data)
+    lengths: dict[int, int] = {_DF_FMT_TYPE: _DF_FMT_LEN}
+    spans: list[tuple[int, int]] = []
+    skipped = 0
+    find = bytes(data).find if isinstance(data, memoryview) else data.find
+    p = find(_DF_HEAD)
+    if p < 0:
+        return [], n
+    skipped += p
+    start = p
+    while p + 3 <= n:
+        mtype = data[p + 2]
+        mlen = lengths.get(mtype)
+        end = p + mlen if mlen else -1
+        if mlen and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95)):
+            if mtype == _DF_FMT_TYPE and data[p + 4] >= 3:
+                lengths[data[p + 3]] = data[p + 4]
+            p = end
+            continue
+        if mlen and end > n:  # a message cut by the end of the file
+            break
+        # damage: close the intact span and resynchronise on the next header
+        if p > start:
+            spans.append((start, p))
+        q = find(_DF_HEAD, p + 1)
+        q = n if q < 0 else q
+        skipped += q - p
+        p = start = q
+    if p > start:
+        spans.append((start, min(p, n)))
+    skipped += max(0, n - max(p, spans[-1][1] if spans else 0))
+    return spans, skipped
+
+
+def _dataflash_repaired(path: Path, counts: dict[str, int]) -> Path | None:
+    """A temporary copy of a damaged binary DataFlash log holding its intact messages only (None when the
+    log is intact, or cannot be read)."""
+    import tempfile
+
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    spans, skipped = dataflash_intact_spans(data)
+    tail = len(data) - (spans[-1][1] if spans else 0)
+    if not spans or (len(spans) == 1 and spans[0][0] == 0 and tail < 528):
+        return None  # intact (a short tail of garbage is normal at the end of a log)
+    counts["garbage_bytes"] += skipped
+    counts["dataflash_resyncs"] += len(spans) - 1
+    fd, name = tempfile.mkstemp(prefix="magcomp-", suffix=".bin")
+    with os.fdopen(fd, "wb") as f:
+        for a, b in spans:
+            f.write(data[a:b])
+    return Path(name)
+
+
 def _iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
+    repaired = None if text else _dataflash_repaired(path, counts)
+    try:
+        yield from _iter_dataflash_file(repaired or path, path, counts, text)
+    finally:
+        if repaired is not None:
+            with contextlib.suppress(OSError):
+                repaired.unlink()
+
+
+def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
     from pymavlink import DFReader
 
     try:
@@ -971,7 +1052,7 @@ def _iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[
                 else DFReader.DFReader_binary(str(path), zero_time_base=False)
             )
     except (UnicodeDecodeError, ValueError, IndexError, KeyError, OSError) as exc:
-        raise InputError(f"{path}: not a readable DataFlash log ({type(exc).__name__})") from None
+        raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
     wanted = list(WANTED_DATAFLASH)
     try:
         while True:
@@ -990,7 +1071,7 @@ def _iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[
     except (UnicodeDecodeError, ValueError, IndexError, KeyError) as exc:
         counts["dataflash_errors"] += 1
         if counts["messages"] == 0:
-            raise InputError(f"{path}: not a readable DataFlash log ({type(exc).__name__})") from None
+            raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
     finally:
         with contextlib.suppress(Exception):
             reader.close()
@@ -1224,6 +1305,65 @@ class MavSource:
                 elif cls is HeartbeatSample:
                     stale = True
                 yield rec  # type: ignore[misc]
+
+    def vehicle_samples(self) -> Iterator[tuple[tuple[int, int], Sample]]:
+        """Live links: ((system id, component id), sample) for every sender on the link, each with its
+        own clock (reboots, jumps), parameters and throttle selection: a link carrying several vehicles
+        (or components) never mixes their samples. Same samples per sender as :meth:`samples`."""
+        if self._kind != "live":
+            raise AssertionError("vehicle_samples() is for live links")  # pragma: no cover
+        streams: dict[tuple[int, int], _SenderStream] = {}
+        undo = self._conv.undo_motor_comp
+        for msg in self._live_messages():
+            key = (int(msg.get_srcSystem()), int(msg.get_srcComponent()))
+            st = streams.get(key)
+            if st is None:
+                conv = self._conv if not streams else _Converter(self.counts, mag_index=self.mag_index,
+                                                                 undo_motor_comp=undo)  # fmt: skip
+                st = streams[key] = _SenderStream(self.spec, conv, self.params if not streams else {})
+            for sample in st.push(msg):
+                yield key, sample
+
+
+class _SenderStream:
+    """The samples of one sender on a shared link (the loop of :meth:`MavSource.samples`, one message at
+    a time)."""
+
+    def __init__(self, spec: ThrottleSpec, conv: _Converter, params: dict[str, float]) -> None:
+        self.spec = spec
+        self.conv = conv
+        self.params = params
+        self.available: set[str] = set()
+        self.resolved: ResolvedThrottle | None = None
+        self.stale = True
+
+    def push(self, msg: Any) -> list[Sample]:
+        conv = self.conv
+        recs = conv.mavlink(msg)
+        out: list[Sample] = []
+        if conv.clock.reboot_pending:
+            conv.clock.reboot_pending = False
+            out.append(ClockResetSample(conv.clock.last_t_s, conv.clock.offset_s))
+        for _, rec in recs:
+            if isinstance(rec, PwmRecord | ThrottleRecord):
+                if rec.kind not in self.available:
+                    self.available.add(rec.kind)
+                    self.stale = True
+                if self.stale:
+                    self.resolved = resolve_throttle(self.spec, conv.vehicle_type, self.params,
+                                                     frozenset(self.available))  # fmt: skip
+                    self.stale = False
+                thr = _throttle_sample(self.resolved, rec)
+                if thr is not None:
+                    out.append(thr)
+                continue
+            if isinstance(rec, ParamSample):
+                self.params[rec.name] = rec.value
+                self.stale = True
+            elif isinstance(rec, HeartbeatSample):
+                self.stale = True
+            out.append(rec)
+        return out
 
 
 def _throttle_sample(

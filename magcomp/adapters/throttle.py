@@ -164,17 +164,25 @@ def pwm_to_01(pwm_us: float, pwm_min: float, pwm_max: float) -> float:
     return min(1.0, max(0.0, x))
 
 
+#: pulse widths an ESC or servo can be driven with (RC PWM is 800-2200 us); MAVLink reports 0 for a
+#: disabled output and UINT16_MAX for an unused RC channel
+PWM_PLAUSIBLE_US = (500.0, 2500.0)
+
+
 def throttle_from_pwm(
     resolved: ResolvedThrottle, pwm_by_channel: Mapping[int, float]
 ) -> tuple[float, tuple[float, ...]] | None:
     """Throttle 0..1 and each selected channel's 0..1 from PWM values keyed by 1-based channel.
 
-    ``None`` when a selected channel is missing. For ``motors`` the throttle is the mean of the motors.
+    ``None`` when a selected channel is missing or carries no pulse width (0, or UINT16_MAX for RC
+    inputs: "output disabled / channel unused", anything outside PWM_PLAUSIBLE_US): that is no
+    throttle information, not throttle 0. For ``motors`` the throttle is the mean of the motors.
     """
     outs: list[float] = []
+    lo_ok, hi_ok = PWM_PLAUSIBLE_US
     for ch, lo, hi in zip(resolved.channels, resolved.pwm_min, resolved.pwm_max, strict=True):
         pwm = pwm_by_channel.get(ch)
-        if pwm is None:
+        if pwm is None or not lo_ok <= pwm <= hi_ok:
             return None
         outs.append(pwm_to_01(pwm, lo, hi))
     if not outs:

@@ -363,14 +363,18 @@ def execute(args: argparse.Namespace) -> int:
 
         parse_mode(args.rerun)  # a bad --rerun fails now, not after the diagnosis
     reference = _truth_reference(args)
-    log = load_log(args.log, throttle_source=args.throttle_source)
-    d = diagnose(
-        log,
-        primary=args.mag_index,
-        heading_reference=reference,
-        events=log_events(args.log),
-        earth=earth_reference(args, log),
-    )
+    from magcomp.service.console import Busy
+
+    with Busy(f"diagnose: reading {Path(args.log).name}"):
+        log = load_log(args.log, throttle_source=args.throttle_source)
+    with Busy("diagnose: fitting the models"):
+        d = diagnose(
+            log,
+            primary=args.mag_index,
+            heading_reference=reference,
+            events=log_events(args.log),
+            earth=earth_reference(args, log),
+        )
     j = d.to_json()
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")
     for line in _summary(j):

@@ -197,15 +197,19 @@ def execute(args: argparse.Namespace) -> int:
     if not path.exists():
         raise InputError(f"{path}: no such file")
     check_output_path(args.json, "--json", (args.log,))
-    log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag)
-    rep = fit_log(
-        log,
-        mag_index=args.mag,
-        start_s=args.start,
-        end_s=args.end,
-        n_monte_carlo=args.monte_carlo,
-        rng=np.random.default_rng(args.seed),
-    )
+    from magcomp.service.console import Busy
+
+    with Busy(f"fit: reading {path.name}"):
+        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag)
+    with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
+        rep = fit_log(
+            log,
+            mag_index=args.mag,
+            start_s=args.start,
+            end_s=args.end,
+            n_monte_carlo=args.monte_carlo,
+            rng=np.random.default_rng(args.seed),
+        )
     print(format_table(rep))
     if args.json:
         try:

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from magcomp.adapters.config import Config
     from magcomp.service.replay import ReplayReport
+
+
+#: estimates handed to the viewer at once during a replay
+VIEWER_BLOCK = 20_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,8 +45,15 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
+    from magcomp.core.types import HeadingEstimate
     from magcomp.errors import InputError
-    from magcomp.service.console import check_distinct_outputs, check_output_path, setup_logging
+    from magcomp.service.console import (
+        Progress,
+        check_distinct_outputs,
+        check_output_path,
+        primary_compass,
+        setup_logging,
+    )
     from magcomp.service.replay import replay_log
 
     setup_logging("replay", args.verbose)
@@ -65,11 +77,36 @@ def execute(args: argparse.Namespace) -> int:
         stop_signals.append(signum)
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    t_first: list[float] = []
+    # the viewer gets the estimates in blocks while the replay runs (a 4 h log held every estimate:
+    # 1.9 GiB); the estimates are not kept
+    primary = primary_compass(cfg.input.compasses)
+    block: list[HeadingEstimate] = []
+
+    def to_viewer(est: HeadingEstimate) -> None:
+        if est.mag_index == primary:
+            block.append(est)
+            if len(block) >= VIEWER_BLOCK:
+                flush_block()
+
+    def flush_block() -> None:
+        if viz is not None and block:
+            viz.log_estimates(block)
+        block.clear()
+
+    def on_progress(t_s: float) -> None:  # message time reached, as seconds of log
+        if not t_first:
+            t_first.append(t_s)
+        bar.goto(t_s - t_first[0])
+
     try:
-        report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_estimates=viz is not None,
-                            on_text=lambda t, m: texts.append((t, m)),
-                            should_stop=lambda: bool(stop_signals),
-                            two_pass=not args.causal and store is None)  # fmt: skip
+        with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:
+            report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_clouds=viz is not None,
+                                on_estimate=to_viewer if viz is not None else None,
+                                on_text=lambda t, m: texts.append((t, m)),
+                                should_stop=lambda: bool(stop_signals), on_progress=on_progress,
+                                two_pass=not args.causal and store is None)  # fmt: skip
+        flush_block()
         report = _finish(args, report, cfg, viz, texts)
     finally:
         for s, h in old.items():
@@ -83,6 +120,8 @@ def execute(args: argparse.Namespace) -> int:
             return 128 + signal.SIGTERM  # asked to stop: partial results written, the usual exit code
         raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
     if not report.summary["counts"].get("mag"):
+        if args.emit and report.emitted == 0:
+            Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
         raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
     return 0
 
@@ -115,7 +154,6 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
         write_json(args.json, report.to_json())
     if viz is not None:
         primary = primary_compass(cfg.input.compasses)
-        viz.log_estimates([e for e in report.estimates if e.mag_index == primary])
         if primary in report.clouds and len(report.clouds[primary][0]):
             viz.log_calibration_cloud(*report.clouds[primary])
         for t, m in texts:

@@ -148,15 +148,19 @@ def execute(args: argparse.Namespace) -> int:
     check_output_path(args.out, "--out")
     config = _config(args)
     assert isinstance(config, SimConfig)
-    result = simulate(config)
-    if args.out:
-        if str(args.out).lower().endswith(".ulg"):
-            from magcomp.adapters.ulog_writer import write_sim_ulog
+    from magcomp.service.console import Busy
 
-            count = write_sim_ulog(result, args.out)  # PX4 ULog (sensor_mag, sensor_combined, ...)
-        else:
-            count = write_tlog(result, args.out)
-        json_path, npz_path = write_truth(result, args.out)
+    with Busy(f"simulate: {config.scenario}"):
+        result = simulate(config)
+    if args.out:
+        with Busy(f"simulate: writing {args.out}"):
+            if str(args.out).lower().endswith(".ulg"):
+                from magcomp.adapters.ulog_writer import write_sim_ulog
+
+                count = write_sim_ulog(result, args.out)  # PX4 ULog (sensor_mag, sensor_combined, ...)
+            else:
+                count = write_tlog(result, args.out)
+            json_path, npz_path = write_truth(result, args.out)
         print(
             f"wrote {args.out}: {count} messages, {config.duration:.1f} s of {config.scenario} "
             f"({config.vehicle}); truth: {json_path.name}, {npz_path.name}"

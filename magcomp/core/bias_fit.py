@@ -82,6 +82,10 @@ def _r2(y: F64, resid: F64) -> F64:
         return np.where(sst > 0, 1.0 - sse / sst, 0.0)
 
 
+#: numbers per Monte-Carlo array (each 8 bytes; a few such arrays live at once)
+MC_CHUNK_ELEMENTS = 2_000_000
+
+
 def benchmark_r2(
     throttle_01: F64,
     theta_mgauss: F64,
@@ -99,6 +103,9 @@ def benchmark_r2(
     signal = np.outer(throttle_01**2, theta_mgauss)  # eq. (11), (n, 3)
     values: list[F64] = []
     done = 0
+    # refits per chunk bounded by memory too: a 1 h window at 50 Hz is 180k samples, and 200 refits of
+    # it held 3.4 GiB (issue 12); the draws, hence the result, do not depend on the chunk size
+    chunk = max(1, min(chunk, MC_CHUNK_ELEMENTS // max(1, signal.size)))
     while done < n_monte_carlo:
         m = min(chunk, n_monte_carlo - done)
         y = signal[None] + rng.standard_normal((m, *signal.shape)) * sigma_mgauss

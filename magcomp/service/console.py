@@ -135,6 +135,12 @@ def format_counts(counts: dict[str, int], keys: tuple[str, ...]) -> str:
 SKIP_KEYS = (
     "bad_crc",
     "garbage_bytes",
+    "dataflash_resyncs",
+    "time_jumps",
+    "reboots",
+    "mag_jumps",
+    "gyro_jumps",
+    "lost_messages",
     "truncated",
     "nonfinite",
     "non_finite",
@@ -193,6 +199,79 @@ def _time_text(c: dict[str, Any]) -> str:
     if cor + unc <= 0.0:
         return ""
     return f"; {cor:.0f} s corrected, {unc:.0f} s uncorrected"
+
+
+def progress_enabled() -> bool:
+    """Progress bars only for a person watching: stderr is a terminal, not CI, not a dumb terminal."""
+    return sys.stderr.isatty() and not os.environ.get("CI") and os.environ.get("TERM") != "dumb"
+
+
+class Progress:
+    """A tqdm bar on stderr when :func:`progress_enabled`, else nothing (never in logs or JSON).
+
+    ``total`` None: no known end (shows the count and the rate). Use as a context manager; ``update(n)``
+    adds ``n``, ``goto(x)`` moves to ``x``."""
+
+    def __init__(self, desc: str, total: float | None = None, unit: str = "it") -> None:
+        self._bar: Any = None
+        if progress_enabled():
+            from tqdm import tqdm
+
+            fmt = None if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
+            self._bar = tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
+                             dynamic_ncols=True, mininterval=0.25, bar_format=fmt)  # fmt: skip
+
+    def update(self, n: float = 1) -> None:
+        if self._bar is not None:
+            self._bar.update(n)
+
+    def goto(self, x: float) -> None:
+        if self._bar is not None and x > self._bar.n:
+            self._bar.update(x - self._bar.n)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Busy:
+    """An elapsed-time line on a terminal while a long step without its own progress runs (a thread
+    refreshes it); nothing otherwise."""
+
+    def __init__(self, desc: str) -> None:
+        import threading
+
+        self._stop = threading.Event()
+        self._thread: Any = None
+        self._bar: Any = None
+        if progress_enabled():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=None, desc=desc, file=sys.stderr, leave=False,
+                             bar_format="{desc} [{elapsed}]")  # fmt: skip
+            self._thread = threading.Thread(target=self._tick, daemon=True)
+            self._thread.start()
+
+    def _tick(self) -> None:
+        while not self._stop.wait(0.5):
+            self._bar.refresh()
+
+    def __enter__(self) -> Busy:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self._bar is not None:
+            self._bar.close()
 
 
 def primary_compass(compasses: tuple[int, ...]) -> int:

@@ -21,6 +21,7 @@ import errno as errno_mod
 import gc
 import io
 import logging
+import math
 import re
 import sys
 import threading
@@ -43,6 +44,11 @@ from magcomp.service.replay import source_throttle
 log = logging.getLogger("magcomp.daemon")
 
 LATENCY_RING = 200_000
+#: messages lost on the link (MAVLink sequence-number gaps) above this fraction over LOSS_WINDOW_S give a
+#: warning (at most once per LOSS_WARN_EVERY_S); every loss is counted in the summary (lost_messages)
+LOSS_WARN_FRACTION = 0.01
+LOSS_WINDOW_S = 2.0
+LOSS_WARN_EVERY_S = 30.0
 
 
 @dataclass
@@ -243,6 +249,12 @@ class Daemon:
         self.store = store
         self.on_estimate = on_estimate
         self.pipeline = Pipeline(cfg, store=store, on_text=on_text)
+        self._on_text = on_text
+        # one pipeline and one encoder per sender on the link, (system id, component id): several
+        # vehicles (or components) on one link each get their own clocks, calibration and theta, and
+        # their headings go out as that vehicle; the first sender gets ``self.pipeline``
+        self.pipelines: dict[tuple[int, int], Pipeline] = {}
+        self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
         # imports that would otherwise happen on the live path (the refined calibration fit's
         # scipy.optimize costs ~0.3 s the first time, holding the interpreter)
         import scipy.optimize  # noqa: F401
@@ -261,6 +273,8 @@ class Daemon:
         self._last_rx = time.monotonic()
         self._silent = False
         self._sysid_set = False
+        self._loss_seen: dict[int, tuple[int, int]] = {}
+        self._loss_warned_at = -math.inf
 
     # ------------------------------------------------------------------------------------------- control
 
@@ -304,12 +318,32 @@ class Daemon:
         for sink in self._sinks:
             sink.write_packet(t_s, packet)
 
-    def _publish(self, est: HeadingEstimate, t_arrival: float) -> None:
+    def _vehicle(self, key: tuple[int, int]) -> tuple[Pipeline, HeadingEncoder]:
+        """The pipeline and encoder of a sender on the link (created at its first sample)."""
+        p = self.pipelines.get(key)
+        if p is None:
+            if not self.pipelines:
+                p, enc = self.pipeline, self.encoder
+                if p.system_id is None:
+                    p.system_id = key[0]
+            else:
+                p = Pipeline(self.cfg, store=self.store, system_id=key[0], on_text=self._on_text)
+                enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
+                log.info("another vehicle on the link: system %d component %d", *key)
+            enc.set_system(key[0])
+            self.pipelines[key] = p
+            self._encoders[key] = enc
+            return p, enc
+        return p, self._encoders[key]
+
+    def _publish(self, est: HeadingEstimate, t_arrival: float, enc: HeadingEncoder | None = None) -> None:
         with self._lock:
-            if not self._sysid_set and self.pipeline.system_id is not None:
-                self.encoder.set_system(self.pipeline.system_id)
-                self._sysid_set = True
-            self._write_all(est.t_s, self.encoder.encode(est))
+            if enc is None:
+                enc = self.encoder
+                if not self._sysid_set and self.pipeline.system_id is not None:
+                    enc.set_system(self.pipeline.system_id)
+                    self._sysid_set = True
+            self._write_all(est.t_s, enc.encode(est))
         self.latency_s.append(time.perf_counter() - t_arrival)
         self.published += 1
         if self.on_estimate is not None:
@@ -320,11 +354,15 @@ class Daemon:
     def _housekeeping(self) -> None:
         hb_period = 1.0 / self.cfg.link.heartbeat_hz if self.cfg.link.heartbeat_hz > 0 else 0.0
         next_hb = time.monotonic()
+        next_loss = next_hb + LOSS_WINDOW_S
         while not self._stop.wait(0.05):
             if self._stop_requested:
                 self.stop()
                 break
             now = time.monotonic()
+            if now >= next_loss:
+                next_loss = now + LOSS_WINDOW_S
+                self._check_loss(now)
             if hb_period and now >= next_hb:
                 next_hb = now + hb_period
                 with self._lock:
@@ -333,6 +371,24 @@ class Daemon:
             if not self._silent and self._source is not None and quiet_s > self.cfg.link.silence_s:
                 self._silent = True
                 log.warning("no data from %s for %.0f s (still listening)", self.master, now - self._last_rx)
+
+    def _check_loss(self, now: float) -> None:
+        """Warn when the link lost more than LOSS_WARN_FRACTION of its messages since the last check."""
+        src = self._source
+        conn = getattr(src, "connection", None)
+        if conn is None:
+            return
+        loss, count = int(getattr(conn, "mav_loss", 0)), int(getattr(conn, "mav_count", 0))
+        last = self._loss_seen.get(id(conn), (0, 0))
+        self._loss_seen[id(conn)] = (loss, count)
+        d_loss, d_count = loss - last[0], count - last[1]
+        if d_loss <= 0 or d_loss < LOSS_WARN_FRACTION * (d_loss + d_count):
+            return
+        if now - self._loss_warned_at >= LOSS_WARN_EVERY_S:
+            self._loss_warned_at = now
+            log.warning("the link lost %d of %d messages in the last %.0f s (sequence-number gaps): the "
+                        "link or this machine is too slow for the stream", d_loss, d_loss + d_count,
+                        LOSS_WINDOW_S)  # fmt: skip
 
     # ---------------------------------------------------------------------------------------------- run
 
@@ -375,6 +431,7 @@ class Daemon:
                     self._stop.wait(self.cfg.link.reconnect_s)
                     continue
                 first_failure = True
+                conn = source.connection
                 self._source = source
                 self.connects += 1
                 self._last_rx = time.monotonic()
@@ -406,6 +463,9 @@ class Daemon:
                     with self._lock:
                         self._master_sink = None
                     self._merge_counts(source.counts)
+                    if conn is not None:  # (the link object outlives its closing: its counters too)
+                        self._merge_counts({"lost_messages": int(getattr(conn, "mav_loss", 0)),
+                                            "link_messages": int(getattr(conn, "mav_count", 0))})  # fmt: skip
                     self._source = None
                     source.close()
         finally:
@@ -413,7 +473,16 @@ class Daemon:
             sys.setswitchinterval(old_switch)
             gc.unfreeze()
             hk.join(timeout=2.0)
+            lost, got = self.source_counts.get("lost_messages", 0), self.source_counts.get("link_messages", 0)
+            if lost:
+                msg = (f"the link lost {lost} of {lost + got} messages ({100.0 * lost / (lost + got):.1f} %, "
+                       "sequence-number gaps)")  # fmt: skip
+                log.warning(msg)
+                self.pipeline.warnings.append(msg)
             self.pipeline.close()
+            for p in self.pipelines.values():
+                if p is not self.pipeline:
+                    p.close()
             for sink in self._sinks:
                 sink.close()
             log.info("stopped after %d estimates", self.published)
@@ -421,24 +490,34 @@ class Daemon:
 
     def _pump(self, source: Any) -> None:
         """Samples from the source through the pipeline to the sinks until the source ends or fails."""
-        process = self.pipeline.process
-        for sample in source.samples():
+        key: tuple[int, int] | None = None
+        pipeline, enc = self.pipeline, self.encoder
+        for sender, sample in source.vehicle_samples():
             t_arrival = time.perf_counter()
             self._last_rx = time.monotonic()
             if self._silent:
                 self._silent = False
                 log.info("data from %s again", self.master)
-            est = process(sample)
+            if sender != key:
+                key = sender
+                pipeline, enc = self._vehicle(sender)
+            est = pipeline.process(sample)
             if est is not None:
-                self._publish(est, t_arrival)
+                self._publish(est, t_arrival, enc)
 
     def _merge_counts(self, counts: dict[str, int]) -> None:
         for k, v in counts.items():
             self.source_counts[k] = self.source_counts.get(k, 0) + int(v)
 
     def report(self) -> DaemonReport:
+        summary = self.pipeline.summary()
+        if len(self.pipelines) > 1:  # every vehicle on the link, each with its own summary
+            summary["vehicles"] = [
+                {"system_id": k[0], "component_id": k[1], **p.summary()}
+                for k, p in sorted(self.pipelines.items(), key=lambda kv: kv[0])
+            ]
         return DaemonReport(
-            summary=self.pipeline.summary(),
+            summary=summary,
             source_counts=dict(self.source_counts),
             connects=self.connects,
             link_losses=self.link_losses,

@@ -113,6 +113,8 @@ def replay_log(
     on_text: Callable[[float, str], None] | None = None,
     two_pass: bool = False,
     should_stop: Callable[[], bool] | None = None,
+    on_progress: Callable[[float], None] | None = None,
+    keep_clouds: bool = False,
 ) -> ReplayReport:
     """Run ``path`` (tlog, raw MAVLink, DataFlash .bin/.log) through the pipeline.
 
@@ -122,6 +124,9 @@ def replay_log(
     (KeyboardInterrupt) ends the replay early but keeps what was done: the state is saved, the ``emit``
     file closed, and the report (``interrupted=True``) covers the log up to the last sample. So does
     ``should_stop`` returning True (checked once per batch of samples; e.g. a flag a signal handler sets).
+    ``keep_clouds``: return the calibration clouds (also with ``keep_estimates``).
+    ``on_progress``: called once per batch with the message time reached (s). When the replay fails
+    (an unreadable log) before any heading was written, the ``emit`` file is removed, not left empty.
     """
     from magcomp.adapters.mavlink_source import open_source
 
@@ -160,6 +165,8 @@ def replay_log(
             if should_stop is not None and should_stop():
                 interrupted = True
                 break
+            if on_progress is not None:
+                on_progress(batch[-1].t_s)
             for sample in batch:
                 if not feed(sample):
                     continue
@@ -178,6 +185,12 @@ def replay_log(
                     writer.write_packet(est.t_s, encoder.encode(est))
     except KeyboardInterrupt:
         interrupted = True
+    except BaseException:
+        if writer is not None:
+            writer.close()
+            if writer.packets == 0:  # nothing written: no empty --emit file left behind
+                Path(writer.path).unlink(missing_ok=True)
+        raise
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -195,7 +208,9 @@ def replay_log(
         n_estimates=n,
         emitted=writer.packets if writer is not None else 0,
         estimates=kept,
-        clouds={i: c.calibration_cloud() for i, c in pipeline.correctors.items()} if keep_estimates else {},
+        clouds={i: c.calibration_cloud() for i, c in pipeline.correctors.items()}
+        if keep_estimates or keep_clouds
+        else {},
         interrupted=interrupted,
         t_last_s=float(sample.t_s) if sample is not None else float("nan"),
     )

@@ -1,0 +1,85 @@
+"""Peak memory (resident set size) of the commands on a long simulated log (issue 12: bounded memory).
+
+Writes a simulated flight of ``--hours`` (default 1; the issue's figures were for 4 h) as a tlog, then runs
+each command in its own process and reads that process's peak RSS (``ru_maxrss`` of a wrapper's only
+child). Not a test: run by hand, numbers go into docs/README.
+
+    .venv/bin/python benchmarks/memory.py [--hours 1] [--keep DIR]
+
+Measured on this checkout (2-core machine, --hours 4: 119 MiB tlog, the 1 h flight 4 times):
+replay 270 MiB, replay --rerun save= 344 MiB (1.9 GiB before the estimates were streamed), fit of a 1 h window
+with 200 Monte-Carlo refits 1.70 GiB (3.4 GiB before; what is left is load_log holding the whole log as Python
+objects), diagnose 1.76 GiB (unchanged: the same load_log).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+_WRAPPER = """
+import resource, subprocess, sys, json
+rc = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode
+print(json.dumps({"rc": rc, "peak_kib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))
+"""
+
+
+def peak_mib(cmd: list[str]) -> tuple[float, float, int]:
+    """(peak RSS MiB, wall s, exit code) of one command in a fresh process."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", _WRAPPER, *cmd], capture_output=True, text=True, env=env,
+                         check=True).stdout  # fmt: skip
+    wall = time.perf_counter() - t0
+    doc = json.loads(out.strip().splitlines()[-1])
+    return doc["peak_kib"] / 1024.0, wall, int(doc["rc"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hours", type=float, default=1.0)
+    ap.add_argument("--keep", metavar="DIR", help="write the log (and outputs) here instead of a temp dir")
+    args = ap.parse_args()
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.sim import SimConfig, simulate
+
+    d = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magcomp-mem-"))
+    d.mkdir(parents=True, exist_ok=True)
+    log = d / "long.tlog"
+    t0 = time.perf_counter()
+    # the simulator goes up to 1 h: longer logs are that hour repeated (each copy a reboot of the autopilot)
+    one_h = min(args.hours, 1.0)
+    write_tlog(simulate(SimConfig(scenario="flight", duration_s=one_h * 3600.0, seed=1)), log)
+    copies = max(1, round(args.hours / one_h))
+    if copies > 1:
+        data = log.read_bytes()
+        with log.open("ab") as f:
+            for _ in range(copies - 1):
+                f.write(data)
+    print(f"{log}: {log.stat().st_size / 2**20:.0f} MiB, {args.hours:g} h simulated in "
+          f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
+    py = [sys.executable, "-m", "magcomp"]
+    cases = {
+        "replay": [*py, "replay", str(log)],
+        "replay --rerun save=": [*py, "replay", str(log), "--rerun", f"save={d / 'r.rrd'}"],
+        # a 1 h window (the issue's case: 200 Monte-Carlo refits of it held 3.4 GiB)
+        "fit --start/--end": [*py, "fit", str(log), "--monte-carlo", "200", "--start", "0",
+                              "--end", str(one_h * 3600.0 + 60.0)],
+        "diagnose": [*py, "diagnose", str(log)],
+    }
+    for name, cmd in cases.items():
+        mib, wall, rc = peak_mib(cmd)
+        print(f"{name:22s} peak RSS {mib:7.0f} MiB   wall {wall:6.1f} s   exit {rc}")
+
+
+if __name__ == "__main__":
+    main()
