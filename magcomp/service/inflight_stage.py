@@ -284,7 +284,7 @@ class InflightStage:
         sol = self.solution
         if sol is not None:
             parts.append(f"heading uncertainty {sol.heading_sigma_deg:.1f} deg")
-        return "not observable yet: " + ", ".join(parts)
+        return "not observable: " + ", ".join(parts)
 
     def summary(self) -> dict[str, object]:
         sol = self.solution
