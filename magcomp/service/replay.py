@@ -67,6 +67,8 @@ class MemoryStore:
     def __init__(self) -> None:
         self.states: dict[tuple[int, int], CompassState] = {}
         self.warnings: list[str] = []
+        #: the pipeline's summary at the end of the pass (set by :func:`learn_pass`)
+        self.summary: dict[str, Any] | None = None
 
     def save(self, state: CompassState) -> None:
         self.states[(state.system_id, state.mag_index)] = state
@@ -94,6 +96,7 @@ def learn_pass(
     finally:
         source.close()
         pipeline.close()
+    store.summary = pipeline.summary()
     return store
 
 
