@@ -21,6 +21,9 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.errors import InputError
 
+#: below this standard deviation of throttle^2 theta is not observable (InflightStage.why_not's threshold)
+THROTTLE2_STD_MIN = 0.02
+
 
 def _vec(v: Sequence[Any] | None) -> str:
     if v is None:
@@ -60,10 +63,18 @@ def save_learned_state(log_path: str | Path, cfg: Config, store: StateStore) -> 
         source = cal.get("source", "?")
         inflight = c.get("inflight") or {}
         if source == "in-flight":
-            what = f"calibration and theta learned in flight ({inflight.get('form', '?')} form)"
+            form = inflight.get("form", "?")
             sig = inflight.get("theta_sigma_mgauss")
-            if sig is not None:
-                what += f", theta +- {_vec(sig)} mgauss (1 sd)"
+            thr2 = float(inflight.get("throttle2_std") or 0.0)
+            if thr2 < THROTTLE2_STD_MIN:  # the stage's own observability threshold (why_not)
+                what = (
+                    f"calibration learned in flight ({form} form); theta not observable in this log "
+                    f"(throttle^2 std {thr2:.3f}): the next run goes on learning it"
+                )
+            else:
+                what = f"calibration and theta learned in flight ({form} form)"
+                if sig is not None:
+                    what += f", theta +- {_vec(sig)} mgauss (1 sd)"
         else:
             what = f"calibration {source}, theta from the observer of eq. (20)"
             if not c.get("theta_converged"):
