@@ -1,4 +1,4 @@
-"""Ordinary flight, no hand rotation (issue 9): simulated take-off, hover, yaw turns, climbs, forward flight and
+"""Ordinary flight, no hand rotation (issue 9): simulated take-off, hover, yaw turns, climbs, forward flight,
 landing, the autopilot's yaw fused from the disturbed compass, its own calibration slightly off, telemetry at
 1, 10 and 50 Hz. Each run: simulate -> tlog -> ``replay`` (the product path, causal and two-pass) and an
 oracle replay with the true calibration and theta (no learning), everything else identical.
@@ -37,8 +37,10 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + 180.0) % 360.0 - 180.0
 
 
-def rms_after_learning(result: object, ests: list[HeadingEstimate], mag_index: int = 0) -> tuple[float, float]:
-    """(rms corrected, rms uncorrected) heading error (deg) vs truth, flying samples after LEARN_S of flight."""
+def rms_after_learning(
+    result: object, ests: list[HeadingEstimate], mag_index: int = 0
+) -> tuple[float, float]:
+    """(rms corrected, rms uncorrected) heading error (deg) vs truth, flying, after LEARN_S of flight."""
     s = result.samples  # type: ignore[attr-defined]
     e = [x for x in ests if x.mag_index == mag_index]
     t = np.array([x.t_s for x in e])
@@ -51,7 +53,9 @@ def rms_after_learning(result: object, ests: list[HeadingEstimate], mag_index: i
     m = flying & (t >= t_fly + LEARN_S)
     h = np.array([x.heading_deg for x in e])[m]
     hr = np.array([x.heading_raw_deg for x in e])[m]
-    return float(np.sqrt(np.mean(_wrap(h - truth[m]) ** 2))), float(np.sqrt(np.mean(_wrap(hr - truth[m]) ** 2)))
+    return float(np.sqrt(np.mean(_wrap(h - truth[m]) ** 2))), float(
+        np.sqrt(np.mean(_wrap(hr - truth[m]) ** 2))
+    )
 
 
 def main() -> int:
@@ -98,7 +102,9 @@ def main() -> int:
             print(f"{rate:7g}  {seed:4d}  {c_rms:6.2f}  {t_rms:8.2f}  {raw_rms:11.2f}  {o_rms:6.2f}  "
                   f"{c_rms / o_rms:13.2f}  {th_err:11.1f}  {comp['status']}: {comp['why']}")  # fmt: skip
     print()
-    print("rate Hz  worst causal  worst two-pass  uncorrected  oracle  worst causal/oracle  worst theta err %")
+    print(
+        "rate Hz  worst causal  worst two-pass  uncorrected  oracle  worst causal/oracle  worst theta err %"
+    )
     for rate, rows in worst.items():
         a = np.array(rows)
         print(f"{rate:7g}  {a[:, 0].max():12.2f}  {a[:, 1].max():14.2f}  {a[:, 2].min():11.2f}  "

@@ -1,4 +1,4 @@
-"""Real-flight accuracy: plain ``magcomp replay`` (no configuration) on a measured log with an external compass.
+"""Real-flight accuracy: plain ``magcomp replay`` (no configuration) on a measured log, external compass 0.
 
 The heading of every other compass is compared with compass 0's (the external one, furthest from the power
 wires), both as magcomp publishes them (MAGCOMP_HEADING ``heading``, corrected; ``heading_raw``, the
@@ -16,58 +16,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from magcomp.adapters.config import load_config
+from magcomp.service.evaluate import heading_agreement
 from magcomp.service.replay import replay_log
 
-DEFAULT_LOG = Path(__file__).resolve().parents[1].parent / "shared/data/measured/dronekit_log171_copter33_quad.bin"
+DEFAULT_LOG = (
+    Path(__file__).resolve().parents[1].parent / "shared/data/measured/dronekit_log171_copter33_quad.bin"
+)
 CRASH_AFTER_S = 226.0
-TILT_MAX_RAD = math.radians(45.0)
-
-
-def _rms_deg(err_rad: np.ndarray) -> float:
-    if err_rad.size == 0:
-        return float("nan")
-    e = np.angle(np.exp(1j * err_rad))
-    e = np.angle(np.exp(1j * (e - np.angle(np.mean(np.exp(1j * e))))))
-    return math.degrees(float(np.sqrt(np.mean(e**2))))
-
-
-def heading_errors(estimates: list, ref_index: int = 0) -> dict[str, dict[str, float]]:
-    """Per compass other than ``ref_index``: rms heading difference (deg), raw and corrected."""
-    by: dict[int, dict[str, list[float]]] = {}
-    for e in estimates:
-        d = by.setdefault(e.mag_index, {"t": [], "h": [], "r": [], "thr": []})
-        d["t"].append(e.t_s)
-        d["h"].append(math.radians(e.heading_deg))
-        d["r"].append(math.radians(e.heading_raw_deg))
-        d["thr"].append(e.throttle_01)
-    if ref_index not in by:
-        raise SystemExit(f"no compass {ref_index} in the log")
-    ref = {k: np.asarray(v) for k, v in by[ref_index].items()}
-    t0 = ref["t"][0]
-    out: dict[str, dict[str, float]] = {}
-    for idx, d in sorted(by.items()):
-        if idx == ref_index:
-            continue
-        t = np.asarray(d["t"])
-        keep = t - t0 < CRASH_AFTER_S
-        flying = keep & (np.asarray(d["thr"]) > 0.05)
-        ref_h = np.interp(t, ref["t"], np.unwrap(ref["h"]))
-        ref_r = np.interp(t, ref["t"], np.unwrap(ref["r"]))
-        h, r = np.asarray(d["h"]), np.asarray(d["r"])
-        out[f"compass {idx}"] = {
-            "corrected_all_deg": _rms_deg((h - ref_h)[keep]),
-            "uncorrected_all_deg": _rms_deg((r - ref_r)[keep]),
-            "corrected_flying_deg": _rms_deg((h - ref_h)[flying]),
-            "uncorrected_flying_deg": _rms_deg((r - ref_r)[flying]),
-        }
-    return out
 
 
 def main() -> int:
@@ -81,10 +42,13 @@ def main() -> int:
         return 2
     cfg = load_config(args.config)
     rep = replay_log(args.log, cfg, keep_estimates=True, two_pass=not args.causal)
-    errs = heading_errors(rep.estimates)
-    print(json.dumps(errs, indent=2))
+    errs = heading_agreement(rep.estimates, 0, CRASH_AFTER_S)
+    print(json.dumps({f"compass {k}": v for k, v in errs.items()}, indent=2))
     for c in rep.summary["compasses"]:
-        print(f"compass {c['index']}: {c['status']} ({c['why']}), theta {np.round(c['theta_mgauss'], 1).tolist()}")
+        print(
+            f"compass {c['index']}: {c['status']} ({c['why']}), "
+            f"theta {np.round(c['theta_mgauss'], 1).tolist()}"
+        )
     return 0
 
 

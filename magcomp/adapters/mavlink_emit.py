@@ -250,8 +250,7 @@ def build_messages(result: SimResult, start_unix_s: float | None = None) -> list
     temp_cdeg = np.round(s.imu_temp_degc * 100.0).astype(np.int64)
     t_us = np.round(t * 1e6).astype(np.int64)
     t_ms = np.round(t * 1e3).astype(np.int64)
-    raw_rows = range(n) if rates.raw_imu_hz is None else _rate_indices(n, rates.imu_hz, rates.raw_imu_hz)
-    for i in raw_rows:
+    for i in _raw_imu_rows(result):
         a, w, m = acc_mg[0, i], gyro_mrad[0, i], mag[0, i]
         events.append(
             (
@@ -403,7 +402,24 @@ def build_messages(result: SimResult, start_unix_s: float | None = None) -> list
             result, default_start_unix_s(result) if start_unix_s is None else start_unix_s
         )
     events.sort(key=lambda e: (e[0], e[1]))
-    return events
+    return _apply_link_loss(events, result)
+
+
+def _raw_imu_rows(result: SimResult) -> range | NDArray[np.int64]:
+    """Loop rows that carry a RAW_IMU / HIGHRES_IMU / SCALED_IMU message (every row unless raw_imu_hz)."""
+    rates = result.config.rates
+    n = result.samples.t_s.size
+    return range(n) if rates.raw_imu_hz is None else _rate_indices(n, rates.imu_hz, rates.raw_imu_hz)
+
+
+def _apply_link_loss(events: list[tuple[float, int, Any]], result: SimResult) -> list[tuple[float, int, Any]]:
+    """A lossy telemetry link (``link_loss``): each message lost independently (seeded), parameters kept."""
+    cfg = result.config
+    loss = cfg.variation.link_loss
+    if loss <= 0.0:
+        return events
+    keep = np.random.default_rng([cfg.seed, 0x1055]).random(len(events)) >= loss
+    return [e for e, k in zip(events, keep, strict=True) if k or e[1] < 0]
 
 
 MAV_AUTOPILOT_PX4 = 12
@@ -457,7 +473,7 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
     mag = np.round(s.mag_mgauss).astype(np.int64)
     t_us = np.round(t * 1e6).astype(np.int64)
     t_ms = np.round(t * 1e3).astype(np.int64)
-    for i in range(n):
+    for i in _raw_imu_rows(result):
         a, w, m = acc[0, i], gyro[0, i], mag[0, i]
         events.append((float(t[i]), 1, apm.MAVLink_highres_imu_message(
             int(t_us[i]), *(float(v) for v in a), *(float(v) for v in w), *(float(v) * 1e-3 for v in m),
@@ -498,12 +514,15 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
             round(loc.lon_deg * 1e7),
             round(float(s.alt_m[i]) * 1e3),
         )
+        if s.gps_lat_deg is not None and s.gps_lon_deg is not None and s.gps_alt_msl_m is not None:
+            lat_e7, lon_e7 = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
+            alt_mm = round(float(s.gps_alt_msl_m[i]) * 1e3)  # the flown track (``gps`` on)
         gps = apm.MAVLink_gps_raw_int_message(int(t_us[i]), 3, lat_e7, lon_e7, alt_mm, 100, 150, 0, 0, 12)
         events.append((float(t[i]), 9, gps))
         unix_us = round((start_unix + float(t[i])) * 1e6)
         events.append((float(t[i]), 10, apm.MAVLink_system_time_message(unix_us, int(t_ms[i]) & 0xFFFFFFFF)))
     events.sort(key=lambda e: (e[0], e[1]))
-    return events
+    return _apply_link_loss(events, result)
 
 
 def encode_stream(

@@ -117,9 +117,8 @@ class InflightStage:
                 self.est.prior_mean, self._warm[0]
             ):
                 self.warm_started = True
-                # applied from the first sample only when the stored estimate had passed the test for being
-                # applied (files without the flag predate it: applied, as before)
-                self.applied = bool(warm.get("applied", True))
+                # applied from the first sample only if the run it comes from had found it good enough
+                self.applied = bool(warm.get("applied", False))
             else:
                 self.est, self.n_motors, self._warm = None, -1, None
 
@@ -264,8 +263,13 @@ class InflightStage:
         if self.est is None or (self.est.n == 0 and not self.warm_started):
             return None
         mean, sd = self.est.state()
-        return {"form": self.mode, "n_motors": self.n_motors, "mean": mean.tolist(), "sd": sd.tolist(),
-                "applied": self.applied}  # fmt: skip
+        return {
+            "form": self.mode,
+            "n_motors": self.n_motors,
+            "mean": mean.tolist(),
+            "sd": sd.tolist(),
+            "applied": self.applied,
+        }
 
     # ----------------------------------------------------------------------------------------- summary
 

@@ -16,7 +16,9 @@ CLI::
     --set lat_deg=46.05 --set lon_deg=14.5 --set alt_m=300 --set decimal_year=2026.4   # WMM place/date
     --set mag_ar1_sigma_mgauss=3 --set mag_ar1_tau_s=5 --set mag_rw_mgauss_per_sqrt_s=0.2
     --set mag_lsb_mgauss=3 --set mag_noise_scale=0.5 --set att_roll_bias_deg=1.5 --set att_yaw_bias_deg=2
-    --set seed=7 --set vehicle=multirotor --set n_compasses=3 --set gps=on
+    --set seed=7 --set vehicle=multirotor --set n_compasses=3 --set gps=on --set theta_mgauss=-40,20,5
+    --set theta_scale=0.5 --set hover_throttle=0.4 --set current_max_a=60 --set link_loss=0.05
+    --set ap_kp_yaw=0.2 --set ap_kp_tilt=2 --set gyro_noise_scale=3 --set gyro_bias_scale=0
 
 API::
 
@@ -88,6 +90,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
+
+import numpy as np
 
 from magcomp.errors import InputError
 
@@ -225,6 +229,15 @@ class Variation:
     att_roll_bias_deg, att_pitch_bias_deg, att_yaw_bias_deg: constant errors of the reported ATTITUDE
     att_noise_deg: white noise on each reported ATTITUDE angle
     gps: emit GPS_RAW_INT, GLOBAL_POSITION_INT and SYSTEM_TIME
+    ap_kp_yaw, ap_kp_tilt: the autopilot's complementary-filter gains (1/s; 0.5 and 1.0): how fast its
+        yaw follows the compass (or GPS yaw) and its tilt the accelerometer
+    gyro_noise_scale, gyro_bias_scale: multiply each IMU's gyro noise sigma (3 mrad/s) and bias draw
+    hover_throttle: the multirotor's hover collective in ``ordinary`` (None: 0.5)
+    current_max_a: battery current at full throttle (None: 40 A multirotor, 20 A fixed wing); the bias
+        follows theta * throttle^2 whatever the current scale
+    theta_scale: multiplies theta of every compass (theta's size; ``theta_mgauss`` sets compass 0's)
+    link_loss: fraction of messages lost on the link (each dropped independently, seeded; parameters are
+        never dropped), as in a telemetry tlog
     """
 
     mag_ar1_sigma_mgauss: float = 0.0
@@ -243,9 +256,27 @@ class Variation:
     att_yaw_bias_deg: float = 0.0
     att_noise_deg: float = 0.0
     gps: bool | None = None
+    ap_kp_yaw: float = 0.5
+    ap_kp_tilt: float = 1.0
+    gyro_noise_scale: float = 1.0
+    gyro_bias_scale: float = 1.0
+    hover_throttle: float | None = None
+    current_max_a: float | None = None
+    theta_scale: float = 1.0
+    link_loss: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.hover_throttle is not None and not (0.2 <= self.hover_throttle <= 0.7):
+            raise InputError(f"hover_throttle={self.hover_throttle}: must be in [0.2, 0.7]")
+        if self.current_max_a is not None and not (1.0 <= self.current_max_a <= 500.0):
+            raise InputError(f"current_max_a={self.current_max_a}: must be in [1, 500] A")
         bounds = {
+            "ap_kp_yaw": (0.01, 10.0),
+            "ap_kp_tilt": (0.01, 10.0),
+            "gyro_noise_scale": (0.0, 20.0),
+            "gyro_bias_scale": (0.0, 20.0),
+            "theta_scale": (0.0, 10.0),
+            "link_loss": (0.0, 0.5),
             "mag_ar1_sigma_mgauss": (0.0, 100.0),
             "mag_ar1_tau_s": (0.01, 1000.0),
             "mag_rw_mgauss_per_sqrt_s": (0.0, 10.0),
@@ -403,7 +434,17 @@ def parse_effect(text: str) -> tuple[str, float]:
 
 #: ``--set`` keys that are not Variation fields: rates (Hz) and run-level settings
 RATE_KEYS = ("mag_hz", "raw_imu_hz", "attitude_hz", "gps_hz", "loop_hz", "telemetry_hz")
-RUN_KEYS = ("seed", "vehicle", "n_compasses", "duration_s", "lat_deg", "lon_deg", "alt_m", "decimal_year")
+RUN_KEYS = (
+    "seed",
+    "vehicle",
+    "n_compasses",
+    "duration_s",
+    "theta_mgauss",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "decimal_year",
+)
 
 
 def setting_keys() -> tuple[str, ...]:
@@ -446,16 +487,18 @@ def _loop_rate_for(truth_hz: float, needed_hz: float) -> float:
     raise InputError(f"rate {needed_hz} Hz above the truth rate {truth_hz} Hz")
 
 
-def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -> SimConfig:
+def apply_settings(config: SimConfig, settings: Mapping[str, object] | list[str]) -> SimConfig:
     """A copy of ``config`` with ``KEY=VALUE`` settings (``--set``) applied; see the module docstring.
 
     Rates: a rate above the autopilot loop (``imu_hz``, default 50 Hz) raises the loop to the slowest rate
     that divides the truth rate and carries it (e.g. mag_hz=100 -> a 100 Hz loop). ``telemetry_hz=R`` sets
-    RAW_IMU, ATTITUDE and SERVO_OUTPUT_RAW to R Hz and RC/VFR_HUD/power to min(R, 10) Hz, like a telemetry
-    link's SR*_ stream rates."""
+    RAW_IMU, ATTITUDE and SERVO_OUTPUT_RAW to R Hz, RC/VFR_HUD/power to min(R, 10) Hz and GPS to min(R, 5)
+    Hz, like a telemetry link's SR*_ stream rates."""
     pairs: dict[str, str] = {}
     items: list[tuple[str, str]] = (
-        list(settings.items()) if isinstance(settings, Mapping) else [_split(text) for text in settings]
+        [(k, v if isinstance(v, str) else str(v)) for k, v in settings.items()]
+        if isinstance(settings, Mapping)
+        else [_split(text) for text in settings]
     )
     for key, value in items:
         pairs[key.strip()] = value
@@ -486,6 +529,12 @@ def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -
                 )
         elif key in ("seed", "n_compasses"):
             run_changes[key] = _parse_value(key, text, "int")
+        elif key == "theta_mgauss":
+            parts = text.replace(";", ",").split(",")
+            values = [_parse_value(key, part, "float") for part in parts]
+            if len(values) != 3:
+                raise InputError(f"--set theta_mgauss={text}: expected three numbers X,Y,Z (mgauss)")
+            run_changes[key] = tuple(values)
         elif key == "duration_s":
             run_changes[key] = _parse_value(key, text, "float")
         else:
@@ -500,6 +549,7 @@ def apply_settings(config: SimConfig, settings: Mapping[str, str] | list[str]) -
             kw.update(
                 raw_imu_hz=tele, attitude_hz=tele, servo_hz=tele, rc_hz=min(tele, 10.0),
                 vfr_hud_hz=min(tele, 10.0), power_hz=min(tele, 10.0), heartbeat_hz=min(tele, 1.0),
+                gps_hz=min(tele, 5.0),
             )  # fmt: skip
         loop = rate_changes.pop("loop_hz", None)
         kw.update(rate_changes)
@@ -532,3 +582,54 @@ def _split(text: str) -> tuple[str, str]:
     if not sep or not key.strip():
         raise InputError(f"--set {text!r}: expected KEY=VALUE, e.g. mag_hz=10")
     return key, value
+
+
+def sample_variation(rng: np.random.Generator) -> dict[str, str]:
+    """One random draw of the knobs over plausible ranges (issue 10's "deliberately varied" clean logs);
+    feed it to :func:`apply_settings`. Ranges (each independent):
+
+    rates: 40 % telemetry-like (RAW_IMU = ATTITUDE = 1, 2, 4 or 10 Hz, link loss 0-5 %), else an onboard
+    rate (RAW_IMU 10-100 Hz, compass updates 10 Hz .. the RAW_IMU rate, ATTITUDE 1-50 Hz); compass LSB
+    0.15 / 0.92 / 1.5 / 3 mgauss, white noise x0.3-2, AR(1) 0-5 mgauss with tau 0.5-10 s, random walk
+    0-0.3 mgauss/sqrt(s); autopilot yaw: 60 % its internal compass, 20 % an external compass 0, 20 % GPS
+    yaw; autopilot calibration on 80 % (residual hard iron 0-40 mgauss, soft iron 0-5 %); ATTITUDE biases
+    roll/pitch +-2 deg, yaw +-3 deg, noise 0-0.5 deg; filter gains kp_yaw 0.2-1, kp_tilt 0.5-2; gyro noise
+    x0.5-3, bias x0-2; hover throttle 0.35-0.6; theta x0.3-2; place: latitude +-60 deg, any longitude, date
+    2025.0-2029.9; seed 0-2^31. The scenario (``ordinary`` multirotor or ``ordinary_plane``) is the caller's
+    choice."""
+    out: dict[str, float | str] = {}
+    if rng.random() < 0.4:
+        out["telemetry_hz"] = float(rng.choice([1.0, 2.0, 4.0, 10.0]))
+        out["link_loss"] = round(float(rng.uniform(0.0, 0.05)), 4)
+    else:
+        raw = float(rng.choice([10.0, 20.0, 25.0, 50.0, 100.0]))
+        out["raw_imu_hz"] = raw
+        out["mag_hz"] = round(float(np.exp(rng.uniform(math.log(10.0), math.log(raw)))), 2)
+        out["attitude_hz"] = float(rng.choice([1.0, 2.0, 4.0, 10.0, 25.0, 50.0]))
+    out["mag_lsb_mgauss"] = float(rng.choice([0.15, 0.92, 1.5, 3.0]))
+    out["mag_noise_scale"] = round(float(rng.uniform(0.3, 2.0)), 3)
+    out["mag_ar1_sigma_mgauss"] = round(float(rng.uniform(0.0, 5.0)), 3)
+    out["mag_ar1_tau_s"] = round(float(np.exp(rng.uniform(math.log(0.5), math.log(10.0)))), 3)
+    out["mag_rw_mgauss_per_sqrt_s"] = round(float(rng.uniform(0.0, 0.3)), 4)
+    yaw = rng.random()
+    out["yaw_source"] = "truth" if yaw < 0.2 else "compass"
+    out["external_compass0"] = "on" if 0.2 <= yaw < 0.4 else "off"
+    out["n_compasses"] = 2 if out["external_compass0"] == "on" else int(rng.choice([1, 2, 3]))
+    out["ap_calibration"] = "on" if rng.random() < 0.8 else "off"
+    out["ap_cal_hard_iron_mgauss"] = round(float(rng.uniform(0.0, 40.0)), 2)
+    out["ap_cal_soft_iron"] = round(float(rng.uniform(0.0, 0.05)), 4)
+    out["att_roll_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
+    out["att_pitch_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
+    out["att_yaw_bias_deg"] = round(float(rng.uniform(-3.0, 3.0)), 3)
+    out["att_noise_deg"] = round(float(rng.uniform(0.0, 0.5)), 3)
+    out["ap_kp_yaw"] = round(float(rng.uniform(0.2, 1.0)), 3)
+    out["ap_kp_tilt"] = round(float(rng.uniform(0.5, 2.0)), 3)
+    out["gyro_noise_scale"] = round(float(rng.uniform(0.5, 3.0)), 3)
+    out["gyro_bias_scale"] = round(float(rng.uniform(0.0, 2.0)), 3)
+    out["hover_throttle"] = round(float(rng.uniform(0.35, 0.6)), 3)
+    out["theta_scale"] = round(float(rng.uniform(0.3, 2.0)), 3)
+    out["lat_deg"] = round(float(rng.uniform(-60.0, 60.0)), 4)
+    out["lon_deg"] = round(float(rng.uniform(-180.0, 180.0)), 4)
+    out["decimal_year"] = round(float(rng.uniform(2025.0, 2029.9)), 3)
+    out["seed"] = int(rng.integers(0, 2**31))
+    return {k: str(v) for k, v in out.items()}

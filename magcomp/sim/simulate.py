@@ -7,6 +7,11 @@ Pipeline (pure: no I/O; the Earth field comes from :mod:`magcomp.geomag` unless 
     motion (trajectory.py, exact SO(3) integration at truth_hz, eq. (18))
     -> powertrain (powertrain.py, eqs. (4)-(11) + hidden effects) -> bias per compass (eq. (11))
     -> sensors (sensors.py, eq. (1)) sampled at imu_hz -> autopilot attitude (autopilot.py)
+    [-> the autopilot's own compass calibration, logged = A (v - b_ap) (sensors.AutopilotCalibration),
+       when config.ap_calibration; the autopilot then steers by that calibrated field, or by GPS yaw]
+
+The variation knobs (config.Variation) draw from their own random streams, so with every knob at its
+default a pre-knob scenario reproduces its earlier output exactly (config.SimConfig.legacy).
 
 Symbol table: theta -> CompassTruth.theta_mgauss (calibrated frame, mgauss); delta_t -> throttle_01;
 B -> bias_mgauss (calibrated frame, mgauss, body); K, b -> k_matrix, b_mgauss (eq. (1)); u^e ->
@@ -162,7 +167,9 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     var = config.variation
     rates = config.rates
     dt = 1.0 / rates.truth_hz
-    motion = build_motion(config.scenario, config.duration, config.vehicle, dt, rng_motion)
+    motion = build_motion(
+        config.scenario, config.duration, config.vehicle, dt, rng_motion, config.variation.hover_throttle
+    )
     n = motion.t_s.shape[0]
     t_s = config.t0_s + motion.t_s
     effects = dict(config.effects)
@@ -171,13 +178,16 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
 
     compasses = make_compasses(
         config.n_compasses,
-        np.asarray(config.theta_mgauss, dtype=float),
+        np.asarray(config.theta_mgauss, dtype=float) * var.theta_scale,
         motion.motors_cmd_01.shape[1],
         effects.get("per_motor", 0.0),
         rng_params,
     )
     compasses = _vary_compasses(config, compasses)
-    pt_params = PowertrainParams(current_max_a=40.0 if multirotor else 20.0)
+    current_max = config.variation.current_max_a
+    pt_params = PowertrainParams(
+        current_max_a=(40.0 if multirotor else 20.0) if current_max is None else current_max
+    )
     command = motion.motors_cmd_01 if per_motor else motion.throttle_cmd_01[:, None]
     power = simulate_powertrain(motion.t_s, command, dt, effects, pt_params)
 
@@ -247,7 +257,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         motion.accel_n_m_s2[idx],
         step * dt,
         decl,
-        AutopilotParams(),
+        AutopilotParams(kp_tilt=var.ap_kp_tilt, kp_yaw=var.ap_kp_yaw),
         yaw_ref_rad=yaw_ref,
     )
     attitude = euler_from_quats(att_q)
@@ -325,7 +335,7 @@ def _vary_compasses(config: SimConfig, compasses: tuple[CompassTruth, ...]) -> t
     var = config.variation
     out = list(compasses)
     if var.external_compass0:
-        theta_cfg = np.asarray(config.theta_mgauss, dtype=float)
+        theta_cfg = np.asarray(config.theta_mgauss, dtype=float) * var.theta_scale
         r0, r_ext = compasses[0].distance_m, EXTERNAL_COMPASS_DISTANCE_M
         for j, (theta, dist) in enumerate([(theta_cfg * (r0 / r_ext) ** 2, r_ext), (theta_cfg, r0)]):
             c = out[j]
@@ -338,6 +348,15 @@ def _vary_compasses(config: SimConfig, compasses: tuple[CompassTruth, ...]) -> t
                 theta_motor_mgauss=theta + spread * float(np.linalg.norm(theta)),
                 distance_m=dist,
             )
+    if var.gyro_noise_scale != 1.0 or var.gyro_bias_scale != 1.0:
+        out = [
+            dataclasses.replace(
+                c,
+                gyro_noise_rad_s=c.gyro_noise_rad_s * var.gyro_noise_scale,
+                gyro_bias_rad_s=c.gyro_bias_rad_s * var.gyro_bias_scale,
+            )
+            for c in out
+        ]
     if var.mag_noise_scale != 1.0 or var.mag_lsb_mgauss is not None:
         out = [
             dataclasses.replace(

@@ -227,11 +227,19 @@ def _staircase(n: int, dt_s: float) -> F64:
 
 
 def build_motion(
-    scenario: str, duration_s: float, vehicle: str, dt_s: float, rng: np.random.Generator
+    scenario: str,
+    duration_s: float,
+    vehicle: str,
+    dt_s: float,
+    rng: np.random.Generator,
+    hover_throttle: float | None = None,
 ) -> Motion:
-    """Truth motion and throttle for one scenario (see the module docstring)."""
+    """Truth motion and throttle for one scenario (see the module docstring). ``hover_throttle``: the
+    multirotor's hover collective in the ``ordinary`` scenario (None: HOVER_THROTTLE)."""
     if scenario == "ordinary":
-        return _ordinary_multirotor(duration_s, dt_s, rng)
+        return _ordinary_multirotor(
+            duration_s, dt_s, rng, HOVER_THROTTLE if hover_throttle is None else hover_throttle
+        )
     if scenario == "ordinary_plane":
         return _ordinary_fixedwing(duration_s, dt_s, rng)
     if scenario == "flight":
@@ -430,7 +438,7 @@ CLIMB_THROTTLE_PER_M_S = 0.055  # extra collective per m/s of climb (induced + v
 DRAG_PER_M = 0.036  # horizontal drag acceleration = DRAG_PER_M * v^2: tilt 16 deg at 9 m/s, 20 at 10 m/s
 
 
-def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generator) -> Motion:
+def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generator, hover: float) -> Motion:
     """Ordinary multirotor flight (see ORDINARY_PLAN): segment durations scale with ``duration_s`` (nominal
     301 s); the number of full yaw turns is kept (at least one per turning segment), speeds and climb rates
     are kept, so altitudes scale. Tilt comes from the thrust needed against gravity, drag (v^2) and the
@@ -492,7 +500,7 @@ def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generato
     g_load = np.linalg.norm(f_n, axis=1) / STANDARD_GRAVITY_M_S2
     gust = _smooth(rng.normal(0.0, 1.0, n), dt_s, 1.0)
     gust *= 0.02 / max(float(np.std(gust)), 1e-12)
-    thr = HOVER_THROTTLE * np.sqrt(g_load) + CLIMB_THROTTLE_PER_M_S * climb + np.clip(gust, -0.04, 0.04)
+    thr = hover * np.sqrt(g_load) + CLIMB_THROTTLE_PER_M_S * climb + np.clip(gust, -0.04, 0.04)
     thr = np.where(ground, IDLE_THROTTLE, thr)
     thr = np.where(off, 0.0, _smooth(thr, dt_s, 0.5))
     thr = np.clip(thr, 0.0, 0.95)

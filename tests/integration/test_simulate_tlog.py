@@ -410,3 +410,16 @@ def test_pre_knob_outputs_are_unchanged(tmp_path: Path) -> None:
         assert path.read_bytes() == (root / f"{stem}.tlog").read_bytes(), stem
         json_path = truth_paths(path)[0]
         assert json_path.read_text() == (root / json_path.name).read_text(), stem
+
+
+def test_px4_flavour_follows_the_rate_knobs_and_the_flown_track(tmp_path: Path) -> None:
+    from magcomp.sim.config import apply_settings
+
+    cfg = apply_settings(SimConfig(scenario="ordinary", duration_s=40.0, seed=1), ["telemetry_hz=2"])
+    result = simulate(cfg)
+    path = tmp_path / "px4.tlog"
+    write_tlog(result, path, flavour="px4")
+    msgs = decode(path)
+    assert message_rate_hz(msgs["HIGHRES_IMU"]) == pytest.approx(2.0, rel=0.05)
+    lat = np.array([m.lat for m in msgs["GPS_RAW_INT"]]) * 1e-7
+    assert np.ptp(lat) > 1e-6  # the fixes follow the vehicle, not the take-off point

@@ -40,8 +40,10 @@ def _flight(n: int, seed: int, throttle_varies: bool = True) -> tuple[np.ndarray
     return r, thr, yaw
 
 
-def _measure(r: np.ndarray, thr: np.ndarray, a_mat: np.ndarray, d: np.ndarray, seed: int, noise: float) -> np.ndarray:
-    """y = A R^T h + d + A theta throttle^2 + noise (theta in the calibrated frame, as the pipeline reports)."""
+def _measure(
+    r: np.ndarray, thr: np.ndarray, a_mat: np.ndarray, d: np.ndarray, seed: int, noise: float
+) -> np.ndarray:
+    """y = A R^T h + d + A theta throttle^2 + noise (theta in the calibrated frame, as reported)."""
     rng = np.random.default_rng(seed + 100)
     u = np.einsum("nji,j->ni", r, H_NED) + np.outer(thr**2, THETA)
     return u @ a_mat.T + d + rng.normal(0.0, noise, (len(thr), 3))

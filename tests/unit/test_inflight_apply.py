@@ -50,9 +50,9 @@ def test_stored_estimate_not_yet_applied_is_applied_once_certain() -> None:
 
 
 def test_stored_estimate_that_was_applied_is_applied_from_the_first_sample() -> None:
-    for applied in (True, None):  # None: a state file written before the flag existed
-        st = _stage(150.0, applied=applied)
-        assert st.applied
-        assert st.output(1.0, FIELD, 0.0, ()) is not None
-        state = st.state()
-        assert state is not None and state["applied"] is True
+    st = _stage(150.0, applied=True)
+    assert st.applied
+    assert st.output(1.0, FIELD, 0.0, ()) is not None
+    state = st.state()
+    assert state is not None and state["applied"] is True
+    assert not _stage(150.0, applied=None).applied  # a file without the flag: not applied until it passes

@@ -3,6 +3,7 @@ guarantee that a run with every knob at its default is the pre-knob run."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -153,3 +154,70 @@ def test_cli_set_reaches_the_simulation(tmp_path: Path, capsys: pytest.CaptureFi
     code = main(["simulate", "--scenario", "ordinary", "--set", "bogus=1", "--out", str(out)])
     err = capsys.readouterr().err.strip()
     assert code != 0 and "unknown setting" in err and len(err.splitlines()) == 1
+
+
+def test_vehicle_and_sensor_knobs_change_what_they_name() -> None:
+    base = SimConfig(scenario="ordinary", duration_s=60.0, earth_field_ned_mgauss=FIELD, seed=6)
+    plain = simulate(base)
+    varied = simulate(
+        apply_settings(
+            base,
+            [
+                "hover_throttle=0.4",
+                "current_max_a=60",
+                "theta_scale=0.5",
+                "gyro_bias_scale=0",
+                "gyro_noise_scale=2",
+                "ap_kp_yaw=0.2",
+            ],
+        )
+    )
+    hover = plain.motion.segment == plain.motion.segment_names.index("hover")
+    assert np.median(plain.motion.throttle_cmd_01[hover]) == pytest.approx(0.5, abs=0.02)
+    assert np.median(varied.motion.throttle_cmd_01[hover]) == pytest.approx(0.4, abs=0.02)
+    thr = varied.motion.throttle_cmd_01
+    np.testing.assert_allclose(varied.power.current_a, 60.0 * thr**2, atol=1e-9)  # eq. (11) chain, I_max
+    for a, b in zip(plain.compasses, varied.compasses, strict=True):
+        np.testing.assert_allclose(b.theta_mgauss, 0.5 * a.theta_mgauss, atol=1e-12)
+        np.testing.assert_array_equal(b.gyro_bias_rad_s, 0.0)
+        assert b.gyro_noise_rad_s == pytest.approx(2.0 * a.gyro_noise_rad_s)
+    with_theta = apply_settings(base, ["theta_mgauss=-40,20,5"])
+    assert with_theta.theta_mgauss == (-40.0, 20.0, 5.0)
+    with pytest.raises(InputError, match="three numbers"):
+        apply_settings(base, ["theta_mgauss=1,2"])
+
+
+def test_link_loss_drops_that_fraction_of_messages_but_no_parameter() -> None:
+    from magcomp.adapters.mavlink_emit import build_messages
+
+    base = apply_settings(SimConfig(scenario="ordinary", duration_s=40.0, earth_field_ned_mgauss=FIELD), [])
+    full = build_messages(simulate(base))
+    lossy = build_messages(simulate(apply_settings(base, ["link_loss=0.1"])))
+
+    def count(events: list[tuple[float, int, object]], prio: int) -> int:
+        return sum(1 for e in events if e[1] == prio)
+
+    assert count(lossy, -1) == count(full, -1)  # PARAM_VALUE all there
+    n_full, n_lossy = count(full, 1), count(lossy, 1)  # RAW_IMU
+    sigma = math.sqrt(0.1 * 0.9 / n_full)
+    assert n_lossy / n_full == pytest.approx(0.9, abs=4 * sigma)
+
+
+def test_sampled_variations_are_valid_and_simulate() -> None:
+    from magcomp.adapters.mavlink_emit import build_messages
+    from magcomp.sim.config import sample_variation
+
+    rng = np.random.default_rng(10)
+    draws = [sample_variation(rng) for _ in range(40)]
+    configs = [apply_settings(SimConfig(scenario="ordinary", duration_s=8.0), d) for d in draws]
+    assert not any(c.legacy for c in configs)
+    assert {c.variation.yaw_source for c in configs} == {"compass", "truth"}
+    assert any(c.variation.external_compass0 for c in configs)
+    raw_rates = [c.rates.raw_imu_rate for c in configs]
+    assert min(raw_rates) <= 2.0 and max(raw_rates) >= 50.0  # telemetry-like and onboard rates both drawn
+    for cfg in configs[:3]:
+        plane = dataclasses.replace(cfg, scenario="ordinary_plane")
+        for c in (cfg, plane):
+            assert build_messages(simulate(c))  # every draw runs end to end
+    # numbers as values work as well as strings
+    assert apply_settings(SimConfig(scenario="ordinary"), {"mag_hz": 10, "gps": False}).rates.mag_rate == 10.0
