@@ -56,6 +56,9 @@ class OnboardMotorComp:
         self.current_a: float | None = None
         # per compass: sum of o_k delta_k^2 (3), sum of delta_k^4, samples undone, last MOT vector
         self._sums: dict[int, list[Any]] = {}
+        #: compasses whose COMPASS_MOT* is not a finite number (NaN: the autopilot's own output is then NaN
+        #: too, or it ignores the compensation; either way it cannot be undone)
+        self.invalid: set[int] = set()
 
     def param(self, name: str, value: float) -> None:
         if name.startswith("COMPASS_MOT") or name == "COMPASS_PMOT_EN":
@@ -86,6 +89,10 @@ class OnboardMotorComp:
         if mot is None or x is None or not math.isfinite(x):
             counts["motor_comp_unknown"] += 1
             return None
+        if not all(math.isfinite(v) for v in mot):
+            self.invalid.add(index)
+            counts["motor_comp_invalid"] += 1
+            return None
         if not (mot[0] or mot[1] or mot[2]):
             return None
         o = (mot[0] * x, mot[1] * x, mot[2] * x)
@@ -105,6 +112,14 @@ class OnboardMotorComp:
         """Per compass whose compensation was undone: COMPASS_MOTCT, the last MOT vector, the samples, and
         the equivalent theta of eq. (11) in the logged frame (None without throttle^2 excitation)."""
         out: dict[int, dict[str, Any]] = {}
+        for idx in sorted(self.invalid - set(self._sums)):
+            out[idx] = {
+                "motct": self.motct,
+                "mot": None,
+                "samples_undone": 0,
+                "theta_equivalent_mgauss": None,
+                "invalid": True,
+            }
         for idx, (s_od2, s_d4, n, mot) in sorted(self._sums.items()):
             theta = None if s_d4 <= 1e-9 else (-s_od2 / s_d4).tolist()
             out[idx] = {
@@ -121,6 +136,14 @@ def onboard_comp_warnings(report: dict[int, dict[str, Any]], summary: dict[str, 
     than the learned theta's uncertainty (chi-square over its 1-sigma, 1 % false alarms; see CHI2_3DOF_99).
     Compared in the calibrated frame (the learned L maps the logged-frame equivalent there)."""
     out = []
+    for idx, bad in sorted(report.items()):
+        if bad.get("invalid"):
+            pre = _prefix(idx).rstrip("_")
+            out.append(
+                f"compass {idx}: {pre}_X/Y/Z is not a finite number with COMPASS_MOTCT={bad['motct']}: the "
+                "autopilot's own motor compensation cannot be undone (its compass output is suspect; re-run "
+                "compassmot or set COMPASS_MOTCT = 0)"
+            )
     for c in summary.get("compasses", []):
         rep = report.get(int(c["index"]))
         inflight = c.get("inflight") or {}

@@ -53,7 +53,11 @@ def _throttle_at_mags(records: list[bytes]) -> np.ndarray:
 
 
 def _compensate(
-    src: Path, dst: Path, mots: dict[int, np.ndarray], split: Callable[[bytes], list[bytes]]
+    src: Path,
+    dst: Path,
+    mots: dict[int, np.ndarray],
+    split: Callable[[bytes], list[bytes]],
+    apply: bool = True,
 ) -> None:
     """``dst``: ``src`` as an ArduPilot with COMPASS_MOTCT = 1 and these COMPASS_MOT vectors would send it:
     every compass field + MOT * throttle (from the start: the autopilot compensates whether or not anyone
@@ -81,7 +85,7 @@ def _compensate(
         if kind == "VFR_HUD":
             thr = msg.throttle * 0.01
         j = _MAG_INDEX.get(kind)
-        if j is None or j not in mots or not (msg.xmag or msg.ymag or msg.zmag):
+        if not apply or j is None or j not in mots or not (msg.xmag or msg.ymag or msg.zmag):
             out.append(r)
             continue
         m = mots[j]
@@ -151,3 +155,19 @@ def test_a_right_onboard_compensation_is_not_reported(
     np.testing.assert_allclose(onboard["theta_equivalent_mgauss"], result.theta_logged_mgauss(0), atol=1.0)
     assert onboard["differs"] is False
     assert not any(w.startswith("compass 0: the autopilot's own") for w in rep.summary["warnings"])
+
+
+def test_nan_onboard_compensation_is_reported_and_loses_no_sample(
+    twin: tuple[Any, Path], tmp_path: Path, split_tlog: Callable[[bytes], list[bytes]]
+) -> None:
+    """COMPASS_MOTCT = 1 with COMPASS_MOT_X/Y/Z = NaN (as in the measured ArduCopter 3.1.1 log): nothing can
+    be undone; the fields pass unchanged (no sample turned into NaN and dropped) and a warning says why."""
+    _, twin_path = twin
+    path = tmp_path / "nan.tlog"
+    _compensate(twin_path, path, {0: np.full(3, np.nan)}, split_tlog, apply=False)
+    ref = replay_log(twin_path, Config(), two_pass=False)
+    rep = replay_log(path, Config(), two_pass=False)
+    assert rep.n_estimates == ref.n_estimates and rep.summary["counts"]["non_finite"] == 0
+    assert rep.source_counts["motor_comp_invalid"] > 0 and "motor_comp_removed" not in rep.source_counts
+    assert rep.summary["onboard_motor_compensation"]["0"]["invalid"] is True
+    assert any("COMPASS_MOT_X/Y/Z is not a finite number" in w for w in rep.summary["warnings"])
