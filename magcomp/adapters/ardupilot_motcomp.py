@@ -13,8 +13,9 @@ SCALED_IMU2/3 is ``y_logged = y + mot * x`` and the field the motors disturbed i
 with x = VFR_HUD.throttle / 100 (COMPASS_MOTCT = 1) or SYS_STATUS.current_battery (A, COMPASS_MOTCT = 2),
 the latest value received (the autopilot itself updates the compass at 10 Hz from its latest throttle).
 
-DataFlash logs record the applied offset itself (MAG.MOfsX..), which the source subtracts directly; this
-module is for MAVLink (tlogs and live links), which carry only the compensated field.
+DataFlash logs record the applied offset itself (MAG.MOfsX..), which the source subtracts directly (and
+hands to :meth:`OnboardMotorComp.record` with CTUN's throttle, for the comparison below); the rebuilding is
+for MAVLink (tlogs and live links), which carry only the compensated field.
 
 Limits: compensation is undone only from the moment the parameters (PARAM_VALUE) and the driving quantity
 are both known; samples before are counted (``motor_comp_unknown``) and pass unchanged. Per-motor
@@ -96,17 +97,23 @@ class OnboardMotorComp:
         if not (mot[0] or mot[1] or mot[2]):
             return None
         o = (mot[0] * x, mot[1] * x, mot[2] * x)
-        d = self.throttle_01
-        if d is not None:
-            s = self._sums.get(index)
-            if s is None:
-                s = self._sums[index] = [np.zeros(3), 0.0, 0, mot]
-            d2 = d * d
-            s[0] += np.asarray(o) * d2
-            s[1] += d2 * d2
-            s[2] += 1
-            s[3] = mot
+        self.record(index, o)
         return o
+
+    def record(self, index: int, applied: tuple[float, float, float] | Any) -> None:
+        """Count an offset the autopilot applied to compass ``index`` (rebuilt here, or DataFlash MOfs) at the
+        latest throttle, for the equivalent theta of :meth:`report`."""
+        d = self.throttle_01
+        if d is None:
+            return
+        s = self._sums.get(index)
+        if s is None:
+            s = self._sums[index] = [np.zeros(3), 0.0, 0, None]
+        d2 = d * d
+        s[0] += np.asarray(applied, dtype=float) * d2
+        s[1] += d2 * d2
+        s[2] += 1
+        s[3] = self.mot(index)
 
     def report(self) -> dict[int, dict[str, Any]]:
         """Per compass whose compensation was undone: COMPASS_MOTCT, the last MOT vector, the samples, and
@@ -124,7 +131,7 @@ class OnboardMotorComp:
             theta = None if s_d4 <= 1e-9 else (-s_od2 / s_d4).tolist()
             out[idx] = {
                 "motct": self.motct,
-                "mot": list(mot),
+                "mot": None if mot is None else list(mot),
                 "samples_undone": int(n),
                 "theta_equivalent_mgauss": theta,
             }

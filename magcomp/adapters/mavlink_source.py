@@ -622,6 +622,7 @@ class _Converter:
         v = self._df_values(msg)
         mtype = v.mtype
         if mtype == "PARM":
+            self.onboard_comp.param(str(v.Name), float(v.Value))
             return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), float(v.Value)))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))
@@ -662,6 +663,7 @@ class _Converter:
             t_s = self.clock.stamp(stream, raw_s)
             if t_s is None or not math.isfinite(thr):
                 return []
+            self.onboard_comp.throttle_01 = min(1.0, max(0.0, thr))  # the throttle the compass was given
             return [("CTUN", ThrottleRecord(t_s, "ctun", min(1.0, max(0.0, thr))))]
         if base in ("CURR", "BAT"):
             volt = v.Volt * 0.01 if isinstance(v.Volt, int) else float(v.Volt)  # old logs: cV, cA
@@ -720,9 +722,10 @@ class _Converter:
         field = _vec(v.MagX, v.MagY, v.MagZ)
         if self.undo_motor_comp and hasattr(v, "MOfsX"):
             mofs = _vec(v.MOfsX, v.MOfsY, v.MOfsZ)
-            if mofs.any():
+            if mofs.any() and np.isfinite(mofs).all():
                 field = field - mofs
                 self.counts["motor_comp_removed"] += 1
+                self.onboard_comp.record(index, mofs)
         if not np.isfinite(field).all():
             self.counts["nonfinite"] += 1
             return []
