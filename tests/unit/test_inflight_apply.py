@@ -56,3 +56,18 @@ def test_stored_estimate_that_was_applied_is_applied_from_the_first_sample() -> 
     state = st.state()
     assert state is not None and state["applied"] is True
     assert not _stage(150.0, applied=None).applied  # a file without the flag: not applied until it passes
+
+
+def test_unobserved_parameters_stay_within_the_physical_prior_across_runs() -> None:
+    """Each saved state inflates its sd (the vehicle may have changed), but what no run observed (theta on a
+    disarmed log) stays at the first run's physical prior instead of doubling with every run."""
+    from magcomp.core.inflight import InflightEstimator, InflightParams
+
+    p = InflightParams()
+    warm = None
+    for _ in range(5):
+        est = InflightEstimator("relative", 0, p, NORM, warm)
+        warm = est.state()
+    assert warm is not None
+    np.testing.assert_allclose(warm[1][3:6], p.sigma_theta_mgauss)  # theta: never observed
+    np.testing.assert_allclose(warm[1][0:3], p.sigma_d_mgauss)
