@@ -108,3 +108,20 @@ def test_save_state_says_why_a_compass_is_not_saved(
     for ln in lines:
         assert "nothing saved: no throttle source (disabled in the configuration)" in ln
     assert not list(state_dir.glob("*.json"))
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose"])
+def test_save_state_bad_input_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    log = tmp_path / "x.tlog"
+    log.write_bytes(b"\0" * 64)
+    taken = tmp_path / "a-file"
+    taken.write_text("")
+    for extra, expect in (
+        (["--save-state", str(taken)], "state directory"),
+        (["--save-state", str(tmp_path / "s"), "--config", str(tmp_path / "none.toml")], "no such file"),
+    ):
+        assert main([command, str(log), *extra]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expect in err[0] and "Traceback" not in err[0]
