@@ -23,7 +23,9 @@ Units at this boundary (everything downstream uses them):
   ATT deg, RCOU C1.. / Ch1.. / Chan1.. us, CTUN ThO (0..1) or ThrOut (0..1000), CURR/BAT Volt and Curr
   (integer columns of old logs are cV / cA), PARM. When MAG records the motor compensation the autopilot
   applied (MOfsX..), it is subtracted by default (``undo_motor_comp``) so that the field is the one the
-  motors actually disturbed.
+  motors actually disturbed. MAVLink compass fields carry no such record: with COMPASS_MOTCT = 1 / 2 the
+  compensation is rebuilt from COMPASS_MOT*/MOT2*/MOT3* and VFR_HUD.throttle / SYS_STATUS current and
+  subtracted from when they are known (:mod:`magcomp.adapters.ardupilot_motcomp`).
 - Time: the message's own timestamp (time_boot_ms, time_usec, DataFlash TimeUS / TimeMS) in s. Messages
   without one (VFR_HUD, SYS_STATUS, BATTERY_STATUS, HEARTBEAT, PARAM_VALUE) get the latest time seen. A
   jump back of more than ``RESET_JUMP_S`` is a reboot of the autopilot: an offset keeps ``t_s`` monotonic,
@@ -62,6 +64,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from magcomp.adapters.ardupilot_motcomp import OnboardMotorComp
 from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_unix
 from magcomp.adapters.throttle import (
     FIXED_WING_TYPES,
@@ -336,6 +339,8 @@ class _Converter:
         self.clock = _Clock(counts)
         self.mag_index = mag_index
         self.undo_motor_comp = undo_motor_comp
+        # ArduPilot's COMPASS_MOTCT compensation in MAVLink compass fields (see ardupilot_motcomp)
+        self.onboard_comp = OnboardMotorComp()
         self.seen_raw_imu = False
         self.seen_highres_imu = False  # PX4: HIGHRES_IMU is IMU 0; SCALED_IMU then adds only its compass
         self.seen_scaled_mag0 = False  # a compass 0 in SCALED_IMU shadows HIGHRES_IMU's
@@ -363,7 +368,13 @@ class _Converter:
         if not (xmag or ymag or zmag):  # (0, 0, 0): no compass data in this message
             self.counts["mag_zero"] += 1
         elif self.mag_index is None or self.mag_index == index:
-            out.append((origin, WireMagSample(t_s, (float(xmag), float(ymag), float(zmag)), index)))  # mgauss
+            fx, fy, fz = float(xmag), float(ymag), float(zmag)  # mgauss
+            if self.undo_motor_comp and self.onboard_comp.params and self.autopilot != MAV_AUTOPILOT_PX4:
+                o = self.onboard_comp.offset(index, self.counts)
+                if o is not None:  # the autopilot added o (COMPASS_MOTCT): the field the motors disturbed
+                    fx, fy, fz = fx - o[0], fy - o[1], fz - o[2]
+                    self.counts["motor_comp_removed"] += 1
+            out.append((origin, WireMagSample(t_s, (fx, fy, fz), index)))
         temp = getattr(msg, "temperature", 0)
         if temp:  # 0 = not provided (common.xml)
             out.append((origin, TemperatureSample(t_s, temp * 0.01, _IMU_SENSOR_NAMES[index])))
@@ -437,6 +448,7 @@ class _Converter:
 
     def _m_VFR_HUD(self, msg: Any) -> list[tuple[str, Record]]:
         thr = min(1.0, max(0.0, float(msg.throttle) * 0.01))  # percent -> 0..1
+        self.onboard_comp.throttle_01 = thr
         return [("VFR_HUD", ThrottleRecord(self.clock.last_t_s, "vfr_hud", thr))]
 
     def _m_SYS_STATUS(self, msg: Any) -> list[tuple[str, Record]]:
@@ -446,6 +458,7 @@ class _Converter:
             return []
         if not math.isnan(curr):
             self.sys_status_current = True
+            self.onboard_comp.current_a = curr
         return [("SYS_STATUS", PowerSample(self.clock.last_t_s, volt, curr, 0))]
 
     def _m_BATTERY_STATUS(self, msg: Any) -> list[tuple[str, Record]]:
@@ -477,6 +490,7 @@ class _Converter:
         if isinstance(name, bytes):
             name = name.decode("ascii", "replace")
         name = name.rstrip("\x00")
+        self.onboard_comp.param(name, float(msg.param_value))
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, float(msg.param_value)))]
 
     # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
@@ -612,6 +626,7 @@ class _Converter:
         v = self._df_values(msg)
         mtype = v.mtype
         if mtype == "PARM":
+            self.onboard_comp.param(str(v.Name), float(v.Value))
             return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), float(v.Value)))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))
@@ -652,6 +667,7 @@ class _Converter:
             t_s = self.clock.stamp(stream, raw_s)
             if t_s is None or not math.isfinite(thr):
                 return []
+            self.onboard_comp.throttle_01 = min(1.0, max(0.0, thr))  # the throttle the compass was given
             return [("CTUN", ThrottleRecord(t_s, "ctun", min(1.0, max(0.0, thr))))]
         if base in ("CURR", "BAT"):
             volt = v.Volt * 0.01 if isinstance(v.Volt, int) else float(v.Volt)  # old logs: cV, cA
@@ -710,9 +726,10 @@ class _Converter:
         field = _vec(v.MagX, v.MagY, v.MagZ)
         if self.undo_motor_comp and hasattr(v, "MOfsX"):
             mofs = _vec(v.MOfsX, v.MOfsY, v.MOfsZ)
-            if mofs.any():
+            if mofs.any() and np.isfinite(mofs).all():
                 field = field - mofs
                 self.counts["motor_comp_removed"] += 1
+                self.onboard_comp.record(index, mofs)
         if not np.isfinite(field).all():
             self.counts["nonfinite"] += 1
             return []
@@ -1142,6 +1159,11 @@ class MavSource:
     @property
     def vehicle_type(self) -> int:
         return self._conv.vehicle_type
+
+    def onboard_motor_comp(self) -> dict[int, dict[str, Any]]:
+        """ArduPilot's COMPASS_MOTCT compensation undone per compass (see
+        :mod:`magcomp.adapters.ardupilot_motcomp`); empty when there was none."""
+        return self._conv.onboard_comp.report()
 
     @property
     def autopilot(self) -> int:

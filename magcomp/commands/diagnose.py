@@ -57,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="show the primary compass in Rerun: spawn, serve, connect[=URL], save=PATH.rrd, auto",
     )
+    from magcomp.service.handover import add_save_state_arguments
+
+    add_save_state_arguments(parser)
 
 
 def _truth_reference(args: argparse.Namespace) -> tuple[Any, Any] | None:
@@ -344,7 +347,7 @@ def execute(args: argparse.Namespace) -> int:
         raise InputError(f"{args.log}: no such file")
     if args.mag_index is not None and args.mag_index < 0:
         raise InputError(f"--mag-index must be a compass index >= 0, got {args.mag_index}")
-    inputs = (args.log, args.truth)
+    inputs = (args.log, args.truth, args.config)
     check_output_path(args.json, "--json", inputs)
     check_output_path(args.report, "--report", inputs, makes_parents=True)
     check_output_path(args.params_out, "--params-out", inputs)
@@ -363,6 +366,13 @@ def execute(args: argparse.Namespace) -> int:
 
         parse_mode(args.rerun)  # a bad --rerun fails now, not after the diagnosis
     reference = _truth_reference(args)
+    if args.save_state:
+        from magcomp.adapters.state_store import StateStore
+        from magcomp.service.handover import handover_config, save_learned_state
+
+        cfg = handover_config(args.config, args.throttle_source)
+        for line in save_learned_state(args.log, cfg, StateStore(args.save_state)):
+            print(line, flush=True)
     from magcomp.service.console import Busy
 
     with Busy(f"diagnose: reading {Path(args.log).name}"):

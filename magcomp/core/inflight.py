@@ -171,6 +171,8 @@ class InflightEstimator:
         prior_sd[k + 3 : k + 6] = self.p.sigma_theta_mgauss
         prior_sd[k + 6 :] = self.p.sigma_motor_mgauss
         self._k = k
+        # the physical prior bounds every later run's: an unobserved parameter's inflated sd stops there
+        self._prior_sd_max = prior_sd.copy()
         if warm is not None and warm[0].shape == (n,) and warm[1].shape == (n,):
             prior_mean = np.asarray(warm[0], dtype=float).copy()
             prior_sd = np.maximum(np.asarray(warm[1], dtype=float), 1e-6)
@@ -306,12 +308,14 @@ class InflightEstimator:
     def state(self, inflate: float = WARM_INFLATE) -> tuple[F64, F64]:
         """(mean, standard deviation) of the parameters to start a later run from: the posterior, its
         standard deviation multiplied by ``inflate`` (the vehicle may have changed since: a new battery
-        position, a moved wire) and never below a tenth of the prior's."""
+        position, a moved wire) and never below a tenth of the prior's, nor above the physical prior of a
+        first run (InflightParams: what nothing was learned about stays as uncertain as it was, instead of
+        doubling with every run)."""
         self.solve()
         cov = self._cov if self._cov is not None else np.linalg.inv(self.prior_info)
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
         floor = 0.1 / np.sqrt(np.diag(self.prior_info))
-        return self._theta.copy(), np.maximum(sd, floor)
+        return self._theta.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))
 
     def predict_rows(self, rows: F64) -> F64:
         """rows @ current parameter vector (for residuals)."""

@@ -40,6 +40,11 @@ PAIR_BASELINE_S = 0.3
 #: the correction is applied once its heading uncertainty is below half the heading change it makes (a
 #: 2-sigma test that the correction is real) or below ``heading_ok_deg``
 APPLY_Z = 2.0
+#: never applied while the heading uncertainty is above this, whatever heading change the correction makes:
+#: the uncertainty atan(err / h) is a linearisation, meaningful only while the error stays well inside the
+#: horizontal field (err <= h / 2, atan(0.5) = 26.6 deg); above it a correction that turns the heading by
+#: 150 deg would "justify" itself with a 75 deg uncertainty (seen on a 23 s log with 8 deg of yaw)
+MAX_APPLY_HEADING_SIGMA_DEG = math.degrees(math.atan(0.5))
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
@@ -231,7 +236,9 @@ class InflightStage:
                 y = np.asarray(field_mgauss, dtype=float)
                 corrected = sol.calib_l @ y - sol.calib_d - bias
                 change = _horizontal_angle_deg(corrected, y)
-                if sol.heading_sigma_deg < max(self.params.heading_ok_deg, change / APPLY_Z):
+                sig = sol.heading_sigma_deg
+                ok = sig < max(self.params.heading_ok_deg, change / APPLY_Z)
+                if ok and sig < MAX_APPLY_HEADING_SIGMA_DEG:
                     self.applied = True
                     self.first_applied_t = t_s
             if self.applied:

@@ -15,7 +15,7 @@ from typing import Any
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
-from magcomp.service.pipeline import Pipeline
+from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 
 log = logging.getLogger("magcomp.replay")
@@ -67,6 +67,8 @@ class MemoryStore:
     def __init__(self) -> None:
         self.states: dict[tuple[int, int], CompassState] = {}
         self.warnings: list[str] = []
+        #: the pipeline's summary at the end of the pass (set by :func:`learn_pass`)
+        self.summary: dict[str, Any] | None = None
 
     def save(self, state: CompassState) -> None:
         self.states[(state.system_id, state.mag_index)] = state
@@ -94,6 +96,7 @@ def learn_pass(
     finally:
         source.close()
         pipeline.close()
+    store.summary = pipeline.summary()
     return store
 
 
@@ -200,6 +203,13 @@ def replay_log(
         pipeline.close()
     summary = pipeline.summary()
     summary["passes"] = 2 if two_pass and isinstance(store, MemoryStore) else 1
+    onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
+    if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
+        from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
+
+        warnings: list[str] = summary["warnings"]  # type: ignore[assignment]
+        summary["warnings"] = [*warnings, *onboard_comp_warnings(onboard, summary)]
+        summary["onboard_motor_compensation"] = json_safe({str(k): v for k, v in onboard.items()})
     return ReplayReport(
         path=str(path),
         summary=summary,
