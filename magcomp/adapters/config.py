@@ -115,12 +115,13 @@ class InflightConfig:
     reference: ``auto`` (from the autopilot's parameters: absolute where the autopilot's yaw comes from an
     external compass other than this one or from GPS, else relative), ``absolute`` (the autopilot's
     attitude, yaw included, is trusted), ``relative`` (only rotations from the gyro / attitude are used).
-    rotation: where the relative form's rotations come from: ``auto`` (the autopilot's attitude when it
-    streams one, else the integrated gyro), ``gyro`` or ``attitude``.
+    rotation: where the relative form's rotations come from: ``auto`` (the integrated gyro while it is fast,
+    unless this compass is the external primary; else the autopilot's attitude), ``gyro`` or ``attitude``.
     per_motor: ``off`` (the paper's eq. (11)) or ``auto`` (per-motor vectors when motor outputs are known).
-    max_rate_hz: samples per second and compass fed to the estimator (consecutive samples at higher rates
-    carry nearly the same information). absolute_settle_s: the autopilot's yaw is used only with the motors
-    running and this long after they start (before arming its yaw can be tens of degrees off).
+    max_rate_hz: samples per second and compass fed to the estimator (white noise averages down with
+    every sample: at 50 Hz, feeding all instead of 10 Hz halved theta's error on the simulated flight).
+    absolute_settle_s: the autopilot's yaw is used only with the motors running and this long after they
+    start (before arming its yaw can be tens of degrees off).
     sigma_*: the prior around the autopilot's own calibration (see InflightParams).
     """
 
@@ -128,7 +129,7 @@ class InflightConfig:
     reference: str = "auto"
     rotation: str = "auto"
     per_motor: str = "off"
-    max_rate_hz: float = 10.0
+    max_rate_hz: float = 100.0
     absolute_settle_s: float = 0.0
     sigma_a_calibrated: float = 0.05
     sigma_a_uncalibrated: float = 0.3

@@ -45,6 +45,8 @@ APPLY_Z = 2.0
 #: horizontal field (err <= h / 2, atan(0.5) = 26.6 deg); above it a correction that turns the heading by
 #: 150 deg would "justify" itself with a 75 deg uncertainty (seen on a 23 s log with 8 deg of yaw)
 MAX_APPLY_HEADING_SIGMA_DEG = math.degrees(math.atan(0.5))
+#: the estimate is re-solved at most this often (s of message time)
+SOLVE_PERIOD_S = 0.1
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
@@ -104,6 +106,7 @@ class InflightStage:
         self.yaw_max = -math.inf
         self._yaw_prev: float | None = None
         self._yaw_unwrapped = 0.0
+        self._solved_t: float | None = None
         self.warm_started = False
         self._warm: tuple[F64, F64] | None = None
         if warm is not None and warm.get("form") == mode:
@@ -224,8 +227,13 @@ class InflightStage:
         state = "uncorrected"
         out: InflightOutput | None = None
         if est is not None and (est.n >= 10 or self.warm_started):
-            sol = est.solve()
-            self.solution = sol
+            # re-solved at most every SOLVE_PERIOD_S of message time (a few 30x30 factorisations), whatever
+            # the magnetometer rate; the rows are accumulated at every sample
+            sol = self.solution
+            if sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < SOLVE_PERIOD_S:
+                sol = est.solve()
+                self.solution = sol
+                self._solved_t = t_s
             state = "learning"
             mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
             x = regressors(throttle_01, mot)
