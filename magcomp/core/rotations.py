@@ -241,11 +241,11 @@ def down_b_from_quat(q_nb: ArrayLike) -> F64:
 
 
 def quat_step_body_rate(
-    q_nb: tuple[float, float, float, float], omega_b_rad_s: Sequence[float], dt_s: float
+    q_nb: Sequence[float], omega_b_rad_s: Sequence[float], dt_s: float
 ) -> tuple[float, float, float, float]:
     """One step of ``q_dot = q (x) (0, omega / 2)`` on plain floats, normalised: the exact rotation for a
-    body rate constant over ``dt_s`` (the per-sample path of the pipeline's gyro integral; the vectorised
-    :func:`quat_integrate_body_rate` is its test oracle)."""
+    body rate constant over ``dt_s`` (eq. (18); the per-sample path of the Mahony filter and the pipeline's
+    gyro integral; the vectorised :func:`quat_integrate_body_rate` is its test oracle)."""
     wx, wy, wz = omega_b_rad_s[0], omega_b_rad_s[1], omega_b_rad_s[2]
     rate = math.sqrt(wx * wx + wy * wy + wz * wz)
     half = 0.5 * rate * dt_s
@@ -254,7 +254,7 @@ def quat_step_body_rate(
         dw, dx, dy, dz = math.cos(half), wx * s_, wy * s_, wz * s_
     else:
         dw, dx, dy, dz = 1.0, 0.5 * wx * dt_s, 0.5 * wy * dt_s, 0.5 * wz * dt_s
-    w, x, y, z = q_nb
+    w, x, y, z = q_nb[0], q_nb[1], q_nb[2], q_nb[3]
     qw = w * dw - x * dx - y * dy - z * dz
     qx = w * dx + x * dw + y * dz - z * dy
     qy = w * dy - x * dz + y * dw + z * dx

@@ -89,12 +89,12 @@ def check_distinct_outputs(**paths: str | Path | None) -> None:
 def write_json(path: str | Path, doc: dict[str, Any]) -> None:
     p = Path(path)
     try:
-        p.write_text(json.dumps(_finite(doc), indent=2, default=_plain, allow_nan=False) + "\n")
+        p.write_text(json.dumps(json_safe(doc), indent=2, default=_plain, allow_nan=False) + "\n")
     except OSError as exc:
         raise InputError(f"cannot write {p}: {exc.strerror}") from None
 
 
-def _finite(obj: Any) -> Any:
+def json_safe(obj: Any) -> Any:
     """Non-finite floats (and numpy scalars/arrays holding them) as None: strictly valid JSON."""
     try:
         import numpy as np
@@ -108,9 +108,9 @@ def _finite(obj: Any) -> Any:
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
+        return [json_safe(v) for v in obj]
     return obj
 
 

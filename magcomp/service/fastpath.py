@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from magcomp.core.mahony import MahonyParams
 from magcomp.core.observer import NO_THROTTLE_D2, ObserverParams, ObserverState
+from magcomp.core.rotations import quat_step_body_rate
 from magcomp.core.types import (
     FLAG_INPUTS_STALE,
     FLAG_NO_THROTTLE,
@@ -72,17 +73,17 @@ class FastMahony:
         an = math.sqrt(ax * ax + ay * ay + az * az)
         used = math.isfinite(an) and abs(an - self.gravity) <= self.gate
         b0, b1, b2 = self.b
-        q = _quat_step(self.q, gx - b0, gy - b1, gz - b2, dt)  # predict, eq. (18)
+        q = quat_step_body_rate(self.q, (gx - b0, gy - b1, gz - b2), dt)  # predict, eq. (18)
         if used:
             w, x, y, z = q
             vx, vy, vz = -ax / an, -ay / an, -az / an  # measured down
             hx, hy, hz = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
             ex, ey, ez = vy * hz - vz * hy, vz * hx - vx * hz, vx * hy - vy * hx  # [23] v x v_hat
             kp = self.kp
-            q = _quat_step(q, kp * ex, kp * ey, kp * ez, dt)  # [23] correction
+            q = quat_step_body_rate(q, (kp * ex, kp * ey, kp * ez), dt)  # [23] correction
         else:
             ex = ey = ez = 0.0
-        self.q = q
+        self.q = list(q)
         kd = self.ki * dt
         m = self.max_b
         b0, b1, b2 = b0 - kd * ex, b1 - kd * ey, b2 - kd * ez
@@ -93,26 +94,6 @@ class FastMahony:
             m if b2 > m else -m if b2 < -m else b2,
         ]
         return used
-
-
-def _quat_step(q: Vec, ox: float, oy: float, oz: float, dt: float) -> Vec:
-    """Twin of :func:`magcomp.core.rotations.quat_integrate_body_rate`: ``q * exp(omega dt)``, normalised."""
-    px, py, pz = ox * dt, oy * dt, oz * dt
-    ang = math.sqrt(px * px + py * py + pz * pz)
-    if ang < 1e-12:
-        dw, dx, dy, dz = 1.0, 0.5 * px, 0.5 * py, 0.5 * pz
-        n = math.sqrt(dw * dw + dx * dx + dy * dy + dz * dz)
-        dw, dx, dy, dz = dw / n, dx / n, dy / n, dz / n
-    else:
-        s = math.sin(ang / 2.0) / ang
-        dw, dx, dy, dz = math.cos(ang / 2.0), s * px, s * py, s * pz
-    w, x, y, z = q
-    qw = w * dw - x * dx - y * dy - z * dz
-    qx = w * dx + x * dw + y * dz - z * dy
-    qy = w * dy - x * dz + y * dw + z * dx
-    qz = w * dz + x * dy - y * dx + z * dw
-    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    return [qw / n, qx / n, qy / n, qz / n]
 
 
 # ------------------------------------------------------------------------------------- small algebra

@@ -73,6 +73,7 @@ from magcomp.core.types import (
 )
 from magcomp.geomag import earth_field_ned_mgauss
 from magcomp.service import estimators as est_core
+from magcomp.service.console import json_safe
 from magcomp.service.fastpath import FastMahony
 from magcomp.service.inflight_stage import InflightOutput, InflightStage
 
@@ -1148,14 +1149,3 @@ class Pipeline:
         if not self.cfg.inflight.enabled:
             return "uncorrected", "no hand-rotation calibration and in-flight calibration disabled"
         return "uncorrected", "no samples with the throttle known"
-
-
-def json_safe(obj: Any) -> Any:
-    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [json_safe(v) for v in obj]
-    return obj
