@@ -19,9 +19,11 @@ extension; their prior mean is 0, so with no evidence the model is the paper's).
 ``relative`` (the vehicle's yaw is fused from this very compass, so an absolute yaw would hide the bias).
 Only the body rotation between two samples is used, from the gyro (or the autopilot's attitude when the
 gyro is too slow to integrate). With an earth-fixed field, ``u_k = L (y_k - d - theta x_k)`` obeys
-``u_{k+1} = Q_k u_k``, ``Q_k = R_{nb,k+1}^T R_{nb,k}``; with ``L = I`` (the autopilot's calibration kept)::
+``u_{k+1} = Q_k u_k``, ``Q_k = R_{nb,k+1}^T R_{nb,k}``; with ``L = I + E`` (the autopilot's calibration
+plus a small symmetric, traceless correction E, linearised)::
 
-    y_{k+1} - Q_k y_k = (I - Q_k) d + sum_r (x_{r,k+1} I - x_{r,k} Q_k) theta_r        (eq. (13) differenced)
+    y_{k+1} - Q_k y_k = (I - Q_k) d + sum_r (x_{r,k+1} I - x_{r,k} Q_k) theta_r - (E v_{k+1} - Q_k E v_k)
+                                                                                  (eq. (13) differenced)
 
 the exact discrete form of the paper's eq. (16) with the hard iron added. It needs rotation (yaw turns)
 *and* throttle changes; it does not need the yaw itself, so a compass cannot fool it through the
@@ -98,9 +100,31 @@ class InflightSolution:
     n: int
 
 
+#: basis of the relative form's soft-iron correction E (L = I + E): symmetric and traceless (x-y, x+y-2z
+#: scale differences and the three off-diagonal terms). A common scale is left out: rotations cannot see
+#: it (L -> 0 would fit every pair), and heading does not need it.
+_SYM_BASIS = np.array(
+    [
+        [[0.5, 0, 0], [0, -0.5, 0], [0, 0, 0]],
+        [[1 / 6, 0, 0], [0, 1 / 6, 0], [0, 0, -1 / 3]],
+        [[0, 1, 0], [1, 0, 0], [0, 0, 0]],
+        [[0, 0, 1], [0, 0, 0], [1, 0, 0]],
+        [[0, 0, 0], [0, 0, 1], [0, 1, 0]],
+    ],
+    dtype=float,
+)
+N_SOFT = _SYM_BASIS.shape[0]
+
+
 def n_params(mode: InflightMode, n_motors: int) -> int:
-    """Size of the parameter vector: [A (9, row-major) if absolute] + d (3) + theta (3) + motors (3 m)."""
-    return (9 if mode == "absolute" else 0) + 6 + 3 * n_motors
+    """Size of the parameter vector: [A (9, row-major) if absolute | E (5) if relative] + d (3)
+    + theta (3) + motors (3 m)."""
+    return (9 if mode == "absolute" else N_SOFT) + 6 + 3 * n_motors
+
+
+def soft_iron_matrix(e: F64) -> F64:
+    """E (3x3, symmetric, traceless) of the relative form's soft-iron parameters."""
+    return np.asarray(np.tensordot(e, _SYM_BASIS, axes=1), dtype=np.float64)
 
 
 def regressors(throttle_01: float, motors_01: tuple[float, ...] | None) -> F64:
@@ -125,15 +149,36 @@ def absolute_rows(field_ref_b_mgauss: F64, field_mgauss: F64, x: F64) -> tuple[F
     return rows, np.asarray(field_mgauss, dtype=float)
 
 
-def relative_rows(q_b1b0: F64, y0_mgauss: F64, y1_mgauss: F64, x0: F64, x1: F64) -> tuple[F64, F64]:
-    """Rows (3, n) and right-hand side (3,) of the differenced form
-    ``y1 - Q y0 = (I - Q) d + sum_r (x1_r I - x0_r Q) theta_r`` with ``Q`` = R_nb(t1)^T R_nb(t0)."""
+def relative_rows(
+    q_b1b0: F64,
+    y0_mgauss: F64,
+    y1_mgauss: F64,
+    x0: F64,
+    x1: F64,
+    v0: F64 | None = None,
+    v1: F64 | None = None,
+) -> tuple[F64, F64]:
+    """Rows (3, n) and right-hand side (3,) of the differenced form with L = I + E::
+
+        (I + E)(y1 - d - Theta x1) = Q (I + E)(y0 - d - Theta x0),   Q = R_nb(t1)^T R_nb(t0)
+
+    linearised in the small symmetric soft-iron correction E at the current hard iron and theta
+    (``v0``/``v1`` = y - d - Theta x at the current estimate; None: y itself)::
+
+        -(E v1 - Q E v0) + (I - Q) d + sum_r (x1_r I - x0_r Q) theta_r = y1 - Q y0
+
+    E is traceless (see _SYM_BASIS): a common scale would fit every pair with L -> 0."""
     n_r = x0.shape[0]
     eye = np.eye(3)
-    rows = np.empty((3, 3 + 3 * n_r))
-    rows[:, 0:3] = eye - q_b1b0
+    k = N_SOFT
+    rows = np.empty((3, k + 3 + 3 * n_r))
+    a = y1_mgauss if v1 is None else v1
+    b = y0_mgauss if v0 is None else v0
+    # column k: -(S_k a - Q S_k b)
+    rows[:, 0:k] = -(np.einsum("kij,j->ik", _SYM_BASIS, a) - q_b1b0 @ np.einsum("kij,j->ik", _SYM_BASIS, b))
+    rows[:, k : k + 3] = eye - q_b1b0
     for r in range(n_r):
-        rows[:, 3 + 3 * r : 6 + 3 * r] = x1[r] * eye - x0[r] * q_b1b0
+        rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x1[r] * eye - x0[r] * q_b1b0
     return rows, y1_mgauss - q_b1b0 @ y0_mgauss
 
 
@@ -162,11 +207,13 @@ class InflightEstimator:
         n = n_params(mode, n_motors)
         prior_mean = np.zeros(n)
         prior_sd = np.empty(n)
-        k = 0
         if mode == "absolute":
             prior_mean[0:9] = np.eye(3).ravel()
             prior_sd[0:9] = self.p.sigma_a
             k = 9
+        else:
+            prior_sd[0:N_SOFT] = self.p.sigma_a
+            k = N_SOFT
         prior_sd[k : k + 3] = self.p.sigma_d_mgauss
         prior_sd[k + 3 : k + 6] = self.p.sigma_theta_mgauss
         prior_sd[k + 6 :] = self.p.sigma_motor_mgauss
@@ -274,7 +321,7 @@ class InflightEstimator:
             except np.linalg.LinAlgError:
                 l_mat = np.eye(3)
         else:
-            l_mat = np.eye(3)
+            l_mat = np.eye(3) + soft_iron_matrix(p[0:N_SOFT])
         d_raw = p[k : k + 3]
         th_raw = p[k + 3 : k + 6]
         mot_raw = p[k + 6 :].reshape(-1, 3)
@@ -316,6 +363,14 @@ class InflightEstimator:
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
         floor = 0.1 / np.sqrt(np.diag(self.prior_info))
         return self._theta.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))
+
+    def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
+        """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
+        point of the relative form's soft-iron columns."""
+        k = self._k
+        d = self._theta[k : k + 3]
+        th = self._theta[k + 3 :].reshape(-1, 3)
+        return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)
 
     def predict_rows(self, rows: F64) -> F64:
         """rows @ current parameter vector (for residuals)."""

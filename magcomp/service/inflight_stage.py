@@ -209,7 +209,8 @@ class InflightStage:
         if prev is None:
             return
         q_b1b0 = r_rel_nb.T @ prev[1]
-        rows, z = relative_rows(q_b1b0, prev[2], y, prev[3], x)
+        v0, v1 = self.est.uncalibrated(prev[2], prev[3]), self.est.uncalibrated(y, x)
+        rows, z = relative_rows(q_b1b0, prev[2], y, prev[3], x, v0, v1)
         self.est.add(rows, z, float(x[0]))
         self.n_rows += 1
 
