@@ -47,6 +47,9 @@ from magcomp.errors import InputError
 F64 = NDArray[np.float64]
 
 GRID_DT_S = 0.01
+#: Belsley's condition index above which regressors are strongly collinear (Belsley, Kuh & Welsch 1980):
+#: per-motor vectors are then not reported one by one.
+MAX_CONDITION_INDEX = 30.0
 MAX_SAMPLES = 5000
 
 
@@ -456,14 +459,37 @@ def _params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any
     hw = np.vstack(hws)
     tn = float(np.linalg.norm(theta))
     spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
-    out = {"spread": _r(spread)}
-    if motors_identified(theta_i, hw, theta):
+    cols, _ = drive_columns(data.drive, fit.ext)
+    sel = cols[:, [list(fit.columns).index(c) for c in ("throttle", *names)]]
+    sel = sel - sel.mean(axis=0)
+    sel = sel / np.maximum(np.linalg.norm(sel, axis=0), 1e-12)
+    sv = np.linalg.svd(sel, compute_uv=False)
+    cond = float(sv[0] / max(sv[-1], 1e-12))
+    out = {"spread": _r(spread), "condition_index": _r(cond)}
+    # the same vectors from each half of the log must agree within their intervals (a half has twice the
+    # variance, a difference of two halves four times: 2 x the whole log's half-width)
+    halves = []
+    for keep in (data.t_s < np.median(data.t_s), data.t_s >= np.median(data.t_s)):
+        fh = fit_model(data, fit.effects, start=fit, train=keep, max_nfev=50)
+        dh = np.vstack([fh.coefs[rows], -np.sum(fh.coefs[rows], axis=0, keepdims=True)])
+        halves.append(fh.theta_mgauss + dh)
+    half_gap = float(np.max(np.abs(halves[0] - halves[1]) / np.maximum(2.0 * hw, 1e-9)))
+    out["halves_disagreement"] = _r(half_gap)
+    stable = half_gap <= 1.0
+    if cond <= MAX_CONDITION_INDEX and stable and motors_identified(theta_i, hw, theta):
         out["theta_per_motor_mgauss"] = [_r(row) for row in theta_i]
         out["theta_per_motor_ci95_halfwidth"] = [_r(row) for row in hw]
     else:
+        why = []
+        if cond > MAX_CONDITION_INDEX:
+            why.append(
+                f"condition index {cond:.0f} of the motor columns (collinear above {MAX_CONDITION_INDEX:.0f})"
+            )
+        if not stable:
+            why.append(f"the two halves of the log disagree by {half_gap:.1f}x their interval (must be <= 1)")
+        why.append(f"95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f}")
         out["theta_per_motor_mgauss"] = (
-            f"not identifiable: 95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f} "
-            "(the motor outputs move together); only the spread and the mean theta are meaningful"
+            "not identifiable: " + "; ".join(why) + ": only the spread and the mean theta are meaningful"
         )
     return out
 
