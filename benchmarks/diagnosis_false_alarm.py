@@ -179,7 +179,8 @@ def main() -> int:
     ap.add_argument("--per-size", type=int, default=8, help="logs per effect and size (default 8)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--effects", nargs="*", default=list(SIZES))
-    ap.add_argument("--json", default=None, help="write every run's record here")
+    ap.add_argument("--jsonl", default=None, help="append every run's record here as it finishes")
+    ap.add_argument("--summarise", default=None, help="only summarise the records of an earlier --jsonl")
     args = ap.parse_args()
 
     jobs: list[tuple[int, str, float]] = [(10_000 + i, "", 0.0) for i in range(args.clean)]
@@ -188,18 +189,35 @@ def main() -> int:
             for r in range(args.per_size):
                 jobs.append((20_000 + 1000 * k + 100 * m + r, eff, size))
     t0 = time.perf_counter()
-    with Pool(args.workers) as pool:
-        out = pool.map(run_one, jobs, chunksize=1)
+    out: list[dict[str, Any]] = []
+    if args.summarise:
+        for line in Path(args.summarise).read_text(encoding="utf-8").splitlines():
+            out.append(json.loads(line))
+    else:
+        # clean logs first, then effects interleaved, so a partial run still covers every effect
+        jobs.sort(key=lambda j: (j[1] != "", j[0] % 100, j[0]))
+        sink = open(args.jsonl, "w", encoding="utf-8") if args.jsonl else None  # noqa: SIM115
+        with Pool(args.workers) as pool:
+            for rec in pool.imap_unordered(run_one, jobs, chunksize=1):
+                out.append(rec)
+                if sink is not None:
+                    sink.write(json.dumps(rec) + "\n")
+                    sink.flush()
+        if sink is not None:
+            sink.close()
     wall = time.perf_counter() - t0
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+    summarise(out, args.effects, wall, args.workers)
+    return 0
+
+
+def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, workers: int) -> None:
     errors = [o for o in out if "error" in o]
     ok = [o for o in out if "error" not in o]
     clean = [o for o in ok if not o["effect"]]
     obs = [o for o in clean if o["observable"]]
     fa = [o for o in obs if o["findings"]]
     st = [o for o in obs if o["structure"]]
-    print(f"{len(out)} logs in {wall:.0f} s ({args.workers} workers); {len(errors)} errors")
+    print(f"{len(out)} logs in {wall:.0f} s ({workers} workers); {len(errors)} errors")
     print(
         f"clean logs: {len(clean)}; not observable (gate): {len(clean) - len(obs)}; "
         f"named finding on an observable compass: {len(fa)}/{len(obs)} = "
@@ -218,7 +236,7 @@ def main() -> int:
     print(
         "\neffect | size: found / observable (all mag rates) | found at >= 5 Hz | 90 % size (all / >= 5 Hz)"
     )
-    for eff in args.effects:
+    for eff in effects:
         cells, cells5 = [], []
         rates, rates5 = [], []
         for size in SIZES[eff]:
@@ -238,7 +256,6 @@ def main() -> int:
             return "not reached"
 
         print(f"{eff} | {', '.join(cells)} | {', '.join(cells5)} | {size90(rates)} / {size90(rates5)}")
-    return 0
 
 
 if __name__ == "__main__":
