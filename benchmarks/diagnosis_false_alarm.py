@@ -66,18 +66,16 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     )
 
 
-def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
-    """Simulate, vary, diagnose one log. job = (seed, effect or "", value)."""
+def varied_log(seed: int, effect: str, value: float) -> tuple[Any, Any, dict[str, Any]]:
+    """(LogData, EarthReference, what was varied) of one deliberately varied simulation."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.core.types import Series
-    from magcomp.diagnosis.engine import diagnose
     from magcomp.diagnosis.gate import EarthReference
     from magcomp.geomag import earth_field_ned_mgauss
     from magcomp.sim import SimConfig, simulate
     from magcomp.sim.config import Location, Rates
 
-    seed, effect, value = job
     rng = np.random.default_rng(seed)
     scenario = str(rng.choice(["paper", "flight"]))
     vehicle = "multirotor" if effect == "per_motor" else str(rng.choice(["fixedwing", "multirotor"]))
@@ -146,6 +144,16 @@ def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
     earth = EarthReference(
         earth_field_ned_mgauss(loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year), "simulated place"
     )
+    varied = {"scenario": scenario, "vehicle": vehicle, "mag_hz": mag_hz, "imu_hz": imu_hz}
+    return log, earth, varied
+
+
+def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
+    """Simulate, vary, diagnose one log. job = (seed, effect or "", value)."""
+    from magcomp.diagnosis.engine import diagnose
+
+    seed, effect, value = job
+    log, earth, varied = varied_log(seed, effect, value)
     t0 = time.perf_counter()
     try:
         j = diagnose(log, earth=earth).to_json()
@@ -159,10 +167,7 @@ def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
         "seed": seed,
         "effect": effect,
         "value": value,
-        "scenario": scenario,
-        "vehicle": vehicle,
-        "mag_hz": mag_hz,
-        "imu_hz": imu_hz,
+        **varied,
         "attitude_source": c["attitude"]["source"],
         "observable": c["observable"],
         "why": c["unobservable_why"],

@@ -33,13 +33,14 @@ from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, thet
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model, initial_fit
 from magcomp.diagnosis.rivals import (
     GROUPS,
+    RIVAL_DELTA_BIC,
     group_of,
     indistinguishable,
     motors_identified,
     temperature_beats_time,
     time_shapes,
 )
-from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms
+from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms, effective_delta_bic
 from magcomp.diagnosis.structure import search as structure_search
 from magcomp.diagnosis.suspects import SignalRelation, StepEvent, find_step, relate, step_at
 from magcomp.errors import InputError
@@ -536,6 +537,7 @@ def diagnose_compass(
     unavailable: dict[str, str] = {}
     singles: list[Comparison] = []
     rejected: dict[str, dict[str, Any]] = {}
+    temp_vs_time: dict[str, dict[str, float]] = {}
     cv_base: float | None = None
     for name in EFFECTS:
         why = effect_available(name, data.drive)
@@ -552,11 +554,23 @@ def diagnose_compass(
         if small is not None:
             rejected[name] = {"delta_bic": _r(dbic), "rms_with": _r(f.rms_mgauss), "why": small}
             continue
+        if param is not None:
+            lo_b, hi_b = EFFECTS[name].bounds
+            v = float(getattr(f.ext, param))
+            if min(v - lo_b, hi_b - v) < 0.01 * (hi_b - lo_b):
+                # a parameter pinned at the end of its physical range: the data want something the cause
+                # cannot be (e.g. a 5 s "spin-up lag" that is really a slow drift), so it is not the cause
+                rejected[name] = {
+                    "delta_bic": _r(dbic),
+                    "rms_with": _r(f.rms_mgauss),
+                    "why": f"{param} = {v:.3g} at the edge of its range [{lo_b}, {hi_b}]",
+                }
+                continue
         if cv_base is None:
             cv_base = cv_rms(data, base, p)
         c = compare(data, base, f, cv_base, p)
         if c.significant and name == "temperature_drift":
-            wins, shape, vs_time = temperature_beats_time(data, base, f, p.min_delta_bic, p.max_nfev)
+            wins, shape, vs_time = temperature_beats_time(data, base, f, RIVAL_DELTA_BIC, p.max_nfev)
             if not wins:
                 rejected[name] = {
                     "delta_bic": _r(dbic),
@@ -565,10 +579,15 @@ def diagnose_compass(
                     "why": f"no better than a smooth drift {shape} with as many parameters",
                 }
                 continue
+            temp_vs_time[name] = vs_time
         if c.significant:
             singles.append(c)
         else:
-            rejected[name] = {"delta_bic": _r(dbic), "cv_gain_pct": _r(100 * c.cv_gain), "why": "held-out"}
+            rejected[name] = {
+                "delta_bic": _r(dbic),
+                "cv_gain_pct": _r(100 * c.cv_gain),
+                "why": "held-out" if c.cv_gain < p.min_cv_gain else f"effective BIC {c.delta_bic:.0f}",
+            }
     singles.sort(key=lambda c: -c.cv_gain)
     candidates: dict[str, list[str]] = {}
     candidate_params: dict[str, dict[str, Any]] = {}
@@ -576,14 +595,14 @@ def diagnose_compass(
         members = {c.fit.effects[0]: c for c in singles if group_of(c.fit.effects[0]) == group}
         if len(members) < 2:
             continue
-        same = indistinguishable({k: c.fit.bic for k, c in members.items()}, p.min_delta_bic)
+        same = indistinguishable({k: c.delta_bic for k, c in members.items()}, RIVAL_DELTA_BIC)
         if len(same) < 2:
             continue
         best = same[0]
         candidates[best] = same
         candidate_params[best] = {
             k: _params_json(members[k].fit, k, data)
-            | {"delta_bic_vs_best": _r(members[k].fit.bic - members[best].fit.bic)}
+            | {"delta_bic_vs_best": _r(members[k].delta_bic - members[best].delta_bic)}
             for k in same
         }
         for k in same[1:]:
@@ -591,7 +610,7 @@ def diagnose_compass(
             rejected[k] = {
                 "delta_bic": _r(members[k].delta_bic),
                 "cv_gain_pct": _r(100 * members[k].cv_gain),
-                "why": f"cannot be told from {best} (BIC within {p.min_delta_bic:.0f}): reported as a set",
+                "why": f"cannot be told from {best} (BIC within {RIVAL_DELTA_BIC:.0f}): reported as a set",
             }
     current, cv_current = base, (cv_base if cv_base is not None else 0.0)
     kept: list[tuple[str, Comparison]] = []
@@ -631,7 +650,8 @@ def diagnose_compass(
             name,
             EFFECTS[name].cause,
             _params_json(extended, name, data),
-            _evidence(c, data),
+            _evidence(c, data)
+            | ({"delta_bic_vs_time_shapes": temp_vs_time[name]} if name in temp_vs_time else {}),
             c.fit.rms_mgauss,
             candidates.get(name, []),
             candidate_params.get(name, {}),
@@ -703,7 +723,7 @@ def step_candidate(
     for shape in time_shapes(data.t_s).values():
         smooth = replace(data, drive=replace(d, extra=shape[:, None], extra_names=("step",)))
         fsm = fit_model(smooth, base.effects, start=base, max_nfev=p.max_nfev)
-        if fs.bic - fsm.bic > -p.min_delta_bic:
+        if effective_delta_bic(fsm, fs) > -RIVAL_DELTA_BIC:
             return None
     size = fs.coefs[list(fs.columns).index("step")]
     co: dict[str, float] = {}

@@ -6,9 +6,9 @@ second harmonic of the heading; a second current loop: a signal other than the t
 a few extra linear columns on the extended model's residual, and reported as *unexplained structure* (with
 its time, size and best correlates) when it passes the same tests that admit a named extension:
 
-- an information criterion with the residual's effective sample size: Delta BIC = n_eff ln(RSS_1/RSS_0)
-  + k ln(n_eff) <= -``min_delta_bic``, n_eff = 3 n / ((1 + rho)/(1 - rho)) (AR(1), see
-  :mod:`magcomp.diagnosis.intervals`): a coloured residual must not pass for structure;
+- an information criterion with the effective sample size: Delta BIC = n_eff ln(RSS_1/RSS_0)
+  + k ln(n_eff) <= -``min_delta_bic``, n_eff = 3 n / Bartlett's factor of the candidate against the residual
+  (:func:`magcomp.diagnosis.selection.bartlett_factor`): a coloured residual must not pass for structure;
 - a relative rms reduction of at least ``min_gain`` (the 1 % held-out gain the named extensions need).
 
 Candidates (k = parameters, counting the searched step time / lag as one):
@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.rotations import euler_from_dcms
-from magcomp.diagnosis.intervals import ar1_inflation
+from magcomp.diagnosis.selection import bartlett_factor
 from magcomp.diagnosis.suspects import SignalRelation, find_step
 
 F64 = NDArray[np.float64]
@@ -64,11 +64,11 @@ def search(
     if n < 50:
         return []
     res = residual_mgauss - residual_mgauss.mean(axis=0)
-    n_eff = 3.0 * n / ar1_inflation(res)
     rms0 = float(np.sqrt(np.mean(res**2)))
     found: list[dict[str, Any]] = []
 
-    def passes(ratio: float, k: int) -> tuple[bool, float]:
+    def passes(ratio: float, k: int, fitted: F64) -> tuple[bool, float]:
+        n_eff = 3.0 * n / bartlett_factor(res - fitted, fitted - fitted.mean(axis=0))
         dbic = n_eff * math.log(max(ratio, 1e-12)) + k * math.log(n_eff)
         return dbic <= -p.min_delta_bic and (1.0 - math.sqrt(ratio)) >= p.min_gain, dbic
 
@@ -76,8 +76,8 @@ def search(
     st = find_step(t_s, res, signals, events)
     if st is not None:
         col = (t_s >= st.t_s).astype(float)
-        ratio, beta, _ = _gain(res, col[:, None])
-        ok, dbic = passes(ratio, 4)
+        ratio, beta, fitted = _gain(res, col[:, None])
+        ok, dbic = passes(ratio, 4, fitted)
         if ok:
             found.append(
                 {
@@ -92,8 +92,8 @@ def search(
                 }
             )
     yaw = euler_from_dcms(r_nb)[:, 2]
-    ratio, beta, _ = _gain(res, np.column_stack([np.cos(2 * yaw), np.sin(2 * yaw)]))
-    ok, dbic = passes(ratio, 6)
+    ratio, beta, fitted = _gain(res, np.column_stack([np.cos(2 * yaw), np.sin(2 * yaw)]))
+    ok, dbic = passes(ratio, 6, fitted)
     if ok:
         found.append(
             {
@@ -110,8 +110,8 @@ def search(
         s = suspects[0]
         ts, vs = signals[s.signal]
         col = np.interp(t_s - s.lag_s, ts, vs)
-        ratio, beta, _ = _gain(res, col[:, None])
-        ok, dbic = passes(ratio, 4)
+        ratio, beta, fitted = _gain(res, col[:, None])
+        ok, dbic = passes(ratio, 4, fitted)
         if ok:
             sd = float(np.std(col))
             found.append(
