@@ -557,7 +557,9 @@ def diagnose_compass(
         if param is not None:
             lo_b, hi_b = EFFECTS[name].bounds
             v = float(getattr(f.ext, param))
-            if min(v - lo_b, hi_b - v) < 0.01 * (hi_b - lo_b):
+            # (a lower bound of 0 is the effect switched off, which ``negligible`` judges)
+            near_lo = lo_b != 0.0 and v - lo_b < 0.01 * (hi_b - lo_b)
+            if near_lo or hi_b - v < 0.01 * (hi_b - lo_b):
                 # a parameter pinned at the end of its physical range: the data want something the cause
                 # cannot be (e.g. a 5 s "spin-up lag" that is really a slow drift), so it is not the cause
                 rejected[name] = {
