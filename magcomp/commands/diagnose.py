@@ -257,6 +257,12 @@ def _summary(j: dict[str, Any]) -> list[str]:
             f"compass {c['index']}: theta {c['theta']} mgauss; residual {c['residual_rms_baseline']} -> "
             f"{c['residual_rms_extended']} mgauss; {names}"
         )
+        for u in c.get("unexplained_structure", []):
+            when = f" at t = {u['t_s']} s" if "t_s" in u else ""
+            lines.append(
+                f"  unexplained structure: {u['kind']}{when}, size {u['size_mgauss']} mgauss, "
+                f"{u['rms_reduction_pct']} % of the residual rms"
+            )
         if c["suspects"]:
             s = c["suspects"][0]
             lines.append(

@@ -183,6 +183,9 @@ class DriveInputs:
     v_full_v: float
     temperature_degc: F64 | None
     throttle_dt_s: float = 0.04
+    # nuisance columns found by the open search (:mod:`magcomp.diagnosis.structure`), e.g. a step: (n, k)
+    extra: F64 | None = None
+    extra_names: tuple[str, ...] = ()
 
 
 def _speed(x: F64, d: DriveInputs, p: ExtensionParams) -> F64:
@@ -229,6 +232,10 @@ def drive_columns(d: DriveInputs, p: ExtensionParams) -> tuple[F64, tuple[str, .
     if p.temperature and d.temperature_degc is not None:
         cols.append(d.temperature_degc - float(np.mean(d.temperature_degc)))
         names.append("temperature")
+    if d.extra is not None:
+        for j, name in enumerate(d.extra_names):
+            cols.append(d.extra[:, j])
+            names.append(name)
     return np.column_stack(cols), tuple(names)
 
 

@@ -17,7 +17,7 @@ the CLI live in :mod:`magcomp.diagnosis.report` and :mod:`magcomp.commands.diagn
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -33,18 +33,24 @@ from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, thet
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model, initial_fit
 from magcomp.diagnosis.rivals import (
     GROUPS,
+    RIVAL_DELTA_BIC,
     group_of,
     indistinguishable,
     motors_identified,
     temperature_beats_time,
+    time_shapes,
 )
-from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms
+from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms, effective_delta_bic
+from magcomp.diagnosis.structure import search as structure_search
 from magcomp.diagnosis.suspects import SignalRelation, StepEvent, find_step, relate, step_at
 from magcomp.errors import InputError
 
 F64 = NDArray[np.float64]
 
 GRID_DT_S = 0.01
+#: Belsley's condition index above which regressors are strongly collinear (Belsley, Kuh & Welsch 1980):
+#: per-motor vectors are then not reported one by one.
+MAX_CONDITION_INDEX = 30.0
 MAX_SAMPLES = 5000
 
 
@@ -91,6 +97,7 @@ class CompassDiagnosis:
     excluded: list[tuple[float, float]] = field(default_factory=list)
     field_step: dict[str, Any] | None = None
     gate: gate_mod.GateResult | None = None
+    structure: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def observable(self) -> bool:
@@ -98,7 +105,7 @@ class CompassDiagnosis:
 
     def bias_mgauss(self, fit: ModelFit) -> F64:
         cols, _ = drive_columns(self.data.drive, fit.ext)
-        rows = [i for i, c in enumerate(fit.columns) if c != "temperature"]
+        rows = [i for i, c in enumerate(fit.columns) if c != "temperature" and not c.startswith("step")]
         return cols[:, rows] @ fit.coefs[rows]
 
     def to_json(self) -> dict[str, Any]:
@@ -118,7 +125,7 @@ class CompassDiagnosis:
                 "field_step_motors_off",
             ):
                 out[k] = None
-            for k in ("findings", "suspects"):
+            for k in ("findings", "suspects", "unexplained_structure"):
                 out[k] = []
             for k in ("rejected", "autopilot"):
                 out[k] = {}
@@ -164,6 +171,7 @@ class CompassDiagnosis:
                 "events": [{"t_s": _r(t), "event": e} for t, e in self.step.events],
             },
             "field_step_motors_off": self.field_step,
+            "unexplained_structure": self.structure,
             "heading_error": None
             if self.heading is None
             else {
@@ -409,6 +417,8 @@ def subset(data: CompassData, keep: NDArray[np.bool_]) -> CompassData:
         d.v_full_v,
         temp,
         d.throttle_dt_s,
+        d.extra[keep] if d.extra is not None else None,
+        d.extra_names,
     )
     return CompassData(
         data.mag_index,
@@ -450,14 +460,37 @@ def _params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any
     hw = np.vstack(hws)
     tn = float(np.linalg.norm(theta))
     spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
-    out = {"spread": _r(spread)}
-    if motors_identified(theta_i, hw, theta):
+    cols, _ = drive_columns(data.drive, fit.ext)
+    sel = cols[:, [list(fit.columns).index(c) for c in ("throttle", *names)]]
+    sel = sel - sel.mean(axis=0)
+    sel = sel / np.maximum(np.linalg.norm(sel, axis=0), 1e-12)
+    sv = np.linalg.svd(sel, compute_uv=False)
+    cond = float(sv[0] / max(sv[-1], 1e-12))
+    out = {"spread": _r(spread), "condition_index": _r(cond)}
+    # the same vectors from each half of the log must agree within their intervals (a half has twice the
+    # variance, a difference of two halves four times: 2 x the whole log's half-width)
+    halves = []
+    for keep in (data.t_s < np.median(data.t_s), data.t_s >= np.median(data.t_s)):
+        fh = fit_model(data, fit.effects, start=fit, train=keep, max_nfev=50)
+        dh = np.vstack([fh.coefs[rows], -np.sum(fh.coefs[rows], axis=0, keepdims=True)])
+        halves.append(fh.theta_mgauss + dh)
+    half_gap = float(np.max(np.abs(halves[0] - halves[1]) / np.maximum(2.0 * hw, 1e-9)))
+    out["halves_disagreement"] = _r(half_gap)
+    stable = half_gap <= 1.0
+    if cond <= MAX_CONDITION_INDEX and stable and motors_identified(theta_i, hw, theta):
         out["theta_per_motor_mgauss"] = [_r(row) for row in theta_i]
         out["theta_per_motor_ci95_halfwidth"] = [_r(row) for row in hw]
     else:
+        why = []
+        if cond > MAX_CONDITION_INDEX:
+            why.append(
+                f"condition index {cond:.0f} of the motor columns (collinear above {MAX_CONDITION_INDEX:.0f})"
+            )
+        if not stable:
+            why.append(f"the two halves of the log disagree by {half_gap:.1f}x their interval (must be <= 1)")
+        why.append(f"95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f}")
         out["theta_per_motor_mgauss"] = (
-            f"not identifiable: 95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f} "
-            "(the motor outputs move together); only the spread and the mean theta are meaningful"
+            "not identifiable: " + "; ".join(why) + ": only the spread and the mean theta are meaningful"
         )
     return out
 
@@ -482,8 +515,15 @@ def diagnose_compass(
     p: SelectionParams | None = None,
     log: LogData | None = None,
     events: list[tuple[float, str]] | None = None,
+    open_search: bool = True,
+    opened: list[dict[str, Any]] | None = None,
 ) -> CompassDiagnosis:
-    """Baseline, every available extension, greedy combination; suspects on the final residual."""
+    """Baseline, every available extension, greedy combination; suspects on the final residual.
+
+    open_search: after the selection, look for a step of the field in the residual; when one passes, it
+    joins the nuisance model and the selection is run again, so a named cause that only soaked up the
+    step is dropped (named causes get the first shot, so a fast warm-up is not mistaken for a step).
+    """
     p = p or SelectionParams()
     base = fit_model(data, (), start=initial_fit(data), max_nfev=p.max_nfev)
     excluded: list[tuple[float, float]] = []
@@ -497,6 +537,7 @@ def diagnose_compass(
     unavailable: dict[str, str] = {}
     singles: list[Comparison] = []
     rejected: dict[str, dict[str, Any]] = {}
+    temp_vs_time: dict[str, dict[str, float]] = {}
     cv_base: float | None = None
     for name in EFFECTS:
         why = effect_available(name, data.drive)
@@ -513,11 +554,25 @@ def diagnose_compass(
         if small is not None:
             rejected[name] = {"delta_bic": _r(dbic), "rms_with": _r(f.rms_mgauss), "why": small}
             continue
+        if param is not None:
+            lo_b, hi_b = EFFECTS[name].bounds
+            v = float(getattr(f.ext, param))
+            # (a lower bound of 0 is the effect switched off, which ``negligible`` judges)
+            near_lo = lo_b != 0.0 and v - lo_b < 0.01 * (hi_b - lo_b)
+            if near_lo or hi_b - v < 0.01 * (hi_b - lo_b):
+                # a parameter pinned at the end of its physical range: the data want something the cause
+                # cannot be (e.g. a 5 s "spin-up lag" that is really a slow drift), so it is not the cause
+                rejected[name] = {
+                    "delta_bic": _r(dbic),
+                    "rms_with": _r(f.rms_mgauss),
+                    "why": f"{param} = {v:.3g} at the edge of its range [{lo_b}, {hi_b}]",
+                }
+                continue
         if cv_base is None:
             cv_base = cv_rms(data, base, p)
         c = compare(data, base, f, cv_base, p)
         if c.significant and name == "temperature_drift":
-            wins, shape, vs_time = temperature_beats_time(data, base, f, p.min_delta_bic, p.max_nfev)
+            wins, shape, vs_time = temperature_beats_time(data, base, f, RIVAL_DELTA_BIC, p.max_nfev)
             if not wins:
                 rejected[name] = {
                     "delta_bic": _r(dbic),
@@ -526,10 +581,15 @@ def diagnose_compass(
                     "why": f"no better than a smooth drift {shape} with as many parameters",
                 }
                 continue
+            temp_vs_time[name] = vs_time
         if c.significant:
             singles.append(c)
         else:
-            rejected[name] = {"delta_bic": _r(dbic), "cv_gain_pct": _r(100 * c.cv_gain), "why": "held-out"}
+            rejected[name] = {
+                "delta_bic": _r(dbic),
+                "cv_gain_pct": _r(100 * c.cv_gain),
+                "why": "held-out" if c.cv_gain < p.min_cv_gain else f"effective BIC {c.delta_bic:.0f}",
+            }
     singles.sort(key=lambda c: -c.cv_gain)
     candidates: dict[str, list[str]] = {}
     candidate_params: dict[str, dict[str, Any]] = {}
@@ -537,14 +597,14 @@ def diagnose_compass(
         members = {c.fit.effects[0]: c for c in singles if group_of(c.fit.effects[0]) == group}
         if len(members) < 2:
             continue
-        same = indistinguishable({k: c.fit.bic for k, c in members.items()}, p.min_delta_bic)
+        same = indistinguishable({k: c.delta_bic for k, c in members.items()}, RIVAL_DELTA_BIC)
         if len(same) < 2:
             continue
         best = same[0]
         candidates[best] = same
         candidate_params[best] = {
             k: _params_json(members[k].fit, k, data)
-            | {"delta_bic_vs_best": _r(members[k].fit.bic - members[best].fit.bic)}
+            | {"delta_bic_vs_best": _r(members[k].delta_bic - members[best].delta_bic)}
             for k in same
         }
         for k in same[1:]:
@@ -552,7 +612,7 @@ def diagnose_compass(
             rejected[k] = {
                 "delta_bic": _r(members[k].delta_bic),
                 "cv_gain_pct": _r(100 * members[k].cv_gain),
-                "why": f"cannot be told from {best} (BIC within {p.min_delta_bic:.0f}): reported as a set",
+                "why": f"cannot be told from {best} (BIC within {RIVAL_DELTA_BIC:.0f}): reported as a set",
             }
     current, cv_current = base, (cv_base if cv_base is not None else 0.0)
     kept: list[tuple[str, Comparison]] = []
@@ -576,12 +636,24 @@ def diagnose_compass(
                 "why": f"explained by {', '.join(current.effects)}",
             }
     extended = current
+    if open_search:
+        sig0 = signals_at(data, log)
+        # a step on its own (against the paper's model) that fits better than every named cause on its own:
+        # the named ones were soaking it up
+        st = step_candidate(data, base, p, cv_base or cv_rms(data, base, p), sig0, events)
+        best_named = min((c.fit.bic for c in singles), default=math.inf)
+        if st is None or st[1].bic >= best_named:
+            # or a step in what the named causes leave
+            st = step_candidate(data, extended, p, cv_current or cv_rms(data, extended, p), sig0, events)
+        if st is not None:
+            return diagnose_compass(st[0], source, p, log, events, open_search=False, opened=[st[2]])
     findings = [
         Finding(
             name,
             EFFECTS[name].cause,
             _params_json(extended, name, data),
-            _evidence(c, data),
+            _evidence(c, data)
+            | ({"delta_bic_vs_time_shapes": temp_vs_time[name]} if name in temp_vs_time else {}),
             c.fit.rms_mgauss,
             candidates.get(name, []),
             candidate_params.get(name, {}),
@@ -605,8 +677,78 @@ def diagnose_compass(
         excluded=excluded,
     )
     cd.field_step = motors_off_step(data, extended, sig, events)
+    cd.structure = list(opened or []) + structure_search(
+        data.t_s, extended.residual_mgauss, data.r_nb, sig, suspects, events
+    )
     _autopilot_terms(cd, log)
     return cd
+
+
+def step_candidate(
+    data: CompassData,
+    base: ModelFit,
+    p: SelectionParams,
+    cv_base: float,
+    sig: dict[str, tuple[F64, F64]],
+    events: list[tuple[float, str]] | None,
+) -> tuple[CompassData, ModelFit, dict[str, Any]] | None:
+    """The best single step of the field (change point of the baseline residual's mean, least squares), as a
+    model column; kept when it passes the extensions' own tests (held-out gain, BIC with one more
+    ln(3n) for the searched time). Returns the data with the column, the refit and the report entry."""
+    r = base.residual_mgauss - base.residual_mgauss.mean(axis=0)
+    n = data.n
+    if n < 100:
+        return None
+    c = np.cumsum(r, axis=0)
+    k = np.arange(1, n)
+    # RSS reduction of a mean shift after sample k (exact for a step on a constant): |S_k|^2 n / (k (n - k))
+    gain = np.sum(c[:-1] ** 2, axis=1) * n / (k * (n - k))
+    lo, hi = int(0.05 * n), int(0.95 * n)  # a step at the very ends is the calibration's business
+    i = lo + int(np.argmax(gain[lo:hi]))
+    t_step = float(0.5 * (data.t_s[i] + data.t_s[i + 1]))
+    col = (data.t_s >= t_step).astype(float)[:, None]
+    d = data.drive
+    drive = replace(d, extra=col, extra_names=("step",))
+    data_s = replace(data, drive=drive)
+    fs = fit_model(data_s, base.effects, start=base, max_nfev=p.max_nfev)
+    cmp = compare(data_s, base, fs, cv_base, p)
+    extra_penalty = math.log(3 * n)
+    in_sample = 1.0 - fs.rms_mgauss / base.rms_mgauss
+    if not (
+        cmp.cv_gain >= p.min_cv_gain
+        and in_sample >= p.min_cv_gain
+        and cmp.delta_bic <= -p.min_delta_bic - extra_penalty
+    ):
+        return None
+    # a slow drift (temperature, a settling hard iron) is not a step: the step must beat every smooth time
+    # column with as many parameters, by the same margin
+    for shape in time_shapes(data.t_s).values():
+        smooth = replace(data, drive=replace(d, extra=shape[:, None], extra_names=("step",)))
+        fsm = fit_model(smooth, base.effects, start=base, max_nfev=p.max_nfev)
+        if effective_delta_bic(fsm, fs) > -RIVAL_DELTA_BIC:
+            return None
+    size = fs.coefs[list(fs.columns).index("step")]
+    co: dict[str, float] = {}
+    for name, (ts, vs) in sig.items():
+        before = (ts >= t_step - 2.0) & (ts < t_step)
+        after = (ts >= t_step) & (ts < t_step + 2.0)
+        sd = float(np.std(vs))
+        if np.count_nonzero(before) >= 2 and np.count_nonzero(after) >= 2 and sd > 0:
+            co[name] = round(float(np.mean(vs[after]) - np.mean(vs[before])) / sd, 3)
+    co = dict(sorted(co.items(), key=lambda kv: -abs(kv[1]))[:5])
+    info = {
+        "kind": "step",
+        "t_s": round(t_step, 2),
+        "size_mgauss": [round(float(v), 2) for v in size],
+        "rms_reduction_pct": round(100.0 * (1.0 - fs.rms_mgauss / base.rms_mgauss), 2),
+        "cv_gain_pct": round(100.0 * cmp.cv_gain, 2),
+        "delta_bic": round(cmp.delta_bic, 1),
+        "co_stepping_signals": co,
+        "events": [{"t_s": round(te, 2), "event": e} for te, e in (events or []) if abs(te - t_step) <= 2.0],
+        "note": "a step of the field that no named cause explains (a payload, servo or light switched on?); "
+        "kept in the model as a nuisance so the named causes are tested on what is left",
+    }
+    return data_s, fs, info
 
 
 def motors_off_step(

@@ -27,7 +27,8 @@ Earth's surface field range 220-670 mgauss
     A field residual of a fraction e of the Earth field can turn the heading by up to e rad; 0.05 rad is
     2.9 deg, the size of the paper's corrected heading errors (Table III: 1.3-3.7 deg). A model that leaves
     more than that cannot resolve a bias at the level the paper's correction works at.
-``min_yaw_span_deg`` = 90, ``min_tilt_span_deg`` = 10
+``min_yaw_span_deg`` = 90, ``min_tilt_span_deg`` = 10 (down direction's spread: twice its 95th-percentile
+angle from the mean)
     A and the hard iron c are separable only when the field sweeps an arc in body axes: the centre of a
     circle fitted to an arc of width w has an error of about noise / (1 - cos(w / 2)); at w = 90 deg that is
     3.4x the noise, at 30 deg already 30x. The inclination (the vertical part of the field against c's third
@@ -117,9 +118,15 @@ def yaw_span_deg(r_nb: F64) -> float:
 
 
 def tilt_span_deg(r_nb: F64) -> float:
-    """Larger of the roll and pitch spans (2.5-97.5 percentile), deg."""
-    e = np.degrees(euler_from_dcms(r_nb))
-    return float(max(np.ptp(np.percentile(e[:, j], [2.5, 97.5])) for j in (0, 1)))
+    """Spread of the down direction in body axes (deg): twice the 95th percentile of its angle from the
+    mean down direction (free of the Euler angles' wrap at +-180 deg)."""
+    down = r_nb[:, 2, :]
+    m = down.mean(axis=0)
+    norm = float(np.linalg.norm(m))
+    if norm < 1e-9:
+        return 180.0
+    ang = np.degrees(np.arccos(np.clip(down @ (m / norm), -1.0, 1.0)))
+    return float(2.0 * np.percentile(ang, 95.0))
 
 
 def median_rate_hz(t_s: F64) -> float:
@@ -200,7 +207,7 @@ def check(
             )
         if checks["tilt_span_deg"] < p.min_tilt_span_deg:
             reasons.append(
-                f"roll/pitch span only {checks['tilt_span_deg']:.0f} deg (< {p.min_tilt_span_deg:.0f}): the "
+                f"tilt span only {checks['tilt_span_deg']:.0f} deg (< {p.min_tilt_span_deg:.0f}): the "
                 "field's vertical part is not separable from the hard iron"
             )
         lo, hi = 1.0 - p.max_scale_error, 1.0 + p.max_scale_error

@@ -157,17 +157,27 @@ def markdown(
         "|---|---|---|---|---|",
     ]
     for c in d.compasses:
+        if not c.observable:
+            lines.append(
+                f"| {c.index} | not observable | {c.baseline.rms_mgauss:.2f} | "
+                f"{c.extended.rms_mgauss:.2f} | - |"
+            )
+            continue
         names = ", ".join(f.label for f in c.findings) or "none"
+        hw = c.to_json()["theta_ci95_halfwidth"]
         lines.append(
-            f"| {c.index} | {_vec(c.extended.theta_mgauss)} | {c.baseline.rms_mgauss:.2f} | "
-            f"{c.extended.rms_mgauss:.2f} | {names} |"
+            f"| {c.index} | {_vec(c.extended.theta_mgauss)} +- {_vec(hw)} (95 %) | "
+            f"{c.baseline.rms_mgauss:.2f} | {c.extended.rms_mgauss:.2f} | {names} |"
         )
     lines.append("")
     g = j["gain"]
-    lines += [
-        f"Primary compass {d.primary}: residual {j['residual_rms_baseline']} -> "
-        f"{j['residual_rms_extended']} mgauss per axis (ratio {g['residual_rms_ratio']})."
-    ]
+    if j.get("observable", True):
+        lines += [
+            f"Primary compass {d.primary}: residual {j['residual_rms_baseline']} -> "
+            f"{j['residual_rms_extended']} mgauss per axis (ratio {g['residual_rms_ratio']})."
+        ]
+    else:
+        lines += [f"Primary compass {d.primary} is not observable in this log: {j['unobservable_why']}."]
     if "heading_error_rms_deg" in g:
         h = g["heading_error_rms_deg"]
         lines.append(
@@ -190,7 +200,35 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
         f"Earth field through the calibration: {cj['field_strength_mgauss']} mgauss, inclination "
         f"{cj['inclination_deg']} deg; heading drift of the gyro {cj['heading_drift_deg_per_min']} deg/min."
     )
+    gate = cj["gate"]
+    if gate:
+        out.append(
+            f"Validity gate ({gate['earth_reference']}): fitted field {gate['fitted_strength_mgauss']} "
+            f"mgauss vs WMM {gate['wmm_strength_mgauss']}, inclination {gate['fitted_inclination_deg']} vs "
+            f"{gate['wmm_inclination_deg']} deg, calibration condition {gate['calibration_condition']}, "
+            f"heading span {gate['yaw_span_deg']} deg, tilt span {gate['tilt_span_deg']} deg, throttle span "
+            f"{gate['throttle_span']}, residual {gate['residual_rms_mgauss']} mgauss (white-noise floor "
+            f"{gate['noise_floor_mgauss']}), compass {gate['magnetometer_hz']} Hz, gyro {gate['gyro_hz']} Hz."
+        )
     out.append("")
+    if not c.observable:
+        out.append(
+            f"**Not observable:** {cj['unobservable_why']}. No theta, finding or autopilot parameter is "
+            "given for this compass: a fit that fails these checks is not a result."
+        )
+        out.append("")
+        return out
+    if cj["unexplained_structure"]:
+        out.append("### Unexplained structure (outside the named causes)")
+        out.append("")
+        for u in cj["unexplained_structure"]:
+            when = f" at t = {u['t_s']} s" if "t_s" in u else ""
+            corr = ", ".join(f"{k['signal']} ({100 * k['r2']:.0f} %)" for k in u.get("best_correlates", []))
+            out.append(
+                f"- **{u['kind']}**{when}: size {u['size_mgauss']} mgauss, {u['rms_reduction_pct']} % of the "
+                f"residual rms; best correlates: {corr or 'none'}"
+            )
+        out.append("")
     if c.findings:
         out.append("### What the paper's model gets wrong here")
         out.append("")
@@ -248,9 +286,10 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
 
 def write_report(d: Diagnosis, path: Path, img_dir: Path | None = None) -> list[Path]:
     """Write the Markdown report to ``path`` and its PNGs to ``img_dir`` (default: beside it)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     img_dir = img_dir or path.parent / (path.stem + "_img")
     stem = path.stem
-    figs = {c.index: write_plots(c, img_dir, stem) for c in d.compasses}
+    figs = {c.index: write_plots(c, img_dir, stem) for c in d.compasses if c.observable}
     try:
         rel = img_dir.resolve().relative_to(path.parent.resolve()).as_posix()
     except ValueError:

@@ -4,11 +4,11 @@
   through a flight makes T a smooth function of time, and any slow error of the forward model (gyro-heading
   drift not quite linear, a slowly settling hard iron) is a smooth function of time too. So the temperature
   column must beat each smooth time column of the same size (3 parameters): linear, quadratic and a saturating
-  exponential with the log's third as time constant, by the same BIC margin that admits any extension.
+  exponential with the log's third as time constant, by ``RIVAL_DELTA_BIC`` (effective BIC).
 - ``throttle_offset``, ``throttle_exponent`` and ``voltage_sag`` all reshape the throttle column and are
   partly collinear (each has one nonlinear parameter); ``current_lag`` and ``time_skew`` both delay it. When
-  several members of a group pass on their own and their fits differ by less than the BIC margin, the data
-  cannot tell them apart: the finding names the set, not one of them.
+  several members of a group pass on their own and their fits differ by less than ``RIVAL_DELTA_BIC``, the
+  data cannot tell them apart: the finding names the set, not one of them.
 - ``per_motor``'s vectors are reported one by one only when each is identified: its 95 % interval narrower
   than half of |theta| (the scale of the differences it is meant to show); otherwise only the spread and the
   mean theta.
@@ -25,6 +25,11 @@ from numpy.typing import NDArray
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
 
 F64 = NDArray[np.float64]
+
+#: Margin by which one model must beat a rival of the same size: a BIC difference above 10 is "very strong"
+#: evidence (Kass & Raftery 1995, J. Am. Stat. Assoc. 90:773); the admission margin of an extension against
+#: the model it extends stays larger (``SelectionParams.min_delta_bic``).
+RIVAL_DELTA_BIC = 10.0
 
 GROUPS: dict[str, tuple[str, ...]] = {
     "throttle_shape": ("throttle_offset", "throttle_exponent", "voltage_sag"),
@@ -58,11 +63,13 @@ def temperature_beats_time(
     reference: the model that ``with_temp`` extends by ``temperature_drift``. Returns (wins, the best time
     shape, delta BIC of temperature against each shape: negative = temperature better).
     """
+    from magcomp.diagnosis.selection import effective_delta_bic
+
     effects = (*reference.effects, "temperature_drift")
     dbic: dict[str, float] = {}
     for name, col in time_shapes(data.t_s).items():
         f = fit_model(_with_column(data, col), effects, start=reference, max_nfev=max_nfev)
-        dbic[name] = round(with_temp.bic - f.bic, 1)
+        dbic[name] = round(effective_delta_bic(f, with_temp), 1)
     best = min(dbic, key=lambda k: -dbic[k])  # the shape temperature beats by the least
     return all(v <= -min_delta_bic for v in dbic.values()), best, dbic
 
