@@ -171,11 +171,15 @@ def earth_reference(args: argparse.Namespace, log: Any) -> Any:
         year, when = float(args.year), "--year"
     if not math.isfinite(year):
         year, when = 2025.5, "no date in the log, 2025.5 assumed"
-    outside = not 2025.0 <= year < 2030.0
+    from magcomp.geomag import wmm_release
+
+    epoch, inside = wmm_release(year)
     ned = earth_field_ned_mgauss(lat, lon, alt, year, allow_outside_lifespan=True)
-    src = f"WMM-2025 at {where} ({lat:.4f}, {lon:.4f}, {alt:.0f} m), {year:.2f} ({when})"
-    if outside:
-        src += "; the date is outside 2025-2030, so the model's secular variation is extrapolated"
+    src = f"WMM-{epoch} at {where} ({lat:.4f}, {lon:.4f}, {alt:.0f} m), {year:.2f} ({when})"
+    if not inside and year >= 2030.0:
+        src += f"; the date is past WMM-{epoch}'s span, so its secular variation is extrapolated"
+    elif year < 2010.0:
+        src += "; the date is before WMM-2010, so its secular variation is extrapolated back"
     return EarthReference(ned, src)
 
 
