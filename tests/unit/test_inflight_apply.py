@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from magcomp.adapters.config import InflightConfig
+from magcomp.core.inflight import N_SOFT
 from magcomp.service.inflight_stage import MAX_APPLY_HEADING_SIGMA_DEG, InflightStage
 
 NORM = 500.0  # mgauss; the heading uncertainty is taken against half of it (InflightEstimator.solve)
@@ -17,8 +18,13 @@ D_MEAN = [300.0, -200.0, 0.0]  # moves the horizontal field from (100, 0) to (-2
 
 
 def _stage(d_sd: float, applied: bool | None) -> InflightStage:
-    warm: dict[str, object] = {"form": "relative", "n_motors": 0, "mean": [*D_MEAN, 0.0, 0.0, 0.0],
-                               "sd": [d_sd] * 3 + [50.0] * 3}  # fmt: skip
+    # relative form: [soft iron E (N_SOFT), d (3), theta (3)]; no soft iron, so that L = I
+    warm: dict[str, object] = {
+        "form": "relative",
+        "n_motors": 0,
+        "mean": [0.0] * N_SOFT + [*D_MEAN, 0.0, 0.0, 0.0],
+        "sd": [1e-6] * N_SOFT + [d_sd] * 3 + [50.0] * 3,
+    }
     if applied is not None:
         warm["applied"] = applied
     st = InflightStage(0, InflightConfig(), "relative", "test", True, NORM, warm)
@@ -69,5 +75,8 @@ def test_unobserved_parameters_stay_within_the_physical_prior_across_runs() -> N
         est = InflightEstimator("relative", 0, p, NORM, warm)
         warm = est.state()
     assert warm is not None
-    np.testing.assert_allclose(warm[1][3:6], p.sigma_theta_mgauss)  # theta: never observed
-    np.testing.assert_allclose(warm[1][0:3], p.sigma_d_mgauss)
+    np.testing.assert_allclose(
+        warm[1][N_SOFT + 3 : N_SOFT + 6], p.sigma_theta_mgauss
+    )  # theta: never observed
+    np.testing.assert_allclose(warm[1][N_SOFT : N_SOFT + 3], p.sigma_d_mgauss)
+    np.testing.assert_allclose(warm[1][:N_SOFT], p.sigma_a)
