@@ -37,7 +37,9 @@ def timed(fn: object, repeat: int) -> list[float]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=600.0, help="simulated seconds (paper scenario)")
+    ap.add_argument("--duration", type=float, default=600.0, help="simulated seconds")
+    ap.add_argument("--scenario", default="paper", help="paper (hand rotation) or ordinary (in flight)")
+    ap.add_argument("--two-pass", action="store_true", help="time the CLI's default two-pass replay")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--emit", action="store_true", help="also write every MAGCOMP_HEADING to a tlog")
     args = ap.parse_args()
@@ -52,7 +54,8 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "long.tlog"
-        n_msgs = write_tlog(simulate(SimConfig(scenario="paper", duration_s=args.duration, seed=0)), path)
+        sim_cfg = SimConfig(scenario=args.scenario, duration_s=args.duration, seed=0)
+        n_msgs = write_tlog(simulate(sim_cfg), path)
         size_mb = path.stat().st_size / 1e6
 
         def parse_only() -> None:
@@ -70,7 +73,7 @@ def main() -> int:
         report: list[object] = []
 
         def replay() -> None:
-            report.append(replay_log(path, Config(), emit=emit))
+            report.append(replay_log(path, Config(), emit=emit, two_pass=args.two_pass))
 
         # interleaved, so that load from other processes hits all three alike
         base: list[float] = []
@@ -81,7 +84,9 @@ def main() -> int:
             src += timed(source_only, 1)
             rep += timed(replay, 1)
     n_est = report[-1].n_estimates  # type: ignore[attr-defined]
-    print(f"tlog: {args.duration:g} s simulated, {n_msgs} messages, {size_mb:.1f} MB; {n_est} headings")
+    how = "two passes" if args.two_pass else "one pass"
+    print(f"tlog: {args.scenario}, {args.duration:g} s simulated, {n_msgs} messages, {size_mb:.1f} MB; "
+          f"{n_est} headings; replay {how}")  # fmt: skip
     for name, ts in (("mavutil parse only", base), ("magcomp source only", src), ("magcomp replay", rep)):
         med = statistics.median(ts)
         print(f"{name:<22} min {min(ts):6.2f} s  median {med:6.2f} s  "
