@@ -45,6 +45,8 @@ APPLY_Z = 2.0
 #: horizontal field (err <= h / 2, atan(0.5) = 26.6 deg); above it a correction that turns the heading by
 #: 150 deg would "justify" itself with a 75 deg uncertainty (seen on a 23 s log with 8 deg of yaw)
 MAX_APPLY_HEADING_SIGMA_DEG = math.degrees(math.atan(0.5))
+#: the relative form is applied only once the heading has covered this span (deg; as the diagnosis's gate)
+MIN_RELATIVE_YAW_SPAN_DEG = 90.0
 #: the estimate is re-solved at most this often (s of message time)
 SOLVE_PERIOD_S = 0.1
 #: states a compass spends time in (summary)
@@ -247,7 +249,11 @@ class InflightStage:
                 change = _horizontal_angle_deg(corrected, y)
                 sig = sol.heading_sigma_deg
                 ok = sig < max(self.params.heading_ok_deg, change / APPLY_Z)
-                if ok and sig < MAX_APPLY_HEADING_SIGMA_DEG:
+                # the relative form tells the hard iron from the Earth field only by rotation: below a
+                # quarter turn its statistical sigma hides the misalignment and gyro errors it cannot model
+                # (the diagnosis's gate uses the same span)
+                turned = self.mode == "absolute" or self.yaw_span_deg >= MIN_RELATIVE_YAW_SPAN_DEG
+                if ok and turned and sig < MAX_APPLY_HEADING_SIGMA_DEG:
                     self.applied = True
                     self.first_applied_t = t_s
             if self.applied:
@@ -280,22 +286,27 @@ class InflightStage:
             "applied": self.applied,
         }
 
+    @property
+    def yaw_span_deg(self) -> float:
+        """Heading span covered by the samples used so far (deg, unwrapped)."""
+        return math.degrees(self.yaw_max - self.yaw_min) if self.yaw_max > self.yaw_min else 0.0
+
     # ----------------------------------------------------------------------------------------- summary
 
     def why_not(self) -> str:
         """Why the estimate is not applied (for the summary), from what the data held."""
         est = self.est
-        if est is None or self.n_rows == 0:
+        if est is None or (self.n_rows == 0 and not self.warm_started):
             if self.mode == "absolute":
                 return "no usable attitude with the motors running (absolute form)"
             return "no rotation source (no gyro or attitude stream) for the relative form"
-        if est.n < 10:
+        if est.n < 10 and not self.warm_started:
             return f"too few usable samples ({est.n})"
         span = math.degrees(self.yaw_max - self.yaw_min) if self.yaw_max > self.yaw_min else 0.0
         parts = []
         if est.throttle2_std < 0.02:
             parts.append(f"throttle^2 hardly varies (std {est.throttle2_std:.3f})")
-        if span < 90.0:
+        if span < MIN_RELATIVE_YAW_SPAN_DEG:
             parts.append(f"yaw span only {span:.0f} deg")
         sol = self.solution
         if sol is not None:

@@ -48,9 +48,17 @@ def test_stored_estimate_not_yet_applied_is_not_applied_when_uncertain() -> None
     assert sol.heading_sigma_deg < 135.0 / 2.0  # what the 2-sigma rule (APPLY_Z) alone would have accepted
 
 
-def test_stored_estimate_not_yet_applied_is_applied_once_certain() -> None:
+def test_stored_estimate_not_yet_applied_is_applied_once_certain_and_turned() -> None:
+    """Certain is not enough for the relative form: the heading must also have covered a quarter turn in
+    this run (the hard iron is told from the Earth field only by rotation)."""
     st = _stage(10.0, applied=False)
-    out = st.output(1.0, FIELD, 0.0, ())
+    assert st.output(1.0, FIELD, 0.0, ()) is None  # certain, but not turned yet
+    assert "yaw span" in st.why_not()
+    for k in range(100):  # a slow turn through 99 deg, no pairs added (no rotation source for them)
+        yaw = math.radians(float(k))
+        st._track_yaw(np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0],
+                                [0.0, 0.0, 1.0]]))  # fmt: skip
+    out = st.output(2.0, FIELD, 0.0, ())
     assert out is not None and st.applied
     np.testing.assert_allclose(out.coeffs[9:], D_MEAN)
 
