@@ -268,15 +268,15 @@ class InflightEstimator:
         current uncertainty allows (e.g. the first throttle) is learned."""
         r = z - rows @ self._theta
         rn2 = float(r @ r)
-        s2 = self.sigma_mgauss**2
         sol = self._solution
         if self._cov is not None and sol is not None and sol.heading_sigma_deg < self.p.heading_converged_deg:
             # only once converged, and with the model error allowed for (the floor below): before that, a
-            # large residual is the model learning, not a glitch
-            s2 = max(s2, GATE_SIGMA_FLOOR_MGAUSS**2)
-            pred = s2 * np.eye(3) + rows @ self._cov @ rows.T
+            # large residual is the model learning, not a glitch. The noise scale is the last solution's.
+            s2 = max(sol.residual_rms_mgauss**2, GATE_SIGMA_FLOOR_MGAUSS**2)
+            # pred >= s2 I, so r' pred^-1 r <= |r|^2 / s2: most samples pass without the 3x3 solve
+            pred = s2 * np.eye(3) + rows @ self._cov @ rows.T if rn2 > GATE_CHI2_3DOF * s2 else None
             try:
-                m2 = float(r @ np.linalg.solve(pred, r))
+                m2 = 0.0 if pred is None else float(r @ np.linalg.solve(pred, r))
             except np.linalg.LinAlgError:
                 m2 = 0.0
             if m2 > GATE_CHI2_3DOF:

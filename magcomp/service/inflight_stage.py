@@ -109,6 +109,8 @@ class InflightStage:
         self._yaw_prev: float | None = None
         self._yaw_unwrapped = 0.0
         self._solved_t: float | None = None
+        self._coeffs: tuple[float, ...] = ()
+        self._theta3 = (0.0, 0.0, 0.0)
         self.warm_started = False
         self._warm: tuple[F64, F64] | None = None
         if warm is not None and warm.get("form") == mode:
@@ -237,12 +239,20 @@ class InflightStage:
                 sol = est.solve()
                 self.solution = sol
                 self._solved_t = t_s
+                # the floats the per-sample path needs, once per solution
+                self._coeffs = (*np.ravel(sol.calib_l).tolist(), *np.ravel(sol.calib_d).tolist())
+                th = sol.theta_mgauss.tolist()
+                self._theta3 = (th[0], th[1], th[2])
             state = "learning"
             mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
-            x = regressors(throttle_01, mot)
-            bias = sol.theta_mgauss * x[0]
+            d2 = throttle_01 * throttle_01
+            t0, t1, t2 = self._theta3
+            bias3 = (t0 * d2, t1 * d2, t2 * d2)  # eq. (11)
             if mot is not None:
-                bias = bias + sol.motor_theta_mgauss.T @ x[1:]
+                x = regressors(throttle_01, mot)
+                b = sol.theta_mgauss * x[0] + sol.motor_theta_mgauss.T @ x[1:]
+                bias3 = (float(b[0]), float(b[1]), float(b[2]))
+            bias = np.asarray(bias3)
             if not self.applied:
                 y = np.asarray(field_mgauss, dtype=float)
                 corrected = sol.calib_l @ y - sol.calib_d - bias
@@ -259,13 +269,9 @@ class InflightStage:
             if self.applied:
                 state = "corrected"
                 out = InflightOutput(
-                    coeffs=(*np.ravel(sol.calib_l).tolist(), *np.ravel(sol.calib_d).tolist()),
-                    theta_mgauss=(
-                        float(sol.theta_mgauss[0]),
-                        float(sol.theta_mgauss[1]),
-                        float(sol.theta_mgauss[2]),
-                    ),
-                    bias_mgauss=(float(bias[0]), float(bias[1]), float(bias[2])),
+                    coeffs=self._coeffs,
+                    theta_mgauss=self._theta3,
+                    bias_mgauss=bias3,
                     converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
                 )
         if self._last_t is not None and 0.0 < t_s - self._last_t <= 5.0:
