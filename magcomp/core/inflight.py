@@ -372,10 +372,6 @@ class InflightEstimator:
         th = self._theta[k + 3 :].reshape(-1, 3)
         return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)
 
-    def predict_rows(self, rows: F64) -> F64:
-        """rows @ current parameter vector (for residuals)."""
-        return rows @ self._theta
-
 
 # ----------------------------------------------------------------------------------------------------------
 # which form a compass gets: does the autopilot's yaw come from something this compass does not disturb?
