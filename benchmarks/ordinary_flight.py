@@ -24,38 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState, StateStore
-from magcomp.core.types import HeadingEstimate
+from magcomp.service.demo import rms_after_learning
 from magcomp.service.replay import replay_log
-
-#: the issue's "after the first 60 s of flight"
-LEARN_S = 60.0
-#: flying: throttle above this (the simulated hover needs ~0.5)
-FLYING_THROTTLE = 0.2
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + 180.0) % 360.0 - 180.0
-
-
-def rms_after_learning(
-    result: object, ests: list[HeadingEstimate], mag_index: int = 0
-) -> tuple[float, float]:
-    """(rms corrected, rms uncorrected) heading error (deg) vs truth, flying, after LEARN_S of flight."""
-    s = result.samples  # type: ignore[attr-defined]
-    e = [x for x in ests if x.mag_index == mag_index]
-    t = np.array([x.t_s for x in e])
-    k = np.clip(np.searchsorted(s.t_s, t - 1e-4), 0, len(s.t_s) - 1)
-    idx = s.truth_index[k]
-    truth = (np.degrees(result.euler_rad[idx, 2]) - result.declination_deg) % 360.0  # type: ignore[attr-defined]
-    thr = np.asarray(s.throttle_01)[k]
-    flying = thr > FLYING_THROTTLE
-    t_fly = t[flying][0] if flying.any() else np.inf
-    m = flying & (t >= t_fly + LEARN_S)
-    h = np.array([x.heading_deg for x in e])[m]
-    hr = np.array([x.heading_raw_deg for x in e])[m]
-    return float(np.sqrt(np.mean(_wrap(h - truth[m]) ** 2))), float(
-        np.sqrt(np.mean(_wrap(hr - truth[m]) ** 2))
-    )
 
 
 def main() -> int:

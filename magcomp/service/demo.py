@@ -90,18 +90,23 @@ def _wrap(a: Any) -> Any:
     return (np.asarray(a, dtype=float) + 180.0) % 360.0 - 180.0
 
 
+def truth_at(result: Any, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The simulated truth at estimate times: (sample index, matched to a sample within 1 ms, truth index,
+    true magnetic heading deg)."""
+    s = result.samples
+    k = np.clip(np.searchsorted(s.t_s, t_s - 1e-4), 0, len(s.t_s) - 1)
+    matched = np.abs(s.t_s[k] - t_s) < 1e-3
+    idx = s.truth_index[k]
+    truth = (np.degrees(result.euler_rad[idx, 2]) - result.declination_deg) % 360.0
+    return k, matched, idx, truth
+
+
 def heading_errors(result: Any, estimates: list[HeadingEstimate], mag_index: int = 0) -> list[SegmentError]:
     """Max and rms heading error per paper segment (pan, ramp, step) against the simulated truth."""
-    s = result.samples
     ests = [e for e in estimates if e.mag_index == mag_index]
     if not ests:
         return []
-    t = np.array([e.t_s for e in ests])
-    k = np.clip(np.searchsorted(s.t_s, t - 1e-4), 0, len(s.t_s) - 1)
-    matched = np.abs(s.t_s[k] - t) < 1e-3
-    idx = s.truth_index[k]
-    yaw = result.euler_rad[idx, 2]
-    truth = (np.degrees(yaw) - result.declination_deg) % 360.0
+    _, matched, idx, truth = truth_at(result, np.array([e.t_s for e in ests]))
     seg = result.motion.segment[idx]
     names = result.motion.segment_names
     h = np.array([e.heading_deg for e in ests])
@@ -116,6 +121,24 @@ def heading_errors(result: Any, estimates: list[HeadingEstimate], mag_index: int
         out.append(SegmentError(name, int(m.sum()), float(np.max(np.abs(ec))), float(np.max(np.abs(er))),
                                 float(np.sqrt(np.mean(ec**2))), float(np.sqrt(np.mean(er**2)))))  # fmt: skip
     return out
+
+
+def rms_after_learning(
+    result: Any, estimates: list[HeadingEstimate], mag_index: int = 0, learn_s: float = 60.0
+) -> tuple[float, float]:
+    """(corrected, uncorrected) rms heading error (deg) against the simulated truth over the flying samples
+    (throttle above 0.2) from ``learn_s`` after the first one: issue 9's "after the first 60 s of flight"."""
+    ests = [e for e in estimates if e.mag_index == mag_index]
+    t = np.array([e.t_s for e in ests])
+    k, _, _, truth = truth_at(result, t)
+    flying = np.asarray(result.samples.throttle_01)[k] > 0.2
+    t_fly = t[flying][0] if flying.any() else np.inf
+    m = flying & (t >= t_fly + learn_s)
+
+    def rms(h: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(_wrap(h[m] - truth[m]) ** 2)))
+
+    return rms(np.array([e.heading_deg for e in ests])), rms(np.array([e.heading_raw_deg for e in ests]))
 
 
 def run_demo(

@@ -35,7 +35,8 @@ MAX_PAIR_S = 2.5
 #: misalignment of a few degrees errs in proportion to the rotation between the pair. Measured (compass 1
 #: / 2 vs compass 0 on log171, two-pass; simulated ordinary flight at 50 Hz, internal primary compass):
 #: 0 s (consecutive, 0.1 s): 2.34 / 2.63 deg, sim never confident (heading sigma 7.8 deg); 0.3 s: 2.26 /
-#: 2.50 deg, sim 1.9 deg rms vs 3.9 uncorrected; 0.5 s: 2.66 / 2.90; 1 s: 3.22 / 3.44.
+#: 2.50 deg, sim 1.9 deg rms vs 3.9 uncorrected; 0.5 s: 2.66 / 2.90; 1 s: 3.22 / 3.44 (all measured before
+#: the relative form's soft-iron term, which brought 0.3 s to 2.19 / 2.43).
 PAIR_BASELINE_S = 0.3
 #: the correction is applied once its heading uncertainty is below half the heading change it makes (a
 #: 2-sigma test that the correction is real) or below ``heading_ok_deg``

@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 from magcomp.adapters.config import Config
-from magcomp.core.types import FLAG_CALIBRATED, FLAG_NO_THROTTLE, HeadingEstimate
+from magcomp.core.types import FLAG_CALIBRATED, FLAG_NO_THROTTLE
 from magcomp.service.console import summary_lines, write_json
+from magcomp.service.demo import rms_after_learning
 from magcomp.service.replay import replay_log
-
-LEARN_S = 60.0  # the issue's "after the first 60 s of flight"
 
 
 def _flight(
@@ -35,22 +34,6 @@ def _flight(
     return result, path
 
 
-def _rms_after_learning(result: Any, ests: list[HeadingEstimate], idx: int) -> tuple[float, float]:
-    """(corrected, uncorrected) rms heading error vs the simulated truth, flying, after LEARN_S of flight."""
-    s = result.samples
-    e = [x for x in ests if x.mag_index == idx]
-    t = np.array([x.t_s for x in e])
-    k = np.clip(np.searchsorted(s.t_s, t - 1e-4), 0, len(s.t_s) - 1)
-    truth = (np.degrees(result.euler_rad[s.truth_index[k], 2]) - result.declination_deg) % 360.0
-    flying = np.asarray(s.throttle_01)[k] > 0.2
-    m = flying & (t >= t[flying][0] + LEARN_S)
-
-    def rms(h: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(((h[m] - truth[m] + 180.0) % 360.0 - 180.0) ** 2)))
-
-    return rms(np.array([x.heading_deg for x in e])), rms(np.array([x.heading_raw_deg for x in e]))
-
-
 @pytest.mark.slow
 def test_internal_primary_compass_is_corrected_without_a_hand_rotation(tmp_path: Path) -> None:
     """The autopilot's yaw follows the disturbed compass; the relative form uses the gyro, not that yaw."""
@@ -62,7 +45,7 @@ def test_internal_primary_compass_is_corrected_without_a_hand_rotation(tmp_path:
     theta, truth = np.asarray(c0["theta_mgauss"]), np.asarray(result.compasses[0].theta_mgauss)
     assert float(theta @ truth) / (np.linalg.norm(theta) * np.linalg.norm(truth)) > 0.9
     assert abs(np.linalg.norm(theta) / np.linalg.norm(truth) - 1.0) < 0.35
-    corrected, raw = _rms_after_learning(result, rep.estimates, 0)
+    corrected, raw = rms_after_learning(result, rep.estimates, 0)
     assert corrected < 0.75 * raw, (corrected, raw)
     assert rep.summary["earth_field"]["source"] == "gps"
     loc = result.config.location
@@ -79,7 +62,7 @@ def test_external_primary_gives_the_absolute_form_and_theta_within_ten_percent(t
     assert c1["status"] == "corrected"
     theta, truth = np.asarray(c1["theta_mgauss"]), np.asarray(result.compasses[1].theta_mgauss)
     assert np.linalg.norm(theta - truth) < 0.10 * np.linalg.norm(truth)
-    corrected, raw = _rms_after_learning(result, rep.estimates, 1)
+    corrected, raw = rms_after_learning(result, rep.estimates, 1)
     assert corrected < 0.7 * raw, (corrected, raw)
     assert rep.estimates[-1].flags & FLAG_CALIBRATED
 
