@@ -101,6 +101,6 @@ def write_dataflash(result: Any, path: Any) -> int:
             rec("MAG", int(t_us[i]) + k, k, *map(float, s.mag_mgauss[k, i]))
         if i % 2 == 0:
             rec("CTUN", int(t_us[i]) + 5, float(s.throttle_01[i]))
-    with open(path, "wb") as f:
-        f.write(out)
+    with open(path, "wb") as fh:
+        fh.write(out)
     return len(out)

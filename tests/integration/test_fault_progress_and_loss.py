@@ -62,7 +62,7 @@ def _replay_stderr(log: Path, tty: bool, tmp_path: Path) -> str:
 
     t = threading.Thread(target=read, daemon=True)
     t.start()
-    finish(proc, 120.0)
+    finish(proc, 120.0)  # type: ignore[arg-type]
     t.join(timeout=10.0)
     os.close(master)
     return b"".join(chunks).decode(errors="replace")

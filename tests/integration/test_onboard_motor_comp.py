@@ -68,13 +68,14 @@ def _compensate(
     records = split(src.read_bytes())
     mav = apm.MAVLink(None)
     t0 = int.from_bytes(records[0][:8], "big")
-    thr, sent, out = 0.0, False, []
+    thr: float = 0.0
+    sent, out = False, []
     for r in records:
         if not sent and (int.from_bytes(r[:8], "big") - t0) * 1e-6 >= PARAMS_AT_S:
             enc = apm.MAVLink(None, srcSystem=1, srcComponent=1)
             items = [("COMPASS_MOTCT", 1.0)]
-            for j, m in mots.items():
-                prefix = "COMPASS_MOT_" if j == 0 else f"COMPASS_MOT{j + 1}_"
+            for jm, m in mots.items():
+                prefix = "COMPASS_MOT_" if jm == 0 else f"COMPASS_MOT{jm + 1}_"
                 items += [(prefix + ax, float(m[i])) for i, ax in enumerate("XYZ")]
             for k, (name, value) in enumerate(items):
                 pv = apm.MAVLink_param_value_message(name.encode(), value, 9, 900, 800 + k)

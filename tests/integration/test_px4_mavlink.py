@@ -97,7 +97,7 @@ def test_highres_imu_fields_updated_and_shadowing(tmp_path: Path) -> None:
         later = [s for s in src.samples() if isinstance(s, MagSample | ImuSample) and s.t_s >= 1.3]
         assert src.counts["highres_mag_shadowed"] == 1
     assert [type(s).__name__ for s in later] == ["WireMagSample", "WireImuSample"]
-    assert later[0].field_b_mgauss == pytest.approx([220.0, -30.0, 440.0])
+    assert later[0].field_b_mgauss == pytest.approx([220.0, -30.0, 440.0])  # type: ignore[union-attr]
 
 
 def fast_cfg() -> Config:

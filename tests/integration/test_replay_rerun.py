@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -66,7 +67,7 @@ def test_replay_emit_writes_every_heading(log: Path, tmp_path: Path) -> None:
     assert [m.time_boot_ms for m in msgs] == sorted(m.time_boot_ms for m in msgs)
 
 
-def read_headings(path: Path) -> list[object]:
+def read_headings(path: Path) -> list[Any]:
     from magcomp.adapters.dialect import ensure_dialect
 
     ensure_dialect()

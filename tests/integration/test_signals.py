@@ -31,7 +31,7 @@ def test_stop_request_from_a_signal_handler_takes_no_lock() -> None:
     done = threading.Event()
 
     def handler_while_lock_held() -> None:
-        with daemon._stop._cond:  # the main thread interrupted inside the Event's critical section
+        with daemon._stop._cond:  # type: ignore[attr-defined]  # the main thread interrupted inside the Event's critical section
             daemon.request_stop()  # what the signal handler runs, on the same thread
         done.set()
 

@@ -29,7 +29,7 @@ def synth_log(
     rng = np.random.default_rng(seed)
     dt = 0.02
     n = int(duration_s / dt)
-    t = 10.0 + dt * np.arange(n)
+    t = 10.0 + dt * np.arange(n, dtype=np.float64)
     # smooth random body rates (hand rotation) up to ~1 rad/s
     raw = rng.normal(size=(n + 200, 3))
     k = np.ones(100) / 100

@@ -75,7 +75,8 @@ def test_fast_mahony_matches_core_mahony_update() -> None:
     fast = FastMahony(p, st.q_nb, st.gyro_bias_b_rad_s)
     for k in range(1, len(t)):
         st, used = mahony_update(st, gyro[k], acc[k], t[k] - t[k - 1], p)
-        assert fast.update(*gyro[k], *acc[k], t[k] - t[k - 1]) == used
+        g, a = gyro[k], acc[k]
+        assert fast.update(g[0], g[1], g[2], a[0], a[1], a[2], t[k] - t[k - 1]) == used
         assert_allclose(fast.q, st.q_nb, rtol=0, atol=1e-12)
         assert_allclose(fast.b, st.gyro_bias_b_rad_s, rtol=0, atol=1e-14)
     assert_allclose(fast.down_b(), st.down_b, atol=1e-12)

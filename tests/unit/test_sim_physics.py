@@ -10,7 +10,7 @@ import pytest
 
 from magcomp.core.rotations import dcms_from_quats, euler_from_quats, quat_from_euler, quats_from_euler
 from magcomp.errors import InputError
-from magcomp.sim import EFFECTS, SimConfig, parse_effect, simulate
+from magcomp.sim import EFFECTS, SimConfig, SimResult, parse_effect, simulate
 from magcomp.sim.powertrain import PowertrainParams, simulate_powertrain
 from magcomp.sim.trajectory import (
     STEP_TIME_S,
@@ -21,10 +21,14 @@ from magcomp.sim.trajectory import (
 FIELD = (240.0, -27.0, 386.0)  # explicit Earth field: these tests do not need the WMM
 
 
-def run(scenario: str, effects: dict[str, float] | None = None, **kw: object) -> object:
+def run(scenario: str, effects: dict[str, float] | None = None, **kw: object) -> SimResult:
     cfg = SimConfig(
-        scenario=scenario, effects=effects or {}, earth_field_ned_mgauss=FIELD, n_compasses=1, **kw
-    )  # type: ignore[arg-type]
+        scenario=scenario,
+        effects=effects or {},
+        earth_field_ned_mgauss=FIELD,
+        n_compasses=1,
+        **kw,  # type: ignore[arg-type]
+    )
     return simulate(cfg, np.random.default_rng(7))
 
 

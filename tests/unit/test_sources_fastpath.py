@@ -168,6 +168,7 @@ def fast_samples(path: Path) -> tuple[list[Any], dict[str, int]]:
 def reference_samples(path: Path) -> tuple[list[Any], dict[str, int]]:
     """The same walk, decoding each needed frame with pymavlink's ``MAVLink.decode`` (the former path)."""
     with open_source(path) as src:
+        assert isinstance(src, MavSource)
         src._reference_decode = True
         samples = list(src.samples())
         return samples, dict(src.counts)
@@ -177,7 +178,8 @@ def mavutil_samples(path: Path) -> tuple[list[Any], dict[str, int]]:
     """pymavlink end to end: ``mavlink_connection`` + ``recv_msg`` decode, then the source's conversion."""
     from pymavlink import mavutil
 
-    src: MavSource = open_source(path)
+    src = open_source(path)
+    assert isinstance(src, MavSource)
     conn = mavutil.mavlink_connection(str(path), dialect="magcomp")
     wanted = set(WANTED_MAVLINK)
 
