@@ -16,7 +16,7 @@ from __future__ import annotations
 import datetime as _dt
 import functools
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,13 +44,20 @@ WMM_RELEASES: dict[int, str] = {
 }
 
 
-def wmm_release(decimal_year: float) -> tuple[int, bool]:
-    """(epoch of the WMM release for this date, True when the date lies inside its life span)."""
+class WmmRelease(NamedTuple):
+    """The WMM release used for a date."""
+
+    epoch: int  # its base year
+    in_life_span: bool  # the date lies inside its five-year life span
+
+
+def wmm_release(decimal_year: float) -> WmmRelease:
+    """The WMM release for this date (the oldest bundled one before its epoch, flagged outside its span)."""
     epochs = sorted(WMM_RELEASES)
     for e in reversed(epochs):
         if decimal_year >= e:
-            return e, decimal_year < e + 5.0
-    return epochs[0], False
+            return WmmRelease(e, decimal_year < e + 5.0)
+    return WmmRelease(epochs[0], False)
 
 
 @functools.lru_cache(maxsize=8)

@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -567,11 +567,18 @@ def write_tlog(
     return len(packets)
 
 
-def truth_paths(out_path: str | os.PathLike[str]) -> tuple[Path, Path]:
+class TruthPaths(NamedTuple):
+    """Where a simulated log's truth is written beside it."""
+
+    json: Path
+    npz: Path
+
+
+def truth_paths(out_path: str | os.PathLike[str]) -> TruthPaths:
     """``FILE.tlog`` -> (``FILE.truth.json``, ``FILE.truth.npz``)."""
     p = Path(out_path)
     stem = p.with_suffix("") if p.suffix else p
-    return stem.with_name(stem.name + ".truth.json"), stem.with_name(stem.name + ".truth.npz")
+    return TruthPaths(stem.with_name(stem.name + ".truth.json"), stem.with_name(stem.name + ".truth.npz"))
 
 
 _NEW_RATE_KEYS = ("raw_imu_hz", "mag_hz", "gps_hz", "system_time_hz")

@@ -25,6 +25,7 @@ Symbol table (paper -> code, unit, frame):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -61,9 +62,16 @@ def design_matrix(throttle_01: F64) -> F64:
     return np.column_stack([throttle_01**2, np.ones_like(throttle_01)])
 
 
-def unpack_beta(beta: F64) -> tuple[F64, F64]:
+class ThetaU(NamedTuple):
+    """The two rows of eq. (14a)'s ``beta``."""
+
+    theta_mgauss: F64  # (3,) motor coefficient of eq. (11)
+    u_mgauss: F64  # (3,) the throttle-free field of eq. (12)
+
+
+def unpack_beta(beta: F64) -> ThetaU:
     """``beta`` (2, 3) from eq. (14a) -> (theta (3,), u (3,))."""
-    return beta[0].copy(), beta[1].copy()
+    return ThetaU(beta[0].copy(), beta[1].copy())
 
 
 def snr_db(theta_mgauss: ArrayLike, sigma_mgauss: ArrayLike) -> F64:

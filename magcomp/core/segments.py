@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -175,6 +176,13 @@ def find_stationary_segments(
     return out
 
 
+class TimeWindow(NamedTuple):
+    """A time window of the log (s, on the log's clock)."""
+
+    t_start_s: float
+    t_end_s: float
+
+
 def find_stationary_sweep(
     imu_t_s: ArrayLike,
     rate_b_rad_s: ArrayLike,
@@ -183,12 +191,12 @@ def find_stationary_sweep(
     p: SegmentParams | None = None,
     attitude_t_s: ArrayLike | None = None,
     attitude_rad: ArrayLike | None = None,
-) -> tuple[float, float] | None:
-    """(t_start_s, t_end_s) of the best stationary throttle sweep, or None when there is none."""
+) -> TimeWindow | None:
+    """The best stationary throttle sweep, or None when there is none."""
     segs = find_stationary_segments(
         imu_t_s, rate_b_rad_s, throttle_t_s, throttle_01, p, attitude_t_s, attitude_rad
     )
-    return (segs[0].t_start_s, segs[0].t_end_s) if segs else None
+    return TimeWindow(segs[0].t_start_s, segs[0].t_end_s) if segs else None
 
 
 def attitude_rates(attitude_t_s: F64, attitude_rad: F64) -> F64:
@@ -202,7 +210,7 @@ def attitude_rates(attitude_t_s: F64, attitude_rad: F64) -> F64:
     return np.asarray(np.gradient(ang, attitude_t_s, axis=0))
 
 
-def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> tuple[float, float] | None:
+def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> TimeWindow | None:
     """:func:`find_stationary_sweep` on a :class:`LogData`: gyro when present, else attitude rates.
 
     Returns None when no window qualifies or the log has neither gyro nor attitude.

@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -73,8 +73,9 @@ class DemoReport:
                 f"compass {idx}: theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) mgauss, truth "
                 f"({tr[0]:.1f}, {tr[1]:.1f}, {tr[2]:.1f}), |error| {err:.1f} mgauss"
             )
-        out.append("heading error, compass 0 (deg)  max corrected / uncorrected   rms corrected / "
-                   "uncorrected")
+        out.append(
+            "heading error, compass 0 (deg)  max corrected / uncorrected   rms corrected / uncorrected"
+        )
         for s in self.segments:
             out.append(
                 f"  {s.name:<5} ({s.n:4d} samples)          {s.max_corrected_deg:6.2f} / {s.max_raw_deg:6.2f}"
@@ -90,15 +91,23 @@ def _wrap(a: Any) -> Any:
     return (np.asarray(a, dtype=float) + 180.0) % 360.0 - 180.0
 
 
-def truth_at(result: Any, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The simulated truth at estimate times: (sample index, matched to a sample within 1 ms, truth index,
-    true magnetic heading deg)."""
+class TruthAt(NamedTuple):
+    """The simulated truth at estimate times."""
+
+    sample_index: np.ndarray  # the simulated sample nearest each time
+    matched: np.ndarray  # bool: that sample lies within 1 ms
+    truth_index: np.ndarray  # index into the truth arrays
+    heading_deg: np.ndarray  # true magnetic heading
+
+
+def truth_at(result: Any, t_s: np.ndarray) -> TruthAt:
+    """The simulated truth at estimate times (see :class:`TruthAt`)."""
     s = result.samples
     k = np.clip(np.searchsorted(s.t_s, t_s - 1e-4), 0, len(s.t_s) - 1)
     matched = np.abs(s.t_s[k] - t_s) < 1e-3
     idx = s.truth_index[k]
     truth = (np.degrees(result.euler_rad[idx, 2]) - result.declination_deg) % 360.0
-    return k, matched, idx, truth
+    return TruthAt(k, matched, idx, truth)
 
 
 def heading_errors(result: Any, estimates: list[HeadingEstimate], mag_index: int = 0) -> list[SegmentError]:
