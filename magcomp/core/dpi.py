@@ -165,13 +165,8 @@ def _residuals(x: F64, down_b: F64, v: F64, z_mgauss: float, f_mgauss: float, w_
 
 def _nan_result(n: int, cov: CalibrationCoverage, message: str) -> CalibrationResult:
     return CalibrationResult(
-        L=np.full((3, 3), np.nan),
-        d=np.full(3, np.nan),
-        residual_rms_mgauss=float("nan"),
-        coverage=cov,
-        n=n,
-        success=False,
-        message=message,
+        L=np.full((3, 3), np.nan), d=np.full(3, np.nan), residual_rms_mgauss=float("nan"),
+        coverage=cov, n=n, success=False, message=message,
     )
 
 
@@ -210,29 +205,19 @@ def calibrate_dpi(
     if n < p.min_samples:
         return _nan_result(n, coverage_of(w), f"only {n} valid samples, need at least {p.min_samples}")
     if field_norm_mgauss is not None and abs(z) < p.min_vertical_fraction * float(field_norm_mgauss):
-        return _nan_result(
-            n,
-            coverage_of(w),
-            (
-                f"the Earth field is nearly horizontal here (Z = {z:.1f} of F = {field_norm_mgauss:.1f} mgauss): "
-                "eq. (3) needs the down vector not perpendicular to the field"
-            ),
-        )
+        return _nan_result(n, coverage_of(w), (
+            f"the Earth field is nearly horizontal here (Z = {z:.1f} of F = {field_norm_mgauss:.1f} mgauss): "
+            "eq. (3) needs the down vector not perpendicular to the field"))
     if z == 0.0:
         return _nan_result(n, coverage_of(w), "the down component Z of the Earth field must be non-zero")
     a = dpi_design(w, v)
     cov = coverage_of(w, a)
     if cov.down_spread < p.min_down_spread or not cov.condition <= p.max_condition:
-        return _nan_result(
-            n,
-            cov,
-            (
-                f"too little rotation to determine L and d: down-vector spread {cov.down_spread:.3f} "
-                f"(need >= {p.min_down_spread}), design condition {cov.condition:.3g} "
-                f"(need <= {p.max_condition:.3g}), "
-                f"{cov.octant_fraction * 8:.0f}/8 octants visited; rotate the vehicle through all attitudes"
-            ),
-        )
+        return _nan_result(n, cov, (
+            f"too little rotation to determine L and d: down-vector spread {cov.down_spread:.3f} "
+            f"(need >= {p.min_down_spread}), design condition {cov.condition:.3g} "
+            f"(need <= {p.max_condition:.3g}), "
+            f"{cov.octant_fraction * 8:.0f}/8 octants visited; rotate the vehicle through all attitudes"))
     scale = np.linalg.norm(a, axis=0)
     xs, *_ = np.linalg.lstsq(a / scale, np.full(n, z), rcond=None)  # eq. (3) least squares
     x = xs / scale
@@ -261,16 +246,8 @@ def calibrate_dpi(
     if not np.all(np.isfinite(L)) or abs(float(np.linalg.det(L))) < 1e-6:
         return _nan_result(n, cov, "least squares gave a singular L")
     return CalibrationResult(
-        L=L,
-        d=d,
-        residual_rms_mgauss=rms_dot,
-        coverage=cov,
-        n=n,
-        success=True,
-        message=message,
-        norm_residual_rms_mgauss=rms_norm,
-        refined=refined,
-        extra=extra,
+        L=L, d=d, residual_rms_mgauss=rms_dot, coverage=cov, n=n, success=True, message=message,
+        norm_residual_rms_mgauss=rms_norm, refined=refined, extra=extra,
     )
 
 

@@ -136,6 +136,7 @@ SKIP_KEYS = (
     "bad_crc",
     "garbage_bytes",
     "dataflash_resyncs",
+    "dataflash_dropped_bytes",
     "time_jumps",
     "reboots",
     "mag_jumps",

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.mavlink_source import load_log
+from magcomp.adapters.mavlink_source import DAMAGE_MARGIN_BYTES, load_log
 from magcomp.service.replay import replay_log
 from tests.faultgen import write_dataflash
 
@@ -43,7 +43,7 @@ def sim_bin(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("seed", [1, 2, 3, 5])
 def test_damaged_simulated_dataflash_resynchronises(
     sim_bin: Path, tmp_path: Path, seed: int, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -57,7 +57,10 @@ def test_damaged_simulated_dataflash_resynchronises(
     assert rep.source_counts["garbage_bytes"] > 0
     # the whole log is read (the intact second half used to be dropped) and its clock is not stretched
     assert rep.t_last_s == pytest.approx(clean.t_last_s, abs=0.05)
-    assert rep.n_estimates > 0.9 * clean.n_estimates
+    # everything but the damaged 5 % and the margin either side of it (DAMAGE_MARGIN_BYTES: 2 x 8 KiB, 13 % of
+    # this small 60 s log) is read
+    assert rep.n_estimates > 0.8 * clean.n_estimates
+    assert rep.source_counts["dataflash_dropped_bytes"] >= DAMAGE_MARGIN_BYTES
     # the intact part after the damage gives the clean log's headings (before the theta correction: corrupt
     # values that stay plausible fields, within the pipeline's jump gate, still reach the theta observer)
     # once the attitude filter has re-settled
@@ -70,8 +73,11 @@ def test_damaged_simulated_dataflash_resynchronises(
     # (corrupt gyro and accelerometer values below the gates tilt the attitude filter for a while: a few
     # degrees that decay with its time constant)
     assert len(diff) > 0.95 * len(late) and np.median(diff) < 5.0 and max(diff) < 10.0
+    # the damaged region's unseen corrupt values no longer reach theta: what is left is the data the region
+    # held (12-42 % of |theta| off when the messages between points of damage were believed, 6-16 % now)
     theta = np.asarray(rep.summary["compasses"][0]["theta_mgauss"])
-    assert np.all(np.isfinite(theta))
+    theta_clean = np.asarray(clean.summary["compasses"][0]["theta_mgauss"])
+    assert np.linalg.norm(theta - theta_clean) < 0.2 * np.linalg.norm(theta_clean)
 
 
 @pytest.mark.needs_shared
@@ -89,7 +95,8 @@ def test_damaged_log171_keeps_its_second_half_and_its_time_span(
     out, err = capfd.readouterr()
     assert out + err == ""
     assert rep.t_last_s == pytest.approx(clean.t_last_s, abs=0.1)
-    assert rep.n_estimates > 0.95 * clean.n_estimates  # was 44 %: the reader stopped at the damage
+    # was 44 %: the reader stopped at the damage; now all but the damaged 5 % and its 2 x 8 KiB margin
+    assert rep.n_estimates > 0.93 * clean.n_estimates
     clean_data = load_log(LOG171)
     span = data.mag[0].t_s[-1] - data.mag[0].t_s[0]
     assert span == pytest.approx(clean_data.mag[0].t_s[-1] - clean_data.mag[0].t_s[0], abs=0.5)
