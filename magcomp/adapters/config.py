@@ -15,14 +15,16 @@ import math
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 from magcomp.errors import InputError
 
 ATTITUDE_SOURCES = ("auto", "mahony", "autopilot")
 CALIBRATION_MODES = ("auto", "learn", "stored", "none")
 INFLIGHT_REFERENCES = ("auto", "absolute", "relative")
-OBSERVER_FORMS = ("default", "paper", "delta_dot", "regression")
+#: ``[observer] form``: which member of the eq. (20) family runs (magcomp.service.estimators.observer_params)
+ObserverForm = Literal["default", "paper", "delta_dot", "regression"]
+OBSERVER_FORMS: tuple[str, ...] = get_args(ObserverForm)
 
 
 class ConfigError(InputError):
@@ -72,10 +74,10 @@ class ObserverConfig:
     instant of the step is unknown, and interpolating across it would feed eq. (16) a wrong delta_dot).
     """
 
-    form: str = "default"
+    form: ObserverForm = "default"
     learn: bool = True
-    k1: float = 2.0
-    k2: float = 4.0
+    k1: float = 2.0  # = ObserverParams.k1_1_s (tests/unit/test_config.py holds the defaults equal)
+    k2: float = 4.0  # = ObserverParams.k2
     forget_s: float = 30.0
     theta_max_mgauss: float = 2000.0
     dt_min_s: float = 0.001

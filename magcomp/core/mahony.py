@@ -31,15 +31,19 @@ held over dt and are renormalised.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcomp.core.rotations import down_b_from_quat, quat_from_euler, quat_integrate_body_rate
+from magcomp.core.linalg3 import Vec3, Vec3Like, cross, vec3
+from magcomp.core.rotations import down_b_from_quat, quat_from_euler, quat_step_body_rate
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, ImuSample
 
 F64 = NDArray[np.float64]
+Quat = tuple[float, float, float, float]
 
 
 @dataclass(frozen=True)
@@ -65,17 +69,23 @@ class MahonyParams:
             raise ValueError(f"accel_gate_frac must be > 0, got {self.accel_gate_frac}")
 
 
-@dataclass(frozen=True)
-class MahonyState:
-    """Attitude ``q_nb`` (body FRD -> NED, w, x, y, z) and gyro-bias estimate (rad/s, body FRD)."""
+class MahonyState(NamedTuple):
+    """Attitude ``q_nb`` (body FRD -> NED, w, x, y, z) and gyro-bias estimate (rad/s, body FRD), floats."""
 
-    q_nb: F64
-    gyro_bias_b_rad_s: F64
+    q_nb: Quat
+    gyro_bias_b_rad_s: Vec3
 
     @property
-    def down_b(self) -> F64:
+    def down_b(self) -> Vec3:
         """Reference 'down' vector in body axes (third column of R_e^b, sec. II-A)."""
         return down_b_from_quat(self.q_nb)
+
+
+class MahonyUpdate(NamedTuple):
+    """What :func:`mahony_update` returns."""
+
+    state: MahonyState
+    accel_used: bool
 
 
 @dataclass(frozen=True)
@@ -102,48 +112,55 @@ def mahony_init(accel_b_m_s2: ArrayLike, yaw_rad: float = 0.0) -> MahonyState:
     if not np.all(np.isfinite(a)) or float(np.linalg.norm(a)) == 0.0:
         raise ValueError("cannot initialise attitude from a zero or non-finite accelerometer sample")
     roll, pitch = tilt_from_accel(a)
-    return MahonyState(q_nb=quat_from_euler(roll, pitch, yaw_rad), gyro_bias_b_rad_s=np.zeros(3))
+    q = quat_from_euler(roll, pitch, yaw_rad)
+    q_nb = (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+    return MahonyState(q_nb=q_nb, gyro_bias_b_rad_s=(0.0, 0.0, 0.0))
 
 
-def accel_gate_ok(accel_b_m_s2: F64, p: MahonyParams) -> bool:
+def accel_gate_ok(accel_b_m_s2: Sequence[float], p: MahonyParams) -> bool:
     """True when the specific-force magnitude is within the gate around g."""
-    norm = float(np.linalg.norm(accel_b_m_s2))
-    return bool(np.isfinite(norm) and abs(norm - p.gravity_m_s2) <= p.accel_gate_frac * p.gravity_m_s2)
+    ax, ay, az = accel_b_m_s2
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    return math.isfinite(norm) and abs(norm - p.gravity_m_s2) <= p.accel_gate_frac * p.gravity_m_s2
 
 
 def mahony_update(
     state: MahonyState,
-    gyro_b_rad_s: ArrayLike,
-    accel_b_m_s2: ArrayLike,
+    gyro_b_rad_s: Vec3Like,
+    accel_b_m_s2: Vec3Like,
     dt_s: float,
     p: MahonyParams,
-) -> tuple[MahonyState, bool]:
-    """One filter step over ``dt_s`` with arrays; returns (new state, accelerometer used)."""
+) -> MahonyUpdate:
+    """One filter step over ``dt_s`` (vectors as any three numbers); plain floats, once per IMU sample."""
     if not dt_s > 0.0:
         raise ValueError(f"dt must be > 0, got {dt_s}")
-    gyro = np.asarray(gyro_b_rad_s, dtype=float)
-    accel = np.asarray(accel_b_m_s2, dtype=float)
-    used = accel_gate_ok(accel, p)
+    gx, gy, gz = vec3(gyro_b_rad_s)
+    ax, ay, az = vec3(accel_b_m_s2)
+    used = accel_gate_ok((ax, ay, az), p)
+    b0, b1, b2 = state.gyro_bias_b_rad_s
     # predict with the bias-corrected gyro, then correct against the accelerometer sampled at the end of
     # the step (comparing with the start-of-step attitude would leave a lag of |omega| dt in the tilt)
-    q_pred = quat_integrate_body_rate(state.q_nb, gyro - state.gyro_bias_b_rad_s, dt_s)  # eq. (18)
+    q = quat_step_body_rate(state.q_nb, (gx - b0, gy - b1, gz - b2), dt_s)  # eq. (18)
     if used:
-        v_meas = -accel / float(np.linalg.norm(accel))  # measured down, body
-        v_hat = down_b_from_quat(q_pred)  # predicted down: third column of R_e^b
-        w_mes = np.cross(v_meas, v_hat)  # [23] correction term
-        q_new = quat_integrate_body_rate(q_pred, p.kp * w_mes, dt_s)  # [23] explicit complementary filter
+        an = math.sqrt(ax * ax + ay * ay + az * az)
+        ex, ey, ez = cross((-ax / an, -ay / an, -az / an), down_b_from_quat(q))  # [23] v x v_hat
+        kp = p.kp
+        q = quat_step_body_rate(q, (kp * ex, kp * ey, kp * ez), dt_s)  # [23] explicit complementary filter
     else:
-        w_mes = np.zeros(3)
-        q_new = q_pred
-    b_new = state.gyro_bias_b_rad_s - p.ki * w_mes * dt_s  # [23] bias adaptation
-    b_new = np.clip(b_new, -p.max_bias_rad_s, p.max_bias_rad_s)  # clamp: not in [23]
-    return MahonyState(q_nb=q_new, gyro_bias_b_rad_s=b_new), used
+        ex = ey = ez = 0.0
+    kd, m = p.ki * dt_s, p.max_bias_rad_s
+    b0, b1, b2 = b0 - kd * ex, b1 - kd * ey, b2 - kd * ez  # [23] bias adaptation
+    bias = (  # clamp to +-m: not in [23]
+        m if b0 > m else -m if b0 < -m else b0,
+        m if b1 > m else -m if b1 < -m else b1,
+        m if b2 > m else -m if b2 < -m else b2,
+    )
+    return MahonyUpdate(MahonyState(q, bias), used)
 
 
 def mahony_step(state: MahonyState, imu: ImuSample, dt_s: float, p: MahonyParams) -> MahonyState:
     """One filter step for an :class:`ImuSample` taken ``dt_s`` after the previous one."""
-    new_state, _ = mahony_update(state, imu.gyro_b_rad_s, imu.accel_b_m_s2, dt_s, p)
-    return new_state
+    return mahony_update(state, imu.gyro_b_rad_s, imu.accel_b_m_s2, dt_s, p).state
 
 
 def mahony_batch(
@@ -168,17 +185,17 @@ def mahony_batch(
         raise ValueError(f"expected gyro and accel of shape ({n}, 3), got {gyro.shape} and {accel.shape}")
     q_out = np.empty((n, 4))
     b_out = np.empty((n, 3))
+    down_out = np.empty((n, 3))
     used_out = np.zeros(n, dtype=bool)
     if n == 0:
-        return MahonyTrack(q_out, b_out, np.empty((0, 3)), used_out)
+        return MahonyTrack(q_out, b_out, down_out, used_out)
     st = state0 if state0 is not None else mahony_init(accel[0])
+    ts, gs, acs = t.tolist(), gyro.tolist(), accel.tolist()
     for i in range(n):
-        dt = t[i] - t[i - 1] if i > 0 else 0.0
+        dt = ts[i] - ts[i - 1] if i > 0 else 0.0
         if 0.0 < dt <= max_dt_s:
-            st, used_out[i] = mahony_update(st, gyro[i], accel[i], dt, p)
+            st, used_out[i] = mahony_update(st, gs[i], acs[i], dt, p)
         q_out[i] = st.q_nb
         b_out[i] = st.gyro_bias_b_rad_s
-    # third row of R_nb for every sample: down vector in body axes
-    w, x, y, z = q_out.T
-    down = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1)
-    return MahonyTrack(q_out, b_out, down, used_out)
+        down_out[i] = st.down_b
+    return MahonyTrack(q_out, b_out, down_out, used_out)

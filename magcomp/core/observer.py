@@ -56,14 +56,37 @@ Departures from the paper (all deliberate, all measured in tests/unit/test_obser
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
-from typing import Literal
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcomp.core.lowpass import LowPassParams, LowPassState, lowpass_init, lowpass_step
-from magcomp.core.rotations import skew, so3_exp
+from magcomp.core.linalg3 import (
+    Mat3,
+    Sym3,
+    Vec3,
+    Vec3Like,
+    gram,
+    inv3,
+    matTvec,
+    matvec,
+    sym3_eigvals,
+    sym3_inv_diag,
+    sym_full,
+    vec3,
+)
+from magcomp.core.lowpass import (
+    Biquad,
+    LowPassParams,
+    LowPassState,
+    biquad_step,
+    lowpass_coefficients,
+    lowpass_init,
+)
+from magcomp.core.rotations import dcm_from_rotvec, skew
 from magcomp.core.types import (
     FLAG_INPUTS_STALE,
     FLAG_NO_THROTTLE,
@@ -79,16 +102,39 @@ Scheme = Literal["regression", "observer"]
 Variant = Literal["paper", "delta_dot"]
 Prefilter = Literal["none", "field", "inputs", "regression"]
 RateInterp = Literal["quadratic", "trapezoid", "hold"]
+StepStatus = Literal["ok", "init", "dt_out_of_range", "non_finite"]
+Bool3 = tuple[bool, bool, bool]
 
 NO_THROTTLE_D2 = 1e-4  # delta^2 below this (delta < 1 %): theta has no effect on v
+_NAN3: Vec3 = (math.nan, math.nan, math.nan)
+_ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+class StepConstants(NamedTuple):
+    """What a step needs that depends on the sample interval alone (:meth:`ObserverParams.step_constants`).
+
+    lam_excitation : exp(-dt / excitation_window_s), the window of eq. (21)
+    lam_forget : exp(-dt / forget_s), the RLS forgetting factor
+    info_regularise : (1 - lam_forget) * info0, the pull of J toward J_0
+    damping : exp(-k1 dt), eq. (20a)
+    lowpass : the sec. II-D low-pass section at this dt
+    """
+
+    lam_excitation: float
+    lam_forget: float
+    info_regularise: float
+    damping: float
+    lowpass: Biquad
 
 
 @dataclass(frozen=True)
 class ObserverParams:
-    """Configuration of :func:`observer_step`.
+    """Configuration of :func:`observer_step` (the ``[observer]`` section maps onto it through
+    :func:`magcomp.service.estimators.observer_params`, with the same defaults and bounds).
 
-    k1_1_s : eq. (20a) damping of the field-prediction error, 1/s (applied as exp(-k1 dt))
-    k2 : eq. (20b) adaptation gain (dimensionless: theta_dot [mgauss/s] = k2 * omega [1/s] * v_err [mgauss])
+    k1_1_s : eq. (20a) damping of the field-prediction error, 1/s (applied as exp(-k1 dt)); > 0 (Theorem 1)
+    k2 : eq. (20b) adaptation gain (dimensionless: theta_dot [mgauss/s] = k2 * omega [1/s] * v_err [mgauss]);
+        > 0 (Theorem 1); the discrete step caps it at 1 / |Phi_k|_2^2 (see module docstring)
     scheme : "regression" (RLS on the exact discrete model, default) or "observer" (discretised eq. (20))
     variant : "delta_dot" (exact throttle-change term of eq. (16)) or "paper" (eq. (19), constant throttle)
     prefilter : where the low-pass goes: "none"; "field" (paper, field only; biased, kept to show it);
@@ -108,7 +154,7 @@ class ObserverParams:
     """
 
     k1_1_s: float = 2.0
-    k2: float = 1.0
+    k2: float = 4.0
     scheme: Scheme = "regression"
     variant: Variant = "delta_dot"
     prefilter: Prefilter = "regression"
@@ -124,20 +170,38 @@ class ObserverParams:
     converge_std_mgauss: float = 3.0
     converge_rel: float = 0.02
     rate_interp: RateInterp = "quadratic"
+    #: memo of :meth:`step_constants` by dt (a steady rate repeats a few dt values); not a parameter
+    _memo: dict[float, StepConstants] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def step_constants(self, dt_s: float) -> StepConstants:
+        """Everything of a step that depends on ``dt_s`` alone: the forgetting factors, the eq. (20a)
+        damping and the low-pass of sec. II-D. Memoised: recomputing them (three exponentials and a tangent)
+        costs 1.5 us a step."""
+        k = self._memo.get(dt_s)
+        if k is None:
+            lam = math.exp(-dt_s / self.forget_s)
+            k = StepConstants(
+                lam_excitation=math.exp(-dt_s / self.excitation_window_s),
+                lam_forget=lam,
+                info_regularise=(1.0 - lam) * self.info0,
+                damping=math.exp(-self.k1_1_s * dt_s),
+                lowpass=lowpass_coefficients(self.lowpass, dt_s),
+            )
+            if len(self._memo) >= 64:  # jittery timestamps: keep the memo small
+                self._memo.clear()
+            self._memo[dt_s] = k
+        return k
 
     def __post_init__(self) -> None:
-        if self.scheme not in ("regression", "observer"):
-            raise InputError(f"observer scheme must be 'regression' or 'observer', got {self.scheme!r}")
-        if self.variant not in ("paper", "delta_dot"):
-            raise InputError(f"observer variant must be 'paper' or 'delta_dot', got {self.variant!r}")
-        if self.prefilter not in ("none", "field", "inputs", "regression"):
-            raise InputError(f"unknown observer prefilter {self.prefilter!r}")
+        for name, kind in (("scheme", Scheme), ("variant", Variant), ("prefilter", Prefilter),
+                           ("rate_interp", RateInterp)):  # fmt: skip
+            if getattr(self, name) not in get_args(kind):
+                raise InputError(f"observer {name} must be one of {', '.join(get_args(kind))}, "
+                                 f"got {getattr(self, name)!r}")  # fmt: skip
         if self.prefilter == "regression" and self.scheme != "regression":
             raise InputError("prefilter 'regression' needs scheme 'regression'")
-        if self.rate_interp not in ("quadratic", "trapezoid", "hold"):
-            raise InputError(f"unknown rate interpolation {self.rate_interp!r}")
-        if not (self.k1_1_s >= 0.0 and self.k2 > 0.0):
-            raise InputError(f"observer gains need k1 >= 0 and k2 > 0, got k1={self.k1_1_s}, k2={self.k2}")
+        if not (self.k1_1_s > 0.0 and self.k2 > 0.0):
+            raise InputError(f"observer gains need k1 > 0 and k2 > 0, got k1={self.k1_1_s}, k2={self.k2}")
         if not (self.forget_s > 0.0 and self.info0 > 0.0 and self.theta_max_mgauss > 0.0):
             raise InputError("observer forget_s, info0 and theta_max_mgauss must be > 0")
         if not 0.0 < self.dt_min_s < self.dt_max_s:
@@ -146,73 +210,109 @@ class ObserverParams:
             raise InputError("observer excitation_window_s must be > 0")
 
 
-@dataclass(frozen=True)
-class ObserverState:
-    """State of :func:`observer_step`. Arrays are never modified in place.
+class ObserverState(NamedTuple):
+    """State of :func:`observer_step`, in Python floats (immutable).
 
-    v_hat_mgauss, theta_hat_mgauss : estimates (3,), body frame
-    info : RLS information matrix J (3, 3), dimensionless
-    gram_sum, gram_weight : exponentially weighted sum of Phi^T Phi / dt and of dt (excitation Gramian)
+    v_hat_mgauss, theta_hat_mgauss : estimates, body frame
+    info : RLS information matrix J (upper triangle a, b, c, e, f, i of the symmetric 3x3), dimensionless
+    gram_sum, gram_weight : exponentially weighted sum of Phi^T Phi / dt (upper triangle) and of dt
+        (the excitation Gramian of eq. (21) is their ratio)
     field_prev_mgauss, omega_prev_rad_s, omega_prev2_rad_s, d2_prev : last (filtered) inputs
     dt_prev_s : last interval (NaN when the previous-but-one gyro sample is not usable)
-    lp : low-pass state (None when ``prefilter == "none"``)
+    lp : low-pass state (None when ``prefilter == "none"`` or before the first step)
     resid_var : running mean of the squared regression residual per component, mgauss^2
     excited_s : time each axis has been observable since the last full reset, s
     converged : per-axis convergence flags
     initialized : False until the first valid sample anchors the state
+    n_steps : updates so far
+    theta_prior : theta_hat started from a prior estimate (``observer_init(p, theta0)``), see
+        :func:`_held_axes`
     """
 
-    v_hat_mgauss: F64
-    theta_hat_mgauss: F64
-    info: F64
-    gram_sum: F64
+    v_hat_mgauss: Vec3
+    theta_hat_mgauss: Vec3
+    info: Sym3
+    gram_sum: Sym3
     gram_weight: float
-    field_prev_mgauss: F64
-    omega_prev_rad_s: F64
-    omega_prev2_rad_s: F64
+    field_prev_mgauss: Vec3
+    omega_prev_rad_s: Vec3
+    omega_prev2_rad_s: Vec3
     d2_prev: float
     dt_prev_s: float
     lp: LowPassState | None
     resid_var: float
-    excited_s: F64
-    converged: tuple[bool, bool, bool]
+    excited_s: Vec3
+    converged: Bool3
     initialized: bool = False
     n_steps: int = 0
+    theta_prior: bool = False
 
 
-@dataclass(frozen=True)
-class StepInfo:
+class StepInfo(NamedTuple):
     """Diagnostics of one :func:`observer_step`.
 
     status : "ok", "init" (first sample anchored), "dt_out_of_range" (re-anchored, theta kept),
         "non_finite" (input ignored, state unchanged)
-    innovation_mgauss : field prediction error before the update, v_hat^- - v (3,)
+    flags : FLAG_* bits of magcomp.core.types
+    innovation_mgauss : field prediction error before the update, v_hat^- - v
     residual_norm_mgauss : |y - Phi theta_hat| of the (filtered) regression before the update
-    excitation_min_rad2_s2 : smallest eigenvalue of the windowed Gramian of eq. (21)
     info_axis_rad2_s2 : per-axis information 1 / [G^-1]_ii (other axes marginalised)
     observable, converged : per-axis flags
-    z_unobservable : body z lacks excitation (e.g. pure yaw): theta_z is held and not claimed
     theta_std_mgauss : estimated 1-sigma of theta_hat per axis (from J and the residual variance)
-    flags : FLAG_* bits of magcomp.core.types
+    gramian : the windowed excitation Gramian G of eq. (21) (upper triangle), rad^2/s^2
     """
 
-    status: str
-    innovation_mgauss: F64
-    residual_norm_mgauss: float
-    excitation_min_rad2_s2: float
-    info_axis_rad2_s2: F64
-    observable: tuple[bool, bool, bool]
-    converged: tuple[bool, bool, bool]
-    z_unobservable: bool
-    theta_std_mgauss: F64
+    status: StepStatus
     flags: int
+    innovation_mgauss: Vec3
+    residual_norm_mgauss: float
+    info_axis_rad2_s2: Vec3
+    observable: Bool3
+    converged: Bool3
+    theta_std_mgauss: Vec3
+    gramian: Sym3
+
+    @property
+    def excitation_min_rad2_s2(self) -> float:
+        """Smallest eigenvalue of the Gramian (Definition 1); solved when read, not in every step."""
+        return sym3_eigvals(self.gramian)[0]
+
+    @property
+    def excitation(self) -> float:
+        """Short name of :attr:`excitation_min_rad2_s2` (the value published with each heading)."""
+        return sym3_eigvals(self.gramian)[0]
+
+    @property
+    def z_unobservable(self) -> bool:
+        """Body z lacks excitation (e.g. pure yaw): theta_z is held and not claimed."""
+        return not self.observable[2]
+
+    @property
+    def saturated(self) -> bool:
+        """theta_hat hit ``theta_max_mgauss`` (or the eq. (20b) gain was capped) in this step."""
+        return bool(self.flags & FLAG_SATURATED)
 
 
-# --- continuous-time form (eq. (20)) ------------------------------------------------------------------
+class ObserverStep(NamedTuple):
+    """What :func:`observer_step` returns."""
+
+    state: ObserverState
+    info: StepInfo
+
+
+class Excitation(NamedTuple):
+    """Observability from the excitation Gramian (Definition 1, eq. (21))."""
+
+    lam_min_rad2_s2: float
+    info_axis_rad2_s2: Vec3
+    observable: Bool3
+
+
+# --- continuous-time form (eq. (20)): the reference the discrete step is checked against -------------------
 
 
 def observer_rhs(t: float, x: F64, u: tuple[ArrayLike, float, float, ArrayLike], p: ObserverParams) -> F64:
-    """Right-hand side of the observer eq. (20), SciPy shape.
+    """Right-hand side of the observer eq. (20), SciPy shape (for ``solve_ivp``; not the online path).
 
     Parameters
     ----------
@@ -252,13 +352,13 @@ def lyapunov_v(
     return float(0.5 * v_err @ v_err + 0.5 / k2 * th_err @ th_err)
 
 
-# --- discrete model ------------------------------------------------------------------------------------
+# --- discrete model -------------------------------------------------------------------------------------
 
 
 def rotation_increment(
-    omega_prev2: F64, omega_prev: F64, omega_now: F64, dt_prev_s: float, dt_s: float,
-    interp: RateInterp = "quadratic",
-) -> F64:
+    omega_prev2: Sequence[float], omega_prev: Sequence[float], omega_now: Sequence[float], dt_prev_s: float,
+    dt_s: float, interp: RateInterp = "quadratic",
+) -> Vec3:
     """Rotation vector phi (rad, body) of the body over the last interval, ``dR = exp([phi]_x)``.
 
     Integrates a quadratic through omega at t_{k-1}, t_k, t_{k+1} over [t_k, t_{k+1}] (third order; the
@@ -266,60 +366,69 @@ def rotation_increment(
     ``dt^2/12 omega_k x omega_{k+1}``. Falls back to the trapezoid when ``dt_prev_s`` is not finite.
     Not in the paper (which integrates eq. (18) in continuous time).
     """
+    nx, ny, nz = omega_now
     if interp == "hold":
-        return omega_now * dt_s
-    integral = 0.5 * dt_s * (omega_prev + omega_now)
-    if interp == "quadratic" and np.isfinite(dt_prev_s) and dt_prev_s > 0.0:
-        h0, h1 = dt_prev_s, dt_s
-        c = (h0 * (omega_now - omega_prev) + h1 * (omega_prev2 - omega_prev)) / (h0 * h1 * (h0 + h1))
-        b = (omega_now - omega_prev) / h1 - c * h1
-        integral = omega_prev * h1 + b * (h1 * h1 / 2.0) + c * (h1**3 / 3.0)
-    a, b2 = omega_prev, omega_now
-    coning = np.array([a[1] * b2[2] - a[2] * b2[1], a[2] * b2[0] - a[0] * b2[2], a[0] * b2[1] - a[1] * b2[0]])
-    return integral + (dt_s * dt_s / 12.0) * coning  # two-sample coning term, omega_k x omega_{k+1}
+        return nx * dt_s, ny * dt_s, nz * dt_s
+    px, py, pz = omega_prev
+    h1 = dt_s
+    if interp == "quadratic" and math.isfinite(dt_prev_s) and dt_prev_s > 0.0:
+        h0 = dt_prev_s
+        qx, qy, qz = omega_prev2
+        den = h0 * h1 * (h0 + h1)
+        cx = (h0 * (nx - px) + h1 * (qx - px)) / den
+        cy = (h0 * (ny - py) + h1 * (qy - py)) / den
+        cz = (h0 * (nz - pz) + h1 * (qz - pz)) / den
+        hh2, hh3 = h1 * h1 / 2.0, h1**3 / 3.0
+        ix = px * h1 + ((nx - px) / h1 - cx * h1) * hh2 + cx * hh3
+        iy = py * h1 + ((ny - py) / h1 - cy * h1) * hh2 + cy * hh3
+        iz = pz * h1 + ((nz - pz) / h1 - cz * h1) * hh2 + cz * hh3
+    else:  # trapezoid
+        ix, iy, iz = 0.5 * h1 * (px + nx), 0.5 * h1 * (py + ny), 0.5 * h1 * (pz + nz)
+    k = h1 * h1 / 12.0  # two-sample coning term, omega_k x omega_{k+1}
+    return ix + k * (py * nz - pz * ny), iy + k * (pz * nx - px * nz), iz + k * (px * ny - py * nx)
 
 
-def regressor(a_k: F64, d2_prev: float, d2_now: float, variant: Variant) -> F64:
-    """Phi_k of ``y_k = v_{k+1} - A_k v_k = Phi_k theta`` (exact discrete eq. (16), or eq. (19))."""
-    eye = np.eye(3)
-    if variant == "delta_dot":
-        return d2_now * eye - d2_prev * a_k  # eq. (16), discrete and exact
-    return 0.5 * (d2_prev + d2_now) * (eye - a_k)  # eq. (19): throttle held at its mean over the step
+def regressor(a_k: Sequence[float], d2_prev: float, d2_now: float, variant: Variant) -> Mat3:
+    """Phi_k of ``y_k = v_{k+1} - A_k v_k = Phi_k theta`` (exact discrete eq. (16), or eq. (19)),
+    row-major."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a_k
+    if variant == "delta_dot":  # eq. (16), discrete and exact: d2_{k+1} I - d2_k A_k
+        m = d2_prev
+        return (d2_now - m * a0, -m * a1, -m * a2, -m * a3, d2_now - m * a4, -m * a5, -m * a6, -m * a7,
+                d2_now - m * a8)  # fmt: skip
+    m = 0.5 * (d2_prev + d2_now)  # eq. (19): throttle held at its mean over the step, d2 (I - A_k)
+    return (m * (1.0 - a0), -m * a1, -m * a2, -m * a3, m * (1.0 - a4), -m * a5, -m * a6, -m * a7,
+            m * (1.0 - a8))  # fmt: skip
 
 
-def _inv3(m: F64) -> F64:
-    """Inverse of a 3x3 matrix by the adjugate (avoids numpy.linalg call overhead in the 100 Hz loop)."""
-    c0 = np.array([m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1], m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2],
-                   m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]])
-    det = float(m[0] @ c0)
-    adj = np.array([
-        [c0[0], m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2], m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]],
-        [c0[1], m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0], m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]],
-        [c0[2], m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1], m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]],
-    ])
-    return adj / det
+def _observability(g: Sym3, min_info_rad2_s2: float) -> tuple[Vec3, Bool3]:
+    """Per-axis information ``1 / [G^-1]_ii`` (other axes marginalised) and the flags
+    ``info_i >= min_info`` of the Gramian ``g`` (eq. (21)); a 1e-9 relative ridge keeps G invertible."""
+    a, b, c, e, f, i = g
+    reg = 1e-9 * max(a + e + i, 1e-12)
+    d0, d1, d2 = sym3_inv_diag((a + reg, b, c, e + reg, f, i + reg))
+    info = (1.0 / d0, 1.0 / d1, 1.0 / d2)
+    return info, (info[0] >= min_info_rad2_s2, info[1] >= min_info_rad2_s2, info[2] >= min_info_rad2_s2)
 
 
-def excitation(gram: F64, min_info_rad2_s2: float) -> tuple[float, F64, tuple[bool, bool, bool]]:
-    """Observability from the windowed excitation Gramian of Definition 1, eq. (21).
+def excitation(gram_rad2_s2: ArrayLike, min_info_rad2_s2: float) -> Excitation:
+    """Observability from a windowed excitation Gramian of Definition 1, eq. (21), (3, 3).
 
     ``gram`` is the time average of ``Phi^T Phi / dt^2 ~ delta^4 [omega]_x^T [omega]_x`` (plus the
-    throttle-change term), rad^2/s^2. Returns (smallest eigenvalue, per-axis information
-    ``1 / [G^-1]_ii`` with the other axes marginalised, per-axis flag ``info_i >= min_info_rad2_s2``).
-    Under pure yaw G = delta^4 r^2 diag(1, 1, 0): the z information is 0 and z is unobservable.
+    throttle-change term), rad^2/s^2. Under pure yaw G = delta^4 r^2 diag(1, 1, 0): the z information is 0
+    and z is unobservable. The same arithmetic as the online step.
     """
-    g = 0.5 * (gram + gram.T)
-    lam_min = float(np.linalg.eigvalsh(g)[0])
-    reg = 1e-9 * max(float(np.trace(g)), 1e-12)
-    ginv = _inv3(g + reg * np.eye(3))
-    info = 1.0 / np.diag(ginv)
-    obs = info >= min_info_rad2_s2
-    return lam_min, info, (bool(obs[0]), bool(obs[1]), bool(obs[2]))
+    g = np.asarray(gram_rad2_s2, dtype=float)
+    s = 0.5 * (g + g.T)
+    up: Sym3 = (float(s[0, 0]), float(s[0, 1]), float(s[0, 2]), float(s[1, 1]), float(s[1, 2]),
+                float(s[2, 2]))  # fmt: skip
+    info, obs = _observability(up, min_info_rad2_s2)
+    return Excitation(sym3_eigvals(up)[0], info, obs)
 
 
 def excitation_from_rates(
     omega_b_rad_s: ArrayLike, throttle_01: ArrayLike | float = 1.0, min_info_rad2_s2: float = 0.05
-) -> tuple[float, F64, tuple[bool, bool, bool]]:
+) -> Excitation:
     """:func:`excitation` for a window of gyro samples (n, 3) and throttle (n,) or scalar (eq. (21)).
 
     Uses the continuous-time integrand ``W W^T`` with ``W = delta^2 [omega]_x`` averaged over the window.
@@ -331,19 +440,23 @@ def excitation_from_rates(
     return excitation(g / max(w.shape[0], 1), min_info_rad2_s2)
 
 
-# --- discrete step -------------------------------------------------------------------------------------
+# --- discrete step: named pieces ------------------------------------------------------------------------
 
 
 def observer_init(p: ObserverParams, theta0_mgauss: ArrayLike | None = None) -> ObserverState:
-    """A state waiting for its first sample; theta_hat starts at ``theta0_mgauss`` (default 0)."""
-    theta = np.zeros(3) if theta0_mgauss is None else np.asarray(theta0_mgauss, dtype=float).copy()
-    z3 = np.zeros(3)
+    """A state waiting for its first sample; theta_hat starts at ``theta0_mgauss`` (default 0).
+
+    A given ``theta0_mgauss`` is a prior estimate (a stored theta): axes the young excitation window does
+    not see keep it from the first step (see :func:`_held_axes`)."""
+    theta = _ZERO3 if theta0_mgauss is None else vec3(np.asarray(theta0_mgauss, dtype=np.float64).reshape(3))
+    j0 = p.info0
     return ObserverState(
-        v_hat_mgauss=z3, theta_hat_mgauss=theta, info=p.info0 * np.eye(3), gram_sum=np.zeros((3, 3)),
-        gram_weight=0.0, field_prev_mgauss=z3, omega_prev_rad_s=z3, omega_prev2_rad_s=z3, d2_prev=0.0,
-        dt_prev_s=float("nan"), lp=None, resid_var=0.0, excited_s=z3, converged=(False, False, False),
-        initialized=False, n_steps=0,
-    )
+        v_hat_mgauss=_ZERO3, theta_hat_mgauss=theta, info=(j0, 0.0, 0.0, j0, 0.0, j0),
+        gram_sum=(0.0,) * 6, gram_weight=0.0, field_prev_mgauss=_ZERO3, omega_prev_rad_s=_ZERO3,  # type: ignore[arg-type]
+        omega_prev2_rad_s=_ZERO3, d2_prev=0.0, dt_prev_s=math.nan, lp=None, resid_var=0.0, excited_s=_ZERO3,
+        converged=(False, False, False), initialized=False, n_steps=0,
+        theta_prior=theta0_mgauss is not None,
+    )  # fmt: skip
 
 
 def observer_reset(state: ObserverState, p: ObserverParams, keep_theta: bool = True) -> ObserverState:
@@ -356,61 +469,171 @@ def observer_reset(state: ObserverState, p: ObserverParams, keep_theta: bool = T
     """
     if not keep_theta:
         return observer_init(p)
-    return replace(state, initialized=False, lp=None, dt_prev_s=float("nan"))
+    return state._replace(initialized=False, lp=None, dt_prev_s=math.nan)
 
 
-def _info(
-    state: ObserverState, p: ObserverParams, status: str, flags: int, innovation: F64 | None = None,
-    residual: float = float("nan"),
-    exc: tuple[float, F64, tuple[bool, bool, bool]] | None = None, std: F64 | None = None,
-) -> StepInfo:
-    if exc is None:
-        gram = state.gram_sum / state.gram_weight if state.gram_weight > 0.0 else np.zeros((3, 3))
-        exc = excitation(gram, p.excitation_min_rad2_s2)
-    lam_min, info_axis, obs = exc
-    if std is None:
-        std = np.sqrt(np.diag(_inv3(state.info)) * state.resid_var)
-    if not obs[2]:
-        flags |= FLAG_Z_UNOBSERVABLE
-    if all(state.converged):
-        flags |= FLAG_THETA_CONVERGED
-    return StepInfo(
-        status=status,
-        innovation_mgauss=np.full(3, np.nan) if innovation is None else innovation,
-        residual_norm_mgauss=residual,
-        excitation_min_rad2_s2=lam_min,
-        info_axis_rad2_s2=info_axis,
-        observable=obs,
-        converged=state.converged,
-        z_unobservable=not obs[2],
-        theta_std_mgauss=std,
-        flags=flags,
-    )
-
-
-def _anchor(state: ObserverState, field_b: F64, omega_b: F64, d2: float, p: ObserverParams) -> ObserverState:
+def _anchor(
+    state: ObserverState, field_b: Vec3, omega_b: Vec3, d2: float, p: ObserverParams
+) -> ObserverState:
+    """First sample after init or a reset: the model's previous sample; theta and J kept."""
     lp = None
     if p.prefilter == "field":
         lp = lowpass_init(field_b)
     elif p.prefilter == "inputs":
-        lp = lowpass_init(np.concatenate([field_b, omega_b, [d2]]))
-    return replace(
-        state, v_hat_mgauss=field_b, field_prev_mgauss=field_b, omega_prev_rad_s=omega_b,
-        omega_prev2_rad_s=omega_b, d2_prev=d2, dt_prev_s=float("nan"), lp=lp, initialized=True,
+        lp = lowpass_init((*field_b, *omega_b, d2))
+    return state._replace(
+        v_hat_mgauss=field_b, field_prev_mgauss=field_b, omega_prev_rad_s=omega_b, omega_prev2_rad_s=omega_b,
+        d2_prev=d2, dt_prev_s=math.nan, lp=lp, initialized=True,
     )
 
 
+def _make_info(
+    status: StepStatus, flags: int, innovation: Vec3, residual: float, g: Sym3, obs: tuple[Vec3, Bool3],
+    converged: Bool3, std: Vec3,
+) -> StepInfo:
+    info_axis, observable = obs
+    if not observable[2]:
+        flags |= FLAG_Z_UNOBSERVABLE
+    if converged[0] and converged[1] and converged[2]:
+        flags |= FLAG_THETA_CONVERGED
+    return StepInfo(status, flags, innovation, residual, info_axis, observable, converged, std, g)
+
+
+def _held_info(state: ObserverState, p: ObserverParams, status: StepStatus, flags: int) -> StepInfo:
+    """Info of a step that did not update theta (from the state's own Gramian and information)."""
+    gw = state.gram_weight
+    g: Sym3 = tuple(x / gw for x in state.gram_sum) if gw > 0.0 else (0.0,) * 6  # type: ignore[assignment]
+    ji = inv3(sym_full(state.info))
+    rv = state.resid_var
+    std = (math.sqrt(ji[0] * rv), math.sqrt(ji[4] * rv), math.sqrt(ji[8] * rv))
+    obs = _observability(g, p.excitation_min_rad2_s2)
+    return _make_info(status, flags, _NAN3, math.nan, g, obs, state.converged, std)
+
+
+def _prefilter_inputs(
+    lp: LowPassState | None, v: Vec3, w: Vec3, d2: float, c: Biquad, p: ObserverParams
+) -> tuple[LowPassState | None, Vec3, Vec3, float]:
+    """Sec. II-D low-pass on the raw inputs: "field" alone (the paper; delays v but not omega: biased)
+    or "inputs" (field, rate and throttle^2 alike). Other prefilters pass the inputs through."""
+    if lp is None or p.prefilter not in ("field", "inputs"):
+        return lp, v, w, d2
+    if p.prefilter == "field":
+        lp, y = biquad_step(c, lp, v)
+        return lp, (y[0], y[1], y[2]), w, d2
+    lp, y = biquad_step(c, lp, (*v, *w, d2))
+    return lp, (y[0], y[1], y[2]), (y[3], y[4], y[5]), y[6]
+
+
+def _prefilter_regression(
+    lp: LowPassState | None, y: Vec3, phi: Mat3, c: Biquad, p: ObserverParams
+) -> tuple[LowPassState | None, Vec3, Mat3]:
+    """The same LTI low-pass on y and on every column of Phi keeps ``y_f = Phi_f theta`` exact (sec. II-D,
+    moved from the field to the regression: not in the paper)."""
+    if p.prefilter != "regression":
+        return lp, y, phi
+    regs = (*y, *phi)
+    lp, out = biquad_step(c, lowpass_init(regs) if lp is None else lp, regs)
+    return lp, (out[0], out[1], out[2]), tuple(out[3:])  # type: ignore[return-value]
+
+
+def _gramian_update(gram_sum: Sym3, gram_weight: float, phi_k: Mat3, dt_s: float, lam_e: float
+                    ) -> tuple[Sym3, float, Sym3]:  # fmt: skip
+    """Eq. (21): exponentially windowed time average of ``Phi^T Phi / dt^2``; returns (sum, weight, G)."""
+    q0, q1, q2, q3, q4, q5 = gram(phi_k)
+    g0, g1, g2, g3, g4, g5 = gram_sum
+    r = 1.0 / dt_s
+    gs = (lam_e * g0 + q0 * r, lam_e * g1 + q1 * r, lam_e * g2 + q2 * r, lam_e * g3 + q3 * r,
+          lam_e * g4 + q4 * r, lam_e * g5 + q5 * r)  # fmt: skip
+    gw = lam_e * gram_weight + dt_s
+    iw = 1.0 / gw
+    return gs, gw, (gs[0] * iw, gs[1] * iw, gs[2] * iw, gs[3] * iw, gs[4] * iw, gs[5] * iw)
+
+
+def _information_update(j: Sym3, phi_f: Mat3, k: StepConstants) -> Sym3:
+    """RLS information with regularised forgetting: ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f``."""
+    lam, j0 = k.lam_forget, k.info_regularise
+    q = gram(phi_f)
+    return (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
+            lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
+
+
+def _held_axes(obs: Bool3, gram_weight: float, prior: bool, p: ObserverParams) -> Bool3:
+    """Axes on which theta is held for lack of excitation (eq. (21); not in the paper). On a truly
+    unexcited axis the column of Phi is zero, so the update there is zero anyway; the hold guards
+    against noise-driven drift. While the excitation window holds less than half its length the
+    Gramian is young (one sample of it is rank 2), so the hold waits for it, except when theta_hat
+    started from a prior estimate (a stored theta): then an axis the young window does not see keeps
+    that value rather than following a regression with almost no information (restart in flight).
+    """
+    if gram_weight < 0.5 * p.excitation_window_s and not prior:
+        return False, False, False
+    return not obs[0], not obs[1], not obs[2]
+
+
+def _theta_increment(
+    phi_k: Mat3, phi_f: Mat3, resid: Vec3, info_inv: Mat3, innovation: Vec3, p: ObserverParams
+) -> tuple[Vec3, int]:
+    """The update of theta_hat and its flags: RLS ``J^-1 Phi_f^T r`` (scheme "regression"), or eq. (20b)
+    discretised, ``-k2 Phi^T eps`` (-Phi^T ~ delta^2 [omega]_x dt), with k2 capped so that
+    ``k2 |Phi_k|_2^2 <= 1`` (the discrete decrease of eq. (23); flagged as saturation)."""
+    if p.scheme == "regression":
+        return matvec(info_inv, matTvec(phi_f, resid)), 0
+    phi_norm2 = sym3_eigvals(gram(phi_k))[2]  # |Phi_k|_2^2
+    k2, flags = p.k2, 0
+    if k2 * phi_norm2 > 1.0:
+        k2, flags = 1.0 / phi_norm2, FLAG_SATURATED
+    gx, gy, gz = matTvec(phi_k, innovation)
+    return (-k2 * gx, -k2 * gy, -k2 * gz), flags  # eq. (20b)
+
+
+def _clip(x: float, m: float) -> float:
+    return m if x > m else -m if x < -m else x  # NaN passes
+
+
+def _hold_and_clip(theta: Vec3, d_theta: Vec3, held: Bool3, tmax: float) -> tuple[Vec3, bool]:
+    """theta + d_theta, held on unexcited axes (not in the paper) and clipped to +-tmax (NaN passes)."""
+    x0 = theta[0] if held[0] else theta[0] + d_theta[0]
+    x1 = theta[1] if held[1] else theta[1] + d_theta[1]
+    x2 = theta[2] if held[2] else theta[2] + d_theta[2]
+    out = (_clip(x0, tmax), _clip(x1, tmax), _clip(x2, tmax))
+    return out, out[0] != x0 or out[1] != x1 or out[2] != x2
+
+
+def _convergence(
+    state: ObserverState, obs: Bool3, resid_sq: float, info_inv: Mat3, theta: Vec3, dt_s: float, lam_e: float,
+    p: ObserverParams,
+) -> tuple[float, Vec3, Bool3, Vec3]:
+    """Residual variance, excited time, per-axis convergence and 1-sigma of theta_hat (not in the paper)."""
+    rv = lam_e * state.resid_var + (1.0 - lam_e) * resid_sq / 3.0
+    e0, e1, e2 = state.excited_s
+    ex = (e0 + (dt_s if obs[0] else 0.0), e1 + (dt_s if obs[1] else 0.0), e2 + (dt_s if obs[2] else 0.0))
+    std = (math.sqrt(info_inv[0] * rv), math.sqrt(info_inv[4] * rv), math.sqrt(info_inv[8] * rv))
+    tol = p.converge_std_mgauss + p.converge_rel * math.sqrt(theta[0] ** 2 + theta[1] ** 2 + theta[2] ** 2)
+    need = p.converge_min_excited_s
+    conv = (ex[0] >= need and std[0] <= tol, ex[1] >= need and std[1] <= tol, ex[2] >= need and std[2] <= tol)
+    return rv, ex, conv, std
+
+
+def _finite(w: Vec3, v: Vec3, delta: float, dt_s: float) -> bool:
+    fin = math.isfinite
+    return (fin(w[0]) and fin(w[1]) and fin(w[2]) and fin(v[0]) and fin(v[1]) and fin(v[2]) and fin(delta)
+            and fin(dt_s))  # fmt: skip
+
+
+# --- discrete step --------------------------------------------------------------------------------------
+
+
 def observer_step(
-    state: ObserverState, omega_b_rad_s: ArrayLike, field_b_mgauss: ArrayLike, throttle_01: float,
+    state: ObserverState, omega_b_rad_s: Vec3Like, field_b_mgauss: Vec3Like, throttle_01: float,
     dt_s: float, p: ObserverParams,
-) -> tuple[ObserverState, StepInfo]:
+) -> ObserverStep:
     """One step of the online theta estimator for a gyro + magnetometer + throttle sample.
 
     Parameters
     ----------
     state : from :func:`observer_init` or a previous step
-    omega_b_rad_s : body rate at the sample time (3,), rad/s, body FRD
-    field_b_mgauss : calibrated (eq. (2)) field at the same time (3,), mgauss, body
+    omega_b_rad_s : body rate at the sample time (3 numbers), rad/s, body FRD
+    field_b_mgauss : calibrated (eq. (2)) field at the same time (3 numbers), mgauss, body
     throttle_01 : throttle command delta_t, 0..1, at the same time
     dt_s : time since the previous sample, s, from the source's timestamps
     p : parameters
@@ -419,98 +642,54 @@ def observer_step(
     dt outside [dt_min_s, dt_max_s] re-anchors on this sample and keeps theta (status
     "dt_out_of_range", FLAG_OBSERVER_RESET); theta_hat is clipped to +-theta_max_mgauss (FLAG_SATURATED).
     """
-    omega = np.asarray(omega_b_rad_s, dtype=float).reshape(3)
-    field_b = np.asarray(field_b_mgauss, dtype=float).reshape(3)
-    delta = float(throttle_01)
-    if not (np.all(np.isfinite(omega)) and np.all(np.isfinite(field_b)) and np.isfinite(delta)
-            and np.isfinite(dt_s)):
-        return state, _info(state, p, "non_finite", FLAG_INPUTS_STALE)
+    w1, v1, delta, dt = vec3(omega_b_rad_s), vec3(field_b_mgauss), float(throttle_01), float(dt_s)
+    if not _finite(w1, v1, delta, dt):
+        return ObserverStep(state, _held_info(state, p, "non_finite", FLAG_INPUTS_STALE))
     d2 = min(max(delta, 0.0), 1.0) ** 2
-    if not state.initialized:
-        new = _anchor(state, field_b, omega, d2, p)
-        return new, _info(new, p, "init", FLAG_OBSERVER_RESET)
-    if not p.dt_min_s <= dt_s <= p.dt_max_s:
-        new = _anchor(state, field_b, omega, d2, p)
-        return new, _info(new, p, "dt_out_of_range", FLAG_OBSERVER_RESET)
+    if not (state.initialized and p.dt_min_s <= dt <= p.dt_max_s):
+        new = _anchor(state, v1, w1, d2, p)
+        status: StepStatus = "dt_out_of_range" if state.initialized else "init"
+        return ObserverStep(new, _held_info(new, p, status, FLAG_OBSERVER_RESET))
+    k = p.step_constants(dt)
+    lp, v1, w1, d2 = _prefilter_inputs(state.lp, v1, w1, d2, k.lowpass, p)
 
-    # prefilter of the raw inputs (section II-D); "field" alone delays v but not omega (biased)
-    lp = state.lp
-    v1, w1, d2_1 = field_b, omega, d2
-    if p.prefilter == "field" and lp is not None:
-        lp, v1 = lowpass_step(lp, field_b, dt_s, p.lowpass)
-    elif p.prefilter == "inputs" and lp is not None:
-        lp, out = lowpass_step(lp, np.concatenate([field_b, omega, [d2]]), dt_s, p.lowpass)
-        v1, w1, d2_1 = out[:3], out[3:6], float(out[6])
-    v0, d2_0 = state.field_prev_mgauss, state.d2_prev
+    # exact discrete model, eqs. (13), (16), (18): v_{k+1} - d2_{k+1} theta = A_k (v_k - d2_k theta)
+    ph = rotation_increment(state.omega_prev2_rad_s, state.omega_prev_rad_s, w1, state.dt_prev_s, dt,
+                            p.rate_interp)  # fmt: skip
+    a_k = dcm_from_rotvec((-ph[0], -ph[1], -ph[2]))  # A_k = dR_k^T
+    phi_k = regressor(a_k, state.d2_prev, d2, p.variant)
+    av0 = matvec(a_k, state.field_prev_mgauss)
+    y_k = (v1[0] - av0[0], v1[1] - av0[1], v1[2] - av0[2])
 
-    # exact discrete model: v_{k+1} - d2_{k+1} theta = A_k (v_k - d2_k theta)
-    phi = rotation_increment(state.omega_prev2_rad_s, state.omega_prev_rad_s, w1, state.dt_prev_s, dt_s,
-                             p.rate_interp)
-    a_k = so3_exp(-phi)  # dR_k^T, eqs. (18)-(19) over one step
-    phi_k = regressor(a_k, d2_0, d2_1, p.variant)
-    y_k = v1 - a_k @ v0
+    # excitation (eq. (21)) and the axes held for lack of it (not in the paper)
+    lam_e = k.lam_excitation
+    gram_sum, gram_w, g = _gramian_update(state.gram_sum, state.gram_weight, phi_k, dt, lam_e)
+    info_obs = _observability(g, p.excitation_min_rad2_s2)
+    held = _held_axes(info_obs[1], gram_w, state.theta_prior, p)
 
-    # excitation Gramian (eq. (21)), exponentially windowed time average of Phi^T Phi / dt^2
-    lam_e = float(np.exp(-dt_s / p.excitation_window_s))
-    gram_sum = lam_e * state.gram_sum + (phi_k.T @ phi_k) / dt_s
-    gram_weight = lam_e * state.gram_weight + dt_s
-    exc = excitation(gram_sum / gram_weight, p.excitation_min_rad2_s2)
-    obs = exc[2]
-    # hold theta on axes without excitation once the window has filled (not in the paper); before that
-    # a one-sample Gramian is rank 2 and would freeze every axis. On a truly unexcited axis the column of
-    # Phi is zero, so the update there is zero anyway; the hold guards against noise-driven drift.
-    warm = gram_weight >= 0.5 * p.excitation_window_s
-    held = ~np.array(obs) & warm
-
-    # regression prefilter: the same LTI filter on y and on each column of Phi keeps y_f = Phi_f theta
-    if p.prefilter == "regression":
-        regs = np.concatenate([y_k, phi_k.ravel()])
-        lp_r = lowpass_init(regs) if lp is None else lp
-        lp, regs_f = lowpass_step(lp_r, regs, dt_s, p.lowpass)
-        y_f, phi_f = regs_f[:3], regs_f[3:].reshape(3, 3)
-    else:
-        y_f, phi_f = y_k, phi_k
-
+    lp, y_f, phi_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
     theta = state.theta_hat_mgauss
-    resid = y_f - phi_f @ theta
-    lam = float(np.exp(-dt_s / p.forget_s))
-    info_new = lam * state.info + (1.0 - lam) * p.info0 * np.eye(3) + phi_f.T @ phi_f
-    info_inv = _inv3(info_new)
-    v_pred = a_k @ state.v_hat_mgauss + phi_k @ theta  # eq. (20a) prediction, exact over dt
-    innovation = v_pred - v1
-    flags = 0
-    if p.scheme == "regression":
-        d_theta = info_inv @ (phi_f.T @ resid)  # RLS with regularised forgetting
-    else:
-        # eq. (20b), discrete: -Phi^T ~ delta^2 [omega]_x dt; keep k2 |Phi|_2^2 <= 1 (discrete V decrease)
-        phi_norm2 = float(np.linalg.eigvalsh(phi_k.T @ phi_k)[-1])  # |Phi_k|_2^2
-        k2_eff = p.k2
-        if k2_eff * phi_norm2 > 1.0:
-            k2_eff = 1.0 / phi_norm2
-            flags |= FLAG_SATURATED
-        d_theta = -k2_eff * (phi_k.T @ innovation)  # eq. (20b)
-    d_theta = np.where(held, 0.0, d_theta)  # hold theta on axes without excitation (not in the paper)
-    theta_new = theta + d_theta
-    clipped = np.clip(theta_new, -p.theta_max_mgauss, p.theta_max_mgauss)
-    if np.any(clipped != theta_new):
+    pt = matvec(phi_f, theta)
+    resid = (y_f[0] - pt[0], y_f[1] - pt[1], y_f[2] - pt[2])
+    info_new = _information_update(state.info, phi_f, k)
+    info_inv = inv3(sym_full(info_new))
+    av, pk = matvec(a_k, state.v_hat_mgauss), matvec(phi_k, theta)
+    innovation = (av[0] + pk[0] - v1[0], av[1] + pk[1] - v1[1], av[2] + pk[2] - v1[2])  # eq. (20a) prediction
+    d_theta, flags = _theta_increment(phi_k, phi_f, resid, info_inv, innovation, p)
+    theta_new, clipped = _hold_and_clip(theta, d_theta, held, p.theta_max_mgauss)
+    if clipped:
         flags |= FLAG_SATURATED
-    theta_new = clipped
-    c = float(np.exp(-p.k1_1_s * dt_s))
-    v_hat_new = v1 + c * (a_k @ state.v_hat_mgauss + phi_k @ theta_new - v1)  # eq. (20a): exp(-k1 dt) damping
+    # eq. (20a): the prediction error damped by exp(-k1 dt), exact over the step
+    c = k.damping
+    pn = matvec(phi_k, theta_new)
+    v_hat = (v1[0] + c * (av[0] + pn[0] - v1[0]), v1[1] + c * (av[1] + pn[1] - v1[1]),
+             v1[2] + c * (av[2] + pn[2] - v1[2]))  # fmt: skip
 
-    resid_var = lam_e * state.resid_var + (1.0 - lam_e) * float(resid @ resid) / 3.0
-    excited = state.excited_s + np.where(np.array(obs), dt_s, 0.0)
-    std = np.sqrt(np.diag(info_inv) * resid_var)
-    tol = p.converge_std_mgauss + p.converge_rel * float(np.linalg.norm(theta_new))
-    conv = (excited >= p.converge_min_excited_s) & (std <= tol)
-    if d2_1 < NO_THROTTLE_D2:
+    resid_sq = resid[0] ** 2 + resid[1] ** 2 + resid[2] ** 2
+    rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt, lam_e, p)
+    if d2 < NO_THROTTLE_D2:
         flags |= FLAG_NO_THROTTLE
-
-    new = ObserverState(
-        v_hat_mgauss=v_hat_new, theta_hat_mgauss=theta_new, info=info_new, gram_sum=gram_sum,
-        gram_weight=gram_weight, field_prev_mgauss=v1, omega_prev_rad_s=w1,
-        omega_prev2_rad_s=state.omega_prev_rad_s, d2_prev=d2_1, dt_prev_s=dt_s, lp=lp, resid_var=resid_var,
-        excited_s=excited, converged=(bool(conv[0]), bool(conv[1]), bool(conv[2])), initialized=True,
-        n_steps=state.n_steps + 1,
-    )
-    return new, _info(new, p, "ok", flags, innovation, float(np.linalg.norm(resid)), exc, std)
+    new = ObserverState(v_hat, theta_new, info_new, gram_sum, gram_w, v1, w1, state.omega_prev_rad_s, d2, dt,
+                        lp, rv, excited, conv, True, state.n_steps + 1, state.theta_prior)  # fmt: skip
+    info = _make_info("ok", flags, innovation, math.sqrt(resid_sq), g, info_obs, conv, std)
+    return ObserverStep(new, info)

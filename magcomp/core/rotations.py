@@ -10,12 +10,25 @@ Euler angles are the aerospace ZYX sequence (yaw, pitch, roll) used by MAVLink A
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcomp.core.linalg3 import FloatSeq, Mat3, Vec3
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation as RotationT
+
 F64 = NDArray[np.float64]
+
+
+def _rotation() -> type[RotationT]:
+    """scipy's Rotation, imported on first use: ``scipy.spatial`` costs 0.17 s of start-up, and the
+    per-sample path (which every command runs) does not need it."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 def skew(w: ArrayLike) -> F64:
@@ -34,34 +47,16 @@ def quat_normalize(q: ArrayLike) -> F64:
 
 
 def quat_multiply(p: ArrayLike, q: ArrayLike) -> F64:
-    """Hamilton product ``p * q`` (scalar first)."""
-    pw, px, py, pz = np.asarray(p, dtype=float)
-    qw, qx, qy, qz = np.asarray(q, dtype=float)
-    return np.array(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ]
-    )
+    """Hamilton product ``p * q`` (scalar first): :func:`quats_multiply` of one pair."""
+    return quats_multiply(np.asarray(p, dtype=float)[None, :], np.asarray(q, dtype=float)[None, :])[0]
 
 
 def quats_multiply(p: ArrayLike, q: ArrayLike) -> F64:
-    """Row-wise Hamilton products ``p[k] * q[k]`` of (n, 4) arrays: the vectorised :func:`quat_multiply`."""
-    pa = np.asarray(p, dtype=float)
-    qa = np.asarray(q, dtype=float)
-    pw, px, py, pz = pa[:, 0], pa[:, 1], pa[:, 2], pa[:, 3]
-    qw, qx, qy, qz = qa[:, 0], qa[:, 1], qa[:, 2], qa[:, 3]
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=1,
-    )
+    """Row-wise Hamilton products ``p[k] * q[k]`` of (n, 4) unit quaternions (scipy's Rotation; the sign is
+    the Hamilton product's, not canonicalised)."""
+    rp = _rotation().from_quat(np.asarray(p, dtype=float), scalar_first=True)
+    rq = _rotation().from_quat(np.asarray(q, dtype=float), scalar_first=True)
+    return np.asarray((rp * rq).as_quat(scalar_first=True), dtype=float)
 
 
 def quat_conj(q: ArrayLike) -> F64:
@@ -70,58 +65,37 @@ def quat_conj(q: ArrayLike) -> F64:
 
 
 def dcm_from_quat(q_nb: ArrayLike) -> F64:
-    """``R_nb`` (3x3) from a unit quaternion ``q_nb`` (w, x, y, z)."""
-    w, x, y, z = np.asarray(q_nb, dtype=float)
+    """``R_nb`` (3x3) from a unit quaternion ``q_nb`` (w, x, y, z). Written out because the pipeline calls it
+    per magnetometer sample (in-flight relative mode): 5.7 us vs 27 us through scipy's Rotation."""
+    w, x, y, z = (float(c) for c in np.asarray(q_nb, dtype=float).reshape(4))
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
             [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            down_b_from_quat((w, x, y, z)),
         ]
     )
 
 
 def dcms_from_quats(q_nb: ArrayLike) -> F64:
-    """``R_nb`` for each row of ``q_nb`` (n, 4) -> (n, 3, 3): the vectorised :func:`dcm_from_quat`."""
+    """``R_nb`` for each row of ``q_nb`` (n, 4) -> (n, 3, 3) (scipy's Rotation)."""
     q = np.asarray(q_nb, dtype=float)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    r = np.empty((q.shape[0], 3, 3))
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - w * z)
-    r[:, 0, 2] = 2 * (x * z + w * y)
-    r[:, 1, 0] = 2 * (x * y + w * z)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - w * x)
-    r[:, 2, 0] = 2 * (x * z - w * y)
-    r[:, 2, 1] = 2 * (y * z + w * x)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
+    if q.shape[0] == 0:
+        return np.empty((0, 3, 3))
+    return np.asarray(_rotation().from_quat(q, scalar_first=True).as_matrix(), dtype=float)
 
 
 def quat_from_dcm(r_nb: ArrayLike) -> F64:
-    """Unit quaternion ``q_nb`` from ``R_nb`` (Shepperd's method, numerically safe)."""
-    m = np.asarray(r_nb, dtype=float)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    return quat_normalize(q)
+    """Unit quaternion ``q_nb`` (w >= 0) from ``R_nb`` (scipy's Rotation)."""
+    return quat_normalize(_rotation().from_matrix(np.asarray(r_nb, dtype=float)).as_quat(scalar_first=True))
 
 
 def dcm_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> F64:
-    """``R_nb`` from ZYX Euler angles: ``R_nb = Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
-    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
-    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
-    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
+    """``R_nb`` from ZYX Euler angles: ``R_nb = Rz(yaw) @ Ry(pitch) @ Rx(roll)``. Written out because the
+    pipeline calls it per magnetometer sample (in-flight absolute mode): 4.2 us vs 26 us through scipy."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
     return np.array(
         [
             [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
@@ -132,16 +106,14 @@ def dcm_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> F64:
 
 
 def euler_from_dcm(r_nb: ArrayLike) -> tuple[float, float, float]:
-    """ZYX Euler angles (roll, pitch, yaw) in rad from ``R_nb``; yaw in (-pi, pi]."""
-    m = np.asarray(r_nb, dtype=float)
-    pitch = float(-np.arcsin(np.clip(m[2, 0], -1.0, 1.0)))
-    roll = float(np.arctan2(m[2, 1], m[2, 2]))
-    yaw = float(np.arctan2(m[1, 0], m[0, 0]))
-    return roll, pitch, yaw
+    """ZYX Euler angles (roll, pitch, yaw) in rad from ``R_nb``; yaw in (-pi, pi]: :func:`euler_from_dcms`."""
+    roll, pitch, yaw = euler_from_dcms(np.asarray(r_nb, dtype=float)[None])[0]
+    return float(roll), float(pitch), float(yaw)
 
 
 def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> F64:
-    return quat_from_dcm(dcm_from_euler(roll_rad, pitch_rad, yaw_rad))
+    """``q_nb`` (w >= 0) from ZYX Euler angles: :func:`quats_from_euler` of one attitude."""
+    return quat_normalize(quats_from_euler([roll_rad], [pitch_rad], [yaw_rad])[0])
 
 
 def euler_from_quat(q_nb: ArrayLike) -> tuple[float, float, float]:
@@ -151,7 +123,8 @@ def euler_from_quat(q_nb: ArrayLike) -> tuple[float, float, float]:
 def euler_from_dcms(r_nb: ArrayLike) -> F64:
     """ZYX Euler angles (roll, pitch, yaw) rad for each ``R_nb`` of (n, 3, 3) -> (n, 3); yaw in (-pi, pi].
 
-    The vectorised :func:`euler_from_dcm`.
+    Written out rather than scipy's ``as_euler``: that one re-orthonormalises the matrices and warns at
+    gimbal lock (pitch +-90 deg, which hand-held logs reach); this reads the angles off the matrix as is.
     """
     r = np.asarray(r_nb, dtype=float)
     roll = np.arctan2(r[:, 2, 1], r[:, 2, 2])
@@ -167,9 +140,13 @@ def euler_from_quats(q_nb: ArrayLike) -> F64:
 
 
 def quats_from_euler(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> F64:
-    """``q_nb`` (n, 4) from ZYX Euler angle arrays (n,): the same rotations as :func:`quat_from_euler`, in
-    closed form. Unlike the scalar function the sign is not normalised to ``w >= 0``, so a smooth angle path
-    gives a smooth quaternion path."""
+    """``q_nb`` (n, 4) from ZYX Euler angle arrays (n,), in closed form (half angles). The sign is not
+    normalised to ``w >= 0``, so a smooth angle path gives a smooth quaternion path.
+
+    Written out rather than scipy's ``_rotation().from_euler`` (which gives the same quaternions to 2e-16):
+    :func:`magcomp.core.mahony.mahony_init` needs it in every replay and live session, and importing
+    ``scipy.spatial`` adds 0.17 s to every command's start-up (python -X importtime, this machine).
+    """
     roll = np.asarray(roll_rad, dtype=float)
     pitch = np.asarray(pitch_rad, dtype=float)
     yaw = np.asarray(yaw_rad, dtype=float)
@@ -183,69 +160,68 @@ def quats_from_euler(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLi
             cr * sp * cy + sr * cp * sy,
             cr * cp * sy - sr * sp * cy,
         ],
-        axis=1,
+        axis=-1,
     )
 
 
 def so3_exp(phi: ArrayLike) -> F64:
-    """Exponential map so(3) -> SO(3) (Rodrigues): the rotation by angle |phi| about phi/|phi|."""
-    phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    k = skew(phi)
-    if angle < 1e-8:
-        return np.eye(3) + k + 0.5 * k @ k
-    return np.eye(3) + (np.sin(angle) / angle) * k + ((1.0 - np.cos(angle)) / angle**2) * (k @ k)
+    """Exponential map so(3) -> SO(3) (Rodrigues) as a (3, 3) array: :func:`dcm_from_rotvec`."""
+    v = np.asarray(phi, dtype=float).reshape(3)
+    return np.array(dcm_from_rotvec((float(v[0]), float(v[1]), float(v[2])))).reshape(3, 3)
+
+
+def dcm_from_rotvec(phi: FloatSeq) -> Mat3:
+    """Rotation by angle |phi| about phi/|phi| (Rodrigues, ``I + sin(a)/a K + (1-cos(a))/a^2 K^2`` with
+    ``K = [phi]_x``), row-major floats: the per-sample form (the observer's A_k; 13 us as numpy arrays,
+    1 us on floats)."""
+    kx, ky, kz = phi
+    ang = math.sqrt(kx * kx + ky * ky + kz * kz)
+    if ang < 1e-8:
+        s1, s2 = 1.0, 0.5
+    else:
+        s1, s2 = math.sin(ang) / ang, (1.0 - math.cos(ang)) / (ang * ang)
+    kxx, kyy, kzz, kxy, kxz, kyz = kx * kx, ky * ky, kz * kz, kx * ky, kx * kz, ky * kz
+    return (
+        1.0 - s2 * (kyy + kzz), -s1 * kz + s2 * kxy, s1 * ky + s2 * kxz,
+        s1 * kz + s2 * kxy, 1.0 - s2 * (kxx + kzz), -s1 * kx + s2 * kyz,
+        -s1 * ky + s2 * kxz, s1 * kx + s2 * kyz, 1.0 - s2 * (kxx + kyy),
+    )  # fmt: skip
 
 
 def so3_log(r: ArrayLike) -> F64:
-    """Logarithm SO(3) -> so(3) as a rotation vector (inverse of :func:`so3_exp` for angles < pi)."""
-    m = np.asarray(r, dtype=float)
-    cos_a = np.clip((np.trace(m) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos_a))
-    vee = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-    if angle < 1e-8:
-        return 0.5 * vee
-    if np.pi - angle < 1e-6:
-        # near pi: axis from the symmetric part
-        b = (m + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(b), 0.0, None))
-        i = int(np.argmax(axis))
-        axis = b[:, i] / np.sqrt(b[i, i])
-        return angle * axis / np.linalg.norm(axis)
-    return angle / (2.0 * np.sin(angle)) * vee
+    """Logarithm SO(3) -> so(3) as a rotation vector (inverse of :func:`so3_exp`; scipy's Rotation)."""
+    return np.asarray(_rotation().from_matrix(np.asarray(r, dtype=float)).as_rotvec(), dtype=float)
 
 
 def quat_exp(phi: ArrayLike) -> F64:
-    """Quaternion of the rotation vector ``phi`` (rad)."""
-    phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    if angle < 1e-12:
-        return quat_normalize(np.array([1.0, 0.5 * phi[0], 0.5 * phi[1], 0.5 * phi[2]]))
-    axis = phi / angle
-    return np.concatenate([[np.cos(angle / 2.0)], np.sin(angle / 2.0) * axis])
+    """Quaternion (w >= 0) of the rotation vector ``phi`` (rad; scipy's Rotation)."""
+    q = _rotation().from_rotvec(np.asarray(phi, dtype=float)).as_quat(scalar_first=True)
+    return np.asarray(q, dtype=float)
 
 
 def quat_integrate_body_rate(q_nb: ArrayLike, omega_b_rad_s: ArrayLike, dt_s: float) -> F64:
-    """Exact attitude update for a body rate held constant over ``dt_s``: ``q <- q * exp(omega dt)``.
-
-    Implements the strap-down equation (18), ``R_dot = R [omega]_x``, in closed form.
-    """
-    dq = quat_exp(np.asarray(omega_b_rad_s, dtype=float) * dt_s)
-    out = quat_multiply(q_nb, dq)
-    return out / np.linalg.norm(out)
+    """Exact attitude update for a body rate held constant over ``dt_s``: ``q <- q * exp(omega dt)``, as an
+    array (:func:`quat_step_body_rate`)."""
+    q = np.asarray(q_nb, dtype=float).reshape(4)
+    w = np.asarray(omega_b_rad_s, dtype=float).reshape(3)
+    return np.array(quat_step_body_rate(q.tolist(), w.tolist(), dt_s))
 
 
-def down_b_from_quat(q_nb: ArrayLike) -> F64:
-    """Unit 'down' vector in body axes: third column of ``R_e^b`` (section II-A reference vector)."""
-    return dcm_from_quat(q_nb)[2, :].copy()
+def down_b_from_quat(q_nb: FloatSeq) -> Vec3:
+    """Unit 'down' vector in body axes: third row of ``R_nb`` = third column of ``R_e^b`` (section II-A
+    reference vector of the DPI calibration, eq. (3)); plain floats (per IMU sample). The one place the
+    formula is written; :func:`dcm_from_quat` uses it for its third row."""
+    w, x, y, z = q_nb[0], q_nb[1], q_nb[2], q_nb[3]
+    return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
 def quat_step_body_rate(
-    q_nb: Sequence[float], omega_b_rad_s: Sequence[float], dt_s: float
+    q_nb: FloatSeq, omega_b_rad_s: FloatSeq, dt_s: float
 ) -> tuple[float, float, float, float]:
     """One step of ``q_dot = q (x) (0, omega / 2)`` on plain floats, normalised: the exact rotation for a
     body rate constant over ``dt_s`` (eq. (18); the per-sample path of the Mahony filter and the pipeline's
-    gyro integral; the vectorised :func:`quat_integrate_body_rate` is its test oracle)."""
+    gyro integral, the simulator's strap-down); :func:`quat_integrate_body_rate` wraps it for arrays.
+    Measured: 3.6 us vs 16 us for the same step on numpy arrays (quat_exp + quat_multiply)."""
     wx, wy, wz = omega_b_rad_s[0], omega_b_rad_s[1], omega_b_rad_s[2]
     rate = math.sqrt(wx * wx + wy * wy + wz * wz)
     half = 0.5 * rate * dt_s

@@ -1,7 +1,6 @@
 """Glue between the pipeline and the pure core: parameters from the configuration, one-sample helpers.
 
-Kept separate from :mod:`magcomp.service.pipeline` so the per-sample path stays short to read, and so
-that the scalar fast paths here can be tested against the vectorised core functions they mirror.
+Kept separate from :mod:`magcomp.service.pipeline` so the per-sample path stays short to read.
 """
 
 from __future__ import annotations
@@ -13,13 +12,22 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.adapters.config import Config
+from magcomp.adapters.config import Config, ObserverForm
 from magcomp.core.dpi import DpiParams, calibrate_dpi
+from magcomp.core.linalg3 import Vec3Like
 from magcomp.core.lowpass import LowPassParams
-from magcomp.core.observer import ObserverParams, ObserverState, observer_init, observer_reset, observer_step
+from magcomp.core.observer import (
+    ObserverParams,
+    ObserverState,
+    Prefilter,
+    Scheme,
+    StepInfo,
+    Variant,
+    observer_init,
+    observer_reset,
+    observer_step,
+)
 from magcomp.geomag import earth_field_ned_mgauss
-from magcomp.service.fastpath import FastObserver, FastStepInfo
-from magcomp.service.fastpath import supports as fast_supports
 
 F64 = NDArray[np.float64]
 
@@ -83,90 +91,80 @@ def heading_from_trig(mx: float, my: float, mz: float, cr: float, sr: float, cp:
     return math.degrees(math.atan2(-y_l, x_l)) % 360.0  # eq. (24), quadrant-resolved
 
 
-#: what one observer step reports (converged, z_unobservable, saturated, residual_norm_mgauss,
-#: excitation): the fast path's own small record, also for the core path
-ThetaStepInfo = FastStepInfo
+#: what one observer step reports (flags, z_unobservable, saturated, residual_norm_mgauss, excitation, ...)
+ThetaStepInfo = StepInfo
 
 
 class ThetaEstimator:
-    """Mutable shell around :func:`magcomp.core.observer.observer_step` for one compass.
+    """Mutable shell around :func:`magcomp.core.observer.observer_step` for one compass: it holds the
+    immutable :class:`ObserverState` between samples.
 
     Where the 5 Hz filter of sec. II-D goes follows the observer's own advice: in the default
     regression form it filters ``y`` and ``Phi`` alike (exact, no bias); the paper's form filters the
     field, gyro and throttle alike ("inputs"), never the field alone (which biases theta).
     """
 
-    def __init__(self, cfg: Config, theta0_mgauss: F64) -> None:
+    __slots__ = ("converged", "params", "state")
+
+    def __init__(self, cfg: Config, theta0_mgauss: F64 | None) -> None:
+        """``theta0_mgauss``: a stored theta (a prior: see :func:`magcomp.core.observer.observer_init`);
+        None or all zeros: nothing known, start from 0."""
         self.params = observer_params(cfg)
-        state = observer_init(self.params, theta0_mgauss)
-        self._fast = FastObserver(self.params, state) if fast_supports(self.params) else None
-        self._state = state
+        known = theta0_mgauss is not None and bool(np.any(np.asarray(theta0_mgauss) != 0.0))
+        prior = theta0_mgauss if known else None
+        self.state: ObserverState = observer_init(self.params, prior)
         self.converged = False
 
     @property
     def theta_mgauss(self) -> F64:
         """theta-hat (mgauss), a new array."""
-        return np.array(self.theta_values(), dtype=float)
+        return np.array(self.state.theta_hat_mgauss, dtype=float)
 
     def theta_values(self) -> Sequence[float]:
-        """theta-hat (mgauss) as three floats (not to be modified)."""
-        if self._fast is not None:
-            return self._fast.theta
-        th = self._state.theta_hat_mgauss
-        return float(th[0]), float(th[1]), float(th[2])
-
-    @property
-    def state(self) -> ObserverState:
-        """The observer state as the core's :class:`ObserverState`."""
-        return self._fast.to_state() if self._fast is not None else self._state
+        """theta-hat (mgauss) as three floats."""
+        return self.state.theta_hat_mgauss
 
     def reset_filters(self) -> None:
         """Soft reset (gap, clock reset, new calibration): keeps theta and its information."""
-        if self._fast is not None:
-            self._fast.reset()
-        else:
-            self._state = observer_reset(self._state, self.params, keep_theta=True)
+        self.state = observer_reset(self.state, self.params, keep_theta=True)
 
     def step(
         self,
-        omega_b_rad_s: Sequence[float],
-        field_b_mgauss: Sequence[float],
+        omega_b_rad_s: Vec3Like,
+        field_b_mgauss: Vec3Like,
         throttle_01: float,
         dt_s: float,
     ) -> ThetaStepInfo:
         """One observer step; the vectors as floats (lists, tuples or arrays of three)."""
-        if self._fast is not None:
-            fi = self._fast.step(omega_b_rad_s, field_b_mgauss, throttle_01, dt_s)
-            self.converged = fi.converged
-            return fi
-        self._state, info = observer_step(
-            self._state, np.asarray(omega_b_rad_s, dtype=float), np.asarray(field_b_mgauss, dtype=float),
-            throttle_01, dt_s, self.params,
-        )  # fmt: skip
-        self.converged = all(self._state.converged)
-        return ThetaStepInfo(
-            info.status, info.flags, self.converged, info.z_unobservable, info.residual_norm_mgauss,
-            info.excitation_min_rad2_s2,
+        self.state, info = observer_step(
+            self.state, omega_b_rad_s, field_b_mgauss, throttle_01, dt_s, self.params
         )
+        c = self.state.converged
+        self.converged = c[0] and c[1] and c[2]
+        return info
+
+
+#: ``[observer] form`` -> (scheme, variant, prefilter) of :class:`ObserverParams`
+_FORMS: dict[ObserverForm, tuple[Scheme, Variant, Prefilter]] = {
+    "default": ("regression", "delta_dot", "regression"),
+    "regression": ("regression", "delta_dot", "regression"),
+    "delta_dot": ("observer", "delta_dot", "inputs"),  # eq. (20) with the throttle-rate term of eq. (16)
+    "paper": ("observer", "paper", "inputs"),  # eq. (20) as printed, discretised by the observer module
+}
 
 
 def observer_params(cfg: Config) -> ObserverParams:
-    """:class:`ObserverParams` from the ``[observer]`` and ``[filter]`` sections."""
+    """:class:`ObserverParams` from the ``[observer]`` and ``[filter]`` sections: the one place the
+    configuration becomes observer parameters (the defaults agree; tests/unit/test_config.py)."""
     o = cfg.observer
-    lp = LowPassParams(corner_hz=cfg.filter.corner_hz, order=cfg.filter.order)
-    if o.form in ("default", "regression"):
-        scheme, variant, prefilter = "regression", "delta_dot", "regression"
-    elif o.form == "delta_dot":
-        scheme, variant, prefilter = "observer", "delta_dot", "inputs"
-    else:  # "paper": eq. (20) as printed, discretised by the observer module
-        scheme, variant, prefilter = "observer", "paper", "inputs"
+    scheme, variant, prefilter = _FORMS[o.form]
     return ObserverParams(
         k1_1_s=o.k1,
         k2=o.k2,
-        scheme=scheme,  # type: ignore[arg-type]
-        variant=variant,  # type: ignore[arg-type]
-        prefilter=prefilter,  # type: ignore[arg-type]
-        lowpass=lp,
+        scheme=scheme,
+        variant=variant,
+        prefilter=prefilter,
+        lowpass=LowPassParams(corner_hz=cfg.filter.corner_hz, order=cfg.filter.order),
         forget_s=o.forget_s,
         theta_max_mgauss=o.theta_max_mgauss,
         dt_min_s=o.dt_min_s,

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from magcomp.adapters.config import Config, ConfigError, config_to_dict, load_config
+from magcomp.errors import InputError
 
 REPO = Path(__file__).parents[2]
 
@@ -38,6 +39,20 @@ def test_partial_file_overrides_only_its_keys(tmp_path: Path) -> None:
     assert cfg.input.compasses == (0, 2)
     assert cfg.observer.k2 == Config().observer.k2
     assert cfg.filter == Config().filter
+
+
+def test_observer_section_defaults_and_bounds_are_the_core_parameters(tmp_path: Path) -> None:
+    """One Config -> Params function: the [observer] defaults give ObserverParams' own defaults, and a
+    value the core refuses (k1 = 0: Theorem 1 needs k1 > 0) is refused by the configuration too."""
+    from magcomp.core.observer import ObserverParams
+    from magcomp.service.estimators import observer_params
+
+    assert observer_params(Config()) == ObserverParams()
+    for key in ("k1", "k2"):
+        with pytest.raises(ConfigError, match=key):
+            load_config(_write(tmp_path, f"[observer]\n{key} = 0.0\n"))
+        with pytest.raises(InputError):
+            ObserverParams(**{"k1_1_s" if key == "k1" else "k2": 0.0})  # type: ignore[arg-type]
 
 
 def test_config_is_frozen() -> None:

@@ -60,7 +60,8 @@ def test_tilt_from_accel_recovers_roll_pitch_at_rest() -> None:
     rng = np.random.default_rng(1)
     for _ in range(50):
         roll, pitch = rng.uniform(-3.0, 3.0), rng.uniform(-1.4, 1.4)
-        f_b = -STANDARD_GRAVITY_M_S2 * down_b_from_quat(quat_from_euler(roll, pitch, rng.uniform(-3, 3)))
+        q = quat_from_euler(roll, pitch, rng.uniform(-3, 3))
+        f_b = -STANDARD_GRAVITY_M_S2 * np.array(down_b_from_quat(q))
         r, p = tilt_from_accel(f_b)
         assert abs(r - roll) < 1e-9 and abs(p - pitch) < 1e-9
 
@@ -105,7 +106,7 @@ def test_accel_gate_rejects_inertial_acceleration() -> None:
     assert not used
     np.testing.assert_allclose(st2.q_nb, st.q_nb, atol=1e-12)
     # inside the gate the same direction error is corrected
-    f_tilted = -STANDARD_GRAVITY_M_S2 * down_b_from_quat(quat_from_euler(0.2, 0.0, 0.0))
+    f_tilted = -STANDARD_GRAVITY_M_S2 * np.array(down_b_from_quat(quat_from_euler(0.2, 0.0, 0.0)))
     st3, used3 = mahony_update(st, np.zeros(3), f_tilted, 0.01, p)
     assert used3
     assert euler_from_quat(st3.q_nb)[0] > 0.001
@@ -113,7 +114,8 @@ def test_accel_gate_rejects_inertial_acceleration() -> None:
 
 def test_step_with_imu_sample_matches_array_update() -> None:
     p = MahonyParams()
-    st = MahonyState(q_nb=quat_from_euler(0.1, 0.2, 0.3), gyro_bias_b_rad_s=np.zeros(3))
+    q0 = quat_from_euler(0.1, 0.2, 0.3)
+    st = MahonyState(q_nb=(q0[0], q0[1], q0[2], q0[3]), gyro_bias_b_rad_s=(0.0, 0.0, 0.0))
     gyro, accel = np.array([0.1, -0.2, 0.05]), np.array([0.5, -0.3, -9.7])
     a = mahony_step(st, ImuSample(t_s=0.0, gyro_b_rad_s=gyro, accel_b_m_s2=accel), 0.01, p)
     b, _ = mahony_update(st, gyro, accel, 0.01, p)
