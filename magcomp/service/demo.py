@@ -73,8 +73,9 @@ class DemoReport:
                 f"compass {idx}: theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) mgauss, truth "
                 f"({tr[0]:.1f}, {tr[1]:.1f}, {tr[2]:.1f}), |error| {err:.1f} mgauss"
             )
-        out.append("heading error, compass 0 (deg)  max corrected / uncorrected   rms corrected / "
-                   "uncorrected")
+        out.append(
+            "heading error, compass 0 (deg)  max corrected / uncorrected   rms corrected / uncorrected"
+        )
         for s in self.segments:
             out.append(
                 f"  {s.name:<5} ({s.n:4d} samples)          {s.max_corrected_deg:6.2f} / {s.max_raw_deg:6.2f}"

@@ -145,7 +145,11 @@ class ThetaEstimator:
         )  # fmt: skip
         self.converged = all(self._state.converged)
         return ThetaStepInfo(
-            info.status, info.flags, self.converged, info.z_unobservable, info.residual_norm_mgauss,
+            info.status,
+            info.flags,
+            self.converged,
+            info.z_unobservable,
+            info.residual_norm_mgauss,
             info.excitation_min_rad2_s2,
         )
 

@@ -36,7 +36,6 @@ F64 = NDArray[np.float64]
 Vec = list[float]
 
 
-
 def supports(p: ObserverParams) -> bool:
     """True when :class:`FastObserver` reproduces ``observer_step`` for these parameters."""
     return (
