@@ -290,6 +290,9 @@ class WireImuSample(ImuSample):
     def accel_b_m_s2(self) -> np.ndarray:
         return _lazy_vec(self, _IMU_ACCEL, self.accel_xyz)
 
+    def floats(self) -> tuple[float, float, float, float, float, float]:
+        return (*self.gyro_xyz, *self.accel_xyz)
+
     def __reduce__(self) -> tuple[Any, ...]:
         return ImuSample, (self.t_s, self.gyro_b_rad_s, self.accel_b_m_s2, self.imu_index)
 
@@ -309,6 +312,9 @@ class WireMagSample(MagSample):
     @property  # type: ignore[override]
     def field_b_mgauss(self) -> np.ndarray:
         return _lazy_vec(self, _MAG_FIELD, self.field_xyz)
+
+    def floats(self) -> Float3:
+        return self.field_xyz
 
     def __reduce__(self) -> tuple[Any, ...]:
         return MagSample, (self.t_s, self.field_b_mgauss, self.mag_index)

@@ -26,6 +26,12 @@ class ImuSample:
     accel_b_m_s2: Vec3
     imu_index: int = 0
 
+    def floats(self) -> tuple[float, float, float, float, float, float]:
+        """Gyro then accelerometer as six Python floats (the per-sample path reads no arrays; a source
+        that decodes floats overrides this without building the arrays)."""
+        g, a = self.gyro_b_rad_s, self.accel_b_m_s2
+        return float(g[0]), float(g[1]), float(g[2]), float(a[0]), float(a[1]), float(a[2])
+
 
 @dataclass(frozen=True, slots=True)
 class MagSample:
@@ -34,6 +40,11 @@ class MagSample:
     t_s: float
     field_b_mgauss: Vec3
     mag_index: int = 0
+
+    def floats(self) -> tuple[float, float, float]:
+        """The field as three Python floats (see :meth:`ImuSample.floats`)."""
+        v = self.field_b_mgauss
+        return float(v[0]), float(v[1]), float(v[2])
 
 
 @dataclass(frozen=True, slots=True)

@@ -170,8 +170,17 @@ def check_link_url(url: str, option: str = "--master") -> None:
 #: errors of a first open that waiting cannot heal (the link is misconfigured, not merely down)
 _PERMANENT_ERRNOS = frozenset(
     getattr(errno_mod, name)
-    for name in ("EADDRINUSE", "EADDRNOTAVAIL", "EACCES", "EPERM", "ENOENT", "ENODEV", "ENXIO", "ENOTTY",
-                 "EBUSY")
+    for name in (
+        "EADDRINUSE",
+        "EADDRNOTAVAIL",
+        "EACCES",
+        "EPERM",
+        "ENOENT",
+        "ENODEV",
+        "ENXIO",
+        "ENOTTY",
+        "EBUSY",
+    )
     if hasattr(errno_mod, name)
 )
 
@@ -258,6 +267,7 @@ class Daemon:
         # imports that would otherwise happen on the live path (the refined calibration fit's
         # scipy.optimize costs ~0.3 s the first time, holding the interpreter)
         import scipy.optimize  # noqa: F401
+
         self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
         self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
         self.published = 0

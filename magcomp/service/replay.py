@@ -3,7 +3,6 @@ as the machine goes."""
 
 from __future__ import annotations
 
-import gc
 import logging
 import time
 from collections.abc import Callable
@@ -17,6 +16,7 @@ from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
+from magcomp.service.workers import Workers
 
 log = logging.getLogger("magcomp.replay")
 
@@ -78,21 +78,27 @@ class MemoryStore:
 
 
 def learn_pass(
-    path: str | Path, cfg: Config, should_stop: Callable[[], bool] | None = None
+    path: str | Path,
+    cfg: Config,
+    should_stop: Callable[[], bool] | None = None,
+    workers: Workers | None = None,
 ) -> MemoryStore | None:
-    """First pass of a two-pass replay: the whole log through the pipeline, outputs discarded, the final
-    state of every compass kept (what a live run would save at the end of this flight)."""
+    """First pass of a two-pass replay: the whole log through the pipeline without its heading and publish
+    stages (``learn_only``), the final state of every compass kept (what a live run would save at the end
+    of this flight). None when ``should_stop`` asked to stop."""
     from magcomp.adapters.mavlink_source import open_source
 
     store = MemoryStore()
     source = open_source(path, throttle_source=source_throttle(cfg))
-    pipeline = Pipeline(cfg, store=store)  # type: ignore[arg-type]
+    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True)
     feed = pipeline.feed
+    samples = source.samples()
     try:
-        for i, sample in enumerate(source.samples()):
-            feed(sample)
-            if should_stop is not None and i % REPLAY_BATCH == 0 and should_stop():
+        while batch := list(islice(samples, REPLAY_BATCH)):
+            if should_stop is not None and should_stop():
                 return None
+            for sample in batch:
+                feed(sample)
     finally:
         source.close()
         pipeline.close()
@@ -103,6 +109,97 @@ def learn_pass(
 def source_throttle(cfg: Config) -> str:
     """The throttle option for the source (``none`` is handled by the pipeline, which ignores throttle)."""
     return "auto" if cfg.input.throttle_source == "none" else cfg.input.throttle_source
+
+
+class _Outputs:
+    """Where a replay's estimates go: kept, a callback, an ``--emit`` tlog. The estimate object is built
+    only when one of them wants it (same numbers: Pipeline.process = feed + last_estimate)."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        emit: str | Path | None,
+        keep: bool,
+        on_estimate: Callable[[HeadingEstimate], None] | None,
+    ) -> None:
+        self.writer = TlogWriter(emit) if emit is not None else None
+        self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
+        self.kept: list[HeadingEstimate] = []
+        self._keep = keep
+        self._on_estimate = on_estimate
+        self.wanted = keep or on_estimate is not None or self.writer is not None
+        self._sysid_set = False
+
+    def take(self, pipeline: Pipeline) -> None:
+        est = pipeline.last_estimate()
+        if self._keep:
+            self.kept.append(est)
+        if self._on_estimate is not None:
+            self._on_estimate(est)
+        writer = self.writer
+        if writer is not None:
+            if not self._sysid_set and pipeline.system_id is not None:
+                self.encoder.set_system(pipeline.system_id)
+                self._sysid_set = True
+            writer.write_packet(est.t_s, self.encoder.encode(est))
+
+    def close(self, failed: bool = False) -> None:
+        """Close the tlog; after a failure one with nothing in it is removed (no empty --emit file)."""
+        writer = self.writer
+        if writer is None:
+            return
+        writer.close()
+        if failed and writer.packets == 0:
+            Path(writer.path).unlink(missing_ok=True)
+
+    @property
+    def emitted(self) -> int:
+        return self.writer.packets if self.writer is not None else 0
+
+
+@dataclass
+class _Progress:
+    """How far a replay loop got."""
+
+    n_estimates: int = 0
+    interrupted: bool = False
+    t_last_s: float = float("nan")
+
+
+def _replay_loop(
+    source: Any,
+    pipeline: Pipeline,
+    outputs: _Outputs,
+    should_stop: Callable[[], bool] | None,
+    on_progress: Callable[[float], None] | None,
+) -> _Progress:
+    """Every sample of ``source`` through ``pipeline``; published estimates to ``outputs``. Samples are
+    decoded a batch at a time, then fed one by one in the same order: the same numbers as feeding each
+    sample as it is decoded (the source never depends on the pipeline), 3-4 % less wall time (each half
+    of the loop runs on warm caches)."""
+    prog = _Progress()
+    feed = pipeline.feed
+    wanted = outputs.wanted
+    samples = source.samples()
+    n = 0
+    sample: Any = None
+    try:
+        while batch := list(islice(samples, REPLAY_BATCH)):
+            if should_stop is not None and should_stop():
+                prog.interrupted = True
+                break
+            if on_progress is not None:
+                on_progress(batch[-1].t_s)
+            for sample in batch:
+                if feed(sample):
+                    n += 1
+                    if wanted:
+                        outputs.take(pipeline)
+    except KeyboardInterrupt:
+        prog.interrupted = True
+    prog.n_estimates = n
+    prog.t_last_s = float(sample.t_s) if sample is not None else float("nan")
+    return prog
 
 
 def replay_log(
@@ -130,79 +227,57 @@ def replay_log(
     ``keep_clouds``: return the calibration clouds (also with ``keep_estimates``).
     ``on_progress``: called once per batch with the message time reached (s). When the replay fails
     (an unreadable log) before any heading was written, the ``emit`` file is removed, not left empty.
+    The refined calibration fits and the state writes run on worker threads owned by this call.
     """
+    t_wall = time.perf_counter()
+    with Workers.threads() as workers:
+        mem: MemoryStore | None = None
+        if two_pass and store is None:
+            # the log is known whole: learn from all of it first, then replay from the state it ends with
+            # (as a live run would start from yesterday's saved state); a ^C here leaves a one-pass replay
+            try:
+                mem = learn_pass(path, cfg, should_stop, workers)
+            except KeyboardInterrupt:
+                mem = None
+        pipeline = Pipeline(cfg, store=mem if mem is not None else store, on_text=on_text, workers=workers)
+        report = _replay(path, cfg, pipeline, emit, keep_estimates, on_estimate, should_stop, on_progress)
+    report.wall_s = time.perf_counter() - t_wall
+    report.summary["passes"] = 2 if mem is not None else 1
+    if keep_estimates or keep_clouds:
+        report.clouds = {i: c.calibration_cloud() for i, c in pipeline.correctors.items()}
+    return report
+
+
+def _replay(
+    path: str | Path,
+    cfg: Config,
+    pipeline: Pipeline,
+    emit: str | Path | None,
+    keep_estimates: bool,
+    on_estimate: Callable[[HeadingEstimate], None] | None,
+    should_stop: Callable[[], bool] | None,
+    on_progress: Callable[[float], None] | None,
+) -> ReplayReport:
+    """One pass of :func:`replay_log` with ``pipeline``."""
     from magcomp.adapters.mavlink_source import open_source
 
-    t_wall = time.perf_counter()
-    if two_pass and store is None:
-        # the log is known whole: learn from all of it first, then replay from the state it ends with (as a
-        # live run would start from yesterday's saved state); a ^C here leaves a one-pass replay
-        try:
-            store = learn_pass(path, cfg, should_stop)  # type: ignore[assignment]
-        except KeyboardInterrupt:
-            store = None
-        two_pass = store is not None
     source = open_source(path, throttle_source=source_throttle(cfg))
-    pipeline = Pipeline(cfg, store=store, on_text=on_text)
     log.debug("replaying %s", path)
-    writer = TlogWriter(emit) if emit is not None else None
-    encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component) if writer else None
-    kept: list[HeadingEstimate] = []
-    n = 0
-    sysid_set = False
-    feed = pipeline.feed
-    # the estimate object is built only for a consumer (same numbers: Pipeline.process = feed + last_estimate)
-    consumers = keep_estimates or on_estimate is not None or writer is not None
-    interrupted = False
-    sample: Any = None
-    # The replay loop allocates many short-lived, acyclic objects (decoded rows, samples); the cyclic
-    # collector finds nothing among them but costs ~10 % of the loop. Reference counting still frees them.
-    gc_was_enabled = gc.isenabled()
-    gc.disable()
-    samples = source.samples()
     try:
-        # decoded a batch at a time, then fed one by one in the same order: the same numbers as feeding
-        # each sample as it is decoded (the source never depends on the pipeline), 3-4 % less wall time
-        # (each half of the loop runs on warm caches)
-        while batch := list(islice(samples, REPLAY_BATCH)):
-            if should_stop is not None and should_stop():
-                interrupted = True
-                break
-            if on_progress is not None:
-                on_progress(batch[-1].t_s)
-            for sample in batch:
-                if not feed(sample):
-                    continue
-                n += 1
-                if not consumers:
-                    continue
-                est = pipeline.last_estimate()
-                if keep_estimates:
-                    kept.append(est)
-                if on_estimate is not None:
-                    on_estimate(est)
-                if writer is not None and encoder is not None:
-                    if not sysid_set and pipeline.system_id is not None:
-                        encoder.set_system(pipeline.system_id)
-                        sysid_set = True
-                    writer.write_packet(est.t_s, encoder.encode(est))
-    except KeyboardInterrupt:
-        interrupted = True
+        outputs = _Outputs(cfg, emit, keep_estimates, on_estimate)
     except BaseException:
-        if writer is not None:
-            writer.close()
-            if writer.packets == 0:  # nothing written: no empty --emit file left behind
-                Path(writer.path).unlink(missing_ok=True)
+        source.close()
+        raise
+    try:
+        prog = _replay_loop(source, pipeline, outputs, should_stop, on_progress)
+    except BaseException:
+        outputs.close(failed=True)
         raise
     finally:
-        if gc_was_enabled:
-            gc.enable()
         source.close()
-        if writer is not None:
-            writer.close()
+        outputs.close()
         pipeline.close()
     summary = pipeline.summary()
-    summary["passes"] = 2 if two_pass and isinstance(store, MemoryStore) else 1
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
     if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
         from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
@@ -214,13 +289,10 @@ def replay_log(
         path=str(path),
         summary=summary,
         source_counts=dict(source.counts),
-        wall_s=time.perf_counter() - t_wall,
-        n_estimates=n,
-        emitted=writer.packets if writer is not None else 0,
-        estimates=kept,
-        clouds={i: c.calibration_cloud() for i, c in pipeline.correctors.items()}
-        if keep_estimates or keep_clouds
-        else {},
-        interrupted=interrupted,
-        t_last_s=float(sample.t_s) if sample is not None else float("nan"),
+        wall_s=0.0,
+        n_estimates=prog.n_estimates,
+        emitted=outputs.emitted,
+        estimates=outputs.kept,
+        interrupted=prog.interrupted,
+        t_last_s=prog.t_last_s,
     )

@@ -1,0 +1,385 @@
+"""Stage 3, calibrate: the calibration of a compass, eqs. (1)-(3), applied as eq. (2) ``u = L v - d``.
+
+Two ways to a calibration, the first that applies wins:
+
+* a hand rotation with the motors off (the paper's DPI, eq. (3)): :class:`HandCalibration` collects
+  (down vector, raw field) pairs at zero throttle, adopts the first linear fit the DPI module accepts and
+  refits while the vehicle is turned; when the motors start it makes one final, refined fit in a worker
+  thread, adopted exactly REFINE_ADOPT_AFTER samples later (so a live run and a replay adopt it at the
+  same sample). The theta of eq. (11) then comes from the observer (:mod:`magcomp.service.theta`).
+* in flight, jointly with theta (:mod:`magcomp.service.inflight_stage`, departure from the paper: no hand
+  rotation needed); :class:`CalibrateStage` picks its rotation source and hands it each sample.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.adapters.config import Config
+from magcomp.adapters.state_store import CompassState
+from magcomp.core.inflight import calibrated_by_autopilot, relative_rotation_source, yaw_reference
+from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
+from magcomp.service import estimators as est_core
+from magcomp.service.attitude import AttitudeStage
+from magcomp.service.inflight_stage import InflightOutput, InflightStage
+from magcomp.service.record import Float3, MagRecord
+
+if TYPE_CHECKING:
+    from magcomp.service.align import ThrottleTrack
+    from magcomp.service.compass import CompassCorrector
+
+log = logging.getLogger("magcomp.pipeline")
+
+F64 = NDArray[np.float64]
+
+#: at most this many (evenly strided) pairs go into the final (refined) DPI fit / an interim one
+FIT_MAX_ROWS = 3000
+INTERIM_FIT_MAX_ROWS = 1000
+#: the refined calibration is adopted this many magnetometer samples after the motors start
+REFINE_ADOPT_AFTER = 50
+#: attitude rows of the in-flight calibration are left out beyond this tilt (acrobatics, a crash)
+MAX_TILT_RAD = math.radians(60.0)
+COS_MAX_TILT = math.cos(MAX_TILT_RAD)
+#: specific force this far from 1 g is an impact (the diagnosis's crash mask uses 2.5 g; a hover never
+#: leaves 1 +- 0.5 g): the in-flight calibration takes no rows then
+IMPACT_M_S2 = 1.5 * STANDARD_GRAVITY_M_S2
+
+
+def apply_eq2(k: tuple[float, ...], vx: float, vy: float, vz: float) -> Float3:
+    """Eq. (2), ``u = L v - d``, with L (row-major) and d as 12 floats (scalar twin of
+    :func:`magcomp.core.dpi.apply_calibration`)."""
+    return (
+        k[0] * vx + k[1] * vy + k[2] * vz - k[9],
+        k[3] * vx + k[4] * vy + k[5] * vz - k[10],
+        k[6] * vx + k[7] * vy + k[8] * vz - k[11],
+    )
+
+
+@dataclass(frozen=True)
+class CalibrationSummary:
+    source: str  # "learned", "stored", "identity"
+    residual_rms_mgauss: float
+    coverage: float
+    n: int
+
+
+@dataclass(frozen=True)
+class PendingFit:
+    """The refined fit running in the background, the sample count at which it is adopted, its pairs."""
+
+    future: Future[est_core.LearnedCalibration | None]
+    adopt_at: int
+    n: int
+
+
+class HandCalibration:
+    """One compass's eq. (2) calibration: stored, identity, or learned from a motors-off hand rotation.
+    ``on_adopt`` is called whenever a new calibration is adopted."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        earth_ned: F64,
+        stored: CompassState | None,
+        fits: Executor,
+        on_adopt: Callable[[], None],
+    ) -> None:
+        self.cfg = cfg
+        self.earth_ned = earth_ned
+        self._fits = fits
+        self._on_adopt = on_adopt
+        self.calib_l: F64 | None = None
+        self.calib_d: F64 | None = None
+        self.summary: CalibrationSummary | None = None
+        mode = cfg.calibration.mode
+        if mode == "none":
+            self.calib_l, self.calib_d = np.eye(3), np.zeros(3)
+            self.summary = CalibrationSummary("identity", float("nan"), float("nan"), 0)
+        elif mode != "learn" and stored is not None and stored.calib_l is not None:
+            self.calib_l, self.calib_d = stored.calib_l, stored.calib_d
+            info = stored.calib_info or {}
+            self.summary = CalibrationSummary(
+                "stored",
+                float(info.get("residual_rms_mgauss", float("nan"))),
+                float(info.get("coverage", float("nan"))),
+                int(info.get("n", 0)),
+            )
+        # calibration data (down_b, raw field) at zero throttle
+        n_max = cfg.calibration.max_samples
+        self._down = np.empty((n_max, 3))
+        self._field = np.empty((n_max, 3))
+        self._n = 0
+        self.n_fits = 0
+        self._refine: PendingFit | None = None
+        self._next_check = cfg.calibration.min_samples
+        self._collecting = self.summary is None and mode in ("auto", "learn")
+        self._coeffs: tuple[float, ...] = ()
+        self._coeffs_of: tuple[object, object] = (None, None)
+
+    def coeffs(self) -> tuple[float, ...] | None:
+        """L (row-major) and d of eq. (2) as 12 floats for the per-sample path; None while uncalibrated."""
+        cl, cd = self.calib_l, self.calib_d
+        if cl is None or cd is None:
+            return None
+        if self._coeffs_of[0] is not cl or self._coeffs_of[1] is not cd:
+            self._coeffs = (*np.ravel(cl).astype(float).tolist(), *np.ravel(cd).astype(float).tolist())
+            self._coeffs_of = (cl, cd)
+        return self._coeffs
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calib_l is not None
+
+    @property
+    def learned(self) -> bool:
+        return self.summary is not None and self.summary.source == "learned"
+
+    @property
+    def n_collected(self) -> int:
+        return self._n
+
+    @property
+    def collecting(self) -> bool:
+        """True while (down, field) pairs are gathered: learning enabled, not frozen, room left."""
+        return self._collecting and self._n < self._down.shape[0]
+
+    def restart_collection(self) -> None:
+        """Drop the calibration pairs collected so far (they belong to another boot)."""
+        self._n = 0
+        self._next_check = self.cfg.calibration.min_samples
+
+    def fit_now(self) -> bool:
+        """Fit (eq. (3)) on the pairs collected so far; True when the fit was adopted."""
+        return self._n > 0 and self._fit()
+
+    def collect(self, down_b: Float3, field_raw: Float3, n_mag: int) -> bool:
+        """Add one (down vector, raw field) pair at zero throttle and refit now and then (eq. (3)).
+
+        The first (linear) fit that the DPI module accepts is adopted at once; later fits on more samples
+        replace it while the vehicle is still being rotated by hand; when the motors start,
+        :meth:`freeze` makes the final, refined fit. Returns True when a fit was adopted.
+        """
+        n = self._n
+        self._down[n] = down_b
+        self._field[n] = field_raw
+        n += 1
+        self._n = n
+        if n == self._down.shape[0]:  # full: the final, refined fit follows
+            self.freeze(n_mag)
+            return False
+        if n < self._next_check:
+            return False
+        self._next_check = n + self.cfg.calibration.check_every
+        return self._fit()  # the linear eq. (3) solve while collecting: a few ms
+
+    def freeze(self, n_mag: int) -> None:
+        """The motors started after a calibration was learned (``n_mag``: samples seen so far): the
+        hand-rotation phase is over. The final calibration is one refined fit on all the pairs collected;
+        it runs on the ``fits`` executor (tens to hundreds of ms) and is adopted exactly
+        ``REFINE_ADOPT_AFTER`` magnetometer samples later (waiting for it if need be)."""
+        self._collecting = False
+        if not self.learned:
+            return
+        n = self._n
+        stride = max(1, n // FIT_MAX_ROWS)
+        down, field = self._down[:n:stride].copy(), self._field[:n:stride].copy()
+        fut = self._fits.submit(est_core.calibrate, down, field, self.earth_ned, True)
+        self._refine = PendingFit(fut, n_mag + REFINE_ADOPT_AFTER, n)
+
+    @property
+    def refine_pending(self) -> bool:
+        """A refined calibration fit is running or waiting to be adopted."""
+        return self._refine is not None
+
+    def adopt_refined(self, n_mag: int, force: bool = False) -> bool:
+        """Adopt the refined fit once its sample has come (``force``: now). True when adopted."""
+        r = self._refine
+        if r is None or (not force and n_mag < r.adopt_at):
+            return False
+        self._refine = None
+        return self._adopt(r.future.result(), r.n)
+
+    def _fit(self) -> bool:
+        n = self._n
+        stride = max(1, n // INTERIM_FIT_MAX_ROWS)  # bounds the time one fit takes on the live path
+        res = est_core.calibrate(self._down[:n:stride], self._field[:n:stride], self.earth_ned, False)
+        return self._adopt(res, n)
+
+    def _adopt(self, res: est_core.LearnedCalibration | None, n: int) -> bool:
+        if res is None:
+            return False
+        self.calib_l, self.calib_d = res.calib_l, res.calib_d
+        self.summary = CalibrationSummary("learned", res.residual_rms_mgauss, res.coverage, n)
+        self.n_fits += 1
+        self._on_adopt()
+        return True
+
+    def cloud(self) -> tuple[F64, F64]:
+        """The raw calibration samples and the same after eq. (2) (for the viewer)."""
+        raw = self._field[: self._n]
+        if self.calib_l is None or self.calib_d is None:
+            return raw, raw
+        return raw, raw @ self.calib_l.T - self.calib_d
+
+
+class CalibrateStage:
+    """Applies each compass's calibration to its samples (eq. (2)) and keeps learning it: the hand
+    rotation's pairs while the motors are off, the in-flight calibration's samples while they run.
+
+    ``params``: the autopilot's parameters (a dict the pipeline keeps filling); ``earth_ned``: the Earth
+    field (the pipeline replaces it at the first GNSS fix); ``save``: persists one compass's state now;
+    ``text``: status lines."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        attitude: AttitudeStage,
+        throttle: ThrottleTrack,
+        params: dict[str, float],
+        earth_ned: F64,
+        save: Callable[[CompassCorrector, float], None],
+        text: Callable[[float, str, bool], None],
+    ) -> None:
+        self.cfg = cfg
+        self.attitude = attitude
+        self.throttle = throttle
+        self.params = params
+        self.earth_ned = earth_ned
+        self._save = save
+        self._text = text
+        self._at_rest = cfg.calibration.max_throttle_01
+        self._inflight_on = cfg.observer.learn and cfg.inflight.enabled
+
+    def run(self, rec: MagRecord, c: CompassCorrector) -> None:
+        """Fills ``rec.field_cal`` (eq. (2)), ``rec.calibrated`` and ``rec.inflight``."""
+        cal = c.calib
+        t = rec.t_s
+        if cal.refine_pending and cal.adopt_refined(c.clock.n_mag):
+            self.refined(c, t)
+        if cal.collecting:
+            self._collect(rec, c)
+        k = cal.coeffs()
+        vx, vy, vz = rec.raw
+        if k is None and self._inflight_on and rec.have_throttle:
+            out = self._inflight(rec, c)
+            if out is not None:
+                rec.flags |= FLAG_CALIBRATED | FLAG_THETA_CONVERGED if out.converged else FLAG_CALIBRATED
+                rec.calibrated = True
+                rec.inflight = out
+                # eq. (2) with the in-flight L and d (its theta and bias come with it: service/theta.py)
+                rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
+                return
+        if k is not None:
+            rec.flags |= FLAG_CALIBRATED
+            rec.calibrated = True
+            rec.field_cal = apply_eq2(k, vx, vy, vz)
+        else:
+            rec.field_cal = rec.raw
+
+    def _collect(self, rec: MagRecord, c: CompassCorrector) -> None:
+        """The hand rotation: pairs at zero throttle; the motors starting ends it (eqs. (1)-(3))."""
+        cal = c.calib
+        if rec.have_throttle and rec.throttle_01 > self._at_rest:
+            cal.freeze(c.clock.n_mag)
+            return
+        if rec.down is None or not rec.gyro_fresh or not cal.collect(rec.down, rec.raw, c.clock.n_mag):
+            return
+        assert cal.summary is not None
+        rms = cal.summary.residual_rms_mgauss
+        if cal.n_fits == 1:
+            self._text(
+                rec.t_s,
+                f"compass {c.mag_index}: calibration learned from {cal.summary.n} samples "
+                f"(eq. (3) residual {rms:.1f} mgauss); refining while the motors are off",
+                False,
+            )
+        else:
+            log.debug("compass %d: calibration refined from %d samples (residual %.1f mgauss)",
+                      c.mag_index, cal.summary.n, rms)  # fmt: skip
+        self._save(c, rec.t_s)
+
+    def refined(self, c: CompassCorrector, t: float) -> None:
+        """The refined fit was adopted at message time ``t``: saved and said."""
+        s = c.calib.summary
+        assert s is not None
+        self._save(c, t)
+        self._text(t, f"compass {c.mag_index}: motors on, calibration final ({s.n} samples, "
+                      f"eq. (3) residual {s.residual_rms_mgauss:.1f} mgauss)", False)  # fmt: skip
+
+    # ---------------------------------------------------------------------------------------- in flight
+
+    def _stage(self, c: CompassCorrector, t: float) -> InflightStage:
+        """The in-flight calibration of compass ``c``, created at its first sample with the throttle known."""
+        icfg = self.cfg.inflight
+        if icfg.reference == "auto":
+            mode, why = yaw_reference(self.params, c.mag_index)
+        else:
+            mode = "absolute" if icfg.reference == "absolute" else "relative"
+            why = "set in the configuration ([inflight] reference)"
+        cal = calibrated_by_autopilot(self.params, c.mag_index)
+        norm = float(np.linalg.norm(self.earth_ned))
+        st = InflightStage(c.mag_index, icfg, mode, why, cal, norm, c.stored_inflight)
+        self._text(t, f"compass {c.mag_index}: learning calibration and theta in flight ({mode} form: "
+                      f"{why}); a motors-off hand rotation, if one comes, takes precedence",
+                   False)  # fmt: skip
+        return st
+
+    def _inflight(self, rec: MagRecord, c: CompassCorrector) -> InflightOutput | None:
+        """Feed the in-flight calibration of compass ``c`` and return its correction when it is usable."""
+        t = rec.t_s
+        st = c.inflight
+        if st is None:
+            st = c.inflight = self._stage(c, t)
+        if rec.reset:
+            st.reset_pairs()
+        thr = self.throttle.at(t)
+        if thr is not None:
+            r_abs, r_rel = self._rotations(c, st, t)
+            if abs(self.attitude.accel_norm - STANDARD_GRAVITY_M_S2) > IMPACT_M_S2:
+                r_abs = r_rel = None  # an impact (a crash, a hard landing): the field may be disturbed too
+            st.feed(t, np.array(rec.raw), thr, self.throttle.motors, r_abs, self.earth_ned, r_rel)
+            c.dirty = True
+        return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)
+
+    def _rotations(self, c: CompassCorrector, st: InflightStage, t: float) -> tuple[F64 | None, F64 | None]:
+        """(absolute attitude, relative-form rotation) for this sample, each None when it cannot be used."""
+        att = self.attitude
+        att_fresh = att.autopilot_fresh(t)
+        r_abs = None
+        motors_on_t = self.throttle.motors_on_t
+        if st.mode == "absolute" and att_fresh and motors_on_t is not None:
+            settled = t - motors_on_t >= self.cfg.inflight.absolute_settle_s
+            level = abs(att.roll) < MAX_TILT_RAD and abs(att.pitch) < MAX_TILT_RAD
+            if settled and level:
+                r_abs = att.autopilot_dcm()
+        if st.mode != "relative":
+            return r_abs, None
+        r_rel = None
+        src: tuple[str, float]
+        rot = self.cfg.inflight.rotation
+        if rot == "auto":
+            rot = relative_rotation_source(self.params, c.mag_index)[0]
+        # the integrated gyro only while it is fast; the autopilot's attitude when it is too slow
+        use_gyro = (rot == "gyro" and att.gyro_fast()) or not att_fresh
+        if use_gyro and att.gyro_usable(t):
+            r_rel = att.gyro_dcm()
+            src = ("gyro", att.mahony_t0)
+        elif att_fresh:
+            r_rel = att.autopilot_dcm()
+            src = ("attitude", 0.0)
+        else:
+            src = ("none", 0.0)
+        if src != c.rel_source:
+            st.reset_pairs()
+            c.rel_source = src
+        if r_rel is not None and float(r_rel[2, 2]) < COS_MAX_TILT:
+            r_rel = None  # acrobatics or a crash: no pair across it
+        return r_abs, r_rel

@@ -1,0 +1,110 @@
+"""The state of one compass, grouped by the stage that owns each part (:mod:`magcomp.service.pipeline`)."""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import Executor
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.adapters.config import Config
+from magcomp.adapters.state_store import CompassState
+from magcomp.service.align import CompassClock
+from magcomp.service.calibrate import CalibrationSummary, HandCalibration
+from magcomp.service.estimators import ThetaEstimator
+from magcomp.service.heading import HeadingTrack
+from magcomp.service.inflight_stage import InflightStage
+from magcomp.service.theta import ThetaTracker
+
+F64 = NDArray[np.float64]
+
+
+class CompassCorrector:
+    """One compass: its clock (align), calibration and in-flight calibration (calibrate), observer
+    (theta), heading filters (heading), output and persistence bookkeeping (publish, persist)."""
+
+    def __init__(
+        self, mag_index: int, cfg: Config, earth_ned_mgauss: F64, stored: CompassState | None, fits: Executor
+    ) -> None:
+        self.mag_index = mag_index
+        self.clock = CompassClock()
+        mode = cfg.calibration.mode
+        self.calib = HandCalibration(cfg, earth_ned_mgauss, stored, fits, self._calibration_adopted)
+        # an in-flight calibration from an earlier run (or an earlier pass over the same log)
+        self.stored_inflight = stored.inflight if (stored is not None and mode != "learn") else None
+        theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
+        self.theta = ThetaTracker(cfg, theta0)
+        self.heading = HeadingTrack(cfg.output.heading_tau_s)
+        # in-flight calibration jointly with theta (no hand rotation): created at the first sample
+        self.inflight: InflightStage | None = None
+        self.rel_source: tuple[str, float] = ("none", 0.0)
+        self.time_s = {"corrected": 0.0, "uncorrected": 0.0}
+        self.n_out = 0
+        self.out_t = -math.inf
+        self.last_saved_t: float | None = None
+        self.dirty = False
+
+    def _calibration_adopted(self) -> None:
+        """A new calibration: the observer's filters restart once the samples queued before it are through."""
+        self.queue_reset()
+        self.dirty = True
+
+    def queue_reset(self) -> None:
+        """Reset the observer's filters (theta kept) once the samples queued before now are through."""
+        self.theta.queue_reset(self.clock.last_t if self.clock.last_t is not None else 0.0)
+
+    # ------------------------------------------------------------------------------ read-only views
+
+    @property
+    def calibration(self) -> CalibrationSummary | None:
+        return self.calib.summary
+
+    @property
+    def calib_l(self) -> F64 | None:
+        return self.calib.calib_l
+
+    @property
+    def calib_d(self) -> F64 | None:
+        return self.calib.calib_d
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calib.calibrated
+
+    @property
+    def theta_est(self) -> ThetaEstimator:
+        return self.theta.est
+
+    @property
+    def last_t(self) -> float | None:
+        return self.clock.last_t
+
+    def calibration_cloud(self) -> tuple[F64, F64]:
+        """The raw calibration samples and the same after eq. (2) (for the viewer)."""
+        return self.calib.cloud()
+
+    def to_state(self, system_id: int, t_s: float) -> CompassState:
+        cal = self.calibration
+        keep = cal is not None and cal.source != "identity"
+        info = None
+        if cal is not None and keep:
+            info = {
+                "residual_rms_mgauss": cal.residual_rms_mgauss,
+                "coverage": cal.coverage,
+                "n": float(cal.n),
+            }
+        inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
+        theta = np.asarray(self.theta.est.theta_mgauss, dtype=float)
+        if cal is None and self.inflight is not None and self.inflight.solution is not None:
+            theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)
+        return CompassState(
+            system_id=system_id,
+            mag_index=self.mag_index,
+            calib_l=self.calib_l if keep else None,
+            calib_d=self.calib_d if keep else None,
+            theta_mgauss=theta,
+            t_s=t_s,
+            calib_info=info,
+            inflight=inflight,
+        )

@@ -1,0 +1,58 @@
+"""Stage 5, heading: eq. (24) on the corrected field, then the heading filter.
+
+The heading is tilt-compensated (roll and pitch from the attitude stage; departure from the paper, whose
+eq. (24) is for a level vehicle) and passes a gyro-aided complementary filter
+(:class:`~magcomp.service.estimators.HeadingFilter`, departure from the paper: what its Table III measured
+was an attitude estimator's yaw). The uncorrected heading (calibration only, no bias removed) goes the
+same way, for comparison.
+"""
+
+from __future__ import annotations
+
+import math
+
+from magcomp.service import estimators as est_core
+from magcomp.service.record import MagRecord
+
+#: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
+MIN_COS_PITCH = 0.25
+
+
+class HeadingTrack:
+    """One compass's two heading filters (corrected, uncorrected)."""
+
+    __slots__ = ("corrected", "raw")
+
+    def __init__(self, tau_s: float) -> None:
+        self.corrected = est_core.HeadingFilter(tau_s)
+        self.raw = est_core.HeadingFilter(tau_s)
+
+    def reset(self) -> None:
+        self.corrected.reset()
+        self.raw.reset()
+
+
+def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
+    """Euler yaw rate from body rates (ZYX), as :func:`magcomp.service.estimators.yaw_rate_rad_s`."""
+    return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
+
+
+def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
+    """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360))."""
+    cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
+    ux, uy, uz = rec.field_cal
+    psi_raw = est_core.heading_from_trig(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
+    if rec.have_throttle:
+        cx, cy, cz = rec.field_corrected
+        psi = est_core.heading_from_trig(cx, cy, cz, cr, sr, cp, sp)
+    else:
+        psi = psi_raw
+    reset = rec.reset
+    if reset or not rec.gyro_fresh:
+        track.reset()
+    _, gy, gz = rec.gyro
+    rate = yaw_rate(gy, gz, cr, sr, cp)
+    prev_t = rec.prev_t
+    dt = 0.0 if prev_t is None or reset else rec.t_s - prev_t
+    rec.heading_raw_deg = track.raw.update(psi_raw, rate, dt)
+    rec.heading_deg = track.corrected.update(psi, rate, dt) if rec.have_throttle else rec.heading_raw_deg

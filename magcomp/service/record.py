@@ -1,0 +1,66 @@
+"""The one record a magnetometer sample becomes on its way through the pipeline's stages.
+
+:class:`MagRecord` is created by the align stage and filled in, field group by field group, by each stage
+in turn (align -> attitude -> calibrate -> theta -> heading -> publish -> persist; see
+:mod:`magcomp.service.pipeline`). Vectors are three plain floats: the per-sample path builds no arrays.
+The publish stage turns it into a :class:`~magcomp.core.types.HeadingEstimate` only for consumers that ask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from magcomp.core.types import MagSample
+from magcomp.service.estimators import ThetaStepInfo
+from magcomp.service.inflight_stage import InflightOutput
+
+Float3 = tuple[float, float, float]
+ZERO3: Float3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(slots=True)
+class MagRecord:
+    """One magnetometer sample and everything the stages derived from it (mutable, one per sample)."""
+
+    # ---- align (service/align.py)
+    sample: MagSample
+    t_s: float
+    mag_index: int
+    #: the field as received (mgauss, the compass's own frame)
+    raw: Float3
+    #: the previous accepted sample's time of this compass (None: the first one)
+    prev_t: float | None
+    #: a gap or a clock reset before this sample: the filters restart
+    reset: bool
+    #: the observer's discrete step cannot span the interval before this sample
+    obs_reset: bool
+    #: the latest throttle (0..1), 0 without one; have_throttle: a throttle sample has been received
+    throttle_01: float
+    have_throttle: bool
+    #: FLAG_* bits so far
+    flags: int
+    # ---- attitude (service/attitude.py)
+    #: the settled down vector of the attitude filter in body axes (None while not settled)
+    down: Float3 | None = None
+    #: cos / sin of roll and pitch for eq. (24)
+    cos_roll: float = 1.0
+    sin_roll: float = 0.0
+    cos_pitch: float = 1.0
+    sin_pitch: float = 0.0
+    #: the gyro (and the attitude derived from it) may be used for this sample
+    gyro_fresh: bool = False
+    #: the bias-corrected body rate of the latest IMU sample (rad/s)
+    gyro: Float3 = ZERO3
+    # ---- calibrate (service/calibrate.py): eq. (2) u = L v - d; calibrated: a calibration is applied
+    field_cal: Float3 = ZERO3
+    calibrated: bool = False
+    #: the in-flight calibration's correction when it is the one applied (it carries theta and the bias)
+    inflight: InflightOutput | None = None
+    # ---- theta (service/theta.py): theta-hat, the bias of eq. (11), the field with it removed
+    theta: Float3 = ZERO3
+    bias: Float3 = ZERO3
+    field_corrected: Float3 = ZERO3
+    info: ThetaStepInfo | None = None
+    # ---- heading (service/heading.py): eq. (24) after the heading filter, corrected and not
+    heading_deg: float = 0.0
+    heading_raw_deg: float = 0.0

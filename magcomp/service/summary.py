@@ -1,0 +1,50 @@
+"""The per-compass part of the pipeline's summary (plain values for JSON)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magcomp.service.compass import CompassCorrector
+
+
+def compass_summary(c: CompassCorrector, status: tuple[str, str]) -> dict[str, object]:
+    """Calibration, theta, whether the headings are corrected and why: one compass."""
+    cal = c.calibration
+    st = c.inflight
+    theta = np.asarray(c.theta_est.theta_mgauss, dtype=float).tolist()
+    converged = bool(c.theta_est.converged)
+    calibrated = c.calibrated
+    calib_doc: dict[str, object] | None = None
+    if cal is not None:
+        calib_doc = {
+            "source": cal.source,
+            "residual_rms_mgauss": cal.residual_rms_mgauss,
+            "coverage": cal.coverage,
+            "n": cal.n,
+            "L": None if c.calib_l is None else np.asarray(c.calib_l).tolist(),
+            "d_mgauss": None if c.calib_d is None else np.asarray(c.calib_d).tolist(),
+        }
+    elif st is not None and st.solution is not None and st.applied:
+        sol = st.solution
+        calibrated = True
+        theta = sol.theta_mgauss.tolist()
+        converged = sol.heading_sigma_deg < st.params.heading_converged_deg
+        calib_doc = {
+            "source": "in-flight",
+            "residual_rms_mgauss": sol.residual_rms_mgauss,
+            "n": sol.n,
+            "L": sol.calib_l.tolist(),
+            "d_mgauss": sol.calib_d.tolist(),
+        }
+    return {
+        "index": c.mag_index,
+        "calibrated": calibrated,
+        "calibration": calib_doc,
+        "theta_mgauss": theta,
+        "theta_converged": converged,
+        "estimates": c.n_out,
+        "status": status[0],
+        "why": status[1],
+        "time_s": dict(c.time_s),
+        "inflight": None if st is None else {**st.summary(), "rotation": c.rel_source[0]},
+    }

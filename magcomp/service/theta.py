@@ -1,0 +1,147 @@
+"""Stage 4, track theta: the observer of eq. (20) on the calibrated field, and the bias of eq. (11).
+
+With a hand-rotation (or stored) calibration, theta comes from the observer (its 5 Hz low-pass of sec.
+II-D on the regression, ``y`` and ``Phi`` alike, in the default form). The observer gets the throttle
+*interpolated at the sample's own time*: each sample waits in a short per-compass queue until the throttle
+after it has arrived (or ``stale_s`` passed). A sample between two throttle messages that straddle a jump
+is left out and the observer re-anchors after it (the instant of the step is unknown). The result does
+not depend on the order in which a link delivers the messages of one instant; with the latest throttle
+instead, theta came out 8-15 % off on simulated flights (docs/benchmarks.md).
+
+With the in-flight calibration, theta and the bias come with its correction (calibrate stage).
+The bias ``theta * throttle^2`` (eq. (11)) uses the latest throttle: the published heading adds no latency.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.adapters.config import Config
+from magcomp.core.types import FLAG_OBSERVER_RESET, FLAG_SATURATED, FLAG_THETA_CONVERGED, FLAG_Z_UNOBSERVABLE
+from magcomp.service import estimators as est_core
+from magcomp.service.align import Counts, ThrottleTrack
+from magcomp.service.record import Float3, MagRecord
+
+if TYPE_CHECKING:
+    from magcomp.service.compass import CompassCorrector
+
+F64 = NDArray[np.float64]
+
+
+class Queued(NamedTuple):
+    """An observer input waiting for the throttle at its time; ``field`` None: a reset marker."""
+
+    t_s: float
+    gyro: Sequence[float] | None
+    field: Float3 | None
+
+
+class ThetaTracker:
+    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue."""
+
+    def __init__(self, cfg: Config, theta0_mgauss: F64) -> None:
+        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss)
+        self.queue: deque[Queued] = deque()
+        self.last_t: float | None = None
+        self.last_info: est_core.ThetaStepInfo | None = None
+
+    def queue_reset(self, t_s: float) -> None:
+        """Reset the observer's filters (theta kept) once the samples queued before now are through."""
+        self.queue.append(Queued(t_s, None, None))
+
+    def drain(self, t_now: float, throttle: ThrottleTrack, stale_s: float, counts: Counts) -> bool:
+        """Feed the observer every queued sample whose throttle is known now (the throttle stream has
+        reached its time), or that has waited longer than ``stale_s`` (then: the latest throttle).
+        True when the observer stepped."""
+        q = self.queue
+        t_thr = throttle.t
+        est = self.est
+        stepped = False
+        while q:
+            t, omega, u = q[0]
+            if u is None:  # a reset marker
+                q.popleft()
+                est.reset_filters()
+                self.last_t = None
+                continue
+            if t_thr is None or (t > t_thr and t_now - t <= stale_s):
+                break
+            q.popleft()
+            thr = throttle.at(t)
+            if thr is None:
+                # the throttle jumped between the two throttle samples around this one: its value at
+                # this instant is unknown, so this sample is not used and the observer re-anchors on
+                # the next one whose throttle is known
+                counts["throttle_jumps"] += 1
+                est.reset_filters()
+                self.last_t = None
+                continue
+            last = self.last_t
+            self.last_t = t
+            assert omega is not None
+            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)
+            stepped = True
+        return stepped
+
+
+class ThetaStage:
+    """Fills ``rec.theta``, ``rec.bias`` (eq. (11)) and ``rec.field_corrected``."""
+
+    def __init__(self, cfg: Config, throttle: ThrottleTrack, counts: Counts) -> None:
+        self.throttle = throttle
+        self.counts = counts
+        self._stale_s = cfg.input.stale_s
+        self._learn = cfg.observer.learn
+
+    def drain(self, c: CompassCorrector, t_now: float) -> None:
+        """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""
+        if c.theta.drain(t_now, self.throttle, self._stale_s, self.counts):
+            c.dirty = True
+
+    def run(self, rec: MagRecord, c: CompassCorrector) -> None:
+        out = rec.inflight
+        if out is not None:
+            th0, th1, th2 = out.theta_mgauss
+        elif rec.calibrated:
+            th0, th1, th2 = self._observe(rec, c)
+        else:
+            th0 = th1 = th2 = 0.0
+        # eq. (11): bias = theta throttle^2, removed from the calibrated field
+        if out is not None:
+            bx, by, bz = out.bias_mgauss  # (+ per-motor terms, from the same fit)
+        elif rec.have_throttle:
+            d2 = rec.throttle_01 * rec.throttle_01
+            bx, by, bz = th0 * d2, th1 * d2, th2 * d2
+        else:
+            bx = by = bz = 0.0
+        ux, uy, uz = rec.field_cal
+        rec.theta = (th0, th1, th2)
+        rec.bias = (bx, by, bz)
+        rec.field_corrected = (ux - bx, uy - by, uz - bz)
+
+    def _observe(self, rec: MagRecord, c: CompassCorrector) -> Sequence[float]:
+        """Low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated at the
+        sample's own time (queued until the throttle after it is known); theta-hat now."""
+        tr = c.theta
+        if rec.obs_reset:
+            tr.queue_reset(rec.t_s)
+            self.counts["observer_resets"] += 1
+            rec.flags |= FLAG_OBSERVER_RESET
+        elif self._learn and rec.have_throttle and rec.gyro_fresh:
+            tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
+        self.drain(c, rec.t_s)
+        info = tr.last_info
+        rec.info = info
+        if info is not None:
+            if info.z_unobservable:
+                rec.flags |= FLAG_Z_UNOBSERVABLE
+            if info.saturated:
+                rec.flags |= FLAG_SATURATED
+        if tr.est.converged:
+            rec.flags |= FLAG_THETA_CONVERGED
+        return tr.est.theta_values()
