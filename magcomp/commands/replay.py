@@ -94,10 +94,13 @@ def execute(args: argparse.Namespace) -> int:
             viz.log_estimates(block)
         block.clear()
 
-    def on_progress(t_s: float) -> None:  # message time reached, as seconds of log
+    def on_progress(t_s: float) -> None:  # message time reached, as seconds of log over both passes
         if not t_first:
-            t_first.append(t_s)
-        bar.goto(t_s - t_first[0])
+            t_first.extend((t_s, t_s, 0.0))  # first time, latest time, seconds of earlier passes
+        elif t_s < t_first[1] - 1.0:  # the second pass starts again at the log's beginning
+            t_first[0], t_first[2] = t_s, t_first[2] + t_first[1] - t_first[0]
+        t_first[1] = t_s
+        bar.goto(t_first[2] + t_s - t_first[0])
 
     try:
         with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:

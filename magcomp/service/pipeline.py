@@ -123,6 +123,11 @@ class Pipeline:
         return self.system_id if self.system_id is not None else 1
 
     def _text(self, t_s: float, msg: str, warning: bool = False) -> None:
+        if self._learn_only:  # the first of two passes: the second says the same, on the user's terminal
+            if warning:
+                self.warnings.append(msg)
+            log.debug(msg)
+            return
         if warning:
             self.warnings.append(msg)
             log.warning(msg)

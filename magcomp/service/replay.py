@@ -82,6 +82,7 @@ def learn_pass(
     cfg: Config,
     should_stop: Callable[[], bool] | None = None,
     workers: Workers | None = None,
+    on_progress: Callable[[float], None] | None = None,
 ) -> MemoryStore | None:
     """First pass of a two-pass replay: the whole log through the pipeline without its heading and publish
     stages (``learn_only``), the final state of every compass kept (what a live run would save at the end
@@ -99,6 +100,8 @@ def learn_pass(
                 return None
             for sample in batch:
                 feed(sample)
+            if on_progress is not None:
+                on_progress(batch[-1].t_s)
     finally:
         source.close()
         pipeline.close()
@@ -225,18 +228,20 @@ def replay_log(
     file closed, and the report (``interrupted=True``) covers the log up to the last sample. So does
     ``should_stop`` returning True (checked once per batch of samples; e.g. a flag a signal handler sets).
     ``keep_clouds``: return the calibration clouds (also with ``keep_estimates``).
-    ``on_progress``: called once per batch with the message time reached (s). When the replay fails
+    ``on_progress``: called once per batch with the message time reached (s), in each pass (the time starts
+    again with the second). When the replay fails
     (an unreadable log) before any heading was written, the ``emit`` file is removed, not left empty.
     The refined calibration fits and the state writes run on worker threads owned by this call.
     """
     t_wall = time.perf_counter()
+    log.debug("replaying %s (%s)", path, "two passes" if two_pass and store is None else "one pass")
     with Workers.threads() as workers:
         mem: MemoryStore | None = None
         if two_pass and store is None:
             # the log is known whole: learn from all of it first, then replay from the state it ends with
             # (as a live run would start from yesterday's saved state); a ^C here leaves a one-pass replay
             try:
-                mem = learn_pass(path, cfg, should_stop, workers)
+                mem = learn_pass(path, cfg, should_stop, workers, on_progress)
             except KeyboardInterrupt:
                 mem = None
         pipeline = Pipeline(cfg, store=mem if mem is not None else store, on_text=on_text, workers=workers)
@@ -262,7 +267,6 @@ def _replay(
     from magcomp.adapters.mavlink_source import open_source
 
     source = open_source(path, throttle_source=source_throttle(cfg))
-    log.debug("replaying %s", path)
     try:
         outputs = _Outputs(cfg, emit, keep_estimates, on_estimate)
     except BaseException:
