@@ -49,6 +49,13 @@ def matvec(m: FloatSeq, v: FloatSeq) -> Vec3:
     return (m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z, m[6] * x + m[7] * y + m[8] * z)
 
 
+def minus_matvec(v: FloatSeq, m: FloatSeq, u: FloatSeq) -> Vec3:
+    """``v - M u``."""
+    x, y, z = u
+    return (v[0] - (m[0] * x + m[1] * y + m[2] * z), v[1] - (m[3] * x + m[4] * y + m[5] * z),
+            v[2] - (m[6] * x + m[7] * y + m[8] * z))  # fmt: skip
+
+
 def matTvec(m: FloatSeq, v: FloatSeq) -> Vec3:
     """``M^T v``."""
     x, y, z = v
@@ -101,9 +108,16 @@ def sym3_eigvals(s: Sym3) -> Vec3:
     return lo, 3.0 * q - lo - hi, hi
 
 
-def sym3_inv_diag(s: Sym3) -> Vec3:
-    """Diagonal of the inverse of a symmetric 3x3 given by its upper triangle (cofactors)."""
+def sym3_inv(s: Sym3) -> Sym3:
+    """Inverse of a regular symmetric 3x3 given by its upper triangle, as its upper triangle (cofactors)."""
     a, b, c, e, f, i = s
-    c00 = e * i - f * f
-    r = 1.0 / (a * c00 + b * (f * c - b * i) + c * (b * f - e * c))
-    return c00 * r, (a * i - c * c) * r, (a * e - b * b) * r
+    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
+    r = 1.0 / (a * c00 + b * c01 + c * c02)
+    return c00 * r, c01 * r, c02 * r, (a * i - c * c) * r, (b * c - a * f) * r, (a * e - b * b) * r
+
+
+def sym3_matvec(s: Sym3, v: FloatSeq) -> Vec3:
+    """``S v`` for the symmetric ``S`` given by its upper triangle."""
+    a, b, c, e, f, i = s
+    x, y, z = v
+    return a * x + b * y + c * z, b * x + e * y + f * z, c * x + f * y + i * z

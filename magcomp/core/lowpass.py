@@ -89,7 +89,7 @@ def biquad_step(c: Biquad, state: LowPassState, x: Sequence[float]) -> tuple[Low
     y: list[float] = []
     n1: list[float] = []
     n2: list[float] = []
-    for xi, zi, wi in zip(x, z1, z2, strict=True):
+    for xi, zi, wi in zip(x, z1, z2, strict=False):  # equal lengths by construction
         yi = b0 * xi + zi
         y.append(yi)
         n1.append(b1 * xi - a1 * yi + wi)

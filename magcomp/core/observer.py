@@ -65,17 +65,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcomp.core.linalg3 import (
+    FloatSeq,
     Mat3,
     Sym3,
     Vec3,
     Vec3Like,
     gram,
-    inv3,
     matTvec,
-    matvec,
+    minus_matvec,
     sym3_eigvals,
-    sym3_inv_diag,
-    sym_full,
+    sym3_inv,
+    sym3_matvec,
     vec3,
 )
 from magcomp.core.lowpass import (
@@ -406,7 +406,8 @@ def _observability(g: Sym3, min_info_rad2_s2: float) -> tuple[Vec3, Bool3]:
     ``info_i >= min_info`` of the Gramian ``g`` (eq. (21)); a 1e-9 relative ridge keeps G invertible."""
     a, b, c, e, f, i = g
     reg = 1e-9 * max(a + e + i, 1e-12)
-    d0, d1, d2 = sym3_inv_diag((a + reg, b, c, e + reg, f, i + reg))
+    gi = sym3_inv((a + reg, b, c, e + reg, f, i + reg))
+    d0, d1, d2 = gi[0], gi[3], gi[5]
     info = (1.0 / d0, 1.0 / d1, 1.0 / d2)
     return info, (info[0] >= min_info_rad2_s2, info[1] >= min_info_rad2_s2, info[2] >= min_info_rad2_s2)
 
@@ -503,9 +504,9 @@ def _held_info(state: ObserverState, p: ObserverParams, status: StepStatus, flag
     """Info of a step that did not update theta (from the state's own Gramian and information)."""
     gw = state.gram_weight
     g: Sym3 = tuple(x / gw for x in state.gram_sum) if gw > 0.0 else (0.0,) * 6  # type: ignore[assignment]
-    ji = inv3(sym_full(state.info))
+    ji = sym3_inv(state.info)
     rv = state.resid_var
-    std = (math.sqrt(ji[0] * rv), math.sqrt(ji[4] * rv), math.sqrt(ji[8] * rv))
+    std = (math.sqrt(ji[0] * rv), math.sqrt(ji[3] * rv), math.sqrt(ji[5] * rv))
     obs = _observability(g, p.excitation_min_rad2_s2)
     return _make_info(status, flags, _NAN3, math.nan, g, obs, state.converged, std)
 
@@ -526,68 +527,74 @@ def _prefilter_inputs(
 
 def _prefilter_regression(
     lp: LowPassState | None, y: Vec3, phi: Mat3, c: Biquad, p: ObserverParams
-) -> tuple[LowPassState | None, Vec3, Mat3]:
+) -> tuple[LowPassState | None, Vec3, FloatSeq]:
     """The same LTI low-pass on y and on every column of Phi keeps ``y_f = Phi_f theta`` exact (sec. II-D,
     moved from the field to the regression: not in the paper)."""
     if p.prefilter != "regression":
         return lp, y, phi
     regs = (*y, *phi)
     lp, out = biquad_step(c, lowpass_init(regs) if lp is None else lp, regs)
-    return lp, (out[0], out[1], out[2]), tuple(out[3:])  # type: ignore[return-value]
+    return lp, (out[0], out[1], out[2]), out[3:]
 
 
-def _gramian_update(gram_sum: Sym3, gram_weight: float, phi_k: Mat3, dt_s: float, lam_e: float
-                    ) -> tuple[Sym3, float, Sym3]:  # fmt: skip
-    """Eq. (21): exponentially windowed time average of ``Phi^T Phi / dt^2``; returns (sum, weight, G)."""
+def _excitation_update(
+    state: ObserverState, phi_k: Mat3, dt_s: float, k: StepConstants, p: ObserverParams
+) -> tuple[Sym3, float, Sym3, tuple[Vec3, Bool3], Bool3]:
+    """Eq. (21): the exponentially windowed time average G of ``Phi^T Phi / dt^2`` (its sum and weight),
+    the per-axis observability from it, and the axes on which theta is held for lack of excitation.
+
+    The hold is not in the paper. On a truly unexcited axis the column of Phi is zero, so the update there
+    is zero anyway; the hold guards against noise-driven drift. While the window holds less than half its
+    length the Gramian is young (one sample of it is rank 2), so the hold waits for it, except when
+    theta_hat started from a prior estimate (a stored theta): then an axis the young window does not see
+    keeps that value rather than following a regression with almost no information (restart in flight).
+    """
     q0, q1, q2, q3, q4, q5 = gram(phi_k)
-    g0, g1, g2, g3, g4, g5 = gram_sum
-    r = 1.0 / dt_s
-    gs = (lam_e * g0 + q0 * r, lam_e * g1 + q1 * r, lam_e * g2 + q2 * r, lam_e * g3 + q3 * r,
-          lam_e * g4 + q4 * r, lam_e * g5 + q5 * r)  # fmt: skip
-    gw = lam_e * gram_weight + dt_s
+    g0, g1, g2, g3, g4, g5 = state.gram_sum
+    lam, r = k.lam_excitation, 1.0 / dt_s
+    gs = (lam * g0 + q0 * r, lam * g1 + q1 * r, lam * g2 + q2 * r, lam * g3 + q3 * r, lam * g4 + q4 * r,
+          lam * g5 + q5 * r)  # fmt: skip
+    gw = lam * state.gram_weight + dt_s
     iw = 1.0 / gw
-    return gs, gw, (gs[0] * iw, gs[1] * iw, gs[2] * iw, gs[3] * iw, gs[4] * iw, gs[5] * iw)
+    g = (gs[0] * iw, gs[1] * iw, gs[2] * iw, gs[3] * iw, gs[4] * iw, gs[5] * iw)
+    info_obs = _observability(g, p.excitation_min_rad2_s2)
+    obs = info_obs[1]
+    if gw < 0.5 * p.excitation_window_s and not state.theta_prior:
+        return gs, gw, g, info_obs, (False, False, False)
+    return gs, gw, g, info_obs, (not obs[0], not obs[1], not obs[2])
 
 
-def _information_update(j: Sym3, phi_f: Mat3, k: StepConstants) -> Sym3:
-    """RLS information with regularised forgetting: ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f``."""
+def _rls_update(j: Sym3, phi_f: FloatSeq, resid: Vec3, k: StepConstants) -> tuple[Sym3, Sym3, Vec3]:
+    """Recursive least squares with regularised forgetting on ``y_f = Phi_f theta`` (not in the paper):
+    ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f`` and the increment ``J+^-1 Phi_f^T r``; returns
+    (J+, J+^-1, increment)."""
     lam, j0 = k.lam_forget, k.info_regularise
     q = gram(phi_f)
-    return (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
+    info = (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
             lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
+    info_inv = sym3_inv(info)
+    return info, info_inv, sym3_matvec(info_inv, matTvec(phi_f, resid))
 
 
-def _held_axes(obs: Bool3, gram_weight: float, prior: bool, p: ObserverParams) -> Bool3:
-    """Axes on which theta is held for lack of excitation (eq. (21); not in the paper). On a truly
-    unexcited axis the column of Phi is zero, so the update there is zero anyway; the hold guards
-    against noise-driven drift. While the excitation window holds less than half its length the
-    Gramian is young (one sample of it is rank 2), so the hold waits for it, except when theta_hat
-    started from a prior estimate (a stored theta): then an axis the young window does not see keeps
-    that value rather than following a regression with almost no information (restart in flight).
-    """
-    if gram_weight < 0.5 * p.excitation_window_s and not prior:
-        return False, False, False
-    return not obs[0], not obs[1], not obs[2]
-
-
-def _theta_increment(
-    phi_k: Mat3, phi_f: Mat3, resid: Vec3, info_inv: Mat3, innovation: Vec3, p: ObserverParams
-) -> tuple[Vec3, int]:
-    """The update of theta_hat and its flags: RLS ``J^-1 Phi_f^T r`` (scheme "regression"), or eq. (20b)
-    discretised, ``-k2 Phi^T eps`` (-Phi^T ~ delta^2 [omega]_x dt), with k2 capped so that
+def _eq20b_increment(phi_k: Mat3, innovation: Vec3, p: ObserverParams) -> tuple[Vec3, int]:
+    """Eq. (20b) discretised, ``-k2 Phi^T eps`` (-Phi^T ~ delta^2 [omega]_x dt), with k2 capped so that
     ``k2 |Phi_k|_2^2 <= 1`` (the discrete decrease of eq. (23); flagged as saturation)."""
-    if p.scheme == "regression":
-        return matvec(info_inv, matTvec(phi_f, resid)), 0
     phi_norm2 = sym3_eigvals(gram(phi_k))[2]  # |Phi_k|_2^2
     k2, flags = p.k2, 0
     if k2 * phi_norm2 > 1.0:
         k2, flags = 1.0 / phi_norm2, FLAG_SATURATED
     gx, gy, gz = matTvec(phi_k, innovation)
-    return (-k2 * gx, -k2 * gy, -k2 * gz), flags  # eq. (20b)
+    return (-k2 * gx, -k2 * gy, -k2 * gz), flags
 
 
-def _clip(x: float, m: float) -> float:
-    return m if x > m else -m if x < -m else x  # NaN passes
+def _field_prediction(a_k: Mat3, phi_k: Mat3, v_hat: Vec3, theta: Vec3) -> Vec3:
+    """The exact discrete eq. (20a) prediction ``A_k v_hat + Phi_k theta`` of the next field."""
+    x, y, z = v_hat
+    t0, t1, t2 = theta
+    a, p = a_k, phi_k
+    return (a[0] * x + a[1] * y + a[2] * z + p[0] * t0 + p[1] * t1 + p[2] * t2,
+            a[3] * x + a[4] * y + a[5] * z + p[3] * t0 + p[4] * t1 + p[5] * t2,
+            a[6] * x + a[7] * y + a[8] * z + p[6] * t0 + p[7] * t1 + p[8] * t2)  # fmt: skip
 
 
 def _hold_and_clip(theta: Vec3, d_theta: Vec3, held: Bool3, tmax: float) -> tuple[Vec3, bool]:
@@ -595,19 +602,21 @@ def _hold_and_clip(theta: Vec3, d_theta: Vec3, held: Bool3, tmax: float) -> tupl
     x0 = theta[0] if held[0] else theta[0] + d_theta[0]
     x1 = theta[1] if held[1] else theta[1] + d_theta[1]
     x2 = theta[2] if held[2] else theta[2] + d_theta[2]
-    out = (_clip(x0, tmax), _clip(x1, tmax), _clip(x2, tmax))
+    m = tmax
+    out = (m if x0 > m else -m if x0 < -m else x0, m if x1 > m else -m if x1 < -m else x1,
+           m if x2 > m else -m if x2 < -m else x2)  # fmt: skip
     return out, out[0] != x0 or out[1] != x1 or out[2] != x2
 
 
 def _convergence(
-    state: ObserverState, obs: Bool3, resid_sq: float, info_inv: Mat3, theta: Vec3, dt_s: float, lam_e: float,
+    state: ObserverState, obs: Bool3, resid_sq: float, info_inv: Sym3, theta: Vec3, dt_s: float, lam_e: float,
     p: ObserverParams,
 ) -> tuple[float, Vec3, Bool3, Vec3]:
     """Residual variance, excited time, per-axis convergence and 1-sigma of theta_hat (not in the paper)."""
     rv = lam_e * state.resid_var + (1.0 - lam_e) * resid_sq / 3.0
     e0, e1, e2 = state.excited_s
     ex = (e0 + (dt_s if obs[0] else 0.0), e1 + (dt_s if obs[1] else 0.0), e2 + (dt_s if obs[2] else 0.0))
-    std = (math.sqrt(info_inv[0] * rv), math.sqrt(info_inv[4] * rv), math.sqrt(info_inv[8] * rv))
+    std = (math.sqrt(info_inv[0] * rv), math.sqrt(info_inv[3] * rv), math.sqrt(info_inv[5] * rv))
     tol = p.converge_std_mgauss + p.converge_rel * math.sqrt(theta[0] ** 2 + theta[1] ** 2 + theta[2] ** 2)
     need = p.converge_min_excited_s
     conv = (ex[0] >= need and std[0] <= tol, ex[1] >= need and std[1] <= tol, ex[2] >= need and std[2] <= tol)
@@ -651,42 +660,40 @@ def observer_step(
         status: StepStatus = "dt_out_of_range" if state.initialized else "init"
         return ObserverStep(new, _held_info(new, p, status, FLAG_OBSERVER_RESET))
     k = p.step_constants(dt)
-    lp, v1, w1, d2 = _prefilter_inputs(state.lp, v1, w1, d2, k.lowpass, p)
+    lp = state.lp
+    if lp is not None and p.prefilter != "regression":
+        lp, v1, w1, d2 = _prefilter_inputs(lp, v1, w1, d2, k.lowpass, p)
 
     # exact discrete model, eqs. (13), (16), (18): v_{k+1} - d2_{k+1} theta = A_k (v_k - d2_k theta)
     ph = rotation_increment(state.omega_prev2_rad_s, state.omega_prev_rad_s, w1, state.dt_prev_s, dt,
                             p.rate_interp)  # fmt: skip
     a_k = dcm_from_rotvec((-ph[0], -ph[1], -ph[2]))  # A_k = dR_k^T
     phi_k = regressor(a_k, state.d2_prev, d2, p.variant)
-    av0 = matvec(a_k, state.field_prev_mgauss)
-    y_k = (v1[0] - av0[0], v1[1] - av0[1], v1[2] - av0[2])
+    y_k = minus_matvec(v1, a_k, state.field_prev_mgauss)  # y_k = v_{k+1} - A_k v_k = Phi_k theta
 
     # excitation (eq. (21)) and the axes held for lack of it (not in the paper)
-    lam_e = k.lam_excitation
-    gram_sum, gram_w, g = _gramian_update(state.gram_sum, state.gram_weight, phi_k, dt, lam_e)
-    info_obs = _observability(g, p.excitation_min_rad2_s2)
-    held = _held_axes(info_obs[1], gram_w, state.theta_prior, p)
+    gram_sum, gram_w, g, info_obs, held = _excitation_update(state, phi_k, dt, k, p)
 
     lp, y_f, phi_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
     theta = state.theta_hat_mgauss
-    pt = matvec(phi_f, theta)
-    resid = (y_f[0] - pt[0], y_f[1] - pt[1], y_f[2] - pt[2])
-    info_new = _information_update(state.info, phi_f, k)
-    info_inv = inv3(sym_full(info_new))
-    av, pk = matvec(a_k, state.v_hat_mgauss), matvec(phi_k, theta)
-    innovation = (av[0] + pk[0] - v1[0], av[1] + pk[1] - v1[1], av[2] + pk[2] - v1[2])  # eq. (20a) prediction
-    d_theta, flags = _theta_increment(phi_k, phi_f, resid, info_inv, innovation, p)
+    resid = minus_matvec(y_f, phi_f, theta)
+    info_new, info_inv, d_theta = _rls_update(state.info, phi_f, resid, k)
+    pred = _field_prediction(a_k, phi_k, state.v_hat_mgauss, theta)
+    innovation = (pred[0] - v1[0], pred[1] - v1[1], pred[2] - v1[2])
+    flags = 0
+    if p.scheme == "observer":
+        d_theta, flags = _eq20b_increment(phi_k, innovation, p)
     theta_new, clipped = _hold_and_clip(theta, d_theta, held, p.theta_max_mgauss)
     if clipped:
         flags |= FLAG_SATURATED
     # eq. (20a): the prediction error damped by exp(-k1 dt), exact over the step
     c = k.damping
-    pn = matvec(phi_k, theta_new)
-    v_hat = (v1[0] + c * (av[0] + pn[0] - v1[0]), v1[1] + c * (av[1] + pn[1] - v1[1]),
-             v1[2] + c * (av[2] + pn[2] - v1[2]))  # fmt: skip
+    pn = _field_prediction(a_k, phi_k, state.v_hat_mgauss, theta_new)
+    v_hat = (v1[0] + c * (pn[0] - v1[0]), v1[1] + c * (pn[1] - v1[1]), v1[2] + c * (pn[2] - v1[2]))
 
     resid_sq = resid[0] ** 2 + resid[1] ** 2 + resid[2] ** 2
-    rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt, lam_e, p)
+    rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt,
+                                          k.lam_excitation, p)
     if d2 < NO_THROTTLE_D2:
         flags |= FLAG_NO_THROTTLE
     new = ObserverState(v_hat, theta_new, info_new, gram_sum, gram_w, v1, w1, state.omega_prev_rad_s, d2, dt,

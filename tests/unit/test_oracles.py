@@ -134,7 +134,9 @@ def test_float_algebra_matches_numpy() -> None:
         s = m @ m.T
         up = (s[0, 0], s[0, 1], s[0, 2], s[1, 1], s[1, 2], s[2, 2])
         assert_allclose(linalg3.sym3_eigvals(up), np.linalg.eigvalsh(s), rtol=1e-9, atol=1e-9)
-        assert_allclose(linalg3.sym3_inv_diag(up), np.diag(np.linalg.inv(s)), rtol=1e-7)
+        s_inv = np.linalg.inv(s).ravel()
+        assert_allclose(linalg3.sym_full(linalg3.sym3_inv(up)), s_inv, rtol=1e-7, atol=1e-9)
+        assert_allclose(linalg3.sym3_matvec(up, v), s @ v, atol=1e-12)
         assert_allclose(linalg3.sym_full(linalg3.gram(m.ravel())), (m.T @ m).ravel(), atol=1e-12)
         phi = rng.normal(0, 1, 3) * rng.choice([1e-10, 1e-3, 1.0])
         assert_allclose(dcm_from_rotvec(phi), oracles.so3_exp(phi).ravel(), atol=1e-14)
