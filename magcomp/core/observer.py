@@ -75,7 +75,6 @@ from magcomp.core.linalg3 import (
     minus_matvec,
     sym3_eigvals,
     sym3_inv,
-    sym3_matvec,
     vec3,
 )
 from magcomp.core.lowpass import (
@@ -226,7 +225,7 @@ class ObserverState(NamedTuple):
     initialized : False until the first valid sample anchors the state
     n_steps : updates so far
     theta_prior : theta_hat started from a prior estimate (``observer_init(p, theta0)``), see
-        :func:`_held_axes`
+        :func:`_excitation_update`
     """
 
     v_hat_mgauss: Vec3
@@ -448,7 +447,7 @@ def observer_init(p: ObserverParams, theta0_mgauss: ArrayLike | None = None) -> 
     """A state waiting for its first sample; theta_hat starts at ``theta0_mgauss`` (default 0).
 
     A given ``theta0_mgauss`` is a prior estimate (a stored theta): axes the young excitation window does
-    not see keep it from the first step (see :func:`_held_axes`)."""
+    not see keep it from the first step (see :func:`_excitation_update`)."""
     theta = _ZERO3 if theta0_mgauss is None else vec3(np.asarray(theta0_mgauss, dtype=np.float64).reshape(3))
     j0 = p.info0
     return ObserverState(
@@ -564,18 +563,6 @@ def _excitation_update(
     return gs, gw, g, info_obs, (not obs[0], not obs[1], not obs[2])
 
 
-def _rls_update(j: Sym3, phi_f: FloatSeq, resid: Vec3, k: StepConstants) -> tuple[Sym3, Sym3, Vec3]:
-    """Recursive least squares with regularised forgetting on ``y_f = Phi_f theta`` (not in the paper):
-    ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f`` and the increment ``J+^-1 Phi_f^T r``; returns
-    (J+, J+^-1, increment)."""
-    lam, j0 = k.lam_forget, k.info_regularise
-    q = gram(phi_f)
-    info = (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
-            lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
-    info_inv = sym3_inv(info)
-    return info, info_inv, sym3_matvec(info_inv, matTvec(phi_f, resid))
-
-
 def _eq20b_increment(phi_k: Mat3, innovation: Vec3, p: ObserverParams) -> tuple[Vec3, int]:
     """Eq. (20b) discretised, ``-k2 Phi^T eps`` (-Phi^T ~ delta^2 [omega]_x dt), with k2 capped so that
     ``k2 |Phi_k|_2^2 <= 1`` (the discrete decrease of eq. (23); flagged as saturation)."""
@@ -587,25 +574,60 @@ def _eq20b_increment(phi_k: Mat3, innovation: Vec3, p: ObserverParams) -> tuple[
     return (-k2 * gx, -k2 * gy, -k2 * gz), flags
 
 
-def _field_prediction(a_k: Mat3, phi_k: Mat3, v_hat: Vec3, theta: Vec3) -> Vec3:
-    """The exact discrete eq. (20a) prediction ``A_k v_hat + Phi_k theta`` of the next field."""
-    x, y, z = v_hat
-    t0, t1, t2 = theta
-    a, p = a_k, phi_k
-    return (a[0] * x + a[1] * y + a[2] * z + p[0] * t0 + p[1] * t1 + p[2] * t2,
-            a[3] * x + a[4] * y + a[5] * z + p[3] * t0 + p[4] * t1 + p[5] * t2,
-            a[6] * x + a[7] * y + a[8] * z + p[6] * t0 + p[7] * t1 + p[8] * t2)  # fmt: skip
+def _estimate_update(
+    state: ObserverState, a_k: Mat3, phi_k: Mat3, y_f: FloatSeq, phi_f: FloatSeq, v1: Vec3, held: Bool3,
+    k: StepConstants, p: ObserverParams,
+) -> tuple[Vec3, Sym3, Sym3, float, Vec3, Vec3, int]:
+    """theta_hat and v_hat over one step; returns (theta+, J+, J+^-1, |r|^2, innovation, v_hat+, flags).
 
-
-def _hold_and_clip(theta: Vec3, d_theta: Vec3, held: Bool3, tmax: float) -> tuple[Vec3, bool]:
-    """theta + d_theta, held on unexcited axes (not in the paper) and clipped to +-tmax (NaN passes)."""
-    x0 = theta[0] if held[0] else theta[0] + d_theta[0]
-    x1 = theta[1] if held[1] else theta[1] + d_theta[1]
-    x2 = theta[2] if held[2] else theta[2] + d_theta[2]
-    m = tmax
-    out = (m if x0 > m else -m if x0 < -m else x0, m if x1 > m else -m if x1 < -m else x1,
-           m if x2 > m else -m if x2 < -m else x2)  # fmt: skip
-    return out, out[0] != x0 or out[1] != x1 or out[2] != x2
+    * RLS with regularised forgetting on ``y_f = Phi_f theta`` (scheme "regression"; not in the paper):
+      ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f``, ``theta+ = theta + J+^-1 Phi_f^T r`` with
+      ``r = y_f - Phi_f theta``; or eq. (20b) discretised (scheme "observer", :func:`_eq20b_increment`).
+      J is kept in both schemes.
+    * theta held on the ``held`` axes and clipped to +-theta_max_mgauss (not in the paper).
+    * eq. (20a), exact over the step: ``v_hat+ = v + exp(-k1 dt) (A_k v_hat + Phi_k theta+ - v)``; the
+      innovation is the prediction error before the update, ``A_k v_hat + Phi_k theta - v``.
+    Written out (no helper calls for the 3-vector algebra): this runs once per magnetometer sample.
+    """
+    t0, t1, t2 = state.theta_hat_mgauss
+    f0, f1, f2, f3, f4, f5, f6, f7, f8 = phi_f
+    r0 = y_f[0] - (f0 * t0 + f1 * t1 + f2 * t2)
+    r1 = y_f[1] - (f3 * t0 + f4 * t1 + f5 * t2)
+    r2 = y_f[2] - (f6 * t0 + f7 * t1 + f8 * t2)
+    j, lam, j0 = state.info, k.lam_forget, k.info_regularise
+    q = gram(phi_f)
+    info = (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
+            lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
+    ji = sym3_inv(info)
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a_k
+    p0, p1, p2, p3, p4, p5, p6, p7, p8 = phi_k
+    x, y, z = state.v_hat_mgauss
+    av0, av1, av2 = a0 * x + a1 * y + a2 * z, a3 * x + a4 * y + a5 * z, a6 * x + a7 * y + a8 * z
+    innovation = (av0 + p0 * t0 + p1 * t1 + p2 * t2 - v1[0], av1 + p3 * t0 + p4 * t1 + p5 * t2 - v1[1],
+                  av2 + p6 * t0 + p7 * t1 + p8 * t2 - v1[2])  # fmt: skip
+    flags = 0
+    if p.scheme == "regression":
+        g0, g1, g2 = f0 * r0 + f3 * r1 + f6 * r2, f1 * r0 + f4 * r1 + f7 * r2, f2 * r0 + f5 * r1 + f8 * r2
+        d0 = ji[0] * g0 + ji[1] * g1 + ji[2] * g2
+        d1 = ji[1] * g0 + ji[3] * g1 + ji[4] * g2
+        d2 = ji[2] * g0 + ji[4] * g1 + ji[5] * g2
+    else:
+        (d0, d1, d2), flags = _eq20b_increment(phi_k, innovation, p)
+    x0 = t0 if held[0] else t0 + d0
+    x1 = t1 if held[1] else t1 + d1
+    x2 = t2 if held[2] else t2 + d2
+    m = p.theta_max_mgauss  # clip to +-m; NaN passes
+    n0 = m if x0 > m else -m if x0 < -m else x0
+    n1 = m if x1 > m else -m if x1 < -m else x1
+    n2 = m if x2 > m else -m if x2 < -m else x2
+    if n0 != x0 or n1 != x1 or n2 != x2:
+        flags |= FLAG_SATURATED
+    c = k.damping
+    u0, u1, u2 = v1
+    v_hat = (u0 + c * (av0 + p0 * n0 + p1 * n1 + p2 * n2 - u0),
+             u1 + c * (av1 + p3 * n0 + p4 * n1 + p5 * n2 - u1),
+             u2 + c * (av2 + p6 * n0 + p7 * n1 + p8 * n2 - u2))  # fmt: skip
+    return (n0, n1, n2), info, ji, r0 * r0 + r1 * r1 + r2 * r2, innovation, v_hat, flags
 
 
 def _convergence(
@@ -675,23 +697,9 @@ def observer_step(
     gram_sum, gram_w, g, info_obs, held = _excitation_update(state, phi_k, dt, k, p)
 
     lp, y_f, phi_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
-    theta = state.theta_hat_mgauss
-    resid = minus_matvec(y_f, phi_f, theta)
-    info_new, info_inv, d_theta = _rls_update(state.info, phi_f, resid, k)
-    pred = _field_prediction(a_k, phi_k, state.v_hat_mgauss, theta)
-    innovation = (pred[0] - v1[0], pred[1] - v1[1], pred[2] - v1[2])
-    flags = 0
-    if p.scheme == "observer":
-        d_theta, flags = _eq20b_increment(phi_k, innovation, p)
-    theta_new, clipped = _hold_and_clip(theta, d_theta, held, p.theta_max_mgauss)
-    if clipped:
-        flags |= FLAG_SATURATED
-    # eq. (20a): the prediction error damped by exp(-k1 dt), exact over the step
-    c = k.damping
-    pn = _field_prediction(a_k, phi_k, state.v_hat_mgauss, theta_new)
-    v_hat = (v1[0] + c * (pn[0] - v1[0]), v1[1] + c * (pn[1] - v1[1]), v1[2] + c * (pn[2] - v1[2]))
-
-    resid_sq = resid[0] ** 2 + resid[1] ** 2 + resid[2] ** 2
+    theta_new, info_new, info_inv, resid_sq, innovation, v_hat, flags = _estimate_update(
+        state, a_k, phi_k, y_f, phi_f, v1, held, k, p
+    )
     rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt,
                                           k.lam_excitation, p)
     if d2 < NO_THROTTLE_D2:
