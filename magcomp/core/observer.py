@@ -526,14 +526,14 @@ def _prefilter_inputs(
 
 def _prefilter_regression(
     lp: LowPassState | None, y: Vec3, phi: Mat3, c: Biquad, p: ObserverParams
-) -> tuple[LowPassState | None, Vec3, FloatSeq]:
+) -> tuple[LowPassState | None, FloatSeq]:
     """The same LTI low-pass on y and on every column of Phi keeps ``y_f = Phi_f theta`` exact (sec. II-D,
-    moved from the field to the regression: not in the paper)."""
-    if p.prefilter != "regression":
-        return lp, y, phi
+    moved from the field to the regression: not in the paper). Returns the state and (y_f, Phi_f) as
+    twelve numbers."""
     regs = (*y, *phi)
-    lp, out = biquad_step(c, lowpass_init(regs) if lp is None else lp, regs)
-    return lp, (out[0], out[1], out[2]), out[3:]
+    if p.prefilter != "regression":
+        return lp, regs
+    return biquad_step(c, lowpass_init(regs) if lp is None else lp, regs)
 
 
 def _excitation_update(
@@ -575,10 +575,11 @@ def _eq20b_increment(phi_k: Mat3, innovation: Vec3, p: ObserverParams) -> tuple[
 
 
 def _estimate_update(
-    state: ObserverState, a_k: Mat3, phi_k: Mat3, y_f: FloatSeq, phi_f: FloatSeq, v1: Vec3, held: Bool3,
-    k: StepConstants, p: ObserverParams,
+    state: ObserverState, a_k: Mat3, phi_k: Mat3, regs_f: FloatSeq, v1: Vec3, held: Bool3, k: StepConstants,
+    p: ObserverParams,
 ) -> tuple[Vec3, Sym3, Sym3, float, Vec3, Vec3, int]:
-    """theta_hat and v_hat over one step; returns (theta+, J+, J+^-1, |r|^2, innovation, v_hat+, flags).
+    """theta_hat and v_hat over one step from the (filtered) regression ``regs_f = (y_f, Phi_f)``; returns
+    (theta+, J+, J+^-1, |r|^2, innovation, v_hat+, flags).
 
     * RLS with regularised forgetting on ``y_f = Phi_f theta`` (scheme "regression"; not in the paper):
       ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f``, ``theta+ = theta + J+^-1 Phi_f^T r`` with
@@ -590,12 +591,12 @@ def _estimate_update(
     Written out (no helper calls for the 3-vector algebra): this runs once per magnetometer sample.
     """
     t0, t1, t2 = state.theta_hat_mgauss
-    f0, f1, f2, f3, f4, f5, f6, f7, f8 = phi_f
-    r0 = y_f[0] - (f0 * t0 + f1 * t1 + f2 * t2)
-    r1 = y_f[1] - (f3 * t0 + f4 * t1 + f5 * t2)
-    r2 = y_f[2] - (f6 * t0 + f7 * t1 + f8 * t2)
+    y0, y1, y2, f0, f1, f2, f3, f4, f5, f6, f7, f8 = regs_f
+    r0 = y0 - (f0 * t0 + f1 * t1 + f2 * t2)
+    r1 = y1 - (f3 * t0 + f4 * t1 + f5 * t2)
+    r2 = y2 - (f6 * t0 + f7 * t1 + f8 * t2)
     j, lam, j0 = state.info, k.lam_forget, k.info_regularise
-    q = gram(phi_f)
+    q = gram((f0, f1, f2, f3, f4, f5, f6, f7, f8))
     info = (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
             lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
     ji = sym3_inv(info)
@@ -673,7 +674,10 @@ def observer_step(
     dt outside [dt_min_s, dt_max_s] re-anchors on this sample and keeps theta (status
     "dt_out_of_range", FLAG_OBSERVER_RESET); theta_hat is clipped to +-theta_max_mgauss (FLAG_SATURATED).
     """
-    w1, v1, delta, dt = vec3(omega_b_rad_s), vec3(field_b_mgauss), float(throttle_01), float(dt_s)
+    o, f = omega_b_rad_s, field_b_mgauss
+    w1: Vec3 = (float(o[0]), float(o[1]), float(o[2]))
+    v1: Vec3 = (float(f[0]), float(f[1]), float(f[2]))
+    delta, dt = float(throttle_01), float(dt_s)
     if not _finite(w1, v1, delta, dt):
         return ObserverStep(state, _held_info(state, p, "non_finite", FLAG_INPUTS_STALE))
     d2 = min(max(delta, 0.0), 1.0) ** 2
@@ -696,9 +700,9 @@ def observer_step(
     # excitation (eq. (21)) and the axes held for lack of it (not in the paper)
     gram_sum, gram_w, g, info_obs, held = _excitation_update(state, phi_k, dt, k, p)
 
-    lp, y_f, phi_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
+    lp, regs_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
     theta_new, info_new, info_inv, resid_sq, innovation, v_hat, flags = _estimate_update(
-        state, a_k, phi_k, y_f, phi_f, v1, held, k, p
+        state, a_k, phi_k, regs_f, v1, held, k, p
     )
     rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt,
                                           k.lam_excitation, p)
