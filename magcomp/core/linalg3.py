@@ -2,12 +2,11 @@
 
 Why hand-written: the observer, the Mahony filter and the low-pass run once per sample on 3-vectors
 and 3x3 matrices, where numpy's per-call overhead is far larger than the arithmetic. Measured on this
-machine (python 3.11, numpy 2, one call each, in an otherwise idle loop): ``np.linalg.inv`` 8.7 us vs
-:func:`inv3` 0.6 us; ``np.linalg.eigvalsh`` 10 us vs :func:`sym3_eigvals` 1.5 us; ``np.cross`` 38 us vs
-:func:`cross` 0.3 us. Together with the observer written on floats this is what takes the observer
-step from ~450 us (numpy arrays) to ~40 us, and replay from ~3x to ~1x pymavlink's parse-only time
-(benchmarks/replay_speed.py). Batch (vectorised) work stays in numpy/scipy. The tests check these
-functions against numpy (tests/unit/test_linalg3.py).
+machine (python 3.11, numpy 2, wall time per call under load): ``np.linalg.inv`` 8.7 us vs
+:func:`sym3_inv` 0.3 us; ``np.linalg.eigvalsh`` 10 us vs :func:`sym3_eigvals` 1.5 us; ``np.cross``
+38 us vs :func:`cross` 0.3 us. The observer step written on numpy arrays took ~450 us, on floats it takes
+~11 us CPU (benchmarks/replay_speed.py runs ~19000 of them per 200 s of log). Batch (vectorised) work
+stays in numpy/scipy. tests/unit/test_oracles.py checks these functions against numpy.
 
 Matrices are row-major tuples of nine floats: ``m = (m00, m01, m02, m10, ..., m22)``.
 """
@@ -30,9 +29,6 @@ Sym3 = tuple[float, float, float, float, float, float]
 FloatSeq = Sequence[float] | NDArray[np.floating[Any]]
 Vec3Like = FloatSeq
 
-IDENTITY3: Mat3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-
-
 def vec3(x: Vec3Like) -> Vec3:
     """Three Python floats from any sequence of three numbers (lists, tuples, numpy arrays)."""
     return float(x[0]), float(x[1]), float(x[2])
@@ -43,10 +39,11 @@ def cross(u: FloatSeq, v: FloatSeq) -> Vec3:
     return u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
 
 
-def matvec(m: FloatSeq, v: FloatSeq) -> Vec3:
-    """``M v``."""
-    x, y, z = v
-    return (m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z, m[6] * x + m[7] * y + m[8] * z)
+def minus_matvec(v: FloatSeq, m: FloatSeq, u: FloatSeq) -> Vec3:
+    """``v - M u``."""
+    x, y, z = u
+    return (v[0] - (m[0] * x + m[1] * y + m[2] * z), v[1] - (m[3] * x + m[4] * y + m[5] * z),
+            v[2] - (m[6] * x + m[7] * y + m[8] * z))  # fmt: skip
 
 
 def matTvec(m: FloatSeq, v: FloatSeq) -> Vec3:
@@ -61,24 +58,6 @@ def gram(m: FloatSeq) -> Sym3:
     return (
         p0 * p0 + p3 * p3 + p6 * p6, p0 * p1 + p3 * p4 + p6 * p7, p0 * p2 + p3 * p5 + p6 * p8,
         p1 * p1 + p4 * p4 + p7 * p7, p1 * p2 + p4 * p5 + p7 * p8, p2 * p2 + p5 * p5 + p8 * p8,
-    )  # fmt: skip
-
-
-def sym_full(s: Sym3) -> Mat3:
-    """The nine entries of the symmetric matrix whose upper triangle is ``s``."""
-    a, b, c, e, f, i = s
-    return a, b, c, b, e, f, c, f, i
-
-
-def inv3(m: FloatSeq) -> Mat3:
-    """Inverse by cofactors (``m`` must be regular)."""
-    a, b, c, d, e, f, g, h, i = m
-    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
-    r = 1.0 / (a * c00 + b * c01 + c * c02)
-    return (
-        c00 * r, (c * h - b * i) * r, (b * f - c * e) * r,
-        c01 * r, (a * i - c * g) * r, (c * d - a * f) * r,
-        c02 * r, (b * g - a * h) * r, (a * e - b * d) * r,
     )  # fmt: skip
 
 
@@ -101,9 +80,11 @@ def sym3_eigvals(s: Sym3) -> Vec3:
     return lo, 3.0 * q - lo - hi, hi
 
 
-def sym3_inv_diag(s: Sym3) -> Vec3:
-    """Diagonal of the inverse of a symmetric 3x3 given by its upper triangle (cofactors)."""
+def sym3_inv(s: Sym3) -> Sym3:
+    """Inverse of a regular symmetric 3x3 given by its upper triangle, as its upper triangle (cofactors)."""
     a, b, c, e, f, i = s
-    c00 = e * i - f * f
-    r = 1.0 / (a * c00 + b * (f * c - b * i) + c * (b * f - e * c))
-    return c00 * r, (a * i - c * c) * r, (a * e - b * b) * r
+    c00, c01, c02 = e * i - f * f, c * f - b * i, b * f - c * e
+    r = 1.0 / (a * c00 + b * c01 + c * c02)
+    return c00 * r, c01 * r, c02 * r, (a * i - c * c) * r, (b * c - a * f) * r, (a * e - b * b) * r
+
+

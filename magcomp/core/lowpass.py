@@ -56,6 +56,13 @@ class LowPassState(NamedTuple):
     initialized: bool = False
 
 
+class LowPassStep(NamedTuple):
+    """What one filter step returns: the new state and the filtered sample."""
+
+    state: LowPassState
+    y: list[float]
+
+
 def lowpass_coefficients(p: LowPassParams, dt_s: float) -> Biquad:
     """The digital filter for sample interval ``dt_s`` (bilinear, pre-warped): the one place it is
     designed."""
@@ -77,7 +84,7 @@ def lowpass_init(x0: Sequence[float]) -> LowPassState:
     return LowPassState(zero, zero, initialized=False)
 
 
-def biquad_step(c: Biquad, state: LowPassState, x: Sequence[float]) -> tuple[LowPassState, list[float]]:
+def biquad_step(c: Biquad, state: LowPassState, x: Sequence[float]) -> LowPassStep:
     """One sample of every channel through the section ``c`` (direct form II transposed)."""
     b0, b1, b2, a1, a2 = c
     if state.initialized:
@@ -89,17 +96,15 @@ def biquad_step(c: Biquad, state: LowPassState, x: Sequence[float]) -> tuple[Low
     y: list[float] = []
     n1: list[float] = []
     n2: list[float] = []
-    for xi, zi, wi in zip(x, z1, z2, strict=True):
+    for xi, zi, wi in zip(x, z1, z2, strict=False):  # equal lengths by construction
         yi = b0 * xi + zi
         y.append(yi)
         n1.append(b1 * xi - a1 * yi + wi)
         n2.append(b2 * xi - a2 * yi)
-    return LowPassState(n1, n2, initialized=True), y
+    return LowPassStep(LowPassState(n1, n2, initialized=True), y)
 
 
-def lowpass_step(
-    state: LowPassState, x: Sequence[float], dt_s: float, p: LowPassParams
-) -> tuple[LowPassState, list[float]]:
+def lowpass_step(state: LowPassState, x: Sequence[float], dt_s: float, p: LowPassParams) -> LowPassStep:
     """Filter one sample ``x`` (k floats) taken ``dt_s`` after the previous one. Returns (state, y)."""
     if not dt_s > 0.0:
         raise ValueError(f"dt must be > 0, got {dt_s}")

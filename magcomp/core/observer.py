@@ -65,17 +65,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcomp.core.linalg3 import (
+    FloatSeq,
     Mat3,
     Sym3,
     Vec3,
     Vec3Like,
     gram,
-    inv3,
     matTvec,
-    matvec,
+    minus_matvec,
     sym3_eigvals,
-    sym3_inv_diag,
-    sym_full,
+    sym3_inv,
     vec3,
 )
 from magcomp.core.lowpass import (
@@ -226,7 +225,7 @@ class ObserverState(NamedTuple):
     initialized : False until the first valid sample anchors the state
     n_steps : updates so far
     theta_prior : theta_hat started from a prior estimate (``observer_init(p, theta0)``), see
-        :func:`_held_axes`
+        :func:`_excitation_update`
     """
 
     v_hat_mgauss: Vec3
@@ -406,7 +405,8 @@ def _observability(g: Sym3, min_info_rad2_s2: float) -> tuple[Vec3, Bool3]:
     ``info_i >= min_info`` of the Gramian ``g`` (eq. (21)); a 1e-9 relative ridge keeps G invertible."""
     a, b, c, e, f, i = g
     reg = 1e-9 * max(a + e + i, 1e-12)
-    d0, d1, d2 = sym3_inv_diag((a + reg, b, c, e + reg, f, i + reg))
+    gi = sym3_inv((a + reg, b, c, e + reg, f, i + reg))
+    d0, d1, d2 = gi[0], gi[3], gi[5]
     info = (1.0 / d0, 1.0 / d1, 1.0 / d2)
     return info, (info[0] >= min_info_rad2_s2, info[1] >= min_info_rad2_s2, info[2] >= min_info_rad2_s2)
 
@@ -447,7 +447,7 @@ def observer_init(p: ObserverParams, theta0_mgauss: ArrayLike | None = None) -> 
     """A state waiting for its first sample; theta_hat starts at ``theta0_mgauss`` (default 0).
 
     A given ``theta0_mgauss`` is a prior estimate (a stored theta): axes the young excitation window does
-    not see keep it from the first step (see :func:`_held_axes`)."""
+    not see keep it from the first step (see :func:`_excitation_update`)."""
     theta = _ZERO3 if theta0_mgauss is None else vec3(np.asarray(theta0_mgauss, dtype=np.float64).reshape(3))
     j0 = p.info0
     return ObserverState(
@@ -503,9 +503,9 @@ def _held_info(state: ObserverState, p: ObserverParams, status: StepStatus, flag
     """Info of a step that did not update theta (from the state's own Gramian and information)."""
     gw = state.gram_weight
     g: Sym3 = tuple(x / gw for x in state.gram_sum) if gw > 0.0 else (0.0,) * 6  # type: ignore[assignment]
-    ji = inv3(sym_full(state.info))
+    ji = sym3_inv(state.info)
     rv = state.resid_var
-    std = (math.sqrt(ji[0] * rv), math.sqrt(ji[4] * rv), math.sqrt(ji[8] * rv))
+    std = (math.sqrt(ji[0] * rv), math.sqrt(ji[3] * rv), math.sqrt(ji[5] * rv))
     obs = _observability(g, p.excitation_min_rad2_s2)
     return _make_info(status, flags, _NAN3, math.nan, g, obs, state.converged, std)
 
@@ -526,88 +526,120 @@ def _prefilter_inputs(
 
 def _prefilter_regression(
     lp: LowPassState | None, y: Vec3, phi: Mat3, c: Biquad, p: ObserverParams
-) -> tuple[LowPassState | None, Vec3, Mat3]:
+) -> tuple[LowPassState | None, FloatSeq]:
     """The same LTI low-pass on y and on every column of Phi keeps ``y_f = Phi_f theta`` exact (sec. II-D,
-    moved from the field to the regression: not in the paper)."""
-    if p.prefilter != "regression":
-        return lp, y, phi
+    moved from the field to the regression: not in the paper). Returns the state and (y_f, Phi_f) as
+    twelve numbers."""
     regs = (*y, *phi)
-    lp, out = biquad_step(c, lowpass_init(regs) if lp is None else lp, regs)
-    return lp, (out[0], out[1], out[2]), tuple(out[3:])  # type: ignore[return-value]
+    if p.prefilter != "regression":
+        return lp, regs
+    return biquad_step(c, lowpass_init(regs) if lp is None else lp, regs)
 
 
-def _gramian_update(gram_sum: Sym3, gram_weight: float, phi_k: Mat3, dt_s: float, lam_e: float
-                    ) -> tuple[Sym3, float, Sym3]:  # fmt: skip
-    """Eq. (21): exponentially windowed time average of ``Phi^T Phi / dt^2``; returns (sum, weight, G)."""
-    q0, q1, q2, q3, q4, q5 = gram(phi_k)
-    g0, g1, g2, g3, g4, g5 = gram_sum
-    r = 1.0 / dt_s
-    gs = (lam_e * g0 + q0 * r, lam_e * g1 + q1 * r, lam_e * g2 + q2 * r, lam_e * g3 + q3 * r,
-          lam_e * g4 + q4 * r, lam_e * g5 + q5 * r)  # fmt: skip
-    gw = lam_e * gram_weight + dt_s
-    iw = 1.0 / gw
-    return gs, gw, (gs[0] * iw, gs[1] * iw, gs[2] * iw, gs[3] * iw, gs[4] * iw, gs[5] * iw)
+def _excitation_update(
+    state: ObserverState, phi_k: Mat3, dt_s: float, k: StepConstants, p: ObserverParams
+) -> tuple[Sym3, float, Sym3, tuple[Vec3, Bool3], Bool3]:
+    """Eq. (21): the exponentially windowed time average G of ``Phi^T Phi / dt^2`` (its sum and weight),
+    the per-axis observability from it, and the axes on which theta is held for lack of excitation.
 
-
-def _information_update(j: Sym3, phi_f: Mat3, k: StepConstants) -> Sym3:
-    """RLS information with regularised forgetting: ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f``."""
-    lam, j0 = k.lam_forget, k.info_regularise
-    q = gram(phi_f)
-    return (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
-            lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
-
-
-def _held_axes(obs: Bool3, gram_weight: float, prior: bool, p: ObserverParams) -> Bool3:
-    """Axes on which theta is held for lack of excitation (eq. (21); not in the paper). On a truly
-    unexcited axis the column of Phi is zero, so the update there is zero anyway; the hold guards
-    against noise-driven drift. While the excitation window holds less than half its length the
-    Gramian is young (one sample of it is rank 2), so the hold waits for it, except when theta_hat
-    started from a prior estimate (a stored theta): then an axis the young window does not see keeps
-    that value rather than following a regression with almost no information (restart in flight).
+    The hold is not in the paper. On a truly unexcited axis the column of Phi is zero, so the update there
+    is zero anyway; the hold guards against noise-driven drift. While the window holds less than half its
+    length the Gramian is young (one sample of it is rank 2), so the hold waits for it, except when
+    theta_hat started from a prior estimate (a stored theta): then an axis the young window does not see
+    keeps that value rather than following a regression with almost no information (restart in flight).
     """
-    if gram_weight < 0.5 * p.excitation_window_s and not prior:
-        return False, False, False
-    return not obs[0], not obs[1], not obs[2]
+    q0, q1, q2, q3, q4, q5 = gram(phi_k)
+    g0, g1, g2, g3, g4, g5 = state.gram_sum
+    lam, r = k.lam_excitation, 1.0 / dt_s
+    gs = (lam * g0 + q0 * r, lam * g1 + q1 * r, lam * g2 + q2 * r, lam * g3 + q3 * r, lam * g4 + q4 * r,
+          lam * g5 + q5 * r)  # fmt: skip
+    gw = lam * state.gram_weight + dt_s
+    iw = 1.0 / gw
+    g = (gs[0] * iw, gs[1] * iw, gs[2] * iw, gs[3] * iw, gs[4] * iw, gs[5] * iw)
+    info_obs = _observability(g, p.excitation_min_rad2_s2)
+    obs = info_obs[1]
+    if gw < 0.5 * p.excitation_window_s and not state.theta_prior:
+        return gs, gw, g, info_obs, (False, False, False)
+    return gs, gw, g, info_obs, (not obs[0], not obs[1], not obs[2])
 
 
-def _theta_increment(
-    phi_k: Mat3, phi_f: Mat3, resid: Vec3, info_inv: Mat3, innovation: Vec3, p: ObserverParams
-) -> tuple[Vec3, int]:
-    """The update of theta_hat and its flags: RLS ``J^-1 Phi_f^T r`` (scheme "regression"), or eq. (20b)
-    discretised, ``-k2 Phi^T eps`` (-Phi^T ~ delta^2 [omega]_x dt), with k2 capped so that
+def _eq20b_increment(phi_k: Mat3, innovation: Vec3, p: ObserverParams) -> tuple[Vec3, int]:
+    """Eq. (20b) discretised, ``-k2 Phi^T eps`` (-Phi^T ~ delta^2 [omega]_x dt), with k2 capped so that
     ``k2 |Phi_k|_2^2 <= 1`` (the discrete decrease of eq. (23); flagged as saturation)."""
-    if p.scheme == "regression":
-        return matvec(info_inv, matTvec(phi_f, resid)), 0
     phi_norm2 = sym3_eigvals(gram(phi_k))[2]  # |Phi_k|_2^2
     k2, flags = p.k2, 0
     if k2 * phi_norm2 > 1.0:
         k2, flags = 1.0 / phi_norm2, FLAG_SATURATED
     gx, gy, gz = matTvec(phi_k, innovation)
-    return (-k2 * gx, -k2 * gy, -k2 * gz), flags  # eq. (20b)
+    return (-k2 * gx, -k2 * gy, -k2 * gz), flags
 
 
-def _clip(x: float, m: float) -> float:
-    return m if x > m else -m if x < -m else x  # NaN passes
+def _estimate_update(
+    state: ObserverState, a_k: Mat3, phi_k: Mat3, regs_f: FloatSeq, v1: Vec3, held: Bool3, k: StepConstants,
+    p: ObserverParams,
+) -> tuple[Vec3, Sym3, Sym3, float, Vec3, Vec3, int]:
+    """theta_hat and v_hat over one step from the (filtered) regression ``regs_f = (y_f, Phi_f)``; returns
+    (theta+, J+, J+^-1, |r|^2, innovation, v_hat+, flags).
 
-
-def _hold_and_clip(theta: Vec3, d_theta: Vec3, held: Bool3, tmax: float) -> tuple[Vec3, bool]:
-    """theta + d_theta, held on unexcited axes (not in the paper) and clipped to +-tmax (NaN passes)."""
-    x0 = theta[0] if held[0] else theta[0] + d_theta[0]
-    x1 = theta[1] if held[1] else theta[1] + d_theta[1]
-    x2 = theta[2] if held[2] else theta[2] + d_theta[2]
-    out = (_clip(x0, tmax), _clip(x1, tmax), _clip(x2, tmax))
-    return out, out[0] != x0 or out[1] != x1 or out[2] != x2
+    * RLS with regularised forgetting on ``y_f = Phi_f theta`` (scheme "regression"; not in the paper):
+      ``J+ = lam J + (1 - lam) J_0 + Phi_f^T Phi_f``, ``theta+ = theta + J+^-1 Phi_f^T r`` with
+      ``r = y_f - Phi_f theta``; or eq. (20b) discretised (scheme "observer", :func:`_eq20b_increment`).
+      J is kept in both schemes.
+    * theta held on the ``held`` axes and clipped to +-theta_max_mgauss (not in the paper).
+    * eq. (20a), exact over the step: ``v_hat+ = v + exp(-k1 dt) (A_k v_hat + Phi_k theta+ - v)``; the
+      innovation is the prediction error before the update, ``A_k v_hat + Phi_k theta - v``.
+    Written out (no helper calls for the 3-vector algebra): this runs once per magnetometer sample.
+    """
+    t0, t1, t2 = state.theta_hat_mgauss
+    y0, y1, y2, f0, f1, f2, f3, f4, f5, f6, f7, f8 = regs_f
+    r0 = y0 - (f0 * t0 + f1 * t1 + f2 * t2)
+    r1 = y1 - (f3 * t0 + f4 * t1 + f5 * t2)
+    r2 = y2 - (f6 * t0 + f7 * t1 + f8 * t2)
+    j, lam, j0 = state.info, k.lam_forget, k.info_regularise
+    q = gram((f0, f1, f2, f3, f4, f5, f6, f7, f8))
+    info = (lam * j[0] + q[0] + j0, lam * j[1] + q[1], lam * j[2] + q[2], lam * j[3] + q[3] + j0,
+            lam * j[4] + q[4], lam * j[5] + q[5] + j0)  # fmt: skip
+    ji = sym3_inv(info)
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a_k
+    p0, p1, p2, p3, p4, p5, p6, p7, p8 = phi_k
+    x, y, z = state.v_hat_mgauss
+    av0, av1, av2 = a0 * x + a1 * y + a2 * z, a3 * x + a4 * y + a5 * z, a6 * x + a7 * y + a8 * z
+    innovation = (av0 + p0 * t0 + p1 * t1 + p2 * t2 - v1[0], av1 + p3 * t0 + p4 * t1 + p5 * t2 - v1[1],
+                  av2 + p6 * t0 + p7 * t1 + p8 * t2 - v1[2])  # fmt: skip
+    flags = 0
+    if p.scheme == "regression":
+        g0, g1, g2 = f0 * r0 + f3 * r1 + f6 * r2, f1 * r0 + f4 * r1 + f7 * r2, f2 * r0 + f5 * r1 + f8 * r2
+        d0 = ji[0] * g0 + ji[1] * g1 + ji[2] * g2
+        d1 = ji[1] * g0 + ji[3] * g1 + ji[4] * g2
+        d2 = ji[2] * g0 + ji[4] * g1 + ji[5] * g2
+    else:
+        (d0, d1, d2), flags = _eq20b_increment(phi_k, innovation, p)
+    x0 = t0 if held[0] else t0 + d0
+    x1 = t1 if held[1] else t1 + d1
+    x2 = t2 if held[2] else t2 + d2
+    m = p.theta_max_mgauss  # clip to +-m; NaN passes
+    n0 = m if x0 > m else -m if x0 < -m else x0
+    n1 = m if x1 > m else -m if x1 < -m else x1
+    n2 = m if x2 > m else -m if x2 < -m else x2
+    if n0 != x0 or n1 != x1 or n2 != x2:
+        flags |= FLAG_SATURATED
+    c = k.damping
+    u0, u1, u2 = v1
+    v_hat = (u0 + c * (av0 + p0 * n0 + p1 * n1 + p2 * n2 - u0),
+             u1 + c * (av1 + p3 * n0 + p4 * n1 + p5 * n2 - u1),
+             u2 + c * (av2 + p6 * n0 + p7 * n1 + p8 * n2 - u2))  # fmt: skip
+    return (n0, n1, n2), info, ji, r0 * r0 + r1 * r1 + r2 * r2, innovation, v_hat, flags
 
 
 def _convergence(
-    state: ObserverState, obs: Bool3, resid_sq: float, info_inv: Mat3, theta: Vec3, dt_s: float, lam_e: float,
+    state: ObserverState, obs: Bool3, resid_sq: float, info_inv: Sym3, theta: Vec3, dt_s: float, lam_e: float,
     p: ObserverParams,
 ) -> tuple[float, Vec3, Bool3, Vec3]:
     """Residual variance, excited time, per-axis convergence and 1-sigma of theta_hat (not in the paper)."""
     rv = lam_e * state.resid_var + (1.0 - lam_e) * resid_sq / 3.0
     e0, e1, e2 = state.excited_s
     ex = (e0 + (dt_s if obs[0] else 0.0), e1 + (dt_s if obs[1] else 0.0), e2 + (dt_s if obs[2] else 0.0))
-    std = (math.sqrt(info_inv[0] * rv), math.sqrt(info_inv[4] * rv), math.sqrt(info_inv[8] * rv))
+    std = (math.sqrt(info_inv[0] * rv), math.sqrt(info_inv[3] * rv), math.sqrt(info_inv[5] * rv))
     tol = p.converge_std_mgauss + p.converge_rel * math.sqrt(theta[0] ** 2 + theta[1] ** 2 + theta[2] ** 2)
     need = p.converge_min_excited_s
     conv = (ex[0] >= need and std[0] <= tol, ex[1] >= need and std[1] <= tol, ex[2] >= need and std[2] <= tol)
@@ -642,7 +674,10 @@ def observer_step(
     dt outside [dt_min_s, dt_max_s] re-anchors on this sample and keeps theta (status
     "dt_out_of_range", FLAG_OBSERVER_RESET); theta_hat is clipped to +-theta_max_mgauss (FLAG_SATURATED).
     """
-    w1, v1, delta, dt = vec3(omega_b_rad_s), vec3(field_b_mgauss), float(throttle_01), float(dt_s)
+    o, f = omega_b_rad_s, field_b_mgauss
+    w1: Vec3 = (float(o[0]), float(o[1]), float(o[2]))
+    v1: Vec3 = (float(f[0]), float(f[1]), float(f[2]))
+    delta, dt = float(throttle_01), float(dt_s)
     if not _finite(w1, v1, delta, dt):
         return ObserverStep(state, _held_info(state, p, "non_finite", FLAG_INPUTS_STALE))
     d2 = min(max(delta, 0.0), 1.0) ** 2
@@ -651,42 +686,26 @@ def observer_step(
         status: StepStatus = "dt_out_of_range" if state.initialized else "init"
         return ObserverStep(new, _held_info(new, p, status, FLAG_OBSERVER_RESET))
     k = p.step_constants(dt)
-    lp, v1, w1, d2 = _prefilter_inputs(state.lp, v1, w1, d2, k.lowpass, p)
+    lp = state.lp
+    if lp is not None and p.prefilter != "regression":
+        lp, v1, w1, d2 = _prefilter_inputs(lp, v1, w1, d2, k.lowpass, p)
 
     # exact discrete model, eqs. (13), (16), (18): v_{k+1} - d2_{k+1} theta = A_k (v_k - d2_k theta)
     ph = rotation_increment(state.omega_prev2_rad_s, state.omega_prev_rad_s, w1, state.dt_prev_s, dt,
                             p.rate_interp)  # fmt: skip
     a_k = dcm_from_rotvec((-ph[0], -ph[1], -ph[2]))  # A_k = dR_k^T
     phi_k = regressor(a_k, state.d2_prev, d2, p.variant)
-    av0 = matvec(a_k, state.field_prev_mgauss)
-    y_k = (v1[0] - av0[0], v1[1] - av0[1], v1[2] - av0[2])
+    y_k = minus_matvec(v1, a_k, state.field_prev_mgauss)  # y_k = v_{k+1} - A_k v_k = Phi_k theta
 
     # excitation (eq. (21)) and the axes held for lack of it (not in the paper)
-    lam_e = k.lam_excitation
-    gram_sum, gram_w, g = _gramian_update(state.gram_sum, state.gram_weight, phi_k, dt, lam_e)
-    info_obs = _observability(g, p.excitation_min_rad2_s2)
-    held = _held_axes(info_obs[1], gram_w, state.theta_prior, p)
+    gram_sum, gram_w, g, info_obs, held = _excitation_update(state, phi_k, dt, k, p)
 
-    lp, y_f, phi_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
-    theta = state.theta_hat_mgauss
-    pt = matvec(phi_f, theta)
-    resid = (y_f[0] - pt[0], y_f[1] - pt[1], y_f[2] - pt[2])
-    info_new = _information_update(state.info, phi_f, k)
-    info_inv = inv3(sym_full(info_new))
-    av, pk = matvec(a_k, state.v_hat_mgauss), matvec(phi_k, theta)
-    innovation = (av[0] + pk[0] - v1[0], av[1] + pk[1] - v1[1], av[2] + pk[2] - v1[2])  # eq. (20a) prediction
-    d_theta, flags = _theta_increment(phi_k, phi_f, resid, info_inv, innovation, p)
-    theta_new, clipped = _hold_and_clip(theta, d_theta, held, p.theta_max_mgauss)
-    if clipped:
-        flags |= FLAG_SATURATED
-    # eq. (20a): the prediction error damped by exp(-k1 dt), exact over the step
-    c = k.damping
-    pn = matvec(phi_k, theta_new)
-    v_hat = (v1[0] + c * (av[0] + pn[0] - v1[0]), v1[1] + c * (av[1] + pn[1] - v1[1]),
-             v1[2] + c * (av[2] + pn[2] - v1[2]))  # fmt: skip
-
-    resid_sq = resid[0] ** 2 + resid[1] ** 2 + resid[2] ** 2
-    rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt, lam_e, p)
+    lp, regs_f = _prefilter_regression(lp, y_k, phi_k, k.lowpass, p)
+    theta_new, info_new, info_inv, resid_sq, innovation, v_hat, flags = _estimate_update(
+        state, a_k, phi_k, regs_f, v1, held, k, p
+    )
+    rv, excited, conv, std = _convergence(state, info_obs[1], resid_sq, info_inv, theta_new, dt,
+                                          k.lam_excitation, p)
     if d2 < NO_THROTTLE_D2:
         flags |= FLAG_NO_THROTTLE
     new = ObserverState(v_hat, theta_new, info_new, gram_sum, gram_w, v1, w1, state.omega_prev_rad_s, d2, dt,
