@@ -55,6 +55,7 @@ from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
+from magcomp.service.record import MagRecord
 from magcomp.service.summary import compass_summary
 from magcomp.service.theta import ThetaStage
 from magcomp.service.workers import Workers
@@ -175,6 +176,19 @@ class Pipeline:
         if rec is None:
             raise ValueError("no estimate published yet")
         return estimate(rec, self._boot_offset_s)
+
+    def last_record(self) -> MagRecord:
+        """The record behind :meth:`last_estimate` (the same numbers as plain floats; valid until the next
+        magnetometer sample). Its time on the autopilot's clock is ``t_s - boot_offset_s``."""
+        rec = self.publish.last
+        if rec is None:
+            raise ValueError("no estimate published yet")
+        return rec
+
+    @property
+    def boot_offset_s(self) -> float:
+        """``t_s`` minus the autopilot's own clock (changes at each reboot)."""
+        return self._boot_offset_s
 
     # ----------------------------------------------------------------------------------- magnetometer
 
