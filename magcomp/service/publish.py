@@ -42,7 +42,10 @@ class HeadingEncoder:
         self._msg_cls = self._mod.MAVLink_magcomp_heading_message
         self._payload: struct.Struct = self._msg_cls.unpacker
         self._crc_extra = bytes((self._msg_cls.crc_extra,))
-        self._crc: Any = self._mod.x25crc
+        # CRC-16/MCRF4XX as the dialect computes it: fastcrc's when installed, else pymavlink's own
+        fast = getattr(self._mod, "mcrf4xx", None)
+        slow = self._mod.x25crc
+        self._crc: Any = (lambda b: fast(b, 0xFFFF)) if fast is not None else (lambda b: slow(b).crc)
 
     def set_system(self, system_id: int) -> None:
         if not self._fixed_system:
@@ -88,7 +91,7 @@ class HeadingEncoder:
         msg_id = self._msg_cls.id
         frame = _V2_HEADER.pack(0xFD, len(payload), 0, 0, mav.seq, mav.srcSystem, mav.srcComponent,
                                 msg_id & 0xFFFF, msg_id >> 16) + payload  # fmt: skip
-        crc = self._crc(frame[1:] + self._crc_extra).crc
+        crc = self._crc(frame[1:] + self._crc_extra)
         return frame + _CRC.pack(crc)
 
     def heartbeat(self) -> bytes:
