@@ -290,7 +290,8 @@ def _replay(
     if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
         from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
 
-        warnings: list[str] = summary["warnings"]  # type: ignore[assignment]
+        warnings = summary["warnings"]
+        assert isinstance(warnings, list)
         summary["warnings"] = [*warnings, *onboard_comp_warnings(onboard, summary)]
         summary["onboard_motor_compensation"] = json_safe({str(k): v for k, v in onboard.items()})
     return ReplayReport(
