@@ -39,22 +39,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_rerun_argument(parser)
 
 
+class _ViewerBlocks:
+    """The viewer gets the primary compass's estimates in blocks while the replay runs (a 4 h log held
+    every estimate: 1.9 GiB); the estimates are not kept."""
+
+    def __init__(self, viz: Any, primary: int) -> None:
+        self.viz = viz
+        self.primary = primary
+        self.block: list[Any] = []
+
+    def add(self, est: Any) -> None:
+        if est.mag_index == self.primary:
+            self.block.append(est)
+            if len(self.block) >= VIEWER_BLOCK:
+                self.flush()
+
+    def flush(self) -> None:
+        if self.block:
+            self.viz.log_estimates(self.block)
+        self.block.clear()
+
+
 def execute(args: argparse.Namespace) -> int:
     import signal
 
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
-    from magcomp.core.types import HeadingEstimate
     from magcomp.errors import InputError
     from magcomp.service.console import (
-        Progress,
         check_distinct_outputs,
         check_output_path,
         primary_compass,
         setup_logging,
     )
-    from magcomp.service.replay import replay_log
 
     setup_logging("replay", args.verbose)
     inputs = (args.log, args.config)
@@ -68,7 +86,6 @@ def execute(args: argparse.Namespace) -> int:
         viz = open_viz(args.rerun, live=False, recording_name=f"magcomp replay {args.log}")
     if viz is not None and viz.notice:
         print(viz.notice, flush=True)
-    texts: list[tuple[float, str]] = []
     # ^C and SIGTERM only set a flag (a handler that did more could deadlock on a second signal); the
     # replay stops at its next batch and everything below (summary, --json, state) still happens
     stop_signals: list[int] = []
@@ -77,40 +94,9 @@ def execute(args: argparse.Namespace) -> int:
         stop_signals.append(signum)
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    t_first: list[float] = []
-    # the viewer gets the estimates in blocks while the replay runs (a 4 h log held every estimate:
-    # 1.9 GiB); the estimates are not kept
-    primary = primary_compass(cfg.input.compasses)
-    block: list[HeadingEstimate] = []
-
-    def to_viewer(est: HeadingEstimate) -> None:
-        if est.mag_index == primary:
-            block.append(est)
-            if len(block) >= VIEWER_BLOCK:
-                flush_block()
-
-    def flush_block() -> None:
-        if viz is not None and block:
-            viz.log_estimates(block)
-        block.clear()
-
-    def on_progress(t_s: float) -> None:  # message time reached, as seconds of log over both passes
-        if not t_first:
-            t_first.extend((t_s, t_s, 0.0))  # first time, latest time, seconds of earlier passes
-        elif t_s < t_first[1] - 1.0:  # the second pass starts again at the log's beginning
-            t_first[0], t_first[2] = t_s, t_first[2] + t_first[1] - t_first[0]
-        t_first[1] = t_s
-        bar.goto(t_first[2] + t_s - t_first[0])
-
+    viewer = _ViewerBlocks(viz, primary_compass(cfg.input.compasses)) if viz is not None else None
     try:
-        with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:
-            report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_clouds=viz is not None,
-                                on_estimate=to_viewer if viz is not None else None,
-                                on_text=lambda t, m: texts.append((t, m)),
-                                should_stop=lambda: bool(stop_signals), on_progress=on_progress,
-                                two_pass=not args.causal and store is None)  # fmt: skip
-        flush_block()
-        report = _finish(args, report, cfg, viz, texts)
+        report = _run(args, cfg, store, viewer, lambda: bool(stop_signals))
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -127,6 +113,34 @@ def execute(args: argparse.Namespace) -> int:
             Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
         raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
     return 0
+
+
+def _run(args: argparse.Namespace, cfg: Config, store: Any, viewer: _ViewerBlocks | None,
+         should_stop: Any) -> ReplayReport:  # fmt: skip
+    """The replay with a progress bar, then the summary (printed, --json, the viewer's extras)."""
+    from magcomp.service.console import Progress
+    from magcomp.service.replay import replay_log
+
+    texts: list[tuple[float, str]] = []
+    t_first: list[float] = []
+
+    def on_progress(t_s: float) -> None:  # message time reached, as seconds of log over both passes
+        if not t_first:
+            t_first.extend((t_s, t_s, 0.0))  # first time, latest time, seconds of earlier passes
+        elif t_s < t_first[1] - 1.0:  # the second pass starts again at the log's beginning
+            t_first[0], t_first[2] = t_s, t_first[2] + t_first[1] - t_first[0]
+        t_first[1] = t_s
+        bar.goto(t_first[2] + t_s - t_first[0])
+
+    with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:
+        report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_clouds=viewer is not None,
+                            on_estimate=viewer.add if viewer is not None else None,
+                            on_text=lambda t, m: texts.append((t, m)),
+                            should_stop=should_stop, on_progress=on_progress,
+                            two_pass=not args.causal and store is None)  # fmt: skip
+    if viewer is not None:
+        viewer.flush()
+    return _finish(args, report, cfg, viewer.viz if viewer is not None else None, texts)
 
 
 def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: Any,

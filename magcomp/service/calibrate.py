@@ -18,7 +18,7 @@ import math
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -61,6 +61,24 @@ def apply_eq2(k: tuple[float, ...], vx: float, vy: float, vz: float) -> Float3:
         k[3] * vx + k[4] * vy + k[5] * vz - k[10],
         k[6] * vx + k[7] * vy + k[8] * vz - k[11],
     )
+
+
+class CalibrationCloud(NamedTuple):
+    """The hand rotation's raw samples (n, 3) and the same after eq. (2), mgauss."""
+
+    raw_mgauss: F64
+    calibrated_mgauss: F64
+
+
+class RotationSource(NamedTuple):
+    """Where the relative form's rotations come from: ``kind`` gyro | attitude | none, and the epoch of
+    the gyro integral (a new epoch: no pair across it)."""
+
+    kind: str
+    epoch_s: float
+
+
+NO_ROTATION = RotationSource("none", 0.0)
 
 
 @dataclass(frozen=True)
@@ -222,12 +240,12 @@ class HandCalibration:
         self._on_adopt()
         return True
 
-    def cloud(self) -> tuple[F64, F64]:
+    def cloud(self) -> CalibrationCloud:
         """The raw calibration samples and the same after eq. (2) (for the viewer)."""
         raw = self._field[: self._n]
         if self.calib_l is None or self.calib_d is None:
-            return raw, raw
-        return raw, raw @ self.calib_l.T - self.calib_d
+            return CalibrationCloud(raw, raw)
+        return CalibrationCloud(raw, raw @ self.calib_l.T - self.calib_d)
 
 
 class CalibrateStage:
@@ -363,7 +381,7 @@ class CalibrateStage:
         if st.mode != "relative":
             return r_abs, None
         r_rel = None
-        src: tuple[str, float]
+        src: RotationSource
         rot = self.cfg.inflight.rotation
         if rot == "auto":
             rot = relative_rotation_source(self.params, c.mag_index)[0]
@@ -371,12 +389,12 @@ class CalibrateStage:
         use_gyro = (rot == "gyro" and att.gyro_fast()) or not att_fresh
         if use_gyro and att.gyro_usable(t):
             r_rel = att.gyro_dcm()
-            src = ("gyro", att.mahony_t0)
+            src = RotationSource("gyro", att.mahony_t0)
         elif att_fresh:
             r_rel = att.autopilot_dcm()
-            src = ("attitude", 0.0)
+            src = RotationSource("attitude", 0.0)
         else:
-            src = ("none", 0.0)
+            src = NO_ROTATION
         if src != c.rel_source:
             st.reset_pairs()
             c.rel_source = src

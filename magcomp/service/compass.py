@@ -11,7 +11,12 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.service.align import CompassClock
-from magcomp.service.calibrate import CalibrationSummary, HandCalibration
+from magcomp.service.calibrate import (
+    NO_ROTATION,
+    CalibrationSummary,
+    HandCalibration,
+    RotationSource,
+)
 from magcomp.service.estimators import ThetaEstimator
 from magcomp.service.heading import HeadingTrack
 from magcomp.service.inflight_stage import InflightStage
@@ -38,7 +43,7 @@ class CompassCorrector:
         self.heading = HeadingTrack(cfg.output.heading_tau_s)
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
-        self.rel_source: tuple[str, float] = ("none", 0.0)
+        self.rel_source: RotationSource = NO_ROTATION
         self.time_s = {"corrected": 0.0, "uncorrected": 0.0}
         self.n_out = 0
         self.out_t = -math.inf
@@ -81,7 +86,8 @@ class CompassCorrector:
         return self.clock.last_t
 
     def calibration_cloud(self) -> tuple[F64, F64]:
-        """The raw calibration samples and the same after eq. (2) (for the viewer)."""
+        """The raw calibration samples and the same after eq. (2) (for the viewer; a
+        :class:`~magcomp.service.calibrate.CalibrationCloud`)."""
         return self.calib.cloud()
 
     def to_state(self, system_id: int, t_s: float) -> CompassState:

@@ -18,12 +18,10 @@ from __future__ import annotations
 
 import contextlib
 import errno as errno_mod
-import gc
 import io
 import logging
 import math
 import re
-import sys
 import threading
 import time
 from collections import deque
@@ -40,6 +38,7 @@ from magcomp.errors import InputError
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, LinkSink
 from magcomp.service.replay import source_throttle
+from magcomp.service.workers import Workers
 
 log = logging.getLogger("magcomp.daemon")
 
@@ -236,7 +235,9 @@ def link_error_is_permanent(url: str, exc: BaseException) -> bool:
 
 class Daemon:
     """One live run. ``master``: the flight controller's link (udpin:, udpout:, tcp:, tcpin:, serial);
-    ``outs``: more links to publish on. ``on_estimate``: called with each estimate (e.g. the viewer)."""
+    ``outs``: more links to publish on. ``on_estimate``: called with each estimate (e.g. the viewer).
+    The daemon owns the pipelines' worker threads (refined calibration fits, state writes): created
+    here, given to every pipeline, shut down when :meth:`run` ends."""
 
     def __init__(
         self,
@@ -257,7 +258,8 @@ class Daemon:
         self.last_error: str | None = None
         self.store = store
         self.on_estimate = on_estimate
-        self.pipeline = Pipeline(cfg, store=store, on_text=on_text)
+        self.workers = Workers.threads()
+        self.pipeline = Pipeline(cfg, store=store, on_text=on_text, workers=self.workers)
         self._on_text = on_text
         # one pipeline and one encoder per sender on the link, (system id, component id): several
         # vehicles (or components) on one link each get their own clocks, calibration and theta, and
@@ -337,7 +339,8 @@ class Daemon:
                 if p.system_id is None:
                     p.system_id = key[0]
             else:
-                p = Pipeline(self.cfg, store=self.store, system_id=key[0], on_text=self._on_text)
+                p = Pipeline(self.cfg, store=self.store, system_id=key[0], on_text=self._on_text,
+                             workers=self.workers)  # fmt: skip
                 enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
                 log.info("another vehicle on the link: system %d component %d", *key)
             enc.set_system(key[0])
@@ -406,97 +409,103 @@ class Daemon:
         """Run until :meth:`stop`. Raises InputError for links that cannot work (outputs that cannot be
         opened, a master whose first open fails in a way waiting cannot heal: see
         :func:`link_error_is_permanent`); a master that is merely down is retried."""
-        from magcomp.adapters.mavlink_source import open_source
-
         preflight_link(self.master, "--master")
         for url in self.out_urls:
             preflight_link(url, "--out")
         self._open_outs()
-        # everything imported and built so far (pymavlink's dialect alone is thousands of classes) is
-        # moved out of the collector's reach: a full collection otherwise stalls the loop ~40 ms
-        gc.collect()
-        gc.freeze()
-        # the background threads (refined calibration fit, state writes, housekeeping) hand the
-        # interpreter back to the sample loop after at most 1 ms instead of the default 5 ms
-        old_switch = sys.getswitchinterval()
-        sys.setswitchinterval(0.001)
         hk = threading.Thread(target=self._housekeeping, name="magcomp-housekeeping", daemon=True)
         hk.start()
-        first_failure = True
         try:
-            while not self._stop.is_set():
-                try:
-                    # pymavlink prints its own retries ("... sleeping") on stdout: kept off the terminal
-                    with contextlib.redirect_stdout(io.StringIO()):
-                        source = open_source(
-                            self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
-                        )
-                except InputError as exc:
-                    self.last_error = str(exc)
-                    if self.connects == 0 and link_error_is_permanent(self.master, exc):
-                        raise
-                    if first_failure:
-                        log.warning("%s; retrying every %.1f s", exc, self.cfg.link.reconnect_s)
-                        first_failure = False
-                    self._stop.wait(self.cfg.link.reconnect_s)
-                    continue
-                first_failure = True
-                conn = source.connection
-                self._source = source
-                self.connects += 1
-                self._last_rx = time.monotonic()
-                log.info("%s %s", "listening on" if self.connects == 1 else "reconnected to", self.master)
-                _grow_receive_buffer(source.connection)
-                with self._lock:
-                    self._master_sink = LinkSink(self.master, source.connection)
-                try:
-                    while True:
-                        try:
-                            self._pump(source)
-                            break
-                        except InputError as exc:
-                            # pymavlink's tcp/serial links reconnect by themselves before reporting the
-                            # error; when the link object is usable again, keep reading from it
-                            if self._stop.is_set() or not _link_alive(source.connection):
-                                raise
-                            self.link_losses += 1
-                            log.warning("link reset (%s); the link reconnected, resuming", exc)
-                    if not self._stop.is_set():  # the source ended by itself: the link is gone
-                        raise InputError(f"link {self.master} closed")
-                except InputError as exc:
-                    if self._stop.is_set():
-                        break
-                    self.link_losses += 1
-                    log.warning("link lost (%s); reconnecting in %.1f s", exc, self.cfg.link.reconnect_s)
-                    self._stop.wait(self.cfg.link.reconnect_s)
-                finally:
-                    with self._lock:
-                        self._master_sink = None
-                    self._merge_counts(source.counts)
-                    if conn is not None:  # (the link object outlives its closing: its counters too)
-                        self._merge_counts({"lost_messages": int(getattr(conn, "mav_loss", 0)),
-                                            "link_messages": int(getattr(conn, "mav_count", 0))})  # fmt: skip
-                    self._source = None
-                    source.close()
+            self._connect_loop()
         finally:
             self._stop.set()
-            sys.setswitchinterval(old_switch)
-            gc.unfreeze()
             hk.join(timeout=2.0)
-            lost, got = self.source_counts.get("lost_messages", 0), self.source_counts.get("link_messages", 0)
-            if lost:
-                msg = (f"the link lost {lost} of {lost + got} messages ({100.0 * lost / (lost + got):.1f} %, "
-                       "sequence-number gaps)")  # fmt: skip
-                log.warning(msg)
-                self.pipeline.warnings.append(msg)
+            self._shutdown()
+        return self.report()
+
+    def _connect_loop(self) -> None:
+        """Open the master, serve it until it fails, retry every ``link.reconnect_s``; until :meth:`stop`."""
+        from magcomp.adapters.mavlink_source import open_source
+
+        first_failure = True
+        while not self._stop.is_set():
+            try:
+                # pymavlink prints its own retries ("... sleeping") on stdout: kept off the terminal
+                with contextlib.redirect_stdout(io.StringIO()):
+                    source = open_source(
+                        self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
+                    )
+            except InputError as exc:
+                self.last_error = str(exc)
+                if self.connects == 0 and link_error_is_permanent(self.master, exc):
+                    raise
+                if first_failure:
+                    log.warning("%s; retrying every %.1f s", exc, self.cfg.link.reconnect_s)
+                    first_failure = False
+                self._stop.wait(self.cfg.link.reconnect_s)
+                continue
+            first_failure = True
+            self._serve(source)
+
+    def _serve(self, source: Any) -> None:
+        """One connection of the master: samples through the pipelines until the link fails or we stop."""
+        conn = source.connection
+        self._source = source
+        self.connects += 1
+        self._last_rx = time.monotonic()
+        log.info("%s %s", "listening on" if self.connects == 1 else "reconnected to", self.master)
+        _grow_receive_buffer(source.connection)
+        with self._lock:
+            self._master_sink = LinkSink(self.master, source.connection)
+        try:
+            while True:
+                try:
+                    self._pump(source)
+                    break
+                except InputError as exc:
+                    # pymavlink's tcp/serial links reconnect by themselves before reporting the
+                    # error; when the link object is usable again, keep reading from it
+                    if self._stop.is_set() or not _link_alive(source.connection):
+                        raise
+                    self.link_losses += 1
+                    log.warning("link reset (%s); the link reconnected, resuming", exc)
+            if not self._stop.is_set():  # the source ended by itself: the link is gone
+                raise InputError(f"link {self.master} closed")
+        except InputError as exc:
+            if self._stop.is_set():
+                return
+            self.link_losses += 1
+            log.warning("link lost (%s); reconnecting in %.1f s", exc, self.cfg.link.reconnect_s)
+            self._stop.wait(self.cfg.link.reconnect_s)
+        finally:
+            with self._lock:
+                self._master_sink = None
+            self._merge_counts(source.counts)
+            if conn is not None:  # (the link object outlives its closing: its counters too)
+                self._merge_counts({"lost_messages": int(getattr(conn, "mav_loss", 0)),
+                                    "link_messages": int(getattr(conn, "mav_count", 0))})  # fmt: skip
+            self._source = None
+            source.close()
+
+    def _shutdown(self) -> None:
+        """After the run: the loss warning, every pipeline closed (state saved), the workers and the
+        outputs shut down."""
+        lost, got = self.source_counts.get("lost_messages", 0), self.source_counts.get("link_messages", 0)
+        if lost:
+            msg = (f"the link lost {lost} of {lost + got} messages ({100.0 * lost / (lost + got):.1f} %, "
+                   "sequence-number gaps)")  # fmt: skip
+            log.warning(msg)
+            self.pipeline.warnings.append(msg)
+        try:
             self.pipeline.close()
             for p in self.pipelines.values():
                 if p is not self.pipeline:
                     p.close()
+        finally:
+            self.workers.shutdown()
             for sink in self._sinks:
                 sink.close()
-            log.info("stopped after %d estimates", self.published)
-        return self.report()
+        log.info("stopped after %d estimates", self.published)
 
     def _pump(self, source: Any) -> None:
         """Samples from the source through the pipeline to the sinks until the source ends or fails."""

@@ -55,7 +55,8 @@ from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
-from magcomp.service.summary import compass_summary
+from magcomp.service.record import MagRecord
+from magcomp.service.summary import Status, compass_summary
 from magcomp.service.theta import ThetaStage
 from magcomp.service.workers import Workers
 
@@ -180,6 +181,19 @@ class Pipeline:
         if rec is None:
             raise ValueError("no estimate published yet")
         return estimate(rec, self._boot_offset_s)
+
+    def last_record(self) -> MagRecord:
+        """The record behind :meth:`last_estimate` (the same numbers as plain floats; valid until the next
+        magnetometer sample). Its time on the autopilot's clock is ``t_s - boot_offset_s``."""
+        rec = self.publish.last
+        if rec is None:
+            raise ValueError("no estimate published yet")
+        return rec
+
+    @property
+    def boot_offset_s(self) -> float:
+        """``t_s`` minus the autopilot's own clock (changes at each reboot)."""
+        return self._boot_offset_s
 
     # ----------------------------------------------------------------------------------- magnetometer
 
@@ -316,20 +330,22 @@ class Pipeline:
             }
         )
 
-    def _status(self, c: CompassCorrector) -> tuple[str, str]:
+    def _status(self, c: CompassCorrector) -> Status:
         """(corrected | uncorrected, why) for the summary: one phrase a user can act on."""
         if self.throttle.t is None:
             why = "disabled in the configuration" if not self.throttle.enabled else "none in the input"
-            return "uncorrected", f"no throttle source ({why})"
+            return Status("uncorrected", f"no throttle source ({why})")
         if c.calibration is not None:
-            return "corrected", f"calibration {c.calibration.source}, theta by the observer of eq. (20)"
+            return Status(
+                "corrected", f"calibration {c.calibration.source}, theta by the observer of eq. (20)"
+            )
         st = c.inflight
         if st is not None and st.applied:
-            return "corrected", f"calibration and theta learned in flight ({st.mode} form)"
+            return Status("corrected", f"calibration and theta learned in flight ({st.mode} form)")
         if st is not None:
-            return "uncorrected", st.why_not()
+            return Status("uncorrected", st.why_not())
         if not self.cfg.observer.learn:
-            return "uncorrected", "no calibration and learning disabled ([observer] learn = false)"
+            return Status("uncorrected", "no calibration and learning disabled ([observer] learn = false)")
         if not self.cfg.inflight.enabled:
-            return "uncorrected", "no hand-rotation calibration and in-flight calibration disabled"
-        return "uncorrected", "no samples with the throttle known"
+            return Status("uncorrected", "no hand-rotation calibration and in-flight calibration disabled")
+        return Status("uncorrected", "no samples with the throttle known")

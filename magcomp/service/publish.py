@@ -18,6 +18,10 @@ from magcomp.errors import InputError
 log = logging.getLogger("magcomp.publish")
 
 _TLOG_STAMP = struct.Struct(">Q")
+#: MAVLink 2 header: magic, payload length, incompat and compat flags, sequence, system, component, message
+#: id (24 bits, little-endian); then the payload and the CRC-16/MCRF4XX
+_V2_HEADER = struct.Struct("<BBBBBBBHB")
+_CRC = struct.Struct("<H")
 
 
 class ByteSink(Protocol):
@@ -36,27 +40,59 @@ class HeadingEncoder:
         self._fixed_system = src_system != 0
         self.mav: Any = self._mod.MAVLink(None, srcSystem=src_system or 1, srcComponent=src_component)
         self._msg_cls = self._mod.MAVLink_magcomp_heading_message
+        self._payload: struct.Struct = self._msg_cls.unpacker
+        self._crc_extra = bytes((self._msg_cls.crc_extra,))
+        # CRC-16/MCRF4XX as the dialect computes it: fastcrc's when installed, else pymavlink's own
+        fast = getattr(self._mod, "mcrf4xx", None)
+        slow = self._mod.x25crc
+        self._crc: Any = (lambda b: fast(b, 0xFFFF)) if fast is not None else (lambda b: slow(b).crc)
 
     def set_system(self, system_id: int) -> None:
         if not self._fixed_system:
             self.mav.srcSystem = int(system_id) & 0xFF
 
     def encode(self, est: HeadingEstimate) -> bytes:
-        """MAVLink 2 bytes of one MAGCOMP_HEADING (advances the sequence number)."""
+        """MAVLink 2 bytes of one MAGCOMP_HEADING."""
         th = est.theta_mgauss
         b = est.bias_mgauss
         t_boot = est.t_boot_s if est.t_boot_s == est.t_boot_s else est.t_s  # NaN: the same clock
-        msg = self._msg_cls(
-            round(t_boot * 1000.0) & 0xFFFFFFFF,
+        return self.encode_values(
+            t_boot,
             float(est.heading_deg),
             float(est.heading_raw_deg),
-            [float(th[0]), float(th[1]), float(th[2])],
-            [float(b[0]), float(b[1]), float(b[2])],
+            (float(th[0]), float(th[1]), float(th[2])),
+            (float(b[0]), float(b[1]), float(b[2])),
             float(est.throttle_01),
-            int(est.mag_index) & 0xFF,
-            int(est.flags) & 0xFF,
+            int(est.mag_index),
+            int(est.flags),
         )
-        return bytes(msg.pack(self.mav))
+
+    def encode_values(
+        self,
+        t_boot_s: float,
+        heading_deg: float,
+        heading_raw_deg: float,
+        theta: tuple[float, float, float],
+        bias: tuple[float, float, float],
+        throttle_01: float,
+        mag_index: int,
+        flags: int,
+    ) -> bytes:
+        """:meth:`encode` from plain values. The frame is packed here (the bytes pymavlink's message
+        object would pack, tested against it) at a third of the cost; signed links go through pymavlink."""
+        fields = (round(t_boot_s * 1000.0) & 0xFFFFFFFF, heading_deg, heading_raw_deg, theta, bias,
+                  throttle_01, mag_index & 0xFF, flags & 0xFF)  # fmt: skip
+        mav = self.mav
+        if mav.signing.sign_outgoing:
+            return bytes(self._msg_cls(*fields).pack(mav))
+        payload = self._payload.pack(fields[0], heading_deg, heading_raw_deg, *theta, *bias, throttle_01,
+                                     fields[6], fields[7])  # fmt: skip
+        payload = payload.rstrip(b"\0") or payload[:1]  # MAVLink 2 drops trailing zero bytes (not the first)
+        msg_id = self._msg_cls.id
+        frame = _V2_HEADER.pack(0xFD, len(payload), 0, 0, mav.seq, mav.srcSystem, mav.srcComponent,
+                                msg_id & 0xFFFF, msg_id >> 16) + payload  # fmt: skip
+        crc = self._crc(frame[1:] + self._crc_extra)
+        return frame + _CRC.pack(crc)
 
     def heartbeat(self) -> bytes:
         """A HEARTBEAT of an onboard companion (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID)."""

@@ -134,16 +134,24 @@ class _Outputs:
         self._sysid_set = False
 
     def take(self, pipeline: Pipeline) -> None:
+        writer = self.writer
+        if writer is not None and not self._sysid_set and pipeline.system_id is not None:
+            self.encoder.set_system(pipeline.system_id)
+            self._sysid_set = True
+        if not (self._keep or self._on_estimate is not None):
+            if writer is not None:  # --emit alone: packed from the record, no estimate object built
+                r = pipeline.last_record()
+                packet = self.encoder.encode_values(r.t_s - pipeline.boot_offset_s, r.heading_deg,
+                                                    r.heading_raw_deg, r.theta, r.bias, r.throttle_01,
+                                                    r.mag_index, r.flags)  # fmt: skip
+                writer.write_packet(r.t_s, packet)
+            return
         est = pipeline.last_estimate()
         if self._keep:
             self.kept.append(est)
         if self._on_estimate is not None:
             self._on_estimate(est)
-        writer = self.writer
         if writer is not None:
-            if not self._sysid_set and pipeline.system_id is not None:
-                self.encoder.set_system(pipeline.system_id)
-                self._sysid_set = True
             writer.write_packet(est.t_s, self.encoder.encode(est))
 
     def close(self, failed: bool = False) -> None:
@@ -286,7 +294,8 @@ def _replay(
     if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
         from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
 
-        warnings: list[str] = summary["warnings"]  # type: ignore[assignment]
+        warnings = summary["warnings"]
+        assert isinstance(warnings, list)
         summary["warnings"] = [*warnings, *onboard_comp_warnings(onboard, summary)]
         summary["onboard_motor_compensation"] = json_safe({str(k): v for k, v in onboard.items()})
     return ReplayReport(

@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from magcomp.service.compass import CompassCorrector
 
 
-def compass_summary(c: CompassCorrector, status: tuple[str, str]) -> dict[str, object]:
+class Status(NamedTuple):
+    """Whether a compass's headings are corrected (``corrected`` | ``uncorrected``) and why, one phrase."""
+
+    status: str
+    why: str
+
+
+def compass_summary(c: CompassCorrector, status: Status) -> dict[str, object]:
     """Calibration, theta, whether the headings are corrected and why: one compass."""
     cal = c.calibration
     st = c.inflight
@@ -43,8 +52,8 @@ def compass_summary(c: CompassCorrector, status: tuple[str, str]) -> dict[str, o
         "theta_mgauss": theta,
         "theta_converged": converged,
         "estimates": c.n_out,
-        "status": status[0],
-        "why": status[1],
+        "status": status.status,
+        "why": status.why,
         "time_s": dict(c.time_s),
-        "inflight": None if st is None else {**st.summary(), "rotation": c.rel_source[0]},
+        "inflight": None if st is None else {**st.summary(), "rotation": c.rel_source.kind},
     }

@@ -37,6 +37,9 @@ def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
     mav = mod.MAVLink(None)
     mav.robust_parsing = True
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    # this thread shares the interpreter with the sender and the daemon: on a busy machine it can wait for
+    # the GIL longer than a default receive buffer (~200 datagrams, 0.1 s at this rate) lasts
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
     sock.bind(("127.0.0.1", port))
     sock.settimeout(0.1)
     try:
