@@ -182,6 +182,7 @@ def format_table(rep: FitReport) -> str:
 def execute(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from magcomp.adapters.columns import Window
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.service.console import check_output_path
 
@@ -209,8 +210,11 @@ def execute(args: argparse.Namespace) -> int:
         cfg = handover_config(args.config, args.throttle_source)
         for line in save_learned_state(path, cfg, StateStore(args.save_state)):
             print(line, flush=True)
+    # --start/--end: only the window is kept while reading (plus MAX_THROTTLE_GAP_S and one sample each side,
+    # so that the throttle interpolated at the window's edges is the one the whole log gives)
+    window = Window.around(args.start, args.end, MAX_THROTTLE_GAP_S)
     with Busy(f"fit: reading {path.name}"):
-        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag)
+        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window)
     try:
         with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
             rep = fit_log(
