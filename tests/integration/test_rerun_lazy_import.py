@@ -1,5 +1,5 @@
-"""rerun-sdk is imported only when a ``--rerun`` mode asks for it (issue 13): not for ``--help``, not for a plain
-replay, fit or diagnose. Each command runs through the CLI's ``main`` in one fresh interpreter."""
+"""rerun-sdk is imported only when a ``--rerun`` mode asks for it (issue 13): not for ``--help``, not for a
+plain replay, fit or diagnose. Each command runs through the CLI's ``main`` in one fresh interpreter."""
 
 from __future__ import annotations
 
