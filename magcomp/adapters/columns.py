@@ -23,6 +23,7 @@ import math
 from array import array
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,33 +52,38 @@ class Window:
 
 
 class _Windowed:
-    """Window bookkeeping shared by the stores: ``admit`` says which rows to store, in order."""
+    """Window bookkeeping shared by the stores: which offered rows are stored (``_put``), in order."""
 
     __slots__ = ("_after_taken", "_before", "n_seen", "window")
 
     def __init__(self, window: Window | None) -> None:
         self.window = window
         self.n_seen = 0  # rows offered, inside the window or not
-        self._before: tuple[float, object] | None = None
+        self._before: tuple[float, Any] | None = None
         self._after_taken = False
 
-    def _admit(self, t_s: float, row: object) -> list[tuple[float, object]]:
-        """The rows to store now for an offered row (windowed stores only)."""
+    def _put(self, t_s: float, row: Any) -> None:
+        raise NotImplementedError
+
+    def _offer(self, t_s: float, row: Any) -> None:
+        """A row of a windowed store: stored when inside the window, or when it is the neighbour of one."""
         w = self.window
         assert w is not None
         if t_s < w.lo:  # NaN times are never offered (the clock drops them)
             self._before = (t_s, row)
-            return []
+            return
         if t_s > w.hi:
             if self._after_taken:
-                return []
+                return
             self._after_taken = True
-        out: list[tuple[float, object]] = []
+        self._flush()
+        self._put(t_s, row)
+
+    def _flush(self) -> None:
+        """Store the last row before the window (at its first row inside or after it, or at the end)."""
         if self._before is not None:
-            out.append(self._before)
-            self._before = None
-        out.append((t_s, row))
-        return out
+            before, self._before = self._before, None
+            self._put(*before)
 
 
 class Rows(_Windowed):
@@ -99,22 +105,27 @@ class Rows(_Windowed):
         if self.window is None:
             self._t.append(t_s)
             self._v.extend(values)
-            return
-        for t, row in self._admit(t_s, values):
-            self._t.append(t)
-            self._v.extend(row)  # type: ignore[arg-type]
+        else:
+            self._offer(t_s, values)
+
+    def _put(self, t_s: float, row: Any) -> None:
+        self._t.append(t_s)
+        self._v.extend(row)
 
     def __len__(self) -> int:
-        return len(self._t)
+        return len(self._t) + (self._before is not None)
 
     def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """(t_s (n,), values (n,) or (n, width)) in arrival order (views of the arrays, no copy)."""
+        """(t_s (n,), values (n,) or (n, width)) in arrival order (views of the arrays, no copy); the store
+        is complete (nothing is appended after this)."""
+        self._flush()
         t = np.frombuffer(self._t, dtype=np.float64) if len(self._t) else np.zeros(0)
         v = np.frombuffer(self._v, dtype=np.float64) if len(self._v) else np.zeros(0)
         return t, (v if self.width == 0 else v.reshape(-1, self.width))
 
     def series(self) -> Series:
         """The rows sorted by time (stable: equal times keep their arrival order), as a Series."""
+        self._flush()
         if not len(self._t):
             return Series.empty(self.width)
         t, v = self.arrays()
@@ -139,9 +150,8 @@ class PwmRows(_Windowed):
         self.n_seen += 1
         if self.window is None:
             self._put(t_s, pwm_us)
-            return
-        for t, row in self._admit(t_s, pwm_us):
-            self._put(t, row)  # type: ignore[arg-type]
+        else:
+            self._offer(t_s, pwm_us)
 
     def _put(self, t_s: float, pwm_us: Mapping[int, float]) -> None:
         n = len(self._t)
@@ -156,11 +166,12 @@ class PwmRows(_Windowed):
                     col.append(value)
 
     def __len__(self) -> int:
-        return len(self._t)
+        return len(self._t) + (self._before is not None)
 
     def rows(self, channels: Sequence[int]) -> Iterator[tuple[float, dict[int, float]]]:
         """(t_s, {channel: pwm}) in arrival order for the given channels (those a row carries), as the
         message gave them (Python floats)."""
+        self._flush()
         have = [ch for ch in channels if ch in self._ch]
         for a in range(0, len(self._t), _BLOCK):  # a block at a time: the Python floats are transient
             t = self._t[a : a + _BLOCK].tolist()

@@ -98,6 +98,15 @@ def fit_log(
     thr = log.throttle_01
     finite = np.isfinite(thr.values)
     thr_t, thr_v = thr.t_s[finite], thr.values[finite]
+    if thr_t.shape[0] < 2 and log.throttle_source and (start_s is not None or end_s is not None):
+        # a window cut while reading (load_log(window=...)) that holds no throttle: the whole log's messages
+        first = [float(a[0]) for a in (mag.t_s, thr_t) if a.size]
+        last = [float(a[-1]) for a in (mag.t_s, thr_t) if a.size]
+        t0 = start_s if start_s is not None else max(first, default=-math.inf)
+        t1 = end_s if end_s is not None else min(last, default=math.inf)
+        if not t1 > t0:
+            raise InputError(f"empty window: --start {t0:.6g} s is not before --end {t1:.6g} s")
+        raise MagcompError(f"{log.source}: only 0 magnetometer samples with throttle in {t0:.2f}-{t1:.2f} s")
     if thr_t.shape[0] < 2:
         raise MagcompError(
             f"{log.source}: no throttle data (source {log.throttle_source or 'auto'}); try --throttle-source"

@@ -17,6 +17,7 @@ import magcomp.adapters.mavlink_source as ms
 from magcomp.adapters.columns import PwmRows, Rows, Window
 from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.throttle import resolve_throttle, throttle_from_pwm
+from magcomp.errors import MagcompError
 from magcomp.sim import SimConfig, simulate
 
 G = 9.80665
@@ -150,6 +151,13 @@ def test_window_cut_while_reading_gives_the_same_fit_as_the_whole_log(tmp_path: 
     a = report_json(fit_log(whole, start_s=t0, end_s=t1, n_monte_carlo=50, rng=np.random.default_rng(1)))
     b = report_json(fit_log(cut, start_s=t0, end_s=t1, n_monte_carlo=50, rng=np.random.default_rng(1)))
     assert a == b and a["n"] > 100
+    # a window past the log's end: the same message as on the whole log
+    late = ms.load_log(bench, window=Window.around(100.0, 200.0, MAX_THROTTLE_GAP_S))
+    for data in (whole, late):
+        with pytest.raises(
+            MagcompError, match=r"only 0 magnetometer samples with throttle in 100.00-200.00 s"
+        ):
+            fit_log(data, start_s=100.0, end_s=200.0, n_monte_carlo=0)
 
 
 def test_rows_keep_one_neighbour_outside_the_window_and_pwm_pads_late_channels() -> None:
@@ -159,6 +167,10 @@ def test_rows_keep_one_neighbour_outside_the_window_and_pwm_pads_late_channels()
     t_s, v = r.arrays()
     assert t_s.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0] and r.n_seen == 7
     assert v[:, 1].tolist() == [-1.0, -2.0, -3.0, -4.0, -5.0]
+    late = Rows(0, Window(10.0, 20.0))  # nothing inside: the last row before the window is kept
+    for t in (0.0, 1.0, 2.0):
+        late.append(t, (t,))
+    assert len(late) == 1 and late.series().t_s.tolist() == [2.0]
     s = Rows(0)
     for t in (0.0, 2.0, 1.0, 1.0):
         s.append(t, (t * 10,))
