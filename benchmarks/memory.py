@@ -48,23 +48,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, default=1.0)
     ap.add_argument("--keep", metavar="DIR", help="write the log (and outputs) here instead of a temp dir")
+    ap.add_argument("--log", metavar="TLOG", help="reuse this log (from an earlier --keep run) for --hours")
+    ap.add_argument("--only", metavar="NAME", action="append", help="only the commands starting with NAME")
     args = ap.parse_args()
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.sim import SimConfig, simulate
 
     d = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magcomp-mem-"))
     d.mkdir(parents=True, exist_ok=True)
-    log = d / "long.tlog"
+    log = Path(args.log) if args.log else d / "long.tlog"
     t0 = time.perf_counter()
     # the simulator goes up to 1 h: longer logs are that hour repeated (each copy a reboot of the autopilot)
     one_h = min(args.hours, 1.0)
-    write_tlog(simulate(SimConfig(scenario="flight", duration_s=one_h * 3600.0, seed=1)), log)
-    copies = max(1, round(args.hours / one_h))
-    if copies > 1:
-        data = log.read_bytes()
-        with log.open("ab") as f:
-            for _ in range(copies - 1):
-                f.write(data)
+    if not args.log:
+        write_tlog(simulate(SimConfig(scenario="flight", duration_s=one_h * 3600.0, seed=1)), log)
+        copies = max(1, round(args.hours / one_h))
+        if copies > 1:
+            data = log.read_bytes()
+            with log.open("ab") as f:
+                for _ in range(copies - 1):
+                    f.write(data)
     print(f"{log}: {log.stat().st_size / 2**20:.0f} MiB, {args.hours:g} h simulated in "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     py = [sys.executable, "-m", "magcomp"]
@@ -77,6 +80,8 @@ def main() -> None:
         "diagnose": [*py, "diagnose", str(log)],
     }
     for name, cmd in cases.items():
+        if args.only and not any(name.startswith(o) for o in args.only):
+            continue
         mib, wall, rc = peak_mib(cmd)
         print(f"{name:22s} peak RSS {mib:7.0f} MiB   wall {wall:6.1f} s   exit {rc}")
 

@@ -44,6 +44,11 @@ order with pymavlink's field values (arrays as lists, char[N] as str); other ids
 messages, values and counts as ``MAVLink.decode`` (tests/unit/test_sources_fastpath.py); on a 600 s simulated
 tlog the whole source (decode + conversion + throttle) takes ~0.3x the wall time of ``mavlink_connection`` +
 ``recv_msg`` merely parsing it (benchmarks/source_speed.py). Signatures of signed frames are not checked.
+The file is read ``READ_CHUNK_BYTES`` at a time: memory does not grow with the log's length (a frame cut by a
+chunk's end is completed from the next chunk; same messages and counts as reading it whole).
+
+:func:`load_log` keeps what it needs of each record in compact columns (:mod:`magcomp.adapters.columns`),
+not as sample objects: ~8 bytes per value instead of ~150-350 bytes per row.
 """
 
 from __future__ import annotations
@@ -51,21 +56,24 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import mmap
 import operator
 import os
 import re
 import stat
 import sys
+from array import array
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, BinaryIO, NamedTuple
 
 import numpy as np
 
 from magcomp.adapters.ardupilot_motcomp import OnboardMotorComp
+from magcomp.adapters.columns import PwmRows, Rows, Window
 from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_unix
 from magcomp.adapters.throttle import (
     FIXED_WING_TYPES,
@@ -884,6 +892,12 @@ def _crc_function(mod: Any) -> Callable[[Any, int], int]:
     return slow
 
 
+#: bytes read from a log file at a time (the tlog / raw MAVLink reader keeps at most this plus one frame)
+READ_CHUNK_BYTES = 1 << 20
+#: the longest MAVLink frame (MAVLink 2: 10-byte header, 255-byte payload, CRC, 13-byte signature)
+_MAX_FRAME = 280
+
+
 def iter_mavlink_frames(
     data: bytes,
     decoders: dict[int, FrameDecoder],
@@ -893,11 +907,15 @@ def iter_mavlink_frames(
     crc16: Callable[[Any, int], int],
     ignore_crc: bool = False,
     reference_mav: Any = None,
-) -> Iterator[tuple[Callable[[Any], Any], Any]]:
+    final: bool = True,
+) -> Generator[tuple[Callable[[Any], Any], Any], None, int]:
     """Walk tlog framing (``ts_len`` = 8) or a raw MAVLink stream (0); yield (handler, message) for the ids
     in ``decoders`` only, CRC-checked (X.25 with the message's crc_extra) and unpacked with a precompiled
     Struct (MAVLink 2 payloads cut by zero-truncation are padded with zeros). Other ids are skipped unread.
 
+    ``data`` is the whole input (``final``) or one chunk of it: then the walk stops where a frame (and the
+    byte after it, which checks its framing) might not be whole yet, and returns the offset to resume from,
+    with the next chunk appended; the messages and counts are the same as for the whole input at once.
     ``reference_mav`` (tests): decode the same frames with pymavlink's ``MAVLink.decode`` instead.
     """
     mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
@@ -906,7 +924,9 @@ def iter_mavlink_frames(
     p = 0
     magics = (MAGIC_V1, MAGIC_V2)
     get = decoders.get
-    while p + ts_len + 8 <= n:
+    # a chunk: stop while a whole frame, its timestamp and the next frame's magic may still be missing
+    limit = n - ts_len - 8 if final else n - 2 * ts_len - _MAX_FRAME - 1
+    while p <= limit:
         h = p + ts_len
         magic = data[h]
         if magic == MAGIC_V2:
@@ -926,7 +946,8 @@ def iter_mavlink_frames(
             msgid = data[h + 5]
         else:
             q = _next_magic(data, h + 1)
-            q = n if q < 0 else q - ts_len
+            # no magic in the rest of a chunk: skip up to where the next chunk's first timestamp may begin
+            q = (n if final else n - ts_len) if q < 0 else q - ts_len
             q = max(q, p + 1)
             counts["garbage_bytes"] += q - p
             p = q
@@ -968,6 +989,28 @@ def iter_mavlink_frames(
             p += 1
             continue
         p = end
+    return p
+
+
+def iter_mavlink_file(
+    f: BinaryIO,
+    head: bytes,
+    decoders: dict[int, FrameDecoder],
+    counts: dict[str, int],
+    ts_len: int,
+    **kw: Any,
+) -> Iterator[tuple[Callable[[Any], Any], Any]]:
+    """:func:`iter_mavlink_frames` over an open file read ``READ_CHUNK_BYTES`` at a time, ``head`` being what
+    was already read from it: memory stays at a chunk, whatever the file's length."""
+    buf = head
+    while True:
+        more = f.read(READ_CHUNK_BYTES)
+        if not more:
+            yield from iter_mavlink_frames(buf, decoders, counts, ts_len, final=True, **kw)
+            return
+        buf += more
+        p = yield from iter_mavlink_frames(buf, decoders, counts, ts_len, final=False, **kw)
+        buf = buf[p:]
 
 
 def _sniff_mavlink_stream(data: bytes) -> int | None:
@@ -1012,7 +1055,9 @@ class IntactSpans(NamedTuple):
     resyncs: int  # points of damage resynchronised past
 
 
-def dataflash_intact_spans(data: bytes | memoryview, margin_bytes: int = DAMAGE_MARGIN_BYTES) -> IntactSpans:
+def dataflash_intact_spans(
+    data: bytes | memoryview | mmap.mmap, margin_bytes: int = DAMAGE_MARGIN_BYTES
+) -> IntactSpans:
     """The byte ranges of a binary DataFlash log that hold whole messages, and how many bytes lie between
     them (damage). A message is believed when its type is known (from the FMT messages before it), the next
     message header (or the end of the file) follows it exactly, and it lies more than ``margin_bytes`` from
@@ -1073,24 +1118,29 @@ def dataflash_intact_spans(data: bytes | memoryview, margin_bytes: int = DAMAGE_
 
 def _dataflash_repaired(path: Path, counts: dict[str, int]) -> Path | None:
     """A temporary copy of a damaged binary DataFlash log holding its intact messages only (None when the
-    log is intact, or cannot be read)."""
+    log is intact, or cannot be read). The log is mapped, not read into memory."""
     import tempfile
 
+    name = ""
     try:
-        data = path.read_bytes()
-    except OSError:
+        with path.open("rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            spans, skipped, dropped, resyncs = dataflash_intact_spans(data)
+            tail = len(data) - (spans[-1][1] if spans else 0)
+            if not spans or (len(spans) == 1 and spans[0][0] == 0 and tail < 528):
+                return None  # intact (a short tail of garbage is normal at the end of a log)
+            counts["garbage_bytes"] += skipped
+            counts["dataflash_resyncs"] += resyncs
+            counts["dataflash_dropped_bytes"] += dropped
+            fd, name = tempfile.mkstemp(prefix="magcomp-", suffix=".bin")
+            with os.fdopen(fd, "wb") as out:
+                for a, b in spans:
+                    for c in range(a, b, READ_CHUNK_BYTES):
+                        out.write(data[c : min(b, c + READ_CHUNK_BYTES)])
+    except (OSError, ValueError):  # unreadable, empty (nothing to map), or no room for the copy
+        if name:
+            with contextlib.suppress(OSError):
+                os.unlink(name)
         return None
-    spans, skipped, dropped, resyncs = dataflash_intact_spans(data)
-    tail = len(data) - (spans[-1][1] if spans else 0)
-    if not spans or (len(spans) == 1 and spans[0][0] == 0 and tail < 528):
-        return None  # intact (a short tail of garbage is normal at the end of a log)
-    counts["garbage_bytes"] += skipped
-    counts["dataflash_resyncs"] += resyncs
-    counts["dataflash_dropped_bytes"] += dropped
-    fd, name = tempfile.mkstemp(prefix="magcomp-", suffix=".bin")
-    with os.fdopen(fd, "wb") as f:
-        for a, b in spans:
-            f.write(data[a:b])
     return Path(name)
 
 
@@ -1291,24 +1341,30 @@ class MavSource:
 
     def _file_messages(self) -> Iterator[tuple[Callable[[Any], list[tuple[str, Record]]], Any]]:
         path = Path(self.target)
-        data = path.read_bytes()
-        ts_len = _sniff_mavlink_stream(data)
-        mod = _mavlink_module()
-        if ts_len is None:
-            if data[:256].isascii():
-                raise InputError(f"{path}: a text file, not a MAVLink log")
-            ts_len = 8 if path.suffix.lower() == ".tlog" else 0
-        conv = self._conv
-        decoders = frame_decoders(mod, {name: getattr(conv, f"_m_{name}") for name in WANTED_MAVLINK})
-        yield from iter_mavlink_frames(
-            data,
-            decoders,
-            self.counts,
-            ts_len,
-            crc16=_crc_function(mod),
-            ignore_crc=bool(mod.MAVLINK_IGNORE_CRC),
-            reference_mav=mod.MAVLink(None) if self._reference_decode else None,
-        )
+        try:
+            f = path.open("rb")
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+        with f:
+            head = f.read(READ_CHUNK_BYTES)
+            ts_len = _sniff_mavlink_stream(head)
+            mod = _mavlink_module()
+            if ts_len is None:
+                if head[:256].isascii():
+                    raise InputError(f"{path}: a text file, not a MAVLink log")
+                ts_len = 8 if path.suffix.lower() == ".tlog" else 0
+            conv = self._conv
+            decoders = frame_decoders(mod, {name: getattr(conv, f"_m_{name}") for name in WANTED_MAVLINK})
+            yield from iter_mavlink_file(
+                f,
+                head,
+                decoders,
+                self.counts,
+                ts_len,
+                crc16=_crc_function(mod),
+                ignore_crc=bool(mod.MAVLINK_IGNORE_CRC),
+                reference_mav=mod.MAVLink(None) if self._reference_decode else None,
+            )
         if self.counts["messages"] == 0:
             raise InputError(f"{path}: no valid MAVLink messages found")
 
@@ -1493,27 +1549,25 @@ def open_source(
 # --- whole-log loading ---
 
 
-def _series(rows: list[tuple[float, Any]], width: int = 0) -> Series:
-    if not rows:
-        return Series.empty(width)
-    t = np.fromiter((r[0] for r in rows), dtype=np.float64, count=len(rows))
-    v = np.array([r[1] for r in rows], dtype=np.float64)
-    order = np.argsort(t, kind="stable")
-    return Series(t[order], v[order])
-
-
 def load_log(
     path: str | os.PathLike[str],
     throttle_source: str | ThrottleSpec = "auto",
     mag_index: int | None = None,
     *,
     undo_motor_comp: bool = True,
+    window: Window | None = None,
 ) -> LogData:
     """Read a whole log into columns (:class:`~magcomp.core.types.LogData`), in the module's fixed units.
 
     Unlike streaming, preferences are decided with the whole log known: RAW_IMU over SCALED_IMU for compass 0,
     SYS_STATUS/CURR over BATTERY_STATUS for battery 0, IMU temperature over barometer temperature, and the
     ``auto`` throttle source from the final vehicle type and parameters.
+
+    Memory: the file is read a chunk at a time and each message's values go straight into compact columns
+    (:mod:`magcomp.adapters.columns`), ~8 bytes per value kept. ``window`` keeps only the rows in a time
+    window (and one neighbour each side), cut while reading; the whole file is still read (parameters and
+    the vehicle type can come at any time). PX4 ULog (:func:`~magcomp.adapters.ulog_source.load_ulog`)
+    ignores it.
     """
     target = os.fspath(path)
     if _is_ulog(target):
@@ -1526,7 +1580,7 @@ def load_log(
     if source._kind == "live":
         raise InputError(f"{target}: load_log reads files; use open_source for live links")
     try:
-        return _collect(source, source.records())
+        return _collect(source, source.records(), window)
     finally:
         source.close()
 
@@ -1535,35 +1589,91 @@ def load_log(
 _MAG_ORIGIN_RANK = {"RAW_IMU": 0, "HIGHRES_IMU": 2}
 
 
-def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogData:
-    mag: dict[tuple[str, int], list[tuple[float, Any]]] = {}
-    imu: dict[str, list[ImuSample]] = {}
-    att: list[tuple[float, Any]] = []
-    power: dict[str, list[tuple[float, Any]]] = {}
-    temp: dict[str, list[tuple[float, float]]] = {}
-    pwm: dict[str, list[PwmRecord]] = {"servo": [], "rc": []}
-    thr: dict[str, list[tuple[float, float]]] = {"vfr_hud": [], "ctun": []}
-    gnss = _GnssCollector()
-    for origin, rec in records:
-        if isinstance(rec, PositionSample | TimeSample):
-            gnss.add(origin, rec)
-            continue
+def _xyz(rec: Any, wire: str, arr: str) -> Float3 | list[float]:
+    """A sample's vector as three floats: the wire samples' own tuple, else the array's values."""
+    v = getattr(rec, wire, None)
+    return v if v is not None else getattr(rec, arr).tolist()  # type: ignore[no-any-return]
+
+
+class _Collector:
+    """What :func:`load_log` keeps of a log, in columns (:mod:`magcomp.adapters.columns`), one store per
+    (kind, origin); preferences between origins are decided at the end (:meth:`fill`)."""
+
+    def __init__(self, window: Window | None) -> None:
+        self.window = window
+        self.mag: dict[tuple[str, int], Rows] = {}
+        self.imu: dict[str, Rows] = {}  # IMU 0: gyro xyz, accel xyz
+        self.att = Rows(3, window)
+        self.power: dict[str, Rows] = {}  # battery 0: voltage, current
+        self.temp: dict[str, Rows] = {}
+        self.pwm = {"servo": PwmRows(window), "rc": PwmRows(window)}
+        self.thr = {"vfr_hud": Rows(0, window), "ctun": Rows(0, window)}
+        self.gnss = _GnssCollector(window)
+
+    def _store(self, stores: dict[Any, Rows], key: Any, width: int) -> Rows:
+        st = stores.get(key)
+        if st is None:
+            st = stores[key] = Rows(width, self.window)
+        return st
+
+    def add(self, origin: str, rec: Record) -> None:
         if isinstance(rec, MagSample):
-            mag.setdefault((origin, rec.mag_index), []).append((rec.t_s, rec.field_b_mgauss))
+            key = (origin, rec.mag_index)
+            self._store(self.mag, key, 3).append(rec.t_s, _xyz(rec, "field_xyz", "field_b_mgauss"))
         elif isinstance(rec, ImuSample):
             if rec.imu_index == 0:
-                imu.setdefault(origin, []).append(rec)
+                gyro, accel = _xyz(rec, "gyro_xyz", "gyro_b_rad_s"), _xyz(rec, "accel_xyz", "accel_b_m_s2")
+                self._store(self.imu, origin, 6).append(rec.t_s, (*gyro, *accel))
         elif isinstance(rec, AttitudeSample):
-            att.append((rec.t_s, (rec.roll_rad, rec.pitch_rad, rec.yaw_rad)))
+            self.att.append(rec.t_s, (rec.roll_rad, rec.pitch_rad, rec.yaw_rad))
         elif isinstance(rec, PowerSample):
             if rec.battery_index == 0:
-                power.setdefault(origin, []).append((rec.t_s, (rec.voltage_v, rec.current_a)))
+                self._store(self.power, origin, 2).append(rec.t_s, (rec.voltage_v, rec.current_a))
         elif isinstance(rec, TemperatureSample):
-            temp.setdefault(rec.sensor, []).append((rec.t_s, rec.temperature_degc))
+            self._store(self.temp, rec.sensor, 0).append(rec.t_s, (rec.temperature_degc,))
         elif isinstance(rec, PwmRecord):
-            pwm[rec.kind].append(rec)
+            self.pwm[rec.kind].append(rec.t_s, rec.pwm_us)
         elif isinstance(rec, ThrottleRecord):
-            thr[rec.kind].append((rec.t_s, rec.throttle_01))
+            self.thr[rec.kind].append(rec.t_s, (rec.throttle_01,))
+        elif isinstance(rec, PositionSample | TimeSample):
+            self.gnss.add(origin, rec)
+
+    def fill(self, data: LogData, counts: dict[str, int]) -> None:
+        # compass 0: RAW_IMU wins over SCALED_IMU (ArduPilot sends the same compass in both)
+        by_index: dict[int, Rows] = {}
+        ranked = sorted(self.mag.items(), key=lambda kv: _MAG_ORIGIN_RANK.get(kv[0][0], 1))
+        for (_origin, index), rows in ranked:
+            if index in by_index:
+                counts["scaled_imu_shadowed"] += rows.n_seen
+                continue
+            by_index[index] = rows
+        data.mag = {i: rows.series() for i, rows in sorted(by_index.items())}
+        imu_origin = next((o for o in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "IMU") if o in self.imu), None)
+        if imu_origin is not None:
+            imu = self.imu[imu_origin].series()
+            data.imu_t_s = imu.t_s
+            data.gyro_rad_s = np.ascontiguousarray(imu.values[:, :3])
+            data.accel_m_s2 = np.ascontiguousarray(imu.values[:, 3:])
+        data.attitude_rad = self.att.series()
+        power_origins = ("SYS_STATUS", "CURR", "BAT", "BATTERY_STATUS")
+        power_origin = next((o for o in power_origins if o in self.power), None)
+        if power_origin is not None:
+            pw = self.power[power_origin].series()
+            data.voltage_v = Series(pw.t_s, pw.values[:, 0])
+            data.current_a = Series(pw.t_s, pw.values[:, 1])
+        temp_key = next((k for k in ("imu0", "imu1", "imu2", "baro") if k in self.temp), None)
+        if temp_key is not None:
+            data.temperature_degc = self.temp[temp_key].series()
+        self.gnss.fill(data)
+
+
+def _collect(
+    source: MavSource, records: Iterable[tuple[str, Record]], window: Window | None = None
+) -> LogData:
+    col = _Collector(window)
+    add = col.add
+    for origin, rec in records:
+        add(origin, rec)
     counts = source.counts
     data = LogData(
         source=source.target,
@@ -1571,31 +1681,8 @@ def _collect(source: MavSource, records: Iterable[tuple[str, Record]]) -> LogDat
         vehicle_type=source.vehicle_type,
         autopilot=source.autopilot,
     )
-    # compass 0: RAW_IMU wins over SCALED_IMU (ArduPilot sends the same compass in both)
-    by_index: dict[int, list[tuple[float, Any]]] = {}
-    for (_origin, index), rows in sorted(mag.items(), key=lambda kv: _MAG_ORIGIN_RANK.get(kv[0][0], 1)):
-        if index in by_index:
-            counts["scaled_imu_shadowed"] += len(rows)
-            continue
-        by_index[index] = rows
-    data.mag = {i: _series(rows, 3) for i, rows in sorted(by_index.items())}
-    imu_origin = next((o for o in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "IMU") if o in imu), None)
-    if imu_origin is not None:
-        rows_imu = sorted(imu[imu_origin], key=lambda s: s.t_s)
-        data.imu_t_s = np.array([s.t_s for s in rows_imu])
-        data.gyro_rad_s = np.array([s.gyro_b_rad_s for s in rows_imu])
-        data.accel_m_s2 = np.array([s.accel_b_m_s2 for s in rows_imu])
-    data.attitude_rad = _series(att, 3)
-    power_origin = next((o for o in ("SYS_STATUS", "CURR", "BAT", "BATTERY_STATUS") if o in power), None)
-    if power_origin is not None:
-        pw = _series(power[power_origin], 2)
-        data.voltage_v = Series(pw.t_s, pw.values[:, 0])
-        data.current_a = Series(pw.t_s, pw.values[:, 1])
-    temp_key = next((k for k in ("imu0", "imu1", "imu2", "baro") if k in temp), None)
-    if temp_key is not None:
-        data.temperature_degc = _series(temp[temp_key])
-    _collect_throttle(data, source, pwm, thr)
-    gnss.fill(data)
+    col.fill(data, counts)
+    _collect_throttle(data, source, col.pwm, col.thr)
     data.counts = dict(counts)
     if not data.mag and not len(data.attitude_rad) and not data.imu_t_s.size:
         raise InputError(f"{source.target}: no magnetometer, IMU or attitude data in the log")
@@ -1607,58 +1694,64 @@ class _GnssCollector:
 
     The receiver's own position (GPS_RAW_INT, DataFlash GPS, ULog vehicle_gps_position) is preferred to the
     estimator's (GLOBAL_POSITION_INT, POS, vehicle_global_position); the date is the median of every valid
-    one (GPS time, SYSTEM_TIME, ULog time_utc_usec)."""
+    one (GPS time, SYSTEM_TIME, ULog time_utc_usec), in the window or not."""
 
     RECEIVER = frozenset({"GPS_RAW_INT", "GPS", "vehicle_gps_position", "sensor_gps"})
 
-    def __init__(self) -> None:
-        self.rows: dict[bool, list[tuple[float, tuple[float, float, float]]]] = {True: [], False: []}
-        self.years: list[float] = []
+    def __init__(self, window: Window | None = None) -> None:
+        self.rows: dict[bool, Rows] = {True: Rows(3, window), False: Rows(3, window)}
+        self.years = array("d")
 
     def add(self, origin: str, rec: PositionSample | TimeSample) -> None:
         year = rec.decimal_year
         if isinstance(rec, PositionSample):
             if not rec.fix_ok:
                 return
-            self.rows[origin in self.RECEIVER].append((rec.t_s, (rec.lat_deg, rec.lon_deg, rec.alt_m)))
+            self.rows[origin in self.RECEIVER].append(rec.t_s, (rec.lat_deg, rec.lon_deg, rec.alt_m))
         if math.isfinite(year):
             self.years.append(year)
 
     def fill(self, data: LogData) -> None:
-        rows = self.rows[True] or self.rows[False]
-        data.position = _series(rows, 3)
+        rows = self.rows[True] if len(self.rows[True]) else self.rows[False]
+        data.position = rows.series()
         if self.years:
-            data.decimal_year = float(np.median(self.years))
+            data.decimal_year = float(np.median(np.frombuffer(self.years, dtype=np.float64)))
+
+
+def _throttle_rows(
+    resolved: ResolvedThrottle, pwm: PwmRows, which: int, width: int = 0
+) -> Series:
+    """Throttle (``which`` 0: the 0..1 throttle) or per-channel outputs (1) of every PWM row that gives one
+    (:func:`throttle_from_pwm`, row by row: the same numbers as streaming)."""
+    out = Rows(width)
+    for t_s, row in pwm.rows(resolved.channels):
+        got = throttle_from_pwm(resolved, row)
+        if got is not None:
+            out.append(t_s, (got[0],) if which == 0 else got[1])
+    return out.series()
 
 
 def _collect_throttle(
     data: LogData,
     source: MavSource,
-    pwm: dict[str, list[PwmRecord]],
-    thr: dict[str, list[tuple[float, float]]],
+    pwm: dict[str, PwmRows],
+    thr: dict[str, Rows],
 ) -> None:
-    available = frozenset(k for k, v in (*pwm.items(), *thr.items()) if v)
+    available = frozenset(k for k, v in (*pwm.items(), *thr.items()) if v.n_seen)
     resolved = resolve_throttle(source.spec, data.vehicle_type, data.params, available)
     multirotor = data.vehicle_type in MULTIROTOR_TYPES or bool(motor_channels(data.params))
-    if pwm["servo"] and (multirotor or (resolved is not None and resolved.kind == "motors")):
+    if len(pwm["servo"]) and (multirotor or (resolved is not None and resolved.kind == "motors")):
         motors = resolve_throttle("motors", data.vehicle_type, data.params, available)
-        motor_rows: list[tuple[float, Any]] = []
-        for rec in pwm["servo"]:
-            out = throttle_from_pwm(motors, rec.pwm_us) if motors is not None else None
-            if out is not None:
-                motor_rows.append((rec.t_s, out[1]))
-        data.motors_01 = _series(motor_rows, len(motors.channels) if motors is not None else 4)
+        if motors is not None:
+            data.motors_01 = _throttle_rows(motors, pwm["servo"], 1, len(motors.channels))
+        else:
+            data.motors_01 = Series.empty(4)
     if resolved is None:
         return
     data.throttle_source = resolved.label
     if resolved.kind in thr:
-        data.throttle_01 = _series(thr[resolved.kind])
+        data.throttle_01 = thr[resolved.kind].series()
         return
-    rows: list[tuple[float, Any]] = []
-    for rec in pwm["rc" if resolved.kind == "rc" else "servo"]:
-        out = throttle_from_pwm(resolved, rec.pwm_us)
-        if out is not None:
-            rows.append((rec.t_s, out[0]))
-    data.throttle_01 = _series(rows)
+    data.throttle_01 = _throttle_rows(resolved, pwm["rc" if resolved.kind == "rc" else "servo"], 0)
     if data.vehicle_type in FIXED_WING_TYPES and resolved.kind == "servo":
         data.motors_01 = Series(data.throttle_01.t_s, data.throttle_01.values[:, None])

@@ -98,6 +98,15 @@ def fit_log(
     thr = log.throttle_01
     finite = np.isfinite(thr.values)
     thr_t, thr_v = thr.t_s[finite], thr.values[finite]
+    if thr_t.shape[0] < 2 and log.throttle_source and (start_s is not None or end_s is not None):
+        # a window cut while reading (load_log(window=...)) that holds no throttle: the whole log's messages
+        first = [float(a[0]) for a in (mag.t_s, thr_t) if a.size]
+        last = [float(a[-1]) for a in (mag.t_s, thr_t) if a.size]
+        t0 = start_s if start_s is not None else max(first, default=-math.inf)
+        t1 = end_s if end_s is not None else min(last, default=math.inf)
+        if not t1 > t0:
+            raise InputError(f"empty window: --start {t0:.6g} s is not before --end {t1:.6g} s")
+        raise MagcompError(f"{log.source}: only 0 magnetometer samples with throttle in {t0:.2f}-{t1:.2f} s")
     if thr_t.shape[0] < 2:
         raise MagcompError(
             f"{log.source}: no throttle data (source {log.throttle_source or 'auto'}); try --throttle-source"
@@ -182,6 +191,7 @@ def format_table(rep: FitReport) -> str:
 def execute(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from magcomp.adapters.columns import Window
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.service.console import check_output_path
 
@@ -209,8 +219,11 @@ def execute(args: argparse.Namespace) -> int:
         cfg = handover_config(args.config, args.throttle_source)
         for line in save_learned_state(path, cfg, StateStore(args.save_state)):
             print(line, flush=True)
+    # --start/--end: only the window is kept while reading (plus MAX_THROTTLE_GAP_S and one sample each side,
+    # so that the throttle interpolated at the window's edges is the one the whole log gives)
+    window = Window.around(args.start, args.end, MAX_THROTTLE_GAP_S)
     with Busy(f"fit: reading {path.name}"):
-        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag)
+        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window)
     try:
         with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
             rep = fit_log(

@@ -104,6 +104,9 @@ def propagate_attitude(
     return out
 
 
+_ROW_BLOCK = 1 << 16
+
+
 def _tilt_pass(
     imu_t_s: F64,
     gyro_b_rad_s: F64,
@@ -119,48 +122,55 @@ def _tilt_pass(
     bx, by, bz = bias0
     dts = np.diff(imu_t_s, prepend=imu_t_s[0])
     med = float(np.median(dts[1:])) if n > 1 else 0.02
-    g = gyro_b_rad_s.tolist()
-    r = ref.tolist()
     kp, ki = p.kp_rad_s, p.ki_rad_s2
-    for k in range(n):
-        dt = float(dts[k])
-        if not 0.0 < dt < 10.0 * med:
-            dt = 0.0 if k == 0 else med
-        # estimated down in body axes: third row of R_nb
-        dx = 2.0 * (x * z - w * y)
-        dy = 2.0 * (y * z + w * x)
-        dz = 1.0 - 2.0 * (x * x + y * y)
-        rx, ry, rz = r[k - 1] if k > 0 else r[0]  # the state still stands for t_{k-1}
-        # tilt error e = d_est x d_ref (rotation that takes the estimate to the reference)
-        ex = dy * rz - dz * ry
-        ey = dz * rx - dx * rz
-        ez = dx * ry - dy * rx
-        bx += ki * ex * dt
-        by += ki * ey * dt
-        bz += ki * ez * dt
-        # trapezoid: the mean rate over (t_{k-1}, t_k], whichever end of the interval a sample stands for
-        gp = g[k - 1] if k > 0 else g[k]
-        gx = 0.5 * (g[k][0] + gp[0])
-        gy = 0.5 * (g[k][1] + gp[1])
-        gz = 0.5 * (g[k][2] + gp[2])
-        ox = gx - bx - kp * ex
-        oy = gy - by - kp * ey
-        oz = gz - bz - kp * ez
-        # q <- q * exp(omega dt / 2), eq. (18) in closed form
-        ang = math.sqrt(ox * ox + oy * oy + oz * oz) * dt
-        if ang > 1e-12:
-            s = math.sin(ang / 2.0) / (ang / dt)
-            c = math.cos(ang / 2.0)
-            qx, qy, qz = ox * s, oy * s, oz * s
-            w, x, y, z = (
-                w * c - x * qx - y * qy - z * qz,
-                w * qx + x * c + y * qz - z * qy,
-                w * qy - x * qz + y * c + z * qx,
-                w * qz + x * qy - y * qx + z * c,
-            )
-            nq = math.sqrt(w * w + x * x + y * y + z * z)
-            w, x, y, z = w / nq, x / nq, y / nq, z / nq
-        out[k] = (w, x, y, z)
+    # the gyro and reference rows as Python floats a block at a time (with the row before the block): as lists
+    # of the whole log they took ~300 bytes a row, 0.2 GB for 4 h at 50 Hz (issue 12)
+    for a in range(0, n, _ROW_BLOCK):
+        lo = max(a - 1, 0)
+        g = gyro_b_rad_s[lo : a + _ROW_BLOCK].tolist()
+        r = ref[lo : a + _ROW_BLOCK].tolist()
+        dt_block = dts[a : a + _ROW_BLOCK].tolist()
+        for i, dt in enumerate(dt_block):
+            k = a + i
+            j = k - lo  # row k in g and r
+            if not 0.0 < dt < 10.0 * med:
+                dt = 0.0 if k == 0 else med
+            # estimated down in body axes: third row of R_nb
+            dx = 2.0 * (x * z - w * y)
+            dy = 2.0 * (y * z + w * x)
+            dz = 1.0 - 2.0 * (x * x + y * y)
+            rx, ry, rz = r[j - 1] if k > 0 else r[0]  # the state still stands for t_{k-1}
+            # tilt error e = d_est x d_ref (rotation that takes the estimate to the reference)
+            ex = dy * rz - dz * ry
+            ey = dz * rx - dx * rz
+            ez = dx * ry - dy * rx
+            bx += ki * ex * dt
+            by += ki * ey * dt
+            bz += ki * ez * dt
+            # trapezoid: the mean rate over (t_{k-1}, t_k], whichever end of the interval a sample stands for
+            gk = g[j]
+            gp = g[j - 1] if k > 0 else gk
+            gx = 0.5 * (gk[0] + gp[0])
+            gy = 0.5 * (gk[1] + gp[1])
+            gz = 0.5 * (gk[2] + gp[2])
+            ox = gx - bx - kp * ex
+            oy = gy - by - kp * ey
+            oz = gz - bz - kp * ez
+            # q <- q * exp(omega dt / 2), eq. (18) in closed form
+            ang = math.sqrt(ox * ox + oy * oy + oz * oz) * dt
+            if ang > 1e-12:
+                s = math.sin(ang / 2.0) / (ang / dt)
+                c = math.cos(ang / 2.0)
+                qx, qy, qz = ox * s, oy * s, oz * s
+                w, x, y, z = (
+                    w * c - x * qx - y * qy - z * qz,
+                    w * qx + x * c + y * qz - z * qy,
+                    w * qy - x * qz + y * c + z * qx,
+                    w * qz + x * qy - y * qx + z * c,
+                )
+                nq = math.sqrt(w * w + x * x + y * y + z * z)
+                w, x, y, z = w / nq, x / nq, y / nq, z / nq
+            out[k] = (w, x, y, z)
     return bx, by, bz
 
 
