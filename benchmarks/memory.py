@@ -12,9 +12,9 @@ streamed reading (1 MiB chunks) + columnar ``load_log`` (adapters/columns.py) + 
 
     peak RSS, MiB             10 min      1 h before -> after      4 h before -> after
     replay                        51           181 -> 51              164 -> 51
-    replay --rerun save=         159           255 -> 167             ~344 -> RERUN_AFTER
+    replay --rerun save=         159           255 -> 167             ~344 -> 183
     fit --start/--end (1 h)      120           457 -> 172            1697 -> 171
-    diagnose                     155           522 -> 288          DIAG_BEFORE -> 601
+    diagnose                     157           522 -> 260             1764 -> 601
 
 replay is flat in the log's length (4 h = 10 min). What is left in diagnose grows with the log through the
 diagnosis itself: the full-rate gyro integrated for the attitude and the 100 Hz drive grid of each compass
