@@ -6,9 +6,10 @@ child). Not a test: run by hand, numbers go into docs/README.
 
     .venv/bin/python benchmarks/memory.py [--hours 1] [--keep DIR] [--log TLOG] [--only NAME]
 
-Measured 2026-11-23 on a 2-core machine shared with other jobs (so wall times are long and noisy; peak RSS is
-not), the 4 h log being the 1 h flight 4 times (119 MiB tlog); before = the previous checkout (fa0ad10), after =
-streamed reading (1 MiB chunks) + columnar ``load_log`` (adapters/columns.py) + windows cut while reading:
+Measured 2026-11-23 on a 2-core machine shared with other jobs (so wall times are long and noisy; peak RSS
+is not), the 4 h log being the 1 h flight 4 times (119 MiB tlog); before = the previous checkout (fa0ad10),
+after = streamed reading (1 MiB chunks) + columnar ``load_log`` (adapters/columns.py) + windows cut while
+reading:
 
     peak RSS, MiB             10 min      1 h before -> after      4 h before -> after
     replay                        51           181 -> 51              164 -> 51
