@@ -4,12 +4,24 @@ Writes a simulated flight of ``--hours`` (default 1; the issue's figures were fo
 each command in its own process and reads that process's peak RSS (``ru_maxrss`` of a wrapper's only
 child). Not a test: run by hand, numbers go into docs/README.
 
-    .venv/bin/python benchmarks/memory.py [--hours 1] [--keep DIR]
+    .venv/bin/python benchmarks/memory.py [--hours 1] [--keep DIR] [--log TLOG] [--only NAME]
 
-Measured on this checkout (2-core machine, --hours 4: 119 MiB tlog, the 1 h flight 4 times):
-replay 270 MiB, replay --rerun save= 344 MiB (1.9 GiB before the estimates were streamed), fit of a 1 h window
-with 200 Monte-Carlo refits 1.70 GiB (3.4 GiB before; what is left is load_log holding the whole log as Python
-objects), diagnose 1.76 GiB (unchanged: the same load_log).
+Measured 2026-11-23 on a 2-core machine shared with other jobs (so wall times are long and noisy; peak RSS
+is not), the 4 h log being the 1 h flight 4 times (119 MiB tlog); before = the previous checkout (fa0ad10),
+after = streamed reading (1 MiB chunks) + columnar ``load_log`` (adapters/columns.py) + windows cut while
+reading:
+
+    peak RSS, MiB             10 min      1 h before -> after      4 h before -> after
+    replay                        51           181 -> 51              164 -> 51
+    replay --rerun save=         159           255 -> 167             ~344 -> 183
+    fit --start/--end (1 h)      120           457 -> 172            1697 -> 171
+    diagnose                     157           522 -> 260             1764 -> 601
+
+replay is flat in the log's length (4 h = 10 min). What is left in diagnose grows with the log through the
+diagnosis itself: the full-rate gyro integrated for the attitude and the 100 Hz drive grid of each compass
+(diagnosis/engine.py), not the loading. The 4 h "replay --rerun save=" before figure is an earlier session's
+(that run was stopped here to save time; it had reached 238 MiB). ``--log`` reuses a log written with
+``--keep``; ``--only NAME`` (repeatable) runs only the commands whose name starts with NAME.
 """
 
 from __future__ import annotations
