@@ -49,6 +49,17 @@ def _measure(
     return u @ a_mat.T + d + rng.normal(0.0, noise, (len(thr), 3))
 
 
+def _heading_rms_deg(field_b: np.ndarray, truth_b: np.ndarray, r: np.ndarray) -> float:
+    """rms (deg) of the tilt-compensated heading of ``field_b`` against that of ``truth_b``."""
+    from magcomp.core.heading import tilt_compensated_heading_deg
+    from magcomp.core.rotations import euler_from_dcms
+
+    e = euler_from_dcms(r)
+    h1 = tilt_compensated_heading_deg(field_b, e[:, 0], e[:, 1])
+    h0 = tilt_compensated_heading_deg(truth_b, e[:, 0], e[:, 1])
+    return float(np.sqrt(np.mean(((h1 - h0 + 180.0) % 360.0 - 180.0) ** 2)))
+
+
 A_TRUE = np.array([[1.03, 0.02, -0.01], [0.02, 0.97, 0.015], [-0.01, 0.015, 1.01]])
 D_TRUE = np.array([25.0, -40.0, 15.0])
 
@@ -84,7 +95,12 @@ def test_relative_form_recovers_hard_iron_and_theta_without_the_yaw(seed: int) -
         est.add(rows, z, float(thr[k] ** 2))
     sol = est.solve()
     assert np.linalg.norm(sol.theta_mgauss - THETA) < 0.05 * np.linalg.norm(THETA)
-    assert np.linalg.norm(sol.calib_d[:2] - D_TRUE[:2]) < 5.0  # horizontal hard iron: what heading needs
+    # what heading needs: the corrected field's heading over the flight (in level turns a mount tilt and a
+    # horizontal hard iron look alike, so neither is checked alone). Uncorrected: ~10 deg rms.
+    u = np.einsum("nji,j->ni", r, H_NED)
+    y_clean = u + np.outer(thr**2, THETA) + D_TRUE
+    corrected = y_clean @ sol.calib_l.T - sol.calib_d - np.outer(thr**2, sol.theta_mgauss)
+    assert _heading_rms_deg(corrected, u, r) < 0.5
 
 
 def test_constant_throttle_leaves_theta_at_its_prior_and_the_stage_says_why() -> None:
@@ -100,7 +116,8 @@ def test_constant_throttle_leaves_theta_at_its_prior_and_the_stage_says_why() ->
     assert sol is not None
     assert np.all(sol.theta_sigma_mgauss > 100.0)  # no information: the prior's 600 mgauss, barely reduced
     doc = st.summary()
-    assert doc["throttle2_std"] < 0.02
+    thr2_std = doc["throttle2_std"]
+    assert isinstance(thr2_std, float) and thr2_std < 0.02
     if not st.applied:
         assert "throttle" in str(doc["why_not_applied"])
 
