@@ -7,6 +7,7 @@ good enough to be applied; it keeps the time spent in each state for the summary
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ from magcomp.core.inflight import (
     relative_rows,
     rotation_error_rows,
 )
+from magcomp.core.rotations import so3_exp, so3_log
 
 F64 = NDArray[np.float64]
 
@@ -108,6 +110,10 @@ class InflightStage:
         self._prev: tuple[float, F64, F64, F64] | None = None  # t, R_nb, field, regressors
         self._hist: deque[tuple[float, F64, F64, F64]] = deque()  # recent samples (relative pairs)
         self._epoch = 0  # counts rotation-source restarts (a nuisance window never spans one)
+        # samples waiting for the rotation source to pass their time, and its recent (time, R_nb) samples
+        self._pending: deque[tuple[float, F64, tuple[float, ...] | None, F64 | None]] = deque()
+        self._att_hist: deque[tuple[float, F64]] = deque()
+        self._thr_hist: deque[tuple[float, float]] = deque()
         self.applied = False
         self.solution: InflightSolution | None = None
         self.time_s = dict.fromkeys(STATES, 0.0)
@@ -144,6 +150,9 @@ class InflightStage:
     def reset_pairs(self) -> None:
         """A gap, a clock reset or a change of rotation source: the next sample starts a new pair."""
         self._prev = None
+        self._pending.clear()
+        self._att_hist.clear()
+        self._thr_hist.clear()
 
     def restart(self, field_norm_mgauss: float) -> None:
         """The Earth field changed (a GPS fix after the configured fallback): absolute rows made against
@@ -174,12 +183,18 @@ class InflightStage:
         r_abs_nb: F64 | None,
         field_ref_n_mgauss: F64 | None,
         r_rel_nb: F64 | None,
+        r_t_s: float | None = None,
+        throttle_t_s: float | None = None,
     ) -> None:
         """One magnetometer sample (field as received, mgauss) with its throttle and motor outputs.
 
         r_abs_nb: the trusted attitude (absolute form) or None when it cannot be used now;
         field_ref_n_mgauss: the Earth field (NED) for it. r_rel_nb: the rotation-source attitude for the
-        relative form (gyro-integrated or the autopilot's), None when there is none.
+        relative form (gyro-integrated or the autopilot's), None when there is none. r_t_s, throttle_t_s:
+        the times of that attitude and of that throttle (None: this sample's time). When either is older
+        than the field, the sample waits for the next ones and gets both interpolated to its time: on a
+        telemetry link ATTITUDE and the throttle of an instant often arrive after the RAW_IMU of that
+        instant, so the latest ones are a whole message interval old (1 s at 1 Hz; docs/inflight.md).
         """
         if self._last_fed is not None and t_s - self._last_fed < 0.9 * self._period and t_s > self._last_fed:
             return
@@ -195,20 +210,61 @@ class InflightStage:
         mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
-        x = regressors(throttle_01, mot)
         self._last_fed = t_s
         y = np.asarray(field_mgauss, dtype=float)
+        r_nb = r_abs_nb if self.mode == "absolute" else r_rel_nb
+        if r_nb is None or (self.mode == "absolute" and field_ref_n_mgauss is None):
+            if self.mode == "relative":
+                self.reset_pairs()
+            return
+        late_r = r_t_s is not None and r_t_s < t_s
+        late_thr = throttle_t_s is not None and throttle_t_s < t_s
+        if not (late_r or late_thr or self._pending):
+            self._use(t_s, y, regressors(throttle_01, mot), r_nb, field_ref_n_mgauss)
+            return
+        att, thr = self._att_hist, self._thr_hist
+        t_r = t_s if r_t_s is None else r_t_s
+        t_thr = t_s if throttle_t_s is None else throttle_t_s
+        if not att or t_r > att[-1][0]:
+            att.append((t_r, r_nb))
+        if not thr or t_thr > thr[-1][0]:
+            thr.append((t_thr, throttle_01))
+        for h in (att, thr):
+            while len(h) > 2 and h[1][0] < t_s - 2.0 * MAX_PAIR_S:
+                h.popleft()
+        self._pending.append((t_s, y, mot, field_ref_n_mgauss))
+        self._drain_pending()
+
+    def _drain_pending(self) -> None:
+        """Use every waiting sample whose time the attitude and the throttle have both passed."""
+        att, thr = self._att_hist, self._thr_hist
+        while self._pending:
+            tp, yp, mot, ref = self._pending[0]
+            reached = min(att[-1][0], thr[-1][0])
+            if tp > reached and tp - reached <= MAX_PAIR_S:
+                return  # wait for the next ones
+            self._pending.popleft()
+            if tp > reached:
+                continue  # a source stopped: this one will not be matched
+            r_at = _interpolate_rotation(att, tp)
+            thr_at = _interpolate_scalar(thr, tp)
+            if r_at is not None and thr_at is not None:
+                self._use(tp, yp, regressors(thr_at, mot), r_at, ref)
+
+    def _use(self, t_s: float, y: F64, x: F64, r_nb: F64, field_ref_n_mgauss: F64 | None) -> None:
+        """One sample with its attitude and regressors at its own time: absolute rows, or a relative pair."""
+        assert self.est is not None
         if self.mode == "absolute":
-            if r_abs_nb is None or field_ref_n_mgauss is None:
-                return
-            self._track_yaw(r_abs_nb)
-            rows, z = absolute_rows(r_abs_nb.T @ field_ref_n_mgauss, y, x)
+            assert field_ref_n_mgauss is not None
+            self._track_yaw(r_nb)
+            rows, z = absolute_rows(r_nb.T @ field_ref_n_mgauss, y, x)
             self.est.add(rows, z, float(x[0]))
             self.n_rows += 1
             return
-        if r_rel_nb is None:
-            self._prev = None
-            return
+        self._pair(t_s, r_nb, y, x)
+
+    def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
+        """Pair this sample (rotation-source attitude ``r_rel_nb`` at its time) with an older one."""
         self._track_yaw(r_rel_nb)
         hist = self._hist
         if self._prev is None:  # reset_pairs() was called: nothing before this sample pairs with it
@@ -365,6 +421,35 @@ class InflightStage:
             else sol.motor_theta_mgauss.tolist(),
             "time_s": dict(self.time_s),
         }
+
+
+def _interpolate_rotation(att: deque[tuple[float, F64]], t_s: float) -> F64 | None:
+    """R_nb at ``t_s`` on the geodesic between the source samples around it (None: outside them, or they
+    are more than MAX_PAIR_S apart)."""
+    if att and att[-1][0] == t_s:
+        return att[-1][1]
+    for (t1, r1), (t0, r0) in itertools.pairwise(reversed(att)):  # newest first: the match is near the end
+        if t0 <= t_s <= t1:
+            if t1 - t0 > MAX_PAIR_S:
+                return None
+            if t1 == t0:
+                return r1
+            step = so3_log(r0.T @ r1) * ((t_s - t0) / (t1 - t0))
+            return np.asarray(r0 @ so3_exp(step), dtype=np.float64)
+    return None
+
+
+def _interpolate_scalar(hist: deque[tuple[float, float]], t_s: float) -> float | None:
+    """The value at ``t_s``, linear between the samples around it (None: outside them, or they are more
+    than MAX_PAIR_S apart)."""
+    if hist and hist[-1][0] == t_s:
+        return hist[-1][1]
+    for (t1, v1), (t0, v0) in itertools.pairwise(reversed(hist)):
+        if t0 <= t_s <= t1:
+            if t1 - t0 > MAX_PAIR_S:
+                return None
+            return v1 if t1 == t0 else v0 + (v1 - v0) * (t_s - t0) / (t1 - t0)
+    return None
 
 
 def _horizontal_angle_deg(a: F64, b: F64) -> float:
