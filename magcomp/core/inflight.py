@@ -175,6 +175,15 @@ def rotation_error_rows(q_b1b0: F64, v0_mgauss: F64, dt_s: float) -> F64:
     return -dt_s * np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def reference_yaw_error_rows(r_nb: F64, field_ref_n_mgauss: F64) -> F64:
+    """Column (3, 1) of a small yaw error ``e`` (rad) of the absolute form's reference attitude: with the
+    true attitude ``Rz(e) R_nb``, the Earth field in body axes is ``R_nb^T (h - e [e_3]x h)`` to first order
+    (A ~ I). A nuisance of the absolute form (see :meth:`InflightEstimator.add`)."""
+    return np.asarray(-(r_nb.T @ np.cross((0.0, 0.0, 1.0), field_ref_n_mgauss)), dtype=np.float64).reshape(
+        3, 1
+    )
+
+
 def relative_rows(
     q_b1b0: F64,
     y0_mgauss: F64,
@@ -277,6 +286,8 @@ class InflightEstimator:
         self._w_be = np.zeros(0)
         self._w_zz = 0.0
         self.n_windows = 0
+        #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error)
+        self.nuisance_prior_sd = NUISANCE_PRIOR_RAD_S
 
     @property
     def sigma_mgauss(self) -> float:
@@ -358,7 +369,9 @@ class InflightEstimator:
         """The open window's contribution to (info, rhs, z'z) with its nuisance eliminated. The nuisance
         has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a
         window without rotation information stays solvable."""
-        ridge = (self.p.noise_floor_mgauss / NUISANCE_PRIOR_RAD_S) ** 2
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        ridge = (s_ref / self.nuisance_prior_sd) ** 2  # unit weight: the data rows are not divided by s
         hee = self._w_ee + ridge * np.eye(self._w_ee.shape[0])
         try:
             k_pe = np.linalg.solve(hee, self._w_pe.T).T  # W_pe H_ee^-1
