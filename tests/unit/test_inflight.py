@@ -240,3 +240,37 @@ def test_relative_form_with_the_yaw_rate_nuisance_is_not_fooled_by_an_autopilot_
         results[nuisance] = (th_err, _heading_rms_deg(corrected, u, r))
     assert results[False][0] > 0.10 and results[False][1] > 1.0  # the mechanism is real
     assert results[True][0] < 0.08 and results[True][1] < 0.6, results
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_absolute_form_does_not_inherit_the_reference_compass_yaw_error(seed: int) -> None:
+    """The absolute form's yaw reference is another (external) compass with a residual hard iron of its own:
+    its yaw error (~2 deg, varying with heading) is what an absolute fit would copy. With the windowed
+    reference-yaw nuisance (2 s, prior 2 deg) the corrected heading stays on the truth."""
+    from magcomp.core.inflight import reference_yaw_error_rows
+
+    dt = 0.1
+    r, thr, _ = _flight(3000, seed)
+    y = _measure(r, thr, A_TRUE, D_TRUE, seed, noise=3.0)
+    u = np.einsum("nji,j->ni", r, H_NED)
+    ref_bias = np.array([12.0, -6.0, 0.0])  # the reference compass's residual hard iron, body axes
+    h2 = float(H_NED[0] ** 2 + H_NED[1] ** 2)
+    yaw_err = (u[:, 0] * ref_bias[1] - u[:, 1] * ref_bias[0]) / h2
+    ref = np.array([dcm_from_euler(0.0, 0.0, float(e)) @ rk for e, rk in zip(yaw_err, r, strict=True)])
+    y_clean = u @ A_TRUE.T + np.outer(thr**2, THETA) @ A_TRUE.T + D_TRUE
+    results = {}
+    for nuisance in (False, True):
+        est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
+        est.nuisance_prior_sd = 0.035
+        for k in range(len(thr)):
+            rows, z = absolute_rows(ref[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
+            if nuisance:
+                cols = reference_yaw_error_rows(ref[k], H_NED)
+                est.add(rows, z, float(thr[k] ** 2), cols, math.floor(k * dt / 2.0))
+            else:
+                est.add(rows, z, float(thr[k] ** 2))
+        sol = est.solve()
+        corrected = y_clean @ sol.calib_l.T - sol.calib_d - np.outer(thr**2, sol.theta_mgauss)
+        results[nuisance] = _heading_rms_deg(corrected, u, r)
+    assert results[False] > 0.8  # the reference's error, (mostly) copied
+    assert results[True] < 0.5 * results[False] and results[True] < 0.8, results
