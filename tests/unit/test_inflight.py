@@ -274,3 +274,27 @@ def test_absolute_form_does_not_inherit_the_reference_compass_yaw_error(seed: in
         results[nuisance] = _heading_rms_deg(corrected, u, r)
     assert results[False] > 0.8  # the reference's error, (mostly) copied
     assert results[True] < 0.5 * results[False] and results[True] < 0.8, results
+
+
+def test_stage_matches_a_field_with_the_attitude_and_throttle_of_its_own_time_when_they_arrive_late() -> None:
+    """On a telemetry link the ATTITUDE and the throttle of an instant arrive after its RAW_IMU: each field is
+    fed with those of one interval earlier. Given their times, the stage waits and uses the right ones: the
+    estimate equals that of a feed with on-time values (all but the last sample); without the times it
+    differs."""
+    r, thr, _ = _flight(1200, 5)
+    y = _measure(r, thr, np.eye(3), D_TRUE, 5, noise=2.0)
+    h = float(np.linalg.norm(H_NED))
+
+    def run(stale: bool, with_times: bool) -> np.ndarray:
+        st = InflightStage(0, InflightConfig(), "relative", "test", True, h)
+        for k in range(1, len(thr)):
+            j = k - 1 if stale else k
+            t_src = 0.1 * j if with_times else None
+            st.feed(0.1 * k, y[k], float(thr[j]), (), None, None, r[j], t_src, t_src)
+        assert st.est is not None
+        return st.est.solve().theta_mgauss
+
+    on_time = run(stale=False, with_times=False)
+    matched = float(np.linalg.norm(run(stale=True, with_times=True) - on_time))  # one sample fewer
+    stale = float(np.linalg.norm(run(stale=True, with_times=False) - on_time))
+    assert matched < 0.3 and stale > 4.0 * matched, (matched, stale)
