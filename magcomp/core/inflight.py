@@ -56,6 +56,9 @@ GATE_CHI2_3DOF = 30.66
 #: the smallest residual scale the gate assumes (mgauss): unmodelled effects of 10-20 mgauss are common on
 #: real vehicles (docs/measured-data.md), and a glitch worth rejecting is larger than that
 GATE_SIGMA_FLOOR_MGAUSS = 20.0
+#: prior standard deviation of the relative form's rotation-rate nuisance (rad/s): the gyro-bias clamp of an
+#: attitude filter (MahonyParams.max_bias_rad_s); only keeps a window without rotation solvable
+NUISANCE_PRIOR_RAD_S = 0.2
 #: a stored estimate's standard deviation is widened by this factor when a new run starts from it
 WARM_INFLATE = 2.0
 
@@ -68,16 +71,18 @@ class InflightParams:
     few %; an uncalibrated one within ~30 %). sigma_d_mgauss: hard iron left after the autopilot's
     offsets (a vehicle's hard iron is at most a few hundred mgauss). sigma_theta_mgauss: theta of eq. (11)
     (the paper's Table II: up to ~200 mgauss; measured vehicles up to ~600). sigma_motor_mgauss: each
-    per-motor deviation. noise_floor_mgauss: lower bound on the residual standard deviation (quantisation of
-    1-3 mgauss and the field's local disturbances). heading_ok_deg: the heading uncertainty (1 sigma, from
-    the covariance) below which the estimate is used for correction; heading_converged_deg: below which
-    theta is flagged converged.
+    per-motor deviation. sigma_rot_rad: the compass's misalignment to the IMU (relative form; a board or
+    mast is mounted within a few degrees). noise_floor_mgauss: lower bound on the residual standard
+    deviation (quantisation of 1-3 mgauss and the field's local disturbances). heading_ok_deg: the heading
+    uncertainty (1 sigma, from the covariance) below which the estimate is used for correction;
+    heading_converged_deg: below which theta is flagged converged.
     """
 
     sigma_a: float = 0.3
     sigma_d_mgauss: float = 300.0
     sigma_theta_mgauss: float = 600.0
     sigma_motor_mgauss: float = 150.0
+    sigma_rot_rad: float = 0.05
     noise_floor_mgauss: float = 3.0
     heading_ok_deg: float = 2.0
     heading_converged_deg: float = 1.0
@@ -113,7 +118,19 @@ _SYM_BASIS = np.array(
     ],
     dtype=float,
 )
-N_SOFT = _SYM_BASIS.shape[0]
+#: the antisymmetric part (a compass-to-IMU misalignment, rotations about x, y, z): the relative form
+#: sees x and y from yaw turns, z only through tilt
+_ROT_BASIS = np.array(
+    [
+        [[0, 0, 0], [0, 0, -1], [0, 1, 0]],
+        [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+        [[0, -1, 0], [1, 0, 0], [0, 0, 0]],
+    ],
+    dtype=float,
+)
+_SOFT_BASIS = np.concatenate([_SYM_BASIS, _ROT_BASIS])
+N_SYM = _SYM_BASIS.shape[0]
+N_SOFT = _SOFT_BASIS.shape[0]
 
 
 def n_params(mode: InflightMode, n_motors: int) -> int:
@@ -124,7 +141,7 @@ def n_params(mode: InflightMode, n_motors: int) -> int:
 
 def soft_iron_matrix(e: F64) -> F64:
     """E (3x3, symmetric, traceless) of the relative form's soft-iron parameters."""
-    return np.asarray(np.tensordot(e, _SYM_BASIS, axes=1), dtype=np.float64)
+    return np.asarray(np.tensordot(e, _SOFT_BASIS, axes=1), dtype=np.float64)
 
 
 def regressors(throttle_01: float, motors_01: tuple[float, ...] | None) -> F64:
@@ -149,6 +166,24 @@ def absolute_rows(field_ref_b_mgauss: F64, field_mgauss: F64, x: F64) -> tuple[F
     return rows, np.asarray(field_mgauss, dtype=float)
 
 
+def rotation_error_rows(q_b1b0: F64, v0_mgauss: F64, dt_s: float) -> F64:
+    """Columns (3, 3) of a rotation-rate error ``e`` (rad/s, body axes) held over a pair ``dt_s`` long:
+    the rotation the pair was given is off by ``e dt`` (a gyro-bias error, the autopilot's compass-driven
+    yaw correction), so ``u1 = Q u0 - dt [Q u0]x e`` to first order. A nuisance of the relative form (see
+    :meth:`InflightEstimator.add`)."""
+    w = q_b1b0 @ v0_mgauss
+    return -dt_s * np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def reference_yaw_error_rows(r_nb: F64, field_ref_n_mgauss: F64) -> F64:
+    """Column (3, 1) of a small yaw error ``e`` (rad) of the absolute form's reference attitude: with the
+    true attitude ``Rz(e) R_nb``, the Earth field in body axes is ``R_nb^T (h - e [e_3]x h)`` to first order
+    (A ~ I). A nuisance of the absolute form (see :meth:`InflightEstimator.add`)."""
+    return np.asarray(-(r_nb.T @ np.cross((0.0, 0.0, 1.0), field_ref_n_mgauss)), dtype=np.float64).reshape(
+        3, 1
+    )
+
+
 def relative_rows(
     q_b1b0: F64,
     y0_mgauss: F64,
@@ -167,7 +202,7 @@ def relative_rows(
 
         -(E v1 - Q E v0) + (I - Q) d + sum_r (x1_r I - x0_r Q) theta_r = y1 - Q y0
 
-    E is traceless (see _SYM_BASIS): a common scale would fit every pair with L -> 0."""
+    E is traceless (see _SOFT_BASIS): a common scale would fit every pair with L -> 0."""
     n_r = x0.shape[0]
     eye = np.eye(3)
     k = N_SOFT
@@ -175,7 +210,7 @@ def relative_rows(
     a = y1_mgauss if v1 is None else v1
     b = y0_mgauss if v0 is None else v0
     # column k: -(S_k a - Q S_k b)
-    rows[:, 0:k] = -(np.einsum("kij,j->ik", _SYM_BASIS, a) - q_b1b0 @ np.einsum("kij,j->ik", _SYM_BASIS, b))
+    rows[:, 0:k] = -(np.einsum("kij,j->ik", _SOFT_BASIS, a) - q_b1b0 @ np.einsum("kij,j->ik", _SOFT_BASIS, b))
     rows[:, k : k + 3] = eye - q_b1b0
     for r in range(n_r):
         rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x1[r] * eye - x0[r] * q_b1b0
@@ -202,6 +237,9 @@ class InflightEstimator:
         used as the prior instead of the autopilot's calibration."""
         self.mode: InflightMode = mode
         self.field_norm_mgauss = field_norm_mgauss
+        #: the Earth field (NED, mgauss) for the heading uncertainty; the stage sets the WMM's. Default: the
+        #: norm at 60 deg of inclination
+        self.field_ned_mgauss: F64 = field_norm_mgauss * np.array([0.5, 0.0, math.sqrt(0.75)])
         self.n_motors = n_motors
         self.p = p or InflightParams()
         n = n_params(mode, n_motors)
@@ -213,6 +251,7 @@ class InflightEstimator:
             k = 9
         else:
             prior_sd[0:N_SOFT] = self.p.sigma_a
+            prior_sd[N_SYM:N_SOFT] = min(self.p.sigma_a, self.p.sigma_rot_rad)
             k = N_SOFT
         prior_sd[k : k + 3] = self.p.sigma_d_mgauss
         prior_sd[k + 3 : k + 6] = self.p.sigma_theta_mgauss
@@ -237,6 +276,18 @@ class InflightEstimator:
         self.n_gated = 0
         self._solution: InflightSolution | None = None
         self._dirty = True
+        # the open window of the rotation-rate nuisance (see add): its rows' blocks, folded into info/rhs
+        # by a Schur complement when the window closes
+        self._win: object = None
+        self._w_pp = np.zeros((n, n))
+        self._w_pe = np.zeros((n, 0))
+        self._w_ee = np.zeros((0, 0))
+        self._w_bp = np.zeros(n)
+        self._w_be = np.zeros(0)
+        self._w_zz = 0.0
+        self.n_windows = 0
+        #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error)
+        self.nuisance_prior_sd = NUISANCE_PRIOR_RAD_S
 
     @property
     def sigma_mgauss(self) -> float:
@@ -244,11 +295,12 @@ class InflightEstimator:
         residual sum of squares from the information form, ``z'z - 2 p'b + p'Ip``, over its degrees of
         freedom. (A running mean of a-priori residuals would keep the large residuals of the first samples,
         when the estimate was still the prior, and overstate the noise tenfold.)"""
-        n_dof = 3 * self.n - self.info.shape[0]
+        n_dof = 3 * self.n - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows
         if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
         p = self._theta
-        rss = self._zz - 2.0 * float(p @ self.rhs) + float(p @ self.info @ p)
+        info, rhs, zz = self._effective()
+        rss = zz - 2.0 * float(p @ rhs) + float(p @ info @ p)
         return max(self.p.noise_floor_mgauss, math.sqrt(max(rss, 0.0) / n_dof))
 
     @property
@@ -259,8 +311,14 @@ class InflightEstimator:
         m = self._x0_sum / self.n
         return math.sqrt(max(0.0, self._x0_sq / self.n - m * m))
 
-    def add(self, rows: F64, z: F64, x0: float) -> float:
+    def add(self, rows: F64, z: F64, x0: float, nuisance: F64 | None = None, window: object = None) -> float:
         """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate.
+
+        ``nuisance`` (3, 3): columns of a rotation-rate error held constant over ``window`` (any hashable
+        key; a new key closes the previous window), estimated with the window's rows and eliminated
+        (Schur complement) so that what it can explain informs nothing else. The relative form's
+        rotations carry such slowly varying errors: a gyro bias the attitude filter mis-estimates in
+        accelerated flight, the autopilot's compass-driven yaw correction (docs/inflight.md).
 
         Innovation gate: a sample whose residual is implausible under the predictive covariance
         (noise plus the parameters' own uncertainty; chi-square, 3 dof, p = 1e-6 -> 30.7) is counted in
@@ -282,9 +340,24 @@ class InflightEstimator:
             if m2 > GATE_CHI2_3DOF:
                 self.n_gated += 1
                 return math.sqrt(rn2)
-        self._zz += float(z @ z)
-        self.info += rows.T @ rows
-        self.rhs += rows.T @ z
+        if nuisance is None:
+            self._zz += float(z @ z)
+            self.info += rows.T @ rows
+            self.rhs += rows.T @ z
+        else:
+            if window != self._win:
+                self._close_window()
+                self._win = window
+            k = nuisance.shape[1]
+            if self._w_ee.shape[0] != k:
+                self._w_pe = np.zeros((self.info.shape[0], k))
+                self._w_ee, self._w_be = np.zeros((k, k)), np.zeros(k)
+            self._w_zz += float(z @ z)
+            self._w_pp += rows.T @ rows
+            self._w_pe += rows.T @ nuisance
+            self._w_ee += nuisance.T @ nuisance
+            self._w_bp += rows.T @ z
+            self._w_be += nuisance.T @ z
         self.n += 1
         self.x0_max = max(self.x0_max, x0)
         self._x0_sum += x0
@@ -292,14 +365,54 @@ class InflightEstimator:
         self._dirty = True
         return math.sqrt(rn2)
 
+    def _window_schur(self) -> tuple[F64, F64, float]:
+        """The open window's contribution to (info, rhs, z'z) with its nuisance eliminated. The nuisance
+        has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a
+        window without rotation information stays solvable."""
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        ridge = (s_ref / self.nuisance_prior_sd) ** 2  # unit weight: the data rows are not divided by s
+        hee = self._w_ee + ridge * np.eye(self._w_ee.shape[0])
+        try:
+            k_pe = np.linalg.solve(hee, self._w_pe.T).T  # W_pe H_ee^-1
+            k_e = np.linalg.solve(hee, self._w_be)
+        except np.linalg.LinAlgError:
+            return self._w_pp, self._w_bp, self._w_zz
+        return (
+            self._w_pp - k_pe @ self._w_pe.T,
+            self._w_bp - k_pe @ self._w_be,
+            self._w_zz - float(self._w_be @ k_e),
+        )
+
+    def _close_window(self) -> None:
+        if self._win is None:
+            return
+        info, rhs, zz = self._window_schur()
+        self.info += info
+        self.rhs += rhs
+        self._zz += zz
+        self.n_windows += 1
+        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be):
+            a[...] = 0.0
+        self._w_zz = 0.0
+        self._win = None
+
+    def _effective(self) -> tuple[F64, F64, float]:
+        """(info, rhs, z'z) of every row so far, the open nuisance window included."""
+        if self._win is None:
+            return self.info, self.rhs, self._zz
+        info, rhs, zz = self._window_schur()
+        return self.info + info, self.rhs + rhs, self._zz + zz
+
     def _refresh(self) -> None:
         """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""
         # two rounds: the noise scale weighs data against the prior, and is itself the residual at the
         # estimate (the first round's scale comes from the previous estimate)
+        info, rhs, _ = self._effective()
         for _ in range(2):
             s2 = self.sigma_mgauss**2
-            lam = self.info / s2 + self.prior_info
-            b = self.rhs / s2 + self.prior_info @ self.prior_mean
+            lam = info / s2 + self.prior_info
+            b = rhs / s2 + self.prior_info @ self.prior_mean
             try:
                 cho = np.linalg.cholesky(lam)
             except np.linalg.LinAlgError:
@@ -326,23 +439,54 @@ class InflightEstimator:
         th_raw = p[k + 3 : k + 6]
         mot_raw = p[k + 6 :].reshape(-1, 3)
         th_cov = cov[k + 3 : k + 6, k + 3 : k + 6]
-        d_cov = cov[k : k + 3, k : k + 3]
         th_sd = np.sqrt(np.maximum(np.diag(l_mat @ th_cov @ l_mat.T), 0.0))
-        d_sd = np.sqrt(np.maximum(np.diag(l_mat @ d_cov @ l_mat.T), 0.0))
-        # heading uncertainty: the horizontal error the hard iron and theta leave (at the largest throttle
-        # seen) over the horizontal field, taken as half the field norm the calibration maps to
-        h_horizontal = max(0.5 * self.field_norm_mgauss, 50.0)
-        err = math.hypot(float(np.hypot(d_sd[0], d_sd[1])), float(np.hypot(th_sd[0], th_sd[1])) * self.x0_max)
+
         return InflightSolution(
             calib_l=l_mat,
             calib_d=l_mat @ d_raw,
             theta_mgauss=l_mat @ th_raw,
             motor_theta_mgauss=mot_raw @ l_mat.T,
             theta_sigma_mgauss=th_sd,
-            heading_sigma_deg=math.degrees(math.atan2(err, h_horizontal)),
+            heading_sigma_deg=self._heading_sd_deg(cov),
             residual_rms_mgauss=math.sqrt(s2),
             n=self.n,
         )
+
+    def _heading_sd_deg(self, cov: F64) -> float:
+        """Heading standard deviation (deg) the parameters' joint covariance leaves on a level vehicle,
+        rms over eight headings, at the mean and at the largest delta^2 seen (the larger of the two).
+
+        The corrected field is ``u = (I + E)(y - d - theta x)`` (relative form; ``u = A^-1 (...)``,
+        absolute), so ``du = dE u - dd - x dtheta`` and the heading moves by ``(u_x du_y - u_y du_x) /
+        H^2``. The joint covariance matters: in level yaw turns a compass tilted on its mount leaks the
+        vertical field into a constant horizontal offset, exactly as a hard iron does, so either alone is
+        poorly known while their sum, which is what the heading sees when level, is well known."""
+        h_ned = self.field_ned_mgauss
+        h = max(float(np.hypot(h_ned[0], h_ned[1])), 50.0)
+        v_z = float(h_ned[2])
+        k = self._k
+        n = cov.shape[0]
+        mean_x0 = self._x0_sum / self.n if self.n else 0.0
+        worst = 0.0
+        for x0 in (mean_x0, self.x0_max):
+            var = 0.0
+            for psi in np.radians(np.arange(0.0, 360.0, 45.0)):
+                u = np.array([h * math.cos(psi), -h * math.sin(psi), v_z])
+                jac = np.zeros((3, n))
+                if self.mode == "absolute":
+                    for r in range(3):
+                        jac[r, 3 * r : 3 * r + 3] = -u
+                else:
+                    jac[:, :N_SOFT] = np.einsum("kij,j->ik", _SOFT_BASIS, u)
+                    # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate
+                    # stays 0): it is the same in the corrected and the uncorrected heading
+                    jac[:, N_SOFT - 1] = 0.0
+                jac[:, k : k + 3] = -np.eye(3)
+                jac[:, k + 3 : k + 6] = -x0 * np.eye(3)
+                g = np.array([-u[1], u[0], 0.0]) / (h * h) @ jac
+                var += float(g @ cov @ g)
+            worst = max(worst, var / 8.0)
+        return math.degrees(math.sqrt(worst))
 
     def solve(self) -> InflightSolution:
         """The current estimate (recomputed only when data came in since the last call)."""
@@ -434,10 +578,12 @@ def external_compass(params: dict[str, float], mag_index: int) -> bool | None:
 
 
 def relative_rotation_source(params: dict[str, float], mag_index: int) -> tuple[str, str]:
-    """Where the relative form takes its rotations from: ``attitude`` (the autopilot's) when its yaw is
-    fused from this compass and this compass is external (its own bias is small, and the autopilot's yaw
-    is GPS-aided besides: better than a raw gyro integral), else ``gyro`` (the autopilot's yaw would follow
-    a disturbed compass; the integrated gyro cannot)."""
+    """Where the relative form takes its rotations from: ``attitude`` (the autopilot's) whenever it
+    streams. Its roll and pitch are GPS-aided; its yaw may follow a disturbed compass, but only slowly
+    (the compass correction of its filter), and the relative form carries that slow yaw-rate error as a
+    nuisance (InflightEstimator.add). The pipeline's own gyro integral is the fallback: its bias comes
+    from an accelerometer-only attitude filter, which in accelerated flight takes the thrust axis for
+    down and moves the bias by degrees per second (docs/inflight.md)."""
     if external_compass(params, mag_index):
         return "attitude", "this compass is external (little disturbed): the autopilot's GPS-aided attitude"
-    return "gyro", "the integrated gyro (an attitude steered by a disturbed compass would follow its bias)"
+    return "attitude", "the autopilot's attitude (GPS-aided tilt; its compass-driven yaw drift estimated)"

@@ -36,12 +36,13 @@ def _flight(
 
 @pytest.mark.slow
 def test_internal_primary_compass_is_corrected_without_a_hand_rotation(tmp_path: Path) -> None:
-    """The autopilot's yaw follows the disturbed compass; the relative form uses the gyro, not that yaw."""
+    """The autopilot's yaw follows the disturbed compass; the relative form uses only the rotations between
+    samples (the autopilot's attitude, its slow compass-driven yaw drift estimated), not that yaw."""
     result, path = _flight(tmp_path, ["telemetry_hz=50"])
     rep = replay_log(path, Config(), keep_estimates=True)
     c0 = rep.summary["compasses"][0]
     assert c0["status"] == "corrected", c0["why"]
-    assert c0["inflight"]["form"] == "relative" and c0["inflight"]["rotation"] == "gyro"
+    assert c0["inflight"]["form"] == "relative" and c0["inflight"]["rotation"] == "attitude"
     theta, truth = np.asarray(c0["theta_mgauss"]), np.asarray(result.compasses[0].theta_mgauss)
     assert float(theta @ truth) / (np.linalg.norm(theta) * np.linalg.norm(truth)) > 0.9
     assert abs(np.linalg.norm(theta) / np.linalg.norm(truth) - 1.0) < 0.35

@@ -9,10 +9,10 @@ import math
 import numpy as np
 
 from magcomp.adapters.config import InflightConfig
-from magcomp.core.inflight import N_SOFT
+from magcomp.core.inflight import N_SOFT, N_SYM
 from magcomp.service.inflight_stage import MAX_APPLY_HEADING_SIGMA_DEG, InflightStage
 
-NORM = 500.0  # mgauss; the heading uncertainty is taken against half of it (InflightEstimator.solve)
+NORM = 500.0  # mgauss; at the default 60 deg of inclination the horizontal field is half of it
 FIELD = (100.0, 0.0, 400.0)
 D_MEAN = [300.0, -200.0, 0.0]  # moves the horizontal field from (100, 0) to (-200, 200): 135 deg
 
@@ -33,7 +33,8 @@ def _stage(d_sd: float, applied: bool | None) -> InflightStage:
 
 
 def _sigma_deg(d_sd: float) -> float:
-    return math.degrees(math.atan2(math.hypot(d_sd, d_sd), 0.5 * NORM))
+    # the hard iron's component across the horizontal field (0.5 NORM by default) turns the heading
+    return math.degrees(d_sd / (0.5 * NORM))
 
 
 def test_stored_estimate_not_yet_applied_is_not_applied_when_uncertain() -> None:
@@ -87,4 +88,5 @@ def test_unobserved_parameters_stay_within_the_physical_prior_across_runs() -> N
         warm[1][N_SOFT + 3 : N_SOFT + 6], p.sigma_theta_mgauss
     )  # theta: never observed
     np.testing.assert_allclose(warm[1][N_SOFT : N_SOFT + 3], p.sigma_d_mgauss)
-    np.testing.assert_allclose(warm[1][:N_SOFT], p.sigma_a)
+    np.testing.assert_allclose(warm[1][:N_SYM], p.sigma_a)
+    np.testing.assert_allclose(warm[1][N_SYM:N_SOFT], p.sigma_rot_rad)  # the mount's misalignment
