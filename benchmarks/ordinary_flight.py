@@ -34,12 +34,6 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="simulator knob")
     ap.add_argument("--compass", type=int, default=0, help="compass to score (1 with external_compass0=on)")
-    ap.add_argument("--emulate-sample-times", action="store_true",
-                    help="give the in-flight stage the attitude's and throttle's times, as pipeline.py "
-                         "should (docs/inflight.md, cause 5)")  # fmt: skip
-    args = ap.parse_args()
-    if args.emulate_sample_times:
-        _emulate_sample_times()
 
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.sim import SimConfig, simulate
@@ -48,6 +42,7 @@ def main() -> int:
     cfg = Config()
     oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
                          calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
+    args = ap.parse_args()
     print("rate Hz  seed  causal  two-pass  uncorrected  oracle  causal/oracle  theta err %  status")
     worst: dict[float, list[tuple[float, float, float, float, float]]] = {}
     for rate in args.rates:
@@ -87,29 +82,6 @@ def main() -> int:
         print(f"{rate:7g}  {a[:, 0].max():12.2f}  {a[:, 1].max():14.2f}  {a[:, 2].min():11.2f}  "
               f"{a[:, 3].max():6.2f}  {np.max(a[:, 0] / a[:, 3]):19.2f}  {a[:, 4].max():17.1f}")  # fmt: skip
     return 0
-
-
-def _emulate_sample_times() -> None:
-    """Wrap the pipeline's in-flight step so that the stage gets the times of the attitude and the throttle
-    it is fed (the change docs/inflight.md asks of pipeline.py); measurement only."""
-    from typing import Any
-
-    import magcomp.service.pipeline as pl
-    from magcomp.service.inflight_stage import InflightStage
-
-    step = pl.Pipeline._inflight_step
-    feed: Any = InflightStage.feed
-    times: dict[str, float | None] = {}
-
-    def wrapped_step(self: Any, *a: Any, **k: Any) -> Any:
-        times["r"], times["thr"] = self._att_t, self._thr_t
-        return step(self, *a, **k)
-
-    def wrapped_feed(self: Any, *a: Any) -> None:
-        feed(self, *a[:7], times.get("r"), times.get("thr"))
-
-    setattr(pl.Pipeline, "_inflight_step", wrapped_step)  # noqa: B010 (measurement-only stand-in)
-    setattr(InflightStage, "feed", wrapped_feed)  # noqa: B010
 
 
 if __name__ == "__main__":
