@@ -25,6 +25,7 @@ at least 90 % of the time (at that size and every larger one).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -41,16 +42,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 THETA_PAPER = np.array([-61.0, 26.4, -1.2])
 
-#: effect -> sizes tried (the simulator's VALUE; exponent as given, the others from zero)
+#: effect -> sizes of the upward sweep (the simulator's VALUE; exponent as given, the others from zero), up to
+#: the simulator's physical limit (:data:`magcomp.sim.config.EFFECTS`)
 SIZES: dict[str, list[float]] = {
-    "throttle_offset": [0.03, 0.06, 0.1, 0.15, 0.25],
-    "throttle_exponent": [2.15, 2.3, 2.5, 2.8, 3.2],
-    "current_lag": [0.05, 0.1, 0.2, 0.4, 0.8],
-    "time_skew": [0.03, 0.06, 0.1, 0.2, 0.4],
-    "voltage_sag": [0.1, 0.2, 0.4, 0.7, 1.0],
-    "temperature_drift": [0.25, 0.5, 1.0, 2.0, 4.0],
-    "per_motor": [0.1, 0.2, 0.4, 0.8, 1.6],
+    "throttle_offset": [0.05, 0.1, 0.2, 0.3, 0.45],
+    "throttle_exponent": [2.3, 2.6, 3.0, 3.5, 4.0],
+    "current_lag": [0.05, 0.1, 0.2, 0.4, 0.8, 1.6],
+    "time_skew": [0.03, 0.06, 0.1, 0.2, 0.4, 0.8],
+    "voltage_sag": [0.25, 0.5, 0.75, 1.0],
+    "temperature_drift": [0.5, 1.0, 2.0, 4.0, 5.0],
+    "per_motor": [0.2, 0.4, 0.8, 1.6, 2.0],
 }
+#: a hidden effect is "found" when it is the top finding (alone or in its set of indistinguishable causes) in
+#: at least this share of the observable logs
+POWER = 0.9
+#: bins of the effect's signal that eq. (11) cannot absorb (mgauss rms, :func:`unabsorbed_signal_mgauss`)
+SIGNAL_BINS = (0.0, 1.0, 2.0, 4.0, 8.0, math.inf)
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -66,8 +73,28 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     )
 
 
-def varied_log(seed: int, effect: str, value: float) -> tuple[Any, Any, dict[str, Any]]:
-    """(LogData, EarthReference, what was varied) of one deliberately varied simulation."""
+#: the variations applied to the loaded log, each of which ``varied_log(off=...)`` can switch off (the random
+#: draws are made all the same, so the rest of the log is unchanged): to measure what each one costs
+VARIATIONS = ("mag_rate", "noise", "quantisation", "scale", "attitude", "gyro_bias")
+
+
+def unabsorbed_signal_mgauss(res: Any) -> float:
+    """RMS (mgauss, over the three axes) of the simulated effect's field that the paper's model cannot absorb:
+    the true current-induced bias plus temperature drift, minus its least-squares fit by a constant and
+    theta * throttle^2 (eq. (11)) with the logged throttle. Zero on a clean log. It measures how much the
+    log's own throttle, temperature and motor history let the effect show, whatever its nominal size."""
+    b = res.bias_mgauss[0] + res.drift_mgauss[0]
+    thr = res.motion.throttle_cmd_01
+    x = np.column_stack([np.ones_like(thr), thr**2])
+    beta, *_ = np.linalg.lstsq(x, b, rcond=None)
+    return float(np.sqrt(np.mean((b - x @ beta) ** 2)))
+
+
+def varied_log(
+    seed: int, effect: str, value: float, off: frozenset[str] = frozenset()
+) -> tuple[Any, Any, dict[str, Any]]:
+    """(LogData, EarthReference, what was varied) of one deliberately varied simulation; ``off``: variations
+    (of :data:`VARIATIONS`) not applied."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.core.types import Series
@@ -107,29 +134,32 @@ def varied_log(seed: int, effect: str, value: float) -> tuple[Any, Any, dict[str
         theta_mgauss=(float(theta[0]), float(theta[1]), float(theta[2])),
     )
     res = simulate(cfg)
+    signal = unabsorbed_signal_mgauss(res)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "v.tlog"
         write_tlog(res, path)
         log = load_log(path)
     # --- variation applied to the loaded log
     mag_hz = float(rng.choice([1.0, 2.0, 5.0, 10.0, 25.0, 50.0, 100.0]))
-    mag_hz = min(mag_hz, imu_hz)
+    mag_hz = min(mag_hz, imu_hz) if "mag_rate" not in off else imu_hz
     s = log.mag[0]
     every = max(1, round(imu_hz / mag_hz))
     t, v = s.t_s[::every], s.values[::every].astype(float)
     rho = float(rng.uniform(0.0, 0.95))
     sd = float(rng.uniform(0.0, 4.0))
-    e = rng.normal(0.0, sd * math.sqrt(1.0 - rho**2), v.shape)
+    e = rng.normal(0.0, sd * math.sqrt(1.0 - rho**2), v.shape) * ("noise" not in off)
     for k in range(1, e.shape[0]):
         e[k] += rho * e[k - 1]
-    v = v @ np.diag(1.0 + rng.uniform(-0.1, 0.1, 3)) + e
+    scale = 1.0 + rng.uniform(-0.1, 0.1, 3) * ("scale" not in off)
+    v = v @ np.diag(scale) + e
     lsb = float(rng.choice([0.0, 1.0, 2.0, 3.0]))
-    if lsb > 0:
+    if lsb > 0 and "quantisation" not in off:
         v = np.round(v / lsb) * lsb
     att = log.attitude_rad
     av = att.values.copy()
-    av[:, :2] += np.radians(rng.normal(0.0, 1.0, 2)) + np.radians(rng.normal(0.0, 0.5, (av.shape[0], 2)))
-    gyro = log.gyro_rad_s + rng.normal(0.0, 0.005, 3)
+    att_err = np.radians(rng.normal(0.0, 1.0, 2)) + np.radians(rng.normal(0.0, 0.5, (av.shape[0], 2)))
+    av[:, :2] += att_err * ("attitude" not in off)
+    gyro = log.gyro_rad_s + rng.normal(0.0, 0.005, 3) * ("gyro_bias" not in off)
     imu_t, acc = log.imu_t_s, log.accel_m_s2
     if mag_hz < 5.0:  # a telemetry log: RAW_IMU carries the gyro at the compass rate
         imu_t, gyro, acc = imu_t[::every], gyro[::every], acc[::every]
@@ -144,8 +174,24 @@ def varied_log(seed: int, effect: str, value: float) -> tuple[Any, Any, dict[str
     earth = EarthReference(
         earth_field_ned_mgauss(loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year), "simulated place"
     )
-    varied = {"scenario": scenario, "vehicle": vehicle, "mag_hz": mag_hz, "imu_hz": imu_hz}
+    varied = {
+        "scenario": scenario,
+        "vehicle": vehicle,
+        "mag_hz": mag_hz,
+        "imu_hz": imu_hz,
+        "signal_mgauss": round(signal, 2),
+    }
     return log, earth, varied
+
+
+_P: Any = None
+
+
+def _init_worker(min_delta_bic: float | None) -> None:
+    global _P
+    from magcomp.diagnosis.selection import SelectionParams
+
+    _P = SelectionParams() if min_delta_bic is None else SelectionParams(min_delta_bic=min_delta_bic)
 
 
 def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
@@ -156,13 +202,14 @@ def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
     log, earth, varied = varied_log(seed, effect, value)
     t0 = time.perf_counter()
     try:
-        j = diagnose(log, earth=earth).to_json()
+        j = diagnose(log, earth=earth, p=_P).to_json()
     except Exception as exc:  # a crash is a result too: report it
         return {"seed": seed, "effect": effect, "value": value, "error": repr(exc)}
     c = j["compasses"][0]
     names: list[str] = []
     for f in c["findings"]:
         names += f.get("candidates", [f["effect"]])
+    top = c["findings"][0] if c["findings"] else None
     return {
         "seed": seed,
         "effect": effect,
@@ -172,46 +219,80 @@ def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
         "observable": c["observable"],
         "why": c["unobservable_why"],
         "findings": names,
-        "top": c["findings"][0]["effect"] if c["findings"] else None,
+        "findings_delta_bic": [f["evidence"].get("delta_bic") for f in c["findings"]],
+        "top": None if top is None else top["effect"],
+        "top_set": [] if top is None else top.get("candidates", [top["effect"]]),
+        "top_params": None if top is None else top["params"],
         "structure": [u["kind"] for u in c["unexplained_structure"]],
+        "rejected": {k: v.get("why") for k, v in c["rejected"].items()},
+        "rms_baseline": c["residual_rms_baseline"],
         "seconds": round(time.perf_counter() - t0, 2),
     }
 
 
+def _seed(effect: str, m: int, r: int) -> int:
+    return 20_000 + 1000 * list(SIZES).index(effect) + 100 * m + r
+
+
+def _found_share(recs: list[dict[str, Any]]) -> tuple[int, int]:
+    obs = [o for o in recs if "error" not in o and o["observable"]]
+    return sum(o["effect"] in o["top_set"] for o in obs), len(obs)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clean", type=int, default=60, help="clean logs (default 60)")
-    ap.add_argument("--per-size", type=int, default=8, help="logs per effect and size (default 8)")
+    ap.add_argument("--clean", type=int, default=60, help="clean logs (default 60; 0: none)")
+    ap.add_argument("--clean-seed", type=int, default=10_000, help="first seed of the clean logs")
+    ap.add_argument("--n", type=int, default=20, help="logs per effect and size (default 20)")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--effects", nargs="*", default=list(SIZES))
+    ap.add_argument(
+        "--effects", nargs="*", default=list(SIZES), help="effects to sweep (default all; none: [])"
+    )
+    ap.add_argument("--full", action="store_true", help="every size, not only up to the first one found")
+    ap.add_argument(
+        "--min-delta-bic", type=float, default=None, help="override SelectionParams.min_delta_bic"
+    )
     ap.add_argument("--jsonl", default=None, help="append every run's record here as it finishes")
-    ap.add_argument("--summarise", default=None, help="only summarise the records of an earlier --jsonl")
+    ap.add_argument("--summarise", nargs="*", default=None, help="only summarise earlier --jsonl files")
     args = ap.parse_args()
 
-    jobs: list[tuple[int, str, float]] = [(10_000 + i, "", 0.0) for i in range(args.clean)]
-    for k, eff in enumerate(args.effects):
-        for m, size in enumerate(SIZES[eff]):
-            for r in range(args.per_size):
-                jobs.append((20_000 + 1000 * k + 100 * m + r, eff, size))
     t0 = time.perf_counter()
     out: list[dict[str, Any]] = []
     if args.summarise:
-        for line in Path(args.summarise).read_text(encoding="utf-8").splitlines():
-            out.append(json.loads(line))
-    else:
-        # clean logs first, then effects interleaved, so a partial run still covers every effect
-        jobs.sort(key=lambda j: (j[1] != "", j[0] % 100, j[0]))
-        sink = open(args.jsonl, "w", encoding="utf-8") if args.jsonl else None  # noqa: SIM115
-        with Pool(args.workers) as pool:
-            for rec in pool.imap_unordered(run_one, jobs, chunksize=1):
-                out.append(rec)
-                if sink is not None:
-                    sink.write(json.dumps(rec) + "\n")
-                    sink.flush()
-        if sink is not None:
-            sink.close()
-    wall = time.perf_counter() - t0
-    summarise(out, args.effects, wall, args.workers)
+        for name in args.summarise:
+            for line in Path(name).read_text(encoding="utf-8").splitlines():
+                out.append(json.loads(line))
+        summarise(out, [e for e in SIZES if any(o["effect"] == e for o in out)], 0.0, args.workers)
+        return 0
+    sink = open(args.jsonl, "a", encoding="utf-8") if args.jsonl else None  # noqa: SIM115
+
+    def run(jobs: list[tuple[int, str, float]], pool: Any) -> list[dict[str, Any]]:
+        got = []
+        for rec in pool.imap_unordered(run_one, jobs, chunksize=1):
+            got.append(rec)
+            if sink is not None:
+                sink.write(json.dumps(rec) + "\n")
+                sink.flush()
+        return got
+
+    with Pool(args.workers, initializer=_init_worker, initargs=(args.min_delta_bic,)) as pool:
+        out += run([(args.clean_seed + i, "", 0.0) for i in range(args.clean)], pool)
+        # the upward sweep, one size per round for every effect still below POWER
+        active = list(args.effects)
+        for m in range(max((len(SIZES[e]) for e in active), default=0)):
+            jobs = [
+                (_seed(e, m, r), e, SIZES[e][m]) for e in active if m < len(SIZES[e]) for r in range(args.n)
+            ]
+            got = run(jobs, pool)
+            out += got
+            if not args.full:
+                for e in list(active):
+                    hit, n_obs = _found_share([o for o in got if o["effect"] == e])
+                    if n_obs and hit >= POWER * n_obs:
+                        active.remove(e)
+    if sink is not None:
+        sink.close()
+    summarise(out, list(args.effects), time.perf_counter() - t0, args.workers)
     return 0
 
 
@@ -223,12 +304,16 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
     fa = [o for o in obs if o["findings"]]
     st = [o for o in obs if o["structure"]]
     print(f"{len(out)} logs in {wall:.0f} s ({workers} workers); {len(errors)} errors")
-    print(
-        f"clean logs: {len(clean)}; not observable (gate): {len(clean) - len(obs)}; "
-        f"named finding on an observable compass: {len(fa)}/{len(obs)} = "
-        f"{100 * len(fa) / max(len(obs), 1):.1f} %; "
-        f"unexplained structure: {len(st)}/{len(obs)} = {100 * len(st) / max(len(obs), 1):.1f} %"
-    )
+    for o in errors:
+        print(f"  error seed {o['seed']} {o['effect']}={o['value']}: {o['error']}")
+    if clean:
+        k, n = len(fa), len(obs)
+        print(
+            f"clean logs: {len(clean)}; not observable (gate): {len(clean) - n}; "
+            f"named finding on an observable compass: {k}/{n} = {100 * k / max(n, 1):.1f} % "
+            f"(95 % upper bound {100 * _upper95(k, n):.1f} %); "
+            f"unexplained structure: {len(st)}/{n} = {100 * len(st) / max(n, 1):.1f} %"
+        )
     for o in fa:
         print(f"  false alarm seed {o['seed']}: {o['findings']} (mag {o['mag_hz']} Hz, {o['scenario']})")
     why: dict[str, int] = {}
@@ -236,31 +321,63 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
         if not o["observable"]:
             key = o["why"].split(":")[0][:60]
             why[key] = why.get(key, 0) + 1
-    for k, n in sorted(why.items(), key=lambda kv: -kv[1]):
-        print(f"  not observable x{n}: {k}")
-    print(
-        "\neffect | size: found / observable (all mag rates) | found at >= 5 Hz | 90 % size (all / >= 5 Hz)"
-    )
+    for k2, n2 in sorted(why.items(), key=lambda kv: -kv[1]):
+        print(f"  not observable x{n2}: {k2}")
+    print("\neffect | size: top finding / observable | smallest size at >= 90 %")
     for eff in effects:
-        cells, cells5 = [], []
-        rates, rates5 = [], []
+        cells = []
+        first = "not reached"
         for size in SIZES[eff]:
-            runs = [o for o in ok if o["effect"] == eff and o["value"] == size and o["observable"]]
-            fast = [o for o in runs if o["mag_hz"] >= 5.0]
-            hit = sum(eff in o["findings"] for o in runs)
-            hit5 = sum(eff in o["findings"] for o in fast)
-            rates.append(hit / len(runs) if runs else 0.0)
-            rates5.append(hit5 / len(fast) if fast else 0.0)
-            cells.append(f"{size}: {hit}/{len(runs)}")
-            cells5.append(f"{hit5}/{len(fast)}")
+            runs = [o for o in ok if o["effect"] == eff and o["value"] == size]
+            if not runs:
+                continue
+            hit, n_obs = _found_share(runs)
+            cells.append(f"{size}: {hit}/{n_obs}")
+            if first == "not reached" and n_obs and hit >= POWER * n_obs:
+                first = f"{size} ({hit}/{n_obs})"
+        print(f"{eff} | {', '.join(cells)} | {first}")
+    print("\nby the signal eq. (11) cannot absorb (mgauss rms): top finding / observable")
+    print("effect | " + " | ".join(f"{a:g}-{b:g}" for a, b in itertools.pairwise(SIGNAL_BINS)))
+    for eff in effects:
+        row = []
+        for a, b in itertools.pairwise(SIGNAL_BINS):
+            runs = [o for o in ok if o["effect"] == eff and a <= o.get("signal_mgauss", -1.0) < b]
+            hit, n_obs = _found_share(runs)
+            row.append(f"{hit}/{n_obs}")
+        print(f"{eff} | " + " | ".join(row))
+    wrong = [
+        o for o in ok if o["effect"] and o["observable"] and o["top"] and o["effect"] not in o["top_set"]
+    ]
+    print(f"\ntop finding names another effect: {len(wrong)} logs")
+    for o in wrong[:20]:
+        print(f"  {o['effect']}={o['value']} seed {o['seed']}: top {o['top']}")
+    lost: dict[str, dict[str, int]] = {}
+    for o in ok:
+        if o["effect"] and o["observable"] and o["effect"] not in o["top_set"]:
+            why_e = str(
+                o["rejected"].get(o["effect"], "named, not top" if o["effect"] in o["findings"] else "?")
+            )
+            key = (
+                why_e.split(" ")[0]
+                if why_e.startswith(("effective", "tau_s", "sag", "offset"))
+                else why_e[:40]
+            )
+            lost.setdefault(o["effect"], {})
+            lost[o["effect"]][key] = lost[o["effect"]].get(key, 0) + 1
+    print("\nwhy a hidden effect was not the top finding (observable logs):")
+    for eff, d in lost.items():
+        print(f"  {eff}: " + ", ".join(f"{k} x{v}" for k, v in sorted(d.items(), key=lambda kv: -kv[1])))
 
-        def size90(r: list[float], eff: str = eff) -> str:
-            for i in range(len(r)):
-                if all(x >= 0.9 for x in r[i:]):
-                    return str(SIZES[eff][i])
-            return "not reached"
 
-        print(f"{eff} | {', '.join(cells)} | {', '.join(cells5)} | {size90(rates)} / {size90(rates5)}")
+def _upper95(k: int, n: int) -> float:
+    """Clopper-Pearson 95 % one-sided upper bound of a rate seen k times in n."""
+    if n == 0:
+        return 1.0
+    if k >= n:
+        return 1.0
+    from scipy.stats import beta
+
+    return float(beta.ppf(0.95, k + 1, n - k))
 
 
 if __name__ == "__main__":
