@@ -35,8 +35,8 @@ from magcomp.diagnosis.rivals import (
     GROUPS,
     RIVAL_DELTA_BIC,
     group_of,
-    indistinguishable,
     motors_identified,
+    rival_set,
     temperature_beats_time,
     time_shapes,
 )
@@ -597,15 +597,13 @@ def diagnose_compass(
         members = {c.fit.effects[0]: c for c in singles if group_of(c.fit.effects[0]) == group}
         if len(members) < 2:
             continue
-        same = indistinguishable({k: c.delta_bic for k, c in members.items()}, RIVAL_DELTA_BIC)
+        same, gap = rival_set({k: c.fit for k, c in members.items()}, RIVAL_DELTA_BIC)
         if len(same) < 2:
             continue
         best = same[0]
         candidates[best] = same
         candidate_params[best] = {
-            k: _params_json(members[k].fit, k, data)
-            | {"delta_bic_vs_best": _r(members[k].delta_bic - members[best].delta_bic)}
-            for k in same
+            k: _params_json(members[k].fit, k, data) | {"delta_bic_vs_best": _r(gap[k])} for k in same
         }
         for k in same[1:]:
             singles.remove(members[k])
@@ -717,7 +715,7 @@ def step_candidate(
     if not (
         cmp.cv_gain >= p.min_cv_gain
         and in_sample >= p.min_cv_gain
-        and cmp.delta_bic <= -p.min_delta_bic - extra_penalty
+        and cmp.delta_bic <= -p.min_delta_bic_structure - extra_penalty
     ):
         return None
     # a slow drift (temperature, a settling hard iron) is not a step: the step must beat every smooth time

@@ -6,7 +6,7 @@ An extension is kept only when *both* hold, relative to the model it extends:
   by a model fitted (nonlinear and linear parameters) on the others. Blocks in time, not random samples,
   because neighbouring samples share slow errors and a random split would reward overfitting. The held-out
   RMS must improve by at least ``min_cv_gain`` (relative).
-- BIC (Bayesian information criterion) of the in-sample fit must fall by at least ``min_delta_bic``. The BIC
+- BIC (Bayesian information criterion) of the in-sample fit must fall by ``min_delta_bic`` (30). The BIC
   is computed with an effective sample size, 3 n divided by Bartlett's variance factor of the regression of
   the reference residual on what the extension explains (:func:`bartlett_factor`), because a Gaussian
   likelihood over n correlated samples counts the same slow error many times: with coloured sensor noise or
@@ -33,10 +33,22 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class SelectionParams:
+    """n_folds: blocked cross-validation folds; min_cv_gain: relative held-out RMS gain an extension needs;
+    min_delta_bic: effective-BIC drop a named cause needs; min_delta_bic_structure: the same for a field step
+    of the open search (plus ln(3n) for its searched time); max_nfev: nonlinear fit budget.
+
+    min_delta_bic = 30 is set from the measured false-alarm tail, not tuned for power: with it at 10, 3 of
+    100 observable clean varied simulations (``benchmarks/diagnosis_false_alarm.py``, seeds 10000-10059 and
+    10100-10159) gave a named finding, at effective delta BIC -15, -19 and -27, and none beyond; 30 is the
+    first round margin past that tail. The false-alarm rate is then measured on clean seeds not used for the
+    choice (10200 on). The open search keeps 50: a step is not one of the named causes and needs no power
+    bought at the price of clean-log structure (at 10, 3 of 100 clean logs showed a step)."""
+
     n_folds: int = 5
     min_cv_gain: float = 0.01
-    min_delta_bic: float = 50.0
+    min_delta_bic: float = 30.0
     max_nfev: int = 200
+    min_delta_bic_structure: float = 50.0
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,266 @@
+"""Held-out check of `magcomp diagnose`: one hidden effect per log, simulated with settings no test uses.
+
+The tests (``tests/integration/test_diagnose_effects.py``) hide each effect in the simulator's ``bench`` /
+``paper`` runs at the default rates (50 Hz), white compass noise and the default autopilot. Here every log
+is simulated with what those tests never use (the simulator's variation knobs, :mod:`magcomp.sim.config`):
+other rates (compass 20 Hz or 75 Hz held inside a 40 / 100 Hz RAW_IMU, attitude at 10-25 Hz), coloured
+compass noise (AR(1) 3-5 mgauss with 2-8 s correlation, a random walk), another quantisation, the
+autopilot's own compass calibration applied before logging (residual hard iron and soft iron), a slower or
+faster autopilot yaw filter, attitude errors, another place on Earth, another theta size and hover throttle.
+
+Checked per log: the hidden effect is the top finding (alone, or inside the set of causes the data cannot
+tell apart), and its fitted parameter lies inside its reported 95 % interval around the simulated value
+(nonlinear parameters: the profile-likelihood interval; temperature: every axis of the coefficient inside its
+half-width, against the drift the log shows per degC of its own (IMU) temperature; per-motor: the spread,
+which has no interval, within 40 % of the simulated value).
+
+Measured on this checkout (2026-11-23): 5 / 7 top finding with the simulated value inside its interval
+(offset 0.183 [0.134, 0.229] and sag 0.801 [0.657, 0.934] inside a set with the exponent; exponent 2.97
+[2.85, 3.09]; lag 0.293 s [0.197, 0.413]; skew 0.168 s [0.146, 0.190]). temperature_drift is the top
+finding but its coefficient, 11.3 mgauss per logged degC against a true 9.8, is 1.4-2.0x its per-axis
+half-widths off. per_motor is not found: raw delta BIC -579 but effective -11 under the AR(1) noise.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+#: effect -> (scenario, vehicle, duration_s, value, seed, settings); the settings are the held-out conditions
+CASES: dict[str, tuple[str, str, float, float, int, dict[str, object]]] = {
+    "throttle_offset": (
+        "bench",
+        "fixedwing",
+        60.0,
+        0.2,
+        101,
+        {
+            "mag_hz": 20,
+            "raw_imu_hz": 40,
+            "attitude_hz": 10,
+            "mag_ar1_sigma_mgauss": 3,
+            "mag_ar1_tau_s": 5,
+            "ap_calibration": "on",
+            "ap_kp_yaw": 0.2,
+            "lat_deg": -33.9,
+            "lon_deg": 18.4,
+            "theta_scale": 1.5,
+        },
+    ),
+    "throttle_exponent": (
+        "bench",
+        "fixedwing",
+        60.0,
+        3.0,
+        102,
+        {
+            "mag_hz": 75,
+            "raw_imu_hz": 100,
+            "attitude_hz": 25,
+            "mag_rw_mgauss_per_sqrt_s": 0.3,
+            "mag_lsb_mgauss": 3,
+            "ap_kp_tilt": 3,
+            "att_noise_deg": 0.3,
+            "lat_deg": 64.1,
+            "lon_deg": -21.9,
+        },
+    ),
+    "current_lag": (
+        "paper",
+        "fixedwing",
+        60.0,
+        0.3,
+        103,
+        {
+            "mag_hz": 20,
+            "raw_imu_hz": 40,
+            "attitude_hz": 20,
+            "mag_ar1_sigma_mgauss": 4,
+            "mag_ar1_tau_s": 2,
+            "ap_calibration": "on",
+            "ap_cal_hard_iron_mgauss": 30,
+            "ap_cal_soft_iron": 0.04,
+            "att_roll_bias_deg": 1.5,
+            "lat_deg": 35.7,
+            "lon_deg": 139.7,
+        },
+    ),
+    "time_skew": (
+        "paper",
+        "fixedwing",
+        60.0,
+        0.15,
+        104,
+        {
+            "mag_hz": 75,
+            "raw_imu_hz": 100,
+            "mag_ar1_sigma_mgauss": 3,
+            "mag_ar1_tau_s": 8,
+            "ap_kp_yaw": 1.5,
+            "mag_noise_scale": 0.5,
+            "lat_deg": -45.9,
+            "lon_deg": 170.5,
+        },
+    ),
+    "voltage_sag": (
+        "bench",
+        "multirotor",
+        60.0,
+        0.8,
+        105,
+        {
+            "mag_hz": 20,
+            "raw_imu_hz": 40,
+            "attitude_hz": 10,
+            "mag_ar1_sigma_mgauss": 3,
+            "mag_ar1_tau_s": 4,
+            "current_max_a": 80,
+            "theta_scale": 3,
+            "ap_calibration": "on",
+            "lat_deg": 19.4,
+            "lon_deg": -99.1,
+        },
+    ),
+    "temperature_drift": (
+        "paper",
+        "fixedwing",
+        60.0,
+        3.0,
+        106,
+        {
+            "mag_hz": 75,
+            "raw_imu_hz": 100,
+            "attitude_hz": 25,
+            "mag_rw_mgauss_per_sqrt_s": 0.2,
+            "gyro_noise_scale": 3,
+            "ap_kp_yaw": 0.2,
+            "lat_deg": 1.3,
+            "lon_deg": 103.8,
+        },
+    ),
+    "per_motor": (
+        "paper",
+        "multirotor",
+        60.0,
+        1.2,
+        107,
+        {
+            "mag_hz": 20,
+            "raw_imu_hz": 40,
+            "attitude_hz": 20,
+            "mag_ar1_sigma_mgauss": 3,
+            "mag_ar1_tau_s": 3,
+            "theta_scale": 2,
+            "ap_calibration": "on",
+            "att_noise_deg": 0.2,
+            "lat_deg": 60.2,
+            "lon_deg": 24.9,
+        },
+    ),
+}
+
+
+def run_case(effect: str) -> dict[str, Any]:
+    """Simulate the held-out log of ``effect``, diagnose it, check the top finding and its interval."""
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.adapters.mavlink_source import load_log
+    from magcomp.diagnosis.engine import diagnose
+    from magcomp.diagnosis.gate import EarthReference
+    from magcomp.sim import SimConfig, simulate
+    from magcomp.sim.config import apply_settings
+
+    scenario, vehicle, duration, value, seed, settings = CASES[effect]
+    cfg = SimConfig(
+        scenario=scenario,
+        duration_s=duration,
+        seed=seed,
+        effects={effect: value},
+        vehicle=vehicle,
+        n_compasses=1,
+    )
+    cfg = apply_settings(cfg, dict(settings))
+    res = simulate(cfg)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "h.tlog"
+        write_tlog(res, path)
+        log = load_log(path)
+    earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
+    c = diagnose(log, earth=earth).to_json()["compasses"][0]
+    out: dict[str, Any] = {"effect": effect, "value": value, "observable": c["observable"]}
+    top = c["findings"][0] if c["findings"] else None
+    out["findings"] = [f["effect"] for f in c["findings"]]
+    out["top"] = None if top is None else top.get("candidates", [top["effect"]])
+    out["is_top"] = bool(top is not None and effect in out["top"])
+    params: dict[str, Any] = {}
+    if top is not None and effect in out["top"]:
+        params = top["params"] if effect == top["effect"] else top.get("candidate_params", {}).get(effect, {})
+    out["params"] = params
+    truth = value
+    if effect == "temperature_drift":
+        truth = logged_temperature_coefficient(res)
+        out["k_true_logged"] = [round(float(v), 3) for v in truth]
+    out["inside"] = parameter_inside(effect, truth, params)
+    return out
+
+
+def logged_temperature_coefficient(res: Any) -> Any:
+    """The simulated temperature drift as the log shows it: mgauss per degC of the LOGGED (IMU) temperature,
+    in the frame of the logged field, (3,). The simulator's VALUE is per degC of the powertrain, which no log
+    carries; the IMU temperature follows it with a coupling factor (:mod:`magcomp.sim.powertrain`), so the
+    truth to compare with is the least-squares slope of the logged-frame drift on the logged temperature."""
+    import numpy as np
+
+    l_matrix, _ = res.true_calibration(0)
+    drift_logged = np.linalg.solve(l_matrix, res.drift_mgauss[0].T).T
+    temp = res.power.temp_imu_degc
+    x = np.column_stack([np.ones_like(temp), temp])
+    beta, *_ = np.linalg.lstsq(x, drift_logged, rcond=None)
+    return beta[1]
+
+
+def parameter_inside(effect: str, value: Any, params: dict[str, Any]) -> bool:
+    """Is the simulated ``value`` inside the finding's 95 % interval (see the module docstring)? For
+    temperature_drift ``value`` is the (3,) logged-frame coefficient and every axis must be inside."""
+    import numpy as np
+
+    from magcomp.diagnosis.effects import EFFECTS
+
+    p = EFFECTS[effect].param
+    if not params:
+        return False
+    if p is not None:
+        ci = params.get(f"{p}_ci95")
+        return bool(ci is not None and ci[0] <= value <= ci[1])
+    if effect == "temperature_drift":
+        k = float(params["mgauss_per_degc"]) * np.asarray(params["direction"], dtype=float)
+        hw = np.asarray(params["mgauss_per_degc_ci95_halfwidth_per_axis"], dtype=float)
+        return bool(np.all(np.abs(k - np.asarray(value, dtype=float)) <= hw))
+    return abs(float(params["spread"]) - value) <= 0.4 * value
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--effects", nargs="*", default=list(CASES))
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    from multiprocessing import Pool
+
+    with Pool(args.workers) as pool:
+        rows = pool.map(run_case, args.effects, chunksize=1)
+    for r in rows:
+        print(json.dumps(r))
+    ok = sum(r["is_top"] and r["inside"] for r in rows)
+    print(f"top finding with the value inside its interval: {ok}/{len(rows)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
