@@ -51,7 +51,7 @@ def interpreter_tuning(command: str) -> Iterator[None]:
             yield
         finally:
             gc.enable()
-    elif command == "run":
+    elif command in ("run", "demo"):  # the demo runs the same daemon (a thread) and prints its latency
         # The link's heavy modules (pymavlink and its dialect: thousands of classes) imported now, then
         # moved out of the collector's reach: a full collection over them stalled the sample loop ~40 ms
         # (1 kHz live p99 up to 57 ms; docs/benchmarks.md, live latency). Background threads (refined

@@ -88,6 +88,19 @@ def mahony_update(q: F64, b: F64, gyro: F64, accel: F64, dt: float, p: MahonyPar
 # --- low-pass ------------------------------------------------------------------------------------------
 
 
+def heading_deg(field_b: F64, roll: F64, pitch: F64) -> F64:
+    """Tilt-compensated eq. (24) on arrays, (n, 3) fields and (n,) angles: the field de-rotated by the roll
+    and pitch rotation matrices into the level frame, then ``atan2(-y, x)`` in [0, 360) deg."""
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    one, zero = np.ones_like(roll), np.zeros_like(roll)
+    rows_x = ((one, zero, zero), (zero, cr, -sr), (zero, sr, cr))
+    rows_y = ((cp, zero, sp), (zero, one, zero), (-sp, zero, cp))
+    rx = np.stack([np.stack(r, -1) for r in rows_x], -2)
+    ry = np.stack([np.stack(r, -1) for r in rows_y], -2)
+    level = np.einsum("nij,njk,nk->ni", ry, rx, field_b)
+    return np.asarray(np.mod(np.degrees(np.arctan2(-level[:, 1], level[:, 0])), 360.0), dtype=float)
+
+
 def biquad_ba(corner_hz: float, order: int, dt: float) -> tuple[F64, F64]:
     fs = 1.0 / dt
     fc = min(corner_hz, 0.45 * fs)

@@ -23,24 +23,25 @@ from magcomp.core.rotations import euler_from_quat
 F64 = NDArray[np.float64]
 
 
+def heading_from_trig_deg(
+    mx: float, my: float, mz: float, cos_roll: float, sin_roll: float, cos_pitch: float, sin_pitch: float
+) -> float:
+    """Tilt-compensated eq. (24) for one sample, in [0, 360) deg: the body field ``(mx, my, mz)`` (mgauss)
+    de-rotated by roll and pitch (given as their cosines and sines, computed once per attitude sample) into
+    the level frame, then ``atan2(-m_y_level, m_x_level)``. The one place the formula is written; the
+    per-sample path (magcomp.service.heading) calls it, the array forms below loop over it."""
+    y_l = cos_roll * my - sin_roll * mz  # after Rx(roll)
+    x_l = cos_pitch * mx + sin_pitch * (sin_roll * my + cos_roll * mz)  # after Ry(pitch)
+    return math.degrees(math.atan2(-y_l, x_l)) % 360.0  # eq. (24), quadrant-resolved
+
+
 def heading_level_deg(m_x: ArrayLike, m_y: ArrayLike) -> F64:
-    """Eq. (24) for a level vehicle, quadrant-resolved: ``atan2(-m_y, m_x)`` in [0, 360) deg."""
-    psi = np.degrees(np.arctan2(-np.asarray(m_y, dtype=float), np.asarray(m_x, dtype=float)))  # eq. (24)
-    return np.mod(psi, 360.0)
-
-
-def field_level_frame(field_b_mgauss: ArrayLike, roll_rad: ArrayLike, pitch_rad: ArrayLike) -> F64:
-    """Rotate body-FRD vectors into the level frame: ``Ry(pitch) @ Rx(roll) @ m``. Shapes (3,) or (n, 3)."""
-    m = np.asarray(field_b_mgauss, dtype=float)
-    phi = np.asarray(roll_rad, dtype=float)
-    th = np.asarray(pitch_rad, dtype=float)
-    mx, my, mz = m[..., 0], m[..., 1], m[..., 2]
-    cr, sr, cp, sp = np.cos(phi), np.sin(phi), np.cos(th), np.sin(th)
-    y_r = cr * my - sr * mz  # after Rx(roll)
-    z_r = sr * my + cr * mz
-    x_l = cp * mx + sp * z_r  # after Ry(pitch)
-    z_l = -sp * mx + cp * z_r
-    return np.stack([x_l, y_r, z_l], axis=-1)
+    """Eq. (24) for a level vehicle, quadrant-resolved: ``atan2(-m_y, m_x)`` in [0, 360) deg (arrays;
+    :func:`heading_from_trig_deg` at zero roll and pitch)."""
+    mx, my = np.broadcast_arrays(np.asarray(m_x, dtype=float), np.asarray(m_y, dtype=float))
+    xs, ys = mx.ravel().tolist(), my.ravel().tolist()
+    out = [heading_from_trig_deg(x, y, 0.0, 1.0, 0.0, 1.0, 0.0) for x, y in zip(xs, ys, strict=True)]
+    return np.array(out, dtype=float).reshape(mx.shape)
 
 
 def tilt_compensated_heading_deg(
@@ -49,7 +50,8 @@ def tilt_compensated_heading_deg(
     pitch_rad: ArrayLike,
     declination_deg: float = 0.0,
 ) -> F64:
-    """Heading in [0, 360) deg from the corrected body field and roll/pitch (vectorised).
+    """Heading in [0, 360) deg from the corrected body field and roll/pitch (arrays; a loop over
+    :func:`heading_from_trig_deg`, used off the per-sample path).
 
     Parameters
     ----------
@@ -59,8 +61,15 @@ def tilt_compensated_heading_deg(
 
     Returns a 0-d array for one sample, (n,) otherwise.
     """
-    lvl = field_level_frame(field_b_mgauss, roll_rad, pitch_rad)
-    return np.mod(heading_level_deg(lvl[..., 0], lvl[..., 1]) + declination_deg, 360.0)
+    m = np.asarray(field_b_mgauss, dtype=float)
+    shape = m.shape[:-1]
+    phi = np.broadcast_to(np.asarray(roll_rad, dtype=float), shape).ravel().tolist()
+    th = np.broadcast_to(np.asarray(pitch_rad, dtype=float), shape).ravel().tolist()
+    rows = m.reshape(-1, 3).tolist()
+    cos, sin = math.cos, math.sin
+    out = [heading_from_trig_deg(x, y, z, cos(r), sin(r), cos(p), sin(p))
+           for (x, y, z), r, p in zip(rows, phi, th, strict=True)]  # fmt: skip
+    return np.mod(np.array(out, dtype=float).reshape(shape) + declination_deg, 360.0)
 
 
 def heading_from_quat_deg(field_b_mgauss: ArrayLike, q_nb: ArrayLike, declination_deg: float = 0.0) -> float:

@@ -5,7 +5,7 @@ and 3x3 matrices, where numpy's per-call overhead is far larger than the arithme
 machine (python 3.11, numpy 2, wall time per call under load): ``np.linalg.inv`` 8.7 us vs
 :func:`sym3_inv` 0.3 us; ``np.linalg.eigvalsh`` 10 us vs :func:`sym3_eigvals` 1.5 us; ``np.cross``
 38 us vs :func:`cross` 0.3 us. The observer step written on numpy arrays took ~450 us, on floats it takes
-~11 us CPU (benchmarks/replay_speed.py runs ~19000 of them per 200 s of log). Batch (vectorised) work
+~10 us CPU (benchmarks/replay_speed.py runs ~59000 of them per 600 s of log). Batch (vectorised) work
 stays in numpy/scipy. tests/unit/test_oracles.py checks these functions against numpy.
 
 Matrices are row-major tuples of nine floats: ``m = (m00, m01, m02, m10, ..., m22)``.

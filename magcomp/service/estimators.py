@@ -14,8 +14,10 @@ from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config, ObserverForm
 from magcomp.core.dpi import DpiParams, calibrate_dpi
+from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.linalg3 import Vec3Like
 from magcomp.core.lowpass import LowPassParams
+from magcomp.core.mahony import MahonyParams
 from magcomp.core.observer import (
     ObserverParams,
     ObserverState,
@@ -27,6 +29,7 @@ from magcomp.core.observer import (
     observer_reset,
     observer_step,
 )
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 from magcomp.geomag import earth_field_ned_mgauss
 
 F64 = NDArray[np.float64]
@@ -76,19 +79,12 @@ def calibrate(
 
 
 def heading_deg(field_b_mgauss: F64, roll_rad: float, pitch_rad: float) -> float:
-    """Tilt-compensated magnetic heading in [0, 360) deg; scalar twin of
-    :func:`magcomp.core.heading.tilt_compensated_heading_deg` (eq. (24) after de-rotating roll and pitch)."""
+    """Tilt-compensated magnetic heading in [0, 360) deg of one sample from roll and pitch (rad):
+    :func:`magcomp.core.heading.heading_from_trig_deg`."""
     mx, my, mz = float(field_b_mgauss[0]), float(field_b_mgauss[1]), float(field_b_mgauss[2])
-    return heading_from_trig(
+    return heading_from_trig_deg(
         mx, my, mz, math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
     )
-
-
-def heading_from_trig(mx: float, my: float, mz: float, cr: float, sr: float, cp: float, sp: float) -> float:
-    """:func:`heading_deg` from the cosines and sines of roll and pitch (computed once per attitude)."""
-    y_l = cr * my - sr * mz
-    x_l = cp * mx + sp * (sr * my + cr * mz)
-    return math.degrees(math.atan2(-y_l, x_l)) % 360.0  # eq. (24), quadrant-resolved
 
 
 #: what one observer step reports (flags, z_unobservable, saturated, residual_norm_mgauss, excitation, ...)
@@ -172,6 +168,13 @@ def observer_params(cfg: Config) -> ObserverParams:
     )
 
 
+def mahony_params(cfg: Config) -> MahonyParams:
+    """:class:`MahonyParams` from the ``[mahony]`` section: the one place the configuration becomes the
+    attitude filter's parameters (as :func:`observer_params` for the observer)."""
+    m = cfg.mahony
+    return MahonyParams(kp=m.kp, ki=m.ki, accel_gate_frac=m.accel_gate_m_s2 / STANDARD_GRAVITY_M_S2)
+
+
 class HeadingFilter:
     """Gyro-aided complementary filter on a heading (deg): propagate with the yaw rate, pull toward the
     magnetometer heading with time constant ``tau_s``. ``tau_s = 0`` passes the measurement through.
@@ -204,10 +207,3 @@ class HeadingFilter:
         self.psi_deg = psi
         return psi
 
-
-def yaw_rate_rad_s(gyro_b_rad_s: Sequence[float], roll_rad: float, pitch_rad: float) -> float:
-    """Euler yaw rate from body rates (ZYX): (q sin(roll) + r cos(roll)) / cos(pitch); NaN near +-90 deg."""
-    cp = math.cos(pitch_rad)
-    if abs(cp) < 0.25:
-        return float("nan")
-    return (float(gyro_b_rad_s[1]) * math.sin(roll_rad) + float(gyro_b_rad_s[2]) * math.cos(roll_rad)) / cp

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+from magcomp.core.heading import heading_from_trig_deg
 from magcomp.service import estimators as est_core
 from magcomp.service.record import MagRecord
 
@@ -33,7 +34,7 @@ class HeadingTrack:
 
 
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
-    """Euler yaw rate from body rates (ZYX), as :func:`magcomp.service.estimators.yaw_rate_rad_s`."""
+    """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)``."""
     return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
 
 
@@ -41,10 +42,10 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360))."""
     cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
     ux, uy, uz = rec.field_cal
-    psi_raw = est_core.heading_from_trig(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
+    psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
     if rec.have_throttle:
         cx, cy, cz = rec.field_corrected
-        psi = est_core.heading_from_trig(cx, cy, cz, cr, sr, cp, sp)
+        psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
     else:
         psi = psi_raw
     reset = rec.reset
