@@ -8,6 +8,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.heading import tilt_compensated_heading_deg, wrap_deg_180
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.diagnosis.effects import drive_columns
 from magcomp.diagnosis.model import CompassData, ModelFit
@@ -31,14 +32,9 @@ def compass_yaw_rad(data: CompassData, fit: ModelFit, remove_bias: bool = True) 
         h_b = np.asarray(v + fit.c_mgauss, dtype=float)
     else:
         h_b = np.asarray(np.linalg.solve(fit.a_mgauss, v.T).T, dtype=float)
-    r = data.r_nb
-    yaw = euler_from_dcms(r)[:, 2]
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    # level frame: R_tilt = Rz(-yaw) R_nb
-    h_n = np.einsum("nij,nj->ni", r, h_b)
-    hx = cy * h_n[:, 0] + sy * h_n[:, 1]
-    hy = -sy * h_n[:, 0] + cy * h_n[:, 1]
-    return np.asarray(-np.arctan2(hy, hx))
+    roll, pitch, _ = euler_from_dcms(data.r_nb).T
+    # eq. (24), tilt-compensated: the one implementation in core (range [-pi, pi) here)
+    return np.radians(wrap_deg_180(tilt_compensated_heading_deg(h_b, roll, pitch)))
 
 
 def heading_errors(
