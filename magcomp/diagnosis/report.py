@@ -230,6 +230,15 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
         )
         out.append("")
         return out
+    out += _findings_lines(c, cj)
+    out += _residual_lines(c)
+    out += _autopilot_lines(cj, figs, rel_dir)
+    return out
+
+
+def _findings_lines(c: CompassDiagnosis, cj: dict[str, Any]) -> list[str]:
+    """Unexplained structure, the findings, and what this log cannot test."""
+    out: list[str] = []
     if cj["unexplained_structure"]:
         out.append("### Unexplained structure (outside the named causes)")
         out.append("")
@@ -263,6 +272,12 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
             "Not testable in this log: " + "; ".join(f"{k} ({v})" for k, v in cj["unavailable"].items()) + "."
         )
         out.append("")
+    return out
+
+
+def _residual_lines(c: CompassDiagnosis) -> list[str]:
+    """What the remaining residual follows, and its largest step."""
+    out: list[str] = []
     if c.suspects:
         out.append("### What the remaining residual follows")
         out.append("")
@@ -281,6 +296,12 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
             f"Events within 2 s: {evs}."
         )
         out.append("")
+    return out
+
+
+def _autopilot_lines(cj: dict[str, Any], figs: list[tuple[str, str]], rel_dir: str) -> list[str]:
+    """The compensation in autopilot terms, then the figures."""
+    out: list[str] = []
     out.append("### Compensation in autopilot terms")
     out.append("")
     out.append(cj["linearisation"])
