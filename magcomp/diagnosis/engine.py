@@ -21,7 +21,7 @@ the CLI live in :mod:`magcomp.diagnosis.report` and :mod:`magcomp.commands.diagn
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -136,18 +136,15 @@ def _with_compass_yaw(c: CompassDiagnosis, ref: CompassDiagnosis) -> CompassData
     )
 
 
+@dataclass(frozen=True)
 class _Run:
     """The arguments every compass of one log is diagnosed with."""
 
-    def __init__(
-        self,
-        log: LogData,
-        events: Events | None,
-        p: SelectionParams | None,
-        earth: gate_mod.EarthReference,
-        gate_params: gate_mod.GateParams | None,
-    ) -> None:
-        self.log, self.events, self.p, self.earth, self.gate_params = log, events, p, earth, gate_params
+    log: LogData
+    events: Events | None
+    p: SelectionParams | None
+    earth: gate_mod.EarthReference
+    gate_params: gate_mod.GateParams | None
 
     def compass(self, data: CompassData) -> CompassDiagnosis:
         """One compass searched and gated."""
