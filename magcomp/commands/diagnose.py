@@ -343,9 +343,8 @@ def _write_params(path: str, d: Any, autopilot: int) -> None:
     print(f"wrote {path}: {len(params)} {'PX4' if px4 else 'ArduPilot'} parameters for {kind}")
 
 
-def execute(args: argparse.Namespace) -> int:
-    from magcomp.adapters.mavlink_source import load_log
-    from magcomp.diagnosis.engine import diagnose
+def _check_args(args: argparse.Namespace) -> None:
+    """A clear one-line error for a bad argument, before anything is computed."""
     from magcomp.errors import InputError
     from magcomp.service.console import check_distinct_outputs, check_output_path
 
@@ -375,6 +374,44 @@ def execute(args: argparse.Namespace) -> int:
         from magcomp.adapters.rerun_viz import parse_mode
 
         parse_mode(args.rerun)  # a bad --rerun fails now, not after the diagnosis
+
+
+def _write_outputs(
+    args: argparse.Namespace, d: Any, j: dict[str, Any], autopilot: int, reference: tuple[Any, Any] | None
+) -> None:
+    """The JSON, the autopilot parameters, the report and the Rerun view that were asked for."""
+    from magcomp.errors import InputError
+
+    if args.json:
+        try:
+            Path(args.json).write_text(json.dumps(j, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
+        print(f"wrote {args.json}")
+    if args.params_out:
+        _write_params(args.params_out, d, autopilot)
+    if args.report:
+        from magcomp.diagnosis.report import write_report
+
+        try:
+            written = write_report(d, Path(args.report))
+        except OSError as exc:
+            raise InputError(f"cannot write {args.report}: {exc.strerror or exc}") from exc
+        print(f"wrote {written[0]} and {len(written) - 1} plot(s)")
+    if args.rerun:
+        try:
+            import magcomp.adapters.rerun_viz  # noqa: F401
+        except ImportError:
+            print("the Rerun view is not available yet (magcomp.adapters.rerun_viz missing)", file=sys.stderr)
+        else:
+            _show_in_rerun(args.rerun, d, reference)
+
+
+def execute(args: argparse.Namespace) -> int:
+    from magcomp.adapters.mavlink_source import load_log
+    from magcomp.diagnosis.engine import diagnose
+
+    _check_args(args)
     reference = _truth_reference(args)
     if args.save_state:
         from magcomp.adapters.state_store import StateStore
@@ -401,29 +438,7 @@ def execute(args: argparse.Namespace) -> int:
         print(line)
     for note in d.notes:
         print(f"note: {note}")
-    if args.json:
-        try:
-            Path(args.json).write_text(json.dumps(j, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
-        print(f"wrote {args.json}")
-    if args.params_out:
-        _write_params(args.params_out, d, log.autopilot)
-    if args.report:
-        from magcomp.diagnosis.report import write_report
-
-        try:
-            written = write_report(d, Path(args.report))
-        except OSError as exc:
-            raise InputError(f"cannot write {args.report}: {exc.strerror or exc}") from exc
-        print(f"wrote {written[0]} and {len(written) - 1} plot(s)")
-    if args.rerun:
-        try:
-            import magcomp.adapters.rerun_viz  # noqa: F401
-        except ImportError:
-            print("the Rerun view is not available yet (magcomp.adapters.rerun_viz missing)", file=sys.stderr)
-        else:
-            _show_in_rerun(args.rerun, d, reference)
+    _write_outputs(args, d, j, log.autopilot, reference)
     if not math.isfinite(float(j["residual_rms_extended"] or 0.0)):
         return 1
     return 0

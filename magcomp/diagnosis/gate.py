@@ -145,6 +145,48 @@ def noise_floor_mgauss(residual_mgauss: F64) -> float:
     return float(np.sqrt(np.mean(sd**2)))
 
 
+def _rotation_reasons(
+    strength: float, cond: float, inc: float, checks: dict[str, Any], earth: EarthReference, p: GateParams
+) -> list[str]:
+    """Why a rotating log's fit is not physical (spans, field strength, calibration, inclination)."""
+    reasons: list[str] = []
+    ref = earth.strength_mgauss
+    if checks["yaw_span_deg"] < p.min_yaw_span_deg:
+        reasons.append(
+            f"the heading covers only {checks['yaw_span_deg']:.0f} deg (< {p.min_yaw_span_deg:.0f}): "
+            "calibration and hard iron are not separable"
+        )
+    if checks["tilt_span_deg"] < p.min_tilt_span_deg:
+        reasons.append(
+            f"tilt span only {checks['tilt_span_deg']:.0f} deg (< {p.min_tilt_span_deg:.0f}): the "
+            "field's vertical part is not separable from the hard iron"
+        )
+    lo, hi = 1.0 - p.max_scale_error, 1.0 + p.max_scale_error
+    if ref is not None:
+        if not (lo * ref <= strength <= hi * ref):
+            reasons.append(
+                f"fitted Earth field {strength:.0f} mgauss vs WMM {ref:.0f} "
+                f"(outside x{lo:.2f}-x{hi:.2f}): not physical"
+            )
+    elif not (lo * EARTH_MIN_MGAUSS <= strength <= hi * EARTH_MAX_MGAUSS):
+        reasons.append(
+            f"fitted Earth field {strength:.0f} mgauss is outside Earth's {EARTH_MIN_MGAUSS:.0f}-"
+            f"{EARTH_MAX_MGAUSS:.0f} mgauss widened by +-{100 * p.max_scale_error:.0f} %: not physical"
+        )
+    if cond > p.max_condition:
+        reasons.append(
+            f"fitted calibration has condition number {cond:.1f} (> {p.max_condition:.2f} for scale "
+            f"errors within +-{100 * p.max_scale_error:.0f} %): not physical"
+        )
+    wmm_inc = earth.inclination_deg
+    if wmm_inc is not None and abs(inc - wmm_inc) > p.max_inclination_error_deg:
+        reasons.append(
+            f"fitted inclination {inc:.0f} deg vs WMM {wmm_inc:.0f} (more than "
+            f"{p.max_inclination_error_deg:.1f} deg apart): not physical"
+        )
+    return reasons
+
+
 def check(
     *,
     stationary: bool,
@@ -200,39 +242,7 @@ def check(
         )
     ref = earth.strength_mgauss
     if not stationary:
-        if checks["yaw_span_deg"] < p.min_yaw_span_deg:
-            reasons.append(
-                f"the heading covers only {checks['yaw_span_deg']:.0f} deg (< {p.min_yaw_span_deg:.0f}): "
-                "calibration and hard iron are not separable"
-            )
-        if checks["tilt_span_deg"] < p.min_tilt_span_deg:
-            reasons.append(
-                f"tilt span only {checks['tilt_span_deg']:.0f} deg (< {p.min_tilt_span_deg:.0f}): the "
-                "field's vertical part is not separable from the hard iron"
-            )
-        lo, hi = 1.0 - p.max_scale_error, 1.0 + p.max_scale_error
-        if ref is not None:
-            if not (lo * ref <= strength <= hi * ref):
-                reasons.append(
-                    f"fitted Earth field {strength:.0f} mgauss vs WMM {ref:.0f} "
-                    f"(outside x{lo:.2f}-x{hi:.2f}): not physical"
-                )
-        elif not (lo * EARTH_MIN_MGAUSS <= strength <= hi * EARTH_MAX_MGAUSS):
-            reasons.append(
-                f"fitted Earth field {strength:.0f} mgauss is outside Earth's {EARTH_MIN_MGAUSS:.0f}-"
-                f"{EARTH_MAX_MGAUSS:.0f} mgauss widened by +-{100 * p.max_scale_error:.0f} %: not physical"
-            )
-        if cond > p.max_condition:
-            reasons.append(
-                f"fitted calibration has condition number {cond:.1f} (> {p.max_condition:.2f} for scale "
-                f"errors within +-{100 * p.max_scale_error:.0f} %): not physical"
-            )
-        wmm_inc = earth.inclination_deg
-        if wmm_inc is not None and abs(inc - wmm_inc) > p.max_inclination_error_deg:
-            reasons.append(
-                f"fitted inclination {inc:.0f} deg vs WMM {wmm_inc:.0f} (more than "
-                f"{p.max_inclination_error_deg:.1f} deg apart): not physical"
-            )
+        reasons += _rotation_reasons(strength, cond, inc, checks, earth, p)
     scale = ref if ref is not None else (strength if not stationary else EARTH_MIN_MGAUSS)
     if residual_rms_mgauss > p.max_residual_fraction * scale:
         reasons.append(

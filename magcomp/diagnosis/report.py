@@ -31,11 +31,18 @@ def write_plots(c: CompassDiagnosis, out_dir: Path, stem: str) -> list[tuple[str
     import matplotlib.pyplot as plt
 
     out_dir.mkdir(parents=True, exist_ok=True)
+    figs = [_plot_residual(c, plt, out_dir, stem), _plot_bias(c, plt, out_dir, stem)]
+    for plot in (_plot_motors_off_step, _plot_heading):
+        fig_cap = plot(c, plt, out_dir, stem)
+        if fig_cap is not None:
+            figs.append(fig_cap)
+    return figs
+
+
+def _plot_residual(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str]:
+    """Residual of both models over time, with the throttle."""
     t = c.data.t_s - c.data.t_s[0]
     thr = c.data.throttle_01
-    figs: list[tuple[str, str]] = []
-
-    # 1. residual of both models over time, with the throttle
     fig, axes = plt.subplots(4, 1, figsize=(10, 8), sharex=True)
     for i, ax in enumerate(axes[:3]):
         ax.plot(
@@ -53,9 +60,12 @@ def write_plots(c: CompassDiagnosis, out_dir: Path, stem: str) -> list[tuple[str
     fig.tight_layout()
     fig.savefig(out_dir / name, dpi=90)
     plt.close(fig)
-    figs.append((name, "Measured minus predicted field, per axis (red: the paper's model; green: extended)."))
+    return name, "Measured minus predicted field, per axis (red: the paper's model; green: extended)."
 
-    # 2. bias against throttle: measured field minus the fitted Earth part, with both models' bias curves
+
+def _plot_bias(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str]:
+    """Bias against throttle: measured field minus the fitted Earth part, with both models' bias curves."""
+    thr = c.data.throttle_01
     meas = c.data.field_mgauss - _earth_part(c, c.extended)
     cols_b, _ = drive_columns(c.data.drive, c.baseline.ext)
     bias_b = cols_b @ c.baseline.coefs
@@ -74,64 +84,66 @@ def write_plots(c: CompassDiagnosis, out_dir: Path, stem: str) -> list[tuple[str
     name = f"{stem}_compass{c.index}_bias.png"
     fig.savefig(out_dir / name, dpi=90)
     plt.close(fig)
-    figs.append(
-        (
-            name,
-            "Bias against throttle: the measured field minus the fitted Earth field and hard iron "
-            "(grey), the paper's model (red), the extended model (green).",
-        )
+    return (
+        name,
+        "Bias against throttle: the measured field minus the fitted Earth field and hard iron "
+        "(grey), the paper's model (red), the extended model (green).",
     )
 
-    # 3. the largest step of the field with the motors off: measured against predicted
-    if c.field_step is not None and c.field_step.get("t_s") is not None:
-        ts = float(c.field_step["t_s"])
-        win = (c.data.t_s > ts - 6.0) & (c.data.t_s < ts + 6.0)
-        pred = c.data.field_mgauss - c.extended.residual_mgauss
-        fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
-        for i, ax in enumerate(axes):
-            ax.plot(
-                c.data.t_s[win],
-                c.data.field_mgauss[win, i],
-                ".-",
-                ms=3,
-                lw=0.6,
-                color="0.3",
-                label="measured",
-            )
-            ax.plot(c.data.t_s[win], pred[win, i], lw=1.2, color="tab:blue", label="forward model (gyro)")
-            ax.axvline(ts, color="tab:red", lw=0.8, ls="--")
-            ax.set_title(f"{'XYZ'[i]}, mgauss")
-            ax.set_xlabel("log time, s")
-            ax.grid(alpha=0.3)
-        axes[0].legend(fontsize=7)
-        fig.tight_layout()
-        name = f"{stem}_compass{c.index}_motors_off_step.png"
-        fig.savefig(out_dir / name, dpi=90)
-        plt.close(fig)
-        figs.append(
-            (name, f"Largest field step with the motors off (t = {ts:.1f} s): measured and predicted.")
-        )
 
-    # 4. heading error, when there is a reference
-    if c.heading is not None:
-        fig, ax = plt.subplots(figsize=(10, 3.5))
-        for label, fit, remove, color in (
-            ("uncompensated", c.baseline, False, "tab:red"),
-            ("paper", c.baseline, True, "tab:orange"),
-            ("extended", c.extended, True, "tab:green"),
-        ):
-            yaw = np.degrees(np.unwrap(compass_yaw_rad(c.data, fit, remove)))
-            ax.plot(t, yaw - yaw[0], lw=0.8, color=color, label=label)
-        ax.set_ylabel("compass heading change, deg")
-        ax.set_xlabel("time, s")
-        ax.legend(fontsize=8)
+def _plot_motors_off_step(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str] | None:
+    """The largest step of the field with the motors off: measured against predicted."""
+    if c.field_step is None or c.field_step.get("t_s") is None:
+        return None
+    ts = float(c.field_step["t_s"])
+    win = (c.data.t_s > ts - 6.0) & (c.data.t_s < ts + 6.0)
+    pred = c.data.field_mgauss - c.extended.residual_mgauss
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+    for i, ax in enumerate(axes):
+        ax.plot(
+            c.data.t_s[win],
+            c.data.field_mgauss[win, i],
+            ".-",
+            ms=3,
+            lw=0.6,
+            color="0.3",
+            label="measured",
+        )
+        ax.plot(c.data.t_s[win], pred[win, i], lw=1.2, color="tab:blue", label="forward model (gyro)")
+        ax.axvline(ts, color="tab:red", lw=0.8, ls="--")
+        ax.set_title(f"{'XYZ'[i]}, mgauss")
+        ax.set_xlabel("log time, s")
         ax.grid(alpha=0.3)
-        fig.tight_layout()
-        name = f"{stem}_compass{c.index}_heading.png"
-        fig.savefig(out_dir / name, dpi=90)
-        plt.close(fig)
-        figs.append((name, f"Heading from the compass (reference: {c.heading.reference})."))
-    return figs
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    name = f"{stem}_compass{c.index}_motors_off_step.png"
+    fig.savefig(out_dir / name, dpi=90)
+    plt.close(fig)
+    return name, f"Largest field step with the motors off (t = {ts:.1f} s): measured and predicted."
+
+
+def _plot_heading(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str] | None:
+    """Heading change of the compass under each model, when there is a reference."""
+    t = c.data.t_s - c.data.t_s[0]
+    if c.heading is None:
+        return None
+    fig, ax = plt.subplots(figsize=(10, 3.5))
+    for label, fit, remove, color in (
+        ("uncompensated", c.baseline, False, "tab:red"),
+        ("paper", c.baseline, True, "tab:orange"),
+        ("extended", c.extended, True, "tab:green"),
+    ):
+        yaw = np.degrees(np.unwrap(compass_yaw_rad(c.data, fit, remove)))
+        ax.plot(t, yaw - yaw[0], lw=0.8, color=color, label=label)
+    ax.set_ylabel("compass heading change, deg")
+    ax.set_xlabel("time, s")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    name = f"{stem}_compass{c.index}_heading.png"
+    fig.savefig(out_dir / name, dpi=90)
+    plt.close(fig)
+    return name, f"Heading from the compass (reference: {c.heading.reference})."
 
 
 def _vec(v: Any) -> str:
@@ -218,6 +230,15 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
         )
         out.append("")
         return out
+    out += _findings_lines(c, cj)
+    out += _residual_lines(c)
+    out += _autopilot_lines(cj, figs, rel_dir)
+    return out
+
+
+def _findings_lines(c: CompassDiagnosis, cj: dict[str, Any]) -> list[str]:
+    """Unexplained structure, the findings, and what this log cannot test."""
+    out: list[str] = []
     if cj["unexplained_structure"]:
         out.append("### Unexplained structure (outside the named causes)")
         out.append("")
@@ -251,6 +272,12 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
             "Not testable in this log: " + "; ".join(f"{k} ({v})" for k, v in cj["unavailable"].items()) + "."
         )
         out.append("")
+    return out
+
+
+def _residual_lines(c: CompassDiagnosis) -> list[str]:
+    """What the remaining residual follows, and its largest step."""
+    out: list[str] = []
     if c.suspects:
         out.append("### What the remaining residual follows")
         out.append("")
@@ -269,6 +296,12 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
             f"Events within 2 s: {evs}."
         )
         out.append("")
+    return out
+
+
+def _autopilot_lines(cj: dict[str, Any], figs: list[tuple[str, str]], rel_dir: str) -> list[str]:
+    """The compensation in autopilot terms, then the figures."""
+    out: list[str] = []
     out.append("### Compensation in autopilot terms")
     out.append("")
     out.append(cj["linearisation"])

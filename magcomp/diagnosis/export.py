@@ -1,0 +1,310 @@
+"""Export of a diagnosis: JSON (rounded to 4 decimals), the findings' parameters and evidence, and the
+compensation parameters for the autopilots (linearised, with the prose on what the linearisation costs).
+
+Pure, no I/O: the CLI writes what these functions return.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.core.types import LogData
+from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
+from magcomp.diagnosis.effects import EFFECTS, drive_columns
+from magcomp.diagnosis.inputs import finite_series
+from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, theta_halfwidth
+from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
+from magcomp.diagnosis.rivals import motors_identified
+from magcomp.diagnosis.selection import Comparison
+
+if TYPE_CHECKING:
+    from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding
+
+F64 = NDArray[np.float64]
+
+#: Belsley's condition index above which regressors are strongly collinear (Belsley, Kuh & Welsch 1980):
+#: per-motor vectors are then not reported one by one.
+MAX_CONDITION_INDEX = 30.0
+
+
+def r4(x: Any) -> Any:
+    if isinstance(x, np.ndarray):
+        return [round(float(v), 4) for v in x.ravel()]
+    if isinstance(x, float | np.floating):
+        return round(float(x), 4) if math.isfinite(float(x)) else None
+    return x
+
+
+def finding_json(f: Finding) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "effect": f.label,
+        "cause": f.cause,
+        "params": f.params,
+        "evidence": f.evidence,
+        "residual_rms_after": r4(f.residual_rms_after),
+    }
+    if len(f.candidates) > 1:
+        out["candidates"] = f.candidates
+        out["candidate_params"] = f.candidate_params
+        out["cause"] = (
+            "The data cannot tell these causes apart (their fits differ by less than the BIC margin): "
+            + f.cause
+        )
+    return out
+
+
+def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
+    """The JSON entry of one compass (nulls and empties in place of results when it is not observable)."""
+    out = _result_json(cd)
+    out["observable"] = cd.observable
+    out["unobservable_why"] = "" if cd.gate is None else cd.gate.why
+    out["gate"] = {} if cd.gate is None else cd.gate.checks
+    if not cd.observable:
+        # no theta, no findings, no autopilot parameters: a non-physical fit is not a result
+        for k in (
+            "theta",
+            "theta_baseline",
+            "theta_ci95_halfwidth",
+            "theta_baseline_ci95_halfwidth",
+            "heading_error",
+            "residual_step",
+            "field_step_motors_off",
+        ):
+            out[k] = None
+        for k in ("findings", "suspects", "unexplained_structure"):
+            out[k] = []
+        for k in ("rejected", "autopilot"):
+            out[k] = {}
+        out["linearisation"] = ""
+        out["heading_drift_deg_per_min"] = None
+    return out
+
+
+def _result_json(cd: CompassDiagnosis) -> dict[str, Any]:
+    return {
+        "index": cd.index,
+        "source": cd.source,
+        "n_samples": cd.data.n,
+        "excluded_spans_s": [[r4(a), r4(b)] for a, b in cd.excluded],
+        "theta": r4(cd.extended.theta_mgauss),
+        "theta_ci95_halfwidth": r4(theta_halfwidth(cd.data, cd.extended)),
+        "theta_baseline": r4(cd.baseline.theta_mgauss),
+        "theta_baseline_ci95_halfwidth": r4(theta_halfwidth(cd.data, cd.baseline)),
+        "residual_rms_baseline": r4(cd.baseline.rms_mgauss),
+        "residual_rms_extended": r4(cd.extended.rms_mgauss),
+        "findings": [finding_json(f) for f in cd.findings],
+        "rejected": cd.rejected,
+        "unavailable": cd.unavailable,
+        "attitude": {"source": cd.data.attitude_source, "why": cd.data.attitude_note},
+        "field_strength_mgauss": r4(cd.extended.field_strength_mgauss),
+        "inclination_deg": r4(math.degrees(cd.extended.inc_rad)),
+        "heading_drift_deg_per_min": r4(math.degrees(cd.extended.drift_rad_s) * 60.0),
+        "suspects": [
+            {
+                "signal": s.signal,
+                "lag_s": s.lag_s,
+                "r2": r4(s.r2),
+                "slope_mgauss_per_unit": r4(np.array(s.slope_mgauss_per_unit)),
+            }
+            for s in cd.suspects[:8]
+        ],
+        "residual_step": None
+        if cd.step is None
+        else {
+            "t_s": r4(cd.step.t_s),
+            "size_mgauss": r4(np.array(cd.step.size_mgauss)),
+            "size_sigma": r4(cd.step.size_sigma),
+            "co_stepping_signals": dict(list(cd.step.co_stepping.items())[:8]),
+            "events": [{"t_s": r4(t), "event": e} for t, e in cd.step.events],
+        },
+        "field_step_motors_off": cd.field_step,
+        "unexplained_structure": cd.structure,
+        "heading_error": None
+        if cd.heading is None
+        else {
+            "reference": cd.heading.reference,
+            "rms_deg": cd.heading.rms_deg,
+            "max_deg": cd.heading.max_deg,
+        },
+        "autopilot": cd.autopilot,
+        "linearisation": cd.linear_note,
+    }
+
+
+def diagnosis_json(d: Diagnosis) -> dict[str, Any]:
+    """The JSON document of a diagnosis: the primary compass's findings and gain, then every compass."""
+    p = d.compass(d.primary)
+    base, ext = p.baseline.rms_mgauss, p.extended.rms_mgauss
+    if not p.observable:
+        return {
+            "log": d.log_source,
+            "primary_compass": d.primary,
+            "observable": False,
+            "unobservable_why": p.gate.why if p.gate is not None else "",
+            "findings": [],
+            "residual_rms_baseline": r4(base),
+            "residual_rms_extended": r4(ext),
+            "gain": {},
+            "compasses": [compass_json(c) for c in d.compasses],
+            "notes": d.notes,
+        }
+    gain: dict[str, Any] = {
+        "residual_rms_ratio": r4(base / ext) if ext > 0 else None,
+        "residual_rms_reduction_pct": r4(100.0 * (1.0 - ext / base)) if base > 0 else None,
+    }
+    if p.heading is not None:
+        gain["heading_reference"] = p.heading.reference
+        gain["heading_error_rms_deg"] = p.heading.rms_deg
+        gain["heading_error_max_deg"] = p.heading.max_deg
+    return {
+        "log": d.log_source,
+        "primary_compass": d.primary,
+        "observable": True,
+        "unobservable_why": "",
+        "findings": [finding_json(f) for f in p.findings],
+        "residual_rms_baseline": r4(base),
+        "residual_rms_extended": r4(ext),
+        "gain": gain,
+        "compasses": [compass_json(c) for c in d.compasses],
+        "notes": d.notes,
+    }
+
+
+def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]:
+    """The fitted parameter of ``effect`` with its 95 % interval (per-motor vectors when identifiable)."""
+    e = EFFECTS[effect]
+    if e.param is not None:
+        out: dict[str, Any] = {e.param: r4(float(getattr(fit.ext, e.param)))}
+        ci = profile_interval(data, fit, effect)
+        if ci is not None:
+            out[f"{e.param}_ci95"] = [r4(ci[0]), r4(ci[1])]
+        if effect == "voltage_sag":
+            out["v_full_v"] = r4(data.drive.v_full_v)
+        return out
+    if effect == "temperature_drift":
+        k = fit.coefs[list(fit.columns).index("temperature")]
+        mag = float(np.linalg.norm(k))
+        hw = column_halfwidth(data, fit, {"temperature": 1.0})
+        return {
+            "mgauss_per_degc": r4(mag),
+            "mgauss_per_degc_ci95_halfwidth_per_axis": r4(hw),
+            "direction": r4(k / mag if mag > 0 else k),
+        }
+    theta = fit.theta_mgauss
+    names = [c for c in fit.columns if c.startswith("motor_diff")]
+    rows = [list(fit.columns).index(c) for c in names]
+    delta = np.vstack([fit.coefs[rows], -np.sum(fit.coefs[rows], axis=0, keepdims=True)])
+    theta_i = theta + delta
+    hws = [column_halfwidth(data, fit, {"throttle": 1.0, c: 1.0}) for c in names]
+    hws.append(column_halfwidth(data, fit, {"throttle": 1.0, **{c: -1.0 for c in names}}))
+    hw = np.vstack(hws)
+    tn = float(np.linalg.norm(theta))
+    spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
+    cols, _ = drive_columns(data.drive, fit.ext)
+    sel = cols[:, [list(fit.columns).index(c) for c in ("throttle", *names)]]
+    sel = sel - sel.mean(axis=0)
+    sel = sel / np.maximum(np.linalg.norm(sel, axis=0), 1e-12)
+    sv = np.linalg.svd(sel, compute_uv=False)
+    cond = float(sv[0] / max(sv[-1], 1e-12))
+    out = {"spread": r4(spread), "condition_index": r4(cond)}
+    # the same vectors from each half of the log must agree within their intervals (a half has twice the
+    # variance, a difference of two halves four times: 2 x the whole log's half-width)
+    halves = []
+    for keep in (data.t_s < np.median(data.t_s), data.t_s >= np.median(data.t_s)):
+        fh = fit_model(data, fit.effects, start=fit, train=keep, max_nfev=50)
+        dh = np.vstack([fh.coefs[rows], -np.sum(fh.coefs[rows], axis=0, keepdims=True)])
+        halves.append(fh.theta_mgauss + dh)
+    half_gap = float(np.max(np.abs(halves[0] - halves[1]) / np.maximum(2.0 * hw, 1e-9)))
+    out["halves_disagreement"] = r4(half_gap)
+    stable = half_gap <= 1.0
+    if cond <= MAX_CONDITION_INDEX and stable and motors_identified(theta_i, hw, theta):
+        out["theta_per_motor_mgauss"] = [r4(row) for row in theta_i]
+        out["theta_per_motor_ci95_halfwidth"] = [r4(row) for row in hw]
+    else:
+        why = []
+        if cond > MAX_CONDITION_INDEX:
+            why.append(
+                f"condition index {cond:.0f} of the motor columns (collinear above {MAX_CONDITION_INDEX:.0f})"
+            )
+        if not stable:
+            why.append(f"the two halves of the log disagree by {half_gap:.1f}x their interval (must be <= 1)")
+        why.append(f"95 % intervals up to {float(np.max(hw)):.0f} mgauss against |theta| {tn:.0f}")
+        out["theta_per_motor_mgauss"] = (
+            "not identifiable: " + "; ".join(why) + ": only the spread and the mean theta are meaningful"
+        )
+    return out
+
+
+def evidence_json(c: Comparison, data: CompassData) -> dict[str, Any]:
+    return {
+        "cv_rms_without": r4(c.cv_rms_reference),
+        "cv_rms_with": r4(c.cv_rms_extended),
+        "cv_gain_pct": r4(100.0 * c.cv_gain),
+        "delta_bic": r4(c.delta_bic),
+        "rms_without": r4(c.reference.rms_mgauss),
+        "rms_with": r4(c.fit.rms_mgauss),
+        "compared_with": list(c.reference.effects) or "paper model eq. (11)",
+        "residual": "3-axis field residual (compass frame, mgauss) against a forward model whose rotation is "
+        + data.attitude_note,
+    }
+
+
+class AutopilotExport(NamedTuple):
+    """The compensation parameters for each autopilot and the prose on what linearising eq. (11) costs."""
+
+    params: dict[str, dict[str, float]]
+    note: str
+
+
+def bias_mgauss(data: CompassData, fit: ModelFit) -> F64:
+    """The fitted powertrain bias (n, 3) of ``fit`` on ``data``: every column but temperature and steps."""
+    cols, _ = drive_columns(data.drive, fit.ext)
+    rows = [i for i, c in enumerate(fit.columns) if c != "temperature" and not c.startswith("step")]
+    return cols[:, rows] @ fit.coefs[rows]
+
+
+def autopilot_export(index: int, data: CompassData, fit: ModelFit, log: LogData | None) -> AutopilotExport:
+    """Linear (throttle or current) compensation parameters from the bias of ``fit`` for compass ``index``."""
+    bias = bias_mgauss(data, fit)
+    thr = data.throttle_01
+    cur = None
+    if log is not None:
+        c = finite_series(log.current_a)
+        if len(c) >= 2 and float(np.ptp(c.values)) > 0.5:
+            cur = np.interp(data.t_s, c.t_s, c.values)
+    terms = linearise(thr, bias, cur)
+    thr_only = linearise(thr, bias, None)
+    use_current = (
+        terms.per_amp_mgauss is not None and (terms.max_error_amp_mgauss or 0.0) < thr_only.max_error_mgauss
+    )
+    best = terms if use_current else thr_only
+    params = {
+        "ardupilot": ardupilot_params(best, fit.a_mgauss, fit.field_strength_mgauss, index),
+        "px4": px4_params(best, index),
+        "px4_throttle": px4_params(thr_only, index),
+    }
+    if terms.per_amp_mgauss is not None:
+        params["px4_current"] = px4_params(terms, index)
+    lo, hi = terms.throttle_range
+    note = (
+        "Both autopilots compensate linearly (k * throttle or k * current); eq. (11) is quadratic in "
+        f"throttle. Over this log's throttle range {lo:.2f}-{hi:.2f} the best slope through the origin is "
+        f"{_fmt(terms.per_throttle_mgauss)} mgauss per unit throttle, leaving up to "
+        f"{thr_only.max_error_mgauss:.1f} mgauss of error."
+    )
+    if terms.per_amp_mgauss is not None:
+        note += (
+            f" Against battery current (COMPASS_MOTCT=2, CAL_MAG_COMP_TYP=2): {_fmt(terms.per_amp_mgauss)} "
+            f"mgauss/A, leaving up to {terms.max_error_amp_mgauss:.1f} mgauss. The parameters given use the "
+            f"{'current' if use_current else 'throttle'}, the smaller error here (eqs. (5a), (8) make "
+            "current ~ throttle^2, but a real current sensor also lags and carries other loads)."
+        )
+    return AutopilotExport(params, note)
+
+
+def _fmt(v: F64) -> str:
+    return "[" + ", ".join(f"{float(x):.1f}" for x in v) + "]"

@@ -1,0 +1,232 @@
+"""Inputs of the diagnosis: a compass of a log aligned with its rotation and powertrain signals.
+
+Finite, sorted series; the drive signals on a uniform grid (:class:`~magcomp.diagnosis.effects.DriveInputs`);
+impacts and outliers left out; every signal the residual may follow (:func:`signals_at`). Pure, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.core.rotations import euler_from_dcms
+from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
+from magcomp.diagnosis.attitude import attitude_track
+from magcomp.diagnosis.effects import DriveInputs
+from magcomp.diagnosis.model import CompassData
+from magcomp.errors import InputError
+
+F64 = NDArray[np.float64]
+
+GRID_DT_S = 0.01
+MAX_SAMPLES = 5000
+
+
+def finite_series(s: Series) -> Series:
+    if len(s) == 0:
+        return s
+    v = s.values
+    ok = np.isfinite(v) if v.ndim == 1 else np.all(np.isfinite(v), axis=1)
+    ok &= np.isfinite(s.t_s)
+    t, v = s.t_s[ok], v[ok]
+    order = np.argsort(t, kind="stable")
+    t, v = t[order], v[order]
+    keep = np.concatenate([[True], np.diff(t) > 0]) if t.size else np.zeros(0, dtype=bool)
+    return Series(t[keep], v[keep])
+
+
+def drive_inputs(log: LogData, t_s: F64) -> DriveInputs:
+    """The powertrain signals of ``log`` on a uniform grid around the compass times ``t_s``."""
+    t0, t1 = float(t_s[0]) - 2.0, float(t_s[-1]) + 2.0
+    grid = np.arange(t0, t1 + GRID_DT_S, GRID_DT_S)
+    thr = finite_series(log.throttle_01)
+    thr_g = np.interp(grid, thr.t_s, np.clip(thr.values, 0.0, 1.0)) if len(thr) else np.zeros_like(grid)
+    mot = finite_series(log.motors_01)
+    mot_g = None
+    if len(mot) >= 2 and mot.values.ndim == 2 and mot.values.shape[1] >= 2:
+        mv = np.clip(mot.values, 0.0, 1.0)
+        active = [j for j in range(mv.shape[1]) if float(np.ptp(mv[:, j])) > 0.0]
+        if len(active) >= 2:
+            mot_g = np.column_stack([np.interp(grid, mot.t_s, mv[:, j]) for j in active])
+    volt = finite_series(log.voltage_v)
+    volt = Series(volt.t_s[volt.values > 0.5], volt.values[volt.values > 0.5]) if len(volt) else volt
+    v_g = np.interp(grid, volt.t_s, volt.values) if len(volt) >= 2 else None
+    # reference of the sag model: a full LiPo pack, 4.2 V per cell, cells counted from the highest voltage
+    v_full = 4.2 * max(1.0, math.ceil(float(np.max(volt.values)) / 4.2 - 0.02)) if len(volt) >= 2 else 1.0
+    temp = finite_series(log.temperature_degc)
+    temp_m = np.interp(t_s, temp.t_s, temp.values) if len(temp) >= 2 else None
+    thr_dt = float(np.median(np.diff(thr.t_s))) if len(thr) >= 2 else GRID_DT_S
+    return DriveInputs(t_s, grid, GRID_DT_S, thr_g, mot_g, v_g, v_full, temp_m, thr_dt)
+
+
+IMPACT_M_S2 = 2.5 * STANDARD_GRAVITY_M_S2
+
+
+def crash_mask(log: LogData, t_s: F64, before_s: float = 2.0, after_s: float = 3.0) -> NDArray[np.bool_]:
+    """True for samples to leave out because of an impact (|specific force| above 2.5 g).
+
+    The forward model holds for a vehicle handled or flown, not for one tumbling after a crash (the attitude
+    estimate and the wiring may both be disturbed). When the vehicle ends the log tilted beyond 60 deg
+    after an impact (a crash), everything from ``before_s`` before the first impact on is left out;
+    otherwise only ``before_s``/``after_s`` around each impact.
+    """
+    out = np.zeros(t_s.shape[0], dtype=bool)
+    if log.imu_t_s.shape[0] < 10:
+        return out
+    hits = log.imu_t_s[np.linalg.norm(log.accel_m_s2, axis=1) > IMPACT_M_S2]
+    if hits.size == 0:
+        return out
+    att = finite_series(log.attitude_rad)
+    ends_tilted = False
+    if len(att) >= 2:
+        tail = att.t_s > hits[0] + after_s
+        if np.any(tail):
+            cos_tilt = np.cos(att.values[tail, 0]) * np.cos(att.values[tail, 1])
+            ends_tilted = bool(np.mean(cos_tilt < 0.5) > 0.5)
+    if ends_tilted:
+        return np.asarray(t_s >= hits[0] - before_s)
+    for h in hits:
+        out |= (t_s >= h - before_s) & (t_s <= h + after_s)
+    return out
+
+
+def compass_data(log: LogData, index: int) -> CompassData:
+    """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES)."""
+    if index not in log.mag:
+        raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
+    mag = finite_series(log.mag[index])
+    if len(mag) < 50:
+        raise InputError(f"compass {index} has only {len(mag)} usable samples (need 50)")
+    step = max(1, math.ceil(len(mag) / MAX_SAMPLES))
+    t = mag.t_s[::step]
+    v = mag.values[::step].astype(float)
+    keep = ~crash_mask(log, t)
+    if np.count_nonzero(keep) >= 50:
+        t, v = t[keep], v[keep]
+    att = finite_series(log.attitude_rad)
+    imu_ok = log.imu_t_s.shape[0] >= 10
+    track = attitude_track(
+        t,
+        log.imu_t_s if imu_ok else np.zeros(0),
+        log.gyro_rad_s if imu_ok else np.zeros((0, 3)),
+        log.accel_m_s2 if imu_ok else np.zeros((0, 3)),
+        att.t_s,
+        att.values if len(att) else np.zeros((0, 3)),
+    )
+    return CompassData(index, t, v, track.r_nb, drive_inputs(log, t), track.source, track.note)
+
+
+def inlier_mask(
+    t_s: F64, residual_mgauss: F64, k_sigma: float = 10.0, pad_s: float = 0.5, max_fraction: float = 0.05
+) -> NDArray[np.bool_] | None:
+    """Samples to keep, or None when nothing is an outlier.
+
+    A sample is an outlier when any axis of its residual lies more than ``k_sigma`` robust standard
+    deviations (1.4826 MAD) from the median; outliers are padded by ``pad_s`` on both sides, because a crash
+    or a sensor glitch corrupts its neighbourhood too. When more than ``max_fraction`` of the log would go,
+    the model is wrong rather than the data, and nothing is excluded.
+    """
+    med = np.median(residual_mgauss, axis=0)
+    sig = 1.4826 * np.median(np.abs(residual_mgauss - med), axis=0)
+    bad = np.any(np.abs(residual_mgauss - med) > k_sigma * np.maximum(sig, 1e-9), axis=1)
+    if not np.any(bad):
+        return None
+    tb = t_s[bad]
+    idx = np.searchsorted(tb, t_s)
+    near = np.zeros(t_s.shape[0], dtype=bool)
+    for off in (-1, 0):
+        j = np.clip(idx + off, 0, tb.size - 1)
+        near |= np.abs(t_s - tb[j]) <= pad_s
+    if np.mean(near) > max_fraction:
+        return None
+    return ~near
+
+
+def spans(t_s: F64, mask: NDArray[np.bool_]) -> list[tuple[float, float]]:
+    out: list[tuple[float, float]] = []
+    start = None
+    for i, m in enumerate(mask):
+        if m and start is None:
+            start = float(t_s[i])
+        if not m and start is not None:
+            out.append((start, float(t_s[i - 1])))
+            start = None
+    if start is not None:
+        out.append((start, float(t_s[-1])))
+    return out
+
+
+def subset(data: CompassData, keep: NDArray[np.bool_]) -> CompassData:
+    """``data`` restricted to the samples ``keep`` (the drive grid is kept whole: lags need the history)."""
+    d = data.drive
+    temp = d.temperature_degc[keep] if d.temperature_degc is not None else None
+    drive = DriveInputs(
+        d.t_s[keep],
+        d.grid_t_s,
+        d.grid_dt_s,
+        d.throttle_grid,
+        d.motors_grid,
+        d.voltage_grid,
+        d.v_full_v,
+        temp,
+        d.throttle_dt_s,
+        d.extra[keep] if d.extra is not None else None,
+        d.extra_names,
+    )
+    return CompassData(
+        data.mag_index,
+        data.t_s[keep],
+        data.field_mgauss[keep],
+        data.r_nb[keep],
+        drive,
+        data.attitude_source,
+        data.attitude_note,
+    )
+
+
+def signals_at(data: CompassData, log: LogData | None) -> dict[str, tuple[F64, F64]]:
+    """Every signal the residual may follow, as (t_s, values)."""
+    d = data.drive
+    g = d.grid_t_s
+    out: dict[str, tuple[F64, F64]] = {
+        "throttle": (g, d.throttle_grid),
+        "throttle^2": (g, d.throttle_grid**2),
+        "throttle_rate": (g, np.gradient(_smooth(d.throttle_grid, 10), d.grid_dt_s)),
+        "time": (data.t_s, data.t_s - data.t_s[0]),
+    }
+    roll, pitch, yaw = euler_from_dcms(data.r_nb).T
+    out["roll"] = (data.t_s, roll)
+    out["pitch"] = (data.t_s, pitch)
+    out["yaw_deg"] = (data.t_s, np.degrees(np.unwrap(yaw)))
+    out["cos_yaw"] = (data.t_s, np.cos(yaw))
+    out["sin_yaw"] = (data.t_s, np.sin(yaw))
+    if d.motors_grid is not None:
+        for j in range(d.motors_grid.shape[1]):
+            out[f"motor{j + 1}"] = (g, d.motors_grid[:, j])
+    if d.voltage_grid is not None:
+        out["voltage"] = (g, d.voltage_grid)
+    if d.temperature_degc is not None:
+        out["temperature"] = (data.t_s, d.temperature_degc)
+    if log is not None:
+        cur = finite_series(log.current_a)
+        if len(cur) >= 2:
+            out["current"] = (cur.t_s, cur.values)
+        if log.imu_t_s.shape[0] >= 10:
+            out["body_rate"] = (log.imu_t_s, np.linalg.norm(log.gyro_rad_s, axis=1))
+        att = finite_series(log.attitude_rad)
+        if len(att) >= 2:
+            out["autopilot_yaw_rate"] = (att.t_s, np.gradient(np.unwrap(att.values[:, 2]), att.t_s))
+        for k, s in log.mag.items():
+            if k != data.mag_index and len(s) >= 2:
+                fs = finite_series(s)
+                out[f"compass{k}_norm"] = (fs.t_s, np.linalg.norm(fs.values, axis=1))
+    return out
+
+
+def _smooth(x: F64, w: int) -> F64:
+    if w <= 1:
+        return x
+    k = np.ones(w) / w
+    return np.convolve(x, k, mode="same")

@@ -1,0 +1,411 @@
+"""The model search for one compass: the paper's model (baseline), each extension on its own, rivals the data
+cannot tell apart, the greedy combination, and the open search for a step of the field.
+
+:func:`diagnose_compass` runs these steps in order and returns a complete, frozen
+:class:`~magcomp.diagnosis.results.CompassDiagnosis`. Pure, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.core.types import LogData
+from magcomp.diagnosis.effects import EFFECTS, effect_available, negligible
+from magcomp.diagnosis.export import autopilot_export, evidence_json, params_json, r4
+from magcomp.diagnosis.inputs import inlier_mask, signals_at, spans, subset
+from magcomp.diagnosis.model import CompassData, ModelFit, fit_model, initial_fit
+from magcomp.diagnosis.results import CompassDiagnosis, Finding
+from magcomp.diagnosis.rivals import (
+    GROUPS,
+    RIVAL_DELTA_BIC,
+    group_of,
+    rival_set,
+    temperature_beats_time,
+    time_shapes,
+)
+from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms, effective_delta_bic
+from magcomp.diagnosis.structure import search as structure_search
+from magcomp.diagnosis.suspects import find_step, relate, step_at
+
+F64 = NDArray[np.float64]
+Signals = dict[str, tuple[F64, F64]]
+Events = list[tuple[float, str]]
+
+
+class Baseline(NamedTuple):
+    """The paper's model fitted on the data left after outlier spans are excluded."""
+
+    data: CompassData
+    fit: ModelFit
+    excluded: list[tuple[float, float]]
+
+
+@dataclass
+class _Search:
+    """What the search has decided so far (internal; the order of ``rejected`` is the JSON's order)."""
+
+    unavailable: dict[str, str] = field(default_factory=dict)
+    rejected: dict[str, dict[str, Any]] = field(default_factory=dict)
+    singles: list[Comparison] = field(default_factory=list)
+    temp_vs_time: dict[str, dict[str, float]] = field(default_factory=dict)
+    cv_base: float | None = None
+    candidates: dict[str, list[str]] = field(default_factory=dict)
+    candidate_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+class Combined(NamedTuple):
+    """The greedy combination: the final fit, its held-out rms and each kept effect with its comparison."""
+
+    fit: ModelFit
+    cv_rms: float
+    kept: list[tuple[str, Comparison]]
+
+
+class StepCandidate(NamedTuple):
+    """A step of the field that passed: the data with its column, the refit, and the report entry."""
+
+    data: CompassData
+    fit: ModelFit
+    info: dict[str, Any]
+
+
+def fit_baseline(data: CompassData, p: SelectionParams) -> Baseline:
+    """The paper's model eq. (11), refitted (up to twice) without the outlier spans of its residual."""
+    base = fit_model(data, (), start=initial_fit(data), max_nfev=p.max_nfev)
+    excluded: list[tuple[float, float]] = []
+    for _ in range(2):
+        keep = inlier_mask(data.t_s, base.residual_mgauss)
+        if keep is None:
+            break
+        excluded += spans(data.t_s, ~keep)
+        data = subset(data, keep)
+        base = fit_model(data, (), start=initial_fit(data), max_nfev=p.max_nfev)
+    return Baseline(data, base, excluded)
+
+
+def _cheap_rejection(
+    name: str, f: ModelFit, dbic: float, data: CompassData, p: SelectionParams
+) -> str | None:
+    """Why extension ``name`` fails before any held-out test (BIC, negligible, pinned), or None."""
+    param = EFFECTS[name].param
+    small = negligible(name, float(getattr(f.ext, param)), data.drive) if param else None
+    if dbic > -p.min_delta_bic:  # cheap test first: CV only for candidates that pass BIC
+        return "BIC"
+    if small is not None:
+        return small
+    if param is not None:
+        lo_b, hi_b = EFFECTS[name].bounds
+        v = float(getattr(f.ext, param))
+        # (a lower bound of 0 is the effect switched off, which ``negligible`` judges)
+        near_lo = lo_b != 0.0 and v - lo_b < 0.01 * (hi_b - lo_b)
+        if near_lo or hi_b - v < 0.01 * (hi_b - lo_b):
+            # a parameter pinned at the end of its physical range: the data want something the cause
+            # cannot be (e.g. a 5 s "spin-up lag" that is really a slow drift), so it is not the cause
+            return f"{param} = {v:.3g} at the edge of its range [{lo_b}, {hi_b}]"
+    return None
+
+
+def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -> None:
+    """Fit extension ``name`` alone against the baseline; record it in ``s`` as a single or a rejection."""
+    f = fit_model(data, (name,), start=base, max_nfev=p.max_nfev)
+    dbic = f.bic - base.bic
+    why = _cheap_rejection(name, f, dbic, data, p)
+    if why is not None:
+        s.rejected[name] = {"delta_bic": r4(dbic), "rms_with": r4(f.rms_mgauss), "why": why}
+        return
+    if s.cv_base is None:
+        s.cv_base = cv_rms(data, base, p)
+    c = compare(data, base, f, s.cv_base, p)
+    if c.significant and name == "temperature_drift":
+        wins, shape, vs_time = temperature_beats_time(data, base, f, RIVAL_DELTA_BIC, p.max_nfev)
+        if not wins:
+            s.rejected[name] = {
+                "delta_bic": r4(dbic),
+                "cv_gain_pct": r4(100 * c.cv_gain),
+                "delta_bic_vs_time_shapes": vs_time,
+                "why": f"no better than a smooth drift {shape} with as many parameters",
+            }
+            return
+        s.temp_vs_time[name] = vs_time
+    if c.significant:
+        s.singles.append(c)
+    else:
+        s.rejected[name] = {
+            "delta_bic": r4(dbic),
+            "cv_gain_pct": r4(100 * c.cv_gain),
+            "why": "held-out" if c.cv_gain < p.min_cv_gain else f"effective BIC {c.delta_bic:.0f}",
+        }
+
+
+def screen_effects(data: CompassData, base: ModelFit, p: SelectionParams) -> _Search:
+    """Every available extension on its own; the significant ones sorted by held-out gain."""
+    s = _Search()
+    for name in EFFECTS:
+        why = effect_available(name, data.drive)
+        if why is not None:
+            s.unavailable[name] = why
+            continue
+        _test_single(name, data, base, p, s)
+    s.singles.sort(key=lambda c: -c.cv_gain)
+    return s
+
+
+def group_rivals(data: CompassData, s: _Search) -> None:
+    """Singles of one group the data cannot tell apart (BIC within RIVAL_DELTA_BIC) become one candidate set:
+    the best stays, the others are rejected and reported with it."""
+    for group in GROUPS:
+        members = {c.fit.effects[0]: c for c in s.singles if group_of(c.fit.effects[0]) == group}
+        if len(members) < 2:
+            continue
+        same, gap = rival_set({k: c.fit for k, c in members.items()}, RIVAL_DELTA_BIC)
+        if len(same) < 2:
+            continue
+        best = same[0]
+        s.candidates[best] = same
+        s.candidate_params[best] = {
+            k: params_json(members[k].fit, k, data) | {"delta_bic_vs_best": r4(gap[k])} for k in same
+        }
+        for k in same[1:]:
+            s.singles.remove(members[k])
+            s.rejected[k] = {
+                "delta_bic": r4(members[k].delta_bic),
+                "cv_gain_pct": r4(100 * members[k].cv_gain),
+                "why": f"cannot be told from {best} (BIC within {RIVAL_DELTA_BIC:.0f}): reported as a set",
+            }
+
+
+def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -> Combined:
+    """Greedy combination: each single, best first, joins when it still wins against what is kept."""
+    current, cv_current = base, (s.cv_base if s.cv_base is not None else 0.0)
+    kept: list[tuple[str, Comparison]] = []
+    for c in s.singles:
+        name = c.fit.effects[0]
+        if not kept:
+            current, cv_current = c.fit, c.cv_rms_extended
+            kept.append((name, c))
+            continue
+        param = EFFECTS[name].param
+        init = {name: float(getattr(c.fit.ext, param))} if param is not None else None
+        trial = fit_model(data, (*current.effects, name), start=current, init=init, max_nfev=p.max_nfev)
+        ct = compare(data, current, trial, cv_current, p)
+        if ct.significant:
+            current, cv_current = trial, ct.cv_rms_extended
+            kept.append((name, ct))
+        else:
+            s.rejected[name] = {
+                "delta_bic": r4(ct.delta_bic),
+                "cv_gain_pct": r4(100 * ct.cv_gain),
+                "why": f"explained by {', '.join(current.effects)}",
+            }
+    return Combined(current, cv_current, kept)
+
+
+def open_step(
+    data: CompassData,
+    base: ModelFit,
+    comb: Combined,
+    p: SelectionParams,
+    s: _Search,
+    log: LogData | None,
+    events: Events | None,
+) -> StepCandidate | None:
+    """A step of the field the named causes were soaking up, or one in what they leave, or None."""
+    sig0 = signals_at(data, log)
+    # a step on its own (against the paper's model) that fits better than every named cause on its own:
+    # the named ones were soaking it up
+    st = step_candidate(data, base, p, s.cv_base or cv_rms(data, base, p), sig0, events)
+    best_named = min((c.fit.bic for c in s.singles), default=math.inf)
+    if st is None or st.fit.bic >= best_named:
+        # or a step in what the named causes leave
+        st = step_candidate(data, comb.fit, p, comb.cv_rms or cv_rms(data, comb.fit, p), sig0, events)
+    return st
+
+
+def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
+    return [
+        Finding(
+            name,
+            EFFECTS[name].cause,
+            params_json(comb.fit, name, data),
+            evidence_json(c, data)
+            | ({"delta_bic_vs_time_shapes": s.temp_vs_time[name]} if name in s.temp_vs_time else {}),
+            c.fit.rms_mgauss,
+            s.candidates.get(name, []),
+            s.candidate_params.get(name, {}),
+        )
+        for name, c in comb.kept
+    ]
+
+
+def _result(
+    bl: Baseline,
+    comb: Combined,
+    s: _Search,
+    source: str,
+    log: LogData | None,
+    events: Events | None,
+    opened: list[dict[str, Any]] | None,
+) -> CompassDiagnosis:
+    """The complete diagnosis of one compass from the search's outcome."""
+    data, extended = bl.data, comb.fit
+    findings = _findings(data, comb, s)
+    sig = signals_at(data, log)
+    suspects = relate(data.t_s, extended.residual_mgauss, sig)
+    step = find_step(data.t_s, extended.residual_mgauss, sig, events)
+    field_step = motors_off_step(data, extended, sig, events)
+    structure = list(opened or []) + structure_search(
+        data.t_s, extended.residual_mgauss, data.r_nb, sig, suspects, events
+    )
+    ap = autopilot_export(data.mag_index, data, extended, log)
+    return CompassDiagnosis(
+        data.mag_index,
+        source,
+        data,
+        bl.fit,
+        extended,
+        findings,
+        s.rejected,
+        s.unavailable,
+        suspects,
+        step,
+        autopilot=ap.params,
+        linear_note=ap.note,
+        excluded=bl.excluded,
+        field_step=field_step,
+        structure=structure,
+    )
+
+
+def diagnose_compass(
+    data: CompassData,
+    source: str,
+    p: SelectionParams | None = None,
+    log: LogData | None = None,
+    events: Events | None = None,
+    open_search: bool = True,
+    opened: list[dict[str, Any]] | None = None,
+) -> CompassDiagnosis:
+    """Baseline, every available extension, greedy combination; suspects on the final residual.
+
+    open_search: after the selection, look for a step of the field in the residual; when one passes, it
+    joins the nuisance model and the selection is run again, so a named cause that only soaked up the
+    step is dropped (named causes get the first shot, so a fast warm-up is not mistaken for a step).
+    """
+    p = p or SelectionParams()
+    bl = fit_baseline(data, p)
+    s = screen_effects(bl.data, bl.fit, p)
+    group_rivals(bl.data, s)
+    comb = combine(bl.data, bl.fit, p, s)
+    if open_search:
+        st = open_step(bl.data, bl.fit, comb, p, s, log, events)
+        if st is not None:
+            return diagnose_compass(st.data, source, p, log, events, open_search=False, opened=[st.info])
+    return _result(bl, comb, s, source, log, events, opened)
+
+
+def step_candidate(
+    data: CompassData,
+    base: ModelFit,
+    p: SelectionParams,
+    cv_base: float,
+    sig: Signals,
+    events: Events | None,
+) -> StepCandidate | None:
+    """The best single step of the field (change point of the baseline residual's mean, least squares), as a
+    model column; kept when it passes the extensions' own tests (held-out gain, BIC with one more
+    ln(3n) for the searched time). Returns the data with the column, the refit and the report entry."""
+    r = base.residual_mgauss - base.residual_mgauss.mean(axis=0)
+    n = data.n
+    if n < 100:
+        return None
+    c = np.cumsum(r, axis=0)
+    k = np.arange(1, n)
+    # RSS reduction of a mean shift after sample k (exact for a step on a constant): |S_k|^2 n / (k (n - k))
+    gain = np.sum(c[:-1] ** 2, axis=1) * n / (k * (n - k))
+    lo, hi = int(0.05 * n), int(0.95 * n)  # a step at the very ends is the calibration's business
+    i = lo + int(np.argmax(gain[lo:hi]))
+    t_step = float(0.5 * (data.t_s[i] + data.t_s[i + 1]))
+    col = (data.t_s >= t_step).astype(float)[:, None]
+    d = data.drive
+    drive = replace(d, extra=col, extra_names=("step",))
+    data_s = replace(data, drive=drive)
+    fs = fit_model(data_s, base.effects, start=base, max_nfev=p.max_nfev)
+    cmp = compare(data_s, base, fs, cv_base, p)
+    extra_penalty = math.log(3 * n)
+    in_sample = 1.0 - fs.rms_mgauss / base.rms_mgauss
+    if not (
+        cmp.cv_gain >= p.min_cv_gain
+        and in_sample >= p.min_cv_gain
+        and cmp.delta_bic <= -p.min_delta_bic_structure - extra_penalty
+    ):
+        return None
+    # a slow drift (temperature, a settling hard iron) is not a step: the step must beat every smooth time
+    # column with as many parameters, by the same margin
+    for shape in time_shapes(data.t_s).values():
+        smooth = replace(data, drive=replace(d, extra=shape[:, None], extra_names=("step",)))
+        fsm = fit_model(smooth, base.effects, start=base, max_nfev=p.max_nfev)
+        if effective_delta_bic(fsm, fs) > -RIVAL_DELTA_BIC:
+            return None
+    size = fs.coefs[list(fs.columns).index("step")]
+    co: dict[str, float] = {}
+    for name, (ts, vs) in sig.items():
+        before = (ts >= t_step - 2.0) & (ts < t_step)
+        after = (ts >= t_step) & (ts < t_step + 2.0)
+        sd = float(np.std(vs))
+        if np.count_nonzero(before) >= 2 and np.count_nonzero(after) >= 2 and sd > 0:
+            co[name] = round(float(np.mean(vs[after]) - np.mean(vs[before])) / sd, 3)
+    co = dict(sorted(co.items(), key=lambda kv: -abs(kv[1]))[:5])
+    info = {
+        "kind": "step",
+        "t_s": round(t_step, 2),
+        "size_mgauss": [round(float(v), 2) for v in size],
+        "rms_reduction_pct": round(100.0 * (1.0 - fs.rms_mgauss / base.rms_mgauss), 2),
+        "cv_gain_pct": round(100.0 * cmp.cv_gain, 2),
+        "delta_bic": round(cmp.delta_bic, 1),
+        "co_stepping_signals": co,
+        "events": [{"t_s": round(te, 2), "event": e} for te, e in (events or []) if abs(te - t_step) <= 2.0],
+        "note": "a step of the field that no named cause explains (a payload, servo or light switched on?); "
+        "kept in the model as a nuisance so the named causes are tested on what is left",
+    }
+    return StepCandidate(data_s, fs, info)
+
+
+def motors_off_step(
+    data: CompassData, fit: ModelFit, sig: dict[str, tuple[F64, F64]], events: list[tuple[float, str]] | None
+) -> dict[str, Any] | None:
+    """The largest step of the *measured* field while the motors are off, and what explains it.
+
+    With the throttle at zero eq. (11) predicts no bias change, so a step there is either a rotation
+    (which the forward model predicts from the gyro), or something outside the powertrain. Reported: its
+    time and size, the step the model predicts and the step left in the residual at that time, the
+    signals that step with it and the logged events nearby.
+    """
+    thr = data.throttle_01
+    off = thr < 0.02
+    if np.count_nonzero(off) < 40:
+        return None
+    st = find_step(data.t_s[off], data.field_mgauss[off], sig, events)
+    if st is None:
+        return None
+    predicted = data.field_mgauss - fit.residual_mgauss
+    pred = step_at(data.t_s, predicted, st.t_s)
+    res = step_at(data.t_s, fit.residual_mgauss, st.t_s)
+    explained = None
+    if pred is not None and res is not None:
+        size = float(np.linalg.norm(st.size_mgauss))
+        explained = round(1.0 - float(np.linalg.norm(res)) / size, 3) if size > 0 else None
+    return {
+        "t_s": r4(st.t_s),
+        "size_mgauss": r4(np.array(st.size_mgauss)),
+        "size_sigma": r4(st.size_sigma),
+        "predicted_step_mgauss": None if pred is None else r4(pred),
+        "residual_step_mgauss": None if res is None else r4(res),
+        "fraction_explained_by_model": explained,
+        "co_stepping_signals": dict(list(st.co_stepping.items())[:8]),
+        "events": [{"t_s": r4(t), "event": e} for t, e in st.events],
+    }
