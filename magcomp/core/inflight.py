@@ -286,6 +286,15 @@ class InflightEstimator:
         self._w_be = np.zeros(0)
         self._w_zz = 0.0
         self.n_windows = 0
+        # the field-norm rows (add_norm): their blocks with the one common norm unknown, eliminated when
+        # solving (a Schur complement, like a window that never closes)
+        self._n_pp = np.zeros((n, n))
+        self._n_pc = np.zeros(n)
+        self._n_cc = 0.0
+        self._n_bp = np.zeros(n)
+        self._n_bc = 0.0
+        self._n_zz = 0.0
+        self.n_norm = 0
         #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error)
         self.nuisance_prior_sd = NUISANCE_PRIOR_RAD_S
 
@@ -295,7 +304,7 @@ class InflightEstimator:
         residual sum of squares from the information form, ``z'z - 2 p'b + p'Ip``, over its degrees of
         freedom. (A running mean of a-priori residuals would keep the large residuals of the first samples,
         when the estimate was still the prior, and overstate the noise tenfold.)"""
-        n_dof = 3 * self.n - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows
+        n_dof = 3 * self.n + self.n_norm - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows
         if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
         p = self._theta
@@ -365,6 +374,56 @@ class InflightEstimator:
         self._dirty = True
         return math.sqrt(rn2)
 
+    def add_norm(self, y_mgauss: F64, x: F64) -> None:
+        """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``
+        and ``c`` one unknown common to the whole flight, linearised at the current estimate.
+
+        The differenced pairs see theta only through the throttle change within a pair (0.3 s); the norm
+        of the calibrated field is the Earth field's whatever the attitude (eq. (2): ``|L(y - d)| = |h|``,
+        the paper's calibration constraint, with eq. (11)'s bias removed), so every throttle change, however
+        slow (a climb, forward flight), tells theta's component along the field. ``c`` rather than the
+        WMM's |h|: the relative form has no common scale (a traceless E) and a WMM norm is off by a few %
+        locally; eliminating ``c`` keeps only the norm's variation. Weighted by sqrt(2): a pair's
+        component has the noise of two samples, a norm row that of one sample projected on the field."""
+        k = self._k
+        th = self._theta[k + 3 :].reshape(-1, 3)
+        v = np.asarray(y_mgauss - self._theta[k : k + 3] - x[: th.shape[0]] @ th, dtype=np.float64)
+        l_mat = np.eye(3) + soft_iron_matrix(self._theta[0:N_SOFT])
+        u = l_mat @ v
+        nu = float(np.linalg.norm(u))
+        if nu < 1.0:
+            return
+        e = u / nu
+        g = np.empty(self.info.shape[0])
+        g[0:N_SOFT] = e @ np.einsum("kij,j->ik", _SOFT_BASIS, v)
+        el = e @ l_mat
+        g[k : k + 3] = -el
+        for r in range(th.shape[0]):
+            g[k + 3 + 3 * r : k + 6 + 3 * r] = -float(x[r]) * el
+        w = math.sqrt(2.0)
+        g *= w
+        z = w * (float(g @ self._theta) / w - nu)
+        c = -w  # the column of the common norm c
+        self._n_pp += np.outer(g, g)
+        self._n_pc += g * c
+        self._n_cc += c * c
+        self._n_bp += g * z
+        self._n_bc += c * z
+        self._n_zz += z * z
+        self.n_norm += 1
+        self._dirty = True
+
+    def _norm_schur(self) -> tuple[F64, F64, float]:
+        """The norm rows' contribution to (info, rhs, z'z) with their common norm eliminated."""
+        if self.n_norm == 0:
+            return self._n_pp, self._n_bp, self._n_zz
+        k_p = self._n_pc / self._n_cc
+        return (
+            self._n_pp - np.outer(k_p, self._n_pc),
+            self._n_bp - k_p * self._n_bc,
+            self._n_zz - self._n_bc * self._n_bc / self._n_cc,
+        )
+
     def _window_schur(self) -> tuple[F64, F64, float]:
         """The open window's contribution to (info, rhs, z'z) with its nuisance eliminated. The nuisance
         has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a
@@ -398,11 +457,12 @@ class InflightEstimator:
         self._win = None
 
     def _effective(self) -> tuple[F64, F64, float]:
-        """(info, rhs, z'z) of every row so far, the open nuisance window included."""
+        """(info, rhs, z'z) of every row so far, the open nuisance window and the norm rows included."""
+        n_info, n_rhs, n_zz = self._norm_schur()
         if self._win is None:
-            return self.info, self.rhs, self._zz
+            return self.info + n_info, self.rhs + n_rhs, self._zz + n_zz
         info, rhs, zz = self._window_schur()
-        return self.info + info, self.rhs + rhs, self._zz + zz
+        return self.info + info + n_info, self.rhs + rhs + n_rhs, self._zz + zz + n_zz
 
     def _refresh(self) -> None:
         """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""

@@ -50,6 +50,8 @@ APPLY_Z = 2.0
 #: horizontal field (err <= h / 2, atan(0.5) = 26.6 deg); above it a correction that turns the heading by
 #: 150 deg would "justify" itself with a 75 deg uncertainty (seen on a 23 s log with 8 deg of yaw)
 MAX_APPLY_HEADING_SIGMA_DEG = math.degrees(math.atan(0.5))
+#: the relative form adds one field-norm row per sample (InflightEstimator.add_norm)
+NORM_ROWS = False
 #: the relative form is applied only once the heading has covered this span (deg; as the diagnosis's gate)
 MIN_RELATIVE_YAW_SPAN_DEG = 90.0
 #: the relative form's rotation-source yaw-rate error (InflightEstimator.add) is taken as constant over
@@ -272,6 +274,8 @@ class InflightStage:
             self.est.add(rows, z, float(x[0]), cols, (self._epoch, math.floor(t_s / ROTATION_WINDOW_S)))
             self.n_rows += 1
             return
+        if NORM_ROWS and self.applied:
+            self.est.add_norm(y, x)
         self._pair(t_s, r_nb, y, x)
 
     def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
