@@ -243,6 +243,21 @@ def log_events(path: str) -> list[tuple[float, str]]:
     return out
 
 
+def _g3(v: float | None) -> str:
+    """A number for the console: three significant digits (the JSON keeps more)."""
+    return "?" if v is None else f"{float(v):.3g}"
+
+
+def _vec1(v: list[float] | None, ci95: list[float] | None) -> str:
+    """(x, y, z) to 0.1, with the 95 % half-widths when known."""
+    if v is None:
+        return "?"
+    txt = "(" + ", ".join(f"{float(x):.1f}" for x in v) + ")"
+    if ci95 is not None and all(x is not None for x in ci95):
+        txt += " +- (" + ", ".join(f"{float(x):.1f}" for x in ci95) + ")"
+    return txt
+
+
 def _summary(j: dict[str, Any]) -> list[str]:
     lines = []
     for c in j["compasses"]:
@@ -252,15 +267,22 @@ def _summary(j: dict[str, Any]) -> list[str]:
         names = (
             ", ".join(
                 f"{f['effect']} "
-                + " ".join(f"{k}={v}" for k, v in f["params"].items() if not isinstance(v, list))
+                + " ".join(
+                    f"{k}={_g3(v)}" for k, v in f["params"].items() if isinstance(v, int | float | None)
+                )
                 for f in c["findings"]
             )
             or "no finding"
         )
+        theta = _vec1(c["theta"], c.get("theta_ci95_halfwidth"))
         lines.append(
-            f"compass {c['index']}: theta {c['theta']} mgauss; residual {c['residual_rms_baseline']} -> "
-            f"{c['residual_rms_extended']} mgauss; {names}"
+            f"compass {c['index']}: theta {theta} mgauss; residual "
+            f"{_g3(c['residual_rms_baseline'])} -> {_g3(c['residual_rms_extended'])} mgauss; {names}"
         )
+        for f in c["findings"]:  # a parameter the data cannot give says why in words
+            for k, v in f["params"].items():
+                if isinstance(v, str):
+                    lines.append(f"  {f['effect']} {k}: {v}")
         for u in c.get("unexplained_structure", []):
             when = f" at t = {u['t_s']} s" if "t_s" in u else ""
             lines.append(
