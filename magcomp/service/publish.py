@@ -84,7 +84,9 @@ class HeadingEncoder:
                   throttle_01, mag_index & 0xFF, flags & 0xFF)  # fmt: skip
         mav = self.mav
         if mav.signing.sign_outgoing:
-            return bytes(self._msg_cls(*fields).pack(mav))
+            out = bytes(self._msg_cls(*fields).pack(mav))
+            mav.seq = (mav.seq + 1) & 0xFF  # as pymavlink's send() counts (pack() alone does not)
+            return out
         payload = self._payload.pack(fields[0], heading_deg, heading_raw_deg, *theta, *bias, throttle_01,
                                      fields[6], fields[7])  # fmt: skip
         payload = payload.rstrip(b"\0") or payload[:1]  # MAVLink 2 drops trailing zero bytes (not the first)
@@ -92,6 +94,7 @@ class HeadingEncoder:
         frame = _V2_HEADER.pack(0xFD, len(payload), 0, 0, mav.seq, mav.srcSystem, mav.srcComponent,
                                 msg_id & 0xFFFF, msg_id >> 16) + payload  # fmt: skip
         crc = self._crc(frame[1:] + self._crc_extra)
+        mav.seq = (mav.seq + 1) & 0xFF  # the link's packet counter: a ground station counts losses by it
         return frame + _CRC.pack(crc)
 
     def heartbeat(self) -> bytes:
@@ -99,7 +102,9 @@ class HeadingEncoder:
         m = self._mod
         msg = m.MAVLink_heartbeat_message(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0,
                                           m.MAV_STATE_ACTIVE, 3)  # fmt: skip
-        return bytes(msg.pack(self.mav))
+        out = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) & 0xFF
+        return out
 
 
 class TlogWriter:

@@ -39,9 +39,29 @@ def test_frames_match_pymavlink_and_decode() -> None:
             field_cal_mgauss=np.zeros(3),
         )
         enc.mav.seq = k % 256
+        expected = _pymavlink_bytes(enc, est)  # pymavlink's pack() leaves the counter alone
         got = enc.encode(est)
-        assert got == _pymavlink_bytes(enc, est)
+        assert got == expected
+        assert enc.mav.seq == (k + 1) % 256  # and the encoder counts, as a link's send() does
         (msg,) = mav.parse_buffer(got)
         assert msg.get_type() == "MAGCOMP_HEADING"
         assert msg.mag_index == est.mag_index and msg.flags == est.flags
         assert abs(msg.heading - est.heading_deg) < 1e-3
+
+
+def test_sequence_numbers_count_up_and_wrap() -> None:
+    """A ground station counts lost packets by the MAVLink sequence number: consecutive headings carry
+    consecutive numbers, wrapping at 256 (they were all 0)."""
+    enc = HeadingEncoder(0, 191)
+    enc.set_system(1)
+    mav = ensure_dialect().MAVLink(None)
+    seqs = []
+    for k in range(300):
+        frame = enc.encode(
+            HeadingEstimate(t_s=0.01 * k, mag_index=0, heading_deg=10.0, heading_raw_deg=12.0,
+                            theta_mgauss=np.zeros(3), bias_mgauss=np.zeros(3), throttle_01=0.5, flags=0,
+                            field_raw_mgauss=np.zeros(3), field_cal_mgauss=np.zeros(3))
+        )  # fmt: skip
+        (msg,) = mav.parse_buffer(frame)
+        seqs.append(msg.get_seq())
+    assert seqs == [k % 256 for k in range(300)]
