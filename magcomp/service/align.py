@@ -161,9 +161,7 @@ class AlignStage:
             self.counts["mag_jumps"] += 1
             return None
         prev_t = clock.last_t
-        verdict = (
-            TIME_OK if prev_t is None or t > prev_t else check_time(prev_t, t, self._reset_s, self.counts)
-        )
+        verdict = check_time(prev_t, t, self._reset_s, self.counts)
         if verdict == TIME_SKIP:
             return None
         clock.n_mag += 1

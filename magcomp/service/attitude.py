@@ -132,9 +132,7 @@ class AttitudeStage:
             self.counts["gyro_gated"] += 1
             return False
         prev_t = self.imu_t
-        verdict = (
-            TIME_OK if prev_t is None or t > prev_t else check_time(prev_t, t, self._reset_s, self.counts)
-        )
+        verdict = check_time(prev_t, t, self._reset_s, self.counts)
         if verdict == TIME_SKIP:
             return False
         m = self.mahony
