@@ -28,6 +28,7 @@ from magcomp.core.rotations import (
     dcm_from_euler,
     dcm_from_quat,
     dcms_from_quats,
+    down_b_from_quat,
     euler_from_dcms,
     quat_from_dcm,
 )
@@ -135,10 +136,7 @@ def _tilt_pass(
             j = k - lo  # row k in g and r
             if not 0.0 < dt < 10.0 * med:
                 dt = 0.0 if k == 0 else med
-            # estimated down in body axes: third row of R_nb
-            dx = 2.0 * (x * z - w * y)
-            dy = 2.0 * (y * z + w * x)
-            dz = 1.0 - 2.0 * (x * x + y * y)
+            dx, dy, dz = down_b_from_quat((w, x, y, z))  # estimated down in body axes
             rx, ry, rz = r[j - 1] if k > 0 else r[0]  # the state still stands for t_{k-1}
             # tilt error e = d_est x d_ref (rotation that takes the estimate to the reference)
             ex = dy * rz - dz * ry
