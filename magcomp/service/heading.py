@@ -48,12 +48,21 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
     else:
         psi = psi_raw
-    reset = rec.reset
-    if reset or not rec.gyro_fresh:
-        track.reset()
     _, gy, gz = rec.gyro
-    rate = yaw_rate(gy, gz, cr, sr, cp)
-    prev_t = rec.prev_t
-    dt = 0.0 if prev_t is None or reset else rec.t_s - prev_t
-    rec.heading_raw_deg = track.raw.update(psi_raw, rate, dt)
-    rec.heading_deg = track.corrected.update(psi, rate, dt) if rec.have_throttle else rec.heading_raw_deg
+    rec.heading_deg, rec.heading_raw_deg = filter_step(
+        track, psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh,
+        yaw_rate(gy, gz, cr, sr, cp), 0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t,
+    )  # fmt: skip
+
+
+def filter_step(
+    track: HeadingTrack, psi: float, psi_raw: float, corrected: bool, restart: bool, rate: float, dt: float
+) -> tuple[float, float]:
+    """Both heading filters over one sample: (corrected, uncorrected) heading, deg. ``psi`` / ``psi_raw``:
+    eq. (24) of the corrected and the calibrated-only field; ``corrected``: the throttle is known (else
+    the corrected heading is the uncorrected one); ``restart``: the filters start again from this sample
+    (a gap, a stale gyro); ``rate``: the Euler yaw rate (:func:`yaw_rate`), ``dt`` the interval (0: none)."""
+    if restart:
+        track.reset()
+    raw = track.raw.update(psi_raw, rate, dt)
+    return (track.corrected.update(psi, rate, dt) if corrected else raw), raw
