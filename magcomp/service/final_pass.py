@@ -145,6 +145,8 @@ def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
             continue
         state = st.final_state()
         st.restart_accounts()
+        if st.est is not None and st.est.n > 0:  # the second pass starts from the state stored at the end
+            st.warm_started = True
         if state != "corrected" or st.est is None:
             out[idx] = FinalCompass(None, False, (0.0, 0.0, 0.0), False, state)
             continue
