@@ -58,9 +58,9 @@ class SampleLog:
     The pipeline calls :meth:`add` once per sample after the attitude stage and :meth:`reboot` when the
     autopilot reboots (the heading filters restart there)."""
 
-    def __init__(self, chunk_rows: int = CHUNK_ROWS) -> None:
+    def __init__(self, chunk_rows: int | None = None) -> None:
         self._buf = array("d")
-        self._limit = chunk_rows * N_COLS
+        self._limit = (CHUNK_ROWS if chunk_rows is None else chunk_rows) * N_COLS
         self._file: IO[bytes] | None = None
         self._seen: set[int] = set()
         self._rebooted: set[int] = set()

@@ -15,6 +15,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.final_pass import FinalCompass, SampleLog, final_compasses, final_pass
+from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.workers import Workers
@@ -274,7 +275,7 @@ def replay_log(
     path: str | Path,
     cfg: Config,
     *,
-    store: StateStore | None = None,
+    store: StateSink | None = None,
     emit: str | Path | None = None,
     keep_estimates: bool = False,
     on_estimate: Callable[[HeadingEstimate], None] | None = None,
