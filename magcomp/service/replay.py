@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import CompassState, StateStore
+from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.final_pass import FinalCompass, SampleLog, final_compasses, final_pass
 from magcomp.service.persist import StateSink
