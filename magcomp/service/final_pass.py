@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import tempfile
 from array import array
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, NamedTuple
 
@@ -62,31 +62,28 @@ class SampleLog:
         self._buf = array("d")
         self._limit = (CHUNK_ROWS if chunk_rows is None else chunk_rows) * N_COLS
         self._file: IO[bytes] | None = None
-        self._seen: set[int] = set()
         self._rebooted: set[int] = set()
-        self.rows = 0
 
     def add(self, rec: MagRecord, boot_offset_s: float) -> None:
-        idx = rec.mag_index
-        reboot = 0.0
-        if self._rebooted and idx in self._rebooted:
-            self._rebooted.discard(idx)
-            reboot = 1.0
-        self._seen.add(idx)
+        reboot = False
+        if self._rebooted:
+            idx = rec.mag_index
+            if idx in self._rebooted:
+                self._rebooted.discard(idx)
+                reboot = True
         prev = rec.prev_t
         vx, vy, vz = rec.raw
         _, gy, gz = rec.gyro
-        self._buf.extend((rec.t_s, idx, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags, rec.reset,
-                          math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
-                          rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s,
-                          reboot))  # fmt: skip
-        self.rows += 1
-        if len(self._buf) >= self._limit:
+        buf = self._buf
+        buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
+                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
+                    rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot))  # fmt: skip
+        if len(buf) >= self._limit:
             self._spill()
 
-    def reboot(self) -> None:
-        """The autopilot rebooted: the next sample of every compass seen so far restarts its filters."""
-        self._rebooted = set(self._seen)
+    def reboot(self, compasses: Iterable[int]) -> None:
+        """The autopilot rebooted: the next sample of each of ``compasses`` restarts its heading filters."""
+        self._rebooted = set(compasses)
 
     def _spill(self) -> None:
         if self._file is None:

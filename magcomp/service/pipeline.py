@@ -20,14 +20,15 @@ construction. Bad input never stops the pipeline: non-finite or saturated sample
 backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`Pipeline.counts`.
 
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out; the
-states every other stage reaches are the same as in a full run.
+states every other stage reaches are the same as in a full run. With a ``recorder`` it also records what
+the second pass needs (:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import numpy as np
@@ -78,7 +79,7 @@ class SampleRecorder(Protocol):
 
     def add(self, rec: MagRecord, boot_offset_s: float) -> None: ...
 
-    def reboot(self) -> None: ...
+    def reboot(self, compasses: Iterable[int]) -> None: ...
 
 
 def _ignored(sample: object) -> bool:
@@ -296,7 +297,7 @@ class Pipeline:
         self.attitude.on_reboot()
         self.throttle.forget()
         if self._recorder is not None:
-            self._recorder.reboot()
+            self._recorder.reboot(list(self.correctors))
         for c in self.correctors.values():
             cal = c.calib
             if cal.collecting:
