@@ -49,8 +49,8 @@ F64 = NDArray[np.float64]
  SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT) = range(20)  # fmt: skip
 N_COLS = 20
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
-#: 32768 rows of 20 float64 are 5 MB
-CHUNK_ROWS = 32768
+#: 8192 rows of 20 float64 are 1.3 MB
+CHUNK_ROWS = 8192
 
 
 class SampleLog:
