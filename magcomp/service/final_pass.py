@@ -261,36 +261,52 @@ def final_pass(
     res = FinalPassResult()
     if pipeline.system_id is not None:
         encoder.set_system(pipeline.system_id)
-    for rows in samples.chunks():
-        if should_stop is not None and should_stop():
-            res.interrupted = True
-            break
-        if on_progress is not None:
-            on_progress(float(rows[-1, T]))
-        cor = correct(rows, finals)
-        idx, head, head_raw = filter_and_publish(rows, cor, pipeline, finals)
-        res.n_estimates += len(idx)
-        res.t_last_s = float(rows[-1, T])
-        if not idx:
-            continue
-        sel = np.asarray(idx, dtype=np.int64)
-        pub = rows[sel]
-        values = HeadingValues(
-            t_boot_s=pub[:, T] - pub[:, BOOT_OFFSET],
-            heading_deg=np.asarray(head),
-            heading_raw_deg=np.asarray(head_raw),
-            theta=cor.theta[sel],
-            bias=cor.bias[sel],
-            throttle_01=pub[:, THR],
-            mag_index=pub[:, MAG].astype(np.int64),
-            flags=cor.flags[sel],
-        )
-        if writer is not None:
-            writer.write_frames(pub[:, T], encoder.encode_frames(values))
-        if on_estimate is not None:
-            for e in estimates(pub, values, cor.field_corrected[sel]):
-                on_estimate(e)
+    try:
+        for rows in samples.chunks():
+            if should_stop is not None and should_stop():
+                res.interrupted = True
+                break
+            if on_progress is not None:
+                on_progress(float(rows[-1, T]))
+            _block(rows, pipeline, finals, encoder, writer, on_estimate, res)
+    except KeyboardInterrupt:  # as the per-sample loop: what was written stays, the report says where
+        res.interrupted = True
     return res
+
+
+def _block(
+    rows: F64,
+    pipeline: Pipeline,
+    finals: dict[int, FinalCompass],
+    encoder: HeadingEncoder,
+    writer: TlogWriter | None,
+    on_estimate: Callable[[HeadingEstimate], None] | None,
+    res: FinalPassResult,
+) -> None:
+    """One block of the sample log through :func:`final_pass`."""
+    cor = correct(rows, finals)
+    idx, head, head_raw = filter_and_publish(rows, cor, pipeline, finals)
+    res.n_estimates += len(idx)
+    res.t_last_s = float(rows[-1, T])
+    if not idx:
+        return
+    sel = np.asarray(idx, dtype=np.int64)
+    pub = rows[sel]
+    values = HeadingValues(
+        t_boot_s=pub[:, T] - pub[:, BOOT_OFFSET],
+        heading_deg=np.asarray(head),
+        heading_raw_deg=np.asarray(head_raw),
+        theta=cor.theta[sel],
+        bias=cor.bias[sel],
+        throttle_01=pub[:, THR],
+        mag_index=pub[:, MAG].astype(np.int64),
+        flags=cor.flags[sel],
+    )
+    if writer is not None:
+        writer.write_frames(pub[:, T], encoder.encode_frames(values))
+    if on_estimate is not None:
+        for e in estimates(pub, values, cor.field_corrected[sel]):
+            on_estimate(e)
 
 
 def estimates(pub: F64, v: HeadingValues, field_corrected: F64) -> Iterator[HeadingEstimate]:
