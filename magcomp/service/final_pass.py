@@ -239,7 +239,9 @@ def filter_and_publish(
 
 
 @dataclass
-class FinalPassResult:
+class PassProgress:
+    """How far a replay pass got (the per-sample loop's and this one's)."""
+
     n_estimates: int = 0
     interrupted: bool = False
     t_last_s: float = float("nan")
@@ -254,11 +256,11 @@ def final_pass(
     on_estimate: Callable[[HeadingEstimate], None] | None,
     should_stop: Callable[[], bool] | None = None,
     on_progress: Callable[[float], None] | None = None,
-) -> FinalPassResult:
+) -> PassProgress:
     """The second pass over ``samples`` (see the module's doc): headings with ``finals`` applied, the
     published ones packed into ``writer`` and handed to ``on_estimate``; counts and times into
     ``pipeline`` (its summary then describes this pass)."""
-    res = FinalPassResult()
+    res = PassProgress()
     if pipeline.system_id is not None:
         encoder.set_system(pipeline.system_id)
     try:
@@ -281,7 +283,7 @@ def _block(
     encoder: HeadingEncoder,
     writer: TlogWriter | None,
     on_estimate: Callable[[HeadingEstimate], None] | None,
-    res: FinalPassResult,
+    res: PassProgress,
 ) -> None:
     """One block of the sample log through :func:`final_pass`."""
     cor = correct(rows, finals)

@@ -14,7 +14,7 @@ from typing import Any
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
-from magcomp.service.final_pass import FinalCompass, SampleLog, final_compasses, final_pass
+from magcomp.service.final_pass import FinalCompass, PassProgress, SampleLog, final_compasses, final_pass
 from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
@@ -226,27 +226,18 @@ class _Outputs:
         return self.writer.packets if self.writer is not None else 0
 
 
-@dataclass
-class _Progress:
-    """How far a replay loop got."""
-
-    n_estimates: int = 0
-    interrupted: bool = False
-    t_last_s: float = float("nan")
-
-
 def _replay_loop(
     source: Any,
     pipeline: Pipeline,
     outputs: _Outputs,
     should_stop: Callable[[], bool] | None,
     on_progress: Callable[[float], None] | None,
-) -> _Progress:
+) -> PassProgress:
     """Every sample of ``source`` through ``pipeline``; published estimates to ``outputs``. Samples are
     decoded a batch at a time, then fed one by one in the same order: the same numbers as feeding each
     sample as it is decoded (the source never depends on the pipeline), 3-4 % less wall time (each half
     of the loop runs on warm caches)."""
-    prog = _Progress()
+    prog = PassProgress()
     feed = pipeline.feed
     wanted = outputs.wanted
     samples = source.samples()
