@@ -308,7 +308,10 @@ def replay_log(
             report = _second_pass(path, cfg, first, finals, emit, keep_estimates, on_estimate, should_stop,
                                   on_progress)  # fmt: skip
         else:  # one pass; or two, the second per sample from the stored states (per-motor terms)
-            mem = first.store if first is not None else store
+            mem = store
+            if first is not None:
+                first.samples.close()
+                mem = first.store
             pipeline = Pipeline(cfg, store=mem, on_text=on_text, workers=workers)
             report = _replay(path, cfg, pipeline, emit, keep_estimates, on_estimate, should_stop, on_progress)
     report.wall_s = time.perf_counter() - t_wall

@@ -83,3 +83,18 @@ def test_the_sample_log_spilled_to_disk_gives_the_same_replay(
     assert (tmp_path / "a.tlog").read_bytes() == (tmp_path / "b.tlog").read_bytes()
     a, b = _columns(whole.estimates), _columns(spilled.estimates)
     np.testing.assert_array_equal(a["heading"], b["heading"])
+
+
+def test_per_motor_terms_take_the_per_sample_second_pass(tmp_path: Path) -> None:
+    """An in-flight estimate with per-motor terms (its bias follows the motor outputs, which the sample log
+    does not record) is replayed per sample from the stored state: still two passes, every heading there."""
+    path = tmp_path / "ordinary.tlog"
+    write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=100.0, seed=1)), path)
+    base = Config()
+    cfg = replace(base, inflight=replace(base.inflight, per_motor="auto"))
+    rep = replay_log(path, cfg, two_pass=True)
+    assert rep.summary["passes"] == 2
+    assert rep.n_estimates == rep.summary["counts"]["mag"] > 1000
+    for c in rep.summary["compasses"]:
+        assert c["inflight"]["per_motor"] and c["status"] == "corrected"
+        assert c["inflight"]["started_from_stored_state"]  # the per-sample second pass's warm start
