@@ -16,14 +16,28 @@ from magcomp.core.types import FLAG_THETA_CONVERGED, HeadingEstimate
 from magcomp.service import final_pass
 from magcomp.service.replay import learn_pass, replay_log
 from magcomp.sim import SimConfig, simulate
+from tests.conftest import split_tlog_records
+from tests.faultgen import record_time_s, retime
 
 
 @pytest.fixture(scope="module")
-def paper_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The paper's scenario (hand rotation, then flight), 150 s, two compasses."""
-    path = tmp_path_factory.mktemp("final") / "paper.tlog"
-    write_tlog(simulate(SimConfig(scenario="paper", duration_s=150.0, seed=4)), path)
-    return path
+def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The paper's scenario (hand rotation, then flight), 150 s, two compasses; and the same log with the
+    autopilot rebooting 100 s in (its clock restarts at 0.3 s: boot offset and heading filters restart)."""
+    d = tmp_path_factory.mktemp("final")
+    result = simulate(SimConfig(scenario="paper", duration_s=150.0, seed=4))
+    write_tlog(result, d / "paper.tlog")
+    recs = split_tlog_records((d / "paper.tlog").read_bytes())
+    u0 = record_time_s(recs[0])
+    rebooted = retime(recs, lambda i, old: old - (result.t0_s + 100.0) + 0.3
+                      if record_time_s(recs[i]) - u0 >= 100.0 else old)  # fmt: skip
+    (d / "reboot.tlog").write_bytes(b"".join(rebooted))
+    return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog"}
+
+
+@pytest.fixture(scope="module")
+def paper_log(logs: dict[str, Path]) -> Path:
+    return logs["paper"]
 
 
 def _columns(ests: list[HeadingEstimate]) -> dict[str, np.ndarray]:
@@ -42,16 +56,22 @@ def _wrap(d: np.ndarray) -> np.ndarray:
     return (d + 180.0) % 360.0 - 180.0
 
 
-def test_two_pass_headings_equal_the_per_sample_pipeline_with_the_final_state_fixed(paper_log: Path) -> None:
-    rep = replay_log(paper_log, Config(), keep_estimates=True, two_pass=True)
+@pytest.mark.parametrize("name", ["paper", "reboot"])
+def test_two_pass_headings_equal_the_per_sample_pipeline_with_the_final_state_fixed(
+    logs: dict[str, Path], name: str
+) -> None:
+    path = logs[name]
+    rep = replay_log(path, Config(), keep_estimates=True, two_pass=True)
     assert rep.summary["passes"] == 2
-    mem = learn_pass(paper_log, Config())  # the same first pass: the states the second one holds fixed
+    assert rep.summary["counts"]["reboots"] == (name == "reboot")
+    mem = learn_pass(path, Config())  # the same first pass: the states the second one holds fixed
     assert mem is not None
     assert all(s.calib_l is not None for s in mem.states.values())  # the hand rotation was learned
     base = Config()
     fixed = replace(base, observer=replace(base.observer, learn=False))  # no theta steps, no re-learning
-    ref = replay_log(paper_log, fixed, store=mem, keep_estimates=True)
+    ref = replay_log(path, fixed, store=mem, keep_estimates=True)
     a, b = _columns(rep.estimates), _columns(ref.estimates)
+    np.testing.assert_array_equal([e.t_boot_s for e in rep.estimates], [e.t_boot_s for e in ref.estimates])
     assert len(rep.estimates) == len(ref.estimates) > 1000
     np.testing.assert_array_equal(a["t"], b["t"])
     np.testing.assert_array_equal(a["mag"], b["mag"])
