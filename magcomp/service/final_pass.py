@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_CONVERGED, HeadingEstimate
 from magcomp.service.calibrate import apply_eq2
-from magcomp.service.heading import filter_step, yaw_rate
+from magcomp.service.heading import yaw_rate
 from magcomp.service.publish import HeadingEncoder, HeadingValues, TlogWriter
 from magcomp.service.record import Float3, MagRecord
 
@@ -225,16 +225,17 @@ def filter_and_publish(
         c = correctors[idx]
         prev_t = None if prev != prev else prev  # NaN: no previous sample
         dt = 0.0 if prev_t is None or reset else t - prev_t
-        h, hr = filter_step(c.heading, psi, psi_raw, bool(have), bool(reset or reboot or not fresh),
-                            yaw_rate(gy, gz, cr, sr, cp), dt)  # fmt: skip
+        track = c.heading
+        restart = bool(reset or reboot or not fresh)
+        track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt)
         if have and idx in stages:
             st = stages[idx]
             assert st is not None
             st.account(t, accounts[idx] or "uncorrected")
         if publish.due(c, t, prev_t, bool(reset), bool(corr)):
             out.append(i)
-            head.append(h)
-            head_raw.append(hr)
+            head.append(track.corrected_deg)
+            head_raw.append(track.raw_deg)
     return out, head, head_raw
 
 
