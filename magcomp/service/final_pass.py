@@ -144,6 +144,7 @@ def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
         st.restart_accounts()
         if st.est is not None and st.est.n > 0:  # the second pass starts from the state stored at the end
             st.warm_started = True
+            st.first_applied_t = None  # applied from this pass's first sample on (as a warm start says)
         if state != "corrected" or st.est is None:
             out[idx] = FinalCompass(None, False, (0.0, 0.0, 0.0), False, state)
             continue
