@@ -20,17 +20,31 @@ MIN_COS_PITCH = 0.25
 
 
 class HeadingTrack:
-    """One compass's two heading filters (corrected, uncorrected)."""
+    """One compass's two heading filters (corrected, uncorrected) and their last outputs (deg)."""
 
-    __slots__ = ("corrected", "raw")
+    __slots__ = ("corrected", "corrected_deg", "raw", "raw_deg")
 
     def __init__(self, tau_s: float) -> None:
         self.corrected = est_core.HeadingFilter(tau_s)
         self.raw = est_core.HeadingFilter(tau_s)
+        self.corrected_deg = self.raw_deg = math.nan
 
     def reset(self) -> None:
         self.corrected.reset()
         self.raw.reset()
+
+    def step(
+        self, psi: float, psi_raw: float, corrected: bool, restart: bool, rate: float, dt: float
+    ) -> None:
+        """Both filters over one sample; the results in :attr:`corrected_deg` and :attr:`raw_deg`. ``psi`` /
+        ``psi_raw``: eq. (24) of the corrected and the calibrated-only field; ``corrected``: the throttle is
+        known (else the corrected heading is the uncorrected one); ``restart``: the filters start again from
+        this sample (a gap, a stale gyro); ``rate``: the Euler yaw rate (:func:`yaw_rate`), ``dt`` the
+        interval (0: none). Used by the per-sample stage and by the two-pass replay's second pass."""
+        if restart:
+            self.reset()
+        raw = self.raw_deg = self.raw.update(psi_raw, rate, dt)
+        self.corrected_deg = self.corrected.update(psi, rate, dt) if corrected else raw
 
 
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
@@ -48,12 +62,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
     else:
         psi = psi_raw
-    reset = rec.reset
-    if reset or not rec.gyro_fresh:
-        track.reset()
     _, gy, gz = rec.gyro
-    rate = yaw_rate(gy, gz, cr, sr, cp)
-    prev_t = rec.prev_t
-    dt = 0.0 if prev_t is None or reset else rec.t_s - prev_t
-    rec.heading_raw_deg = track.raw.update(psi_raw, rate, dt)
-    rec.heading_deg = track.corrected.update(psi, rate, dt) if rec.have_throttle else rec.heading_raw_deg
+    track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, yaw_rate(gy, gz, cr, sr, cp),
+               0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t)  # fmt: skip
+    rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg

@@ -364,10 +364,26 @@ class InflightStage:
                     bias_mgauss=bias3,
                     converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
                 )
+        self.account(t_s, state)
+        return out
+
+    def account(self, t_s: float, state: str) -> None:
+        """The time since the previous sample (up to 5 s) spent in ``state`` (one of STATES)."""
         if self._last_t is not None and 0.0 < t_s - self._last_t <= 5.0:
             self.time_s[state] += t_s - self._last_t
         self._last_t = t_s
-        return out
+
+    def final_state(self) -> str:
+        """The state of a sample with the final estimate held fixed (the two-pass replay's second pass)."""
+        if self.applied and self.solution is not None:
+            return "corrected"
+        est = self.est
+        return "learning" if est is not None and (est.n >= 10 or self.warm_started) else "uncorrected"
+
+    def restart_accounts(self) -> None:
+        """Time in each state counted again from zero (the second pass of a two-pass replay)."""
+        self.time_s = dict.fromkeys(STATES, 0.0)
+        self._last_t = None
 
     def state(self) -> dict[str, object] | None:
         """What the state store keeps to start the next run from (None before any estimate)."""

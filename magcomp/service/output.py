@@ -32,18 +32,23 @@ class PublishStage:
 
     def run(self, rec: MagRecord, c: CompassCorrector) -> bool:
         """True when ``rec`` is published (it is then :attr:`last`)."""
-        t, prev_t, reset = rec.t_s, rec.prev_t, rec.reset
-        # time each compass spent corrected and not (the summary)
-        state = "corrected" if rec.flags & FLAG_CALIBRATED and rec.have_throttle else "uncorrected"
+        corrected = bool(rec.flags & FLAG_CALIBRATED and rec.have_throttle)
+        if self.due(c, rec.t_s, rec.prev_t, rec.reset, corrected):
+            self.last = rec
+            return True
+        return False
+
+    def due(self, c: CompassCorrector, t: float, prev_t: float | None, reset: bool, corrected: bool) -> bool:
+        """True when compass ``c``'s sample at ``t`` is published; counts it and the time ``c`` spent
+        ``corrected`` (calibrated, with the throttle known) or not (the summary)."""
         if prev_t is not None and not reset:
-            c.time_s[state] += t - prev_t
+            c.time_s["corrected" if corrected else "uncorrected"] += t - prev_t
         if self._period > 0.0:
             if c.n_out > 0 and prev_t is not None and t - c.out_t < self._period and not reset:
                 return False
             c.out_t = t
         c.n_out += 1
         self.counts["estimates"] += 1
-        self.last = rec
         return True
 
 

@@ -20,15 +20,16 @@ construction. Bad input never stops the pipeline: non-finite or saturated sample
 backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`Pipeline.counts`.
 
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out; the
-states every other stage reaches are the same as in a full run.
+states every other stage reaches are the same as in a full run. With a ``recorder`` it also records what
+the second pass needs (:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -72,6 +73,15 @@ COUNT_KEYS = (
 )  # fmt: skip
 
 
+class SampleRecorder(Protocol):
+    """Takes each magnetometer record after the attitude stage (a two-pass replay's first pass:
+    :class:`magcomp.service.final_pass.SampleLog`)."""
+
+    def add(self, rec: MagRecord, boot_offset_s: float) -> None: ...
+
+    def reboot(self, compasses: Iterable[int]) -> None: ...
+
+
 def _ignored(sample: object) -> bool:
     """Samples the pipeline does not use (temperature, power)."""
     return False
@@ -97,6 +107,7 @@ class Pipeline:
         on_text: Callable[[float, str], None] | None = None,
         workers: Workers | None = None,
         learn_only: bool = False,
+        recorder: SampleRecorder | None = None,
     ) -> None:
         self.cfg = cfg
         self.store = store
@@ -104,6 +115,7 @@ class Pipeline:
         self._on_text = on_text
         self._workers = workers if workers is not None else Workers.inline()
         self._learn_only = learn_only
+        self._recorder = recorder
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
@@ -132,7 +144,8 @@ class Pipeline:
         return self.system_id if self.system_id is not None else 1
 
     def _text(self, t_s: float, msg: str, warning: bool = False) -> None:
-        if self._learn_only:  # the first of two passes: the second says the same, on the user's terminal
+        if self._learn_only and self._recorder is None:  # the first of two per-sample passes: the second
+            # says the same, on the user's terminal
             if warning:
                 self.warnings.append(msg)
             log.debug(msg)
@@ -241,6 +254,8 @@ class Pipeline:
         if rec is None:
             return False
         self.attitude.stamp(rec)
+        if self._recorder is not None:
+            self._recorder.add(rec, self._boot_offset_s)
         self.calibrate.run(rec, c)
         self.theta.run(rec, c)
         if self._learn_only:
@@ -281,6 +296,8 @@ class Pipeline:
         self._boot_offset_s = s.offset_s
         self.attitude.on_reboot()
         self.throttle.forget()
+        if self._recorder is not None:
+            self._recorder.reboot(list(self.correctors))
         for c in self.correctors.values():
             cal = c.calib
             if cal.collecting:

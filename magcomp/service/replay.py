@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import CompassState, StateStore
+from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
+from magcomp.service.final_pass import FinalCompass, PassProgress, SampleLog, final_compasses, final_pass
+from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.workers import Workers
@@ -87,11 +89,43 @@ def learn_pass(
     """First pass of a two-pass replay: the whole log through the pipeline without its heading and publish
     stages (``learn_only``), the final state of every compass kept (what a live run would save at the end
     of this flight). None when ``should_stop`` asked to stop."""
+    store = MemoryStore()
+    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True)
+    if _learn(path, cfg, pipeline, should_stop, on_progress) is None:
+        return None
+    store.summary = pipeline.summary()
+    return store
+
+
+@dataclass
+class _FirstPass:
+    """The first pass of a two-pass replay: its pipeline (closed), the states it saved, the sample log the
+    second pass reads, what the source counted and found."""
+
+    pipeline: Pipeline
+    store: MemoryStore
+    samples: SampleLog
+    source: _SourceFacts
+
+
+@dataclass
+class _SourceFacts:
+    counts: dict[str, int]
+    onboard: dict[Any, Any]
+
+
+def _learn(
+    path: str | Path,
+    cfg: Config,
+    pipeline: Pipeline,
+    should_stop: Callable[[], bool] | None,
+    on_progress: Callable[[float], None] | None,
+) -> _SourceFacts | None:
+    """Every sample of ``path`` through ``pipeline`` (then closed); None when ``should_stop`` asked to
+    stop."""
     from magcomp.adapters.mavlink_source import open_source
 
-    store = MemoryStore()
     source = open_source(path, throttle_source=source_throttle(cfg))
-    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True)
     feed = pipeline.feed
     samples = source.samples()
     try:
@@ -105,8 +139,32 @@ def learn_pass(
     finally:
         source.close()
         pipeline.close()
+    onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
+    return _SourceFacts(dict(source.counts), onboard)
+
+
+def _first_pass(
+    path: str | Path,
+    cfg: Config,
+    should_stop: Callable[[], bool] | None,
+    workers: Workers,
+    on_progress: Callable[[float], None] | None,
+    on_text: Callable[[float, str], None] | None,
+) -> _FirstPass | None:
+    """:func:`learn_pass` that also records the sample log (service/final_pass.py)."""
+    store = MemoryStore()
+    samples = SampleLog()
+    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True, recorder=samples, on_text=on_text)
+    try:
+        facts = _learn(path, cfg, pipeline, should_stop, on_progress)
+    except BaseException:
+        samples.close()
+        raise
+    if facts is None:
+        samples.close()
+        return None
     store.summary = pipeline.summary()
-    return store
+    return _FirstPass(pipeline, store, samples, facts)
 
 
 def source_throttle(cfg: Config) -> str:
@@ -168,27 +226,18 @@ class _Outputs:
         return self.writer.packets if self.writer is not None else 0
 
 
-@dataclass
-class _Progress:
-    """How far a replay loop got."""
-
-    n_estimates: int = 0
-    interrupted: bool = False
-    t_last_s: float = float("nan")
-
-
 def _replay_loop(
     source: Any,
     pipeline: Pipeline,
     outputs: _Outputs,
     should_stop: Callable[[], bool] | None,
     on_progress: Callable[[float], None] | None,
-) -> _Progress:
+) -> PassProgress:
     """Every sample of ``source`` through ``pipeline``; published estimates to ``outputs``. Samples are
     decoded a batch at a time, then fed one by one in the same order: the same numbers as feeding each
     sample as it is decoded (the source never depends on the pipeline), 3-4 % less wall time (each half
     of the loop runs on warm caches)."""
-    prog = _Progress()
+    prog = PassProgress()
     feed = pipeline.feed
     wanted = outputs.wanted
     samples = source.samples()
@@ -217,7 +266,7 @@ def replay_log(
     path: str | Path,
     cfg: Config,
     *,
-    store: StateStore | None = None,
+    store: StateSink | None = None,
     emit: str | Path | None = None,
     keep_estimates: bool = False,
     on_estimate: Callable[[HeadingEstimate], None] | None = None,
@@ -244,21 +293,89 @@ def replay_log(
     t_wall = time.perf_counter()
     log.debug("replaying %s (%s)", path, "two passes" if two_pass and store is None else "one pass")
     with Workers.threads() as workers:
-        mem: MemoryStore | None = None
+        first: _FirstPass | None = None
+        finals: dict[int, FinalCompass] | None = None
         if two_pass and store is None:
-            # the log is known whole: learn from all of it first, then replay from the state it ends with
+            # the log is known whole: learn from all of it first, then replay with the state it ends with
             # (as a live run would start from yesterday's saved state); a ^C here leaves a one-pass replay
             try:
-                mem = learn_pass(path, cfg, should_stop, workers, on_progress)
+                first = _first_pass(path, cfg, should_stop, workers, on_progress, on_text)
             except KeyboardInterrupt:
-                mem = None
-        pipeline = Pipeline(cfg, store=mem if mem is not None else store, on_text=on_text, workers=workers)
-        report = _replay(path, cfg, pipeline, emit, keep_estimates, on_estimate, should_stop, on_progress)
+                first = None
+            finals = final_compasses(first.pipeline) if first is not None else None
+        if first is not None and finals is not None:
+            pipeline = first.pipeline
+            report = _second_pass(path, cfg, first, finals, emit, keep_estimates, on_estimate, should_stop,
+                                  on_progress)  # fmt: skip
+        else:  # one pass; or two, the second per sample from the stored states (per-motor terms)
+            mem = store
+            if first is not None:
+                first.samples.close()
+                mem = first.store
+            pipeline = Pipeline(cfg, store=mem, on_text=on_text, workers=workers)
+            report = _replay(path, cfg, pipeline, emit, keep_estimates, on_estimate, should_stop, on_progress)
     report.wall_s = time.perf_counter() - t_wall
-    report.summary["passes"] = 2 if mem is not None else 1
+    report.summary["passes"] = 2 if first is not None else 1
     if keep_estimates or keep_clouds:
         report.clouds = {i: c.calibration_cloud() for i, c in pipeline.correctors.items()}
     return report
+
+
+def _second_pass(
+    path: str | Path,
+    cfg: Config,
+    first: _FirstPass,
+    finals: dict[int, FinalCompass],
+    emit: str | Path | None,
+    keep_estimates: bool,
+    on_estimate: Callable[[HeadingEstimate], None] | None,
+    should_stop: Callable[[], bool] | None,
+    on_progress: Callable[[float], None] | None,
+) -> ReplayReport:
+    """The second pass of a two-pass replay over the first pass's sample log (service/final_pass.py)."""
+    outputs = _Outputs(cfg, emit, keep_estimates, on_estimate)
+    sink: Callable[[HeadingEstimate], None] | None = None
+    if keep_estimates or on_estimate is not None:
+
+        def sink(est: HeadingEstimate) -> None:
+            if keep_estimates:
+                outputs.kept.append(est)
+            if on_estimate is not None:
+                on_estimate(est)
+
+    try:
+        res = final_pass(first.samples, first.pipeline, finals, outputs.encoder, outputs.writer, sink,
+                         should_stop, on_progress)  # fmt: skip
+    except BaseException:
+        outputs.close(failed=True)
+        raise
+    finally:
+        outputs.close()
+        first.samples.close()
+    summary = _with_onboard(first.pipeline.summary(), first.source.onboard)
+    return ReplayReport(
+        path=str(path),
+        summary=summary,
+        source_counts=first.source.counts,
+        wall_s=0.0,
+        n_estimates=res.n_estimates,
+        emitted=outputs.emitted,
+        estimates=outputs.kept,
+        interrupted=res.interrupted,
+        t_last_s=res.t_last_s,
+    )
+
+
+def _with_onboard(summary: dict[str, Any], onboard: dict[Any, Any]) -> dict[str, Any]:
+    """The summary with the check of ArduPilot's own motor compensation, when the source undid one."""
+    if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
+        from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
+
+        warnings = summary["warnings"]
+        assert isinstance(warnings, list)
+        summary["warnings"] = [*warnings, *onboard_comp_warnings(onboard, summary)]
+        summary["onboard_motor_compensation"] = json_safe({str(k): v for k, v in onboard.items()})
+    return summary
 
 
 def _replay(
@@ -289,15 +406,8 @@ def _replay(
         source.close()
         outputs.close()
         pipeline.close()
-    summary = pipeline.summary()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
-    if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
-        from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
-
-        warnings = summary["warnings"]
-        assert isinstance(warnings, list)
-        summary["warnings"] = [*warnings, *onboard_comp_warnings(onboard, summary)]
-        summary["onboard_motor_compensation"] = json_safe({str(k): v for k, v in onboard.items()})
+    summary = _with_onboard(pipeline.summary(), onboard)
     return ReplayReport(
         path=str(path),
         summary=summary,

@@ -1,0 +1,334 @@
+"""The second pass of a two-pass replay, without the per-sample loop.
+
+The first pass (:func:`magcomp.service.replay.replay_log`, two passes) runs the pipeline over the whole log
+learning only, and records, per magnetometer sample that reaches the heading stage, what its heading needs
+(:class:`SampleLog`: time, raw field, throttle, the attitude's roll and pitch, the gyro, the sample's flags).
+The second pass then applies the *final* state of every compass (calibration of eq. (2), theta of eq. (11),
+the in-flight calibration; :class:`FinalCompass`) to all samples at once: eq. (2), eq. (11) and eq. (24)
+on numpy arrays through the same core functions the per-sample path calls with floats. Only the heading
+filter, the output decimation and the time accounting step sample by sample (the same stage code as the
+live pipeline), and every MAGCOMP_HEADING of a block is packed at once
+(:meth:`~magcomp.service.publish.HeadingEncoder.encode_frames`).
+
+What changes against the per-sample second pass it replaces: there, the learning went on from the final
+state (theta and the in-flight estimate moved again over the log); here the final state is held fixed, so
+every heading of the log is corrected with the same calibration and theta (the one a live run would save
+at the end of this flight). Observer-step flags (FLAG_Z_UNOBSERVABLE, FLAG_SATURATED from the observer)
+are not set: no observer step runs in this pass.
+
+The sample log spills to an anonymous temporary file every CHUNK_ROWS samples, so memory does not grow with
+the log's length; the second pass reads it back a chunk at a time.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from array import array
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from typing import IO, TYPE_CHECKING, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_CONVERGED, HeadingEstimate
+from magcomp.service.calibrate import apply_eq2
+from magcomp.service.heading import yaw_rate
+from magcomp.service.publish import HeadingEncoder, HeadingValues, TlogWriter
+from magcomp.service.record import Float3, MagRecord
+
+if TYPE_CHECKING:
+    from magcomp.service.pipeline import Pipeline
+
+F64 = NDArray[np.float64]
+
+#: the sample log's columns (one row per magnetometer sample that reached the heading stage)
+(T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
+ SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT) = range(20)  # fmt: skip
+N_COLS = 20
+#: rows held in memory before they go to the temporary file (and rows per block of the second pass):
+#: 8192 rows of 20 float64 are 1.3 MB
+CHUNK_ROWS = 8192
+
+
+class SampleLog:
+    """What each magnetometer sample's heading needs, recorded by the first pass (see the module's doc).
+    The pipeline calls :meth:`add` once per sample after the attitude stage and :meth:`reboot` when the
+    autopilot reboots (the heading filters restart there)."""
+
+    def __init__(self, chunk_rows: int | None = None) -> None:
+        self._buf = array("d")
+        self._limit = (CHUNK_ROWS if chunk_rows is None else chunk_rows) * N_COLS
+        self._file: IO[bytes] | None = None
+        self._rebooted: set[int] = set()
+
+    def add(self, rec: MagRecord, boot_offset_s: float) -> None:
+        reboot = False
+        if self._rebooted:
+            idx = rec.mag_index
+            if idx in self._rebooted:
+                self._rebooted.discard(idx)
+                reboot = True
+        prev = rec.prev_t
+        vx, vy, vz = rec.raw
+        _, gy, gz = rec.gyro
+        buf = self._buf
+        buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
+                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
+                    rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot))  # fmt: skip
+        if len(buf) >= self._limit:
+            self._spill()
+
+    def reboot(self, compasses: Iterable[int]) -> None:
+        """The autopilot rebooted: the next sample of each of ``compasses`` restarts its heading filters."""
+        self._rebooted = set(compasses)
+
+    def _spill(self) -> None:
+        if self._file is None:
+            self._file = tempfile.TemporaryFile()  # noqa: SIM115 - open until close(), across calls
+        self._buf.tofile(self._file)
+        self._buf = array("d")
+
+    def chunks(self) -> Iterator[F64]:
+        """The rows in order, at most ``chunk_rows`` at a time, (n, N_COLS)."""
+        if self._file is not None:
+            self._file.seek(0)
+            while data := self._file.read(self._limit * 8):
+                yield np.frombuffer(data, dtype=np.float64).reshape(-1, N_COLS)
+        if len(self._buf):
+            yield np.array(self._buf, dtype=np.float64).reshape(-1, N_COLS)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self._buf = array("d")
+
+
+@dataclass(frozen=True)
+class FinalCompass:
+    """The state a compass ended the first pass with, as the second pass applies it.
+
+    ``coeffs``: L and d of eq. (2) as 12 floats (None: uncalibrated); ``inflight``: they are the in-flight
+    calibration's (applied only to samples with the throttle known, as the per-sample path does);
+    ``theta``: theta-hat of eq. (11), mgauss; ``converged``: FLAG_THETA_CONVERGED on its samples;
+    ``accounts``: the in-flight stage's state its samples count toward (None: no in-flight stage)."""
+
+    coeffs: tuple[float, ...] | None
+    inflight: bool
+    theta: Float3
+    converged: bool
+    accounts: str | None
+
+
+def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
+    """Every compass's final state after the first pass (``pipeline`` closed); None when one of them needs
+    the per-sample second pass (an in-flight estimate with per-motor terms: its bias follows the motor
+    outputs, which the sample log does not record)."""
+    cfg = pipeline.cfg
+    inflight_on = cfg.observer.learn and cfg.inflight.enabled
+    out: dict[int, FinalCompass] = {}
+    for idx, c in pipeline.correctors.items():
+        k = c.calib.coeffs()
+        st = c.inflight
+        if k is not None:
+            th = c.theta.est.theta_values()
+            out[idx] = FinalCompass(k, False, (th[0], th[1], th[2]), c.theta.est.converged, None)
+            continue
+        if not inflight_on or st is None:
+            out[idx] = FinalCompass(None, False, (0.0, 0.0, 0.0), False, None)
+            continue
+        state = st.final_state()
+        st.restart_accounts()
+        if st.est is not None and st.est.n > 0:  # the second pass starts from the state stored at the end
+            st.warm_started = True
+            st.first_applied_t = None  # applied from this pass's first sample on (as a warm start says)
+        if state != "corrected" or st.est is None:
+            out[idx] = FinalCompass(None, False, (0.0, 0.0, 0.0), False, state)
+            continue
+        if st.n_motors > 0:
+            return None
+        sol = st.solution = st.est.solve()  # the estimate with every row of the log in it
+        coeffs = (*np.ravel(sol.calib_l).tolist(), *np.ravel(sol.calib_d).tolist())
+        th = sol.theta_mgauss.tolist()
+        conv = bool(sol.heading_sigma_deg < st.params.heading_converged_deg)
+        out[idx] = FinalCompass(coeffs, True, (th[0], th[1], th[2]), conv, state)
+    return out
+
+
+class Corrected(NamedTuple):
+    """A chunk's samples with the final state applied (columns (n,), vectors (n, 3))."""
+
+    psi_deg: F64
+    psi_raw_deg: F64
+    theta: F64
+    bias: F64
+    field_corrected: F64
+    flags: NDArray[np.int64]
+    corrected: NDArray[np.bool_]
+
+
+def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
+    """Eq. (2), eq. (11) and eq. (24) over a chunk of the sample log with each compass's final state."""
+    n = rows.shape[0]
+    mag = rows[:, MAG].astype(np.int64)
+    have = rows[:, HAVE_THR] != 0.0
+    raw = rows[:, RAW_X:RAW_Z + 1]
+    field_cal = raw.copy()
+    theta = np.zeros((n, 3))
+    calibrated = np.zeros(n, dtype=bool)
+    flags = rows[:, FLAGS].astype(np.int64)
+    for idx in np.unique(mag).tolist():
+        f = finals.get(idx)
+        if f is None or f.coeffs is None:
+            continue
+        m = mag == idx
+        if f.inflight:
+            m &= have
+        else:  # the observer's reset marker, as the per-sample path sets it (service/theta.py)
+            flags[m & (rows[:, OBS_RESET] != 0.0)] |= FLAG_OBSERVER_RESET
+        calibrated |= m
+        r = raw[m]
+        field_cal[m] = np.column_stack(apply_eq2(f.coeffs, r[:, 0], r[:, 1], r[:, 2]))  # eq. (2)
+        theta[m] = f.theta
+        flags[m] |= FLAG_CALIBRATED | FLAG_THETA_CONVERGED if f.converged else FLAG_CALIBRATED
+    thr = rows[:, THR]
+    bias = theta * np.where(have, thr * thr, 0.0)[:, None]  # eq. (11), with the latest throttle
+    fc = field_cal - bias
+    trig = (rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH], rows[:, SIN_PITCH])
+    psi_raw = heading_from_trig_deg(field_cal[:, 0], field_cal[:, 1], field_cal[:, 2], *trig)  # eq. (24)
+    psi = np.where(have, heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig), psi_raw)
+    return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
+
+
+def filter_and_publish(
+    rows: F64, cor: Corrected, pipeline: Pipeline, finals: dict[int, FinalCompass]
+) -> tuple[list[int], list[float], list[float]]:
+    """The heading filters, the output decimation and the time accounting, sample by sample (the live
+    stages' own code). Returns the published rows and their (corrected, uncorrected) headings."""
+    publish = pipeline.publish
+    correctors = pipeline.correctors
+    stages = {i: correctors[i].inflight for i, f in finals.items() if f.accounts is not None}
+    accounts = {i: f.accounts for i, f in finals.items()}
+    out: list[int] = []
+    head: list[float] = []
+    head_raw: list[float] = []
+    cols = (rows[:, T], rows[:, MAG], rows[:, HAVE_THR], rows[:, RESET], rows[:, PREV_T], rows[:, GYRO_FRESH],
+            rows[:, GYRO_Y], rows[:, GYRO_Z], rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
+            rows[:, REBOOT], cor.psi_deg, cor.psi_raw_deg, cor.corrected)  # fmt: skip
+    lists = [c.tolist() for c in cols]
+    for i, (t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr) in enumerate(
+        zip(*lists, strict=True)
+    ):
+        idx = int(mf)
+        c = correctors[idx]
+        prev_t = None if prev != prev else prev  # NaN: no previous sample
+        dt = 0.0 if prev_t is None or reset else t - prev_t
+        track = c.heading
+        restart = bool(reset or reboot or not fresh)
+        track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt)
+        if have and idx in stages:
+            st = stages[idx]
+            assert st is not None
+            st.account(t, accounts[idx] or "uncorrected")
+        if publish.due(c, t, prev_t, bool(reset), bool(corr)):
+            out.append(i)
+            head.append(track.corrected_deg)
+            head_raw.append(track.raw_deg)
+    return out, head, head_raw
+
+
+@dataclass
+class PassProgress:
+    """How far a replay pass got (the per-sample loop's and this one's)."""
+
+    n_estimates: int = 0
+    interrupted: bool = False
+    t_last_s: float = float("nan")
+
+
+def final_pass(
+    samples: SampleLog,
+    pipeline: Pipeline,
+    finals: dict[int, FinalCompass],
+    encoder: HeadingEncoder,
+    writer: TlogWriter | None,
+    on_estimate: Callable[[HeadingEstimate], None] | None,
+    should_stop: Callable[[], bool] | None = None,
+    on_progress: Callable[[float], None] | None = None,
+) -> PassProgress:
+    """The second pass over ``samples`` (see the module's doc): headings with ``finals`` applied, the
+    published ones packed into ``writer`` and handed to ``on_estimate``; counts and times into
+    ``pipeline`` (its summary then describes this pass)."""
+    res = PassProgress()
+    if pipeline.system_id is not None:
+        encoder.set_system(pipeline.system_id)
+    try:
+        for rows in samples.chunks():
+            if should_stop is not None and should_stop():
+                res.interrupted = True
+                break
+            if on_progress is not None:
+                on_progress(float(rows[-1, T]))
+            _block(rows, pipeline, finals, encoder, writer, on_estimate, res)
+    except KeyboardInterrupt:  # as the per-sample loop: what was written stays, the report says where
+        res.interrupted = True
+    return res
+
+
+def _block(
+    rows: F64,
+    pipeline: Pipeline,
+    finals: dict[int, FinalCompass],
+    encoder: HeadingEncoder,
+    writer: TlogWriter | None,
+    on_estimate: Callable[[HeadingEstimate], None] | None,
+    res: PassProgress,
+) -> None:
+    """One block of the sample log through :func:`final_pass`."""
+    cor = correct(rows, finals)
+    idx, head, head_raw = filter_and_publish(rows, cor, pipeline, finals)
+    res.n_estimates += len(idx)
+    res.t_last_s = float(rows[-1, T])
+    if not idx:
+        return
+    sel = np.asarray(idx, dtype=np.int64)
+    pub = rows[sel]
+    values = HeadingValues(
+        t_boot_s=pub[:, T] - pub[:, BOOT_OFFSET],
+        heading_deg=np.asarray(head),
+        heading_raw_deg=np.asarray(head_raw),
+        theta=cor.theta[sel],
+        bias=cor.bias[sel],
+        throttle_01=pub[:, THR],
+        mag_index=pub[:, MAG].astype(np.int64),
+        flags=cor.flags[sel],
+    )
+    if writer is not None:
+        writer.write_frames(pub[:, T], encoder.encode_frames(values))
+    if on_estimate is not None:
+        for e in estimates(pub, values, cor.field_corrected[sel]):
+            on_estimate(e)
+
+
+def estimates(pub: F64, v: HeadingValues, field_corrected: F64) -> Iterator[HeadingEstimate]:
+    """The :class:`HeadingEstimate` of each published row (for consumers that keep or show them)."""
+    nan = float("nan")
+    for j in range(pub.shape[0]):
+        yield HeadingEstimate(
+            t_s=float(pub[j, T]),
+            mag_index=int(v.mag_index[j]),
+            heading_deg=float(v.heading_deg[j]),
+            heading_raw_deg=float(v.heading_raw_deg[j]),
+            theta_mgauss=np.array(v.theta[j], dtype=float),
+            bias_mgauss=np.array(v.bias[j], dtype=float),
+            throttle_01=float(v.throttle_01[j]),
+            flags=int(v.flags[j]),
+            field_raw_mgauss=np.array(pub[j, RAW_X:RAW_Z + 1], dtype=float),
+            field_cal_mgauss=np.array(field_corrected[j], dtype=float),
+            residual_norm_mgauss=nan,
+            excitation=nan,
+            t_boot_s=float(v.t_boot_s[j]),
+        )
