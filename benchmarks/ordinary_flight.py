@@ -5,7 +5,10 @@ oracle replay with the true calibration and theta (no learning), everything else
 
 Reported per rate (worst of the seeds): rms heading error against the simulated truth after the first 60 s
 of flight, for magcomp causal / two-pass, uncorrected and oracle, the ratio to the oracle, and theta's
-error in % of |theta| (causal, end of flight).
+error in % of |theta| (causal, end of flight), and theta's Cramer-Rao bound at the end of the flight for the
+same samples (``benchmarks/theta_crb.py``: rms |theta error| / |theta|, %) with the attitude trusted
+(``CRB trusted``: the absolute form's, an external primary) and with its yaw trusted only within 2 s windows
+(``CRB window``: an internal primary, the window-field rows' information).
 
     .venv/bin/python benchmarks/ordinary_flight.py [--rates 1 10 50] [--seeds 0 1 2] [--set KEY=VALUE ...]
 """
@@ -27,6 +30,11 @@ from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.service.demo import rms_after_learning
 from magcomp.service.replay import replay_log
 
+try:
+    from theta_crb import theta_bounds
+except ImportError:  # run as a module from elsewhere
+    from benchmarks.theta_crb import theta_bounds
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -43,7 +51,8 @@ def main() -> int:
     oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
                          calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
     args = ap.parse_args()
-    print("rate Hz  seed  causal  two-pass  uncorrected  oracle  causal/oracle  theta err %  status")
+    print("rate Hz  seed  causal  two-pass  uncorrected  oracle  causal/oracle  theta err %  CRB trusted %  "
+          "CRB window %  status")  # fmt: skip
     worst: dict[float, list[tuple[float, float, float, float, float]]] = {}
     for rate in args.rates:
         for seed in args.seeds:
@@ -70,9 +79,11 @@ def main() -> int:
             th = np.asarray(comp["theta_mgauss"], dtype=float)
             tt = np.asarray(result.compasses[j].theta_mgauss, dtype=float)
             th_err = 100.0 * float(np.linalg.norm(th - tt) / np.linalg.norm(tt))
+            crb = {b.model: b.pct_end for b in theta_bounds(result, rate, j)}
             worst.setdefault(rate, []).append((c_rms, t_rms, raw_rms, o_rms, th_err))
             print(f"{rate:7g}  {seed:4d}  {c_rms:6.2f}  {t_rms:8.2f}  {raw_rms:11.2f}  {o_rms:6.2f}  "
-                  f"{c_rms / o_rms:13.2f}  {th_err:11.1f}  {comp['status']}: {comp['why']}")  # fmt: skip
+                  f"{c_rms / o_rms:13.2f}  {th_err:11.1f}  {crb['trusted']:13.1f}  "
+                  f"{crb['window_field']:12.1f}  {comp['status']}: {comp['why']}")  # fmt: skip
     print()
     print(
         "rate Hz  worst causal  worst two-pass  uncorrected  oracle  worst causal/oracle  worst theta err %"

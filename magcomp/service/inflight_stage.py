@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from magcomp.adapters.config import InflightConfig
 from magcomp.core.inflight import (
+    NUISANCE_PRIOR_RAD_S,
     InflightEstimator,
     InflightMode,
     InflightParams,
@@ -26,6 +27,7 @@ from magcomp.core.inflight import (
     regressors,
     relative_rows,
     rotation_error_rows,
+    window_field_rows,
 )
 from magcomp.core.rotations import so3_exp, so3_log
 
@@ -52,6 +54,14 @@ APPLY_Z = 2.0
 MAX_APPLY_HEADING_SIGMA_DEG = math.degrees(math.atan(0.5))
 #: the relative form adds one field-norm row per sample (InflightEstimator.add_norm)
 NORM_ROWS = False
+#: the relative form's rows are written against each ROTATION_WINDOW_S window's own Earth field
+#: (``window_field_rows``: the horizontal field free per window, the vertical one common to the flight)
+#: instead of 0.3 s pairs (docs/inflight.md, "window-field rows")
+WINDOW_FIELD_ROWS = True
+WINDOW_ROWS_MOTORS_ONLY = True
+#: prior standard deviation (mgauss) of a window's horizontal Earth field in the window-field rows: any
+#: Earth field (under 700 mgauss anywhere), i.e. free
+WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
 #: the relative form is applied only once the heading has covered this span (deg; as the diagnosis's gate)
 MIN_RELATIVE_YAW_SPAN_DEG = 90.0
 #: the relative form's rotation-source yaw-rate error (InflightEstimator.add) is taken as constant over
@@ -274,9 +284,32 @@ class InflightStage:
             self.est.add(rows, z, float(x[0]), cols, (self._epoch, math.floor(t_s / ROTATION_WINDOW_S)))
             self.n_rows += 1
             return
+        if WINDOW_FIELD_ROWS:
+            if x[0] > 0.0 or not WINDOW_ROWS_MOTORS_ONLY:
+                self._window_row(t_s, r_nb, y, x)
+            return
         if NORM_ROWS and self.applied:
             self.est.add_norm(y, x)
         self._pair(t_s, r_nb, y, x)
+
+    def _window_row(self, t_s: float, r_nb: F64, y: F64, x: F64) -> None:
+        """One sample against its window's Earth field (``window_field_rows``), with the window's
+        horizontal field and the rotation source's yaw rate as the window's nuisance."""
+        assert self.est is not None
+        self._track_yaw(r_nb)
+        if self._prev is None:  # reset_pairs(): a window never spans a rotation-source restart
+            self._epoch += 1
+        self._prev = (t_s, r_nb, y, x)
+        w = window_field_rows(r_nb, y, x, self.est.uncalibrated(y, x))
+        win = math.floor(t_s / ROTATION_WINDOW_S)
+        tau = t_s - (win + 0.5) * ROTATION_WINDOW_S
+        rate = reference_yaw_error_rows(r_nb, self.est.field_ned_mgauss) * tau  # yaw error = rate * tau
+        self.est.nuisance_prior_sd = np.array(
+            [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
+        )
+        nuis = np.hstack([w.field_cols, rate])
+        self.est.add(w.rows, w.z, float(x[0]), nuis, (self._epoch, win), w.common)
+        self.n_rows += 1
 
     def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
         """Pair this sample (rotation-source attitude ``r_rel_nb`` at its time) with an older one."""
