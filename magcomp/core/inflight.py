@@ -463,6 +463,14 @@ class InflightEstimator:
                 pass
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64)
 
+    def window_nuisance(self, window: object) -> F64 | None:
+        """The open window's nuisance estimate at the current parameters when ``window`` is the open one
+        and has rows (window-field rows: its horizontal Earth field first), else None."""
+        k = self._w_ee.shape[0]
+        if window != self._win or k == 0 or not self._w_ee.any():
+            return None
+        return self._nuisance_estimate(np.zeros((3, k)), np.zeros(3), window, True)
+
     def add_norm(self, y_mgauss: F64, x: F64) -> None:
         """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``
         and ``c`` one unknown common to the whole flight, linearised at the current estimate.

@@ -129,6 +129,7 @@ class InflightStage:
         self._last_fed: float | None = None
         self._prev: tuple[float, F64, F64, F64] | None = None  # t, R_nb, field, regressors
         self._hist: deque[tuple[float, F64, F64, F64]] = deque()  # recent samples (relative pairs)
+        self._win_field: F64 | None = None  # the last window-field estimate (NED of the rotation source)
         self._epoch = 0  # counts rotation-source restarts (a nuisance window never spans one)
         # samples waiting for the rotation source to pass their time, and its recent (time, R_nb) samples
         self._pending: deque[tuple[float, F64, tuple[float, ...] | None, F64 | None]] = deque()
@@ -303,12 +304,19 @@ class InflightStage:
         w = window_field_rows(r_nb, y, x, self.est.uncalibrated(y, x))
         win = math.floor(t_s / ROTATION_WINDOW_S)
         tau = t_s - (win + 0.5) * ROTATION_WINDOW_S
-        rate = reference_yaw_error_rows(r_nb, self.est.field_ned_mgauss) * tau  # yaw error = rate * tau
+        # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
+        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's)
+        key = (self._epoch, win)
+        e_w = self.est.window_nuisance(key)
+        if e_w is not None:
+            self._win_field = np.array([e_w[0], e_w[1], self.est.common_estimate])
+        h_w = self.est.field_ned_mgauss if self._win_field is None else self._win_field
+        rate = reference_yaw_error_rows(r_nb, h_w) * tau  # yaw error = rate * tau
         self.est.nuisance_prior_sd = np.array(
             [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
         )
         nuis = np.hstack([w.field_cols, rate])
-        self.est.add(w.rows, w.z, float(x[0]), nuis, (self._epoch, win), w.common)
+        self.est.add(w.rows, w.z, float(x[0]), nuis, key, w.common)
         self.n_rows += 1
 
     def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
