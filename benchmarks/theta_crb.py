@@ -13,6 +13,10 @@ reference leaves unknown:
              follows the disturbed compass and is trusted only for rotations within a window. This is the
              information the relative form's assumptions leave (rotation-source yaw-rate error constant
              per window); its 0.3 s pairs see only part of it.
+``window_field``  the window's horizontal Earth field free (its size too) and a yaw rate per 2 s window,
+             the vertical field one unknown for the flight: the relative form's window-field rows.
+``gyro_window``  the same over GYRO_WINDOW_S (10 s) windows: the yaw from the raw gyro, which drifts only
+             by its bias (``GYRO_YAW``), as the relative form uses for an internal compass.
 ``tilt``     a yaw offset per sample, free: only the yaw-free part of every sample (the field along the
              vertical and the horizontal field's size), i.e. no trust in any yaw.
 
@@ -40,10 +44,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.core.inflight import absolute_rows, reference_yaw_error_rows
 from magcomp.core.rotations import dcms_from_quats
-from magcomp.service.inflight_stage import ROTATION_WINDOW_S
+from magcomp.service.inflight_stage import GYRO_WINDOW_S, ROTATION_WINDOW_S
 
 F64 = NDArray[np.float64]
-MODELS = ("trusted", "window", "window_field", "tilt")
+MODELS = ("trusted", "window", "window_field", "gyro_window", "tilt")
 #: the estimator's prior for a compass the autopilot calibrated (InflightConfig defaults)
 PRIOR_SD_A = 0.05
 PRIOR_SD_D_MGAUSS = 50.0
@@ -136,10 +140,10 @@ def _information(rows: F64, yaw_col: F64, r_nb: F64, t: F64, model: str) -> F64:
         proj = rows - e[:, :, None] * np.einsum("ni,nip->np", e, rows)[:, None, :]
         flat = proj.reshape(-1, n_p)
         return np.asarray(flat.T @ flat, dtype=np.float64)
-    if model == "window_field":  # the vertical Earth field one more unknown, common to the flight
+    if model in ("window_field", "gyro_window"):  # the vertical Earth field: one unknown for the flight
         rows = np.concatenate([rows, r_nb[:, 2, :, None]], axis=2)
     n_a = rows.shape[2]
-    win = np.floor(t / ROTATION_WINDOW_S)
+    win = np.floor(t / (GYRO_WINDOW_S if model == "gyro_window" else ROTATION_WINDOW_S))
     info = np.zeros((n_a, n_a))
     for w in np.unique(win):
         m = win == w

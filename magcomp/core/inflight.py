@@ -312,6 +312,13 @@ class InflightEstimator:
         self.n_gated = 0
         self._solution: InflightSolution | None = None
         self._dirty = True
+        self._clear_blocks(n)
+        #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error), one value
+        #: for every column or one per column
+        self.nuisance_prior_sd: float | F64 = NUISANCE_PRIOR_RAD_S
+
+    def _clear_blocks(self, n: int) -> None:
+        """Empty nuisance-window and common-unknown blocks (``__init__``)."""
         # the open window of the rotation-rate nuisance (see add): its rows' blocks, folded into info/rhs
         # by a Schur complement when the window closes
         self._win: object = None
@@ -339,9 +346,6 @@ class InflightEstimator:
         self.n_norm = 0
         #: the unknown common to the flight at the last solution (mgauss; 0 before any)
         self.common_estimate = 0.0
-        #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error), one value
-        #: for every column or one per column
-        self.nuisance_prior_sd: float | F64 = NUISANCE_PRIOR_RAD_S
 
     @property
     def sigma_mgauss(self) -> float:
@@ -396,7 +400,8 @@ class InflightEstimator:
         if common is not None:
             r = r - common * self.common_estimate
         if nuisance is not None:
-            r = r - nuisance @ self._nuisance_estimate(nuisance, r, window, common is not None)
+            e_hat, h_inv = self._nuisance_estimate(nuisance, r, window, common is not None)
+            r = r - nuisance @ e_hat
         rn2 = float(r @ r)
         sol = self._solution
         if self._cov is not None and sol is not None and sol.heading_sigma_deg < self.p.heading_converged_deg:
@@ -405,6 +410,8 @@ class InflightEstimator:
             s2 = max(sol.residual_rms_mgauss**2, GATE_SIGMA_FLOOR_MGAUSS**2)
             # pred >= s2 I, so r' pred^-1 r <= |r|^2 / s2: most samples pass without the 3x3 solve
             pred = s2 * np.eye(3) + rows @ self._cov @ rows.T if rn2 > GATE_CHI2_3DOF * s2 else None
+            if pred is not None and nuisance is not None and h_inv is not None:
+                pred = pred + s2 * (nuisance @ h_inv @ nuisance.T)  # the window's nuisance is uncertain too
             try:
                 m2 = 0.0 if pred is None else float(r @ np.linalg.solve(pred, r))
             except np.linalg.LinAlgError:
@@ -444,10 +451,14 @@ class InflightEstimator:
         self._dirty = True
         return math.sqrt(rn2)
 
-    def _nuisance_estimate(self, nuisance: F64, r: F64, window: object, with_common: bool) -> F64:
-        """The window's nuisance at the current parameters (so that the gate judges what the nuisance
-        cannot explain: a window-field row's residual is the whole Earth field before it). The open
-        window's own estimate when this row belongs to it, else the least-squares value for this row."""
+    def _nuisance_estimate(
+        self, nuisance: F64, r: F64, window: object, with_common: bool
+    ) -> tuple[F64, F64 | None]:
+        """The window's nuisance at the current parameters and its unit-weight covariance (so that the gate
+        judges what the nuisance cannot explain, with its uncertainty: a window-field row's residual is the
+        whole Earth field before it, and a window's yaw rate is poorly known from its first samples). The
+        open window's own estimate when this row belongs to it; else the least-squares value for this row
+        alone (covariance None: the residual is then what no nuisance value explains)."""
         k = nuisance.shape[1]
         if window == self._win and self._w_ee.shape[0] == k and self._w_ee.any():
             sol = self._solution
@@ -458,10 +469,11 @@ class InflightEstimator:
                 b_e = self._w_be - self._w_pe.T @ self._theta
                 if with_common and self._w_ec.shape[0] == k:
                     b_e = b_e - self._w_ec * self.common_estimate
-                return np.asarray(np.linalg.solve(hee, b_e), dtype=np.float64)
+                h_inv = np.asarray(np.linalg.inv(hee), dtype=np.float64)
+                return np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
             except np.linalg.LinAlgError:
                 pass
-        return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64)
+        return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
 
     def window_nuisance(self, window: object) -> F64 | None:
         """The open window's nuisance estimate at the current parameters when ``window`` is the open one
@@ -469,7 +481,7 @@ class InflightEstimator:
         k = self._w_ee.shape[0]
         if window != self._win or k == 0 or not self._w_ee.any():
             return None
-        return self._nuisance_estimate(np.zeros((3, k)), np.zeros(3), window, True)
+        return self._nuisance_estimate(np.zeros((3, k)), np.zeros(3), window, True)[0]
 
     def add_norm(self, y_mgauss: F64, x: F64) -> None:
         """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``
