@@ -111,3 +111,37 @@ def test_the_gyro_yaw_beats_the_autopilot_yaw_that_follows_the_compass(seed: int
     z = (sol.theta_mgauss - THETA) / sol.theta_sigma_mgauss
     assert np.all(np.abs(z) < 3.5), (sol.theta_mgauss, sol.theta_sigma_mgauss)
     assert st.est.n_gated == 0
+
+
+def test_attitude_stage_integrates_the_raw_gyro_into_the_euler_yaw() -> None:
+    """A vehicle banked 20 deg and pitched 10 deg turning at a constant Euler yaw rate: the body rates are
+    (-sin(theta) psi', sin(phi) cos(theta) psi', cos(phi) cos(theta) psi') plus a gyro bias; the stage's raw
+    gyro yaw grows by psi' plus the bias's share, (sin(phi) b_y + cos(phi) b_z) / cos(theta), per second,
+    and a gap restarts its chain (a new epoch)."""
+    from collections import Counter
+
+    from magcomp.adapters.config import Config
+    from magcomp.core.types import AttitudeSample
+    from magcomp.service.attitude import AttitudeStage
+
+    phi, theta, rate = math.radians(20.0), math.radians(10.0), 0.3
+    bias = np.array([0.004, -0.006, 0.0075])
+    w = np.array([-math.sin(theta), math.sin(phi) * math.cos(theta), math.cos(phi) * math.cos(theta)]) * rate
+    w = w + bias
+    f = 9.80665 * np.array(
+        [math.sin(theta), -math.sin(phi) * math.cos(theta), -math.cos(phi) * math.cos(theta)]
+    )
+    st = AttitudeStage(Config(), Counter())  # type: ignore[arg-type]
+    st.on_attitude(AttitudeSample(0.0, phi, theta, 0.0))
+    dt = 0.02
+    for k in range(501):
+        st.on_imu(k * dt, *w, *f)
+    got = st.gyro_yaw_at(10.0, 0.02, 0.05)
+    assert got is not None
+    expect = 10.0 * (rate + (math.sin(phi) * bias[1] + math.cos(phi) * bias[2]) / math.cos(theta))
+    assert abs(got.yaw_rad - expect) < 1e-6, (got, expect)
+    assert st.gyro_yaw_at(10.5, 0.02, 0.05) is None  # no IMU sample near that time
+    st.on_imu(30.0, *w, *f)  # a 20 s gap: the filter and the yaw chain restart
+    st.on_imu(30.02, *w, *f)
+    again = st.gyro_yaw_at(30.02, 0.02, 0.05)
+    assert again is not None and again.epoch != got.epoch
