@@ -70,6 +70,11 @@ GYRO_YAW = True
 #: with the gyro's yaw, a window's Earth field and yaw rate (the gyro's bias about the vertical) are taken
 #: as constant over this long (s): the gyro's own drift is its bias, not a compass correction
 GYRO_WINDOW_S = 10.0
+#: prior standard deviation (rad) of the rotation source's tilt error, one per window (window-field rows):
+#: the rows compare the field's vertical part across windows, so a tilt error of the autopilot's GPS-aided
+#: attitude (a few tenths of a degree; the simulator's 0.49 deg rms) is a model error of |h| x tilt (4 mgauss
+#: at 0.5 deg), comparable to theta x delta^2 itself
+TILT_PRIOR_RAD = math.radians(0.5)
 #: prior standard deviation (mgauss) of a window's horizontal Earth field in the window-field rows: any
 #: Earth field (under 700 mgauss anywhere), i.e. free
 WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
@@ -354,10 +359,14 @@ class InflightStage:
             self._win_field = np.array([e_w[0], e_w[1], self.est.common_estimate])
         h_w = self.est.field_ned_mgauss if self._win_field is None else self._win_field
         rate = reference_yaw_error_rows(r_nb, h_w) * tau  # yaw error = rate * tau
-        self.est.nuisance_prior_sd = np.array(
-            [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
-        )
-        nuis = np.hstack([w.field_cols, rate])
+        sd = [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
+        cols = [w.field_cols, rate]
+        if TILT_PRIOR_RAD > 0.0:
+            # the reference's tilt error, one per window about north and east: its vertical carries it
+            cols.append(np.stack([r_nb.T @ np.cross(e, h_w) for e in np.eye(3)[:2]], axis=1))
+            sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
+        self.est.nuisance_prior_sd = np.array(sd)
+        nuis = np.hstack(cols)
         self.est.add(w.rows, w.z, float(x[0]), nuis, key, w.common)
         self.n_rows += 1
 
