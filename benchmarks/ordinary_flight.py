@@ -5,14 +5,24 @@ oracle replay with the true calibration and theta (no learning), everything else
 
 Reported per rate (worst of the seeds): rms heading error against the simulated truth after the first 60 s
 of flight, for magcomp causal / two-pass, uncorrected and oracle, the ratio to the oracle, and theta's
-error in % of |theta| (causal, end of flight).
+error in % of |theta| (causal, end of flight), and theta's Cramer-Rao bound at the end of the flight for the
+same samples (``benchmarks/theta_crb.py``: rms |theta error| / |theta|, %) with the attitude trusted
+(``CRB trusted``: the absolute form's, an external primary) and with its yaw trusted only within 2 s windows
+(``CRB window``: the window-field rows' information with the autopilot's yaw) and with the raw gyro's yaw
+over 10 s windows (``CRB gyro``: what the relative form uses for an internal compass).
 
-    .venv/bin/python benchmarks/ordinary_flight.py [--rates 1 10 50] [--seeds 0 1 2] [--set KEY=VALUE ...]
+Each run at theta's two sizes (``--theta-scales 1 6``): Table II's (the hard case: 17 mgauss at hover, 2-3 deg
+of heading) and a realistic multirotor's (399 mgauss, 19-22 deg uncorrected; log171's internal compasses have
+484 and 790 mgauss).
+
+    .venv/bin/python benchmarks/ordinary_flight.py [--rates 1 10 50] [--seeds 0 1 2] [--theta-scales 1 6]
+        [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import tempfile
 from dataclasses import replace
@@ -27,6 +37,11 @@ from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.service.demo import rms_after_learning
 from magcomp.service.replay import replay_log
 
+try:
+    from theta_crb import theta_bounds
+except ImportError:  # run as a module from elsewhere
+    from benchmarks.theta_crb import theta_bounds
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -34,6 +49,9 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="simulator knob")
     ap.add_argument("--compass", type=int, default=0, help="compass to score (1 with external_compass0=on)")
+    ap.add_argument("--theta-scales", type=float, nargs="+", default=[1.0, 6.0],
+                    help="theta's size: 1 = Table II's (67 mgauss, the hard case), 6 = a realistic "
+                         "multirotor's (399 mgauss; log171's internal compasses: 484 / 790)")  # fmt: skip
 
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.sim import SimConfig, simulate
@@ -43,43 +61,45 @@ def main() -> int:
     oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
                          calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
     args = ap.parse_args()
-    print("rate Hz  seed  causal  two-pass  uncorrected  oracle  causal/oracle  theta err %  status")
-    worst: dict[float, list[tuple[float, float, float, float, float]]] = {}
-    for rate in args.rates:
-        for seed in args.seeds:
-            sim_cfg = apply_settings(SimConfig(scenario="ordinary", seed=seed),
-                                     [f"telemetry_hz={rate:g}", *args.set])  # fmt: skip
-            result = simulate(sim_cfg)
-            with tempfile.TemporaryDirectory() as tmp:
-                path = Path(tmp) / "ordinary.tlog"
-                write_tlog(result, path)
-                causal = replay_log(path, cfg, keep_estimates=True)
-                two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
-                store = StateStore(Path(tmp) / "oracle")
-                for c in result.compasses:
-                    j = int(c.index)
-                    l_true, d_true = result.true_calibration(j)
-                    store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float),
-                                            np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
-                orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
-            j = args.compass
-            c_rms, raw_rms = rms_after_learning(result, causal.estimates, j)
-            t_rms, _ = rms_after_learning(result, two.estimates, j)
-            o_rms, _ = rms_after_learning(result, orc.estimates, j)
-            comp = causal.summary["compasses"][j]
-            th = np.asarray(comp["theta_mgauss"], dtype=float)
-            tt = np.asarray(result.compasses[j].theta_mgauss, dtype=float)
-            th_err = 100.0 * float(np.linalg.norm(th - tt) / np.linalg.norm(tt))
-            worst.setdefault(rate, []).append((c_rms, t_rms, raw_rms, o_rms, th_err))
-            print(f"{rate:7g}  {seed:4d}  {c_rms:6.2f}  {t_rms:8.2f}  {raw_rms:11.2f}  {o_rms:6.2f}  "
-                  f"{c_rms / o_rms:13.2f}  {th_err:11.1f}  {comp['status']}: {comp['why']}")  # fmt: skip
+    print("theta rate  seed  causal  two-pass  uncorrected  oracle  causal/oracle  theta err %  "
+          "CRB trusted %  CRB window %  CRB gyro %  status")  # fmt: skip
+    worst: dict[tuple[float, float], list[tuple[float, float, float, float, float]]] = {}
+    for scale, rate, seed in itertools.product(args.theta_scales, args.rates, args.seeds):
+        sim_cfg = apply_settings(SimConfig(scenario="ordinary", seed=seed),
+                                 [f"telemetry_hz={rate:g}", f"theta_scale={scale:g}", *args.set])  # fmt: skip
+        result = simulate(sim_cfg)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "ordinary.tlog"
+            write_tlog(result, path)
+            causal = replay_log(path, cfg, keep_estimates=True)
+            two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
+            store = StateStore(Path(tmp) / "oracle")
+            for c in result.compasses:
+                j = int(c.index)
+                l_true, d_true = result.true_calibration(j)
+                store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float),
+                                        np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
+            orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+        j = args.compass
+        c_rms, raw_rms = rms_after_learning(result, causal.estimates, j)
+        t_rms, _ = rms_after_learning(result, two.estimates, j)
+        o_rms, _ = rms_after_learning(result, orc.estimates, j)
+        comp = causal.summary["compasses"][j]
+        th = np.asarray(comp["theta_mgauss"], dtype=float)
+        tt = np.asarray(result.compasses[j].theta_mgauss, dtype=float)
+        th_err = 100.0 * float(np.linalg.norm(th - tt) / np.linalg.norm(tt))
+        crb = {b.model: b.pct_end for b in theta_bounds(result, rate, j)}
+        worst.setdefault((scale, rate), []).append((c_rms, t_rms, raw_rms, o_rms, th_err))
+        print(f"x{scale:<3g} {rate:4g}  {seed:4d}  {c_rms:6.2f}  {t_rms:8.2f}  {raw_rms:11.2f}  "
+              f"{o_rms:6.2f}  {c_rms / o_rms:13.2f}  {th_err:11.1f}  {crb['trusted']:13.1f}  "
+              f"{crb['window_field']:12.1f}  {crb['gyro_window']:10.1f}  "
+              f"{comp['status']}: {comp['why']}")  # fmt: skip
     print()
-    print(
-        "rate Hz  worst causal  worst two-pass  uncorrected  oracle  worst causal/oracle  worst theta err %"
-    )
-    for rate, rows in worst.items():
+    print("theta  rate Hz  worst causal  worst two-pass  uncorrected  oracle  worst causal/oracle  "
+          "worst theta err %")  # fmt: skip
+    for (scale, rate), rows in worst.items():
         a = np.array(rows)
-        print(f"{rate:7g}  {a[:, 0].max():12.2f}  {a[:, 1].max():14.2f}  {a[:, 2].min():11.2f}  "
+        print(f"x{scale:<4g} {rate:7g}  {a[:, 0].max():12.2f}  {a[:, 1].max():14.2f}  {a[:, 2].min():11.2f}  "
               f"{a[:, 3].max():6.2f}  {np.max(a[:, 0] / a[:, 3]):19.2f}  {a[:, 4].max():17.1f}")  # fmt: skip
     return 0
 

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -217,6 +217,42 @@ def relative_rows(
     return rows, y1_mgauss - q_b1b0 @ y0_mgauss
 
 
+class WindowFieldRows(NamedTuple):
+    """One sample's rows of the window-field form (:func:`window_field_rows`): ``rows`` (3, n) over the
+    relative form's parameters, right-hand side ``z`` (3,), ``field_cols`` (3, 2) of the window's
+    horizontal Earth field (a nuisance per window) and ``common`` (3,) the column of the vertical Earth
+    field (one unknown for the flight)."""
+
+    rows: F64
+    z: F64
+    field_cols: F64
+    common: F64
+
+
+def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRows:
+    """Rows of the relative form's unknowns written against the Earth field of a short window instead of
+    an earlier sample (eqs. (2), (11), (13))::
+
+        y = d + sum_r theta_r x_r + (I - E) R_nb^T n_w,   n_w = (a_w, b_w, h_D)
+
+    ``R_nb`` the rotation source's attitude, whose yaw is trusted only within a window: the window's
+    horizontal field ``(a_w, b_w)`` (its direction *and* size) is a free nuisance, so a yaw error constant
+    over the window (the autopilot's compass-driven yaw) costs nothing; the vertical ``h_D`` is one
+    unknown common to the flight, since a yaw error leaves it alone (the DPI invariance of eq. (3)). The
+    soft-iron term is linearised at the current estimate, ``E R^T n ~ E v`` with ``v = y - d - Theta x``
+    (as :func:`relative_rows`). Unlike the 0.3 s pairs, every throttle change within a window and every
+    one along the vertical, however slow, informs theta."""
+    n_r = x.shape[0]
+    k = N_SOFT
+    rows = np.empty((3, k + 3 + 3 * n_r))
+    rows[:, 0:k] = -np.einsum("kij,j->ik", _SOFT_BASIS, v)
+    rows[:, k : k + 3] = np.eye(3)
+    for r in range(n_r):
+        rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x[r] * np.eye(3)
+    rt = np.asarray(r_nb, dtype=np.float64).T
+    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
+
+
 class InflightEstimator:
     """Recursive least squares in information form for one compass (no I/O; the state is numpy arrays).
 
@@ -276,6 +312,13 @@ class InflightEstimator:
         self.n_gated = 0
         self._solution: InflightSolution | None = None
         self._dirty = True
+        self._clear_blocks(n)
+        #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error), one value
+        #: for every column or one per column
+        self.nuisance_prior_sd: float | F64 = NUISANCE_PRIOR_RAD_S
+
+    def _clear_blocks(self, n: int) -> None:
+        """Empty nuisance-window and common-unknown blocks (``__init__``)."""
         # the open window of the rotation-rate nuisance (see add): its rows' blocks, folded into info/rhs
         # by a Schur complement when the window closes
         self._win: object = None
@@ -285,9 +328,15 @@ class InflightEstimator:
         self._w_bp = np.zeros(n)
         self._w_be = np.zeros(0)
         self._w_zz = 0.0
+        # the window's blocks with the unknown common to the flight (``common`` in add)
+        self._w_pc = np.zeros(n)
+        self._w_ec = np.zeros(0)
+        self._w_cc = 0.0
+        self._w_bc = 0.0
         self.n_windows = 0
-        # the field-norm rows (add_norm): their blocks with the one common norm unknown, eliminated when
-        # solving (a Schur complement, like a window that never closes)
+        # the blocks of the one unknown common to the flight (the field norm of add_norm, or the vertical
+        # Earth field of window-field rows: add(common=...)), eliminated when solving (a Schur complement,
+        # like a window that never closes). Its rows' parameter block goes to info / _n_pp alike.
         self._n_pp = np.zeros((n, n))
         self._n_pc = np.zeros(n)
         self._n_cc = 0.0
@@ -295,8 +344,8 @@ class InflightEstimator:
         self._n_bc = 0.0
         self._n_zz = 0.0
         self.n_norm = 0
-        #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error)
-        self.nuisance_prior_sd = NUISANCE_PRIOR_RAD_S
+        #: the unknown common to the flight at the last solution (mgauss; 0 before any)
+        self.common_estimate = 0.0
 
     @property
     def sigma_mgauss(self) -> float:
@@ -304,7 +353,10 @@ class InflightEstimator:
         residual sum of squares from the information form, ``z'z - 2 p'b + p'Ip``, over its degrees of
         freedom. (A running mean of a-priori residuals would keep the large residuals of the first samples,
         when the estimate was still the prior, and overstate the noise tenfold.)"""
-        n_dof = 3 * self.n + self.n_norm - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows
+        n_common = 1 if self._n_cc + self._w_cc > 0.0 else 0
+        n_dof = (
+            3 * self.n + self.n_norm - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows - n_common
+        )
         if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
         p = self._theta
@@ -320,7 +372,15 @@ class InflightEstimator:
         m = self._x0_sum / self.n
         return math.sqrt(max(0.0, self._x0_sq / self.n - m * m))
 
-    def add(self, rows: F64, z: F64, x0: float, nuisance: F64 | None = None, window: object = None) -> float:
+    def add(
+        self,
+        rows: F64,
+        z: F64,
+        x0: float,
+        nuisance: F64 | None = None,
+        window: object = None,
+        common: F64 | None = None,
+    ) -> float:
         """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate.
 
         ``nuisance`` (3, 3): columns of a rotation-rate error held constant over ``window`` (any hashable
@@ -332,8 +392,16 @@ class InflightEstimator:
         Innovation gate: a sample whose residual is implausible under the predictive covariance
         (noise plus the parameters' own uncertainty; chi-square, 3 dof, p = 1e-6 -> 30.7) is counted in
         :attr:`n_gated` and not used, so one glitch cannot move a converged estimate, while a change the
-        current uncertainty allows (e.g. the first throttle) is learned."""
+        current uncertainty allows (e.g. the first throttle) is learned.
+
+        ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
+        vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
         r = z - rows @ self._theta
+        if common is not None:
+            r = r - common * self.common_estimate
+        if nuisance is not None:
+            e_hat, h_inv = self._nuisance_estimate(nuisance, r, window, common is not None)
+            r = r - nuisance @ e_hat
         rn2 = float(r @ r)
         sol = self._solution
         if self._cov is not None and sol is not None and sol.heading_sigma_deg < self.p.heading_converged_deg:
@@ -342,6 +410,8 @@ class InflightEstimator:
             s2 = max(sol.residual_rms_mgauss**2, GATE_SIGMA_FLOOR_MGAUSS**2)
             # pred >= s2 I, so r' pred^-1 r <= |r|^2 / s2: most samples pass without the 3x3 solve
             pred = s2 * np.eye(3) + rows @ self._cov @ rows.T if rn2 > GATE_CHI2_3DOF * s2 else None
+            if pred is not None and nuisance is not None and h_inv is not None:
+                pred = pred + s2 * (nuisance @ h_inv @ nuisance.T)  # the window's nuisance is uncertain too
             try:
                 m2 = 0.0 if pred is None else float(r @ np.linalg.solve(pred, r))
             except np.linalg.LinAlgError:
@@ -367,12 +437,51 @@ class InflightEstimator:
             self._w_ee += nuisance.T @ nuisance
             self._w_bp += rows.T @ z
             self._w_be += nuisance.T @ z
+            if common is not None:
+                if self._w_ec.shape[0] != k:
+                    self._w_ec = np.zeros(k)
+                self._w_pc += rows.T @ common
+                self._w_ec += nuisance.T @ common
+                self._w_cc += float(common @ common)
+                self._w_bc += float(common @ z)
         self.n += 1
         self.x0_max = max(self.x0_max, x0)
         self._x0_sum += x0
         self._x0_sq += x0 * x0
         self._dirty = True
         return math.sqrt(rn2)
+
+    def _nuisance_estimate(
+        self, nuisance: F64, r: F64, window: object, with_common: bool
+    ) -> tuple[F64, F64 | None]:
+        """The window's nuisance at the current parameters and its unit-weight covariance (so that the gate
+        judges what the nuisance cannot explain, with its uncertainty: a window-field row's residual is the
+        whole Earth field before it, and a window's yaw rate is poorly known from its first samples). The
+        open window's own estimate when this row belongs to it; else the least-squares value for this row
+        alone (covariance None: the residual is then what no nuisance value explains)."""
+        k = nuisance.shape[1]
+        if window == self._win and self._w_ee.shape[0] == k and self._w_ee.any():
+            sol = self._solution
+            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+            sd = np.broadcast_to(np.asarray(self.nuisance_prior_sd, dtype=float), (k,))
+            hee = self._w_ee + np.diag((s_ref / sd) ** 2)
+            try:
+                b_e = self._w_be - self._w_pe.T @ self._theta
+                if with_common and self._w_ec.shape[0] == k:
+                    b_e = b_e - self._w_ec * self.common_estimate
+                h_inv = np.asarray(np.linalg.inv(hee), dtype=np.float64)
+                return np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
+            except np.linalg.LinAlgError:
+                pass
+        return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
+
+    def window_nuisance(self, window: object) -> F64 | None:
+        """The open window's nuisance estimate at the current parameters when ``window`` is the open one
+        and has rows (window-field rows: its horizontal Earth field first), else None."""
+        k = self._w_ee.shape[0]
+        if window != self._win or k == 0 or not self._w_ee.any():
+            return None
+        return self._nuisance_estimate(np.zeros((3, k)), np.zeros(3), window, True)[0]
 
     def add_norm(self, y_mgauss: F64, x: F64) -> None:
         """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``
@@ -413,56 +522,76 @@ class InflightEstimator:
         self.n_norm += 1
         self._dirty = True
 
-    def _norm_schur(self) -> tuple[F64, F64, float]:
-        """The norm rows' contribution to (info, rhs, z'z) with their common norm eliminated."""
-        if self.n_norm == 0:
-            return self._n_pp, self._n_bp, self._n_zz
-        k_p = self._n_pc / self._n_cc
-        return (
-            self._n_pp - np.outer(k_p, self._n_pc),
-            self._n_bp - k_p * self._n_bc,
-            self._n_zz - self._n_bc * self._n_bc / self._n_cc,
-        )
+    @staticmethod
+    def _common_schur(pp: F64, pc: F64, cc: float, bp: F64, bc: float, zz: float) -> tuple[F64, F64, float]:
+        """(info, rhs, z'z) with the unknown common to the flight eliminated (none yet: as they are)."""
+        if cc <= 0.0:
+            return pp, bp, zz
+        k_p = pc / cc
+        return pp - np.outer(k_p, pc), bp - k_p * bc, zz - bc * bc / cc
 
-    def _window_schur(self) -> tuple[F64, F64, float]:
-        """The open window's contribution to (info, rhs, z'z) with its nuisance eliminated. The nuisance
-        has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a
-        window without rotation information stays solvable."""
+    def _window_schur(self) -> tuple[F64, F64, float, F64, float, float]:
+        """The open window's contribution with its nuisance eliminated: (info, rhs, z'z) of the parameters
+        and the blocks of the common unknown (parameters x common, common x common, its rhs). The
+        nuisance has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor)
+        so that a window without rotation information stays solvable."""
         sol = self._solution
         s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-        ridge = (s_ref / self.nuisance_prior_sd) ** 2  # unit weight: the data rows are not divided by s
-        hee = self._w_ee + ridge * np.eye(self._w_ee.shape[0])
+        k = self._w_ee.shape[0]
+        # unit weight: the data rows are not divided by s
+        ridge = (s_ref / np.broadcast_to(np.asarray(self.nuisance_prior_sd, dtype=float), (k,))) ** 2
+        hee = self._w_ee + np.diag(ridge)
+        ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
         try:
             k_pe = np.linalg.solve(hee, self._w_pe.T).T  # W_pe H_ee^-1
             k_e = np.linalg.solve(hee, self._w_be)
+            k_c = np.linalg.solve(hee, ec)
         except np.linalg.LinAlgError:
-            return self._w_pp, self._w_bp, self._w_zz
+            return self._w_pp, self._w_bp, self._w_zz, self._w_pc, self._w_cc, self._w_bc
         return (
             self._w_pp - k_pe @ self._w_pe.T,
             self._w_bp - k_pe @ self._w_be,
             self._w_zz - float(self._w_be @ k_e),
+            self._w_pc - k_pe @ ec,
+            self._w_cc - float(ec @ k_c),
+            self._w_bc - float(self._w_be @ k_c),
         )
 
     def _close_window(self) -> None:
         if self._win is None:
             return
-        info, rhs, zz = self._window_schur()
+        info, rhs, zz, pc, cc, bc = self._window_schur()
         self.info += info
         self.rhs += rhs
         self._zz += zz
+        self._n_pc += pc
+        self._n_cc += cc
+        self._n_bc += bc
         self.n_windows += 1
-        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be):
+        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
             a[...] = 0.0
-        self._w_zz = 0.0
+        self._w_zz = self._w_cc = self._w_bc = 0.0
         self._win = None
 
+    def _common_value(self, p: F64) -> float:
+        """The common unknown's least-squares value at parameters ``p`` (back-substitution of its Schur
+        complement; 0 when there is none)."""
+        pc, cc, bc = self._n_pc, self._n_cc, self._n_bc
+        if self._win is not None and self._w_cc > 0.0:
+            _, _, _, w_pc, w_cc, w_bc = self._window_schur()
+            pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
+        return 0.0 if cc <= 0.0 else float((bc - pc @ p) / cc)
+
     def _effective(self) -> tuple[F64, F64, float]:
-        """(info, rhs, z'z) of every row so far, the open nuisance window and the norm rows included."""
-        n_info, n_rhs, n_zz = self._norm_schur()
-        if self._win is None:
-            return self.info + n_info, self.rhs + n_rhs, self._zz + n_zz
-        info, rhs, zz = self._window_schur()
-        return self.info + info + n_info, self.rhs + rhs + n_rhs, self._zz + zz + n_zz
+        """(info, rhs, z'z) of every row so far, the open nuisance window and the norm rows included, the
+        unknown common to the flight eliminated."""
+        pp, bp, zz = self.info + self._n_pp, self.rhs + self._n_bp, self._zz + self._n_zz
+        pc, cc, bc = self._n_pc, self._n_cc, self._n_bc
+        if self._win is not None:
+            w_pp, w_bp, w_zz, w_pc, w_cc, w_bc = self._window_schur()
+            pp, bp, zz = pp + w_pp, bp + w_bp, zz + w_zz
+            pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
+        return self._common_schur(pp, pc, cc, bp, bc, zz)
 
     def _refresh(self) -> None:
         """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""
@@ -479,6 +608,7 @@ class InflightEstimator:
                 return
             theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
             self._theta = theta
+        self.common_estimate = self._common_value(theta)
         s2 = self.sigma_mgauss**2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov

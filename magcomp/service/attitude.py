@@ -53,6 +53,14 @@ class AttitudeView(NamedTuple):
     sin_pitch: float
 
 
+class GyroYaw(NamedTuple):
+    """The raw gyro's yaw at a sample (:meth:`AttitudeStage.gyro_yaw_at`): ``yaw_rad`` integrated since the
+    chain's start, ``epoch`` counts its restarts (yaws of two epochs are not comparable)."""
+
+    epoch: int
+    yaw_rad: float
+
+
 class AttitudeStage:
     """The attitude state shared by every compass of one vehicle."""
 
@@ -91,6 +99,13 @@ class AttitudeStage:
         self.pitch = 0.0
         self.yaw = 0.0
         self._view: AttitudeView | None = None
+        # the raw gyro's yaw (Euler yaw rate with the autopilot's roll and pitch, trapezoid, no bias removed):
+        # a heading no compass steers, for the in-flight calibration (gyro_yaw_at); its chain restarts with
+        # the filter (a new epoch)
+        self.gyro_yaw_rad = 0.0
+        self.gyro_yaw_epoch = 0
+        self._yaw_coef = (0.0, 1.0)  # (sin roll, cos roll) / cos pitch of the latest ATTITUDE
+        self._yaw_rate_prev = 0.0
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -105,6 +120,8 @@ class AttitudeStage:
             self.att_dt = dt if self.att_dt is None else self.att_dt + 0.05 * (dt - self.att_dt)
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
+        cp = max(math.cos(s.pitch_rad), 0.1)
+        self._yaw_coef = (math.sin(s.roll_rad) / cp, math.cos(s.roll_rad) / cp)
         self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) else self.yaw
         self._view = None
 
@@ -151,6 +168,9 @@ class AttitudeStage:
             b = m.b
             self.gyro = (gx - b[0], gy - b[1], gz - b[2])
             self.qg = quat_step_body_rate(self.qg, self.gyro, t - prev_t)
+            rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
+            self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
+            self._yaw_rate_prev = rate
             return False
         self._restart_filter(t, gx, gy, gz, ax, ay, az)
         return False
@@ -171,6 +191,8 @@ class AttitudeStage:
         self.mahony = FastMahony(self._mahony_p, fresh.q_nb, bias)
         self.mahony_t0 = t
         self.qg = (1.0, 0.0, 0.0, 0.0)  # the gyro integral restarts (a new epoch: no pair across it)
+        self.gyro_yaw_epoch += 1
+        self._yaw_rate_prev = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
         self.imu_t = t
         self.gyro = (gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2]))
 
@@ -244,6 +266,15 @@ class AttitudeStage:
         fast = self.imu_dt is not None and self.imu_dt <= FAST_IMU_DT_S
         fresh = self.imu_t is not None and abs(t - self.imu_t) <= self._stale_s
         return fast and fresh and self.mahony is not None
+
+    def gyro_yaw_at(self, t: float, tol_s: float, max_dt_s: float) -> GyroYaw | None:
+        """(epoch, raw gyro yaw in rad) when the last IMU sample is within ``tol_s`` of ``t``, the IMU comes
+        at least every ``max_dt_s`` and the gyro is not gated, else None."""
+        if self.imu_t is None or abs(t - self.imu_t) > tol_s or t <= self.gyro_bad_until or self.restart:
+            return None
+        if self.imu_dt is None or self.imu_dt > max_dt_s:
+            return None
+        return GyroYaw(self.gyro_yaw_epoch, self.gyro_yaw_rad)
 
     def gyro_fast(self) -> bool:
         return self.imu_dt is not None and self.imu_dt <= FAST_IMU_DT_S

@@ -11,12 +11,14 @@ import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import InflightConfig
 from magcomp.core.inflight import (
+    NUISANCE_PRIOR_RAD_S,
     InflightEstimator,
     InflightMode,
     InflightParams,
@@ -26,8 +28,12 @@ from magcomp.core.inflight import (
     regressors,
     relative_rows,
     rotation_error_rows,
+    window_field_rows,
 )
 from magcomp.core.rotations import so3_exp, so3_log
+
+if TYPE_CHECKING:
+    from magcomp.service.attitude import GyroYaw
 
 F64 = NDArray[np.float64]
 
@@ -52,6 +58,26 @@ APPLY_Z = 2.0
 MAX_APPLY_HEADING_SIGMA_DEG = math.degrees(math.atan(0.5))
 #: the relative form adds one field-norm row per sample (InflightEstimator.add_norm)
 NORM_ROWS = False
+#: the relative form's rows are written against each ROTATION_WINDOW_S window's own Earth field
+#: (``window_field_rows``: the horizontal field free per window, the vertical one common to the flight)
+#: instead of 0.3 s pairs (docs/inflight.md, "window-field rows")
+WINDOW_FIELD_ROWS = True
+WINDOW_ROWS_MOTORS_ONLY = True
+#: the window-field rows take the yaw from the raw gyro (integrated about the vertical of the autopilot's
+#: GPS-aided tilt) instead of the autopilot's yaw, which follows the disturbed compass, whenever a raw gyro
+#: yaw comes with the field sample
+GYRO_YAW = True
+#: with the gyro's yaw, a window's Earth field and yaw rate (the gyro's bias about the vertical) are taken
+#: as constant over this long (s): the gyro's own drift is its bias, not a compass correction
+GYRO_WINDOW_S = 10.0
+#: prior standard deviation (rad) of the rotation source's tilt error, one per window (window-field rows):
+#: the rows compare the field's vertical part across windows, so a tilt error of the autopilot's GPS-aided
+#: attitude (a few tenths of a degree; the simulator's 0.49 deg rms) is a model error of |h| x tilt (4 mgauss
+#: at 0.5 deg), comparable to theta x delta^2 itself
+TILT_PRIOR_RAD = math.radians(0.5)
+#: prior standard deviation (mgauss) of a window's horizontal Earth field in the window-field rows: any
+#: Earth field (under 700 mgauss anywhere), i.e. free
+WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
 #: the relative form is applied only once the heading has covered this span (deg; as the diagnosis's gate)
 MIN_RELATIVE_YAW_SPAN_DEG = 90.0
 #: the relative form's rotation-source yaw-rate error (InflightEstimator.add) is taken as constant over
@@ -119,6 +145,11 @@ class InflightStage:
         self._last_fed: float | None = None
         self._prev: tuple[float, F64, F64, F64] | None = None  # t, R_nb, field, regressors
         self._hist: deque[tuple[float, F64, F64, F64]] = deque()  # recent samples (relative pairs)
+        self._win_field: F64 | None = None
+        # the compass-free yaw (GYRO_YAW): in use, the gyro chain's epoch, its offset to the autopilot's yaw
+        self._gy_on = False
+        self._gy_epoch = -1
+        self._gy_offset = 0.0  # the last window-field estimate (NED of the rotation source)
         self._epoch = 0  # counts rotation-source restarts (a nuisance window never spans one)
         # samples waiting for the rotation source to pass their time, and its recent (time, R_nb) samples
         self._pending: deque[tuple[float, F64, tuple[float, ...] | None, F64 | None]] = deque()
@@ -195,16 +226,19 @@ class InflightStage:
         r_rel_nb: F64 | None,
         r_t_s: float | None = None,
         throttle_t_s: float | None = None,
+        gyro_yaw: GyroYaw | None = None,
     ) -> None:
         """One magnetometer sample (field as received, mgauss) with its throttle and motor outputs.
 
         r_abs_nb: the trusted attitude (absolute form) or None when it cannot be used now;
         field_ref_n_mgauss: the Earth field (NED) for it. r_rel_nb: the rotation-source attitude for the
         relative form (gyro-integrated or the autopilot's), None when there is none. r_t_s, throttle_t_s:
-        the times of that attitude and of that throttle (None: this sample's time). When either is older
+        the times of that attitude and of that throttle (None: this sample's time); when either is older
         than the field, the sample waits for the next ones and gets both interpolated to its time: on a
         telemetry link ATTITUDE and the throttle of an instant often arrive after the RAW_IMU of that
         instant, so the latest ones are a whole message interval old (1 s at 1 Hz; docs/inflight.md).
+        gyro_yaw: the raw gyro's yaw at this sample (``AttitudeStage.gyro_yaw_at``) for the relative form's
+        compass-free yaw (GYRO_YAW; None: the rotation source's own yaw).
         """
         if self._last_fed is not None and t_s - self._last_fed < 0.9 * self._period and t_s > self._last_fed:
             return
@@ -230,6 +264,8 @@ class InflightStage:
         late_r = r_t_s is not None and r_t_s < t_s
         late_thr = throttle_t_s is not None and throttle_t_s < t_s
         if not (late_r or late_thr or self._pending):
+            if self.mode == "relative" and WINDOW_FIELD_ROWS and GYRO_YAW:
+                r_nb = self._gyro_yaw(r_nb, gyro_yaw)
             self._use(t_s, y, regressors(throttle_01, mot), r_nb, field_ref_n_mgauss)
             return
         att, thr = self._att_hist, self._thr_hist
@@ -274,9 +310,65 @@ class InflightStage:
             self.est.add(rows, z, float(x[0]), cols, (self._epoch, math.floor(t_s / ROTATION_WINDOW_S)))
             self.n_rows += 1
             return
+        if WINDOW_FIELD_ROWS:
+            if x[0] > 0.0 or not WINDOW_ROWS_MOTORS_ONLY:
+                self._window_row(t_s, r_nb, y, x)
+            return
         if NORM_ROWS and self.applied:
             self.est.add_norm(y, x)
         self._pair(t_s, r_nb, y, x)
+
+    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None) -> F64:
+        """The autopilot's attitude with its yaw replaced by the raw gyro's (``AttitudeStage``: the Euler yaw
+        rate from the raw gyro and the autopilot's roll and pitch, integrated at the IMU's rate), offset to
+        the autopilot's yaw where its chain starts. The autopilot's yaw follows the compass being corrected;
+        the gyro's does not, and drifts only by its bias: a yaw rate per GYRO_WINDOW_S window (the
+        window-field rows' nuisance). Without a gyro yaw, ``R_nb`` as it is (the 2 s windows)."""
+        if gyro_yaw is None:
+            if self._gy_on:
+                self._gy_on = False
+                self._prev = None  # a new window sequence
+            return r_nb
+        epoch, yaw_g = gyro_yaw
+        yaw_ap = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
+        if not self._gy_on or epoch != self._gy_epoch:
+            self._gy_on, self._gy_epoch = True, epoch
+            self._gy_offset = yaw_ap - yaw_g
+            self._prev = None  # a window never spans a restart of the chain
+        a = yaw_g + self._gy_offset - yaw_ap
+        c, s = math.cos(a), math.sin(a)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r_nb
+
+    def _window_row(self, t_s: float, r_nb: F64, y: F64, x: F64) -> None:
+        """One sample against its window's Earth field (``window_field_rows``), with the window's
+        horizontal field and the rotation source's yaw rate as the window's nuisance."""
+        assert self.est is not None
+        self._track_yaw(r_nb)
+        if self._prev is None:  # reset_pairs(): a window never spans a rotation-source restart
+            self._epoch += 1
+        self._prev = (t_s, r_nb, y, x)
+        w = window_field_rows(r_nb, y, x, self.est.uncalibrated(y, x))
+        w_s = GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S
+        win = math.floor(t_s / w_s)
+        tau = t_s - (win + 0.5) * w_s
+        # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
+        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's)
+        key = (self._epoch, win)
+        e_w = self.est.window_nuisance(key)
+        if e_w is not None:
+            self._win_field = np.array([e_w[0], e_w[1], self.est.common_estimate])
+        h_w = self.est.field_ned_mgauss if self._win_field is None else self._win_field
+        rate = reference_yaw_error_rows(r_nb, h_w) * tau  # yaw error = rate * tau
+        sd = [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
+        cols = [w.field_cols, rate]
+        if TILT_PRIOR_RAD > 0.0:
+            # the reference's tilt error, one per window about north and east: its vertical carries it
+            cols.append(np.stack([r_nb.T @ np.cross(e, h_w) for e in np.eye(3)[:2]], axis=1))
+            sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
+        self.est.nuisance_prior_sd = np.array(sd)
+        nuis = np.hstack(cols)
+        self.est.add(w.rows, w.z, float(x[0]), nuis, key, w.common)
+        self.n_rows += 1
 
     def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
         """Pair this sample (rotation-source attitude ``r_rel_nb`` at its time) with an older one."""
