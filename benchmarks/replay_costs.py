@@ -1,0 +1,175 @@
+"""Where a replay's fixed and per-sample costs go (issue 13): imports and the observer step's two halves.
+
+* start-up: CPU time (user + system) of a fresh interpreter importing what ``magcomp replay`` imports, module
+  group by module group, against the bare interpreter and against the imports of pymavlink's parse-only loop;
+* the observer: the whole :func:`~magcomp.core.observer.observer_step` against its theta-independent half
+  (rotation increment, regressor, eq. (21) excitation, the sec. II-D low-pass on the regression), which
+  depends on the inputs alone and so could be computed over a block of samples in a learn-only pass.
+
+    .venv/bin/python benchmarks/replay_costs.py [--repeat 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import timeit
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+#: what each line imports, cumulatively (each after the previous ones)
+IMPORTS: tuple[tuple[str, str], ...] = (
+    ("bare interpreter", "pass"),
+    (
+        "pymavlink parse-only imports",
+        "from magcomp.adapters.dialect import ensure_dialect; ensure_dialect(); "
+        "from pymavlink import mavutil",
+    ),
+    ("+ numpy", "import numpy"),
+    ("+ magcomp replay modules", "import magcomp.cli, magcomp.commands.replay, magcomp.service.replay"),
+    ("+ scipy.optimize (the eq. (3) norm refinement)", "import scipy.optimize"),
+)
+
+
+def _cpu_of(code: str, repeat: int) -> float:
+    """Median CPU time of ``python -c code`` as a process of its own."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)  # bytecode written, pages cached
+    out = []
+    for _ in range(repeat):
+        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run([sys.executable, "-c", code], check=True, env=env)
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        out.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
+    return statistics.median(out)
+
+
+def startup(repeat: int) -> None:
+    code, prev = "", None
+    print("start-up, CPU median of a fresh process:")
+    for name, stmt in IMPORTS:
+        code = f"{code}; {stmt}" if code else stmt
+        t = _cpu_of(code, repeat)
+        step = "" if prev is None else f"  (+{t - prev:.3f} s)"
+        print(f"  {name:<48} {t:6.3f} s{step}")
+        prev = t
+
+
+def observer_split(repeat: int) -> None:
+    from magcomp.core import observer as ob
+    from magcomp.core.linalg3 import gram, minus_matvec
+    from magcomp.core.rotations import dcm_from_rotvec
+
+    p, dt = ob.ObserverParams(), 0.02
+
+    def inputs(i: int) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
+        t = i * dt  # a hand rotation about all three axes at half throttle
+        w = (math.sin(t), 0.7 * math.cos(1.3 * t), 0.4 * math.sin(0.7 * t))
+        v = (200.0 + 50.0 * math.sin(t), 100.0 * math.cos(t), 400.0 + 10.0 * math.sin(2.0 * t))
+        return w, v, 0.5 + 0.2 * math.sin(0.3 * t)
+
+    st = ob.observer_init(p)
+    for i in range(600):
+        w, v, d = inputs(i)
+        st = ob.observer_step(st, w, v, d, dt, p).state
+    w, v, d = inputs(601)
+    k = p.step_constants(dt)
+
+    def independent() -> None:
+        ph = ob.rotation_increment(
+            st.omega_prev2_rad_s, st.omega_prev_rad_s, w, st.dt_prev_s, dt, p.rate_interp
+        )
+        a_k = dcm_from_rotvec((-ph[0], -ph[1], -ph[2]))
+        phi_k = ob.regressor(a_k, st.d2_prev, d * d, p.variant)
+        y_k = minus_matvec(v, a_k, st.field_prev_mgauss)
+        ob._excitation_update(st, phi_k, dt, k, p)
+        ob._prefilter_regression(st.lp, y_k, phi_k, k.lowpass, p)
+
+    def non_recursive() -> None:  # what does not carry state from sample to sample
+        ph = ob.rotation_increment(
+            st.omega_prev2_rad_s, st.omega_prev_rad_s, w, st.dt_prev_s, dt, p.rate_interp
+        )
+        a_k = dcm_from_rotvec((-ph[0], -ph[1], -ph[2]))
+        phi_k = ob.regressor(a_k, st.d2_prev, d * d, p.variant)
+        minus_matvec(v, a_k, st.field_prev_mgauss)
+        gram(phi_k)
+
+    n = 20_000
+    flat = min(timeit.repeat(non_recursive, number=n, repeat=repeat)) / n
+    full = min(timeit.repeat(lambda: ob.observer_step(st, w, v, d, dt, p), number=n, repeat=repeat)) / n
+    half = min(timeit.repeat(independent, number=n, repeat=repeat)) / n
+    print(f"observer_step {full * 1e6:.2f} us; its theta-independent half {half * 1e6:.2f} us "
+          f"({half / full:.0%}; x 58,787 steps of a 10 min log: {half * 58_787:.2f} s), of which "
+        f"{flat * 1e6:.2f} us carry no state from sample to sample ({flat * 58_787:.2f} s)")  # fmt: skip
+
+
+def block_estimate(repeat: int, n: int = 58_787) -> None:
+    """What the theta-independent half costs over a block of ``n`` samples at one dt: the core's own float
+    functions fed numpy rows where they are plain arithmetic (rotation increment, regressor, y, Gram), scipy
+    for A_k (``Rotation.from_rotvec``) and for the two recursions (``lfilter``: the eq. (21) window and the
+    sec. II-D biquad with the coefficients of ``step_constants``). An estimate of lever 1 of issue 13, not a
+    path of magcomp (no checks, no re-anchoring, no interval changes inside the block)."""
+    import time
+
+    import numpy as np
+    from scipy.signal import lfilter
+    from scipy.spatial.transform import Rotation
+
+    from magcomp.core import observer as ob
+    from magcomp.core.linalg3 import gram, minus_matvec
+
+    p, dt = ob.ObserverParams(), 0.02
+    t = np.arange(n + 2) * dt
+    w = np.array((np.sin(t), 0.7 * np.cos(1.3 * t), 0.4 * np.sin(0.7 * t)))
+    v = np.array((200.0 + 50.0 * np.sin(t), 100.0 * np.cos(t), 400.0 + 10.0 * np.sin(2.0 * t)))
+    d2 = (0.5 + 0.2 * np.sin(0.3 * t)) ** 2
+    k = p.step_constants(dt)
+    c = k.lowpass
+
+    def block() -> None:
+        ph = ob.rotation_increment(w[:, :-2], w[:, 1:-1], w[:, 2:], dt, dt, p.rate_interp)  # type: ignore[arg-type]
+        a_k = Rotation.from_rotvec(-np.array(ph).T).as_matrix().reshape(-1, 9).T
+        phi = ob.regressor(a_k, d2[1:-1], d2[2:], p.variant)
+        y = minus_matvec(v[:, 2:], a_k, v[:, 1:-1])
+        q = np.array(gram(phi)) / dt
+        gs = lfilter([1.0], [1.0, -k.lam_excitation], q, axis=1)
+        gw = lfilter([dt], [1.0, -k.lam_excitation], np.ones(n))
+        g = gs / gw
+        a, b, cc, e, f, i = g
+        det = a * (e * i - f * f) - b * (b * i - f * cc) + cc * (b * f - e * cc)  # per-axis 1 / [G^-1]_ii
+        _ = (det / (e * i - f * f), det / (a * i - cc * cc), det / (a * e - b * b))
+        lfilter([c.b0, c.b1, c.b2], [1.0, c.a1, c.a2], np.vstack((y, phi)), axis=1)
+
+    best = math.inf
+    for _ in range(repeat):
+        t0 = time.process_time()
+        block()
+        best = min(best, time.process_time() - t0)
+    print(
+        f"theta-independent half over a block of {n} samples: {best:.3f} s ({best / n * 1e6:.2f} us a sample)"
+    )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--no-startup", action="store_true", help="skip the start-up processes")
+    args = ap.parse_args()
+    if not args.no_startup:
+        startup(args.repeat)
+    observer_split(args.repeat)
+    block_estimate(args.repeat)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
