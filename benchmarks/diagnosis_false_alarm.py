@@ -124,11 +124,28 @@ def unabsorbed_signal_mgauss(res: Any) -> float:
     return float(np.sqrt(np.mean((b - x @ beta) ** 2)))
 
 
+#: magnetometer rates of the two log classes: DataFlash / ULog-like (>= 10 Hz) and 1-2 Hz telemetry
+MAG_CLASS_HZ: dict[str, tuple[float, ...]] = {"fast": (10.0, 25.0, 50.0, 100.0), "slow": (1.0, 2.0)}
+
+
+def mag_class(mag_hz: float) -> str:
+    """ "fast" (>= 10 Hz), "slow" (<= 2 Hz) or "mid" (5 Hz)."""
+    return "fast" if mag_hz >= 10.0 else ("slow" if mag_hz <= 2.0 else "mid")
+
+
 def varied_log(
-    seed: int, effect: str, value: float, off: frozenset[str] = frozenset()
+    seed: int,
+    effect: str,
+    value: float,
+    off: frozenset[str] = frozenset(),
+    cls: str = "any",
+    vehicle_theta: tuple[str, np.ndarray, Any] | None = None,
+    scale: np.ndarray | None = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """(LogData, EarthReference, what was varied) of one deliberately varied simulation; ``off``: variations
-    (of :data:`VARIATIONS`) not applied."""
+    (of :data:`VARIATIONS`) not applied; ``cls``: "any" magnetometer rate or one of :data:`MAG_CLASS_HZ`;
+    ``vehicle_theta``: (vehicle, theta, Location) held fixed (a second flight of the same vehicle), else
+    drawn; ``scale``: the compass's residual per-axis scale factors (default: drawn, uniform +-10 %)."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.core.types import Series
@@ -156,6 +173,8 @@ def varied_log(
         decimal_year=float(rng.uniform(2025.0, 2029.9)),
     )
     theta = _random_rotation(rng) @ THETA_PAPER * float(rng.uniform(0.5, 3.0))
+    if vehicle_theta is not None:
+        vehicle, theta, loc = vehicle_theta
     cfg = SimConfig(
         scenario=scenario,
         duration_s=float(rng.uniform(60.0, 133.0)),
@@ -175,6 +194,8 @@ def varied_log(
         log = load_log(path)
     # --- variation applied to the loaded log
     mag_hz = float(rng.choice([1.0, 2.0, 5.0, 10.0, 25.0, 50.0, 100.0]))
+    if cls != "any":
+        mag_hz = float(rng.choice(MAG_CLASS_HZ[cls]))
     mag_hz = min(mag_hz, imu_hz) if "mag_rate" not in off else imu_hz
     s = log.mag[0]
     every = max(1, round(imu_hz / mag_hz))
@@ -184,7 +205,8 @@ def varied_log(
     e = rng.normal(0.0, sd * math.sqrt(1.0 - rho**2), v.shape) * ("noise" not in off)
     for k in range(1, e.shape[0]):
         e[k] += rho * e[k - 1]
-    scale = 1.0 + rng.uniform(-0.1, 0.1, 3) * ("scale" not in off)
+    drawn_scale = 1.0 + rng.uniform(-0.1, 0.1, 3) * ("scale" not in off)
+    scale = drawn_scale if scale is None else scale
     v = v @ np.diag(scale) + e
     lsb = float(rng.choice([0.0, 1.0, 2.0, 3.0]))
     if lsb > 0 and "quantisation" not in off:
@@ -212,6 +234,7 @@ def varied_log(
         "scenario": scenario,
         "vehicle": vehicle,
         "mag_hz": mag_hz,
+        "mag_class": mag_class(mag_hz),
         "imu_hz": imu_hz,
         "signal_mgauss": round(signal, 2),
     }
@@ -228,12 +251,12 @@ def _init_worker(min_delta_bic: float | None) -> None:
     _P = SelectionParams() if min_delta_bic is None else SelectionParams(min_delta_bic=min_delta_bic)
 
 
-def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
-    """Simulate, vary, diagnose one log. job = (seed, effect or "", value)."""
+def run_one(job: tuple[int, str, float, str]) -> dict[str, Any]:
+    """Simulate, vary, diagnose one log. job = (seed, effect or "", value, magnetometer class)."""
     from magcomp.diagnosis.engine import diagnose
 
-    seed, effect, value = job
-    log, earth, varied = varied_log(seed, effect, value)
+    seed, effect, value, cls = job
+    log, earth, varied = varied_log(seed, effect, value, cls=cls)
     t0 = time.perf_counter()
     try:
         j = diagnose(log, earth=earth, p=_P).to_json()
@@ -264,8 +287,9 @@ def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
     }
 
 
-def _seed(effect: str, m: int, r: int) -> int:
-    return 20_000 + 1000 * list(SIZES).index(effect) + 100 * m + r
+def _seed(effect: str, m: int, r: int, cls: str = "any") -> int:
+    first = {"any": 20_000, "fast": 40_000, "slow": 50_000}[cls]
+    return first + 1000 * list(SIZES).index(effect) + 100 * m + r
 
 
 def _found_share(recs: list[dict[str, Any]]) -> tuple[int, int]:
@@ -287,6 +311,15 @@ def main() -> int:
     ap.add_argument(
         "--effects", nargs="*", default=list(SIZES), help="effects to sweep (default all; none: [])"
     )
+    ap.add_argument(
+        "--mag-class",
+        choices=("any", *MAG_CLASS_HZ),
+        default="any",
+        help="magnetometer rate class of the effect logs (fast >= 10 Hz, slow 1-2 Hz telemetry; default any)",
+    )
+    ap.add_argument(
+        "--sizes", nargs="*", type=float, default=None, help="sizes of the sweep (one effect only)"
+    )
     ap.add_argument("--full", action="store_true", help="every size, not only up to the first one found")
     ap.add_argument(
         "--min-delta-bic", type=float, default=None, help="override SelectionParams.min_delta_bic"
@@ -294,6 +327,10 @@ def main() -> int:
     ap.add_argument("--jsonl", default=None, help="append every run's record here as it finishes")
     ap.add_argument("--summarise", nargs="*", default=None, help="only summarise earlier --jsonl files")
     args = ap.parse_args()
+    if args.sizes:
+        if len(args.effects) != 1:
+            ap.error("--sizes needs exactly one effect in --effects")
+        SIZES[args.effects[0]] = list(args.sizes)
 
     t0 = time.perf_counter()
     out: list[dict[str, Any]] = []
@@ -315,12 +352,15 @@ def main() -> int:
         return got
 
     with Pool(args.workers, initializer=_init_worker, initargs=(args.min_delta_bic,)) as pool:
-        out += run([(args.clean_seed + i, "", 0.0) for i in range(args.clean)], pool)
+        out += run([(args.clean_seed + i, "", 0.0, "any") for i in range(args.clean)], pool)
         # the upward sweep, one size per round for every effect still below POWER
         active = list(args.effects)
         for m in range(max((len(SIZES[e]) for e in active), default=0)):
             jobs = [
-                (_seed(e, m, r), e, SIZES[e][m]) for e in active if m < len(SIZES[e]) for r in range(args.n)
+                (_seed(e, m, r, args.mag_class), e, SIZES[e][m], args.mag_class)
+                for e in active
+                if m < len(SIZES[e])
+                for r in range(args.n)
             ]
             got = run(jobs, pool)
             out += got
