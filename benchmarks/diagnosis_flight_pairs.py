@@ -82,6 +82,9 @@ def run_pair(pair: int, cls: str) -> dict[str, Any]:
                 "theta": c.get("theta"),
                 "hw": c.get("theta_ci95_halfwidth"),
                 "findings": [f["effect"] for f in c["findings"]],
+                "theta_consistent": c["gate"].get("theta_consistent"),
+                "theta_halves_ratio": c["gate"].get("theta_halves_ratio"),
+                "theta_motors_off_ratio": c["gate"].get("theta_motors_off_ratio"),
             }
         )
     rec: dict[str, Any] = {"pair": pair, "airframe": airframe, "theta_true": theta.round(1).tolist()}
@@ -118,6 +121,13 @@ def summarise(recs: list[dict[str, Any]]) -> None:
             f"(worst |dA-B| / (hwA + hwB) {worst:.2f}); difference inside its own interval {dif}/{len(rs)}; "
             f"median |theta_A - theta_B| / |theta_A| {rel:.2f}"
         )
+    obs = [f for r in recs for f in r["flights"] if f["observable"]]
+    flagged = [f for f in obs if f.get("theta_consistent") is False]
+    print(
+        f"  consistency check (non-blocking) flags theta on {len(flagged)}/{len(obs)} observable flights "
+        f"(halves {sum((f.get('theta_halves_ratio') or 0) > 1 for f in obs)}, motors-off anchor "
+        f"{sum((f.get('theta_motors_off_ratio') or 0) > 1 for f in obs)})"
+    )
     for r in both:
         if r["overlap_ratio"] > 1.0:
             f = r["flights"]
