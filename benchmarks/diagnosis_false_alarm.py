@@ -424,6 +424,20 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
             hit, n_obs = _found_share(runs)
             row.append(f"{hit}/{n_obs}")
         print(f"{eff} | " + " | ".join(row))
+    print(
+        "\nper magnetometer class: size: top / observable; signal (mgauss eq. (11) cannot absorb) above"
+    )
+    print("which the effect is top in >= 90 % of the observable logs (at least 5 logs above it)")
+    for eff in effects:
+        for cls in ("fast", "mid", "slow"):
+            runs = [o for o in ok if o["effect"] == eff and o.get("mag_class", _cls(o)) == cls]
+            if not runs:
+                continue
+            cells = []
+            for size in sorted({o["value"] for o in runs}):
+                hit, n_obs = _found_share([o for o in runs if o["value"] == size])
+                cells.append(f"{size:g}: {hit}/{n_obs}")
+            print(f"  {eff} {cls} | {', '.join(cells)} | {signal_at_power(runs)}")
     wrong = [
         o for o in ok if o["effect"] and o["observable"] and o["top"] and o["effect"] not in o["top_set"]
     ]
@@ -446,6 +460,25 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
     print("\nwhy a hidden effect was not the top finding (observable logs):")
     for eff, d in lost.items():
         print(f"  {eff}: " + ", ".join(f"{k} x{v}" for k, v in sorted(d.items(), key=lambda kv: -kv[1])))
+
+
+def _cls(o: dict[str, Any]) -> str:
+    return mag_class(float(o["mag_hz"]))
+
+
+def signal_at_power(runs: list[dict[str, Any]], min_n: int = 5) -> str:
+    """The smallest signal s (mgauss rms that eq. (11) cannot absorb) such that the effect is the top
+    finding in >= POWER of the observable logs whose signal is >= s (at least ``min_n`` of them)."""
+    obs = sorted(
+        (o for o in runs if "error" not in o and o["observable"]), key=lambda o: -float(o["signal_mgauss"])
+    )
+    best = "not reached"
+    hit = 0
+    for i, o in enumerate(obs, start=1):
+        hit += o["effect"] in o["top_set"]
+        if i >= min_n and hit >= POWER * i:
+            best = f">= {float(o['signal_mgauss']):.1f} mgauss ({hit}/{i})"
+    return best
 
 
 def _upper95(k: int, n: int) -> float:

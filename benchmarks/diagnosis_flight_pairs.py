@@ -59,8 +59,9 @@ def vehicle(pair: int) -> tuple[str, np.ndarray, Any, np.ndarray]:
     return airframe, theta, loc, scale
 
 
-def run_pair(pair: int, cls: str) -> dict[str, Any]:
-    """Simulate, vary and diagnose both flights of pair ``pair``; the comparison of their thetas."""
+def run_pair(pair: int, cls: str, off: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """Simulate, vary and diagnose both flights of pair ``pair``; the comparison of their thetas. ``off``:
+    variations of ``varied_log`` not applied (to find which one moves theta between flights)."""
     from diagnosis_false_alarm import varied_log
 
     from magcomp.diagnosis.engine import diagnose
@@ -71,7 +72,7 @@ def run_pair(pair: int, cls: str) -> dict[str, Any]:
     for k, sc in enumerate((scale, scale * (1.0 + drift))):
         seed = PAIR_SEED + 2 * pair + k
         same = (airframe, theta, loc)
-        log, earth, varied = varied_log(seed, "", 0.0, cls=cls, vehicle_theta=same, scale=sc)
+        log, earth, varied = varied_log(seed, "", 0.0, off, cls=cls, vehicle_theta=same, scale=sc)
         c = diagnose(log, earth=earth).to_json()["compasses"][0]
         flights.append(
             {
@@ -145,6 +146,9 @@ def main() -> int:
     ap.add_argument("--pairs", type=int, default=30)
     ap.add_argument("--first", type=int, default=0, help="first pair index (default 0)")
     ap.add_argument("--mag-class", choices=("any", "fast", "slow"), default="any")
+    ap.add_argument(
+        "--off", nargs="*", default=[], help="variations not applied (diagnosis_false_alarm.VARIATIONS)"
+    )
     ap.add_argument("--jsonl", default=None, help="append every pair's record here as it finishes")
     ap.add_argument("--summarise", nargs="*", default=None, help="only summarise earlier --jsonl files")
     args = ap.parse_args()
@@ -156,7 +160,7 @@ def main() -> int:
         return 0
     t0 = time.process_time()
     for pair in range(args.first, args.first + args.pairs):  # one pair at a time: the machine is shared
-        rec = run_pair(pair, args.mag_class)
+        rec = run_pair(pair, args.mag_class, frozenset(args.off))
         recs.append(rec)
         if args.jsonl:
             with open(args.jsonl, "a", encoding="utf-8") as fh:
