@@ -16,7 +16,7 @@ The Earth reference is the WMM at the simulated place and date, as `diagnose` ta
 
 Reported: on clean logs, the share with any named finding on an observable compass (false alarms), the share
 with "unexplained structure", the share the gate declares not observable. Detection power: for each effect
-an upward sweep of its size (:data:`SIZES`, up to the simulator's physical limit), ``--n`` logs per size,
+an upward sweep of its size (:data:`SIZES` or ``--sizes``, up to the physical ceiling), ``--n`` logs per size,
 stopping at the first size where the effect is the TOP finding (alone, or inside its set of indistinguishable
 causes) in at least 90 % of the observable logs; also the found share binned by the effect's signal that
 eq. (11) cannot absorb (:func:`unabsorbed_signal_mgauss`, from the simulator's truth), and, for every log
@@ -46,6 +46,15 @@ Measured on this checkout (2026-11-23, 2 shared cores; SelectionParams.min_delta
   17 of the lost logs: a step in 9 (the effect then failed the raw BIC with the step as a nuisance: the step
   may have taken its place), "follows temperature" in 3 where temperature lost to a time drift, "follows
   throttle_rate" in 3 (2 of them delays below the throttle's interval).
+
+After the search limits became physical ceilings (this round; simulator maxima raised to them):
+
+* false alarms: **0 / 58** observable clean logs (95 % upper bound 5.0 %; seeds 10400-10459, 163 s).
+* power per class (``--mag-class fast|slow --sizes ...``, 260 effect logs): fast logs reach 90 % for
+  current_lag at 6.4 s (9/9), or at >= 3.9 mgauss of signal eq. (11) cannot absorb (28/31); time_skew (ceiling
+  3 s), temperature (to 10), per_motor (2.0), exponent (5), offset (0.45), sag (1.0) not by size; by signal
+  skew >= 21.7, temperature >= 7.3, per_motor >= 3.5 mgauss. Slow (1-2 Hz) logs: lag >= 21 mgauss, skew >= 13,
+  temperature never. Tables in docs/benchmarks.md.
 
 What changed to get here (each measured): min_delta_bic 50 -> 30 (the clean-log tail at 10 ended at -27);
 rival sets compared fit against fit (a member's own delta BIC has its own effective sample size); the
