@@ -433,9 +433,7 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
             hit, n_obs = _found_share(runs)
             row.append(f"{hit}/{n_obs}")
         print(f"{eff} | " + " | ".join(row))
-    print(
-        "\nper magnetometer class: size: top / observable; signal (mgauss eq. (11) cannot absorb) above"
-    )
+    print("\nper magnetometer class: size: top / observable; signal (mgauss eq. (11) cannot absorb) above")
     print("which the effect is top in >= 90 % of the observable logs (at least 5 logs above it)")
     for eff in effects:
         for cls in ("fast", "mid", "slow"):
