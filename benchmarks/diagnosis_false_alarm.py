@@ -16,7 +16,7 @@ The Earth reference is the WMM at the simulated place and date, as `diagnose` ta
 
 Reported: on clean logs, the share with any named finding on an observable compass (false alarms), the share
 with "unexplained structure", the share the gate declares not observable. Detection power: for each effect
-an upward sweep of its size (:data:`SIZES`, up to the simulator's physical limit), ``--n`` logs per size,
+an upward sweep of its size (:data:`SIZES` or ``--sizes``, up to the physical ceiling), ``--n`` logs per size,
 stopping at the first size where the effect is the TOP finding (alone, or inside its set of indistinguishable
 causes) in at least 90 % of the observable logs; also the found share binned by the effect's signal that
 eq. (11) cannot absorb (:func:`unabsorbed_signal_mgauss`, from the simulator's truth), and, for every log
@@ -46,6 +46,15 @@ Measured on this checkout (2026-11-23, 2 shared cores; SelectionParams.min_delta
   17 of the lost logs: a step in 9 (the effect then failed the raw BIC with the step as a nuisance: the step
   may have taken its place), "follows temperature" in 3 where temperature lost to a time drift, "follows
   throttle_rate" in 3 (2 of them delays below the throttle's interval).
+
+After the search limits became physical ceilings (this round; simulator maxima raised to them):
+
+* false alarms: **0 / 58** observable clean logs (95 % upper bound 5.0 %; seeds 10400-10459, 163 s).
+* power per class (``--mag-class fast|slow --sizes ...``, 260 effect logs): fast logs reach 90 % for
+  current_lag at 6.4 s (9/9), or at >= 3.9 mgauss of signal eq. (11) cannot absorb (28/31); time_skew (ceiling
+  3 s), temperature (to 10), per_motor (2.0), exponent (5), offset (0.45), sag (1.0) not by size; by signal
+  skew >= 21.7, temperature >= 7.3, per_motor >= 3.5 mgauss. Slow (1-2 Hz) logs: lag >= 21 mgauss, skew >= 13,
+  temperature never. Tables in docs/benchmarks.md.
 
 What changed to get here (each measured): min_delta_bic 50 -> 30 (the clean-log tail at 10 ended at -27);
 rival sets compared fit against fit (a member's own delta BIC has its own effective sample size); the
@@ -124,11 +133,28 @@ def unabsorbed_signal_mgauss(res: Any) -> float:
     return float(np.sqrt(np.mean((b - x @ beta) ** 2)))
 
 
+#: magnetometer rates of the two log classes: DataFlash / ULog-like (>= 10 Hz) and 1-2 Hz telemetry
+MAG_CLASS_HZ: dict[str, tuple[float, ...]] = {"fast": (10.0, 25.0, 50.0, 100.0), "slow": (1.0, 2.0)}
+
+
+def mag_class(mag_hz: float) -> str:
+    """ "fast" (>= 10 Hz), "slow" (<= 2 Hz) or "mid" (5 Hz)."""
+    return "fast" if mag_hz >= 10.0 else ("slow" if mag_hz <= 2.0 else "mid")
+
+
 def varied_log(
-    seed: int, effect: str, value: float, off: frozenset[str] = frozenset()
+    seed: int,
+    effect: str,
+    value: float,
+    off: frozenset[str] = frozenset(),
+    cls: str = "any",
+    vehicle_theta: tuple[str, np.ndarray, Any] | None = None,
+    scale: np.ndarray | None = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """(LogData, EarthReference, what was varied) of one deliberately varied simulation; ``off``: variations
-    (of :data:`VARIATIONS`) not applied."""
+    (of :data:`VARIATIONS`) not applied; ``cls``: "any" magnetometer rate or one of :data:`MAG_CLASS_HZ`;
+    ``vehicle_theta``: (vehicle, theta, Location) held fixed (a second flight of the same vehicle), else
+    drawn; ``scale``: the compass's residual per-axis scale factors (default: drawn, uniform +-10 %)."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.core.types import Series
@@ -156,6 +182,8 @@ def varied_log(
         decimal_year=float(rng.uniform(2025.0, 2029.9)),
     )
     theta = _random_rotation(rng) @ THETA_PAPER * float(rng.uniform(0.5, 3.0))
+    if vehicle_theta is not None:
+        vehicle, theta, loc = vehicle_theta
     cfg = SimConfig(
         scenario=scenario,
         duration_s=float(rng.uniform(60.0, 133.0)),
@@ -175,6 +203,8 @@ def varied_log(
         log = load_log(path)
     # --- variation applied to the loaded log
     mag_hz = float(rng.choice([1.0, 2.0, 5.0, 10.0, 25.0, 50.0, 100.0]))
+    if cls != "any":
+        mag_hz = float(rng.choice(MAG_CLASS_HZ[cls]))
     mag_hz = min(mag_hz, imu_hz) if "mag_rate" not in off else imu_hz
     s = log.mag[0]
     every = max(1, round(imu_hz / mag_hz))
@@ -184,7 +214,8 @@ def varied_log(
     e = rng.normal(0.0, sd * math.sqrt(1.0 - rho**2), v.shape) * ("noise" not in off)
     for k in range(1, e.shape[0]):
         e[k] += rho * e[k - 1]
-    scale = 1.0 + rng.uniform(-0.1, 0.1, 3) * ("scale" not in off)
+    drawn_scale = 1.0 + rng.uniform(-0.1, 0.1, 3) * ("scale" not in off)
+    scale = drawn_scale if scale is None else scale
     v = v @ np.diag(scale) + e
     lsb = float(rng.choice([0.0, 1.0, 2.0, 3.0]))
     if lsb > 0 and "quantisation" not in off:
@@ -212,6 +243,7 @@ def varied_log(
         "scenario": scenario,
         "vehicle": vehicle,
         "mag_hz": mag_hz,
+        "mag_class": mag_class(mag_hz),
         "imu_hz": imu_hz,
         "signal_mgauss": round(signal, 2),
     }
@@ -228,12 +260,12 @@ def _init_worker(min_delta_bic: float | None) -> None:
     _P = SelectionParams() if min_delta_bic is None else SelectionParams(min_delta_bic=min_delta_bic)
 
 
-def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
-    """Simulate, vary, diagnose one log. job = (seed, effect or "", value)."""
+def run_one(job: tuple[int, str, float, str]) -> dict[str, Any]:
+    """Simulate, vary, diagnose one log. job = (seed, effect or "", value, magnetometer class)."""
     from magcomp.diagnosis.engine import diagnose
 
-    seed, effect, value = job
-    log, earth, varied = varied_log(seed, effect, value)
+    seed, effect, value, cls = job
+    log, earth, varied = varied_log(seed, effect, value, cls=cls)
     t0 = time.perf_counter()
     try:
         j = diagnose(log, earth=earth, p=_P).to_json()
@@ -264,8 +296,9 @@ def run_one(job: tuple[int, str, float]) -> dict[str, Any]:
     }
 
 
-def _seed(effect: str, m: int, r: int) -> int:
-    return 20_000 + 1000 * list(SIZES).index(effect) + 100 * m + r
+def _seed(effect: str, m: int, r: int, cls: str = "any") -> int:
+    first = {"any": 20_000, "fast": 40_000, "slow": 50_000}[cls]
+    return first + 1000 * list(SIZES).index(effect) + 100 * m + r
 
 
 def _found_share(recs: list[dict[str, Any]]) -> tuple[int, int]:
@@ -287,6 +320,15 @@ def main() -> int:
     ap.add_argument(
         "--effects", nargs="*", default=list(SIZES), help="effects to sweep (default all; none: [])"
     )
+    ap.add_argument(
+        "--mag-class",
+        choices=("any", *MAG_CLASS_HZ),
+        default="any",
+        help="magnetometer rate class of the effect logs (fast >= 10 Hz, slow 1-2 Hz telemetry; default any)",
+    )
+    ap.add_argument(
+        "--sizes", nargs="*", type=float, default=None, help="sizes of the sweep (one effect only)"
+    )
     ap.add_argument("--full", action="store_true", help="every size, not only up to the first one found")
     ap.add_argument(
         "--min-delta-bic", type=float, default=None, help="override SelectionParams.min_delta_bic"
@@ -294,6 +336,10 @@ def main() -> int:
     ap.add_argument("--jsonl", default=None, help="append every run's record here as it finishes")
     ap.add_argument("--summarise", nargs="*", default=None, help="only summarise earlier --jsonl files")
     args = ap.parse_args()
+    if args.sizes:
+        if len(args.effects) != 1:
+            ap.error("--sizes needs exactly one effect in --effects")
+        SIZES[args.effects[0]] = list(args.sizes)
 
     t0 = time.perf_counter()
     out: list[dict[str, Any]] = []
@@ -315,12 +361,15 @@ def main() -> int:
         return got
 
     with Pool(args.workers, initializer=_init_worker, initargs=(args.min_delta_bic,)) as pool:
-        out += run([(args.clean_seed + i, "", 0.0) for i in range(args.clean)], pool)
+        out += run([(args.clean_seed + i, "", 0.0, "any") for i in range(args.clean)], pool)
         # the upward sweep, one size per round for every effect still below POWER
         active = list(args.effects)
         for m in range(max((len(SIZES[e]) for e in active), default=0)):
             jobs = [
-                (_seed(e, m, r), e, SIZES[e][m]) for e in active if m < len(SIZES[e]) for r in range(args.n)
+                (_seed(e, m, r, args.mag_class), e, SIZES[e][m], args.mag_class)
+                for e in active
+                if m < len(SIZES[e])
+                for r in range(args.n)
             ]
             got = run(jobs, pool)
             out += got
@@ -384,6 +433,18 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
             hit, n_obs = _found_share(runs)
             row.append(f"{hit}/{n_obs}")
         print(f"{eff} | " + " | ".join(row))
+    print("\nper magnetometer class: size: top / observable; signal (mgauss eq. (11) cannot absorb) above")
+    print("which the effect is top in >= 90 % of the observable logs (at least 5 logs above it)")
+    for eff in effects:
+        for cls in ("fast", "mid", "slow"):
+            runs = [o for o in ok if o["effect"] == eff and o.get("mag_class", _cls(o)) == cls]
+            if not runs:
+                continue
+            cells = []
+            for size in sorted({o["value"] for o in runs}):
+                hit, n_obs = _found_share([o for o in runs if o["value"] == size])
+                cells.append(f"{size:g}: {hit}/{n_obs}")
+            print(f"  {eff} {cls} | {', '.join(cells)} | {signal_at_power(runs)}")
     wrong = [
         o for o in ok if o["effect"] and o["observable"] and o["top"] and o["effect"] not in o["top_set"]
     ]
@@ -406,6 +467,25 @@ def summarise(out: list[dict[str, Any]], effects: list[str], wall: float, worker
     print("\nwhy a hidden effect was not the top finding (observable logs):")
     for eff, d in lost.items():
         print(f"  {eff}: " + ", ".join(f"{k} x{v}" for k, v in sorted(d.items(), key=lambda kv: -kv[1])))
+
+
+def _cls(o: dict[str, Any]) -> str:
+    return mag_class(float(o["mag_hz"]))
+
+
+def signal_at_power(runs: list[dict[str, Any]], min_n: int = 5) -> str:
+    """The smallest signal s (mgauss rms that eq. (11) cannot absorb) such that the effect is the top
+    finding in >= POWER of the observable logs whose signal is >= s (at least ``min_n`` of them)."""
+    obs = sorted(
+        (o for o in runs if "error" not in o and o["observable"]), key=lambda o: -float(o["signal_mgauss"])
+    )
+    best = "not reached"
+    hit = 0
+    for i, o in enumerate(obs, start=1):
+        hit += o["effect"] in o["top_set"]
+        if i >= min_n and hit >= POWER * i:
+            best = f">= {float(o['signal_mgauss']):.1f} mgauss ({hit}/{i})"
+    return best
 
 
 def _upper95(k: int, n: int) -> float:

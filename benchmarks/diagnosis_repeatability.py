@@ -30,12 +30,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 DEFAULT_LOG = Path(__file__).resolve().parents[2] / "shared/data/measured/dronekit_log171_copter33_quad.bin"
 
 
-def segment_thetas(data: object, k: int, effects: tuple[str, ...] = ()) -> list[str]:
+def segment_thetas(data: object, k: int, effects: tuple[str, ...] = (), yaw_ref: object = None) -> list[str]:
     """Lines of the report for one compass (``CompassData``) and K segments; ``effects``: extensions of the
-    model (e.g. per_motor), fitted jointly with the segment thetas."""
-    from magcomp.diagnosis.effects import ExtensionParams, drive_columns
+    model (e.g. per_motor), fitted jointly with the segment thetas (:func:`magcomp.diagnosis.consistency.
+    segment_thetas`). Per segment also: the sd of the drive throttle^2 over its flying samples, the
+    model-error bound (structured residual / that sd, :func:`magcomp.diagnosis.consistency.
+    model_error_bound`), and, with ``yaw_ref`` = (t_s, yaw_rad) of an independent yaw, how far the
+    compass-free heading wanders from it around the fitted linear drift (mean and sd, deg)."""
+    from magcomp.diagnosis.consistency import model_error_bound
+    from magcomp.diagnosis.consistency import segment_thetas as seg_fit
     from magcomp.diagnosis.engine import inlier_mask, subset
-    from magcomp.diagnosis.intervals import column_halfwidth
     from magcomp.diagnosis.model import CompassData, fit_model, initial_fit
 
     assert isinstance(data, CompassData)
@@ -43,43 +47,45 @@ def segment_thetas(data: object, k: int, effects: tuple[str, ...] = ()) -> list[
     keep = inlier_mask(data.t_s, base.residual_mgauss)
     if keep is not None:  # the diagnosis's own outlier rule (glitches, hardest manoeuvres)
         data = subset(data, keep)
-    ext = ExtensionParams(per_motor="per_motor" in effects, temperature="temperature_drift" in effects)
-    col = drive_columns(data.drive, ext)[0][:, 0]
-    flying = data.t_s[data.throttle_01 > 0.05]
-    edges = np.linspace(float(flying[0]), float(flying[-1]), k + 1)
-    seg = np.clip(np.searchsorted(edges, data.t_s, side="right") - 1, 0, k - 1)
-    extra = np.column_stack([col * (seg == j) for j in range(1, k)])
-    names = tuple(f"seg{j + 1}" for j in range(1, k))
-    d2 = replace(data, drive=replace(data.drive, extra=extra, extra_names=names))
-    fit = fit_model(d2, effects, start=base)
-    th1 = fit.coefs[0]
-    hw1 = column_halfwidth(d2, fit, {"throttle": 1.0})
-    lines = [
-        f"  segment 1 t = {edges[0]:.0f}-{edges[1]:.0f} s: theta {_v(th1)} +- {_v(hw1)}",
-    ]
-    agree = True
-    worst = 0.0
-    for j, name in enumerate(names, start=1):
-        i = list(fit.columns).index(name)
-        diff = fit.coefs[i]
-        hw_d = column_halfwidth(d2, fit, {name: 1.0})
-        th = th1 + diff
-        hw = column_halfwidth(d2, fit, {"throttle": 1.0, name: 1.0})
-        ratio = float(np.max(np.abs(diff) / np.maximum(hw_d, 1e-9)))
-        worst = max(worst, ratio)
-        agree &= ratio <= 1.0
-        rel = float(np.linalg.norm(diff)) / max(float(np.linalg.norm(th1)), 1e-9)
-        cos = float(th @ th1) / max(float(np.linalg.norm(th) * np.linalg.norm(th1)), 1e-9)
-        lines.append(
-            f"  segment {j + 1} t = {edges[j]:.0f}-{edges[j + 1]:.0f} s: theta {_v(th)} +- {_v(hw)}; "
-            f"minus segment 1: {_v(diff)} +- {_v(hw_d)} ({ratio:.2f}x); "
-            f"|difference| / |theta_1| {rel:.2f}, cosine {cos:.3f}"
+    fit = fit_model(data, effects, start=base)
+    segs = seg_fit(data, fit, k)
+    if segs is None:
+        return ["  too few flying samples per segment"]
+    wander = None
+    if yaw_ref is not None:
+        t_ref, yaw = yaw_ref  # type: ignore[misc]
+        r = data.r_nb
+        gyro_yaw = np.unwrap(np.arctan2(r[:, 1, 0], r[:, 0, 0])) + fit.drift_rad_s * (
+            data.t_s - 0.5 * (data.t_s[0] + data.t_s[-1])
         )
+        dy = np.degrees(gyro_yaw - np.interp(data.t_s, t_ref, np.unwrap(yaw)))
+        wander = dy - np.polyval(np.polyfit(data.t_s, dy, 1), data.t_s)
+    lines = []
+    worst = 0.0
+    for j, sg in enumerate(segs):
+        m = (data.t_s >= sg.t_from_s) & (data.t_s <= sg.t_to_s) & (data.throttle_01 > 0.05)
+        sub = subset(data, m)
+        part = replace(fit, residual_mgauss=fit.residual_mgauss[m], rms_mgauss=_rms(fit.residual_mgauss[m]))
+        bound, structured, sd_d = model_error_bound(sub, part)
+        line = (
+            f"  segment {j + 1} t = {sg.t_from_s:.0f}-{sg.t_to_s:.0f} s: theta {_v(sg.theta_mgauss)} +- "
+            f"{_v(sg.halfwidth_mgauss)}; sd(throttle^2) {sd_d:.3f}, structured residual {structured:.1f}, "
+            f"bound {bound:.0f} mgauss"
+        )
+        if j:
+            line += f"; differs from segment 1 by {sg.ratio:.2f}x its 95 % interval"
+        if wander is not None:
+            line += f"; heading wander {float(np.mean(wander[m])):+.1f} +- {float(np.std(wander[m])):.1f} deg"
+        lines.append(line)
+        worst = max(worst, sg.ratio)
     lines.append(
-        f"  -> {'agree' if agree else 'DISAGREE'}: largest |difference| / 95 % half-width {worst:.2f}; "
-        f"residual {fit.rms_mgauss:.1f} mgauss (one theta: {base.rms_mgauss:.1f})"
+        f"  -> {'agree' if worst <= 1.0 else 'DISAGREE'}: largest |difference| / 95 % half-width {worst:.2f}"
     )
     return lines
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x**2)))
 
 
 def _v(x: np.ndarray) -> str:
@@ -102,11 +108,13 @@ def main() -> int:
     from magcomp.diagnosis.engine import compass_data
 
     log = load_log(path)
+    att = log.attitude_rad
+    yaw_ref = (att.t_s, att.values[:, 2]) if len(att) >= 2 else None  # the autopilot's (external compass 0)
     for idx in sorted(log.mag):
         data = compass_data(log, idx)
         for k in args.segments:
             print(f"compass {idx}, {k} segments of the flying time:")
-            print("\n".join(segment_thetas(data, k, tuple(args.effects))))
+            print("\n".join(segment_thetas(data, k, tuple(args.effects), yaw_ref)))
     return 0
 
 

@@ -69,8 +69,11 @@ EFFECTS: dict[str, Effect] = {
             "ESC dead band / motor start-up friction: the motors do not turn (and draw no current) until the "
             "throttle passes an offset, so the bias follows ((throttle - offset)/(1 - offset))^2.",
             "offset",
-            (0.0, 0.45),
-            (0.05, 0.1, 0.15, 0.2, 0.3, 0.4),
+            # physical ceiling, not the simulator's maximum: a dead band cannot reach the throttle the vehicle
+            # flies at (hover 0.3-0.8 on multirotors, cruise on planes), and above the log's highest throttle
+            # the bias vanishes; 0.9 keeps any flying vehicle's dead band inside the range, not at its edge
+            (0.0, 0.9),
+            (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.55, 0.7),
             "throttle",
         ),
         Effect(
@@ -79,8 +82,13 @@ EFFECTS: dict[str, Effect] = {
             "so the current and "
             "its field grow as throttle^exponent rather than throttle^2.",
             "exponent",
-            (0.5, 4.0),
-            (1.0, 1.5, 2.5, 3.0, 3.5),
+            # physical ceiling: the current cannot grow faster than shaft power (speed^3 for a fixed-pitch
+            # propeller at fixed voltage), and a duty-to-speed curve steeper than linear or an efficiency that
+            # falls with load (I^2 R) adds at most about one power more; beyond throttle^5 the bias is a step
+            # near full throttle, which throttle_offset describes. 0.5: a thrust-linearised ESC (current ~
+            # throttle) with a soft start
+            (0.5, 5.0),
+            (1.0, 1.5, 2.5, 3.0, 3.5, 4.5),
             "throttle",
         ),
         Effect(
@@ -89,8 +97,12 @@ EFFECTS: dict[str, Effect] = {
             "field, follows the "
             "throttle command through a first-order lag.",
             "tau_s",
-            (0.0, 5.0),
-            (0.05, 0.1, 0.2, 0.4, 0.8, 1.5, 3.0),
+            # physical ceiling: rotor spin-up is 0.02-0.2 s, an ESC / battery-current filter up to ~1 s, the
+            # slowest powertrain loop that follows the command (a thermal / current-limit filter) several
+            # seconds; 10 s keeps those inside the range. Slower than that, a "lag" is a drift over a 1-2 min
+            # flight and the smooth time-drift nuisance is the right description
+            (0.0, 10.0),
+            (0.05, 0.1, 0.2, 0.4, 0.8, 1.5, 3.0, 6.0),
             "throttle",
         ),
         Effect(
@@ -99,8 +111,10 @@ EFFECTS: dict[str, Effect] = {
             "paths, so the field "
             "follows the logged throttle late (positive skew) or early.",
             "skew_s",
-            (-1.0, 1.0),
-            (-0.6, -0.3, -0.15, -0.06, 0.06, 0.15, 0.3, 0.6),
+            # physical ceiling: clocks of one autopilot agree within ms; a ground station stamping telemetry
+            # on receipt over a radio link with buffering sees up to ~1-3 s (1-2 Hz streams, retries); 3 s
+            (-3.0, 3.0),
+            (-2.0, -1.0, -0.6, -0.3, -0.15, -0.06, 0.06, 0.15, 0.3, 0.6, 1.0, 2.0),
             "throttle",
         ),
         Effect(

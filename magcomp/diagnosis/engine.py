@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from magcomp.core.types import LogData
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.attitude import with_yaw_reference
+from magcomp.diagnosis.consistency import consistency_checks
 from magcomp.diagnosis.export import MAX_CONDITION_INDEX
 from magcomp.diagnosis.heading import compass_yaw_rad, heading_errors
 from magcomp.diagnosis.inputs import (
@@ -112,6 +113,8 @@ def with_gate(
         earth=earth,
         p=gp,
     )
+    if result.observable:  # non-blocking: when theta's interval is a lower bound (consistency module)
+        result = replace(result, checks={**result.checks, **consistency_checks(c.data, c.extended)})
     return replace(c, gate=result)
 
 

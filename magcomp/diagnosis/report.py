@@ -222,6 +222,8 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
             f"{gate['throttle_span']}, residual {gate['residual_rms_mgauss']} mgauss (white-noise floor "
             f"{gate['noise_floor_mgauss']}), compass {gate['magnetometer_hz']} Hz, gyro {gate['gyro_hz']} Hz."
         )
+        if gate.get("theta_consistency_why"):  # theta's interval is a lower bound (diagnosis.consistency)
+            out.append(f"**theta caveat:** {gate['theta_consistency_why']}.")
     out.append("")
     if not c.observable:
         out.append(

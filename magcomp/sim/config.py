@@ -99,11 +99,15 @@ from magcomp.errors import InputError
 EFFECTS: Mapping[str, tuple[float, float, float, str]] = MappingProxyType(
     {
         "throttle_offset": (0.0, 0.0, 0.5, "ESC dead band, fraction of full throttle"),
-        "throttle_exponent": (2.0, 0.5, 4.0, "bias ~ speed^VALUE instead of ^2"),
-        "current_lag": (0.0, 0.0, 5.0, "motor/ESC spin-up time constant tau_s, s"),
-        "time_skew": (0.0, -1.0, 1.0, "field follows the logged throttle VALUE s late"),
+        # exponent, lag and skew reach the physical ceilings of magcomp.diagnosis.effects (issue 10: a hidden
+        # effect at the diagnosis's search limit cannot be found beyond it)
+        "throttle_exponent": (2.0, 0.5, 5.0, "bias ~ speed^VALUE instead of ^2"),
+        "current_lag": (0.0, 0.0, 10.0, "motor/ESC spin-up time constant tau_s, s"),
+        "time_skew": (0.0, -3.0, 3.0, "field follows the logged throttle VALUE s late"),
         "voltage_sag": (0.0, 0.0, 1.0, "unregulated-ESC strength 0..1 (speed ~ battery voltage)"),
-        "temperature_drift": (0.0, -5.0, 5.0, "hard-iron drift, mgauss per degC of powertrain temperature"),
+        # +-10 per degC of the powertrain: past the ~4 that a hard iron the autopilot accepts can drift (1800
+        # mgauss, ArduPilot's COMPASS_OFFS_MAX, at a ferrite magnet's -0.2 %/degC)
+        "temperature_drift": (0.0, -10.0, 10.0, "hard-iron drift, mgauss per degC of powertrain temperature"),
         "per_motor": (0.0, 0.0, 2.0, "spread of per-motor theta_i, fraction of |theta| (multirotor)"),
     }
 )
