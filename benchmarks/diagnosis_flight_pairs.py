@@ -14,10 +14,14 @@ slow 1-2 Hz telemetry, mid 5 Hz), the worst ratio |theta_A - theta_B| / (hw_A + 
 which the difference also lies inside the interval of the difference (sqrt(hw_A^2 + hw_B^2), the stricter
 test for independent flights).
 
-Measured on this checkout (2026-11-23, 2 shared cores, 30 pairs, 96 s CPU): both flights observable in 26;
-the 95 % intervals overlap on every axis in **13 / 26 (50 %; target 90 %, not met)**, median |theta_A -
-theta_B| / |theta_A| 0.21. With ``--off attitude``: 8 / 13; also without gyro bias, noise and quantisation:
-8 / 13 (15 pairs each): those variations are not what moves theta between flights. See docs/benchmarks.md.
+Also per flight: whether the simulated theta in the logged frame (K theta, times the scale error) lies inside
+the interval on every axis. The simulator draws the compass (K, b of eq. (1)) from the seed, so the second
+flight's raw readings are mapped into the first flight's compass (``--own-compass``: not).
+
+Measured (2026-11-23, 2 shared cores, 30 pairs, 122 s CPU; see docs/benchmarks.md): both flights observable
+in 26; the 95 % intervals overlap on every axis in **23 / 26 (88 %; target 90 %)**, median |theta_A -
+theta_B| / |theta_A| 0.17, median half-width 10 % of |theta|, truth inside in 37 / 55 flights. First
+measurement (own compass per seed, noise-only intervals, no heading correction): 13 / 26, median 0.21.
 
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_flight_pairs.py [--pairs 30] [--mag-class any]
         [--jsonl pairs.jsonl] [--summarise pairs.jsonl]
