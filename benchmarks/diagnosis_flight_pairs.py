@@ -18,10 +18,11 @@ Also per flight: whether the simulated theta in the logged frame (K theta, times
 the interval on every axis. The simulator draws the compass (K, b of eq. (1)) from the seed, so the second
 flight's raw readings are mapped into the first flight's compass (``--own-compass``: not).
 
-Measured (2026-11-23, 2 shared cores, 30 pairs, 122 s CPU; see docs/benchmarks.md): both flights observable
-in 26; the 95 % intervals overlap on every axis in **23 / 26 (88 %; target 90 %)**, median |theta_A -
-theta_B| / |theta_A| 0.17, median half-width 10 % of |theta|, truth inside in 37 / 55 flights. First
-measurement (own compass per seed, noise-only intervals, no heading correction): 13 / 26, median 0.21.
+Measured (2026-11-23, 2 shared cores, ``--pairs 60``, 202 s CPU; see docs/benchmarks.md): both flights
+observable in 51; the 95 % intervals overlap on every axis in **48 / 51 (94 %; target 90 %)** (37 / 51 with
+the diagnosis before the gyro-bias heading correction and the block jackknife), median |theta_A - theta_B| /
+|theta_A| 0.21, median half-width 15 % of |theta| (was 12.5 %), truth inside in 76 / 109 flights (was 54).
+First measurement (own compass per seed, 30 pairs): 13 / 26.
 
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_flight_pairs.py [--pairs 30] [--mag-class any]
         [--jsonl pairs.jsonl] [--summarise pairs.jsonl]
