@@ -150,11 +150,16 @@ def varied_log(
     cls: str = "any",
     vehicle_theta: tuple[str, np.ndarray, Any] | None = None,
     scale: np.ndarray | None = None,
+    compass: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[Any, Any, dict[str, Any]]:
     """(LogData, EarthReference, what was varied) of one deliberately varied simulation; ``off``: variations
     (of :data:`VARIATIONS`) not applied; ``cls``: "any" magnetometer rate or one of :data:`MAG_CLASS_HZ`;
     ``vehicle_theta``: (vehicle, theta, Location) held fixed (a second flight of the same vehicle), else
-    drawn; ``scale``: the compass's residual per-axis scale factors (default: drawn, uniform +-10 %)."""
+    drawn; ``scale``: the compass's residual per-axis scale factors (default: drawn, uniform +-10 %);
+    ``compass``: (K, b) of eq. (1) of another flight's simulated compass: the simulator draws the compass's
+    soft iron, misalignment and hard iron from the seed, so a second flight of one vehicle has its raw
+    readings mapped into that compass (v' = K_ref K^-1 (v - b) + b_ref); the returned dict holds this
+    flight's (K, b) and theta in the logged frame (before ``scale``)."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.core.types import Series
@@ -201,6 +206,14 @@ def varied_log(
         path = Path(tmp) / "v.tlog"
         write_tlog(res, path)
         log = load_log(path)
+    comp = res.compasses[0]
+    k_own, b_own = comp.k_matrix, comp.b_mgauss
+    if compass is not None and res.ap_calibration is None:
+        k_ref, b_ref = compass
+        m = k_ref @ np.linalg.inv(k_own)
+        s0 = log.mag[0]
+        log = replace(log, mag={0: Series(s0.t_s, (s0.values.astype(float) - b_own) @ m.T + b_ref)})
+        k_own, b_own = k_ref, b_ref
     # --- variation applied to the loaded log
     mag_hz = float(rng.choice([1.0, 2.0, 5.0, 10.0, 25.0, 50.0, 100.0]))
     if cls != "any":
@@ -246,6 +259,13 @@ def varied_log(
         "mag_class": mag_class(mag_hz),
         "imu_hz": imu_hz,
         "signal_mgauss": round(signal, 2),
+        "compass_k": k_own.tolist(),
+        "compass_b": b_own.tolist(),
+        "theta_logged": (
+            k_own @ comp.theta_mgauss if res.ap_calibration is None else res.theta_logged_mgauss(0)
+        )
+        .round(2)
+        .tolist(),
     }
     return log, earth, varied
 

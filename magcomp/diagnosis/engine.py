@@ -31,6 +31,7 @@ from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.attitude import with_yaw_reference
 from magcomp.diagnosis.consistency import consistency_checks
 from magcomp.diagnosis.export import MAX_CONDITION_INDEX
+from magcomp.diagnosis.gyro_heading import with_gyro_bias_heading
 from magcomp.diagnosis.heading import compass_yaw_rad, heading_errors
 from magcomp.diagnosis.inputs import (
     GRID_DT_S,
@@ -151,6 +152,7 @@ class _Run:
 
     def compass(self, data: CompassData) -> CompassDiagnosis:
         """One compass searched and gated."""
+        data = with_gyro_bias_heading(data)  # the heading's wander through tilt, removed first
         cd = diagnose_compass(data, self.log.source, self.p, self.log, self.events)
         return with_gate(cd, self.log, self.earth, self.gate_params)
 

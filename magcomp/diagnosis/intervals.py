@@ -43,9 +43,12 @@ CHI2_1_95 = 3.841
 Z_95 = 1.96
 
 
-def column_halfwidth(data: CompassData, fit: ModelFit, weights: dict[str, float]) -> F64:
+def column_halfwidth(
+    data: CompassData, fit: ModelFit, weights: dict[str, float], blocks: bool = False
+) -> F64:
     """95 % half-width (3,) of sum_c weights[c] * beta_c (drive columns by name), per axis, with the
-    residual's autocorrelation and the Earth field's direction and heading drift free (module docstring)."""
+    residual's autocorrelation and the Earth field's direction and heading drift free (module docstring);
+    ``blocks``: at least the delete-one-block jackknife half-width (:func:`block_jackknife_halfwidth`)."""
     x, _ = design(data, fit.inc_rad, fit.dec_rad, fit.drift_rad_s, fit.ext)
     n, p = x.shape
     w = np.zeros(p + 3)
@@ -61,13 +64,16 @@ def column_halfwidth(data: CompassData, fit: ModelFit, weights: dict[str, float]
         z3[k] += eps
         dh.append((earth_dir_body(data, z3[0], z3[1], z3[2]) - h0) / eps)
     var = np.zeros(3)
+    jk = np.zeros(3)
     for a in range(3):
         jac = np.column_stack([d @ fit.a_mgauss[a] for d in dh])
         xa = np.column_stack([x, jac])
         z = xa @ (np.linalg.pinv(xa.T @ xa) @ w)  # influence vector: w^T beta = z^T v
         var[a] = hac_variance(fit.residual_mgauss[:, a : a + 1], z)[0]
+        if blocks:
+            jk[a] = block_jackknife_halfwidth(data.t_s, xa, fit.residual_mgauss[:, a], w)
     var *= n / max(n - p - 3, 1)
-    return np.asarray(Z_95 * np.sqrt(np.maximum(var, 0.0)))
+    return np.maximum(Z_95 * np.sqrt(np.maximum(var, 0.0)), jk)
 
 
 def hac_variance(residual: F64, z: F64) -> F64:
@@ -89,8 +95,48 @@ def hac_variance(residual: F64, z: F64) -> F64:
     return np.asarray(np.maximum(var, gamma[0] * zz[0]))
 
 
+def block_jackknife_halfwidth(t_s: F64, x: F64, residual: F64, w: F64) -> float:
+    """95 % half-width of w^T beta from the delete-one-block jackknife over contiguous blocks of the log.
+
+    The HAC variance above sees the residual; it cannot see a model error that the fit has absorbed into
+    theta (a heading that wanders away from its linear drift while the throttle is high, a throttle sampled
+    too slowly for the field's steps, a compass frame that is not the model's). Such an error differs from
+    one manoeuvre to the next, so refitting without each block of the log moves theta by as much as the
+    manoeuvre in that block contributed. The refit is the exact one-step update of the linear least squares
+    (the nonlinear parameters, linearised in ``x``, stay free): beta_-k - beta = (X_-k^T X_-k)^+ X_-k^T r_-k.
+    Blocks: :data:`JACKKNIFE_BLOCK_S` long (whole manoeuvres: a paper-scenario throttle step, a turn), between
+    :data:`JACKKNIFE_MIN_BLOCKS` and :data:`JACKKNIFE_MAX_BLOCKS` of them; half-width t(0.975, K - 1) times
+    the jackknife standard error (K - 1) / K sum_k (d_k - mean d)^2."""
+    from scipy.stats import t as student_t
+
+    dur = float(t_s[-1] - t_s[0]) if t_s.shape[0] > 1 else 0.0
+    k = int(min(max(round(dur / JACKKNIFE_BLOCK_S), JACKKNIFE_MIN_BLOCKS), JACKKNIFE_MAX_BLOCKS))
+    if t_s.shape[0] < 4 * k:
+        return 0.0
+    edges = np.linspace(float(t_s[0]), float(t_s[-1]), k + 1)
+    which = np.clip(np.searchsorted(edges, t_s, side="right") - 1, 0, k - 1)
+    g = x.T @ x
+    xr = x.T @ residual
+    d = np.empty(k)
+    for b in range(k):
+        xb = x[which == b]
+        rb = residual[which == b]
+        d[b] = float(w @ (np.linalg.pinv(g - xb.T @ xb) @ (xr - xb.T @ rb)))
+    var = (k - 1) / k * float(np.sum((d - d.mean()) ** 2))
+    return float(student_t.ppf(0.975, k - 1) * math.sqrt(var))
+
+
+#: jackknife block length (s): tens of seconds, so a block holds whole manoeuvres
+JACKKNIFE_BLOCK_S = 10.0
+#: fewest / most blocks (a jackknife over fewer than 5 has too few degrees of freedom to be stable)
+JACKKNIFE_MIN_BLOCKS = 6
+JACKKNIFE_MAX_BLOCKS = 20
+
+
 def theta_halfwidth(data: CompassData, fit: ModelFit) -> F64:
-    return column_halfwidth(data, fit, {"throttle": 1.0})
+    """95 % half-width of theta per axis: the HAC one, at least the block jackknife's (between-manoeuvre
+    model error; measured in ``benchmarks/diagnosis_flight_pairs.py``)."""
+    return column_halfwidth(data, fit, {"throttle": 1.0}, blocks=True)
 
 
 def profile_interval(
