@@ -279,6 +279,9 @@ def _summary(j: dict[str, Any]) -> list[str]:
             f"compass {c['index']}: theta {theta} mgauss; residual "
             f"{_g3(c['residual_rms_baseline'])} -> {_g3(c['residual_rms_extended'])} mgauss; {names}"
         )
+        why = (c.get("gate") or {}).get("theta_consistency_why")
+        if why:  # theta's interval is a lower bound here (diagnosis.consistency): say so beside it
+            lines.append(f"  theta caveat: {why}")
         for f in c["findings"]:  # a parameter the data cannot give says why in words
             for k, v in f["params"].items():
                 if isinstance(v, str):
