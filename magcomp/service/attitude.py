@@ -41,6 +41,13 @@ FAST_IMU_DT_S = 0.05
 GYRO_JUMP_FLOOR_RAD_S = 3.0
 MAX_ANGULAR_ACCEL_RAD_S2 = 400.0
 GYRO_HOLDOFF_S = 0.5
+#: time constant (s) of the low-pass on the horizontal kinematic acceleration that comes with the gyro's
+#: yaw: a GPS-aided autopilot corrects its tilt with the acceleration that GPS velocity confirms, over about
+#: a second (the simulator's complementary filter: 1 / kp_tilt = 1 s); it also keeps the motors' vibration
+#: (tens of Hz) out
+ACCEL_LP_S = 1.0
+#: track that acceleration (for ``inflight_stage.AP_YAW_TILT``, off with it)
+TRACK_ACCEL_H = False
 
 
 class AttitudeView(NamedTuple):
@@ -59,6 +66,10 @@ class GyroYaw(NamedTuple):
 
     epoch: int
     yaw_rad: float
+    #: the vehicle's horizontal kinematic acceleration (north and east of the chain's yaw frame, m/s^2):
+    #: specific force rotated by the autopilot's roll and pitch and this yaw, plus gravity, low-passed over
+    #: ACCEL_LP_S (see :attr:`AttitudeStage.accel_h`)
+    accel_h_m_s2: tuple[float, float] = (0.0, 0.0)
 
 
 class AttitudeStage:
@@ -106,6 +117,10 @@ class AttitudeStage:
         self.gyro_yaw_epoch = 0
         self._yaw_coef = (0.0, 1.0)  # (sin roll, cos roll) / cos pitch of the latest ATTITUDE
         self._yaw_rate_prev = 0.0
+        #: the horizontal kinematic acceleration in the gyro chain's yaw frame (north, east; m/s^2),
+        #: low-passed (ACCEL_LP_S): what a GPS-aided autopilot subtracts from the specific force with its own
+        #: yaw, so an error of that yaw tilts its attitude by yaw error x acceleration / g (docs/inflight.md)
+        self.accel_h: tuple[float, float] = (0.0, 0.0)
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -171,9 +186,25 @@ class AttitudeStage:
             rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
             self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
             self._yaw_rate_prev = rate
+            if TRACK_ACCEL_H:
+                self._track_accel(ax, ay, az, t - prev_t)
             return False
         self._restart_filter(t, gx, gy, gz, ax, ay, az)
         return False
+
+    def _track_accel(self, ax: float, ay: float, az: float, dt: float) -> None:
+        """Low-pass the horizontal kinematic acceleration ``R f + g e_3`` (FRD / NED; R from the autopilot's
+        roll and pitch and the gyro chain's yaw) with ACCEL_LP_S."""
+        sr, cr = math.sin(self.roll), math.cos(self.roll)
+        sp, cp = math.sin(self.pitch), math.cos(self.pitch)
+        sy, cy = math.sin(self.gyro_yaw_rad), math.cos(self.gyro_yaw_rad)
+        # the first two rows of Rz(yaw) Ry(pitch) Rx(roll) applied to f (gravity has no horizontal part)
+        fx = cp * ax + sp * sr * ay + sp * cr * az
+        fy = cr * ay - sr * az
+        an, ae = cy * fx - sy * fy, sy * fx + cy * fy
+        k = min(1.0, dt / ACCEL_LP_S)
+        n0, e0 = self.accel_h
+        self.accel_h = (n0 + k * (an - n0), e0 + k * (ae - e0))
 
     def _restart_filter(
         self, t: float, gx: float, gy: float, gz: float, ax: float, ay: float, az: float
@@ -274,7 +305,7 @@ class AttitudeStage:
             return None
         if self.imu_dt is None or self.imu_dt > max_dt_s:
             return None
-        return GyroYaw(self.gyro_yaw_epoch, self.gyro_yaw_rad)
+        return GyroYaw(self.gyro_yaw_epoch, self.gyro_yaw_rad, self.accel_h)
 
     def gyro_fast(self) -> bool:
         return self.imu_dt is not None and self.imu_dt <= FAST_IMU_DT_S

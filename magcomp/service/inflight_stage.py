@@ -31,6 +31,7 @@ from magcomp.core.inflight import (
     window_field_rows,
 )
 from magcomp.core.rotations import so3_exp, so3_log
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 if TYPE_CHECKING:
     from magcomp.service.attitude import GyroYaw
@@ -75,6 +76,17 @@ GYRO_WINDOW_S = 10.0
 #: attitude (a few tenths of a degree; the simulator's 0.49 deg rms) is a model error of |h| x tilt (4 mgauss
 #: at 0.5 deg), comparable to theta x delta^2 itself
 TILT_PRIOR_RAD = math.radians(0.5)
+#: the window-field rows with the gyro's yaw model the autopilot's tilt error that its compass-driven yaw
+#: error makes in accelerated flight (``_ap_yaw_tilt``; docs/inflight.md, "The autopilot's yaw error tilts
+#: it"). Off: it removes most of theta's noise-free bias (10 Hz seed 2: 9.9 -> 4.0 %) but the heading gets
+#: worse on held-out seeds (10 Hz seed 4 two-pass 1.64 -> 2.57 deg), cause not found. Needs
+#: ``attitude.TRACK_ACCEL_H`` on too.
+AP_YAW_TILT = False
+#: prior standard deviation (rad) of the gyro yaw's error that the line fit of the windows' field directions
+#: leaves, one per window (the tilt-from-yaw nuisance): a single window's field direction scatters by 2-7 deg
+#: about the gyro frame's true error (noise-free 10 Hz seed 2: it takes up hard-iron errors in windows with
+#: little rotation)
+AP_YAW_PRIOR_RAD = math.radians(5.0)
 #: prior standard deviation (mgauss) of a window's horizontal Earth field in the window-field rows: any
 #: Earth field (under 700 mgauss anywhere), i.e. free
 WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
@@ -150,6 +162,15 @@ class InflightStage:
         self._gy_on = False
         self._gy_epoch = -1
         self._gy_offset = 0.0  # the last window-field estimate (NED of the rotation source)
+        # AP_YAW_TILT: the autopilot's yaw minus the gyro's (rad), the horizontal acceleration in the gyro
+        # yaw's frame (m/s^2), and the window whose start that yaw difference is taken against
+        self._ap_yaw_dev = 0.0
+        self._accel_h = (0.0, 0.0)
+        # the line fit of the gyro frame's yaw error over the closed windows of one chain: sums of 1, t, t^2,
+        # f, t f (AP_YAW_TILT), its epoch, and the window being filled
+        self._fit = np.zeros(5)
+        self._fit_epoch = -1
+        self._ap_key: tuple[int, int] | None = None
         self._epoch = 0  # counts rotation-source restarts (a nuisance window never spans one)
         # samples waiting for the rotation source to pass their time, and its recent (time, R_nb) samples
         self._pending: deque[tuple[float, F64, tuple[float, ...] | None, F64 | None]] = deque()
@@ -329,7 +350,7 @@ class InflightStage:
                 self._gy_on = False
                 self._prev = None  # a new window sequence
             return r_nb
-        epoch, yaw_g = gyro_yaw
+        epoch, yaw_g = gyro_yaw.epoch, gyro_yaw.yaw_rad
         yaw_ap = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
         if not self._gy_on or epoch != self._gy_epoch:
             self._gy_on, self._gy_epoch = True, epoch
@@ -337,6 +358,11 @@ class InflightStage:
             self._prev = None  # a window never spans a restart of the chain
         a = yaw_g + self._gy_offset - yaw_ap
         c, s = math.cos(a), math.sin(a)
+        # the autopilot's yaw minus this one (AP_YAW_TILT), and the acceleration in this yaw's frame
+        self._ap_yaw_dev = -((a + math.pi) % (2.0 * math.pi) - math.pi)
+        an, ae = gyro_yaw.accel_h_m_s2
+        co, so = math.cos(self._gy_offset), math.sin(self._gy_offset)
+        self._accel_h = (co * an - so * ae, so * an + co * ae)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r_nb
 
     def _window_row(self, t_s: float, r_nb: F64, y: F64, x: F64) -> None:
@@ -365,10 +391,69 @@ class InflightStage:
             # the reference's tilt error, one per window about north and east: its vertical carries it
             cols.append(np.stack([r_nb.T @ np.cross(e, h_w) for e in np.eye(3)[:2]], axis=1))
             sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
+        z = w.z
+        if AP_YAW_TILT and self._gy_on:
+            z, tilt = self._ap_yaw_tilt(t_s, key, r_nb, h_w, z)
+            cols[1] = cols[1] + tilt * tau  # the window's yaw rate tilts it too
+            cols.append(tilt)  # what the line fit leaves of the gyro yaw's error, one per window
+            sd.append(AP_YAW_PRIOR_RAD)
         self.est.nuisance_prior_sd = np.array(sd)
         nuis = np.hstack(cols)
-        self.est.add(w.rows, w.z, float(x[0]), nuis, key, w.common)
+        self.est.add(w.rows, z, float(x[0]), nuis, key, w.common)
         self.n_rows += 1
+
+    def _ap_yaw_tilt(self, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64) -> tuple[F64, F64]:
+        """The autopilot's tilt error that its own yaw error makes (AP_YAW_TILT). It subtracts the GPS
+        acceleration ``a`` from the specific force with its own yaw, so a yaw error ``psi`` leaves a
+        horizontal ``-psi a`` that it takes for gravity: its tilt is off by the rotation ``-psi a / g`` (NED,
+        horizontal; along ``a``, not across it: its attitude error is a rotation by ``psi`` about the
+        specific force, the one direction its accelerometer cannot see). ``psi`` = the autopilot's yaw minus
+        the gyro's (known) + the gyro yaw's own error, which the windows' fields show: their direction
+        against the WMM's, a straight line in time over the gyro chain (its bias) fitted to the closed
+        windows (``_frame_at``). Returns the right-hand side with the tilt removed and the tilt's column per
+        radian of yaw error (3, 1)."""
+        assert self.est is not None
+        if key != self._ap_key:
+            if self._ap_key is not None:
+                self._frame_close(self._ap_key)
+            self._ap_key = key
+        psi = (self._ap_yaw_dev + self._frame_at(t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
+        v = -np.array([self._accel_h[0], self._accel_h[1], 0.0]) / STANDARD_GRAVITY_M_S2
+        col = (r_nb.T @ np.cross(v, h_w)).reshape(3, 1)
+        return z - psi * col[:, 0], col
+
+    def _frame_of(self, h: F64) -> float:
+        assert self.est is not None
+        ref = self.est.field_ned_mgauss
+        return math.atan2(float(h[1]), float(h[0])) - math.atan2(float(ref[1]), float(ref[0]))
+
+    def _frame_close(self, key: tuple[int, int]) -> None:
+        """A window closed: its field direction joins the line fit of the gyro frame's error."""
+        assert self.est is not None
+        e_w = self.est.window_nuisance(key)
+        if e_w is None or key[0] != self._fit_epoch:
+            if key[0] != self._fit_epoch:
+                self._fit_epoch, self._fit = key[0], np.zeros(5)
+            if e_w is None:
+                return
+        t = (key[1] + 0.5) * GYRO_WINDOW_S
+        f = self._frame_of(np.asarray(e_w[:2]))
+        if self._fit[0] > 0.0:  # unwrap against the line so far
+            f = self._fit_value(t) + (f - self._fit_value(t) + math.pi) % (2.0 * math.pi) - math.pi
+        self._fit += np.array([1.0, t, t * t, f, t * f])
+
+    def _fit_value(self, t: float) -> float:
+        n, st, stt, sf, stf = self._fit
+        den = n * stt - st * st
+        if n < 3 or abs(den) < 1e-9:
+            return float(sf / n)
+        b = (n * stf - st * sf) / den
+        return float((sf - b * st) / n + b * t)
+
+    def _frame_at(self, t_s: float, h_w: F64) -> float:
+        if self._fit[0] < 3 or self._ap_key is None or self._ap_key[0] != self._fit_epoch:
+            return self._frame_of(h_w)
+        return self._fit_value(t_s)
 
     def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
         """Pair this sample (rotation-source attitude ``r_rel_nb`` at its time) with an older one."""
