@@ -63,6 +63,7 @@ NORM_ROWS = False
 #: (``window_field_rows``: the horizontal field free per window, the vertical one common to the flight)
 #: instead of 0.3 s pairs (docs/inflight.md, "window-field rows")
 WINDOW_FIELD_ROWS = True
+#: the window-field rows take samples with the motors running only (a disarmed log gives none: said so)
 WINDOW_ROWS_MOTORS_ONLY = True
 #: the window-field rows take the yaw from the raw gyro (integrated about the vertical of the autopilot's
 #: GPS-aided tilt) instead of the autopilot's yaw, which follows the disturbed compass, whenever a raw gyro
@@ -182,6 +183,8 @@ class InflightStage:
         self._last_t: float | None = None
         self.first_applied_t: float | None = None
         self.n_rows = 0
+        #: samples with an attitude that the window-field rows left out because the motors were off
+        self.n_motors_off = 0
         self.yaw_min = math.inf
         self.yaw_max = -math.inf
         self._yaw_prev: float | None = None
@@ -334,6 +337,8 @@ class InflightStage:
         if WINDOW_FIELD_ROWS:
             if x[0] > 0.0 or not WINDOW_ROWS_MOTORS_ONLY:
                 self._window_row(t_s, r_nb, y, x)
+            else:
+                self.n_motors_off += 1
             return
         if NORM_ROWS and self.applied:
             self.est.add_norm(y, x)
@@ -588,6 +593,8 @@ class InflightStage:
         if est is None or (self.n_rows == 0 and not self.warm_started):
             if self.mode == "absolute":
                 return "no usable attitude with the motors running (absolute form)"
+            if self.n_motors_off > 0:
+                return "the motors never ran (the relative form learns from samples with the motors running)"
             return "no rotation source (no gyro or attitude stream) for the relative form"
         if est.n < 10 and not self.warm_started:
             return f"too few usable samples ({est.n})"

@@ -90,3 +90,21 @@ def test_unobserved_parameters_stay_within_the_physical_prior_across_runs() -> N
     np.testing.assert_allclose(warm[1][N_SOFT : N_SOFT + 3], p.sigma_d_mgauss)
     np.testing.assert_allclose(warm[1][:N_SYM], p.sigma_a)
     np.testing.assert_allclose(warm[1][N_SYM:N_SOFT], p.sigma_rot_rad)  # the mount's misalignment
+
+
+def test_relative_form_says_when_the_motors_never_ran() -> None:
+    """A disarmed log (throttle 0 throughout) with an attitude stream: the window-field rows take motors-on
+    samples only, so the reason given is the motors, not a missing rotation source; with no attitude at all
+    it is the rotation source."""
+    disarmed = InflightStage(0, InflightConfig(), "relative", "test", True, NORM, None)
+    no_att = InflightStage(0, InflightConfig(), "relative", "test", True, NORM, None)
+    for k in range(200):
+        yaw = math.radians(float(k))
+        r_nb = np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0],
+                         [0.0, 0.0, 1.0]])  # fmt: skip
+        y = r_nb.T @ np.asarray(FIELD)
+        disarmed.feed(0.1 * k, y, 0.0, (), None, None, r_nb)
+        no_att.feed(0.1 * k, y, 0.0, (), None, None, None)
+    assert disarmed.n_rows == 0
+    assert "motors never ran" in disarmed.why_not()
+    assert "no rotation source" in no_att.why_not()
