@@ -61,6 +61,11 @@ GATE_SIGMA_FLOOR_MGAUSS = 20.0
 NUISANCE_PRIOR_RAD_S = 0.2
 #: a stored estimate's standard deviation is widened by this factor when a new run starts from it
 WARM_INFLATE = 2.0
+#: residual batches for the variance inflation (see InflightEstimator.variance_inflation): a batch lasts
+#: about this long (s; longer than the slow errors the rows carry: the autopilot's yaw loop, 2-5 s, and a
+#: manoeuvre's tilt error, 5-30 s), and at least this many batches come in before it is used
+VIF_BATCH_S = 30.0
+VIF_MIN_BATCHES = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,7 +98,9 @@ class InflightSolution:
     """The estimate: ``calib_l`` = A^-1 and ``calib_d`` = A^-1 d (the L and d of eq. (2): u = L y - d),
     ``theta_mgauss`` in the calibrated frame (A^-1 theta_0), ``motor_theta_mgauss`` (m, 3) likewise,
     ``theta_sigma_mgauss`` its 1-sigma per axis, ``heading_sigma_deg`` the heading uncertainty the
-    parameters' covariance implies at the throttle seen so far, ``residual_rms_mgauss`` the fit's residual."""
+    parameters' covariance implies at the throttle seen so far, ``residual_rms_mgauss`` the fit's residual.
+    Both sigmas include ``variance_inflation`` (>= 1: the residual's correlation in time, see
+    :meth:`InflightEstimator.variance_inflation`)."""
 
     calib_l: F64
     calib_d: F64
@@ -103,6 +110,7 @@ class InflightSolution:
     heading_sigma_deg: float
     residual_rms_mgauss: float
     n: int
+    variance_inflation: float = 1.0
 
 
 #: basis of the relative form's soft-iron correction E (L = I + E): symmetric and traceless (x-y, x+y-2z
@@ -346,6 +354,22 @@ class InflightEstimator:
         self.n_norm = 0
         #: the unknown common to the flight at the last solution (mgauss; 0 before any)
         self.common_estimate = 0.0
+        # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
+        # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
+        # eliminated), its sample and window counts; the closed batches
+        self._w_sz = np.zeros(3)
+        self._w_srows = np.zeros((3, n))
+        self._w_sn = np.zeros((3, 0))
+        self._w_scom = np.zeros(3)
+        self._w_n = 0
+        self._b_c = np.zeros(3)
+        self._b_m = np.zeros((3, n))
+        self._b_g = np.zeros(3)
+        self._b_n = 0
+        self._b_windows = 0
+        self._batches: list[tuple[F64, F64, F64, int]] = []
+        #: nuisance windows per batch (the stage sets it from its window length: VIF_BATCH_S / window)
+        self.vif_batch_windows = 15
 
     @property
     def sigma_mgauss(self) -> float:
@@ -437,7 +461,14 @@ class InflightEstimator:
             self._w_ee += nuisance.T @ nuisance
             self._w_bp += rows.T @ z
             self._w_be += nuisance.T @ z
+            if self._w_sn.shape[1] != k:
+                self._w_sn = np.zeros((3, k))
+            self._w_sz += z
+            self._w_srows += rows
+            self._w_sn += nuisance
+            self._w_n += 1
             if common is not None:
+                self._w_scom += common
                 if self._w_ec.shape[0] != k:
                     self._w_ec = np.zeros(k)
                 self._w_pc += rows.T @ common
@@ -450,6 +481,35 @@ class InflightEstimator:
         self._x0_sq += x0 * x0
         self._dirty = True
         return math.sqrt(rn2)
+
+    @property
+    def variance_inflation(self) -> float:
+        """How much the residual's correlation in time inflates the parameters' variance (>= 1; 1 until
+        :data:`VIF_MIN_BATCHES` batches are in).
+
+        The information form weighs every sample as independent. The rows' residuals are not: the
+        autopilot's yaw and tilt errors, the gyro's bias and unmodelled field changes last seconds to tens of
+        seconds, so 50 samples a second carry far fewer independent pieces of information (measured on
+        varied simulated flights, docs/inflight.md: theta's errors were 3-15x the white-noise sigma). The
+        batch-means estimate over batches of :data:`VIF_BATCH_S`: ``sum_b |S_b|^2 / n_b`` over what white
+        residuals would give, where ``S_b`` is a batch's residual sum at the current estimate (each batch
+        keeps it as a linear function of the parameters, the windows' nuisance eliminated as in the normal
+        equations) and the white expectation has the fit's own share removed. 1 for white residuals, the
+        number of samples a batch effectively counts as one for lasting ones. Batches form over nuisance
+        windows only. Departure from the paper: its observer has no covariance to inflate."""
+        if len(self._batches) < VIF_MIN_BATCHES:
+            return 1.0
+        p, c0, cov = self._theta, self.common_estimate, self._cov
+        s2 = self.sigma_mgauss**2  # per component, at the estimate
+        num = den = 0.0
+        for c, m, g, n_b in self._batches:
+            e = c - m @ p - g * c0
+            num += float(e @ e) / n_b
+            # white residuals: E|e|^2 / n_b = s2 (3 - tr(M Lambda^-1 M') / n_b), the fit's share removed
+            # (the unit-weight Lambda^-1 is cov / s2); without it the estimate is ~25 % low
+            fit = 0.0 if cov is None else float(np.einsum("ij,jk,ik->", m, cov, m)) / n_b
+            den += 3.0 * s2 - fit
+        return max(1.0, num / den) if den > 0.0 else 1.0
 
     def _nuisance_estimate(
         self, nuisance: F64, r: F64, window: object, with_common: bool
@@ -560,6 +620,7 @@ class InflightEstimator:
     def _close_window(self) -> None:
         if self._win is None:
             return
+        self._batch_window()
         info, rhs, zz, pc, cc, bc = self._window_schur()
         self.info += info
         self.rhs += rhs
@@ -572,6 +633,36 @@ class InflightEstimator:
             a[...] = 0.0
         self._w_zz = self._w_cc = self._w_bc = 0.0
         self._win = None
+
+    def _batch_window(self) -> None:
+        """Add the closing window's residual sum to the open batch (``variance_inflation``): with the
+        window's nuisance at its least-squares value e = H^-1 (b_e - W_ep p - w_ec c), the sum over the
+        window of z - rows p - common c - N e is c_w - M_w p - g_w c."""
+        k = self._w_ee.shape[0]
+        if self._w_n > 0 and self._w_sn.shape[1] == k:
+            sol = self._solution
+            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+            ridge = (s_ref / np.broadcast_to(np.asarray(self.nuisance_prior_sd, dtype=float), (k,))) ** 2
+            hee = self._w_ee + np.diag(ridge)
+            ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
+            try:
+                k_e = np.linalg.solve(hee, np.column_stack([self._w_be, self._w_pe.T, ec]))
+            except np.linalg.LinAlgError:
+                k_e = None
+            if k_e is not None:
+                self._b_c += self._w_sz - self._w_sn @ k_e[:, 0]
+                self._b_m += self._w_srows - self._w_sn @ k_e[:, 1:-1]
+                self._b_g += self._w_scom - self._w_sn @ k_e[:, -1]
+                self._b_n += self._w_n
+                self._b_windows += 1
+                if self._b_windows >= self.vif_batch_windows:
+                    self._batches.append((self._b_c.copy(), self._b_m.copy(), self._b_g.copy(), self._b_n))
+                    for a in (self._b_c, self._b_m, self._b_g):
+                        a[...] = 0.0
+                    self._b_n = self._b_windows = 0
+        for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
+            a[...] = 0.0
+        self._w_n = 0
 
     def _common_value(self, p: F64) -> float:
         """The common unknown's least-squares value at parameters ``p`` (back-substitution of its Schur
@@ -611,11 +702,13 @@ class InflightEstimator:
         self.common_estimate = self._common_value(theta)
         s2 = self.sigma_mgauss**2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
-        self._cov = cov
-        self._solution = self._build(theta, cov, s2)
+        self._cov = cov  # white: the gate's predictive covariance
+        self._solution = self._build(theta, cov, s2, self.variance_inflation)
         self._dirty = False
 
-    def _build(self, p: F64, cov: F64, s2: float) -> InflightSolution:
+    def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
+        """The solution at parameters ``p``; its sigmas from ``cov`` times the variance inflation ``vif``."""
+        cov = cov * vif
         k = self._k
         if self.mode == "absolute":
             a = p[0:9].reshape(3, 3)
@@ -640,6 +733,7 @@ class InflightEstimator:
             heading_sigma_deg=self._heading_sd_deg(cov),
             residual_rms_mgauss=math.sqrt(s2),
             n=self.n,
+            variance_inflation=vif,
         )
 
     def _heading_sd_deg(self, cov: F64) -> float:

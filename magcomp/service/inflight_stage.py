@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import InflightConfig
 from magcomp.core.inflight import (
     NUISANCE_PRIOR_RAD_S,
+    VIF_BATCH_S,
     InflightEstimator,
     InflightMode,
     InflightParams,
@@ -380,6 +381,7 @@ class InflightStage:
         self._prev = (t_s, r_nb, y, x)
         w = window_field_rows(r_nb, y, x, self.est.uncalibrated(y, x))
         w_s = GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S
+        self.est.vif_batch_windows = max(1, round(VIF_BATCH_S / w_s))
         win = math.floor(t_s / w_s)
         tau = t_s - (win + 0.5) * w_s
         # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
@@ -631,6 +633,7 @@ class InflightStage:
             "theta_sigma_mgauss": None if sol is None else sol.theta_sigma_mgauss.tolist(),
             "heading_sigma_deg": None if sol is None else sol.heading_sigma_deg,
             "residual_rms_mgauss": None if sol is None else sol.residual_rms_mgauss,
+            "variance_inflation": None if sol is None else sol.variance_inflation,
             "motor_theta_mgauss": None
             if sol is None or self.n_motors == 0
             else sol.motor_theta_mgauss.tolist(),

@@ -298,3 +298,43 @@ def test_stage_matches_a_field_with_the_attitude_and_throttle_of_its_own_time_wh
     matched = float(np.linalg.norm(run(stale=True, with_times=True) - on_time))  # one sample fewer
     stale = float(np.linalg.norm(run(stale=True, with_times=False) - on_time))
     assert matched < 0.3 and stale > 4.0 * matched, (matched, stale)
+
+
+def _ar1(n: int, dt_s: float, tau_s: float, sd: float, seed: int) -> np.ndarray:
+    """(n, 3) stationary AR(1) noise: a field error that lasts ``tau_s`` (an attitude or field error)."""
+    rng = np.random.default_rng(seed + 200)
+    a = math.exp(-dt_s / tau_s)
+    e = np.empty((n, 3))
+    e[0] = rng.normal(0.0, sd, 3)
+    w = rng.normal(0.0, sd * math.sqrt(1.0 - a * a), (n, 3))
+    for k in range(1, n):
+        e[k] = a * e[k - 1] + w[k]
+    return e
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_variance_inflation_is_one_for_white_residuals_and_large_for_lasting_ones(seed: int) -> None:
+    """The rows' errors that last tens of seconds (an autopilot's tilt or yaw error) make 10 Hz samples far
+    from independent: the white-noise covariance would claim theta to a fraction of its real error. The
+    batch-means inflation is ~1 on white noise, and with a 10 s AR(1) error the reported sigma covers the
+    error while the white one does not."""
+    dt = 0.1
+    r, thr, _ = _flight(3000, seed)
+    y_white = _measure(r, thr, A_TRUE, D_TRUE, seed, noise=3.0)
+    y_slow = _measure(r, thr, A_TRUE, D_TRUE, seed, noise=1.0) + _ar1(len(thr), dt, 10.0, 6.0, seed)
+    out = {}
+    for name, y in (("white", y_white), ("slow", y_slow)):
+        est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
+        est.nuisance_prior_sd = 0.035
+        for k in range(len(thr)):
+            rows, z = absolute_rows(r[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
+            cols = np.zeros((3, 1))  # windows without a nuisance of their own: batches only
+            est.add(rows, z, float(thr[k] ** 2), cols, math.floor(k * dt / 2.0))
+            if k % 100 == 99:
+                est.solve()  # as the stage does: batches start once the estimate has settled
+        out[name] = est.solve()
+    assert 1.0 <= out["white"].variance_inflation < 2.0, out["white"].variance_inflation
+    slow = out["slow"]
+    assert slow.variance_inflation > 10.0, slow.variance_inflation
+    err = np.abs(slow.theta_mgauss - THETA)
+    assert np.all(err < 3.5 * slow.theta_sigma_mgauss), (err, slow.theta_sigma_mgauss)
