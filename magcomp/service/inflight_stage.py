@@ -197,7 +197,9 @@ class InflightStage:
         self._fr_lp: tuple[int, float, float] | None = None  # epoch, time, low-passed frame error (rad)
         self._epoch = 0  # counts rotation-source restarts (a nuisance window never spans one)
         # samples waiting for the rotation source to pass their time, and its recent (time, R_nb) samples
-        self._pending: deque[tuple[float, F64, tuple[float, ...] | None, F64 | None]] = deque()
+        self._pending: deque[
+            tuple[float, F64, tuple[float, ...] | None, F64 | None, GyroYaw | None]
+        ] = deque()
         self._att_hist: deque[tuple[float, F64]] = deque()
         self._thr_hist: deque[tuple[float, float]] = deque()
         self.applied = False
@@ -325,14 +327,14 @@ class InflightStage:
         for h in (att, thr):
             while len(h) > 2 and h[1][0] < t_s - 2.0 * MAX_PAIR_S:
                 h.popleft()
-        self._pending.append((t_s, y, mot, field_ref_n_mgauss))
+        self._pending.append((t_s, y, mot, field_ref_n_mgauss, gyro_yaw))
         self._drain_pending()
 
     def _drain_pending(self) -> None:
         """Use every waiting sample whose time the attitude and the throttle have both passed."""
         att, thr = self._att_hist, self._thr_hist
         while self._pending:
-            tp, yp, mot, ref = self._pending[0]
+            tp, yp, mot, ref, gy = self._pending[0]
             reached = min(att[-1][0], thr[-1][0])
             if tp > reached and tp - reached <= MAX_PAIR_S:
                 return  # wait for the next ones
@@ -342,6 +344,9 @@ class InflightStage:
             r_at = _interpolate_rotation(att, tp)
             thr_at = _interpolate_scalar(thr, tp)
             if r_at is not None and thr_at is not None:
+                if self.mode == "relative" and WINDOW_FIELD_ROWS and GYRO_YAW:
+                    # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
+                    r_at = self._gyro_yaw(r_at, gy, matched=True)
                 self._use(tp, yp, regressors(thr_at, mot), r_at, ref)
 
     def _use(self, t_s: float, y: F64, x: F64, r_nb: F64, field_ref_n_mgauss: F64 | None) -> None:
@@ -367,7 +372,7 @@ class InflightStage:
             self.est.add_norm(y, x)
         self._pair(t_s, r_nb, y, x)
 
-    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None) -> F64:
+    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> F64:
         """The autopilot's attitude with its yaw replaced by the raw gyro's (``AttitudeStage``: the Euler yaw
         rate from the raw gyro and the autopilot's roll and pitch, integrated at the IMU's rate), offset to
         the autopilot's yaw where its chain starts. The autopilot's yaw follows the compass being corrected;
@@ -387,7 +392,7 @@ class InflightStage:
         a = yaw_g + self._gy_offset - yaw_ap
         c, s = math.cos(a), math.sin(a)
         # the autopilot's yaw minus this one (AP_YAW_TILT), and the acceleration in this yaw's frame
-        a_att = a + gyro_yaw.att_lead_rad if AP_YAW_ATT_LEAD else a
+        a_att = a + gyro_yaw.att_lead_rad if AP_YAW_ATT_LEAD and not matched else a
         self._ap_yaw_dev = -((a_att + math.pi) % (2.0 * math.pi) - math.pi)
         an, ae = gyro_yaw.accel_h_m_s2
         co, so = math.cos(self._gy_offset), math.sin(self._gy_offset)
