@@ -70,6 +70,9 @@ class GyroYaw(NamedTuple):
     #: specific force rotated by the autopilot's roll and pitch and this yaw, plus gravity, low-passed over
     #: ACCEL_LP_S (see :attr:`AttitudeStage.accel_h`)
     accel_h_m_s2: tuple[float, float] = (0.0, 0.0)
+    #: the gyro's yaw change from the IMU sample to the autopilot's latest ATTITUDE (rad; the last yaw rate
+    #: times their time difference): the autopilot's yaw minus the gyro's is taken at one instant
+    att_lead_rad: float = 0.0
 
 
 class AttitudeStage:
@@ -305,7 +308,10 @@ class AttitudeStage:
             return None
         if self.imu_dt is None or self.imu_dt > max_dt_s:
             return None
-        return GyroYaw(self.gyro_yaw_epoch, self.gyro_yaw_rad, self.accel_h)
+        lead = 0.0
+        if self.att_t is not None and abs(self.att_t - self.imu_t) <= 0.5:
+            lead = self._yaw_rate_prev * (self.att_t - self.imu_t)
+        return GyroYaw(self.gyro_yaw_epoch, self.gyro_yaw_rad, self.accel_h, lead)
 
     def gyro_fast(self) -> bool:
         return self.imu_dt is not None and self.imu_dt <= FAST_IMU_DT_S
