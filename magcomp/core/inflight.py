@@ -443,38 +443,7 @@ class InflightEstimator:
             if m2 > GATE_CHI2_3DOF:
                 self.n_gated += 1
                 return math.sqrt(rn2)
-        if nuisance is None:
-            self._zz += float(z @ z)
-            self.info += rows.T @ rows
-            self.rhs += rows.T @ z
-        else:
-            if window != self._win:
-                self._close_window()
-                self._win = window
-            k = nuisance.shape[1]
-            if self._w_ee.shape[0] != k:
-                self._w_pe = np.zeros((self.info.shape[0], k))
-                self._w_ee, self._w_be = np.zeros((k, k)), np.zeros(k)
-            self._w_zz += float(z @ z)
-            self._w_pp += rows.T @ rows
-            self._w_pe += rows.T @ nuisance
-            self._w_ee += nuisance.T @ nuisance
-            self._w_bp += rows.T @ z
-            self._w_be += nuisance.T @ z
-            if self._w_sn.shape[1] != k:
-                self._w_sn = np.zeros((3, k))
-            self._w_sz += z
-            self._w_srows += rows
-            self._w_sn += nuisance
-            self._w_n += 1
-            if common is not None:
-                self._w_scom += common
-                if self._w_ec.shape[0] != k:
-                    self._w_ec = np.zeros(k)
-                self._w_pc += rows.T @ common
-                self._w_ec += nuisance.T @ common
-                self._w_cc += float(common @ common)
-                self._w_bc += float(common @ z)
+        self._accumulate(rows, z, nuisance, window, common)
         self.n += 1
         self.x0_max = max(self.x0_max, x0)
         self._x0_sum += x0
@@ -633,6 +602,43 @@ class InflightEstimator:
             a[...] = 0.0
         self._w_zz = self._w_cc = self._w_bc = 0.0
         self._win = None
+
+    def _accumulate(
+        self, rows: F64, z: F64, nuisance: F64 | None, window: object, common: F64 | None
+    ) -> None:
+        """Fold one used sample into the normal equations, or into the open nuisance window's blocks."""
+        if nuisance is None:
+            self._zz += float(z @ z)
+            self.info += rows.T @ rows
+            self.rhs += rows.T @ z
+        else:
+            if window != self._win:
+                self._close_window()
+                self._win = window
+            k = nuisance.shape[1]
+            if self._w_ee.shape[0] != k:
+                self._w_pe = np.zeros((self.info.shape[0], k))
+                self._w_ee, self._w_be = np.zeros((k, k)), np.zeros(k)
+            self._w_zz += float(z @ z)
+            self._w_pp += rows.T @ rows
+            self._w_pe += rows.T @ nuisance
+            self._w_ee += nuisance.T @ nuisance
+            self._w_bp += rows.T @ z
+            self._w_be += nuisance.T @ z
+            if self._w_sn.shape[1] != k:
+                self._w_sn = np.zeros((3, k))
+            self._w_sz += z
+            self._w_srows += rows
+            self._w_sn += nuisance
+            self._w_n += 1
+            if common is not None:
+                self._w_scom += common
+                if self._w_ec.shape[0] != k:
+                    self._w_ec = np.zeros(k)
+                self._w_pc += rows.T @ common
+                self._w_ec += nuisance.T @ common
+                self._w_cc += float(common @ common)
+                self._w_bc += float(common @ z)
 
     def _batch_window(self) -> None:
         """Add the closing window's residual sum to the open batch (``variance_inflation``): with the

@@ -178,29 +178,12 @@ class InflightStage:
         self._gy_on = False
         self._gy_epoch = -1
         self._gy_offset = 0.0  # the last window-field estimate (NED of the rotation source)
-        # AP_YAW_TILT: the autopilot's yaw minus the gyro's (rad), the horizontal acceleration in the gyro
-        # yaw's frame (m/s^2), and the window whose start that yaw difference is taken against
-        self._ap_yaw_dev = 0.0
-        self._accel_h = (0.0, 0.0)
-        # the line fit of the gyro frame's yaw error over the closed windows of one chain: sums of 1, t, t^2,
-        # f, t f (AP_YAW_TILT), its epoch, and the window being filled
-        self._fit = np.zeros(5)
-        self._fit_epoch = -1
-        self._ap_key: tuple[int, int] | None = None
-        # AP_YAW_FRAME == "samples": this chain's samples (t, field, regressors, R_nb in the gyro's yaw) and
-        # the line (offset at t = 0, rate) fitted to them at the last window close
-        self._fr_t: list[float] = []
-        self._fr_y: list[F64] = []
-        self._fr_x: list[F64] = []
-        self._fr_r: list[F64] = []
-        self._fr_line: tuple[float, float] | None = None
-        self._fr_epoch = -1
-        self._fr_lp: tuple[int, float, float] | None = None  # epoch, time, low-passed frame error (rad)
+        self._init_tilt_model()
         self._epoch = 0  # counts rotation-source restarts (a nuisance window never spans one)
         # samples waiting for the rotation source to pass their time, and its recent (time, R_nb) samples
-        self._pending: deque[
-            tuple[float, F64, tuple[float, ...] | None, F64 | None, GyroYaw | None]
-        ] = deque()
+        self._pending: deque[tuple[float, F64, tuple[float, ...] | None, F64 | None, GyroYaw | None]] = (
+            deque()
+        )
         self._att_hist: deque[tuple[float, F64]] = deque()
         self._thr_hist: deque[tuple[float, float]] = deque()
         self.applied = False
@@ -220,6 +203,33 @@ class InflightStage:
         self._theta3 = (0.0, 0.0, 0.0)
         self.warm_started = False
         self._warm: tuple[F64, F64] | None = None
+        self._warm_start(warm, mode, field_norm_mgauss)
+
+    def _init_tilt_model(self) -> None:
+        """State of the tilt-from-yaw model (AP_YAW_TILT, off by default; docs/inflight.md)."""
+        # AP_YAW_TILT: the autopilot's yaw minus the gyro's (rad), the horizontal acceleration in the gyro
+        # yaw's frame (m/s^2), and the window whose start that yaw difference is taken against
+        self._ap_yaw_dev = 0.0
+        self._accel_h = (0.0, 0.0)
+        # the line fit of the gyro frame's yaw error over the closed windows of one chain: sums of 1, t, t^2,
+        # f, t f (AP_YAW_TILT), its epoch, and the window being filled
+        self._fit = np.zeros(5)
+        self._fit_epoch = -1
+        self._ap_key: tuple[int, int] | None = None
+        # AP_YAW_FRAME == "samples": this chain's samples (t, field, regressors, R_nb in the gyro's yaw) and
+        # the line (offset at t = 0, rate) fitted to them at the last window close
+        self._fr_t: list[float] = []
+        self._fr_y: list[F64] = []
+        self._fr_x: list[F64] = []
+        self._fr_r: list[F64] = []
+        self._fr_line: tuple[float, float] | None = None
+        self._fr_epoch = -1
+        self._fr_lp: tuple[int, float, float] | None = None  # epoch, time, low-passed frame error (rad)
+
+    def _warm_start(
+        self, warm: dict[str, object] | None, mode: InflightMode, field_norm_mgauss: float
+    ) -> None:
+        """Start from a stored in-flight state when its form is this compass's (``__init__``)."""
         if warm is not None and warm.get("form") == mode:
             self.n_motors = int(warm["n_motors"])  # type: ignore[call-overload]
             self._warm = (
