@@ -1,7 +1,8 @@
 """Where a replay's fixed and per-sample costs go (issue 13): imports and the observer step's two halves.
 
 * start-up: CPU time (user + system) of a fresh interpreter importing what ``magcomp replay`` imports, module
-  group by module group, against the bare interpreter and against the imports of pymavlink's parse-only loop;
+  group by module group, against the bare interpreter and against the imports of pymavlink's parse-only loop
+  (and scipy.optimize, which a replay no longer imports);
 * the observer: the whole :func:`~magcomp.core.observer.observer_step` against its theta-independent half
   (rotation increment, regressor, eq. (21) excitation, the sec. II-D low-pass on the regression), which
   depends on the inputs alone and so could be computed over a block of samples in a learn-only pass.
@@ -34,7 +35,9 @@ IMPORTS: tuple[tuple[str, str], ...] = (
     ),
     ("+ numpy", "import numpy"),
     ("+ magcomp replay modules", "import magcomp.cli, magcomp.commands.replay, magcomp.service.replay"),
-    ("+ scipy.optimize (the eq. (3) norm refinement)", "import scipy.optimize"),
+    # not imported by a replay since the refined eq. (3) fit runs on core/dpi.py's own Levenberg-Marquardt;
+    # kept as the measure of what that saved
+    ("+ scipy.optimize (no longer on a replay's path)", "import scipy.optimize"),
 )
 
 

@@ -349,8 +349,19 @@ class _Converter:
     """Turns decoded messages (MAVLink or DataFlash) into records; holds the clock and what is known so
     far."""
 
-    def __init__(self, counts: dict[str, int], *, mag_index: int | None, undo_motor_comp: bool) -> None:
+    def __init__(
+        self,
+        counts: dict[str, int],
+        *,
+        mag_index: int | None,
+        undo_motor_comp: bool,
+        pipeline_only: bool = False,
+    ) -> None:
         self.counts = counts
+        # pipeline_only: leave out the samples the heading pipeline ignores (temperature, power, IMUs other
+        # than IMU 0), counted in ``skipped`` instead: a replay built and dispatched ~96k of them per 10 min
+        self.pipeline_only = pipeline_only
+        self.skipped = 0
         self.clock = _Clock(counts)
         self.mag_index = mag_index
         self.undo_motor_comp = undo_motor_comp
@@ -369,6 +380,13 @@ class _Converter:
         self._pwm_columns: dict[str, list[tuple[str, int]]] = {}
         self._df_converters: dict[int, tuple[Any, list[tuple[str, int, Any, float]]]] = {}
 
+    def _keep(self) -> bool:
+        """False (and the sample counted as skipped) for a sample only a pipeline-only source leaves out."""
+        if self.pipeline_only:
+            self.skipped += 1
+            return False
+        return True
+
     # --- MAVLink -----------------------------------------------------------------------------------------
     def mavlink(self, msg: Any) -> list[tuple[str, Record]]:
         mtype = msg.get_type()
@@ -378,7 +396,9 @@ class _Converter:
     def _imu_mag(self, origin: str, t_s: float, msg: Any, index: int) -> list[tuple[str, Record]]:
         gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)  # mrad/s -> rad/s
         accel = (msg.xacc * _MG_TO_M_S2, msg.yacc * _MG_TO_M_S2, msg.zacc * _MG_TO_M_S2)  # mG
-        out: list[tuple[str, Record]] = [(origin, WireImuSample(t_s, gyro, accel, index))]
+        out: list[tuple[str, Record]] = []
+        if index == 0 or self._keep():
+            out.append((origin, WireImuSample(t_s, gyro, accel, index)))
         xmag, ymag, zmag = msg.xmag, msg.ymag, msg.zmag
         if not (xmag or ymag or zmag):  # (0, 0, 0): no compass data in this message
             self.counts["mag_zero"] += 1
@@ -391,7 +411,7 @@ class _Converter:
                     self.counts["motor_comp_removed"] += 1
             out.append((origin, WireMagSample(t_s, (fx, fy, fz), index)))
         temp = getattr(msg, "temperature", 0)
-        if temp:  # 0 = not provided (common.xml)
+        if temp and self._keep():  # 0 = not provided (common.xml)
             out.append((origin, TemperatureSample(t_s, temp * 0.01, _IMU_SENSOR_NAMES[index])))
         return out
 
@@ -474,7 +494,7 @@ class _Converter:
         if not math.isnan(curr):
             self.sys_status_current = True
             self.onboard_comp.current_a = curr
-        return [("SYS_STATUS", PowerSample(self.clock.last_t_s, volt, curr, 0))]
+        return [("SYS_STATUS", PowerSample(self.clock.last_t_s, volt, curr, 0))] if self._keep() else []
 
     def _m_BATTERY_STATUS(self, msg: Any) -> list[tuple[str, Record]]:
         index = int(msg.id)
@@ -484,11 +504,15 @@ class _Converter:
         cells += [v for v in getattr(msg, "voltages_ext", ()) if v not in (0, 0xFFFF)]
         volt = sum(cells) * 1e-3 if cells else math.nan
         curr = msg.current_battery * 0.01 if msg.current_battery >= 0 else math.nan
+        if not self._keep():
+            return []
         return [("BATTERY_STATUS", PowerSample(self.clock.last_t_s, volt, curr, index))]
 
     def _m_SCALED_PRESSURE(self, msg: Any) -> list[tuple[str, Record]]:
         t_s = self.clock.stamp("SCALED_PRESSURE", msg.time_boot_ms * 1e-3)
         if t_s is None:
+            return []
+        if not self._keep():
             return []
         return [("SCALED_PRESSURE", TemperatureSample(t_s, msg.temperature * 0.01, "baro"))]
 
@@ -548,7 +572,7 @@ class _Converter:
                 self.counts["mag_zero"] += 1
             elif self.mag_index is None or self.mag_index == index:
                 out.append(("HIGHRES_IMU", WireMagSample(t_s, mag, index)))
-        if updated & HIGHRES_TEMPERATURE and math.isfinite(msg.temperature):
+        if updated & HIGHRES_TEMPERATURE and math.isfinite(msg.temperature) and self._keep():
             out.append(
                 ("HIGHRES_IMU", TemperatureSample(t_s, float(msg.temperature), _IMU_SENSOR_NAMES[index]))
             )
@@ -690,7 +714,7 @@ class _Converter:
             t_s = self.clock.stamp(stream, raw_s)
             if t_s is None:
                 return []
-            return [(base, PowerSample(t_s, volt, curr, index))]
+            return [(base, PowerSample(t_s, volt, curr, index))] if self._keep() else []
         return []
 
     def _df_position(self, v: Any) -> list[tuple[str, Record]]:
@@ -763,9 +787,11 @@ class _Converter:
         t_s = self.clock.stamp(stream, raw_s)
         if t_s is None:
             return []
-        out: list[tuple[str, Record]] = [("IMU", ImuSample(t_s, gyro, accel, index))]
+        out: list[tuple[str, Record]] = []
+        if index == 0 or self._keep():
+            out.append(("IMU", ImuSample(t_s, gyro, accel, index)))
         temp = getattr(v, "T", getattr(v, "Temp", None))
-        if temp is not None and temp != 0 and math.isfinite(temp):
+        if temp is not None and temp != 0 and math.isfinite(temp) and self._keep():
             out.append(("IMU", TemperatureSample(t_s, float(temp), f"imu{index}")))
         return out
 
@@ -1236,6 +1262,7 @@ class MavSource:
         undo_motor_comp: bool = True,
         baud: int = 57600,
         live_timeout_s: float = 0.5,
+        pipeline_only: bool = False,
     ) -> None:
         self.target = target
         self.spec = parse_throttle_source(throttle_source)
@@ -1243,7 +1270,9 @@ class MavSource:
         self.counts: dict[str, int] = _Counts()
         self.params: dict[str, float] = {}
         self.connection: Any = None
-        self._conv = _Converter(self.counts, mag_index=mag_index, undo_motor_comp=undo_motor_comp)
+        self._conv = _Converter(
+            self.counts, mag_index=mag_index, undo_motor_comp=undo_motor_comp, pipeline_only=pipeline_only
+        )
         self._closed = False
         self._live_timeout_s = live_timeout_s
         self._baud = baud
@@ -1255,6 +1284,11 @@ class MavSource:
     @property
     def vehicle_type(self) -> int:
         return self._conv.vehicle_type
+
+    @property
+    def skipped_samples(self) -> int:
+        """Samples a ``pipeline_only`` source left out so far (0 otherwise)."""
+        return self._conv.skipped
 
     def onboard_motor_comp(self) -> dict[int, dict[str, Any]]:
         """ArduPilot's COMPASS_MOTCT compensation undone per compass (see
@@ -1522,6 +1556,7 @@ def open_source(
     undo_motor_comp: bool = True,
     baud: int = 57600,
     live_timeout_s: float = 0.5,
+    pipeline_only: bool = False,
 ) -> MavSource | UlogSource:
     """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log, PX4 .ulg) or a live link URL.
 
@@ -1529,6 +1564,8 @@ def open_source(
     ``/dev/ttyACM0:115200`` or ``serial:/dev/ttyUSB0:57600``. Raises InputError for a missing, empty or
     unrecognisable file. ``mag_index`` restricts MagSamples to one compass. A ``.ulg`` gives a
     :class:`~magcomp.adapters.ulog_source.UlogSource` (same interface, no link).
+    ``pipeline_only``: leave out what :class:`~magcomp.service.pipeline.Pipeline` ignores (temperature and
+    power samples, IMUs other than IMU 0; MAVLink and DataFlash), counted in ``skipped_samples``.
     """
     target = os.fspath(url_or_path)
     if _is_ulog(target):
@@ -1542,6 +1579,7 @@ def open_source(
         undo_motor_comp=undo_motor_comp,
         baud=baud,
         live_timeout_s=live_timeout_s,
+        pipeline_only=pipeline_only,
     )
     return source
 

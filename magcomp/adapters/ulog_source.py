@@ -388,7 +388,10 @@ def _read_position(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any
 class UlogSource:
     """A ULog file as a source with :class:`~magcomp.adapters.mavlink_source.MavSource`'s interface:
     ``samples()`` (typed samples in message-time order), ``records()`` ((topic, sample) pairs), ``counts``,
-    ``params`` (updated as ParamSamples stream), ``vehicle_type``, ``autopilot`` (PX4), ``close()``."""
+    ``params`` (updated as ParamSamples stream), ``vehicle_type``, ``autopilot`` (PX4), ``close()``.
+    Leaves nothing out (``skipped_samples`` is 0: ``pipeline_only`` applies to MAVLink and DataFlash)."""
+
+    skipped_samples = 0
 
     def __init__(
         self,

@@ -266,10 +266,6 @@ class Daemon:
         # their headings go out as that vehicle; the first sender gets ``self.pipeline``
         self.pipelines: dict[tuple[int, int], Pipeline] = {}
         self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
-        # imports that would otherwise happen on the live path (the refined calibration fit's
-        # scipy.optimize costs ~0.3 s the first time, holding the interpreter)
-        import scipy.optimize  # noqa: F401
-
         self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
         self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
         self.published = 0

@@ -125,7 +125,7 @@ def _learn(
     stop."""
     from magcomp.adapters.mavlink_source import open_source
 
-    source = open_source(path, throttle_source=source_throttle(cfg))
+    source = open_source(path, throttle_source=source_throttle(cfg), pipeline_only=True)
     feed = pipeline.feed
     samples = source.samples()
     try:
@@ -137,6 +137,8 @@ def _learn(
             if on_progress is not None:
                 on_progress(batch[-1].t_s)
     finally:
+        # what the pipeline_only source left out counts as fed (the pipeline ignores those samples)
+        pipeline.counts["samples"] += source.skipped_samples
         source.close()
         pipeline.close()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
@@ -391,7 +393,7 @@ def _replay(
     """One pass of :func:`replay_log` with ``pipeline``."""
     from magcomp.adapters.mavlink_source import open_source
 
-    source = open_source(path, throttle_source=source_throttle(cfg))
+    source = open_source(path, throttle_source=source_throttle(cfg), pipeline_only=True)
     try:
         outputs = _Outputs(cfg, emit, keep_estimates, on_estimate)
     except BaseException:
@@ -403,6 +405,7 @@ def _replay(
         outputs.close(failed=True)
         raise
     finally:
+        pipeline.counts["samples"] += source.skipped_samples  # as in _learn
         source.close()
         outputs.close()
         pipeline.close()

@@ -177,3 +177,35 @@ def test_norm_refinement_reduces_error_from_noisy_reference_vectors() -> None:
     err_ref = np.abs(ref.L - l_true).max()
     assert err_ref < err_lin
     assert ref.norm_residual_rms_mgauss < lin.norm_residual_rms_mgauss
+
+
+@pytest.mark.parametrize("start", ["linear", "identity"])
+def test_norm_refinement_solver_matches_scipy_least_squares(start: str) -> None:
+    """The in-core Levenberg-Marquardt (analytic Jacobian of eq. (3) and the |L v - d| = F rows) reaches the
+    minimum scipy's MINPACK ``lm`` finds, from the eq. (3) solution and from ``L = I, d = 0``."""
+    from scipy.optimize import least_squares
+
+    from magcomp.core.dpi import _residuals, refine_with_norm_lm
+
+    for seed in (3, 4):
+        rng = np.random.default_rng(seed)
+        k, b = _distortion(rng)
+        r_nb = _random_rotations(rng, 2000)
+        v = _measure(r_nb, k, b, rng, noise=1.0)
+        w = r_nb[:, 2, :] + 0.035 * rng.standard_normal((2000, 3))
+        w /= np.linalg.norm(w, axis=1, keepdims=True)
+        if start == "linear":
+            lin = calibrate_dpi(w, v, U_N[2], F_N)
+            x0 = pack(lin.L, lin.d)
+        else:
+            x0 = pack(np.eye(3), np.zeros(3))
+        ref = least_squares(_residuals, x0, args=(w, v, U_N[2], F_N, 2.0), method="lm", x_scale="jac")
+        ours = refine_with_norm_lm(x0, w, v, U_N[2], F_N, 2.0)
+        assert ref.success and ours.converged
+        L_ref, d_ref = unpack(ref.x)
+        L_ours, d_ours = unpack(ours.x)
+        np.testing.assert_allclose(L_ours, L_ref, rtol=0, atol=1e-7)  # L dimensionless, entries ~1
+        np.testing.assert_allclose(d_ours, d_ref, rtol=0, atol=1e-4)  # mgauss, entries ~250
+        cost_ref, cost_ours = float(ref.fun @ ref.fun), float(ours.fun @ ours.fun)
+        assert cost_ours <= cost_ref * (1 + 1e-12)
+        np.testing.assert_allclose(ours.fun, _residuals(ours.x, w, v, U_N[2], F_N, 2.0), atol=1e-9)

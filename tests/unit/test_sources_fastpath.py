@@ -308,3 +308,46 @@ def test_corrupted_crc_alone_is_counted_once_per_frame_and_nothing_else_changes(
     assert bad_counts["messages"] == clean_counts["messages"] - len(hit)
     assert bad_counts.get("garbage_bytes", 0) == clean_counts.get("garbage_bytes", 0) == 0
     assert len(bad) == len(clean) - len(hit)  # one AttitudeSample per ATTITUDE frame
+
+
+def _ignored_by_pipeline(sample: Any) -> bool:
+    kind = _kind(sample)
+    return kind in ("TemperatureSample", "PowerSample") or (kind == "ImuSample" and sample.imu_index != 0)
+
+
+def test_pipeline_only_source_leaves_out_exactly_what_the_pipeline_ignores(
+    stream: tuple[Frames, list[bytes]], tmp_path: Path
+) -> None:
+    """``pipeline_only`` drops temperature, power and secondary-IMU samples (counted), nothing else: the other
+    samples, their order and the source's counts are those of the full source."""
+    _, records = stream
+    path = tmp_path / "all.tlog"
+    path.write_bytes(b"".join(records))
+    with open_source(path) as full_src:
+        full = list(full_src.samples())
+        full_counts = dict(full_src.counts)
+        assert full_src.skipped_samples == 0
+    with open_source(path, pipeline_only=True) as lean_src:
+        lean = list(lean_src.samples())
+        lean_counts = dict(lean_src.counts)
+        skipped = lean_src.skipped_samples
+    kept = [s for s in full if not _ignored_by_pipeline(s)]
+    assert [_key(s) for s in lean] == [_key(s) for s in kept]
+    assert skipped == len(full) - len(kept) > 0
+    left_out = {_kind(s) for s in full if _ignored_by_pipeline(s)}
+    assert left_out == {"TemperatureSample", "PowerSample", "ImuSample"}
+    assert lean_counts == full_counts
+
+
+def test_replay_counts_every_sample_of_the_log_with_the_pipeline_only_source(tmp_path: Path) -> None:
+    """The replay reads its log ``pipeline_only``; its summary still counts every sample the log holds."""
+    from magcomp.adapters.config import Config
+    from magcomp.service.replay import replay_log
+
+    path = tmp_path / "short.tlog"
+    write_tlog(simulate(SimConfig(scenario="paper", duration_s=20.0, seed=2)), path)
+    with open_source(path) as src:
+        n_all = sum(1 for _ in src.samples())
+    for two_pass in (False, True):
+        report = replay_log(path, Config(), two_pass=two_pass)
+        assert report.summary["counts"]["samples"] == n_all
