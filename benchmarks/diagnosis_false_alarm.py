@@ -61,6 +61,17 @@ rival sets compared fit against fit (a member's own delta BIC has its own effect
 simulator's battery voltage / current fixed point converged (its four sweeps biased a sag by ~0.15).
 Precision is coarse: one log is 10 % of a cell.
 
+Power where the effect is distinguishable (2026-11-24; ``--mag-class fast --full``, 20 logs per size, runs
+summarised with ``--summarise``): each log also records :func:`distinct_signal_mgauss` (the effect's field
+left after eq. (11) AND its rival at its best: time shapes for temperature, a lag for a skew, a shift for a
+lag) and the board temperature's |r| against the time shapes. time_skew 0.4 / 0.8 / 1.6 / 2.4 s: 13/18,
+10/20, 12/20, 15/19 by size; among logs with >= 4 mgauss distinguishable signal 7/7, 8/9, 7/8, 13/13 (35/37);
+the misses are hovering multirotors (< 0.9 mgauss distinguishable) and two fixed-wing flights whose heading
+leaves 28 mgauss. temperature_drift 2 / 5 / 10 mgauss/degC: 7/20, 17/19, 10/19; distinguishable 0/0, 9/9,
+10/12; the board temperature follows a smooth time curve (|r| >= 0.98, <= 0.52 mgauss distinguishable) in
+13 of 58 logs. A 3.0 s skew sits at the +-3 s search range's end and is rejected there by construction: the
+sweep stops at 2.4 s. Tables in docs/benchmarks.md.
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_false_alarm.py [--clean 60] [--n 10] [--effects ...]
         [--full] [--jsonl runs.jsonl] [--summarise runs.jsonl ...] [--workers 2]
 """
