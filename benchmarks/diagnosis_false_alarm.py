@@ -71,8 +71,11 @@ leaves 28 mgauss. temperature_drift 2 / 5 / 10 mgauss/degC: 7/20, 17/19, 10/19; 
 10/12; the board temperature follows a smooth time curve (|r| >= 0.98, <= 0.52 mgauss distinguishable) in
 13 of 58 logs. A 3.0 s skew sits at the +-3 s search range's end and is rejected there by construction: the
 sweep stops at 2.4 s. False alarms on fresh clean seeds 10600-10659 (``--clean 60 --clean-seed 10600
---effects``, code unchanged): 1 / 55 (a 9.1 s current_lag, interval reaching the 10 s ceiling, 5 Hz hover);
-pooled with 10400-10459, 1 / 113 (95 % upper bound 4.1 %). Tables in docs/benchmarks.md.
+--effects``): 1 / 55 (a 9.1 s current_lag, interval reaching the 10 s ceiling, 5 Hz hover). Then a
+parameter whose 95 % interval reaches the end of its range is no longer named (search.interval_at_edge);
+seeds 10700-10759 after that: 1 / 51 (temperature_drift, 2 Hz telemetry flight). All fresh clean logs,
+10400-10459 included and 10625 counted: 2 / 164 (1.2 %, 95 % upper bound 3.8 %). Tables in
+docs/benchmarks.md.
 
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_false_alarm.py [--clean 60] [--n 10] [--effects ...]
         [--full] [--jsonl runs.jsonl] [--summarise runs.jsonl ...] [--workers 2]
