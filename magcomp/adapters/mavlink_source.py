@@ -680,6 +680,10 @@ class _Converter:
         base = mtype.rstrip("0123456789")
         suffix = mtype[len(base) :]
         index = int(getattr(v, "I", getattr(v, "Inst", 0))) if not suffix else int(suffix) - 1
+        if base in ("MAG", "IMU") and not 0 <= index < DATAFLASH_MAX_INSTANCES:
+            # DataFlash has no checksum: a corrupt instance byte would make a phantom compass or IMU
+            self.counts["dataflash_bad_instance"] += 1
+            return []
         stream = f"{base}{index}"
         if base == "MAG":
             return self._df_mag(v, stream, raw_s, index)
@@ -1089,6 +1093,10 @@ def _quiet_c_streams() -> Iterator[None]:
             os.close(old)
         os.close(devnull)
 
+
+#: ArduPilot logs at most this many compasses (MAG instance I) and IMUs (IMU I): COMPASS_MAX_INSTANCES and
+#: INS_MAX_INSTANCES are 3; a larger instance in a DataFlash log is a corrupt byte, not a sensor
+DATAFLASH_MAX_INSTANCES = 3
 
 _DF_HEAD = b"\xa3\x95"
 _DF_FMT_TYPE = 0x80

@@ -137,6 +137,7 @@ SKIP_KEYS = (
     "garbage_bytes",
     "dataflash_resyncs",
     "dataflash_dropped_bytes",
+    "dataflash_bad_instance",
     "time_jumps",
     "reboots",
     "mag_jumps",
