@@ -121,7 +121,7 @@ def read_headings(path: Path) -> list[Est]:
 
 def _sim(name: str, scenario: str, settings: list[str], duration: float | None, seed: int,
          n_compasses: int = 2, effects: dict[str, float] | None = None, ulog: bool = False,
-         ) -> Callable[[Path], tuple[Path, Any]]:  # fmt: skip
+         dataflash: bool = False) -> Callable[[Path], tuple[Path, Any]]:  # fmt: skip
     def build(tmp: Path) -> tuple[Path, Any]:
         from magcomp.adapters.mavlink_emit import write_tlog, write_truth
 
@@ -129,8 +129,12 @@ def _sim(name: str, scenario: str, settings: list[str], duration: float | None, 
                         effects=effects or {})  # fmt: skip
         cfg = apply_settings(cfg, settings) if settings else cfg
         result = simulate(cfg)
-        path = tmp / (name + (".ulg" if ulog else ".tlog"))
-        if ulog:
+        path = tmp / (name + (".ulg" if ulog else ".bin" if dataflash else ".tlog"))
+        if dataflash:  # the tests' minimal ArduPilot DataFlash writer (FMT, MSG, IMU, MAG, CTUN)
+            from tests.faultgen import write_dataflash
+
+            write_dataflash(result, path)
+        elif ulog:
             from magcomp.adapters.ulog_writer import write_sim_ulog
 
             write_sim_ulog(result, path)
@@ -294,6 +298,18 @@ def cases(seed: int, quick: bool) -> list[Case]:
         ),
         Case("no_gps_msgs", _damaged("no_gps_msgs", ordinary, _drop(GPS_IDS), keep_truth=True)),
         Case(
+            "dataflash_bin", _sim("dataflash_bin", "ordinary", ["theta_scale=6"], d, s + 34, dataflash=True)
+        ),
+        Case(
+            "flipped_bin",
+            _damaged(
+                "flipped_bin",
+                _sim("fb", "ordinary", [], d, s + 35, dataflash=True),
+                _flip(s),
+                keep_truth=True,
+            ),
+        ),
+        Case(
             "truncated_ulog",
             _damaged("truncated_ulog", _sim("tu", "ordinary", [], d, s + 33, ulog=True), _truncate),
         ),
@@ -322,6 +338,8 @@ def cases(seed: int, quick: bool) -> list[Case]:
             "directory",
             "text_file",
             "missing",
+            "random_bytes",
+            "flipped_bin",
         }
         out = [c for c in out if c.name in keep]
     return out
