@@ -7,7 +7,7 @@ GPS messages removed, a clock reset, 5 s long, empty, a directory, not a log). F
 a user would, with no configuration::
 
     magcomp replay LOG --json OUT.json --emit OUT.tlog   (plus --causal on a few)
-    magcomp diagnose LOG
+    magcomp diagnose LOG --json OUT.json
 
 and checks: no traceback (bad input: one line on stderr and a non-zero exit); the JSON strictly valid (no
 NaN / Infinity) with a status and a reason per compass; where the log has a simulated truth, the rms heading
@@ -24,7 +24,10 @@ the reported heading sigma (deg), diagnose's exit, and any problem (``PROBLEM:``
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
+import logging
 import math
 import shutil
 import struct
@@ -394,7 +397,12 @@ def _oracle(path: Path, result: Any) -> list[Any]:
             l_true, d_true = result.true_calibration(j)
             store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float),
                                     np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
-        return list(replay_log(path, ocfg, store=store, keep_estimates=True).estimates)
+        logging.disable(logging.WARNING)  # the oracle's own warnings (e.g. no throttle) are the replay's too
+        try:
+            with contextlib.redirect_stderr(io.StringIO()):
+                return list(replay_log(path, ocfg, store=store, keep_estimates=True).estimates)
+        finally:
+            logging.disable(logging.NOTSET)
 
 
 def run_case(case: Case, tmp: Path, oracle: bool, timeout: float) -> str:
@@ -475,9 +483,14 @@ def run_case(case: Case, tmp: Path, oracle: bool, timeout: float) -> str:
             parts.append(
                 "causal " + ",".join(str(c.get("status")) for c in (cdoc or {}).get("compasses", []))
             )
-    rc_d, out_d, err_d = _run(["diagnose", str(log)], timeout)
+    diag_json = tmp / f"{case.name}.diagnose.json"
+    rc_d, out_d, err_d = _run(["diagnose", str(log), "--json", str(diag_json)], timeout)
     problems += _stderr_problems(rc_d, err_d, case.expect_error, "diagnose")
     parts.append(f"diagnose {rc_d}")
+    if rc_d == 0:
+        _, msg = _strict_json(diag_json)
+        if msg:
+            problems.append("diagnose " + msg)
     if rc_d != 0 and not case.expect_error:
         parts.append("'" + (err_d.strip().splitlines() or ["?"])[-1][:120] + "'")
     for pat in ("nan", "inf "):
