@@ -469,7 +469,8 @@ def run_case(case: Case, tmp: Path, oracle: bool, timeout: float) -> str:
             # the sigma covers what learning adds: compare it with the error beyond the oracle's (when run)
             excess = math.sqrt(max(cor**2 - o_rms**2, 0.0)) if math.isfinite(o_rms) else cor
             if sig is not None and math.isfinite(cor) and status == "corrected" and excess > 5 * sig + 0.5:
-                problems.append(f"c{j} sigma {sig:.2f} deg << error {excess:.2f} deg beyond the oracle's")
+                ref = "beyond the oracle's" if orc else "(no oracle run)"
+                problems.append(f"c{j} sigma {sig:.2f} deg << error {excess:.2f} deg {ref}")
         if sig is not None:
             tag += f" sig {sig:.2f}"
         parts.append(tag)
