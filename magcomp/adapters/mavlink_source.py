@@ -680,6 +680,10 @@ class _Converter:
         base = mtype.rstrip("0123456789")
         suffix = mtype[len(base) :]
         index = int(getattr(v, "I", getattr(v, "Inst", 0))) if not suffix else int(suffix) - 1
+        if base in ("MAG", "IMU") and not 0 <= index < DATAFLASH_MAX_INSTANCES:
+            # DataFlash has no checksum: a corrupt instance byte would make a phantom compass or IMU
+            self.counts["dataflash_bad_instance"] += 1
+            return []
         stream = f"{base}{index}"
         if base == "MAG":
             return self._df_mag(v, stream, raw_s, index)
@@ -1057,6 +1061,43 @@ def _quiet() -> Iterator[None]:
         yield
 
 
+@contextlib.contextmanager
+def _quiet_c_streams() -> Iterator[None]:
+    """Silence file descriptors 1 and 2 for the block: pymavlink's Cython indexer (``dfindexer``, run when a
+    DFReader_binary is built) writes "bad header ..." for every byte it cannot frame straight to the C
+    streams, out of :func:`_quiet`'s reach (122815 lines for 200 kB of random bytes). Used only around that
+    constructor (a file replay, not the live daemon); a no-op when the descriptors cannot be duplicated."""
+    import ctypes
+    import os
+
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    saved: list[tuple[int, int]] = []
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        yield
+        return
+    try:
+        for fd in (1, 2):
+            with contextlib.suppress(OSError):
+                saved.append((fd, os.dup(fd)))
+                os.dup2(devnull, fd)
+        yield
+    finally:
+        with contextlib.suppress(Exception):
+            ctypes.CDLL(None).fflush(None)  # what C stdio still buffers goes to /dev/null too
+        for fd, old in saved:
+            os.dup2(old, fd)
+            os.close(old)
+        os.close(devnull)
+
+
+#: ArduPilot logs at most this many compasses (MAG instance I) and IMUs (IMU I): COMPASS_MAX_INSTANCES and
+#: INS_MAX_INSTANCES are 3; a larger instance in a DataFlash log is a corrupt byte, not a sensor
+DATAFLASH_MAX_INSTANCES = 3
+
 _DF_HEAD = b"\xa3\x95"
 _DF_FMT_TYPE = 0x80
 _DF_FMT_LEN = 89
@@ -1184,7 +1225,7 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
     from pymavlink import DFReader
 
     try:
-        with _quiet():
+        with _quiet(), _quiet_c_streams():
             reader: Any = (
                 DFReader.DFReader_text(str(path), zero_time_base=False)
                 if text

@@ -148,6 +148,7 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
     """Print the summary and write --json; hand the estimates to the viewer."""
     from magcomp.service.console import (
         SKIP_KEYS,
+        earth_field_line,
         format_counts,
         primary_compass,
         summary_lines,
@@ -160,6 +161,9 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
     print(f"{args.log}: {report.n_estimates} headings in {report.wall_s:.2f} s ({how})")
     for line in summary_lines(report.summary):
         print(line)
+    earth = earth_field_line(report.summary)
+    if earth is not None:
+        print(earth)
     print(f"skipped or absorbed: {format_counts(counts, SKIP_KEYS)}")
     for w in report.summary["warnings"]:
         print(f"warning: {w}")

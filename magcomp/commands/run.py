@@ -47,6 +47,7 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.service.console import (
         check_output_path,
         default_state_dir,
+        earth_field_line,
         primary_compass,
         setup_logging,
         summary_lines,
@@ -93,6 +94,9 @@ def execute(args: argparse.Namespace) -> int:
             viz.close()
         for line in summary_lines(report.summary):
             print(line)
+        earth = earth_field_line(report.summary)
+        if earth is not None:
+            print(earth)
         lat = report.latency_ms
         if lat:
             print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")

@@ -39,7 +39,10 @@ from magcomp.diagnosis.inputs import (
     MAX_SAMPLES,
     compass_data,
     crash_mask,
+    decimation_step,
     drive_inputs,
+    finite_series,
+    impact_left_out,
     inlier_mask,
     signals_at,
     spans,
@@ -163,11 +166,18 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
     comps: list[CompassDiagnosis] = []
     for idx in sorted(log.mag):
         if idx in log.mag and len(log.mag[idx]) > 0:
-            crash = crash_mask(log, log.mag[idx].t_s)
-            for a, b in spans(log.mag[idx].t_s, crash):
+            mag = finite_series(log.mag[idx])  # what compass_data decides on, at its decimation
+            crash = impact_left_out(log, mag.t_s, decimation_step(len(mag)))
+            for a, b in spans(mag.t_s, crash):
                 notes.append(
                     f"compass {idx}: left out t = {a:.1f}-{b:.1f} s (impact above 2.5 g: a crash or a drop)"
                 )
+            if not crash.any():
+                for a, b in spans(mag.t_s, crash_mask(log, mag.t_s)):
+                    notes.append(
+                        f"compass {idx}: impact above 2.5 g around t = {a:.1f}-{b:.1f} s kept (too few "
+                        "samples without it)"
+                    )
         try:
             data = compass_data(log, idx)
         except InputError as exc:

@@ -92,6 +92,25 @@ def crash_mask(log: LogData, t_s: F64, before_s: float = 2.0, after_s: float = 3
     return out
 
 
+#: an impact is left out only when at least this many (decimated) compass samples remain; otherwise the whole
+#: log is diagnosed as it is (too little data to model without the impact)
+MIN_SAMPLES_AFTER_IMPACTS = 50
+
+
+def decimation_step(n: int) -> int:
+    """Every ``step``-th sample keeps at most MAX_SAMPLES of ``n``."""
+    return max(1, math.ceil(n / MAX_SAMPLES))
+
+
+def impact_left_out(log: LogData, t_s: F64, step: int = 1) -> NDArray[np.bool_]:
+    """The samples at ``t_s`` that :func:`compass_data` leaves out (``crash_mask``), judged on every
+    ``step``-th sample as it decimates; none when fewer than MIN_SAMPLES_AFTER_IMPACTS would remain."""
+    crash = crash_mask(log, t_s)
+    if np.count_nonzero(~crash[::step]) < MIN_SAMPLES_AFTER_IMPACTS:
+        return np.zeros(t_s.shape[0], dtype=bool)
+    return crash
+
+
 def compass_data(log: LogData, index: int) -> CompassData:
     """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES)."""
     if index not in log.mag:
@@ -99,12 +118,11 @@ def compass_data(log: LogData, index: int) -> CompassData:
     mag = finite_series(log.mag[index])
     if len(mag) < 50:
         raise InputError(f"compass {index} has only {len(mag)} usable samples (need 50)")
-    step = max(1, math.ceil(len(mag) / MAX_SAMPLES))
+    step = decimation_step(len(mag))
     t = mag.t_s[::step]
     v = mag.values[::step].astype(float)
-    keep = ~crash_mask(log, t)
-    if np.count_nonzero(keep) >= 50:
-        t, v = t[keep], v[keep]
+    keep = ~impact_left_out(log, t)
+    t, v = t[keep], v[keep]
     att = finite_series(log.attitude_rad)
     imu_ok = log.imu_t_s.shape[0] >= 10
     track = attitude_track(

@@ -137,6 +137,7 @@ SKIP_KEYS = (
     "garbage_bytes",
     "dataflash_resyncs",
     "dataflash_dropped_bytes",
+    "dataflash_bad_instance",
     "time_jumps",
     "reboots",
     "mag_jumps",
@@ -152,6 +153,21 @@ SKIP_KEYS = (
     "observer_resets",
     "dataflash_errors",
 )
+
+
+def earth_field_line(summary: dict[str, Any]) -> str | None:
+    """Where the Earth field came from, when it was not the log's GPS (which the run already said as it
+    happened): the configured location, silently the built-in default unless ``[location]`` is set."""
+    ef = summary.get("earth_field") or {}
+    if ef.get("source") != "config":
+        return None
+    try:
+        norm = math.sqrt(sum(float(v) ** 2 for v in ef["ned_mgauss"]))
+        where = f"({float(ef['lat_deg']):.4f}, {float(ef['lon_deg']):.4f}), {float(ef['decimal_year']):.1f}"
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (f"Earth field: no GPS fix in the log; WMM at the configured location {where}: {norm:.0f} mgauss "
+            "(set [location] in --config for where the log was recorded)")  # fmt: skip
 
 
 def summary_lines(summary: dict[str, Any]) -> list[str]:

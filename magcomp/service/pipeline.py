@@ -342,7 +342,7 @@ class Pipeline:
             c.calib.earth_ned = field
             if c.inflight is not None:
                 c.inflight.restart(norm)
-        self._text(s.t_s, f"Earth field from the GPS position ({lat:.4f}, {lon:.4f}, {year:.1f}): "
+        self._text(s.t_s, f"Earth field from the GPS position ({lat:.4f}, {lon:.4f}), {year:.1f}: "
                           f"{norm:.0f} mgauss, WMM")  # fmt: skip
 
     # ------------------------------------------------------------------------------------------ end

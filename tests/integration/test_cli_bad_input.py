@@ -279,3 +279,21 @@ def test_truncated_dataflash(
         assert int(out.split(": ", 1)[1].split()[0]) > 1000  # "cut.bin: N headings in ..."
     else:
         assert_one_line_error(rc, err, "replay", "no DataFlash messages")
+
+
+@pytest.mark.parametrize("command", ["replay", "diagnose"])
+def test_random_bytes_named_bin_is_one_line_at_the_file_descriptors(
+    command: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """200 kB of random bytes named .bin go to pymavlink's DataFlash reader, whose Cython indexer writes a
+    "bad header" line per unframed byte straight to file descriptor 2 (capsys does not see it): the user
+    must still see one line."""
+    path = tmp_path / "noise.bin"
+    path.write_bytes(np.random.default_rng(3).integers(0, 256, 200_000, dtype=np.uint8).tobytes())
+    capfd.readouterr()
+    rc = main([command, str(path)])
+    out, err = capfd.readouterr()
+    assert rc != 0
+    lines = [line for line in (out + err).splitlines() if line.strip()]
+    assert len(lines) == 1, f"{len(lines)} lines, first: {lines[:3]}"
+    assert lines[0].startswith(f"magcomp {command}: error: ") and "DataFlash" in lines[0], lines[0]

@@ -74,3 +74,19 @@ def test_cli_rerun_save_writes_a_recording(skewed_log: Path) -> None:
     rrd = skewed_log.parent / "diag.rrd"
     assert main(["diagnose", str(skewed_log), "--rerun", f"save={rrd}"]) == 0
     assert rrd.is_file() and rrd.stat().st_size > 10_000
+
+
+def test_cli_does_not_claim_to_leave_out_an_impact_it_kept(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 5 s flight whose every sample lies within the impact window of its > 2.5 g take-off: the diagnosis
+    keeps them all (fewer than 50 would remain), so the note must not say they were left out."""
+    res = simulate(SimConfig(scenario="ordinary", duration_s=5.0, seed=22))
+    path = tmp_path / "short.tlog"
+    write_tlog(res, path)
+    assert main(["diagnose", str(path), "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    assert "left out t =" not in out, out
+    assert "impact above 2.5 g around t =" in out and "kept" in out, out
+    doc = json.loads((tmp_path / "d.json").read_text())
+    assert doc["compasses"], doc

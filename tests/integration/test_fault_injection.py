@@ -140,3 +140,26 @@ def _message_times(recs: list[bytes]) -> list[float]:
             last = m.time_usec * 1e-6
         out.append(last)
     return out
+
+
+def test_a_corrupt_dataflash_instance_byte_makes_no_phantom_compass(tmp_path: Path) -> None:
+    """DataFlash has no checksum: a MAG message whose instance byte I was damaged (to 159 or 7) still frames.
+    ArduPilot logs at most 3 compasses, so such a message is dropped and counted, not a new compass."""
+    from magcomp.sim import SimConfig, simulate
+
+    result = simulate(SimConfig(scenario="paper", duration_s=20.0, seed=4, n_compasses=2))
+    clean = tmp_path / "clean.bin"
+    write_dataflash(result, clean)
+    data = bytearray(clean.read_bytes())
+    mag_len = 3 + 8 + 1 + 12  # header, TimeUS (Q), I (B), MagX..Z (fff): tests/faultgen.py's MAG
+    head, nxt = b"\xa3\x95\x82", b"\xa3\x95"
+    starts = [i for i in range(len(data) - mag_len - 2) if data[i : i + 3] == head]
+    starts = [i for i in starts if data[i + mag_len : i + mag_len + 2] == nxt]
+    damaged = starts[100::97]
+    for k, i in enumerate(damaged):
+        data[i + 11] = 159 if k % 2 else 7
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(bytes(data))
+    rep = replay_log(path, Config())
+    assert sorted(c["index"] for c in rep.summary["compasses"]) == [0, 1]
+    assert rep.counts["dataflash_bad_instance"] == len(damaged) > 5

@@ -112,3 +112,24 @@ def test_two_pass_replay_starts_corrected_and_says_so(tmp_path: Path) -> None:
     first = next(e for e in rep.estimates if e.mag_index == 1 and not e.flags & FLAG_NO_THROTTLE)
     assert first.flags & FLAG_CALIBRATED
     assert math.isfinite(first.heading_deg)
+
+
+@pytest.mark.parametrize("gps", ["on", "off"])
+def test_replay_says_where_the_earth_field_came_from(
+    tmp_path: Path, gps: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A log without a GPS fix (Ljubljana) is scaled to the configured location's WMM field (here the built-in
+    default, Florida): the console must say so in one line, as it says the GPS position when there is one."""
+    from magcomp.cli import main
+
+    _, path = _flight(tmp_path, [f"gps={gps}", "lat_deg=46.05", "lon_deg=14.5"], duration_s=20.0)
+    assert main(["replay", str(path), "--json", str(tmp_path / "s.json")]) == 0
+    text = capsys.readouterr()
+    out = text.out + text.err
+    source = json.loads((tmp_path / "s.json").read_text())["earth_field"]["source"]
+    if gps == "off":
+        assert source == "config"
+        assert "Earth field: no GPS fix in the log; WMM at the configured location (29.6500, -82.3500)" in out
+    else:
+        assert source == "gps"
+        assert "Earth field from the GPS position (46.05" in out and "no GPS fix" not in out
