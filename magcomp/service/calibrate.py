@@ -81,7 +81,7 @@ class CalibrationCloud(NamedTuple):
 #: 1.38 -> 1.42); on log171 (10 Hz DataFlash) it made compass 1 / 2 3.7 / 4.0 deg instead of 2.2 / 2.5 (an
 #: 8 deg offset on the ground, cause not found). Staleness matters once it is comparable with the 0.3 s
 #: pair baseline: applied from 4 Hz down.
-LATE_MATCH_MIN_INTERVAL_S = 0.25
+LATE_MATCH_MIN_INTERVAL_S = 0.15
 
 
 #: the raw gyro's yaw goes with a field sample when the last IMU sample is at most this far from it (s):
