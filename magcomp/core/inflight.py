@@ -603,6 +603,22 @@ class InflightEstimator:
         self._w_zz = self._w_cc = self._w_bc = 0.0
         self._win = None
 
+    def refill_open_window(self, samples: list[tuple[F64, F64, F64, F64 | None]]) -> None:
+        """Replace the open window's rows by ``samples`` (rows, z, nuisance, common): the same samples with
+        their nuisance columns written again (relinearised at the window's final estimate). Sample counts
+        and throttle statistics stay as they were; nothing happens without an open window."""
+        if self._win is None:
+            return
+        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
+            a[...] = 0.0
+        for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
+            a[...] = 0.0
+        self._w_zz = self._w_cc = self._w_bc = 0.0
+        self._w_n = 0
+        for rows, z, nuisance, common in samples:
+            self._accumulate(rows, z, nuisance, self._win, common)
+        self._dirty = True
+
     def _accumulate(
         self, rows: F64, z: F64, nuisance: F64 | None, window: object, common: F64 | None
     ) -> None:

@@ -80,8 +80,11 @@ class CalibrationCloud(NamedTuple):
 #: heading from 12.2 to 11.1 deg rms (oracle 10.9); at 10 and 50 Hz it changes nothing (1.59 -> 1.57,
 #: 1.38 -> 1.42); on log171 (10 Hz DataFlash) it made compass 1 / 2 3.7 / 4.0 deg instead of 2.2 / 2.5 (an
 #: 8 deg offset on the ground, cause not found). Staleness matters once it is comparable with the 0.3 s
-#: pair baseline: applied from 4 Hz down.
-LATE_MATCH_MIN_INTERVAL_S = 0.25
+#: pair baseline: applied from 4 Hz down. The threshold sits well between 10 Hz (0.1 s) and 4 Hz (0.25 s):
+#: at 0.25 s the smoothed interval of a 4 Hz stream (ticks 0.24 / 0.26 s apart on a 50 Hz loop) fell on
+#: either side of it, matching flipped on and off and 54 % of the samples took a stale or mislabelled
+#: attitude (3.3 deg rms of yaw; theta 14.7-25.9 % -> 4.8-13.7 % at theta x6; docs/inflight.md, "4 Hz").
+LATE_MATCH_MIN_INTERVAL_S = 0.15
 
 
 #: the raw gyro's yaw goes with a field sample when the last IMU sample is at most this far from it (s):

@@ -133,3 +133,39 @@ def test_replay_says_where_the_earth_field_came_from(
     else:
         assert source == "gps"
         assert "Earth field from the GPS position (46.05" in out and "no GPS fix" not in out
+
+
+def test_four_hertz_telemetry_matches_attitude_and_throttle_to_the_field_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At 4 Hz every message of an instant (RAW_IMU, then ATTITUDE, SERVO_OUTPUT_RAW) shares its tick, and
+    the ticks fall 0.24 / 0.26 s apart on the 50 Hz loop. The relative form must pair each field sample with
+    the autopilot's attitude and throttle of that same tick, not the previous one (0.25 s stale: ~3 deg of
+    rotation in turns). Fails when matching flips on and off with the interval's jitter (docs/inflight.md,
+    "4 Hz telemetry")."""
+    from magcomp.core.rotations import dcm_from_euler, so3_log
+    from magcomp.service import inflight_stage
+
+    result, path = _flight(tmp_path, ["telemetry_hz=4"], seed=2, duration_s=150.0)
+    used: list[tuple[float, Any, float]] = []
+    orig = inflight_stage.InflightStage._use
+
+    def spy(self: Any, t_s: float, y: Any, x: Any, r_nb: Any, ref: Any) -> None:
+        if self.mag_index == 0:
+            used.append((t_s, np.array(r_nb), float(x[0])))
+        orig(self, t_s, y, x, r_nb, ref)
+
+    monkeypatch.setattr(inflight_stage.InflightStage, "_use", spy)
+    replay_log(path, Config())
+    s = result.samples
+    assert len(used) > 0.9 * 150.0 * 4.0
+    ang, dthr = [], []
+    for t, r, x in used:
+        i = int(np.argmin(np.abs(s.t_s - t)))
+        assert abs(s.t_s[i] - t) < 1e-3
+        ang.append(np.linalg.norm(so3_log(dcm_from_euler(*s.attitude_rad[i]).T @ r)))
+        dthr.append(x - float(s.throttle_01[i]) ** 2)
+    rms_deg = math.degrees(float(np.sqrt(np.mean(np.square(ang)))))
+    # PWM is 1 us of 1000 and the attitude float32: the match is exact to well under these
+    assert rms_deg < 0.05, rms_deg
+    assert float(np.sqrt(np.mean(np.square(dthr)))) < 0.002

@@ -199,3 +199,31 @@ def test_attitude_stage_tracks_the_horizontal_kinematic_acceleration(monkeypatch
     got = st.gyro_yaw_at((n - 1) * dt, 0.02, 0.05)
     assert got is not None
     assert np.allclose(got.accel_h_m_s2, a_n[:2], atol=1e-3), got.accel_h_m_s2
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_slow_link_windows_relinearised_at_their_field_bring_theta_closer(
+    seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """2.5 Hz samples (a slow link: the attitude matched to the field's time), a realistic theta (x6) and an
+    autopilot yaw that follows the disturbed compass (up to ~60 deg off): each window's yaw-rate column was
+    written about the window's field as known from its first few samples; written again about the window's
+    final field (RELINEARISE_WINDOW) theta comes out closer to the truth, noise-free."""
+    import tests.unit.test_inflight as ti
+    from magcomp.service import inflight_stage
+
+    theta = 6.0 * THETA
+    monkeypatch.setattr(ti, "THETA", theta)
+    r, thr, _ = _flight(3000, seed)
+    y = _measure(r, thr, np.eye(3), D_TRUE, seed, noise=0.0)
+    psi = _autopilot_yaw_drift(r, thr, DT_S, kp=0.5)
+    src = np.array([dcm_from_euler(0.0, 0.0, float(p)) @ rk for p, rk in zip(psi, r, strict=True)])
+    err = []
+    for relin in (False, True):
+        monkeypatch.setattr(inflight_stage, "RELINEARISE_WINDOW", relin)
+        st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)))
+        for k in range(0, len(thr), 4):
+            st.feed(DT_S * k, y[k], float(thr[k]), (), None, H_NED, src[k], r_t_s=DT_S * k)
+        assert st.est is not None
+        err.append(float(np.linalg.norm(st.est.solve().theta_mgauss - theta) / np.linalg.norm(theta)))
+    assert err[1] < err[0], err
