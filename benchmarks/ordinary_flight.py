@@ -33,8 +33,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import CompassState, StateStore
-from magcomp.service.demo import rms_after_learning
+from magcomp.adapters.state_store import StateStore
+from magcomp.service.demo import rms_after_learning, save_true_states
 from magcomp.service.replay import replay_log
 
 try:
@@ -74,11 +74,7 @@ def main() -> int:
             causal = replay_log(path, cfg, keep_estimates=True)
             two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
             store = StateStore(Path(tmp) / "oracle")
-            for c in result.compasses:
-                j = int(c.index)
-                l_true, d_true = result.true_calibration(j)
-                store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float),
-                                        np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
+            save_true_states(result, store)
             orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
         j = args.compass
         c_rms, raw_rms = rms_after_learning(result, causal.estimates, j)

@@ -384,7 +384,8 @@ def _stderr_problems(rc: int, err: str, expect_error: bool, what: str) -> list[s
 
 def _oracle(path: Path, result: Any) -> list[Any]:
     from magcomp.adapters.config import Config
-    from magcomp.adapters.state_store import CompassState, StateStore
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.service.demo import save_true_states
     from magcomp.service.replay import replay_log
 
     cfg = Config()
@@ -392,11 +393,7 @@ def _oracle(path: Path, result: Any) -> list[Any]:
                    calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         store = StateStore(Path(tmp) / "oracle")
-        for c in result.compasses:
-            j = int(c.index)
-            l_true, d_true = result.true_calibration(j)
-            store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float),
-                                    np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
+        save_true_states(result, store)
         logging.disable(logging.WARNING)  # the oracle's own warnings (e.g. no throttle) are the replay's too
         try:
             with contextlib.redirect_stderr(io.StringIO()):

@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
+from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon, DaemonReport
 
@@ -130,6 +130,16 @@ def heading_errors(result: Any, estimates: list[HeadingEstimate], mag_index: int
         out.append(SegmentError(name, int(m.sum()), float(np.max(np.abs(ec))), float(np.max(np.abs(er))),
                                 float(np.sqrt(np.mean(ec**2))), float(np.sqrt(np.mean(er**2)))))  # fmt: skip
     return out
+
+
+def save_true_states(result: Any, store: StateStore) -> None:
+    """Store every simulated compass's true calibration (L = K^-1, d = K^-1 b) and theta: the oracle's
+    starting state (replayed with learning off and ``[calibration] mode = "stored"``)."""
+    for c in result.compasses:
+        j = int(c.index)
+        l_true, d_true = result.true_calibration(j)
+        theta = np.asarray(c.theta_mgauss, dtype=float)
+        store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float), theta, 0.0))
 
 
 def rms_after_learning(
