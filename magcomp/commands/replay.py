@@ -77,6 +77,9 @@ def execute(args: argparse.Namespace) -> int:
     setup_logging("replay", args.verbose)
     inputs = (args.log, args.config)
     check_output_path(args.emit, "--emit", inputs)
+    if args.emit and Path(args.emit).suffix.lower() in (".ulg", ".bin", ".log"):
+        # a reader would take the file for that format by its name; only a tlog is written
+        raise InputError(f"--emit {args.emit}: writes a MAVLink telemetry log; name it .tlog")
     check_output_path(args.json, "--json", inputs)
     check_distinct_outputs(emit=args.emit, json=args.json)
     cfg = load_config(args.config)

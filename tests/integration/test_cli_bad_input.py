@@ -92,6 +92,7 @@ CASES: list[tuple[str, list[str], str]] = [
     ("replay-emit-is-dir", ["replay", "{log}", "--emit", "{dir}"], "is a directory"),
     ("replay-json-no-dir", ["replay", "{log}", "--json", "{tmp}/missing/x.json"], "does not exist"),
     ("replay-emit-equals-json", ["replay", "{log}", "--emit", "{tmp}/o", "--json", "{tmp}/o"], "same file"),
+    ("replay-emit-as-ulog", ["replay", "{log}", "--emit", "{tmp}/out.ulg"], "name it .tlog"),
     # replay: configuration
     ("config-missing", ["replay", "{log}", "--config", "{tmp}/nope.toml"], "no such file"),
     ("config-directory", ["replay", "{log}", "--config", "{dir}"], "is a directory"),
