@@ -807,9 +807,10 @@ class InflightEstimator:
         standard deviation multiplied by ``inflate`` (the vehicle may have changed since: a new battery
         position, a moved wire) and never below a tenth of the prior's, nor above the physical prior of a
         first run (InflightParams: what nothing was learned about stays as uncertain as it was, instead of
-        doubling with every run)."""
+        doubling with every run). The covariance includes the variance inflation: a later run must not be
+        held to this one's estimate more firmly than its correlated residuals allow."""
         self.solve()
-        cov = self._cov if self._cov is not None else np.linalg.inv(self.prior_info)
+        cov = self._cov * self.variance_inflation if self._cov is not None else np.linalg.inv(self.prior_info)
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
         floor = 0.1 / np.sqrt(np.diag(self.prior_info))
         return self._theta.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))

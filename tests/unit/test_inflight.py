@@ -323,6 +323,7 @@ def test_variance_inflation_is_one_for_white_residuals_and_large_for_lasting_one
     y_white = _measure(r, thr, A_TRUE, D_TRUE, seed, noise=3.0)
     y_slow = _measure(r, thr, A_TRUE, D_TRUE, seed, noise=1.0) + _ar1(len(thr), dt, 10.0, 6.0, seed)
     out = {}
+    ests: dict[str, InflightEstimator] = {}
     for name, y in (("white", y_white), ("slow", y_slow)):
         est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
         est.nuisance_prior_sd = 0.035
@@ -333,8 +334,17 @@ def test_variance_inflation_is_one_for_white_residuals_and_large_for_lasting_one
             if k % 100 == 99:
                 est.solve()  # as the stage does: batches start once the estimate has settled
         out[name] = est.solve()
+        ests[name] = est
     assert 1.0 <= out["white"].variance_inflation < 2.0, out["white"].variance_inflation
     slow = out["slow"]
     assert slow.variance_inflation > 10.0, slow.variance_inflation
+    # the state a later run starts from carries the inflated sd too: A's third column (entries 2, 5, 8 of
+    # 15) has a white sd under the state's floor (a tenth of the prior's) and an inflated one well above it
+    est_slow = ests["slow"]
+    assert est_slow._cov is not None
+    _, sd = est_slow.state(inflate=1.0)
+    white_sd = np.sqrt(np.diag(est_slow._cov))[[2, 5, 8]]
+    floor = 0.1 * 0.1  # InflightParams(sigma_a=0.1)
+    assert np.all(white_sd < floor) and np.all(sd[[2, 5, 8]] > 1.5 * floor), (sd[[2, 5, 8]], white_sd)
     err = np.abs(slow.theta_mgauss - THETA)
     assert np.all(err < 3.5 * slow.theta_sigma_mgauss), (err, slow.theta_sigma_mgauss)
