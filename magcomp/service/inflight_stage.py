@@ -91,14 +91,6 @@ AP_YAW_TILT = False
 #: about the gyro frame's true error (noise-free 10 Hz seed 2: it takes up hard-iron errors in windows with
 #: little rotation)
 AP_YAW_PRIOR_RAD = math.radians(5.0)
-#: how the gyro frame's yaw error is estimated for AP_YAW_TILT: "windows" (a line through the closed windows'
-#: field directions, each as estimated when its window closed), "samples" (a line through every sample's
-#: field direction with the current calibration, refitted whenever a window closes) or "filter" (each
-#: sample's field direction with the current calibration, low-passed; runs away without AP_YAW_NUISANCE:
-#: the loop leaves the misalignment about z free). Measured in docs/inflight.md (fifth pass)
-AP_YAW_FRAME = "windows"
-#: AP_YAW_FRAME == "filter": the time constant (s) of the low-pass of each sample's field direction
-AP_YAW_FILTER_S = 5.0
 #: take the autopilot's yaw minus the gyro's at the ATTITUDE's own time (``GyroYaw.att_lead_rad``)
 AP_YAW_ATT_LEAD = True
 #: carry the tilt-from-yaw nuisance per window (AP_YAW_PRIOR_RAD) with AP_YAW_TILT
@@ -226,15 +218,6 @@ class InflightStage:
         self._fit = np.zeros(5)
         self._fit_epoch = -1
         self._ap_key: tuple[int, int] | None = None
-        # AP_YAW_FRAME == "samples": this chain's samples (t, field, regressors, R_nb in the gyro's yaw) and
-        # the line (offset at t = 0, rate) fitted to them at the last window close
-        self._fr_t: list[float] = []
-        self._fr_y: list[F64] = []
-        self._fr_x: list[F64] = []
-        self._fr_r: list[F64] = []
-        self._fr_line: tuple[float, float] | None = None
-        self._fr_epoch = -1
-        self._fr_lp: tuple[int, float, float] | None = None  # epoch, time, low-passed frame error (rad)
 
     def _warm_start(
         self, warm: dict[str, object] | None, mode: InflightMode, field_norm_mgauss: float
@@ -451,7 +434,7 @@ class InflightStage:
             sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
         z = w.z
         if AP_YAW_TILT and self._gy_on:
-            z, tilt = self._ap_yaw_tilt(t_s, key, r_nb, h_w, z, y, x)
+            z, tilt = self._ap_yaw_tilt(t_s, key, r_nb, h_w, z)
             cols[1] = cols[1] + tilt * tau  # the window's yaw rate tilts it too
             if AP_YAW_NUISANCE:
                 cols.append(tilt)  # what the line fit leaves of the gyro yaw's error, one per window
@@ -494,9 +477,7 @@ class InflightStage:
             ]
         )
 
-    def _ap_yaw_tilt(
-        self, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64, y: F64, x: F64
-    ) -> tuple[F64, F64]:
+    def _ap_yaw_tilt(self, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64) -> tuple[F64, F64]:
         """The autopilot's tilt error that its own yaw error makes (AP_YAW_TILT). It subtracts the GPS
         acceleration ``a`` from the specific force with its own yaw, so a yaw error ``psi`` leaves a
         horizontal ``-psi a`` that it takes for gravity: its tilt is off by the rotation ``-psi a / g`` (NED,
@@ -510,19 +491,7 @@ class InflightStage:
         if key != self._ap_key:
             if self._ap_key is not None:
                 self._frame_close(self._ap_key)
-                if AP_YAW_FRAME == "samples":
-                    self._frame_refit(key[0])
             self._ap_key = key
-        if AP_YAW_FRAME == "filter":
-            self._frame_filter(t_s, key[0], r_nb, h_w, y, x)
-        if AP_YAW_FRAME == "samples":
-            if key[0] != self._fr_epoch:
-                self._fr_t, self._fr_y, self._fr_x, self._fr_r = [], [], [], []
-                self._fr_line, self._fr_epoch = None, key[0]
-            self._fr_t.append(t_s)
-            self._fr_y.append(y)
-            self._fr_x.append(x)
-            self._fr_r.append(r_nb)
         psi = (self._ap_yaw_dev + self._frame_at(t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
         v = -np.array([self._accel_h[0], self._accel_h[1], 0.0]) / STANDARD_GRAVITY_M_S2
         col = (r_nb.T @ np.cross(v, h_w)).reshape(3, 1)
@@ -556,57 +525,7 @@ class InflightStage:
         b = (n * stf - st * sf) / den
         return float((sf - b * st) / n + b * t)
 
-    def _frame_refit(self, epoch: int) -> None:
-        """The gyro frame's yaw error as a line in time through every sample of this chain: each sample's
-        field with the current calibration (eq. (2), eq. (11)'s bias removed), rotated into the gyro yaw's
-        NED frame, against the WMM's direction. Unlike the windows' directions, each taken when its window
-        closed, every sample is re-read with the latest calibration."""
-        sol = self.solution
-        if sol is None or epoch != self._fr_epoch or len(self._fr_t) < 20:
-            self._fr_line = None
-            return
-        assert self.est is not None
-        t = np.asarray(self._fr_t)
-        x = np.asarray(self._fr_x)
-        c = np.asarray(self._fr_y) @ sol.calib_l.T - sol.calib_d - np.outer(x[:, 0], sol.theta_mgauss)
-        if x.shape[1] > 1:
-            c -= x[:, 1:] @ sol.motor_theta_mgauss
-        h = np.einsum("nij,nj->ni", np.asarray(self._fr_r), c)
-        ref = self.est.field_ned_mgauss
-        f = np.arctan2(h[:, 1], h[:, 0]) - math.atan2(float(ref[1]), float(ref[0]))
-        f0 = float(np.median(f))
-        f = f0 + (f - f0 + math.pi) % (2.0 * math.pi) - math.pi
-        tm = float(t.mean())
-        dt = t - tm
-        den = float(dt @ dt)
-        b = float(dt @ (f - f.mean()) / den) if den > 1.0 else 0.0
-        self._fr_line = (float(f.mean()) - b * tm, b)
-
-    def _frame_filter(self, t_s: float, epoch: int, r_nb: F64, h_w: F64, y: F64, x: F64) -> None:
-        """The gyro frame's yaw error from this sample's field with the current calibration (eq. (2),
-        eq. (11)'s bias removed) in the gyro yaw's NED frame against the WMM's direction, low-passed."""
-        sol = self.solution
-        if sol is None:
-            f = self._frame_of(h_w)
-        else:
-            c = sol.calib_l @ y - sol.calib_d - sol.theta_mgauss * x[0]
-            if x.shape[0] > 1:
-                c = c - sol.motor_theta_mgauss.T @ x[1:]
-            f = self._frame_of(r_nb @ c)
-        lp = self._fr_lp
-        if lp is None or lp[0] != epoch:
-            self._fr_lp = (epoch, t_s, f)
-            return
-        k = min(1.0, max(0.0, t_s - lp[1]) / AP_YAW_FILTER_S)
-        self._fr_lp = (epoch, t_s, lp[2] + k * ((f - lp[2] + math.pi) % (2.0 * math.pi) - math.pi))
-
     def _frame_at(self, t_s: float, h_w: F64) -> float:
-        if AP_YAW_FRAME == "filter":
-            return self._frame_of(h_w) if self._fr_lp is None else self._fr_lp[2]
-        if AP_YAW_FRAME == "samples":
-            if self._fr_line is None:
-                return self._frame_of(h_w)
-            return self._fr_line[0] + self._fr_line[1] * t_s
         if self._fit[0] < 3 or self._ap_key is None or self._ap_key[0] != self._fit_epoch:
             return self._frame_of(h_w)
         return self._fit_value(t_s)
