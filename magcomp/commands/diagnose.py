@@ -15,6 +15,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+#: the dates the bundled WMM releases cover (as the configuration's [location] decimal_year)
+YEAR_RANGE = (2010.0, 2030.0)
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", metavar="LOG", help=".tlog, ArduPilot DataFlash .bin/.log, or PX4 .ulg")
@@ -381,6 +384,11 @@ def _check_args(args: argparse.Namespace) -> None:
         raise InputError(f"{args.log}: no such file")
     if args.mag_index is not None and args.mag_index < 0:
         raise InputError(f"--mag-index must be a compass index >= 0, got {args.mag_index}")
+    if args.year is not None and not YEAR_RANGE[0] <= args.year < YEAR_RANGE[1]:  # NaN fails too
+        raise InputError(
+            f"--year {args.year:g} is outside [{YEAR_RANGE[0]:g}, {YEAR_RANGE[1]:g}) "
+            "(the life spans of the bundled WMM 2010-2025 releases)"
+        )
     inputs = (args.log, args.truth, args.config)
     check_output_path(args.json, "--json", inputs)
     check_output_path(args.report, "--report", inputs, makes_parents=True)

@@ -154,6 +154,8 @@ CASES: list[tuple[str, list[str], str]] = [
     ("diagnose-truth-not-npz", ["diagnose", "{log}", "--truth", "{text}"], "not a NumPy .npz file"),
     ("diagnose-rerun-save-no-dir", ["diagnose", "{log}", "--rerun", "save={tmp}/m/x.rrd"], "does not exist"),
     ("diagnose-mag-index-negative", ["diagnose", "{log}", "--mag-index", "-1"], "--mag-index"),
+    ("diagnose-year-1900", ["diagnose", "{log}", "--year", "1900"], "outside [2010, 2030)"),
+    ("diagnose-year-nan", ["diagnose", "{log}", "--year", "nan"], "--year nan is outside"),
     # demo (all refused before the simulator starts)
     ("demo-duration-short", ["demo", "--duration", "10"], "--duration"),
     ("demo-speed-nan", ["demo", "--speed", "nan"], "--speed"),
