@@ -268,6 +268,10 @@ def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRo
     return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
 
 
+#: the open window's contribution with its nuisance eliminated (:meth:`InflightEstimator._window_schur`)
+WindowSchur = tuple[F64, F64, float, F64, float, float]
+
+
 class InflightEstimator:
     """Recursive least squares in information form for one compass (no I/O; the state is numpy arrays).
 
@@ -384,6 +388,10 @@ class InflightEstimator:
         residual sum of squares from the information form, ``z'z - 2 p'b + p'Ip``, over its degrees of
         freedom. (A running mean of a-priori residuals would keep the large residuals of the first samples,
         when the estimate was still the prior, and overstate the noise tenfold.)"""
+        return self._sigma_at(None)
+
+    def _sigma_at(self, eff: tuple[F64, F64, float] | None) -> float:
+        """:attr:`sigma_mgauss` with :meth:`_effective` given when known (None: computed here if needed)."""
         n_common = 1 if self._n_cc + self._w_cc > 0.0 else 0
         n_dof = (
             3 * self.n + self.n_norm - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows - n_common
@@ -391,7 +399,7 @@ class InflightEstimator:
         if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
         p = self._theta
-        info, rhs, zz = self._effective()
+        info, rhs, zz = self._effective() if eff is None else eff
         rss = zz - 2.0 * float(p @ rhs) + float(p @ info @ p)
         return max(self.p.noise_floor_mgauss, math.sqrt(max(rss, 0.0) / n_dof))
 
@@ -473,10 +481,15 @@ class InflightEstimator:
         equations) and the white expectation has the fit's own share removed. 1 for white residuals, the
         number of samples a batch effectively counts as one for lasting ones. Batches form over nuisance
         windows only. Departure from the paper: its observer has no covariance to inflate."""
+        return self._vif_at(None)
+
+    def _vif_at(self, s2: float | None) -> float:
+        """:attr:`variance_inflation` with ``sigma_mgauss**2`` given when known (None: computed here)."""
         if len(self._batches) < VIF_MIN_BATCHES:
             return 1.0
         p, c0, cov = self._theta, self.common_estimate, self._cov
-        s2 = self.sigma_mgauss**2  # per component, at the estimate
+        if s2 is None:
+            s2 = self.sigma_mgauss**2  # per component, at the estimate
         num = den = 0.0
         for c, m, g, n_b in self._batches:
             e = c - m @ p - g * c0
@@ -573,7 +586,7 @@ class InflightEstimator:
         k_p = pc / cc
         return pp - np.outer(k_p, pc), bp - k_p * bc, zz - bc * bc / cc
 
-    def _window_schur(self) -> tuple[F64, F64, float, F64, float, float]:
+    def _window_schur(self) -> WindowSchur:
         """The open window's contribution with its nuisance eliminated: (info, rhs, z'z) of the parameters
         and the blocks of the common unknown (parameters x common, common x common, its rhs). The
         nuisance has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor)
@@ -700,22 +713,22 @@ class InflightEstimator:
             a[...] = 0.0
         self._w_n = 0
 
-    def _common_value(self, p: F64) -> float:
+    def _common_value(self, p: F64, ws: WindowSchur | None = None) -> float:
         """The common unknown's least-squares value at parameters ``p`` (back-substitution of its Schur
-        complement; 0 when there is none)."""
+        complement; 0 when there is none). ``ws``: :meth:`_window_schur` when already computed."""
         pc, cc, bc = self._n_pc, self._n_cc, self._n_bc
         if self._win is not None and self._w_cc > 0.0:
-            _, _, _, w_pc, w_cc, w_bc = self._window_schur()
+            _, _, _, w_pc, w_cc, w_bc = self._window_schur() if ws is None else ws
             pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
         return 0.0 if cc <= 0.0 else float((bc - pc @ p) / cc)
 
-    def _effective(self) -> tuple[F64, F64, float]:
+    def _effective(self, ws: WindowSchur | None = None) -> tuple[F64, F64, float]:
         """(info, rhs, z'z) of every row so far, the open nuisance window and the norm rows included, the
-        unknown common to the flight eliminated."""
+        unknown common to the flight eliminated. ``ws``: :meth:`_window_schur` when already computed."""
         pp, bp, zz = self.info + self._n_pp, self.rhs + self._n_bp, self._zz + self._n_zz
         pc, cc, bc = self._n_pc, self._n_cc, self._n_bc
         if self._win is not None:
-            w_pp, w_bp, w_zz, w_pc, w_cc, w_bc = self._window_schur()
+            w_pp, w_bp, w_zz, w_pc, w_cc, w_bc = self._window_schur() if ws is None else ws
             pp, bp, zz = pp + w_pp, bp + w_bp, zz + w_zz
             pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
         return self._common_schur(pp, pc, cc, bp, bc, zz)
@@ -724,9 +737,13 @@ class InflightEstimator:
         """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""
         # two rounds: the noise scale weighs data against the prior, and is itself the residual at the
         # estimate (the first round's scale comes from the previous estimate)
-        info, rhs, _ = self._effective()
+        # nothing the open window's Schur complement depends on changes here (only theta does): computed
+        # once for the refresh (it was six times, 18 small solves)
+        ws = self._window_schur() if self._win is not None else None
+        eff = self._effective(ws)
+        info, rhs, _ = eff
         for _ in range(2):
-            s2 = self.sigma_mgauss**2
+            s2 = self._sigma_at(eff) ** 2
             lam = info / s2 + self.prior_info
             b = rhs / s2 + self.prior_info @ self.prior_mean
             try:
@@ -735,11 +752,11 @@ class InflightEstimator:
                 return
             theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
             self._theta = theta
-        self.common_estimate = self._common_value(theta)
-        s2 = self.sigma_mgauss**2
+        self.common_estimate = self._common_value(theta, ws)
+        s2 = self._sigma_at(eff) ** 2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov  # white: the gate's predictive covariance
-        self._solution = self._build(theta, cov, s2, self.variance_inflation)
+        self._solution = self._build(theta, cov, s2, self._vif_at(s2))
         self._dirty = False
 
     def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
