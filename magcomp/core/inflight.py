@@ -365,6 +365,10 @@ class InflightEstimator:
         self.n_norm = 0
         #: the unknown common to the flight at the last solution (mgauss; 0 before any)
         self.common_estimate = 0.0
+        #: bumped whenever the parameters, the solution or the open window's blocks change (the open
+        #: window's nuisance estimate is cached against it)
+        self._rev = 0
+        self._open_cache: tuple[tuple[int, bool, tuple[float, ...]], tuple[F64, F64]] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -520,13 +524,21 @@ class InflightEstimator:
             sol = self._solution
             s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
             sd = self._prior_sd_k(k)
+            # the stage asks twice per row with nothing changed in between (window_nuisance, then add):
+            # the second answer is the first (same inputs, same numbers); _rev changes with every input
+            key = (self._rev, with_common, tuple(sd.tolist()))
+            cached = self._open_cache
+            if cached is not None and cached[0] == key:
+                return cached[1]
             hee = self._w_ee + np.diag((s_ref / sd) ** 2)
             try:
                 b_e = self._w_be - self._w_pe.T @ self._theta
                 if with_common and self._w_ec.shape[0] == k:
                     b_e = b_e - self._w_ec * self.common_estimate
                 h_inv = np.asarray(np.linalg.inv(hee), dtype=np.float64)
-                return np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
+                out = np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
+                self._open_cache = (key, out)
+                return out
             except np.linalg.LinAlgError:
                 pass
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
@@ -576,6 +588,7 @@ class InflightEstimator:
         self._n_bc += c * z
         self._n_zz += z * z
         self.n_norm += 1
+        self._rev += 1
         self._dirty = True
 
     @staticmethod
@@ -616,6 +629,7 @@ class InflightEstimator:
     def _close_window(self) -> None:
         if self._win is None:
             return
+        self._rev += 1
         self._batch_window()
         info, rhs, zz, pc, cc, bc = self._window_schur()
         self.info += info
@@ -636,6 +650,7 @@ class InflightEstimator:
         and throttle statistics stay as they were; nothing happens without an open window."""
         if self._win is None:
             return
+        self._rev += 1
         for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
             a[...] = 0.0
         for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
@@ -650,6 +665,7 @@ class InflightEstimator:
         self, rows: F64, z: F64, nuisance: F64 | None, window: object, common: F64 | None
     ) -> None:
         """Fold one used sample into the normal equations, or into the open nuisance window's blocks."""
+        self._rev += 1
         if nuisance is None:
             self._zz += float(z @ z)
             self.info += rows.T @ rows
@@ -752,11 +768,13 @@ class InflightEstimator:
                 return
             theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
             self._theta = theta
+            self._rev += 1
         self.common_estimate = self._common_value(theta, ws)
         s2 = self._sigma_at(eff) ** 2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov  # white: the gate's predictive covariance
         self._solution = self._build(theta, cov, s2, self._vif_at(s2))
+        self._rev += 1
         self._dirty = False
 
     def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
