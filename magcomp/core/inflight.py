@@ -268,6 +268,47 @@ def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRo
     return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
 
 
+class ResidualBatches:
+    """The closed residual batches of :attr:`InflightEstimator.variance_inflation`, stacked: batch b's
+    residual sum at parameters p and common unknown c0 is ``c_b - M_b p - g_b c0`` over ``n_b`` samples.
+
+    The batch-means ratio is evaluated over all batches at once (numpy over the stack), and the white
+    expectation's fit share ``sum_b tr(M_b cov M_b') / n_b = tr(cov S)`` through ``S = sum_b M_b' M_b / n_b``,
+    updated once per batch: the estimator re-solves ~10 times a second, and a loop over every batch at
+    every solve grew with the square of the log's length (20 of 81 s CPU on a simulated 60 min flight).
+    tests/oracles.py keeps the per-batch loop it replaces (the same sums in another order)."""
+
+    def __init__(self, n: int) -> None:
+        self._c = np.zeros((8, 3))
+        self._m = np.zeros((8, 3, n))
+        self._g = np.zeros((8, 3))
+        self._inv_n = np.zeros(8)
+        self._mm = np.zeros((n, n))
+        self.count = 0
+
+    def append(self, c: F64, m: F64, g: F64, n_b: int) -> None:
+        """A closed batch (copied)."""
+        i = self.count
+        if i == self._inv_n.shape[0]:  # amortised doubling (grows with the log, ~100 floats a batch)
+            self._c, self._m, self._g, self._inv_n = (
+                np.concatenate([a, np.zeros_like(a)]) for a in (self._c, self._m, self._g, self._inv_n)
+            )
+        self._c[i], self._m[i], self._g[i], self._inv_n[i] = c, m, g, 1.0 / n_b
+        self._mm += (m.T @ m) / n_b
+        self.count = i + 1
+
+    def inflation(self, p: F64, c0: float, cov: F64 | None, s2: float) -> float:
+        """``sum_b |c_b - M_b p - g_b c0|^2 / n_b`` over its white expectation ``sum_b (3 s2 - tr(M_b cov
+        M_b') / n_b)`` (the unit-weight Lambda^-1 is cov / s2; without the fit's share the estimate is ~25 %
+        low), at least 1; 1 when the expectation is not positive."""
+        b = self.count
+        e = self._c[:b] - self._m[:b] @ p - self._g[:b] * c0
+        num = float(np.einsum("bi,bi,b->", e, e, self._inv_n[:b]))
+        fit = 0.0 if cov is None else float(np.einsum("jk,jk->", cov, self._mm))
+        den = 3.0 * s2 * b - fit
+        return max(1.0, num / den) if den > 0.0 else 1.0
+
+
 #: the open window's contribution with its nuisance eliminated (:meth:`InflightEstimator._window_schur`)
 WindowSchur = tuple[F64, F64, float, F64, float, float]
 
@@ -382,7 +423,7 @@ class InflightEstimator:
         self._b_g = np.zeros(3)
         self._b_n = 0
         self._b_windows = 0
-        self._batches: list[tuple[F64, F64, F64, int]] = []
+        self._batches = ResidualBatches(n)
         #: nuisance windows per batch (the stage sets it from its window length: VIF_BATCH_S / window)
         self.vif_batch_windows = 15
 
@@ -489,20 +530,11 @@ class InflightEstimator:
 
     def _vif_at(self, s2: float | None) -> float:
         """:attr:`variance_inflation` with ``sigma_mgauss**2`` given when known (None: computed here)."""
-        if len(self._batches) < VIF_MIN_BATCHES:
+        if self._batches.count < VIF_MIN_BATCHES:
             return 1.0
-        p, c0, cov = self._theta, self.common_estimate, self._cov
         if s2 is None:
             s2 = self.sigma_mgauss**2  # per component, at the estimate
-        num = den = 0.0
-        for c, m, g, n_b in self._batches:
-            e = c - m @ p - g * c0
-            num += float(e @ e) / n_b
-            # white residuals: E|e|^2 / n_b = s2 (3 - tr(M Lambda^-1 M') / n_b), the fit's share removed
-            # (the unit-weight Lambda^-1 is cov / s2); without it the estimate is ~25 % low
-            fit = 0.0 if cov is None else float(np.einsum("ij,jk,ik->", m, cov, m)) / n_b
-            den += 3.0 * s2 - fit
-        return max(1.0, num / den) if den > 0.0 else 1.0
+        return self._batches.inflation(self._theta, self.common_estimate, self._cov, s2)
 
     def _prior_sd_k(self, k: int) -> F64:
         """The nuisance prior's standard deviations as k numbers (the stage sets an array of k per row)."""
@@ -721,7 +753,7 @@ class InflightEstimator:
                 self._b_n += self._w_n
                 self._b_windows += 1
                 if self._b_windows >= self.vif_batch_windows:
-                    self._batches.append((self._b_c.copy(), self._b_m.copy(), self._b_g.copy(), self._b_n))
+                    self._batches.append(self._b_c, self._b_m, self._b_g, self._b_n)
                     for a in (self._b_c, self._b_m, self._b_g):
                         a[...] = 0.0
                     self._b_n = self._b_windows = 0
