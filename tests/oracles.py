@@ -278,3 +278,20 @@ def step(st: State, omega: F64, field: F64, thr: float, dt: float, p: ObserverPa
     if all(new.converged):
         flags |= FLAG_THETA_CONVERGED
     return new, Info("ok", flags, float(np.linalg.norm(resid)), lam_min, obs)
+
+
+# --- in-flight estimator ----------------------------------------------------------------------------------
+
+
+def variance_inflation_loop(
+    batches: list[tuple[F64, F64, F64, int]], p: F64, c0: float, cov: F64 | None, s2: float
+) -> float:
+    """The batch-means variance inflation as a loop over the batches (c_b, M_b, g_b, n_b), each batch's
+    residual sum and its white expectation in turn (what magcomp.core.inflight.ResidualBatches stacks)."""
+    num = den = 0.0
+    for c, m, g, n_b in batches:
+        e = c - m @ p - g * c0
+        num += float(e @ e) / n_b
+        fit = 0.0 if cov is None else float(np.einsum("ij,jk,ik->", m, cov, m)) / n_b
+        den += 3.0 * s2 - fit
+    return max(1.0, num / den) if den > 0.0 else 1.0

@@ -46,6 +46,8 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.linalg3 import cross, vec3
+
 F64 = NDArray[np.float64]
 
 InflightMode = Literal["absolute", "relative"]
@@ -137,6 +139,11 @@ _ROT_BASIS = np.array(
     dtype=float,
 )
 _SOFT_BASIS = np.concatenate([_SYM_BASIS, _ROT_BASIS])
+#: the identity, built once (read only): the per-sample rows copy it rather than call np.eye each time
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+#: the eight headings of the heading-sigma rms (rad)
+_PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 N_SYM = _SYM_BASIS.shape[0]
 N_SOFT = _SOFT_BASIS.shape[0]
 
@@ -187,9 +194,9 @@ def reference_yaw_error_rows(r_nb: F64, field_ref_n_mgauss: F64) -> F64:
     """Column (3, 1) of a small yaw error ``e`` (rad) of the absolute form's reference attitude: with the
     true attitude ``Rz(e) R_nb``, the Earth field in body axes is ``R_nb^T (h - e [e_3]x h)`` to first order
     (A ~ I). A nuisance of the absolute form (see :meth:`InflightEstimator.add`)."""
-    return np.asarray(-(r_nb.T @ np.cross((0.0, 0.0, 1.0), field_ref_n_mgauss)), dtype=np.float64).reshape(
-        3, 1
-    )
+    # linalg3.cross: numpy's np.cross arithmetic on floats (the same numbers), without its 15-40 us a call
+    e3_x_h = np.array(cross((0.0, 0.0, 1.0), vec3(field_ref_n_mgauss)))
+    return np.asarray(-(r_nb.T @ e3_x_h), dtype=np.float64).reshape(3, 1)
 
 
 def relative_rows(
@@ -254,11 +261,56 @@ def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRo
     k = N_SOFT
     rows = np.empty((3, k + 3 + 3 * n_r))
     rows[:, 0:k] = -np.einsum("kij,j->ik", _SOFT_BASIS, v)
-    rows[:, k : k + 3] = np.eye(3)
+    rows[:, k : k + 3] = _EYE3
     for r in range(n_r):
-        rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x[r] * np.eye(3)
+        rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x[r] * _EYE3
     rt = np.asarray(r_nb, dtype=np.float64).T
     return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
+
+
+class ResidualBatches:
+    """The closed residual batches of :attr:`InflightEstimator.variance_inflation`, stacked: batch b's
+    residual sum at parameters p and common unknown c0 is ``c_b - M_b p - g_b c0`` over ``n_b`` samples.
+
+    The batch-means ratio is evaluated over all batches at once (numpy over the stack), and the white
+    expectation's fit share ``sum_b tr(M_b cov M_b') / n_b = tr(cov S)`` through ``S = sum_b M_b' M_b / n_b``,
+    updated once per batch: the estimator re-solves ~10 times a second, and a loop over every batch at
+    every solve grew with the square of the log's length (20 of 81 s CPU on a simulated 60 min flight).
+    tests/oracles.py keeps the per-batch loop it replaces (the same sums in another order)."""
+
+    def __init__(self, n: int) -> None:
+        self._c = np.zeros((8, 3))
+        self._m = np.zeros((8, 3, n))
+        self._g = np.zeros((8, 3))
+        self._inv_n = np.zeros(8)
+        self._mm = np.zeros((n, n))
+        self.count = 0
+
+    def append(self, c: F64, m: F64, g: F64, n_b: int) -> None:
+        """A closed batch (copied)."""
+        i = self.count
+        if i == self._inv_n.shape[0]:  # amortised doubling (grows with the log, ~100 floats a batch)
+            self._c, self._m, self._g, self._inv_n = (
+                np.concatenate([a, np.zeros_like(a)]) for a in (self._c, self._m, self._g, self._inv_n)
+            )
+        self._c[i], self._m[i], self._g[i], self._inv_n[i] = c, m, g, 1.0 / n_b
+        self._mm += (m.T @ m) / n_b
+        self.count = i + 1
+
+    def inflation(self, p: F64, c0: float, cov: F64 | None, s2: float) -> float:
+        """``sum_b |c_b - M_b p - g_b c0|^2 / n_b`` over its white expectation ``sum_b (3 s2 - tr(M_b cov
+        M_b') / n_b)`` (the unit-weight Lambda^-1 is cov / s2; without the fit's share the estimate is ~25 %
+        low), at least 1; 1 when the expectation is not positive."""
+        b = self.count
+        e = self._c[:b] - self._m[:b] @ p - self._g[:b] * c0
+        num = float(np.einsum("bi,bi,b->", e, e, self._inv_n[:b]))
+        fit = 0.0 if cov is None else float(np.einsum("jk,jk->", cov, self._mm))
+        den = 3.0 * s2 * b - fit
+        return max(1.0, num / den) if den > 0.0 else 1.0
+
+
+#: the open window's contribution with its nuisance eliminated (:meth:`InflightEstimator._window_schur`)
+WindowSchur = tuple[F64, F64, float, F64, float, float]
 
 
 class InflightEstimator:
@@ -354,6 +406,10 @@ class InflightEstimator:
         self.n_norm = 0
         #: the unknown common to the flight at the last solution (mgauss; 0 before any)
         self.common_estimate = 0.0
+        #: bumped whenever the parameters, the solution or the open window's blocks change (the open
+        #: window's nuisance estimate is cached against it)
+        self._rev = 0
+        self._open_cache: tuple[tuple[int, bool, tuple[float, ...]], tuple[F64, F64]] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -367,7 +423,7 @@ class InflightEstimator:
         self._b_g = np.zeros(3)
         self._b_n = 0
         self._b_windows = 0
-        self._batches: list[tuple[F64, F64, F64, int]] = []
+        self._batches = ResidualBatches(n)
         #: nuisance windows per batch (the stage sets it from its window length: VIF_BATCH_S / window)
         self.vif_batch_windows = 15
 
@@ -377,6 +433,10 @@ class InflightEstimator:
         residual sum of squares from the information form, ``z'z - 2 p'b + p'Ip``, over its degrees of
         freedom. (A running mean of a-priori residuals would keep the large residuals of the first samples,
         when the estimate was still the prior, and overstate the noise tenfold.)"""
+        return self._sigma_at(None)
+
+    def _sigma_at(self, eff: tuple[F64, F64, float] | None) -> float:
+        """:attr:`sigma_mgauss` with :meth:`_effective` given when known (None: computed here if needed)."""
         n_common = 1 if self._n_cc + self._w_cc > 0.0 else 0
         n_dof = (
             3 * self.n + self.n_norm - self.info.shape[0] - self._w_ee.shape[0] * self.n_windows - n_common
@@ -384,7 +444,7 @@ class InflightEstimator:
         if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
         p = self._theta
-        info, rhs, zz = self._effective()
+        info, rhs, zz = self._effective() if eff is None else eff
         rss = zz - 2.0 * float(p @ rhs) + float(p @ info @ p)
         return max(self.p.noise_floor_mgauss, math.sqrt(max(rss, 0.0) / n_dof))
 
@@ -466,19 +526,22 @@ class InflightEstimator:
         equations) and the white expectation has the fit's own share removed. 1 for white residuals, the
         number of samples a batch effectively counts as one for lasting ones. Batches form over nuisance
         windows only. Departure from the paper: its observer has no covariance to inflate."""
-        if len(self._batches) < VIF_MIN_BATCHES:
+        return self._vif_at(None)
+
+    def _vif_at(self, s2: float | None) -> float:
+        """:attr:`variance_inflation` with ``sigma_mgauss**2`` given when known (None: computed here)."""
+        if self._batches.count < VIF_MIN_BATCHES:
             return 1.0
-        p, c0, cov = self._theta, self.common_estimate, self._cov
-        s2 = self.sigma_mgauss**2  # per component, at the estimate
-        num = den = 0.0
-        for c, m, g, n_b in self._batches:
-            e = c - m @ p - g * c0
-            num += float(e @ e) / n_b
-            # white residuals: E|e|^2 / n_b = s2 (3 - tr(M Lambda^-1 M') / n_b), the fit's share removed
-            # (the unit-weight Lambda^-1 is cov / s2); without it the estimate is ~25 % low
-            fit = 0.0 if cov is None else float(np.einsum("ij,jk,ik->", m, cov, m)) / n_b
-            den += 3.0 * s2 - fit
-        return max(1.0, num / den) if den > 0.0 else 1.0
+        if s2 is None:
+            s2 = self.sigma_mgauss**2  # per component, at the estimate
+        return self._batches.inflation(self._theta, self.common_estimate, self._cov, s2)
+
+    def _prior_sd_k(self, k: int) -> F64:
+        """The nuisance prior's standard deviations as k numbers (the stage sets an array of k per row)."""
+        sd = self.nuisance_prior_sd
+        if isinstance(sd, np.ndarray) and sd.shape == (k,) and sd.dtype == np.float64:
+            return sd
+        return np.broadcast_to(np.asarray(sd, dtype=float), (k,))
 
     def _nuisance_estimate(
         self, nuisance: F64, r: F64, window: object, with_common: bool
@@ -492,14 +555,22 @@ class InflightEstimator:
         if window == self._win and self._w_ee.shape[0] == k and self._w_ee.any():
             sol = self._solution
             s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-            sd = np.broadcast_to(np.asarray(self.nuisance_prior_sd, dtype=float), (k,))
+            sd = self._prior_sd_k(k)
+            # the stage asks twice per row with nothing changed in between (window_nuisance, then add):
+            # the second answer is the first (same inputs, same numbers); _rev changes with every input
+            key = (self._rev, with_common, tuple(sd.tolist()))
+            cached = self._open_cache
+            if cached is not None and cached[0] == key:
+                return cached[1]
             hee = self._w_ee + np.diag((s_ref / sd) ** 2)
             try:
                 b_e = self._w_be - self._w_pe.T @ self._theta
                 if with_common and self._w_ec.shape[0] == k:
                     b_e = b_e - self._w_ec * self.common_estimate
                 h_inv = np.asarray(np.linalg.inv(hee), dtype=np.float64)
-                return np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
+                out = np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
+                self._open_cache = (key, out)
+                return out
             except np.linalg.LinAlgError:
                 pass
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
@@ -549,6 +620,7 @@ class InflightEstimator:
         self._n_bc += c * z
         self._n_zz += z * z
         self.n_norm += 1
+        self._rev += 1
         self._dirty = True
 
     @staticmethod
@@ -559,7 +631,7 @@ class InflightEstimator:
         k_p = pc / cc
         return pp - np.outer(k_p, pc), bp - k_p * bc, zz - bc * bc / cc
 
-    def _window_schur(self) -> tuple[F64, F64, float, F64, float, float]:
+    def _window_schur(self) -> WindowSchur:
         """The open window's contribution with its nuisance eliminated: (info, rhs, z'z) of the parameters
         and the blocks of the common unknown (parameters x common, common x common, its rhs). The
         nuisance has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor)
@@ -568,7 +640,7 @@ class InflightEstimator:
         s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
         k = self._w_ee.shape[0]
         # unit weight: the data rows are not divided by s
-        ridge = (s_ref / np.broadcast_to(np.asarray(self.nuisance_prior_sd, dtype=float), (k,))) ** 2
+        ridge = (s_ref / self._prior_sd_k(k)) ** 2
         hee = self._w_ee + np.diag(ridge)
         ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
         try:
@@ -589,6 +661,7 @@ class InflightEstimator:
     def _close_window(self) -> None:
         if self._win is None:
             return
+        self._rev += 1
         self._batch_window()
         info, rhs, zz, pc, cc, bc = self._window_schur()
         self.info += info
@@ -609,6 +682,7 @@ class InflightEstimator:
         and throttle statistics stay as they were; nothing happens without an open window."""
         if self._win is None:
             return
+        self._rev += 1
         for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
             a[...] = 0.0
         for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
@@ -623,6 +697,7 @@ class InflightEstimator:
         self, rows: F64, z: F64, nuisance: F64 | None, window: object, common: F64 | None
     ) -> None:
         """Fold one used sample into the normal equations, or into the open nuisance window's blocks."""
+        self._rev += 1
         if nuisance is None:
             self._zz += float(z @ z)
             self.info += rows.T @ rows
@@ -664,7 +739,7 @@ class InflightEstimator:
         if self._w_n > 0 and self._w_sn.shape[1] == k:
             sol = self._solution
             s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-            ridge = (s_ref / np.broadcast_to(np.asarray(self.nuisance_prior_sd, dtype=float), (k,))) ** 2
+            ridge = (s_ref / self._prior_sd_k(k)) ** 2
             hee = self._w_ee + np.diag(ridge)
             ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
             try:
@@ -678,7 +753,7 @@ class InflightEstimator:
                 self._b_n += self._w_n
                 self._b_windows += 1
                 if self._b_windows >= self.vif_batch_windows:
-                    self._batches.append((self._b_c.copy(), self._b_m.copy(), self._b_g.copy(), self._b_n))
+                    self._batches.append(self._b_c, self._b_m, self._b_g, self._b_n)
                     for a in (self._b_c, self._b_m, self._b_g):
                         a[...] = 0.0
                     self._b_n = self._b_windows = 0
@@ -686,22 +761,22 @@ class InflightEstimator:
             a[...] = 0.0
         self._w_n = 0
 
-    def _common_value(self, p: F64) -> float:
+    def _common_value(self, p: F64, ws: WindowSchur | None = None) -> float:
         """The common unknown's least-squares value at parameters ``p`` (back-substitution of its Schur
-        complement; 0 when there is none)."""
+        complement; 0 when there is none). ``ws``: :meth:`_window_schur` when already computed."""
         pc, cc, bc = self._n_pc, self._n_cc, self._n_bc
         if self._win is not None and self._w_cc > 0.0:
-            _, _, _, w_pc, w_cc, w_bc = self._window_schur()
+            _, _, _, w_pc, w_cc, w_bc = self._window_schur() if ws is None else ws
             pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
         return 0.0 if cc <= 0.0 else float((bc - pc @ p) / cc)
 
-    def _effective(self) -> tuple[F64, F64, float]:
+    def _effective(self, ws: WindowSchur | None = None) -> tuple[F64, F64, float]:
         """(info, rhs, z'z) of every row so far, the open nuisance window and the norm rows included, the
-        unknown common to the flight eliminated."""
+        unknown common to the flight eliminated. ``ws``: :meth:`_window_schur` when already computed."""
         pp, bp, zz = self.info + self._n_pp, self.rhs + self._n_bp, self._zz + self._n_zz
         pc, cc, bc = self._n_pc, self._n_cc, self._n_bc
         if self._win is not None:
-            w_pp, w_bp, w_zz, w_pc, w_cc, w_bc = self._window_schur()
+            w_pp, w_bp, w_zz, w_pc, w_cc, w_bc = self._window_schur() if ws is None else ws
             pp, bp, zz = pp + w_pp, bp + w_bp, zz + w_zz
             pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
         return self._common_schur(pp, pc, cc, bp, bc, zz)
@@ -710,9 +785,13 @@ class InflightEstimator:
         """Re-solve the normal equations (called by :meth:`solve`; cheap, n <= 30)."""
         # two rounds: the noise scale weighs data against the prior, and is itself the residual at the
         # estimate (the first round's scale comes from the previous estimate)
-        info, rhs, _ = self._effective()
+        # nothing the open window's Schur complement depends on changes here (only theta does): computed
+        # once for the refresh (it was six times, 18 small solves)
+        ws = self._window_schur() if self._win is not None else None
+        eff = self._effective(ws)
+        info, rhs, _ = eff
         for _ in range(2):
-            s2 = self.sigma_mgauss**2
+            s2 = self._sigma_at(eff) ** 2
             lam = info / s2 + self.prior_info
             b = rhs / s2 + self.prior_info @ self.prior_mean
             try:
@@ -721,11 +800,13 @@ class InflightEstimator:
                 return
             theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
             self._theta = theta
-        self.common_estimate = self._common_value(theta)
-        s2 = self.sigma_mgauss**2
+            self._rev += 1
+        self.common_estimate = self._common_value(theta, ws)
+        s2 = self._sigma_at(eff) ** 2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov  # white: the gate's predictive covariance
-        self._solution = self._build(theta, cov, s2, self.variance_inflation)
+        self._solution = self._build(theta, cov, s2, self._vif_at(s2))
+        self._rev += 1
         self._dirty = False
 
     def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
@@ -773,25 +854,27 @@ class InflightEstimator:
         k = self._k
         n = cov.shape[0]
         mean_x0 = self._x0_sum / self.n if self.n else 0.0
-        worst = 0.0
-        for x0 in (mean_x0, self.x0_max):
-            var = 0.0
-            for psi in np.radians(np.arange(0.0, 360.0, 45.0)):
-                u = np.array([h * math.cos(psi), -h * math.sin(psi), v_z])
-                jac = np.zeros((3, n))
-                if self.mode == "absolute":
-                    for r in range(3):
-                        jac[r, 3 * r : 3 * r + 3] = -u
-                else:
-                    jac[:, :N_SOFT] = np.einsum("kij,j->ik", _SOFT_BASIS, u)
-                    # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate
-                    # stays 0): it is the same in the corrected and the uncorrected heading
-                    jac[:, N_SOFT - 1] = 0.0
-                jac[:, k : k + 3] = -np.eye(3)
-                jac[:, k + 3 : k + 6] = -x0 * np.eye(3)
-                g = np.array([-u[1], u[0], 0.0]) / (h * h) @ jac
-                var += float(g @ cov @ g)
-            worst = max(worst, var / 8.0)
+        x0s = (mean_x0, self.x0_max)
+        var = [0.0, 0.0]  # per x0, summed over the headings in order
+        for psi in _PSI8_RAD:
+            u = np.array([h * math.cos(psi), -h * math.sin(psi), v_z])
+            jac = np.zeros((3, n))
+            if self.mode == "absolute":
+                for r in range(3):
+                    jac[r, 3 * r : 3 * r + 3] = -u
+            else:
+                jac[:, :N_SOFT] = np.einsum("kij,j->ik", _SOFT_BASIS, u)
+                # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate
+                # stays 0): it is the same in the corrected and the uncorrected heading
+                jac[:, N_SOFT - 1] = 0.0
+            jac[:, k : k + 3] = -_EYE3
+            w = np.array([-u[1], u[0], 0.0]) / (h * h)
+            for i, x0 in enumerate(x0s):  # only theta's columns depend on delta^2
+                jac[:, k + 3 : k + 6] = -x0 * _EYE3
+                g = w @ jac
+                var[i] += float(g @ cov @ g)
+        worst = max(0.0, var[0] / 8.0)
+        worst = max(worst, var[1] / 8.0)
         return math.degrees(math.sqrt(worst))
 
     def solve(self) -> InflightSolution:

@@ -31,6 +31,7 @@ from magcomp.core.inflight import (
     rotation_error_rows,
     window_field_rows,
 )
+from magcomp.core.linalg3 import cross, vec3
 from magcomp.core.rotations import so3_exp, so3_log
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
@@ -124,6 +125,8 @@ REFERENCE_YAW_PRIOR_RAD = 0.035
 SOLVE_PERIOD_S = 0.1
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
+#: the north and east axes (the tilt prior's two columns)
+_NORTH_EAST = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -453,7 +456,9 @@ class InflightStage:
         TILT_PRIOR_RAD, the reference's tilt error about north and east (its vertical carries it)."""
         cols = [reference_yaw_error_rows(r_nb, h_w) * tau]
         if TILT_PRIOR_RAD > 0.0:
-            cols.append(np.stack([r_nb.T @ np.cross(e, h_w) for e in np.eye(3)[:2]], axis=1))
+            # about north and east: linalg3.cross is numpy's np.cross arithmetic on floats (same numbers)
+            h = vec3(h_w)
+            cols.append(np.stack([r_nb.T @ np.array(cross(e, h)) for e in _NORTH_EAST], axis=1))
         return cols
 
     def _relinearise_window(self) -> None:
@@ -494,7 +499,7 @@ class InflightStage:
             self._ap_key = key
         psi = (self._ap_yaw_dev + self._frame_at(t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
         v = -np.array([self._accel_h[0], self._accel_h[1], 0.0]) / STANDARD_GRAVITY_M_S2
-        col = (r_nb.T @ np.cross(v, h_w)).reshape(3, 1)
+        col = (r_nb.T @ np.array(cross(vec3(v), vec3(h_w)))).reshape(3, 1)
         return z - psi * col[:, 0], col
 
     def _frame_of(self, h: F64) -> float:

@@ -152,3 +152,29 @@ def test_float_algebra_matches_numpy() -> None:
         assert_allclose(quat_step_body_rate(q, v, 0.01), oracles.quat_step(q, v, 0.01), atol=1e-15)
         assert_allclose(dcm_from_quat(q), oracles.dcm(q), atol=1e-15)
     assert linalg3.sym3_eigvals((2.0, 0.0, 0.0, 1.0, 0.0, 3.0)) == (1.0, 2.0, 3.0)  # diagonal: exact
+
+
+@pytest.mark.parametrize("n_batches", [1, 8, 9, 40])
+def test_residual_batches_match_the_per_batch_loop(n_batches: int) -> None:
+    """The stacked variance inflation (numpy over every batch, the fit share through sum M'M / n) equals
+    the per-batch loop, across the stack's growth, with and without a covariance."""
+    from magcomp.core.inflight import ResidualBatches
+
+    rng = np.random.default_rng(n_batches)
+    n = 17
+    stack = ResidualBatches(n)
+    kept = []
+    for _ in range(n_batches):
+        n_b = int(rng.integers(50, 2000))
+        c, m, g = rng.normal(0, 30, 3), rng.normal(0, 5, (3, n)), rng.normal(0, 1, 3)
+        stack.append(c, m, g, n_b)
+        kept.append((c.copy(), m.copy(), g.copy(), n_b))
+        c[...] = 0.0  # appended copies: the caller reuses its arrays
+    p, c0 = rng.normal(0, 1, n), float(rng.normal(0, 100))
+    a = rng.normal(0, 0.01, (n, n))
+    for cov in (None, a @ a.T):
+        s2 = 1.0 if cov is None else 4.0
+        want = oracles.variance_inflation_loop(kept, p, c0, cov, s2)
+        assert stack.count == n_batches
+        assert_allclose(stack.inflation(p, c0, cov, s2), want, rtol=1e-12)
+    assert want > 1.0  # residual sums far above the white expectation: the ratio itself, not its floor
