@@ -324,6 +324,12 @@ class InflightEstimator:
         #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error), one value
         #: for every column or one per column
         self.nuisance_prior_sd: float | F64 = NUISANCE_PRIOR_RAD_S
+        #: another estimator of the same parameters from other rows whose theta the published solution
+        #: takes (``condition_theta_on``); this one's own estimate stays the linearisation point and the
+        #: gate's
+        self.theta_from: InflightEstimator | None = None
+        #: the published (conditioned) mean and covariance (inflated) when ``theta_from`` is set
+        self._pub: tuple[F64, F64] | None = None
 
     def _clear_blocks(self, n: int) -> None:
         """Empty nuisance-window and common-unknown blocks (``__init__``)."""
@@ -725,8 +731,35 @@ class InflightEstimator:
         s2 = self.sigma_mgauss**2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov  # white: the gate's predictive covariance
-        self._solution = self._build(theta, cov, s2, self.variance_inflation)
+        self._pub = None
+        if self.theta_from is not None and self.theta_from.n > 0:
+            self._pub = self._conditioned(theta, cov * self.variance_inflation, self.theta_from)
+        if self._pub is not None:
+            vif = self.variance_inflation
+            self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif)
+        else:
+            self._solution = self._build(theta, cov, s2, self.variance_inflation)
         self._dirty = False
+
+    def _conditioned(self, p: F64, cov: F64, other: InflightEstimator) -> tuple[F64, F64] | None:
+        """This estimate conditioned on theta = ``other``'s theta (a Schur complement, no second pass):
+        ``p + G (theta_o - theta_p)``, ``G = C[:, th] C[th, th]^-1``, with the covariance
+        ``C - G C[th, :] + G C_o G^T`` (``other``'s theta taken as an independent measurement of it).
+        Both covariances inflated. None when the block is singular."""
+        k = self._k
+        th = slice(k + 3, k + 6)
+        other.solve()
+        p_o = other._theta
+        if other._cov is None or p_o.shape != p.shape:
+            return None
+        c_o = other._cov[th, th] * other.variance_inflation
+        try:
+            g = np.linalg.solve(cov[th, th], cov[th, :]).T
+        except np.linalg.LinAlgError:
+            return None
+        mean = p + g @ (p_o[th] - p[th])
+        cov_c = cov - g @ cov[th, :] + g @ c_o @ g.T
+        return mean, 0.5 * (cov_c + cov_c.T)
 
     def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
         """The solution at parameters ``p``; its sigmas from ``cov`` times the variance inflation ``vif``."""
@@ -811,9 +844,12 @@ class InflightEstimator:
         held to this one's estimate more firmly than its correlated residuals allow."""
         self.solve()
         cov = self._cov * self.variance_inflation if self._cov is not None else np.linalg.inv(self.prior_info)
+        mean = self._theta
+        if self._pub is not None:  # conditioned on another estimator's theta: what was published
+            mean, cov = self._pub
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
         floor = 0.1 / np.sqrt(np.diag(self.prior_info))
-        return self._theta.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))
+        return mean.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))
 
     def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
         """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
