@@ -257,7 +257,7 @@ class InflightStage:
             self.est_tilt = InflightEstimator(
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
-        self.est.theta_from = self.est_tilt
+        self.est.theta_from = None  # from the first sample the tilt model applies to (a raw gyro's yaw)
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -450,6 +450,8 @@ class InflightStage:
             self.est, self._win_field, t_s, key, tau, r_nb, y, x, AP_YAW_TILT, relin
         )
         if self.est_tilt is not None:
+            if self._gy_on:
+                self.est.theta_from = self.est_tilt
             self._win_field_tilt = self._add_window_row(
                 self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False
             )
