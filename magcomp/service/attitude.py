@@ -46,8 +46,8 @@ GYRO_HOLDOFF_S = 0.5
 #: a second (the simulator's complementary filter: 1 / kp_tilt = 1 s); it also keeps the motors' vibration
 #: (tens of Hz) out
 ACCEL_LP_S = 1.0
-#: track that acceleration (for ``inflight_stage.AP_YAW_TILT``, off with it)
-TRACK_ACCEL_H = False
+#: track that acceleration (for the tilt model: ``inflight_stage.TILT_CONDITION``, ``AP_YAW_TILT``)
+TRACK_ACCEL_H = True
 
 
 class AttitudeView(NamedTuple):

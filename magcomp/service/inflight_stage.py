@@ -90,7 +90,7 @@ AP_YAW_TILT = False
 #: removed and its per-window nuisance) whose theta the published solution takes, the other parameters
 #: from the ordinary estimator conditioned on that theta (``InflightEstimator.theta_from``; docs/inflight.md,
 #: seventh pass). Needs ``attitude.TRACK_ACCEL_H``; AP_YAW_TILT off
-TILT_CONDITION = False
+TILT_CONDITION = True
 #: prior standard deviation (rad) of the gyro yaw's error that the line fit of the windows' field directions
 #: leaves, one per window (the tilt-from-yaw nuisance): a single window's field direction scatters by 2-7 deg
 #: about the gyro frame's true error (noise-free 10 Hz seed 2: it takes up hard-iron errors in windows with
