@@ -1,6 +1,7 @@
-"""The published in-flight solution conditioned on another estimator's theta (``InflightEstimator.theta_from``,
-the tilt model's estimator of ``inflight_stage.TILT_CONDITION``): the Schur-complement update must equal the
-estimate re-solved with theta held at the other's value, and the published theta must be the other's."""
+"""The published in-flight solution conditioned on another estimator's theta
+(``InflightEstimator.theta_from``, the tilt model's estimator of ``inflight_stage.TILT_CONDITION``): the
+Schur-complement update must equal the estimate re-solved with theta held at the other's value, and the
+published theta must be the other's."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ def _fed(seed: int, theta_shift: float) -> tuple[InflightEstimator, InflightEsti
     truth = rng.normal(0.0, [0.01] * 8 + [20.0] * 3 + [50.0] * 3)
     shift = np.zeros(n)
     shift[11:14] = theta_shift
-    ests = (InflightEstimator("relative", 0, InflightParams()), InflightEstimator("relative", 0, InflightParams()))
+    ests = (InflightEstimator("relative", 0, InflightParams()), InflightEstimator("relative", 0))
     for _ in range(400):
         rows = rng.normal(0.0, 1.0, (3, n)) * np.array([300.0] * 8 + [1.0] * 3 + [0.5] * 3)
         noise = rng.normal(0.0, 1.0, 3)  # below the 3 mgauss noise floor: the residual scale is the floor
