@@ -505,10 +505,13 @@ class InflightStage:
     def _yaw_tilt_cols(r_nb: F64, h_w: F64, tau: float) -> list[F64]:
         """The window's yaw-rate column (yaw error = rate * tau, about the window's field ``h_w``) and, with
         TILT_PRIOR_RAD, the reference's tilt error about north and east (its vertical carries it)."""
-        cols = [reference_yaw_error_rows(r_nb, h_w) * tau]
-        if TILT_PRIOR_RAD > 0.0:
-            cols.append(np.stack([r_nb.T @ np.cross(e, h_w) for e in np.eye(3)[:2]], axis=1))
-        return cols
+        if TILT_PRIOR_RAD <= 0.0:
+            return [reference_yaw_error_rows(r_nb, h_w) * tau]
+        # R^T [h]x: its column i is -R^T (e_i x h): the yaw column (reference_yaw_error_rows) and the tilt
+        # columns R^T (e_N x h), R^T (e_E x h) from one product (np.cross per column cost a tenth of a replay)
+        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
+        m = r_nb.T @ np.array([[0.0, -h3, h2], [h3, 0.0, -h1], [-h2, h1, 0.0]])
+        return [m[:, 2:3] * tau, -m[:, 0:2]]
 
     def _relinearise_window(self) -> None:
         """The window closing: its rows' yaw-rate and tilt columns written again about the window's final
@@ -548,8 +551,9 @@ class InflightStage:
                 self._frame_close(est, self._ap_key)
             self._ap_key = key
         psi = (self._ap_yaw_dev + self._frame_at(est, t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
-        v = -np.array([self._accel_h[0], self._accel_h[1], 0.0]) / STANDARD_GRAVITY_M_S2
-        col = (r_nb.T @ np.cross(v, h_w)).reshape(3, 1)
+        v1, v2 = -self._accel_h[0] / STANDARD_GRAVITY_M_S2, -self._accel_h[1] / STANDARD_GRAVITY_M_S2
+        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
+        col = (r_nb.T @ np.array([v2 * h3, -v1 * h3, v1 * h2 - v2 * h1])).reshape(3, 1)  # R^T (v x h)
         return z - psi * col[:, 0], col
 
     @staticmethod
