@@ -66,6 +66,10 @@ WARM_INFLATE = 2.0
 #: manoeuvre's tilt error, 5-30 s), and at least this many batches come in before it is used
 VIF_BATCH_S = 30.0
 VIF_MIN_BATCHES = 4
+#: a solution conditioned on another estimator's theta (``InflightEstimator.theta_from``) counts the two
+#: thetas' difference as a model uncertainty of the one it takes (its covariance plus the difference's
+#: outer product)
+THETA_MODEL_SPREAD = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -753,6 +757,9 @@ class InflightEstimator:
         if other._cov is None or p_o.shape != p.shape:
             return None
         c_o = other._cov[th, th] * other.variance_inflation
+        if THETA_MODEL_SPREAD:
+            dth = p_o[th] - p[th]
+            c_o = c_o + np.outer(dth, dth)
         try:
             g = np.linalg.solve(cov[th, th], cov[th, :]).T
         except np.linalg.LinAlgError:
