@@ -329,8 +329,8 @@ class InflightEstimator:
         #: for every column or one per column
         self.nuisance_prior_sd: float | F64 = NUISANCE_PRIOR_RAD_S
         #: another estimator of the same parameters from other rows whose theta the published solution
-        #: takes (``condition_theta_on``); this one's own estimate stays the linearisation point and the
-        #: gate's
+        #: takes, the rest conditioned on it (``_conditioned``); this one's own estimate stays the
+        #: linearisation point and the gate's
         self.theta_from: InflightEstimator | None = None
         #: the published (conditioned) mean and covariance (inflated) when ``theta_from`` is set
         self._pub: tuple[F64, F64] | None = None
@@ -748,8 +748,9 @@ class InflightEstimator:
     def _conditioned(self, p: F64, cov: F64, other: InflightEstimator) -> tuple[F64, F64] | None:
         """This estimate conditioned on theta = ``other``'s theta (a Schur complement, no second pass):
         ``p + G (theta_o - theta_p)``, ``G = C[:, th] C[th, th]^-1``, with the covariance
-        ``C - G C[th, :] + G C_o G^T`` (``other``'s theta taken as an independent measurement of it).
-        Both covariances inflated. None when the block is singular."""
+        ``C - G C[th, :] + G C_o G^T`` (``other``'s theta taken as an independent measurement of it; with
+        THETA_MODEL_SPREAD, ``C_o`` plus the outer product of the two thetas' difference). Both covariances
+        inflated. None when the block is singular. Departure from the paper: its observer has one model."""
         k = self._k
         th = slice(k + 3, k + 6)
         other.solve()
