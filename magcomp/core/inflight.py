@@ -334,6 +334,11 @@ class InflightEstimator:
         self.theta_from: InflightEstimator | None = None
         #: the published (conditioned) mean and covariance (inflated) when ``theta_from`` is set
         self._pub: tuple[F64, F64] | None = None
+        #: ``theta_from`` is re-solved at every this many solutions of this one (its cost: a second set of
+        #: normal equations solved), and whenever ``sync_theta_from`` asks
+        self.theta_from_every = 1
+        self._n_refresh = 0
+        self._sync = False
 
     def _clear_blocks(self, n: int) -> None:
         """Empty nuisance-window and common-unknown blocks (``__init__``)."""
@@ -414,8 +419,10 @@ class InflightEstimator:
         nuisance: F64 | None = None,
         window: object = None,
         common: F64 | None = None,
+        gate: bool = True,
     ) -> float:
-        """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate.
+        """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate
+        (NaN with ``gate`` False: the caller has judged the sample, e.g. with another estimator's gate).
 
         ``nuisance`` (3, 3): columns of a rotation-rate error held constant over ``window`` (any hashable
         key; a new key closes the previous window), estimated with the window's rows and eliminated
@@ -430,6 +437,14 @@ class InflightEstimator:
 
         ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
         vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
+        if not gate:
+            self._accumulate(rows, z, nuisance, window, common)
+            self.n += 1
+            self.x0_max = max(self.x0_max, x0)
+            self._x0_sum += x0
+            self._x0_sq += x0 * x0
+            self._dirty = True
+            return math.nan
         r = z - rows @ self._theta
         if common is not None:
             r = r - common * self.common_estimate
@@ -736,6 +751,7 @@ class InflightEstimator:
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov  # white: the gate's predictive covariance
         self._pub = None
+        self._n_refresh += 1
         if self.theta_from is not None and self.theta_from.n > 0:
             self._pub = self._conditioned(theta, cov * self.variance_inflation, self.theta_from)
         if self._pub is not None:
@@ -753,7 +769,9 @@ class InflightEstimator:
         inflated. None when the block is singular. Departure from the paper: its observer has one model."""
         k = self._k
         th = slice(k + 3, k + 6)
-        other.solve()
+        if self._sync or other._solution is None or self._n_refresh % max(1, self.theta_from_every) == 0:
+            other.solve()
+        self._sync = False
         p_o = other._theta
         if other._cov is None or p_o.shape != p.shape:
             return None
@@ -768,6 +786,13 @@ class InflightEstimator:
         mean = p + g @ (p_o[th] - p[th])
         cov_c = cov - g @ cov[th, :] + g @ c_o @ g.T
         return mean, 0.5 * (cov_c + cov_c.T)
+
+    def sync_theta_from(self) -> None:
+        """The next solution takes ``theta_from``'s latest theta, whatever ``theta_from_every`` says (the
+        final state of a log, the state stored for a later run)."""
+        if self.theta_from is not None and self.theta_from._dirty:
+            self._sync = True
+            self._dirty = True
 
     def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
         """The solution at parameters ``p``; its sigmas from ``cov`` times the variance inflation ``vif``."""

@@ -91,6 +91,10 @@ AP_YAW_TILT = False
 #: from the ordinary estimator conditioned on that theta (``InflightEstimator.theta_from``; docs/inflight.md,
 #: seventh pass). Needs ``attitude.TRACK_ACCEL_H``; AP_YAW_TILT off
 TILT_CONDITION = True
+#: the tilt model's estimator is re-solved at every this many solutions of the published one (every
+#: SOLVE_PERIOD_S): theta moves little in a second, and solving both every 0.1 s cost 60 % more CPU on a 50 Hz
+#: replay; the final state and the stored one always take its latest theta
+TILT_SOLVE_EVERY = 10
 #: prior standard deviation (rad) of the gyro yaw's error that the line fit of the windows' field directions
 #: leaves, one per window (the tilt-from-yaw nuisance): a single window's field direction scatters by 2-7 deg
 #: about the gyro frame's true error (noise-free 10 Hz seed 2: it takes up hard-iron errors in windows with
@@ -258,6 +262,7 @@ class InflightStage:
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
         self.est.theta_from = None  # from the first sample the tilt model applies to (a raw gyro's yaw)
+        self.est.theta_from_every = TILT_SOLVE_EVERY
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -446,10 +451,12 @@ class InflightStage:
         if relin and key != self._rl_key:
             self._relinearise_window()
             self._rl_key = key
+        gated = self.est.n_gated
         self._win_field = self._add_window_row(
             self.est, self._win_field, t_s, key, tau, r_nb, y, x, AP_YAW_TILT, relin
         )
-        if self.est_tilt is not None:
+        # the tilt model's estimator takes the samples the ordinary one's gate passed (the same glitches)
+        if self.est_tilt is not None and self.est.n_gated == gated:
             if self._gy_on:
                 self.est.theta_from = self.est_tilt
             self._win_field_tilt = self._add_window_row(
@@ -496,7 +503,7 @@ class InflightStage:
         est.nuisance_prior_sd = np.array(sd)
         nuis = np.hstack(cols)
         gated = est.n_gated
-        est.add(w.rows, z, float(x[0]), nuis, key, w.common)
+        est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
         if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
         return win_field
@@ -685,6 +692,8 @@ class InflightStage:
 
     def final_state(self) -> str:
         """The state of a sample with the final estimate held fixed (the two-pass replay's second pass)."""
+        if self.est is not None:
+            self.est.sync_theta_from()  # the final estimate takes the tilt model's final theta
         if self.applied and self.solution is not None:
             return "corrected"
         est = self.est
@@ -699,6 +708,7 @@ class InflightStage:
         """What the state store keeps to start the next run from (None before any estimate)."""
         if self.est is None or (self.est.n == 0 and not self.warm_started):
             return None
+        self.est.sync_theta_from()
         mean, sd = self.est.state()
         return {
             "form": self.mode,
