@@ -83,17 +83,18 @@ TILT_PRIOR_RAD = math.radians(0.5)
 #: it"). Off: it removes most of theta's noise-free bias (10 Hz seed 2: 9.9 -> 4.0 %) but the heading gets
 #: worse on held-out seeds (10 Hz seed 4 two-pass 1.64 -> 2.57 deg): the per-window nuisance lies along the
 #: specific force, i.e. the compass's misalignment about z in a coordinated turn, and no psi good enough to
-#: drop it was found (docs/inflight.md, fifth pass). Needs
-#: ``attitude.TRACK_ACCEL_H`` on too.
+#: drop it was found (docs/inflight.md, fifth pass). Needs ``attitude.TRACK_ACCEL_H`` on too. What is kept
+#: instead: TILT_CONDITION (the model's theta, the ordinary calibration conditioned on it)
 AP_YAW_TILT = False
 #: the tilt model in a second estimator of its own (``est_tilt``: the same samples, its rows with the tilt
 #: removed and its per-window nuisance) whose theta the published solution takes, the other parameters
 #: from the ordinary estimator conditioned on that theta (``InflightEstimator.theta_from``; docs/inflight.md,
-#: seventh pass). Needs ``attitude.TRACK_ACCEL_H``; AP_YAW_TILT off
+#: seventh pass). Measured, seeds 0-5 at 10 / 50 Hz: theta's worst error 14.5 -> 8.6 % (theta x1), the
+#: heading within 0.05 deg of the ordinary estimate's. Needs ``attitude.TRACK_ACCEL_H``; AP_YAW_TILT off
 TILT_CONDITION = True
 #: the tilt model's estimator is re-solved at every this many solutions of the published one (every
-#: SOLVE_PERIOD_S): theta moves little in a second, and solving both every 0.1 s cost 60 % more CPU on a 50 Hz
-#: replay; the final state and the stored one always take its latest theta
+#: SOLVE_PERIOD_S): theta moves little in a second, and solving both every 0.1 s cost 55 % more CPU on a 50 Hz
+#: replay (now 24 %); the final state and the stored one always take its latest theta
 TILT_SOLVE_EVERY = 10
 #: prior standard deviation (rad) of the gyro yaw's error that the line fit of the windows' field directions
 #: leaves, one per window (the tilt-from-yaw nuisance): a single window's field direction scatters by 2-7 deg
