@@ -456,11 +456,12 @@ class InflightStage:
         self._win_field = self._add_window_row(
             self.est, self._win_field, t_s, key, tau, r_nb, y, x, AP_YAW_TILT, relin
         )
-        # the tilt model's estimator takes the samples the ordinary one's gate passed (the same glitches),
-        # from the first one with a raw gyro's yaw on (a compass marked external never has one: no cost)
+        # the tilt model's estimator takes the samples with a raw gyro's yaw (a compass marked external never
+        # has one: no cost) that the ordinary one's gate passed (the same glitches). Only those: its windows
+        # carry one more nuisance column, and a window never mixes the two
         if self._gy_on and self.est_tilt is not None:
             self.est.theta_from = self.est_tilt
-        if self.est.theta_from is not None and self.est_tilt is not None and self.est.n_gated == gated:
+        if self._gy_on and self.est_tilt is not None and self.est.n_gated == gated:
             self._win_field_tilt = self._add_window_row(
                 self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False
             )
