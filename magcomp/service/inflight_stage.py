@@ -94,7 +94,7 @@ AP_YAW_TILT = False
 TILT_CONDITION = True
 #: the tilt model's estimator is re-solved at every this many solutions of the published one (every
 #: SOLVE_PERIOD_S): theta moves little in a second, and solving both every 0.1 s cost 55 % more CPU on a 50 Hz
-#: replay (now 24 %); the final state and the stored one always take its latest theta
+#: replay (now 17 %); the final state and the stored one always take its latest theta
 TILT_SOLVE_EVERY = 10
 #: prior standard deviation (rad) of the gyro yaw's error that the line fit of the windows' field directions
 #: leaves, one per window (the tilt-from-yaw nuisance): a single window's field direction scatters by 2-7 deg
