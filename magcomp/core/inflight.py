@@ -68,6 +68,10 @@ WARM_INFLATE = 2.0
 #: manoeuvre's tilt error, 5-30 s), and at least this many batches come in before it is used
 VIF_BATCH_S = 30.0
 VIF_MIN_BATCHES = 4
+#: a solution conditioned on another estimator's theta (``InflightEstimator.theta_from``) counts the two
+#: thetas' difference as a model uncertainty of the one it takes (its covariance plus the difference's
+#: outer product)
+THETA_MODEL_SPREAD = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -376,6 +380,17 @@ class InflightEstimator:
         #: prior standard deviation of the nuisance (its units: rad/s for a rotation-rate error), one value
         #: for every column or one per column
         self.nuisance_prior_sd: float | F64 = NUISANCE_PRIOR_RAD_S
+        #: another estimator of the same parameters from other rows whose theta the published solution
+        #: takes, the rest conditioned on it (``_conditioned``); this one's own estimate stays the
+        #: linearisation point and the gate's
+        self.theta_from: InflightEstimator | None = None
+        #: the published (conditioned) mean and covariance (inflated) when ``theta_from`` is set
+        self._pub: tuple[F64, F64] | None = None
+        #: ``theta_from`` is re-solved at every this many solutions of this one (its cost: a second set of
+        #: normal equations solved), and whenever ``sync_theta_from`` asks
+        self.theta_from_every = 1
+        self._n_refresh = 0
+        self._sync = False
 
     def _clear_blocks(self, n: int) -> None:
         """Empty nuisance-window and common-unknown blocks (``__init__``)."""
@@ -464,8 +479,10 @@ class InflightEstimator:
         nuisance: F64 | None = None,
         window: object = None,
         common: F64 | None = None,
+        gate: bool = True,
     ) -> float:
-        """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate.
+        """Add one sample's rows; returns its a-priori residual norm (mgauss) against the current estimate
+        (NaN with ``gate`` False: the caller has judged the sample, e.g. with another estimator's gate).
 
         ``nuisance`` (3, 3): columns of a rotation-rate error held constant over ``window`` (any hashable
         key; a new key closes the previous window), estimated with the window's rows and eliminated
@@ -480,6 +497,14 @@ class InflightEstimator:
 
         ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
         vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
+        if not gate:
+            self._accumulate(rows, z, nuisance, window, common)
+            self.n += 1
+            self.x0_max = max(self.x0_max, x0)
+            self._x0_sum += x0
+            self._x0_sq += x0 * x0
+            self._dirty = True
+            return math.nan
         r = z - rows @ self._theta
         if common is not None:
             r = r - common * self.common_estimate
@@ -805,9 +830,50 @@ class InflightEstimator:
         s2 = self._sigma_at(eff) ** 2
         cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
         self._cov = cov  # white: the gate's predictive covariance
-        self._solution = self._build(theta, cov, s2, self._vif_at(s2))
+        vif = self._vif_at(s2)
+        self._pub = None
+        self._n_refresh += 1
+        if self.theta_from is not None and self.theta_from.n > 0:
+            self._pub = self._conditioned(theta, cov * vif, self.theta_from)
+        if self._pub is not None:
+            self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif)
+        else:
+            self._solution = self._build(theta, cov, s2, vif)
         self._rev += 1
         self._dirty = False
+
+    def _conditioned(self, p: F64, cov: F64, other: InflightEstimator) -> tuple[F64, F64] | None:
+        """This estimate conditioned on theta = ``other``'s theta (a Schur complement, no second pass):
+        ``p + G (theta_o - theta_p)``, ``G = C[:, th] C[th, th]^-1``, with the covariance
+        ``C - G C[th, :] + G C_o G^T`` (``other``'s theta taken as an independent measurement of it; with
+        THETA_MODEL_SPREAD, ``C_o`` plus the outer product of the two thetas' difference). Both covariances
+        inflated. None when the block is singular. Departure from the paper: its observer has one model."""
+        k = self._k
+        th = slice(k + 3, k + 6)
+        if self._sync or other._solution is None or self._n_refresh % max(1, self.theta_from_every) == 0:
+            other.solve()
+        self._sync = False
+        p_o = other._theta
+        if other._cov is None or p_o.shape != p.shape:
+            return None
+        c_o = other._cov[th, th] * other.variance_inflation
+        if THETA_MODEL_SPREAD:
+            dth = p_o[th] - p[th]
+            c_o = c_o + np.outer(dth, dth)
+        try:
+            g = np.linalg.solve(cov[th, th], cov[th, :]).T
+        except np.linalg.LinAlgError:
+            return None
+        mean = p + g @ (p_o[th] - p[th])
+        cov_c = cov - g @ cov[th, :] + g @ c_o @ g.T
+        return mean, 0.5 * (cov_c + cov_c.T)
+
+    def sync_theta_from(self) -> None:
+        """The next solution takes ``theta_from``'s latest theta, whatever ``theta_from_every`` says (the
+        final state of a log, the state stored for a later run)."""
+        if self.theta_from is not None and self.theta_from._dirty:
+            self._sync = True
+            self._dirty = True
 
     def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
         """The solution at parameters ``p``; its sigmas from ``cov`` times the variance inflation ``vif``."""
@@ -894,9 +960,12 @@ class InflightEstimator:
         held to this one's estimate more firmly than its correlated residuals allow."""
         self.solve()
         cov = self._cov * self.variance_inflation if self._cov is not None else np.linalg.inv(self.prior_info)
+        mean = self._theta
+        if self._pub is not None:  # conditioned on another estimator's theta: what was published
+            mean, cov = self._pub
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
         floor = 0.1 / np.sqrt(np.diag(self.prior_info))
-        return self._theta.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))
+        return mean.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self._prior_sd_max, floor))
 
     def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
         """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation

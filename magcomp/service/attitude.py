@@ -46,8 +46,8 @@ GYRO_HOLDOFF_S = 0.5
 #: a second (the simulator's complementary filter: 1 / kp_tilt = 1 s); it also keeps the motors' vibration
 #: (tens of Hz) out
 ACCEL_LP_S = 1.0
-#: track that acceleration (for ``inflight_stage.AP_YAW_TILT``, off with it)
-TRACK_ACCEL_H = False
+#: track that acceleration (for the tilt model: ``inflight_stage.TILT_CONDITION``, ``AP_YAW_TILT``)
+TRACK_ACCEL_H = True
 
 
 class AttitudeView(NamedTuple):
@@ -124,6 +124,9 @@ class AttitudeStage:
         #: low-passed (ACCEL_LP_S): what a GPS-aided autopilot subtracts from the specific force with its own
         #: yaw, so an error of that yaw tilts its attitude by yaw error x acceleration / g (docs/inflight.md)
         self.accel_h: tuple[float, float] = (0.0, 0.0)
+        #: tracked only once someone asks for the gyro's yaw (gyro_yaw_at: the in-flight relative form), so a
+        #: log without in-flight calibration (a hand rotation) does not pay for it
+        self._accel_wanted = False
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -189,7 +192,7 @@ class AttitudeStage:
             rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
             self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
             self._yaw_rate_prev = rate
-            if TRACK_ACCEL_H:
+            if self._accel_wanted:
                 self._track_accel(ax, ay, az, t - prev_t)
             return False
         self._restart_filter(t, gx, gy, gz, ax, ay, az)
@@ -304,6 +307,7 @@ class AttitudeStage:
     def gyro_yaw_at(self, t: float, tol_s: float, max_dt_s: float) -> GyroYaw | None:
         """(epoch, raw gyro yaw in rad) when the last IMU sample is within ``tol_s`` of ``t``, the IMU comes
         at least every ``max_dt_s`` and the gyro is not gated, else None."""
+        self._accel_wanted = TRACK_ACCEL_H
         if self.imu_t is None or abs(t - self.imu_t) > tol_s or t <= self.gyro_bad_until or self.restart:
             return None
         if self.imu_dt is None or self.imu_dt > max_dt_s:

@@ -31,7 +31,6 @@ from magcomp.core.inflight import (
     rotation_error_rows,
     window_field_rows,
 )
-from magcomp.core.linalg3 import cross, vec3
 from magcomp.core.rotations import so3_exp, so3_log
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
@@ -84,9 +83,19 @@ TILT_PRIOR_RAD = math.radians(0.5)
 #: it"). Off: it removes most of theta's noise-free bias (10 Hz seed 2: 9.9 -> 4.0 %) but the heading gets
 #: worse on held-out seeds (10 Hz seed 4 two-pass 1.64 -> 2.57 deg): the per-window nuisance lies along the
 #: specific force, i.e. the compass's misalignment about z in a coordinated turn, and no psi good enough to
-#: drop it was found (docs/inflight.md, fifth pass). Needs
-#: ``attitude.TRACK_ACCEL_H`` on too.
+#: drop it was found (docs/inflight.md, fifth pass). Needs ``attitude.TRACK_ACCEL_H`` on too. What is kept
+#: instead: TILT_CONDITION (the model's theta, the ordinary calibration conditioned on it)
 AP_YAW_TILT = False
+#: the tilt model in a second estimator of its own (``est_tilt``: the same samples, its rows with the tilt
+#: removed and its per-window nuisance) whose theta the published solution takes, the other parameters
+#: from the ordinary estimator conditioned on that theta (``InflightEstimator.theta_from``; docs/inflight.md,
+#: seventh pass). Measured, seeds 0-5 at 10 / 50 Hz: theta's worst error 14.5 -> 8.6 % (theta x1), the
+#: heading within 0.05 deg of the ordinary estimate's. Needs ``attitude.TRACK_ACCEL_H``; AP_YAW_TILT off
+TILT_CONDITION = True
+#: the tilt model's estimator is re-solved at every this many solutions of the published one (every
+#: SOLVE_PERIOD_S): theta moves little in a second, and solving both every 0.1 s cost 55 % more CPU on a 50 Hz
+#: replay (now 17 %); the final state and the stored one always take its latest theta
+TILT_SOLVE_EVERY = 10
 #: prior standard deviation (rad) of the gyro yaw's error that the line fit of the windows' field directions
 #: leaves, one per window (the tilt-from-yaw nuisance): a single window's field direction scatters by 2-7 deg
 #: about the gyro frame's true error (noise-free 10 Hz seed 2: it takes up hard-iron errors in windows with
@@ -125,8 +134,6 @@ REFERENCE_YAW_PRIOR_RAD = 0.035
 SOLVE_PERIOD_S = 0.1
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
-#: the north and east axes (the tilt prior's two columns)
-_NORTH_EAST = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -169,12 +176,15 @@ class InflightStage:
         )
         self.field_norm_mgauss = field_norm_mgauss
         self.est: InflightEstimator | None = None
+        #: the tilt model's own estimator (TILT_CONDITION), fed the same samples
+        self.est_tilt: InflightEstimator | None = None
         self.n_motors = -1  # decided at the first sample
         self._period = 1.0 / cfg.max_rate_hz
         self._last_fed: float | None = None
         self._prev: tuple[float, F64, F64, F64] | None = None  # t, R_nb, field, regressors
         self._hist: deque[tuple[float, F64, F64, F64]] = deque()  # recent samples (relative pairs)
         self._win_field: F64 | None = None
+        self._win_field_tilt: F64 | None = None
         # RELINEARISE_WINDOW: the open window's key and its used rows (rows, z, field cols, R_nb, tau, common)
         self._rl_key: tuple[int, int] | None = None
         self._slow_link = False  # the attitude is matched to the field's time (a link of 6.7 Hz or slower)
@@ -233,6 +243,7 @@ class InflightStage:
                 np.asarray(warm["sd"], dtype=float),
             )
             self.est = InflightEstimator(mode, self.n_motors, self.params, field_norm_mgauss, self._warm)
+            self._new_tilt_estimator()
             if self.est.prior_mean.shape == self._warm[0].shape and np.array_equal(
                 self.est.prior_mean, self._warm[0]
             ):
@@ -241,6 +252,18 @@ class InflightStage:
                 self.applied = bool(warm.get("applied", False))
             else:
                 self.est, self.n_motors, self._warm = None, -1, None
+                self.est_tilt = None
+
+    def _new_tilt_estimator(self) -> None:
+        """The tilt model's own estimator (TILT_CONDITION, relative form), its theta the published one's."""
+        assert self.est is not None
+        self.est_tilt = None
+        if TILT_CONDITION and not AP_YAW_TILT and self.mode == "relative" and WINDOW_FIELD_ROWS and GYRO_YAW:
+            self.est_tilt = InflightEstimator(
+                self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
+            )
+        self.est.theta_from = None  # from the first sample the tilt model applies to (a raw gyro's yaw)
+        self.est.theta_from_every = TILT_SOLVE_EVERY
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -257,6 +280,8 @@ class InflightStage:
         self.field_norm_mgauss = field_norm_mgauss
         if self.est is not None:
             self.est.field_norm_mgauss = field_norm_mgauss
+        if self.est_tilt is not None:
+            self.est_tilt.field_norm_mgauss = field_norm_mgauss
         if self.mode == "absolute" and not self.warm_started:
             self.est = None
             self.solution = None
@@ -305,8 +330,11 @@ class InflightStage:
             self.est = InflightEstimator(
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
+            self._new_tilt_estimator()
         if field_ref_n_mgauss is not None:
             self.est.field_ned_mgauss = np.asarray(field_ref_n_mgauss, dtype=float)
+            if self.est_tilt is not None:
+                self.est_tilt.field_ned_mgauss = self.est.field_ned_mgauss
         mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
@@ -409,57 +437,91 @@ class InflightStage:
 
     def _window_row(self, t_s: float, r_nb: F64, y: F64, x: F64) -> None:
         """One sample against its window's Earth field (``window_field_rows``), with the window's
-        horizontal field and the rotation source's yaw rate as the window's nuisance."""
+        horizontal field and the rotation source's yaw rate as the window's nuisance; with TILT_CONDITION
+        the same sample into the tilt model's estimator too."""
         assert self.est is not None
         self._track_yaw(r_nb)
         if self._prev is None:  # reset_pairs(): a window never spans a rotation-source restart
             self._epoch += 1
         self._prev = (t_s, r_nb, y, x)
-        w = window_field_rows(r_nb, y, x, self.est.uncalibrated(y, x))
         w_s = GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S
-        self.est.vif_batch_windows = max(1, round(VIF_BATCH_S / w_s))
         win = math.floor(t_s / w_s)
         tau = t_s - (win + 0.5) * w_s
-        # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
-        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's)
         key = (self._epoch, win)
-        e_w = self.est.window_nuisance(key)
-        if e_w is not None:
-            self._win_field = np.array([e_w[0], e_w[1], self.est.common_estimate])
         relin = RELINEARISE_WINDOW and not self._gy_on and self._slow_link
         if relin and key != self._rl_key:
             self._relinearise_window()
             self._rl_key = key
-        h_w = self.est.field_ned_mgauss if self._win_field is None else self._win_field
+        gated = self.est.n_gated
+        self._win_field = self._add_window_row(
+            self.est, self._win_field, t_s, key, tau, r_nb, y, x, AP_YAW_TILT, relin
+        )
+        # the tilt model's estimator takes the samples with a raw gyro's yaw (a compass marked external never
+        # has one: no cost) that the ordinary one's gate passed (the same glitches). Only those: its windows
+        # carry one more nuisance column, and a window never mixes the two
+        if self._gy_on and self.est_tilt is not None:
+            self.est.theta_from = self.est_tilt
+        if self._gy_on and self.est_tilt is not None and self.est.n_gated == gated:
+            self._win_field_tilt = self._add_window_row(
+                self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False
+            )
+        self.n_rows += 1
+
+    def _add_window_row(
+        self,
+        est: InflightEstimator,
+        win_field: F64 | None,
+        t_s: float,
+        key: tuple[int, int],
+        tau: float,
+        r_nb: F64,
+        y: F64,
+        x: F64,
+        tilt_model: bool,
+        relin: bool,
+    ) -> F64 | None:
+        """One sample's window-field rows into ``est`` (the tilt model's when ``tilt_model``); returns the
+        window field the yaw-rate column was written about (kept for the next window's first samples)."""
+        w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x))
+        est.vif_batch_windows = max(
+            1, round(VIF_BATCH_S / (GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S))
+        )
+        # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
+        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's)
+        e_w = est.window_nuisance(key)
+        if e_w is not None:
+            win_field = np.array([e_w[0], e_w[1], est.common_estimate])
+        h_w = est.field_ned_mgauss if win_field is None else win_field
         cols = [w.field_cols, *self._yaw_tilt_cols(r_nb, h_w, tau)]
         sd = [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
         if TILT_PRIOR_RAD > 0.0:
             sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
         z = w.z
-        if AP_YAW_TILT and self._gy_on:
-            z, tilt = self._ap_yaw_tilt(t_s, key, r_nb, h_w, z)
+        if tilt_model and self._gy_on:
+            z, tilt = self._ap_yaw_tilt(est, t_s, key, r_nb, h_w, z)
             cols[1] = cols[1] + tilt * tau  # the window's yaw rate tilts it too
             if AP_YAW_NUISANCE:
                 cols.append(tilt)  # what the line fit leaves of the gyro yaw's error, one per window
                 sd.append(AP_YAW_PRIOR_RAD)
-        self.est.nuisance_prior_sd = np.array(sd)
+        est.nuisance_prior_sd = np.array(sd)
         nuis = np.hstack(cols)
-        gated = self.est.n_gated
-        self.est.add(w.rows, z, float(x[0]), nuis, key, w.common)
-        if relin and self.est.n_gated == gated:
+        gated = est.n_gated
+        est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
+        if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
-        self.n_rows += 1
+        return win_field
 
     @staticmethod
     def _yaw_tilt_cols(r_nb: F64, h_w: F64, tau: float) -> list[F64]:
         """The window's yaw-rate column (yaw error = rate * tau, about the window's field ``h_w``) and, with
         TILT_PRIOR_RAD, the reference's tilt error about north and east (its vertical carries it)."""
-        cols = [reference_yaw_error_rows(r_nb, h_w) * tau]
-        if TILT_PRIOR_RAD > 0.0:
-            # about north and east: linalg3.cross is numpy's np.cross arithmetic on floats (same numbers)
-            h = vec3(h_w)
-            cols.append(np.stack([r_nb.T @ np.array(cross(e, h)) for e in _NORTH_EAST], axis=1))
-        return cols
+        if TILT_PRIOR_RAD <= 0.0:
+            return [reference_yaw_error_rows(r_nb, h_w) * tau]
+        # R^T [h]x: its column i is -R^T (e_i x h): the yaw column (reference_yaw_error_rows) and the tilt
+        # columns R^T (e_N x h), R^T (e_E x h) from one product (np.cross per column cost a tenth of a replay)
+        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
+        m = r_nb.T @ np.array([[0.0, -h3, h2], [h3, 0.0, -h1], [-h2, h1, 0.0]])
+        return [m[:, 2:3] * tau, -m[:, 0:2]]
 
     def _relinearise_window(self) -> None:
         """The window closing: its rows' yaw-rate and tilt columns written again about the window's final
@@ -482,7 +544,9 @@ class InflightStage:
             ]
         )
 
-    def _ap_yaw_tilt(self, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64) -> tuple[F64, F64]:
+    def _ap_yaw_tilt(
+        self, est: InflightEstimator, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64
+    ) -> tuple[F64, F64]:
         """The autopilot's tilt error that its own yaw error makes (AP_YAW_TILT). It subtracts the GPS
         acceleration ``a`` from the specific force with its own yaw, so a yaw error ``psi`` leaves a
         horizontal ``-psi a`` that it takes for gravity: its tilt is off by the rotation ``-psi a / g`` (NED,
@@ -491,33 +555,32 @@ class InflightStage:
         the gyro's (known) + the gyro yaw's own error, which the windows' fields show: their direction
         against the WMM's, a straight line in time over the gyro chain (its bias) fitted to the closed
         windows (``_frame_at``). Returns the right-hand side with the tilt removed and the tilt's column per
-        radian of yaw error (3, 1)."""
-        assert self.est is not None
+        radian of yaw error (3, 1). ``est``: the estimator the rows go to (its windows' fields)."""
         if key != self._ap_key:
             if self._ap_key is not None:
-                self._frame_close(self._ap_key)
+                self._frame_close(est, self._ap_key)
             self._ap_key = key
-        psi = (self._ap_yaw_dev + self._frame_at(t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
-        v = -np.array([self._accel_h[0], self._accel_h[1], 0.0]) / STANDARD_GRAVITY_M_S2
-        col = (r_nb.T @ np.array(cross(vec3(v), vec3(h_w)))).reshape(3, 1)
+        psi = (self._ap_yaw_dev + self._frame_at(est, t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
+        v1, v2 = -self._accel_h[0] / STANDARD_GRAVITY_M_S2, -self._accel_h[1] / STANDARD_GRAVITY_M_S2
+        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
+        col = (r_nb.T @ np.array([v2 * h3, -v1 * h3, v1 * h2 - v2 * h1])).reshape(3, 1)  # R^T (v x h)
         return z - psi * col[:, 0], col
 
-    def _frame_of(self, h: F64) -> float:
-        assert self.est is not None
-        ref = self.est.field_ned_mgauss
+    @staticmethod
+    def _frame_of(est: InflightEstimator, h: F64) -> float:
+        ref = est.field_ned_mgauss
         return math.atan2(float(h[1]), float(h[0])) - math.atan2(float(ref[1]), float(ref[0]))
 
-    def _frame_close(self, key: tuple[int, int]) -> None:
+    def _frame_close(self, est: InflightEstimator, key: tuple[int, int]) -> None:
         """A window closed: its field direction joins the line fit of the gyro frame's error."""
-        assert self.est is not None
-        e_w = self.est.window_nuisance(key)
+        e_w = est.window_nuisance(key)
         if e_w is None or key[0] != self._fit_epoch:
             if key[0] != self._fit_epoch:
                 self._fit_epoch, self._fit = key[0], np.zeros(5)
             if e_w is None:
                 return
         t = (key[1] + 0.5) * GYRO_WINDOW_S
-        f = self._frame_of(np.asarray(e_w[:2]))
+        f = self._frame_of(est, np.asarray(e_w[:2]))
         if self._fit[0] > 0.0:  # unwrap against the line so far
             f = self._fit_value(t) + (f - self._fit_value(t) + math.pi) % (2.0 * math.pi) - math.pi
         self._fit += np.array([1.0, t, t * t, f, t * f])
@@ -530,9 +593,9 @@ class InflightStage:
         b = (n * stf - st * sf) / den
         return float((sf - b * st) / n + b * t)
 
-    def _frame_at(self, t_s: float, h_w: F64) -> float:
+    def _frame_at(self, est: InflightEstimator, t_s: float, h_w: F64) -> float:
         if self._fit[0] < 3 or self._ap_key is None or self._ap_key[0] != self._fit_epoch:
-            return self._frame_of(h_w)
+            return self._frame_of(est, h_w)
         return self._fit_value(t_s)
 
     def _pair(self, t_s: float, r_rel_nb: F64, y: F64, x: F64) -> None:
@@ -632,6 +695,8 @@ class InflightStage:
 
     def final_state(self) -> str:
         """The state of a sample with the final estimate held fixed (the two-pass replay's second pass)."""
+        if self.est is not None:
+            self.est.sync_theta_from()  # the final estimate takes the tilt model's final theta
         if self.applied and self.solution is not None:
             return "corrected"
         est = self.est
@@ -646,6 +711,7 @@ class InflightStage:
         """What the state store keeps to start the next run from (None before any estimate)."""
         if self.est is None or (self.est.n == 0 and not self.warm_started):
             return None
+        self.est.sync_theta_from()
         mean, sd = self.est.state()
         return {
             "form": self.mode,

@@ -169,3 +169,23 @@ def test_four_hertz_telemetry_matches_attitude_and_throttle_to_the_field_time(
     # PWM is 1 us of 1000 and the attitude float32: the match is exact to well under these
     assert rms_deg < 0.05, rms_deg
     assert float(np.sqrt(np.mean(np.square(dthr)))) < 0.002
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 3])
+def test_theta_from_the_tilt_model_within_ten_percent_at_ten_hertz(tmp_path: Path, seed: int) -> None:
+    """Internal primary, 10 Hz: the autopilot's yaw follows the disturbed compass, so in accelerated flight
+    its tilt is off by -psi a / g, and theta took that for current (13 % off on these seeds). The published
+    theta comes from the tilt model's own estimator, the calibration from the ordinary one conditioned on
+    that theta (``inflight_stage.TILT_CONDITION``; docs/inflight.md, seventh pass): theta within 10 % and
+    within three of its own sigmas, the heading corrected."""
+    result, path = _flight(tmp_path, ["telemetry_hz=10"], seed=seed, duration_s=300.0)
+    rep = replay_log(path, Config(), keep_estimates=True)
+    c0 = rep.summary["compasses"][0]
+    assert c0["status"] == "corrected", c0["why"]
+    theta, truth = np.asarray(c0["theta_mgauss"]), np.asarray(result.compasses[0].theta_mgauss)
+    err = float(np.linalg.norm(theta - truth))
+    assert err < 0.10 * np.linalg.norm(truth), (theta, truth)
+    assert err < 3.0 * float(np.linalg.norm(c0["inflight"]["theta_sigma_mgauss"]))
+    corrected, raw = rms_after_learning(result, rep.estimates, 0)
+    assert corrected < 0.75 * raw, (corrected, raw)

@@ -183,6 +183,7 @@ def test_attitude_stage_tracks_the_horizontal_kinematic_acceleration(monkeypatch
     f = r.T @ (a_n - np.array([0.0, 0.0, 9.80665]))
     st = AttitudeStage(Config(), Counter())  # type: ignore[arg-type]
     st.on_attitude(AttitudeSample(0.0, phi, theta, 0.0))
+    assert st.gyro_yaw_at(0.0, 0.02, 0.05) is None  # asked for (as the in-flight stage does): tracked now
     dt = 0.02
     n = int(10.0 * ACCEL_LP_S / dt) + 1
     for k in range(n):
