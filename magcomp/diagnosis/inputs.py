@@ -111,8 +111,11 @@ def impact_left_out(log: LogData, t_s: F64, step: int = 1) -> NDArray[np.bool_]:
     return crash
 
 
-def compass_data(log: LogData, index: int) -> CompassData:
-    """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES)."""
+def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassData:
+    """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES).
+
+    latency_s: how much older each compass sample is than its logged time (:mod:`magcomp.diagnosis.latency`);
+    the samples are re-timed to ``t - latency_s`` and the attitude and drive taken there."""
     if index not in log.mag:
         raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
     mag = finite_series(log.mag[index])
@@ -122,7 +125,7 @@ def compass_data(log: LogData, index: int) -> CompassData:
     t = mag.t_s[::step]
     v = mag.values[::step].astype(float)
     keep = ~impact_left_out(log, t)
-    t, v = t[keep], v[keep]
+    t, v = t[keep] - latency_s, v[keep]
     att = finite_series(log.attitude_rad)
     imu_ok = log.imu_t_s.shape[0] >= 10
     track = attitude_track(
