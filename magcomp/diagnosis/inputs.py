@@ -114,8 +114,9 @@ def impact_left_out(log: LogData, t_s: F64, step: int = 1) -> NDArray[np.bool_]:
 def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassData:
     """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES).
 
-    latency_s: how much older each compass sample is than its logged time (:mod:`magcomp.diagnosis.latency`);
-    the samples are re-timed to ``t - latency_s`` and the attitude and drive taken there."""
+    latency_s: how much older each compass sample is than its logged time, against the attitude
+    (:mod:`magcomp.diagnosis.latency`): the attitude is taken at ``t - latency_s``; the drive signals stay at
+    the logged time (their timing against the field is what current_lag and time_skew test)."""
     if index not in log.mag:
         raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
     mag = finite_series(log.mag[index])
@@ -125,11 +126,11 @@ def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassDat
     t = mag.t_s[::step]
     v = mag.values[::step].astype(float)
     keep = ~impact_left_out(log, t)
-    t, v = t[keep] - latency_s, v[keep]
+    t, v = t[keep], v[keep]
     att = finite_series(log.attitude_rad)
     imu_ok = log.imu_t_s.shape[0] >= 10
     track = attitude_track(
-        t,
+        t - latency_s,
         log.imu_t_s if imu_ok else np.zeros(0),
         log.gyro_rad_s if imu_ok else np.zeros((0, 3)),
         log.accel_m_s2 if imu_ok else np.zeros((0, 3)),

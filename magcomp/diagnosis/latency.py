@@ -16,10 +16,13 @@ spread's log (seed 107) went from effective delta BIC -10 to -110.
 
 Here the latency is one least-squares nuisance of the paper's model (eq. (11)) fitted first, linearised:
 v(t) = A h_b(t - tau) + ... ~ A h_b(t) - tau d(A h_b)/dt, so tau is the regression of the baseline residual
-on -d(A h_b)/dt over all three axes; twice (the second pass on the re-timed samples refines it). The samples
-are then re-timed to t - tau and the attitude and drive signals taken there (:func:`compass_data`). tau is
-relative to the attitude source: with the autopilot's attitude it absorbs the attitude's own delay too,
-which is what the model needs. Departure from the paper: the paper's compass and attitude share one clock.
+on -d(A h_b)/dt over all three axes; twice (the second pass on the re-timed attitude refines it). The attitude
+is then taken at t - tau (:func:`magcomp.diagnosis.inputs.compass_data`). tau is relative to the attitude
+source: it absorbs the attitude's own delay too (the gyro integral's, the autopilot filter's), which is what
+the model needs. The drive signals (throttle, motors, battery, temperature) stay at the logged time: their
+timing against the field is what ``current_lag`` and ``time_skew`` test, and moving them by an attitude
+delay made a 42 ms current_lag out of a clean 5 Hz log (``benchmarks/diagnosis_false_alarm.py`` seed 11534,
+first version of this module). Departure from the paper: the paper's compass and attitude share one clock.
 """
 
 from __future__ import annotations
@@ -60,8 +63,8 @@ def latency_step_s(data: CompassData) -> tuple[float, float]:
 
 
 def compass_latency_s(data: CompassData, retime: Callable[[float], CompassData]) -> tuple[float, CompassData]:
-    """The fitted latency (s) and the data re-timed by it; ``retime(latency_s) -> CompassData`` builds the
-    data at ``t - latency_s`` from the log. The estimate is clipped to +-MAX_LATENCY_S."""
+    """The fitted latency (s) and the data with the attitude taken that much earlier; ``retime(latency_s) ->
+    CompassData`` builds that data from the log. The estimate is clipped to +-MAX_LATENCY_S."""
     total = 0.0
     out = data
     for _ in range(PASSES):
