@@ -190,8 +190,8 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
         latency, data = compass_latency_s(data, partial(compass_data, log, idx))
         if abs(latency) >= LATENCY_NOTE_S:
             notes.append(
-                f"compass {idx}: attitude re-timed by {-1000 * latency:+.1f} ms (the compass's fitted latency "
-                "against it: a compass held in a faster IMU message, or a filter delay)"
+                f"compass {idx}: attitude re-timed by {-1000 * latency:+.1f} ms (the compass's fitted "
+                "latency against it: a compass held in a faster IMU message, or a filter delay)"
             )
         comps.append(run.compass(data))
     if not comps:

@@ -188,6 +188,8 @@ def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]
     if effect == "temperature_drift":
         k = fit.coefs[list(fit.columns).index("temperature")]
         mag = float(np.linalg.norm(k))
+        # at least the block jackknife's, as theta's: a slow column absorbs slow model error the HAC variance
+        # cannot see (measured coverage: magcomp.diagnosis.intervals)
         hw = column_halfwidth(data, fit, {"temperature": 1.0}, blocks=True)
         return {
             "mgauss_per_degc": r4(mag),

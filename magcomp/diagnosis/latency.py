@@ -2,17 +2,17 @@
 
 A log stamps each compass sample with the time it was *logged*, not measured. ArduPilot's RAW_IMU carries
 the latest compass reading in every IMU message, so a compass slower than the IMU loop (20 Hz inside a 40 Hz
-RAW_IMU, 75 Hz inside 100 Hz) is held: each logged sample is 0 to one compass period old, on average about
-half a period (12.5 ms and 5-7.5 ms in those two cases). The forward model (:mod:`magcomp.diagnosis.model`)
-takes the attitude at the logged time, so a sample that is tau old leaves -tau d(A h_b)/dt in the residual:
-a rotation-rate error of a few mgauss (500 mgauss field, 1 rad/s, 10 ms: 5 mgauss), repeated manoeuvre by
-manoeuvre. Measured (``benchmarks/diagnosis_heldout.py`` settings, 20 seeds each, the simulator's true
-attitude, no effect hidden): a 75 Hz compass held in a 100 Hz RAW_IMU biased a fitted temperature
-coefficient by (-0.39, 0.22, 0.07) mgauss/degC (sd 0.31 / 0.21 / 0.26, so about 1.3 sd); re-timing by the
-mean staleness (7.5 ms) took the bias to (-0.07, 0.01, 0.01). A 20 Hz compass in a 40 Hz RAW_IMU gave
-per-motor vectors with 1.2-2.4 mgauss of fitted signal on logs with no per-motor effect (a spread of 0.6-1.8,
-as large as a true 1.2) and a Bartlett factor of 7-12 that hid a real one; re-timed by 12.5 ms the true
-spread's log (seed 107) went from effective delta BIC -10 to -110.
+RAW_IMU from a 50 Hz loop, 75 Hz inside 100 Hz) is held: each logged sample is 0 to one compass period old
+(on average 21.8 ms and 7.5 ms in those two simulated cases). The forward model
+(:mod:`magcomp.diagnosis.model`) takes the attitude at the logged time, so a sample that is tau old leaves
+-tau d(A h_b)/dt in the residual: a rotation-rate error of a few mgauss (500 mgauss field, 1 rad/s, 10 ms:
+5 mgauss), repeated manoeuvre by manoeuvre. Measured (``benchmarks/diagnosis_heldout.py`` settings, 20 seeds
+each): with the simulator's true attitude and no effect hidden, a 75 Hz compass held in a 100 Hz RAW_IMU
+biased a fitted temperature coefficient by (-0.39, 0.22, 0.07) mgauss/degC (sd 0.31 / 0.21 / 0.26); moving
+the compass times by the mean staleness (7.5 ms) took the bias to (-0.07, 0.01, 0.01). A 20 Hz compass in a
+40 Hz RAW_IMU gave per-motor vectors 1.2-2.4 mgauss of fitted signal on logs with no per-motor effect (a
+spread of 0.6-1.8, as large as a true 1.2; Bartlett factor 5-12) and hid a real one: the held-out per-motor
+log (seed 107) had effective delta BIC -10 (Bartlett factor 9.1); with this module -113 (factor 3.0).
 
 Here the latency is one least-squares nuisance of the paper's model (eq. (11)) fitted first, linearised:
 v(t) = A h_b(t - tau) + ... ~ A h_b(t) - tau d(A h_b)/dt, so tau is the regression of the baseline residual
