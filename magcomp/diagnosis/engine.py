@@ -49,7 +49,7 @@ from magcomp.diagnosis.inputs import (
     spans,
     subset,
 )
-from magcomp.diagnosis.latency import compass_latency_s
+from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction
 from magcomp.diagnosis.model import CompassData
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
@@ -87,8 +87,6 @@ Events = list[tuple[float, str]]
 #: A compass can serve as the yaw reference of the others when its own full-throttle bias turns its heading
 #: by less than this (rad, |theta| / |field|): 0.05 rad = 2.9 deg, the paper's corrected heading error level.
 YAW_REFERENCE_MAX_REL = 0.05
-#: a fitted compass latency at least this large (s) is stated in the notes (one 1 kHz loop tick below it)
-LATENCY_NOTE_S = 0.001
 
 
 def _rel_theta(c: CompassDiagnosis) -> float:
@@ -187,11 +185,12 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
         except InputError as exc:
             notes.append(f"compass {idx} skipped: {exc}")
             continue
-        latency, data = compass_latency_s(data, partial(compass_data, log, idx))
-        if abs(latency) >= LATENCY_NOTE_S:
+        held = held_fraction(finite_series(log.mag[idx]).values)
+        if held >= MIN_HELD_FRACTION:
+            latency, data = compass_latency_s(data, partial(compass_data, log, idx))
             notes.append(
-                f"compass {idx}: attitude re-timed by {-1000 * latency:+.1f} ms (the compass's fitted "
-                "latency against it: a compass held in a faster IMU message, or a filter delay)"
+                f"compass {idx}: held in a faster message ({100 * held:.0f} % of its samples repeat the one "
+                f"before): attitude re-timed by {-1000 * latency:+.1f} ms, the compass's fitted latency"
             )
         comps.append(run.compass(data))
     if not comps:

@@ -22,7 +22,7 @@ from magcomp.core.types import LogData
 from magcomp.diagnosis.engine import diagnose
 from magcomp.diagnosis.gate import EarthReference
 from magcomp.diagnosis.inputs import compass_data
-from magcomp.diagnosis.latency import compass_latency_s
+from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction
 from magcomp.sim import SimConfig, simulate
 from magcomp.sim.config import apply_settings
 from magcomp.sim.simulate import SimResult, _hold_index
@@ -59,7 +59,10 @@ def test_fitted_latency_is_the_hold_of_a_slow_compass(tmp_path: Path) -> None:
     assert 0.015 < staleness_s < 0.03  # the hold is what the test is about: about 22 ms here
     diff = _latency_s(held) - _latency_s(fresh)
     assert diff == pytest.approx(staleness_s, abs=0.003)
-    # the diagnosis re-times the held log and says so
+    # the hold is seen in the data: every other sample repeats (20 Hz in 40 Hz), none without it
+    assert held_fraction(held.mag[0].values) == pytest.approx(0.5, abs=0.05)
+    assert held_fraction(fresh.mag[0].values) < MIN_HELD_FRACTION / 2
+    # the diagnosis re-times the held log and says so; not the other
     earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
-    notes = diagnose(held, earth=earth).notes
-    assert any("attitude re-timed" in s for s in notes), notes
+    assert any("attitude re-timed" in s for s in diagnose(held, earth=earth).notes)
+    assert not any("attitude re-timed" in s for s in diagnose(fresh, earth=earth).notes)
