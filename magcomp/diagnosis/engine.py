@@ -22,6 +22,7 @@ the CLI live in :mod:`magcomp.diagnosis.report` and :mod:`magcomp.commands.diagn
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +49,7 @@ from magcomp.diagnosis.inputs import (
     spans,
     subset,
 )
+from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction
 from magcomp.diagnosis.model import CompassData
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
@@ -183,6 +185,13 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
         except InputError as exc:
             notes.append(f"compass {idx} skipped: {exc}")
             continue
+        held = held_fraction(finite_series(log.mag[idx]).values)
+        if held >= MIN_HELD_FRACTION:
+            latency, data = compass_latency_s(data, partial(compass_data, log, idx))
+            notes.append(
+                f"compass {idx}: held in a faster message ({100 * held:.0f} % of its samples repeat the one "
+                f"before): attitude re-timed by {-1000 * latency:+.1f} ms, the compass's fitted latency"
+            )
         comps.append(run.compass(data))
     if not comps:
         raise InputError("no compass has enough samples to diagnose")

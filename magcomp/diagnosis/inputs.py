@@ -111,8 +111,12 @@ def impact_left_out(log: LogData, t_s: F64, step: int = 1) -> NDArray[np.bool_]:
     return crash
 
 
-def compass_data(log: LogData, index: int) -> CompassData:
-    """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES)."""
+def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassData:
+    """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES).
+
+    latency_s: how much older each compass sample is than its logged time, against the attitude
+    (:mod:`magcomp.diagnosis.latency`): the attitude is taken at ``t - latency_s``; the drive signals stay at
+    the logged time (their timing against the field is what current_lag and time_skew test)."""
     if index not in log.mag:
         raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
     mag = finite_series(log.mag[index])
@@ -126,7 +130,7 @@ def compass_data(log: LogData, index: int) -> CompassData:
     att = finite_series(log.attitude_rad)
     imu_ok = log.imu_t_s.shape[0] >= 10
     track = attitude_track(
-        t,
+        t - latency_s,
         log.imu_t_s if imu_ok else np.zeros(0),
         log.gyro_rad_s if imu_ok else np.zeros((0, 3)),
         log.accel_m_s2 if imu_ok else np.zeros((0, 3)),

@@ -1,0 +1,94 @@
+"""The compass's latency against the IMU clock, fitted and removed before the search (issue 10, held out).
+
+A log stamps each compass sample with the time it was *logged*, not measured. ArduPilot's RAW_IMU carries
+the latest compass reading in every IMU message, so a compass slower than the IMU loop (20 Hz inside a 40 Hz
+RAW_IMU from a 50 Hz loop, 75 Hz inside 100 Hz) is held: each logged sample is 0 to one compass period old
+(on average 21.8 ms and 7.5 ms in those two simulated cases). The forward model
+(:mod:`magcomp.diagnosis.model`) takes the attitude at the logged time, so a sample that is tau old leaves
+-tau d(A h_b)/dt in the residual: a rotation-rate error of a few mgauss (500 mgauss field, 1 rad/s, 10 ms:
+5 mgauss), repeated manoeuvre by manoeuvre. Measured (``benchmarks/diagnosis_heldout.py`` settings, 20 seeds
+each): with the simulator's true attitude and no effect hidden, a 75 Hz compass held in a 100 Hz RAW_IMU
+biased a fitted temperature coefficient by (-0.39, 0.22, 0.07) mgauss/degC (sd 0.31 / 0.21 / 0.26); moving
+the compass times by the mean staleness (7.5 ms) took the bias to (-0.07, 0.01, 0.01). A 20 Hz compass in a
+40 Hz RAW_IMU gave per-motor vectors 1.2-2.4 mgauss of fitted signal on logs with no per-motor effect (a
+spread of 0.6-1.8, as large as a true 1.2; Bartlett factor 5-12) and hid a real one: the held-out per-motor
+log (seed 107) had effective delta BIC -10 (Bartlett factor 9.1); with this module -113 (factor 3.0).
+
+Only for a held compass: a latency fitted on any log also absorbs model errors that follow the rotation
+rate (a compass-free tilt that leans in a turn): on a clean 50 Hz fixed-wing flight with no hold it came
+out at -39 ms, and moved the motors-off offset of ``tests/integration/test_diagnose_repeat.py`` by 2.2
+mgauss. A hold is seen in the data itself: consecutive samples identical on all three axes
+(:func:`held_fraction`); a compass at up to 80 % of its message's rate repeats at least 20 % of them
+(:data:`MIN_HELD_FRACTION`), while an unheld moving compass with 1 mgauss noise and resolution repeats
+about 2 %.
+
+Here the latency is one least-squares nuisance of the paper's model (eq. (11)) fitted first, linearised:
+v(t) = A h_b(t - tau) + ... ~ A h_b(t) - tau d(A h_b)/dt, so tau is the regression of the baseline residual
+on -d(A h_b)/dt over all three axes; twice (the second pass on the re-timed attitude refines it). The attitude
+is then taken at t - tau (:func:`magcomp.diagnosis.inputs.compass_data`). tau is relative to the attitude
+source: it absorbs the attitude's own delay too (the gyro integral's, the autopilot filter's), which is what
+the model needs. The drive signals (throttle, motors, battery, temperature) stay at the logged time: their
+timing against the field is what ``current_lag`` and ``time_skew`` test, and moving them by an attitude
+delay made a 42 ms current_lag out of a clean 5 Hz log (``benchmarks/diagnosis_false_alarm.py`` seed 11534,
+first version of this module). Departure from the paper: the paper's compass and attitude share one clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcomp.diagnosis.model import CompassData, earth_dir_body, fit_model
+
+F64 = NDArray[np.float64]
+
+#: bound on the fitted latency (s): more than any compass hold or filter delay in the logs seen (a 10 Hz
+#: compass held is at most 0.1 s old); beyond it the estimate is model error, not timing
+MAX_LATENCY_S = 0.1
+#: share of consecutive identical samples from which a compass is taken as held (module docstring)
+MIN_HELD_FRACTION = 0.2
+#: re-timing passes (the linearisation is exact to first order; the second pass takes up what is left)
+PASSES = 2
+
+
+def latency_step_s(data: CompassData) -> tuple[float, float]:
+    """(tau, its standard error), s: how much older the samples of ``data`` are than their times, from the
+    paper model's residual against the rate of change of its Earth-field part (module docstring). (0, inf)
+    when nothing rotates (a stationary log or no rotation to time against)."""
+    if data.attitude_source == "stationary" or data.n < 20:
+        return 0.0, math.inf
+    fit = fit_model(data, ())
+    earth = earth_dir_body(data, fit.inc_rad, fit.dec_rad, fit.drift_rad_s) @ fit.a_mgauss.T
+    rate = np.gradient(earth, data.t_s, axis=0)  # d(A h_b)/dt, mgauss/s
+    power = float(np.sum(rate**2))
+    if power <= 0.0:
+        return 0.0, math.inf
+    tau = -float(np.sum(fit.residual_mgauss * rate)) / power
+    resid = fit.residual_mgauss + tau * rate
+    se = math.sqrt(float(np.mean(resid**2)) / power)
+    return tau, se
+
+
+def compass_latency_s(data: CompassData, retime: Callable[[float], CompassData]) -> tuple[float, CompassData]:
+    """The fitted latency (s) and the data with the attitude taken that much earlier; ``retime(latency_s) ->
+    CompassData`` builds that data from the log. The estimate is clipped to +-MAX_LATENCY_S."""
+    total = 0.0
+    out = data
+    for _ in range(PASSES):
+        tau, se = latency_step_s(out)
+        if not math.isfinite(se) or tau == 0.0:
+            break
+        total = float(np.clip(total + tau, -MAX_LATENCY_S, MAX_LATENCY_S))
+        out = retime(total)
+    return total, out
+
+
+def held_fraction(values: F64) -> float:
+    """Share of samples (n, 3) identical on every axis to the one before (a held compass)."""
+    if values.shape[0] < 2:
+        return 0.0
+    same = np.all(np.diff(values, axis=0) == 0.0, axis=1)
+    return float(np.mean(same))
