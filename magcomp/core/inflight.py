@@ -498,12 +498,7 @@ class InflightEstimator:
         ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
         vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
         if not gate:
-            self._accumulate(rows, z, nuisance, window, common)
-            self.n += 1
-            self.x0_max = max(self.x0_max, x0)
-            self._x0_sum += x0
-            self._x0_sq += x0 * x0
-            self._dirty = True
+            self._take(rows, z, x0, nuisance, window, common)
             return math.nan
         r = z - rows @ self._theta
         if common is not None:
@@ -528,13 +523,19 @@ class InflightEstimator:
             if m2 > GATE_CHI2_3DOF:
                 self.n_gated += 1
                 return math.sqrt(rn2)
+        self._take(rows, z, x0, nuisance, window, common)
+        return math.sqrt(rn2)
+
+    def _take(
+        self, rows: F64, z: F64, x0: float, nuisance: F64 | None, window: object, common: F64 | None
+    ) -> None:
+        """One row into the normal equations and the throttle statistics (the gate passed or not asked)."""
         self._accumulate(rows, z, nuisance, window, common)
         self.n += 1
         self.x0_max = max(self.x0_max, x0)
         self._x0_sum += x0
         self._x0_sq += x0 * x0
         self._dirty = True
-        return math.sqrt(rn2)
 
     @property
     def variance_inflation(self) -> float:
