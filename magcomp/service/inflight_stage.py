@@ -31,6 +31,7 @@ from magcomp.core.inflight import (
     rotation_error_rows,
     window_field_rows,
 )
+from magcomp.core.linalg3 import cross, vec3
 from magcomp.core.rotations import so3_exp, so3_log
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
@@ -562,8 +563,7 @@ class InflightStage:
             self._ap_key = key
         psi = (self._ap_yaw_dev + self._frame_at(est, t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
         v1, v2 = -self._accel_h[0] / STANDARD_GRAVITY_M_S2, -self._accel_h[1] / STANDARD_GRAVITY_M_S2
-        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
-        col = (r_nb.T @ np.array([v2 * h3, -v1 * h3, v1 * h2 - v2 * h1])).reshape(3, 1)  # R^T (v x h)
+        col = (r_nb.T @ np.array(cross((v1, v2, 0.0), vec3(h_w)))).reshape(3, 1)  # R^T (v x h)
         return z - psi * col[:, 0], col
 
     @staticmethod
