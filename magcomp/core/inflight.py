@@ -72,6 +72,10 @@ VIF_MIN_BATCHES = 4
 #: thetas' difference as a model uncertainty of the one it takes (its covariance plus the difference's
 #: outer product)
 THETA_MODEL_SPREAD = True
+#: ... and the heading the two models' whole calibrations (L, d, theta) give apart, rms over the heading grid
+#: of ``_heading_sd_deg``, as a model uncertainty of the published heading sigma (in quadrature; it is
+#: always reported as ``InflightSolution.heading_model_deg``)
+HEADING_MODEL_SPREAD = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +121,9 @@ class InflightSolution:
     residual_rms_mgauss: float
     n: int
     variance_inflation: float = 1.0
+    #: heading (deg) the two models' calibrations give apart (0 without a second model; see
+    #: HEADING_MODEL_SPREAD): included in ``heading_sigma_deg`` when that flag is on
+    heading_model_deg: float = 0.0
 
 
 #: basis of the relative form's soft-iron correction E (L = I + E): symmetric and traceless (x-y, x+y-2z
@@ -837,7 +844,11 @@ class InflightEstimator:
         if self.theta_from is not None and self.theta_from.n > 0:
             self._pub = self._conditioned(theta, cov * vif, self.theta_from)
         if self._pub is not None:
-            self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif)
+            assert self.theta_from is not None
+            # the two models' own estimates apart (L, d, theta and the motors' thetas; departure from the
+            # paper: its observer has one model, and its heading sigma no model uncertainty)
+            dp = self.theta_from._theta - theta
+            self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif, dp)
         else:
             self._solution = self._build(theta, cov, s2, vif)
         self._rev += 1
@@ -876,9 +887,17 @@ class InflightEstimator:
             self._sync = True
             self._dirty = True
 
-    def _build(self, p: F64, cov: F64, s2: float, vif: float = 1.0) -> InflightSolution:
-        """The solution at parameters ``p``; its sigmas from ``cov`` times the variance inflation ``vif``."""
+    def _build(
+        self, p: F64, cov: F64, s2: float, vif: float = 1.0, spread: F64 | None = None
+    ) -> InflightSolution:
+        """The solution at parameters ``p``; its sigmas from ``cov`` times the variance inflation ``vif``;
+        ``spread``: another model's parameters minus these (the heading they give apart is a model
+        uncertainty, HEADING_MODEL_SPREAD)."""
         cov = cov * vif
+        model_deg = 0.0 if spread is None else self._heading_sd_deg(np.outer(spread, spread))
+        sd_deg = self._heading_sd_deg(cov)
+        if HEADING_MODEL_SPREAD:
+            sd_deg = math.hypot(sd_deg, model_deg)
         k = self._k
         if self.mode == "absolute":
             a = p[0:9].reshape(3, 3)
@@ -900,10 +919,11 @@ class InflightEstimator:
             theta_mgauss=l_mat @ th_raw,
             motor_theta_mgauss=mot_raw @ l_mat.T,
             theta_sigma_mgauss=th_sd,
-            heading_sigma_deg=self._heading_sd_deg(cov),
+            heading_sigma_deg=sd_deg,
             residual_rms_mgauss=math.sqrt(s2),
             n=self.n,
             variance_inflation=vif,
+            heading_model_deg=model_deg,
         )
 
     def _heading_sd_deg(self, cov: F64) -> float:

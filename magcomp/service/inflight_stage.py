@@ -771,6 +771,7 @@ class InflightStage:
             "yaw_span_deg": span,
             "theta_sigma_mgauss": None if sol is None else sol.theta_sigma_mgauss.tolist(),
             "heading_sigma_deg": None if sol is None else sol.heading_sigma_deg,
+            "heading_model_deg": None if sol is None else sol.heading_model_deg,
             "residual_rms_mgauss": None if sol is None else sol.residual_rms_mgauss,
             "variance_inflation": None if sol is None else sol.variance_inflation,
             "motor_theta_mgauss": None

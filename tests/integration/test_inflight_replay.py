@@ -189,3 +189,46 @@ def test_theta_from_the_tilt_model_within_ten_percent_at_ten_hertz(tmp_path: Pat
     assert err < 3.0 * float(np.linalg.norm(c0["inflight"]["theta_sigma_mgauss"]))
     corrected, raw = rms_after_learning(result, rep.estimates, 0)
     assert corrected < 0.75 * raw, (corrected, raw)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_heading_sigma_covers_the_error_beyond_the_oracle_with_the_two_models_apart(
+    tmp_path: Path, seed: int
+) -> None:
+    """Internal primary, a realistic multirotor's theta (x6), 10 Hz: the heading error beyond the oracle's
+    (true calibration and theta, everything else identical) is a bias the parameters' covariance does not
+    see (0.4-0.6 deg reported for 1.3-1.6 deg). The heading the ordinary and the tilt model's calibrations
+    give apart is counted in the published sigma (core.inflight.HEADING_MODEL_SPREAD; docs/inflight.md):
+    the error beyond the oracle's within two reported sigmas (2.7-3.3 sigmas without it)."""
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.service.demo import save_true_states
+    from magcomp.sim import SimConfig, simulate
+    from magcomp.sim.config import apply_settings
+
+    result = simulate(
+        apply_settings(SimConfig(scenario="ordinary", seed=seed), ["telemetry_hz=10", "theta_scale=6"])
+    )
+    path = tmp_path / "ordinary.tlog"
+    write_tlog(result, path)
+    cfg = Config()
+    rep = replay_log(path, cfg, keep_estimates=True)
+    store = StateStore(tmp_path / "oracle")
+    save_true_states(result, store)
+    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
+                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
+    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    c0 = rep.summary["compasses"][0]
+    assert c0["status"] == "corrected", c0["why"]
+    inf = c0["inflight"]
+    corrected, _ = rms_after_learning(result, rep.estimates, 0)
+    oracle, _ = rms_after_learning(result, orc.estimates, 0)
+    beyond = math.sqrt(max(corrected**2 - oracle**2, 0.0))
+    assert beyond > 1.0  # the bias is there: the test can fail
+    assert inf["heading_model_deg"] > 0.0
+    assert beyond < 2.0 * inf["heading_sigma_deg"], (
+        beyond,
+        inf["heading_sigma_deg"],
+        inf["heading_model_deg"],
+    )
