@@ -55,6 +55,7 @@ from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
+from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
 from magcomp.service.record import MagRecord
@@ -108,6 +109,7 @@ class Pipeline:
         workers: Workers | None = None,
         learn_only: bool = False,
         recorder: SampleRecorder | None = None,
+        observers: ObserverProcess | None = None,
     ) -> None:
         self.cfg = cfg
         self.store = store
@@ -116,6 +118,7 @@ class Pipeline:
         self._workers = workers if workers is not None else Workers.inline()
         self._learn_only = learn_only
         self._recorder = recorder
+        self._observers = observers
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
@@ -133,7 +136,7 @@ class Pipeline:
                                     self._sysid, self.warnings)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
                                         self.persist.save, self._text)  # fmt: skip
-        self.theta = ThetaStage(cfg, self.throttle, self.counts)
+        self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
         self.publish = PublishStage(cfg, self.counts)
         #: sample class -> its handler (:meth:`feed`)
         self._handlers: dict[type, Callable[[Any], bool]] = {}
@@ -259,7 +262,8 @@ class Pipeline:
         self.calibrate.run(rec, c)
         self.theta.run(rec, c)
         if self._learn_only:
-            self.persist.run(c, rec.t_s)
+            if self._observers is None:  # with them (a first pass), only the state at close() is kept:
+                self.persist.run(c, rec.t_s)  # the periodic saves would wait for the observers each time
             return False
         heading_stage(rec, c.heading)
         self.persist.run(c, rec.t_s)
@@ -275,7 +279,8 @@ class Pipeline:
             for w in store.warnings:
                 if w not in self.warnings:
                     self.warnings.append(w)
-        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits)
+        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits,
+                             self._observers)  # fmt: skip
         self.correctors[idx] = c
         return c
 
@@ -356,6 +361,11 @@ class Pipeline:
                 self.theta.drain(c, math.inf)
             if c.last_t is not None:
                 self.persist.save(c, c.last_t)
+        if self._observers is not None:  # the observers' final states taken over; their process ends
+            for c in self.correctors.values():
+                c.theta.local()
+            self._observers.close()
+            self._observers = None
         self.persist.wait()
 
     def summary(self) -> dict[str, object]:
