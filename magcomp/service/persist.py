@@ -41,8 +41,13 @@ class PersistStage:
         interval_s: float,
         system_id: Callable[[], int],
         warnings: list[str],
+        final_only: bool = False,
     ) -> None:
+        """``final_only``: only the saves at the end (``final=True``) reach the store, the others are
+        bookkeeping (a two-pass replay's first pass: its memory store keeps each compass's last state
+        alone, and building a state waits for the observer process: service/observer_process.py)."""
         self.store = store
+        self._final_only = final_only
         self._writer = writer
         self._interval_s = interval_s
         self._system_id = system_id
@@ -54,11 +59,11 @@ class PersistStage:
         if c.dirty and (c.last_saved_t is None or t_s - c.last_saved_t >= self._interval_s):
             self.save(c, t_s)
 
-    def save(self, c: CompassCorrector, t_s: float) -> None:
-        """Save ``c``'s state now (the write itself in the background)."""
+    def save(self, c: CompassCorrector, t_s: float, final: bool = False) -> None:
+        """Save ``c``'s state now (the write itself in the background); ``final``: the pipeline closes."""
         c.last_saved_t = t_s
         c.dirty = False
-        if self.store is None:
+        if self.store is None or (self._final_only and not final):
             return
         state = c.to_state(self._system_id(), t_s)
         self._pending = [f for f in self._pending if not f.done()]

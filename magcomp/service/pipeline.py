@@ -133,7 +133,7 @@ class Pipeline:
         self.throttle = self.align.throttle
         self.attitude = AttitudeStage(cfg, self.counts)
         self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s,
-                                    self._sysid, self.warnings)  # fmt: skip
+                                    self._sysid, self.warnings, final_only=observers is not None)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
                                         self.persist.save, self._text)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
@@ -262,8 +262,7 @@ class Pipeline:
         self.calibrate.run(rec, c)
         self.theta.run(rec, c)
         if self._learn_only:
-            if self._observers is None:  # with them (a first pass), only the state at close() is kept:
-                self.persist.run(c, rec.t_s)  # the periodic saves would wait for the observers each time
+            self.persist.run(c, rec.t_s)
             return False
         heading_stage(rec, c.heading)
         self.persist.run(c, rec.t_s)
@@ -360,7 +359,7 @@ class Pipeline:
             if c.theta.queue:
                 self.theta.drain(c, math.inf)
             if c.last_t is not None:
-                self.persist.save(c, c.last_t)
+                self.persist.save(c, c.last_t, final=True)
         if self._observers is not None:  # the observers' final states taken over; their process ends
             for c in self.correctors.values():
                 c.theta.local()
