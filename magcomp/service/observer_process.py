@@ -20,6 +20,7 @@ inline). Not in the paper: a way of running eq. (20), not a change of it.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import signal
@@ -109,7 +110,8 @@ class ObserverProcess:
         self._closed = True
         os.close(self._cmd)
         self._res.close()
-        os.waitpid(self._pid, 0)
+        with contextlib.suppress(ChildProcessError):  # already reaped (by _status)
+            os.waitpid(self._pid, 0)
 
     def _status(self) -> str:
         try:
