@@ -13,9 +13,9 @@ for the child to catch up and gets its state; :meth:`ObserverProcess.finish` han
 
 Memory does not grow with the log: at most one block is buffered on each side of the pipe, whose
 64 KiB bound stops the pipeline when the child falls behind. A child that dies ends the replay with an
-error at the next block; a parent that dies closes the pipe and the child exits on its end. Only where
-``os.fork`` exists (Linux, the BSDs, macOS); :func:`start` returns None elsewhere (the observers then step
-inline). Not in the paper: a way of running eq. (20), not a change of it.
+error at the next block; a parent that dies closes the pipe and the child exits on its end. On Linux only,
+and only while the process runs no other thread (:func:`start` returns None otherwise: the observers then
+step inline). Not in the paper: a way of running eq. (20), not a change of it.
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ import os
 import pickle
 import signal
 import struct
+import sys
+import threading
 from array import array
 from collections.abc import Sequence
 from typing import Any
@@ -149,8 +151,10 @@ class RemoteTheta:
 
 
 def start(cfg: Config) -> ObserverProcess | None:
-    """Fork the child (before the pipeline starts any thread); None where ``os.fork`` does not exist."""
-    if not hasattr(os, "fork"):
+    """Fork the child; None (the observers then step inline) off Linux, or while this process runs another
+    thread (a fork copies no lock another thread holds then: the first pass forks before its workers'
+    threads start; a caller's own threads, e.g. a viewer's, keep the observers inline)."""
+    if not sys.platform.startswith("linux") or threading.active_count() > 1:
         return None
     cmd_r, cmd_w = os.pipe()
     res_r, res_w = os.pipe()
