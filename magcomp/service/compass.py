@@ -99,7 +99,9 @@ class CompassCorrector:
         :class:`~magcomp.service.calibrate.CalibrationCloud`)."""
         return self.calib.cloud()
 
-    def to_state(self, system_id: int, t_s: float) -> CompassState:
+    def to_state(self, system_id: int, t_s: float, current_theta: bool = True) -> CompassState:
+        """The state to save; ``current_theta`` False: an observer stepping in another process is not
+        waited for (its theta as of the last read: service/persist.py ``theta_at_close``)."""
         cal = self.calibration
         keep = cal is not None and cal.source != "identity"
         info = None
@@ -110,7 +112,8 @@ class CompassCorrector:
                 "n": float(cal.n),
             }
         inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
-        self.theta.sync()
+        if current_theta:
+            self.theta.sync()
         theta = np.asarray(self.theta.est.theta_mgauss, dtype=float)
         if cal is None and self.inflight is not None and self.inflight.solution is not None:
             theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)

@@ -41,13 +41,13 @@ class PersistStage:
         interval_s: float,
         system_id: Callable[[], int],
         warnings: list[str],
-        final_only: bool = False,
+        theta_at_close: bool = False,
     ) -> None:
-        """``final_only``: only the saves at the end (``final=True``) reach the store, the others are
-        bookkeeping (a two-pass replay's first pass: its memory store keeps each compass's last state
-        alone, and building a state waits for the observer process: service/observer_process.py)."""
+        """``theta_at_close``: the saves before the end (``final=False``) carry the observer's theta as of
+        its last read instead of waiting for the observer process (service/observer_process.py): a
+        two-pass replay's first pass, whose memory store keeps only each compass's state saved at close."""
         self.store = store
-        self._final_only = final_only
+        self._theta_at_close = theta_at_close
         self._writer = writer
         self._interval_s = interval_s
         self._system_id = system_id
@@ -63,9 +63,9 @@ class PersistStage:
         """Save ``c``'s state now (the write itself in the background); ``final``: the pipeline closes."""
         c.last_saved_t = t_s
         c.dirty = False
-        if self.store is None or (self._final_only and not final):
+        if self.store is None:
             return
-        state = c.to_state(self._system_id(), t_s)
+        state = c.to_state(self._system_id(), t_s, current_theta=final or not self._theta_at_close)
         self._pending = [f for f in self._pending if not f.done()]
         self._pending.append(self._writer.submit(self._write, state))
 

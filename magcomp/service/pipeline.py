@@ -132,8 +132,8 @@ class Pipeline:
         self.align = AlignStage(cfg, self.counts, self._text)
         self.throttle = self.align.throttle
         self.attitude = AttitudeStage(cfg, self.counts)
-        self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s,
-                                    self._sysid, self.warnings, final_only=observers is not None)  # fmt: skip
+        self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._sysid,
+                                    self.warnings, theta_at_close=observers is not None)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
                                         self.persist.save, self._text)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)

@@ -1,5 +1,6 @@
 """The first pass's observers stepped in a process of their own (service/observer_process.py): the same
-numbers as stepping them inline, and the child never outlives the replay."""
+numbers as stepping them inline (hand rotation, a reboot, an in-flight calibration whose state the first pass
+saves as it goes), and the child never outlives the replay."""
 
 from __future__ import annotations
 
@@ -36,7 +37,9 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     rebooted = retime(recs, lambda i, old: old - (result.t0_s + 80.0) + 0.3
                       if record_time_s(recs[i]) - u0 >= 80.0 else old)  # fmt: skip
     (d / "reboot.tlog").write_bytes(b"".join(rebooted))
-    return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog"}
+    # calibration and theta learned in flight: its state is saved every 10 s of the first pass too
+    write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=120.0, seed=3)), d / "flight.tlog")
+    return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog", "flight": d / "flight.tlog"}
 
 
 def _started(monkeypatch: pytest.MonkeyPatch) -> list[ObserverProcess]:
@@ -55,7 +58,7 @@ def _started(monkeypatch: pytest.MonkeyPatch) -> list[ObserverProcess]:
     return out
 
 
-@pytest.mark.parametrize("name", ["paper", "reboot"])
+@pytest.mark.parametrize("name", ["paper", "reboot", "flight"])
 def test_observer_process_gives_the_inline_numbers(
     logs: dict[str, Path], name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -69,7 +72,7 @@ def test_observer_process_gives_the_inline_numbers(
     assert len(rep.estimates) == len(ref.estimates) > 1000
     # theta learned in the first pass and held by the second: bit for bit what the inline observer gives
     theta = np.array([e.theta_mgauss for e in rep.estimates])
-    assert np.abs(theta).max() > 1.0  # the observers did learn something
+    assert np.abs(theta).max() > 1.0  # the observers (or the in-flight estimate) did learn something
     np.testing.assert_array_equal(theta, [e.theta_mgauss for e in ref.estimates])
     heading = [e.heading_deg for e in rep.estimates]
     np.testing.assert_array_equal(heading, [e.heading_deg for e in ref.estimates])
