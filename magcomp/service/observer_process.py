@@ -83,15 +83,23 @@ class ObserverProcess:
             while data:
                 data = data[os.write(self._cmd, data):]
         except BrokenPipeError:
+            self._answer()  # the child's own error, if it said one
             raise RuntimeError(f"the observer process ended early ({self._status()})") from None
 
     def query(self) -> dict[int, Final]:
         """Every observer's state once the child has run every step sent so far."""
         self._buf.extend((_QUERY, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
         self._flush()
+        out = self._answer()
+        if out is None:
+            raise RuntimeError(f"the observer process ended early ({self._status()})")
+        return out
+
+    def _answer(self) -> dict[int, Final] | None:
+        """The child's next answer (None: it ended without one); its error raised as a RuntimeError."""
         head = self._res.read(_LEN.size)
         if len(head) < _LEN.size:
-            raise RuntimeError(f"the observer process ended early ({self._status()})")
+            return None
         kind, payload = pickle.loads(self._res.read(_LEN.unpack(head)[0]))
         if kind != "ok":
             raise RuntimeError(f"the observer process failed: {payload}")

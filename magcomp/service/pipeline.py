@@ -19,9 +19,11 @@ from the messages' own timestamps (never arrival time); live runs and replays ca
 construction. Bad input never stops the pipeline: non-finite or saturated samples, time running
 backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`Pipeline.counts`.
 
-``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out; the
-states every other stage reaches are the same as in a full run. With a ``recorder`` it also records what
-the second pass needs (:mod:`magcomp.service.final_pass`).
+``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
+theta stage feeds the observers without reading theta back into the records; the states every stage
+reaches are the same as in a full run. With a ``recorder`` it also records what the second pass needs
+(:mod:`magcomp.service.final_pass`); with ``observers`` the observers step in a process of their own
+(:mod:`magcomp.service.observer_process`).
 """
 
 from __future__ import annotations
@@ -96,7 +98,10 @@ class Pipeline:
     :meth:`close`). ``system_id``: the vehicle; None -> taken from the first HEARTBEAT, else 1.
     ``on_text``: status lines (calibration learned, resets, warnings) with their message time.
     ``workers``: the executors for refined fits and state writes, owned (and shut down) by the caller;
-    None: both run inline. ``learn_only``: no headings (see the module's doc).
+    None: both run inline. ``learn_only``: no headings (see the module's doc). ``observers``: the observers
+    of eq. (20) step in that process (a two-pass replay's first pass, learn-only: nothing reads theta back
+    until :meth:`close`, which takes their final states over and ends the process;
+    service/observer_process.py).
     """
 
     def __init__(

@@ -118,3 +118,14 @@ def test_no_fork_while_another_thread_runs() -> None:
     finally:
         stop.set()
         t.join()
+
+
+def test_an_error_in_the_observer_process_is_reported() -> None:
+    """A step the child cannot run (a compass it was never told of): its error, not a hang."""
+    proc = observer_process.start(Config())
+    assert proc is not None
+    proc.estimator(0, Config(), None)
+    proc.step(5, (0.1, 0.2, 0.3), (200.0, 0.0, 400.0), 0.5, 0.02)
+    with pytest.raises(RuntimeError, match="observer process failed: KeyError"):
+        proc.query()
+    proc.close()
