@@ -40,7 +40,7 @@ from magcomp.service.estimators import ThetaEstimator, ThetaStepInfo
 F64 = NDArray[np.float64]
 
 #: one message down the pipe: (op, compass, omega x3, field x3, throttle, dt), float64
-_REC = struct.Struct("<10d")
+_REC = struct.Struct("=10d")  # native order, as array("d") packs it
 _STEP, _RESET, _CREATE, _QUERY = 0.0, 1.0, 2.0, 3.0
 #: float64s buffered before a write (512 messages, 40 KiB: below the pipe's 64 KiB)
 _BLOCK = 512 * 10
