@@ -7,9 +7,9 @@ theta-hat back until the end (no heading is computed; the state it ends with is 
 applies). Its steps are ~40 % of the pass's CPU time on a hand-rotation log, so they go to a forked
 child process: the pipeline sends each step as ten float64 numbers down a pipe, in order, a block at a
 time; the child runs the same :class:`~magcomp.service.estimators.ThetaEstimator` on the same floats, so
-the numbers are identical to stepping it inline. Whoever reads an estimator (:class:`RemoteTheta`) waits
-for the child to catch up and gets its state; :meth:`ObserverProcess.finish` hands every final state back
-(then the child exits).
+the numbers are identical to stepping it inline. Whoever reads an estimator (:meth:`RemoteTheta.sync`)
+waits for the child to catch up and gets its state; the pipeline's close takes the final states over, then
+:meth:`ObserverProcess.close` ends the child.
 
 Memory does not grow with the log: at most one block is buffered on each side of the pipe, whose
 64 KiB bound stops the pipeline when the child falls behind. A child that dies ends the replay with an
@@ -105,13 +105,6 @@ class ObserverProcess:
             raise RuntimeError(f"the observer process failed: {payload}")
         out: dict[int, Final] = payload
         return out
-
-    def finish(self) -> dict[int, Final]:
-        """The final states; the child then exits."""
-        try:
-            return self.query()
-        finally:
-            self.close()
 
     def close(self) -> None:
         """Close the pipes (the child exits on their end) and reap the child; idempotent."""
