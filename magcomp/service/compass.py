@@ -20,6 +20,7 @@ from magcomp.service.calibrate import (
 from magcomp.service.estimators import ThetaEstimator
 from magcomp.service.heading import HeadingTrack
 from magcomp.service.inflight_stage import InflightStage
+from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.theta import ThetaTracker
 
 F64 = NDArray[np.float64]
@@ -30,8 +31,15 @@ class CompassCorrector:
     (theta), heading filters (heading), output and persistence bookkeeping (publish, persist)."""
 
     def __init__(
-        self, mag_index: int, cfg: Config, earth_ned_mgauss: F64, stored: CompassState | None, fits: Executor
+        self,
+        mag_index: int,
+        cfg: Config,
+        earth_ned_mgauss: F64,
+        stored: CompassState | None,
+        fits: Executor,
+        observers: ObserverProcess | None = None,
     ) -> None:
+        """``observers``: the observer steps in that process (a two-pass replay's first pass)."""
         self.mag_index = mag_index
         self.clock = CompassClock()
         mode = cfg.calibration.mode
@@ -39,7 +47,8 @@ class CompassCorrector:
         # an in-flight calibration from an earlier run (or an earlier pass over the same log)
         self.stored_inflight = stored.inflight if (stored is not None and mode != "learn") else None
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
-        self.theta = ThetaTracker(cfg, theta0)
+        remote = observers.estimator(mag_index, cfg, theta0) if observers is not None else None
+        self.theta = ThetaTracker(cfg, theta0, remote)
         self.heading = HeadingTrack(cfg.output.heading_tau_s)
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
@@ -90,7 +99,9 @@ class CompassCorrector:
         :class:`~magcomp.service.calibrate.CalibrationCloud`)."""
         return self.calib.cloud()
 
-    def to_state(self, system_id: int, t_s: float) -> CompassState:
+    def to_state(self, system_id: int, t_s: float, current_theta: bool = True) -> CompassState:
+        """The state to save; ``current_theta`` False: an observer stepping in another process is not
+        waited for (its theta as of the last read: service/persist.py ``theta_at_close``)."""
         cal = self.calibration
         keep = cal is not None and cal.source != "identity"
         info = None
@@ -101,6 +112,8 @@ class CompassCorrector:
                 "n": float(cal.n),
             }
         inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
+        if current_theta:
+            self.theta.sync()
         theta = np.asarray(self.theta.est.theta_mgauss, dtype=float)
         if cal is None and self.inflight is not None and self.inflight.solution is not None:
             theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)

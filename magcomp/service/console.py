@@ -223,6 +223,15 @@ def progress_enabled() -> bool:
     return sys.stderr.isatty() and not os.environ.get("CI") and os.environ.get("TERM") != "dumb"
 
 
+def _quiet_tqdm() -> Any:
+    """tqdm without its monitor thread (it only retunes ``miniters`` of a stalled bar; ours refresh on
+    ``mininterval``): a replay bar then leaves the process single-threaded, so the first pass can fork its
+    observer process (service/observer_process.py)."""
+    from tqdm import tqdm
+
+    return type("QuietTqdm", (tqdm,), {"monitor_interval": 0})
+
+
 class Progress:
     """A tqdm bar on stderr when :func:`progress_enabled`, else nothing (never in logs or JSON).
 
@@ -232,11 +241,9 @@ class Progress:
     def __init__(self, desc: str, total: float | None = None, unit: str = "it") -> None:
         self._bar: Any = None
         if progress_enabled():
-            from tqdm import tqdm
-
             fmt = None if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
-            self._bar = tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
-                             dynamic_ncols=True, mininterval=0.25, bar_format=fmt)  # fmt: skip
+            self._bar = _quiet_tqdm()(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
+                                      dynamic_ncols=True, mininterval=0.25, bar_format=fmt)  # fmt: skip
 
     def update(self, n: float = 1) -> None:
         if self._bar is not None:

@@ -41,8 +41,13 @@ class PersistStage:
         interval_s: float,
         system_id: Callable[[], int],
         warnings: list[str],
+        theta_at_close: bool = False,
     ) -> None:
+        """``theta_at_close``: the saves before the end (``final=False``) carry the observer's theta as of
+        its last read instead of waiting for the observer process (service/observer_process.py): a
+        two-pass replay's first pass, whose memory store keeps only each compass's state saved at close."""
         self.store = store
+        self._theta_at_close = theta_at_close
         self._writer = writer
         self._interval_s = interval_s
         self._system_id = system_id
@@ -54,13 +59,13 @@ class PersistStage:
         if c.dirty and (c.last_saved_t is None or t_s - c.last_saved_t >= self._interval_s):
             self.save(c, t_s)
 
-    def save(self, c: CompassCorrector, t_s: float) -> None:
-        """Save ``c``'s state now (the write itself in the background)."""
+    def save(self, c: CompassCorrector, t_s: float, final: bool = False) -> None:
+        """Save ``c``'s state now (the write itself in the background); ``final``: the pipeline closes."""
         c.last_saved_t = t_s
         c.dirty = False
         if self.store is None:
             return
-        state = c.to_state(self._system_id(), t_s)
+        state = c.to_state(self._system_id(), t_s, current_theta=final or not self._theta_at_close)
         self._pending = [f for f in self._pending if not f.done()]
         self._pending.append(self._writer.submit(self._write, state))
 

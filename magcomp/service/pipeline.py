@@ -19,9 +19,11 @@ from the messages' own timestamps (never arrival time); live runs and replays ca
 construction. Bad input never stops the pipeline: non-finite or saturated samples, time running
 backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`Pipeline.counts`.
 
-``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out; the
-states every other stage reaches are the same as in a full run. With a ``recorder`` it also records what
-the second pass needs (:mod:`magcomp.service.final_pass`).
+``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
+theta stage feeds the observers without reading theta back into the records; the states every stage
+reaches are the same as in a full run. With a ``recorder`` it also records what the second pass needs
+(:mod:`magcomp.service.final_pass`); with ``observers`` the observers step in a process of their own
+(:mod:`magcomp.service.observer_process`).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
+from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
 from magcomp.service.record import MagRecord
@@ -95,7 +98,10 @@ class Pipeline:
     :meth:`close`). ``system_id``: the vehicle; None -> taken from the first HEARTBEAT, else 1.
     ``on_text``: status lines (calibration learned, resets, warnings) with their message time.
     ``workers``: the executors for refined fits and state writes, owned (and shut down) by the caller;
-    None: both run inline. ``learn_only``: no headings (see the module's doc).
+    None: both run inline. ``learn_only``: no headings (see the module's doc). ``observers``: the observers
+    of eq. (20) step in that process (a two-pass replay's first pass, learn-only: nothing reads theta back
+    until :meth:`close`, which takes their final states over and ends the process;
+    service/observer_process.py).
     """
 
     def __init__(
@@ -108,6 +114,7 @@ class Pipeline:
         workers: Workers | None = None,
         learn_only: bool = False,
         recorder: SampleRecorder | None = None,
+        observers: ObserverProcess | None = None,
     ) -> None:
         self.cfg = cfg
         self.store = store
@@ -116,6 +123,7 @@ class Pipeline:
         self._workers = workers if workers is not None else Workers.inline()
         self._learn_only = learn_only
         self._recorder = recorder
+        self._observers = observers
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
@@ -129,11 +137,11 @@ class Pipeline:
         self.align = AlignStage(cfg, self.counts, self._text)
         self.throttle = self.align.throttle
         self.attitude = AttitudeStage(cfg, self.counts)
-        self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s,
-                                    self._sysid, self.warnings)  # fmt: skip
+        self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._sysid,
+                                    self.warnings, theta_at_close=observers is not None)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
                                         self.persist.save, self._text)  # fmt: skip
-        self.theta = ThetaStage(cfg, self.throttle, self.counts)
+        self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
         self.publish = PublishStage(cfg, self.counts)
         #: sample class -> its handler (:meth:`feed`)
         self._handlers: dict[type, Callable[[Any], bool]] = {}
@@ -275,7 +283,8 @@ class Pipeline:
             for w in store.warnings:
                 if w not in self.warnings:
                     self.warnings.append(w)
-        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits)
+        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits,
+                             self._observers)  # fmt: skip
         self.correctors[idx] = c
         return c
 
@@ -355,7 +364,12 @@ class Pipeline:
             if c.theta.queue:
                 self.theta.drain(c, math.inf)
             if c.last_t is not None:
-                self.persist.save(c, c.last_t)
+                self.persist.save(c, c.last_t, final=True)
+        if self._observers is not None:  # the observers' final states taken over; their process ends
+            for c in self.correctors.values():
+                c.theta.local()
+            self._observers.close()
+            self._observers = None
         self.persist.wait()
 
     def summary(self) -> dict[str, object]:

@@ -15,6 +15,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.final_pass import FinalCompass, PassProgress, SampleLog, final_compasses, final_pass
+from magcomp.service.observer_process import start as start_observers
 from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
@@ -24,6 +25,9 @@ log = logging.getLogger("magcomp.replay")
 
 #: samples decoded per batch of the replay loop
 REPLAY_BATCH = 256
+#: the first pass of a two-pass replay steps its observers in a process of their own, where the platform
+#: forks (service/observer_process.py; the same numbers either way)
+OBSERVER_PROCESS = True
 
 
 @dataclass
@@ -156,12 +160,18 @@ def _first_pass(
     """:func:`learn_pass` that also records the sample log (service/final_pass.py)."""
     store = MemoryStore()
     samples = SampleLog()
-    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True, recorder=samples, on_text=on_text)
+    # the observers step on the second core (service/observer_process.py); forked before any thread starts
+    observers = start_observers(cfg) if OBSERVER_PROCESS else None
+    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True, recorder=samples, on_text=on_text,
+                        observers=observers)  # fmt: skip
     try:
         facts = _learn(path, cfg, pipeline, should_stop, on_progress)
     except BaseException:
         samples.close()
         raise
+    finally:
+        if observers is not None:
+            observers.close()  # (pipeline.close() has taken their states; after an error: the child ends)
     if facts is None:
         samples.close()
         return None

@@ -29,6 +29,7 @@ from magcomp.service.record import Float3, MagRecord
 
 if TYPE_CHECKING:
     from magcomp.service.compass import CompassCorrector
+    from magcomp.service.observer_process import RemoteTheta
 
 F64 = NDArray[np.float64]
 
@@ -42,13 +43,29 @@ class Queued(NamedTuple):
 
 
 class ThetaTracker:
-    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue."""
+    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue.
 
-    def __init__(self, cfg: Config, theta0_mgauss: F64) -> None:
-        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss)
+    ``remote`` (a two-pass replay's first pass): the observer steps in another process
+    (service/observer_process.py); ``est`` and ``last_info`` are then as of the last :meth:`sync`."""
+
+    def __init__(self, cfg: Config, theta0_mgauss: F64, remote: RemoteTheta | None = None) -> None:
+        self.remote = remote
+        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss) if remote is None else remote.local
         self.queue: deque[Queued] = deque()
         self.last_t: float | None = None
         self.last_info: est_core.ThetaStepInfo | None = None
+
+    def sync(self) -> None:
+        """Bring ``est`` and ``last_info`` up to date with every step fed so far (a remote observer)."""
+        if self.remote is not None:
+            self.remote.sync()
+            self.last_info = self.remote.last_info
+
+    def local(self) -> None:
+        """The remote observer's final state taken over (``est`` steps here again from now on)."""
+        if self.remote is not None:
+            self.sync()
+            self.remote = None
 
     def queue_reset(self, t_s: float) -> None:
         """Reset the observer's filters (theta kept) once the samples queued before now are through."""
@@ -60,7 +77,7 @@ class ThetaTracker:
         True when the observer stepped."""
         q = self.queue
         t_thr = throttle.t
-        est = self.est
+        est = self.est if self.remote is None else self.remote
         stepped = False
         while q:
             t, omega, u = q[0]
@@ -84,19 +101,26 @@ class ThetaTracker:
             last = self.last_t
             self.last_t = t
             assert omega is not None
-            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)
+            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)  # remote: None
             stepped = True
         return stepped
+
+
+_ZERO3 = (0.0, 0.0, 0.0)
 
 
 class ThetaStage:
     """Fills ``rec.theta``, ``rec.bias`` (eq. (11)) and ``rec.field_corrected``."""
 
-    def __init__(self, cfg: Config, throttle: ThrottleTrack, counts: Counts) -> None:
+    def __init__(self, cfg: Config, throttle: ThrottleTrack, counts: Counts, outputs: bool = True) -> None:
+        """``outputs`` False (a learn-only pass: nothing reads them): the observer is fed, but theta, the
+        bias and the corrected field are not written into the records (they keep their defaults), nor
+        the observer's flags."""
         self.throttle = throttle
         self.counts = counts
         self._stale_s = cfg.input.stale_s
         self._learn = cfg.observer.learn
+        self._outputs = outputs
 
     def drain(self, c: CompassCorrector, t_now: float) -> None:
         """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""
@@ -105,6 +129,10 @@ class ThetaStage:
 
     def run(self, rec: MagRecord, c: CompassCorrector) -> None:
         out = rec.inflight
+        if not self._outputs:  # a learn-only pass: the observer fed, nothing read back
+            if out is None and rec.calibrated:
+                self._observe(rec, c)
+            return
         if out is not None:
             th0, th1, th2 = out.theta_mgauss
         elif rec.calibrated:
@@ -135,6 +163,9 @@ class ThetaStage:
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
             tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
         self.drain(c, rec.t_s)
+        if not self._outputs:  # a learn-only pass: theta-hat is read at its end (a remote observer's
+            return _ZERO3  # state is not waited for at every sample)
+        tr.sync()
         info = tr.last_info
         rec.info = info
         if info is not None:
