@@ -404,17 +404,9 @@ class InflightEstimator:
         # the open window of the rotation-rate nuisance (see add): its rows' blocks, folded into info/rhs
         # by a Schur complement when the window closes
         self._win: object = None
-        self._w_pp = np.zeros((n, n))
-        self._w_pe = np.zeros((n, 0))
-        self._w_ee = np.zeros((0, 0))
-        self._w_bp = np.zeros(n)
-        self._w_be = np.zeros(0)
-        self._w_zz = 0.0
-        # the window's blocks with the unknown common to the flight (``common`` in add)
-        self._w_pc = np.zeros(n)
-        self._w_ec = np.zeros(0)
-        self._w_cc = 0.0
-        self._w_bc = 0.0
+        # the window's blocks (``_window_blocks``): parameters x parameters, x nuisance, nuisance x nuisance,
+        # their right-hand sides and z'z, and with the unknown common to the flight (``common`` in add)
+        self._window_blocks(n, 0)
         self.n_windows = 0
         # the blocks of the one unknown common to the flight (the field norm of add_norm, or the vertical
         # Earth field of window-field rows: add(common=...)), eliminated when solving (a Schur complement,
@@ -435,10 +427,6 @@ class InflightEstimator:
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
-        self._w_sz = np.zeros(3)
-        self._w_srows = np.zeros((3, n))
-        self._w_sn = np.zeros((3, 0))
-        self._w_scom = np.zeros(3)
         self._w_n = 0
         self._b_c = np.zeros(3)
         self._b_m = np.zeros((3, n))
@@ -448,6 +436,30 @@ class InflightEstimator:
         self._batches = ResidualBatches(n)
         #: nuisance windows per batch (the stage sets it from its window length: VIF_BATCH_S / window)
         self.vif_batch_windows = 15
+
+    def _window_blocks(self, n: int, k: int) -> None:
+        """The open window's sums for ``k`` nuisance columns, zero: the Gram matrix ``sum A'A`` and the sum
+        ``sum A`` of its samples' augmented rows ``A = [rows | nuisance | common | z]`` (3, n + k + 2), one
+        matrix product per sample; the blocks the window's algebra reads are views of them."""
+        m = n + k + 2
+        self._w_gram = g = np.zeros((m, m))
+        self._w_sum = sa = np.zeros((3, m))
+        e, c, z = slice(n, n + k), n + k, n + k + 1
+        self._w_pp, self._w_pe, self._w_ee = g[:n, :n], g[:n, e], g[e, e]
+        self._w_bp, self._w_be, self._w_pc, self._w_ec = g[:n, z], g[e, z], g[:n, c], g[e, c]
+        self._w_srows, self._w_sn, self._w_scom, self._w_sz = sa[:, :n], sa[:, e], sa[:, c], sa[:, z]
+
+    @property
+    def _w_zz(self) -> float:
+        return float(self._w_gram[-1, -1])
+
+    @property
+    def _w_cc(self) -> float:
+        return float(self._w_gram[-2, -2])
+
+    @property
+    def _w_bc(self) -> float:
+        return float(self._w_gram[-2, -1])
 
     @property
     def sigma_mgauss(self) -> float:
@@ -704,9 +716,7 @@ class InflightEstimator:
         self._n_cc += cc
         self._n_bc += bc
         self.n_windows += 1
-        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
-            a[...] = 0.0
-        self._w_zz = self._w_cc = self._w_bc = 0.0
+        self._w_gram[...] = 0.0
         self._win = None
 
     def refill_open_window(self, samples: list[tuple[F64, F64, F64, F64 | None]]) -> None:
@@ -716,11 +726,8 @@ class InflightEstimator:
         if self._win is None:
             return
         self._rev += 1
-        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
-            a[...] = 0.0
-        for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
-            a[...] = 0.0
-        self._w_zz = self._w_cc = self._w_bc = 0.0
+        self._w_gram[...] = 0.0
+        self._w_sum[...] = 0.0
         self._w_n = 0
         for rows, z, nuisance, common in samples:
             self._accumulate(rows, z, nuisance, self._win, common)
@@ -739,30 +746,21 @@ class InflightEstimator:
             if window != self._win:
                 self._close_window()
                 self._win = window
-            k = nuisance.shape[1]
-            if self._w_ee.shape[0] != k:
-                self._w_pe = np.zeros((self.info.shape[0], k))
-                self._w_ee, self._w_be = np.zeros((k, k)), np.zeros(k)
-            self._w_zz += float(z @ z)
-            self._w_pp += rows.T @ rows
-            self._w_pe += rows.T @ nuisance
-            self._w_ee += nuisance.T @ nuisance
-            self._w_bp += rows.T @ z
-            self._w_be += nuisance.T @ z
-            if self._w_sn.shape[1] != k:
-                self._w_sn = np.zeros((3, k))
-            self._w_sz += z
-            self._w_srows += rows
-            self._w_sn += nuisance
+            n, k = rows.shape[1], nuisance.shape[1]
+            if self._w_ee.shape[0] != k:  # a new nuisance size: the nuisance's sums start again
+                g, sa = self._w_gram, self._w_sum
+                self._window_blocks(n, k)
+                keep = [*range(n), -2, -1]
+                self._w_gram[np.ix_(keep, keep)] = g[np.ix_(keep, keep)]
+                self._w_sum[:, keep] = sa[:, keep]
+            a = np.empty((3, n + k + 2))
+            a[:, :n] = rows
+            a[:, n:-2] = nuisance
+            a[:, -2] = 0.0 if common is None else common
+            a[:, -1] = z
+            self._w_gram += a.T @ a
+            self._w_sum += a
             self._w_n += 1
-            if common is not None:
-                self._w_scom += common
-                if self._w_ec.shape[0] != k:
-                    self._w_ec = np.zeros(k)
-                self._w_pc += rows.T @ common
-                self._w_ec += nuisance.T @ common
-                self._w_cc += float(common @ common)
-                self._w_bc += float(common @ z)
 
     def _batch_window(self) -> None:
         """Add the closing window's residual sum to the open batch (``variance_inflation``): with the
@@ -894,8 +892,9 @@ class InflightEstimator:
         ``spread``: another model's parameters minus these (the heading they give apart is a model
         uncertainty, HEADING_MODEL_SPREAD)."""
         cov = cov * vif
-        model_deg = 0.0 if spread is None else self._heading_sd_deg(np.outer(spread, spread))
-        sd_deg = self._heading_sd_deg(cov)
+        grads = self._heading_grads()
+        model_deg = 0.0 if spread is None else self._heading_sd_deg(None, grads, spread)
+        sd_deg = self._heading_sd_deg(cov, grads)
         if HEADING_MODEL_SPREAD:
             sd_deg = math.hypot(sd_deg, model_deg)
         k = self._k
@@ -926,42 +925,57 @@ class InflightEstimator:
             heading_model_deg=model_deg,
         )
 
-    def _heading_sd_deg(self, cov: F64) -> float:
-        """Heading standard deviation (deg) the parameters' joint covariance leaves on a level vehicle,
-        rms over eight headings, at the mean and at the largest delta^2 seen (the larger of the two).
+    def _heading_grads(self) -> F64:
+        """The heading's gradients (rad per unit parameter) of :meth:`_heading_sd_deg`: (2, 8, n), at the
+        mean and at the largest delta^2 seen, for each of the eight headings.
 
         The corrected field is ``u = (I + E)(y - d - theta x)`` (relative form; ``u = A^-1 (...)``,
         absolute), so ``du = dE u - dd - x dtheta`` and the heading moves by ``(u_x du_y - u_y du_x) /
-        H^2``. The joint covariance matters: in level yaw turns a compass tilted on its mount leaks the
-        vertical field into a constant horizontal offset, exactly as a hard iron does, so either alone is
-        poorly known while their sum, which is what the heading sees when level, is well known."""
+        H^2``, i.e. by ``w . du`` with ``w = (-u_y, u_x, 0) / H^2``."""
         h_ned = self.field_ned_mgauss
         h = max(float(np.hypot(h_ned[0], h_ned[1])), 50.0)
         v_z = float(h_ned[2])
         k = self._k
-        n = cov.shape[0]
+        n = self.info.shape[0]
         mean_x0 = self._x0_sum / self.n if self.n else 0.0
-        x0s = (mean_x0, self.x0_max)
-        var = [0.0, 0.0]  # per x0, summed over the headings in order
-        for psi in _PSI8_RAD:
-            u = np.array([h * math.cos(psi), -h * math.sin(psi), v_z])
-            jac = np.zeros((3, n))
-            if self.mode == "absolute":
-                for r in range(3):
-                    jac[r, 3 * r : 3 * r + 3] = -u
-            else:
-                jac[:, :N_SOFT] = np.einsum("kij,j->ik", _SOFT_BASIS, u)
-                # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate
-                # stays 0): it is the same in the corrected and the uncorrected heading
-                jac[:, N_SOFT - 1] = 0.0
-            jac[:, k : k + 3] = -_EYE3
-            w = np.array([-u[1], u[0], 0.0]) / (h * h)
-            for i, x0 in enumerate(x0s):  # only theta's columns depend on delta^2
-                jac[:, k + 3 : k + 6] = -x0 * _EYE3
-                g = w @ jac
-                var[i] += float(g @ cov @ g)
-        worst = max(0.0, var[0] / 8.0)
-        worst = max(worst, var[1] / 8.0)
+        u = np.empty((8, 3))
+        u[:, 0] = h * np.cos(_PSI8_RAD)
+        u[:, 1] = -h * np.sin(_PSI8_RAD)
+        u[:, 2] = v_z
+        w = np.zeros((8, 3))
+        w[:, 0] = -u[:, 1] / (h * h)
+        w[:, 1] = u[:, 0] / (h * h)
+        g = np.zeros((2, 8, n))
+        if self.mode == "absolute":
+            for r in range(3):
+                g[:, :, 3 * r : 3 * r + 3] = -w[:, r : r + 1] * u
+        else:
+            g[:, :, :N_SOFT] = np.einsum("pi,kij,pj->pk", w, _SOFT_BASIS, u)
+            # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate stays 0):
+            # it is the same in the corrected and the uncorrected heading
+            g[:, :, N_SOFT - 1] = 0.0
+        g[:, :, k : k + 3] = -w
+        for i, x0 in enumerate((mean_x0, self.x0_max)):  # only theta's columns depend on delta^2
+            g[i, :, k + 3 : k + 6] = -x0 * w
+        return g
+
+    def _heading_sd_deg(self, cov: F64 | None, grads: F64 | None = None, spread: F64 | None = None) -> float:
+        """Heading standard deviation (deg) the parameters' joint covariance ``cov`` leaves on a level
+        vehicle, rms over eight headings, at the mean and at the largest delta^2 seen (the larger of the
+        two); ``spread`` instead of ``cov``: the covariance ``outer(spread, spread)``. ``grads``:
+        :meth:`_heading_grads` when already computed.
+
+        The joint covariance matters: in level yaw turns a compass tilted on its mount leaks the vertical
+        field into a constant horizontal offset, exactly as a hard iron does, so either alone is poorly
+        known while their sum, which is what the heading sees when level, is well known."""
+        g = self._heading_grads() if grads is None else grads
+        if spread is not None:
+            var = np.square(g @ spread).sum(axis=1)
+        else:
+            assert cov is not None
+            var = np.einsum("ipa,ipa->i", g @ cov, g)
+        worst = max(0.0, float(var[0]) / 8.0)
+        worst = max(worst, float(var[1]) / 8.0)
         return math.degrees(math.sqrt(worst))
 
     def solve(self) -> InflightSolution:
