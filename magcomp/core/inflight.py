@@ -45,6 +45,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import lapack
 
 from magcomp.core.linalg3 import cross, vec3
 
@@ -153,10 +154,16 @@ _SOFT_BASIS = np.concatenate([_SYM_BASIS, _ROT_BASIS])
 #: the identity, built once (read only): the per-sample rows copy it rather than call np.eye each time
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
+_ZEROS_3 = np.zeros((3, 3))
+_ZEROS_3.flags.writeable = False
 #: the eight headings of the heading-sigma rms (rad)
 _PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 N_SYM = _SYM_BASIS.shape[0]
 N_SOFT = _SOFT_BASIS.shape[0]
+#: minus the soft-iron basis as one (3 N_SOFT, 3) matrix: ``(_NEG_SOFT_ROWS @ v).reshape(N_SOFT, 3).T`` is
+#: the (3, N_SOFT) block ``-[S_k v]`` in one product
+_NEG_SOFT_ROWS = -_SOFT_BASIS.reshape(3 * N_SOFT, 3)
+_NEG_SOFT_ROWS.flags.writeable = False
 
 
 def n_params(mode: InflightMode, n_motors: int) -> int:
@@ -271,10 +278,10 @@ def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRo
     n_r = x.shape[0]
     k = N_SOFT
     rows = np.empty((3, k + 3 + 3 * n_r))
-    rows[:, 0:k] = -np.einsum("kij,j->ik", _SOFT_BASIS, v)
+    rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(k, 3).T
     rows[:, k : k + 3] = _EYE3
-    for r in range(n_r):
-        rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x[r] * _EYE3
+    # the x_r I blocks side by side: (r, i, j) -> (i, r j)
+    rows[:, k + 3 :] = np.multiply.outer(x, _EYE3).transpose(1, 0, 2).reshape(3, 3 * n_r)
     rt = np.asarray(r_nb, dtype=np.float64).T
     return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
 
@@ -523,7 +530,7 @@ class InflightEstimator:
         if common is not None:
             r = r - common * self.common_estimate
         if nuisance is not None:
-            e_hat, h_inv = self._nuisance_estimate(nuisance, r, window, common is not None)
+            e_hat, h_ee = self._nuisance_estimate(nuisance, r, window, common is not None)
             r = r - nuisance @ e_hat
         rn2 = float(r @ r)
         sol = self._solution
@@ -533,8 +540,9 @@ class InflightEstimator:
             s2 = max(sol.residual_rms_mgauss**2, GATE_SIGMA_FLOOR_MGAUSS**2)
             # pred >= s2 I, so r' pred^-1 r <= |r|^2 / s2: most samples pass without the 3x3 solve
             pred = s2 * np.eye(3) + rows @ self._cov @ rows.T if rn2 > GATE_CHI2_3DOF * s2 else None
-            if pred is not None and nuisance is not None and h_inv is not None:
-                pred = pred + s2 * (nuisance @ h_inv @ nuisance.T)  # the window's nuisance is uncertain too
+            if pred is not None and nuisance is not None and h_ee is not None:
+                # the window's nuisance is uncertain too (its covariance H_ee^-1, unit weight)
+                pred = pred + s2 * (nuisance @ np.linalg.solve(h_ee, nuisance.T))
             try:
                 m2 = 0.0 if pred is None else float(r @ np.linalg.solve(pred, r))
             except np.linalg.LinAlgError:
@@ -591,11 +599,12 @@ class InflightEstimator:
     def _nuisance_estimate(
         self, nuisance: F64, r: F64, window: object, with_common: bool
     ) -> tuple[F64, F64 | None]:
-        """The window's nuisance at the current parameters and its unit-weight covariance (so that the gate
-        judges what the nuisance cannot explain, with its uncertainty: a window-field row's residual is the
-        whole Earth field before it, and a window's yaw rate is poorly known from its first samples). The
-        open window's own estimate when this row belongs to it; else the least-squares value for this row
-        alone (covariance None: the residual is then what no nuisance value explains)."""
+        """The window's nuisance at the current parameters and its unit-weight information ``H_ee`` (the
+        inverse of its covariance: so that the gate judges what the nuisance cannot explain, with its
+        uncertainty: a window-field row's residual is the whole Earth field before it, and a window's yaw
+        rate is poorly known from its first samples). The open window's own estimate when this row belongs
+        to it; else the least-squares value for this row alone (information None: the residual is then
+        what no nuisance value explains)."""
         k = nuisance.shape[1]
         if window == self._win and self._w_ee.shape[0] == k and self._w_ee.any():
             sol = self._solution
@@ -608,16 +617,20 @@ class InflightEstimator:
             if cached is not None and cached[0] == key:
                 return cached[1]
             hee = self._w_ee + np.diag((s_ref / sd) ** 2)
-            try:
-                b_e = self._w_be - self._w_pe.T @ self._theta
-                if with_common and self._w_ec.shape[0] == k:
-                    b_e = b_e - self._w_ec * self.common_estimate
-                h_inv = np.asarray(np.linalg.inv(hee), dtype=np.float64)
-                out = np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
+            # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance
+            # (their nuisance block times 0): [W_ep | H_ee | w_ec | w_be] [-p, 0, -c, 1]
+            n = self._theta.shape[0]
+            coef = np.zeros(n + k + 2)
+            coef[:n] = -self._theta
+            coef[-2] = -self.common_estimate if with_common else 0.0
+            coef[-1] = 1.0
+            b_e = self._w_gram[n : n + k] @ coef
+            # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
+            _, e_hat, info = lapack.dposv(hee, b_e)
+            if info == 0:
+                out = np.asarray(e_hat, dtype=np.float64), hee
                 self._open_cache = (key, out)
                 return out
-            except np.linalg.LinAlgError:
-                pass
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
 
     def window_nuisance(self, window: object) -> F64 | None:
@@ -626,7 +639,7 @@ class InflightEstimator:
         k = self._w_ee.shape[0]
         if window != self._win or k == 0 or not self._w_ee.any():
             return None
-        return self._nuisance_estimate(np.zeros((3, k)), np.zeros(3), window, True)[0]
+        return self._nuisance_estimate(_ZEROS_3[:, :1].repeat(k, axis=1), _ZEROS_3[0], window, True)[0]
 
     def add_norm(self, y_mgauss: F64, x: F64) -> None:
         """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``

@@ -494,18 +494,16 @@ class InflightStage:
             win_field = np.array([e_w[0], e_w[1], est.common_estimate])
         h_w = est.field_ned_mgauss if win_field is None else win_field
         cols = [w.field_cols, *self._yaw_tilt_cols(r_nb, h_w, tau)]
-        sd = [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
-        if TILT_PRIOR_RAD > 0.0:
-            sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
+        ap_yaw = tilt_model and self._gy_on and AP_YAW_NUISANCE
+        sd = _window_prior_sd(ap_yaw)
         z = w.z
         if tilt_model and self._gy_on:
             z, tilt = self._ap_yaw_tilt(est, t_s, key, r_nb, h_w, z)
             cols[1] = cols[1] + tilt * tau  # the window's yaw rate tilts it too
             if AP_YAW_NUISANCE:
                 cols.append(tilt)  # what the line fit leaves of the gyro yaw's error, one per window
-                sd.append(AP_YAW_PRIOR_RAD)
-        est.nuisance_prior_sd = np.array(sd)
-        nuis = np.hstack(cols)
+        est.nuisance_prior_sd = sd
+        nuis = np.concatenate(cols, axis=1)
         gated = est.n_gated
         est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
         if relin and est.n_gated == gated:
@@ -779,6 +777,25 @@ class InflightStage:
             else sol.motor_theta_mgauss.tolist(),
             "time_s": dict(self.time_s),
         }
+
+
+_PRIOR_SD_CACHE: dict[tuple[float, ...], F64] = {}
+
+
+def _window_prior_sd(ap_yaw: bool) -> F64:
+    """The window-field rows' nuisance prior standard deviations: the window's horizontal field, its yaw
+    rate, with TILT_PRIOR_RAD its tilt about north and east, with ``ap_yaw`` the tilt-from-yaw nuisance
+    (AP_YAW_PRIOR_RAD). One read-only array per set of values (built once, not per row)."""
+    sd: tuple[float, ...] = (WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S)
+    if TILT_PRIOR_RAD > 0.0:
+        sd += (TILT_PRIOR_RAD, TILT_PRIOR_RAD)
+    if ap_yaw:
+        sd += (AP_YAW_PRIOR_RAD,)
+    arr = _PRIOR_SD_CACHE.get(sd)
+    if arr is None:
+        arr = _PRIOR_SD_CACHE[sd] = np.array(sd)
+        arr.flags.writeable = False
+    return arr
 
 
 def _interpolate_rotation(att: deque[tuple[float, F64]], t_s: float) -> F64 | None:
