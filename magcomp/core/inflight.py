@@ -431,6 +431,7 @@ class InflightEstimator:
         #: window's nuisance estimate is cached against it)
         self._rev = 0
         self._open_cache: tuple[tuple[int, bool, tuple[float, ...]], tuple[F64, F64]] | None = None
+        self._ridge_cache: tuple[tuple[float, tuple[float, ...]], F64] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -446,27 +447,30 @@ class InflightEstimator:
 
     def _window_blocks(self, n: int, k: int) -> None:
         """The open window's sums for ``k`` nuisance columns, zero: the Gram matrix ``sum A'A`` and the sum
-        ``sum A`` of its samples' augmented rows ``A = [rows | nuisance | common | z]`` (3, n + k + 2), one
+        ``sum A`` of its samples' augmented rows ``A = [rows | common | z | nuisance]`` (3, n + 2 + k), one
         matrix product per sample; the blocks the window's algebra reads are views of them."""
-        m = n + k + 2
+        m = n + 2 + k
         self._w_gram = g = np.zeros((m, m))
         self._w_sum = sa = np.zeros((3, m))
-        e, c, z = slice(n, n + k), n + k, n + k + 1
+        c, z, e = n, n + 1, slice(n + 2, m)
         self._w_pp, self._w_pe, self._w_ee = g[:n, :n], g[:n, e], g[e, e]
         self._w_bp, self._w_be, self._w_pc, self._w_ec = g[:n, z], g[e, z], g[:n, c], g[e, c]
         self._w_srows, self._w_sn, self._w_scom, self._w_sz = sa[:, :n], sa[:, e], sa[:, c], sa[:, z]
 
     @property
     def _w_zz(self) -> float:
-        return float(self._w_gram[-1, -1])
+        n = self.info.shape[0]
+        return float(self._w_gram[n + 1, n + 1])
 
     @property
     def _w_cc(self) -> float:
-        return float(self._w_gram[-2, -2])
+        n = self.info.shape[0]
+        return float(self._w_gram[n, n])
 
     @property
     def _w_bc(self) -> float:
-        return float(self._w_gram[-2, -1])
+        n = self.info.shape[0]
+        return float(self._w_gram[n, n + 1])
 
     @property
     def sigma_mgauss(self) -> float:
@@ -616,15 +620,15 @@ class InflightEstimator:
             cached = self._open_cache
             if cached is not None and cached[0] == key:
                 return cached[1]
-            hee = self._w_ee + np.diag((s_ref / sd) ** 2)
+            hee = self._w_ee + self._ridge(s_ref, key[2])
             # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance
-            # (their nuisance block times 0): [W_ep | H_ee | w_ec | w_be] [-p, 0, -c, 1]
+            # (their nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
             n = self._theta.shape[0]
-            coef = np.zeros(n + k + 2)
+            coef = np.zeros(n + 2 + k)
             coef[:n] = -self._theta
-            coef[-2] = -self.common_estimate if with_common else 0.0
-            coef[-1] = 1.0
-            b_e = self._w_gram[n : n + k] @ coef
+            coef[n] = -self.common_estimate if with_common else 0.0
+            coef[n + 1] = 1.0
+            b_e = self._w_gram[n + 2 :] @ coef
             # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
             _, e_hat, info = lapack.dposv(hee, b_e)
             if info == 0:
@@ -632,6 +636,27 @@ class InflightEstimator:
                 self._open_cache = (key, out)
                 return out
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
+
+    def _ridge(self, s_ref: float, sd: tuple[float, ...]) -> F64:
+        """The nuisance prior's information at unit weight, ``diag((s_ref / sd)^2)`` (the data rows are not
+        divided by s), built once per residual scale and prior."""
+        key = (s_ref, sd)
+        if self._ridge_cache is None or self._ridge_cache[0] != key:
+            self._ridge_cache = (key, np.diag((s_ref / np.asarray(sd)) ** 2))
+        return self._ridge_cache[1]
+
+    def _window_solve(self) -> F64 | None:
+        """``H_ee^-1 [W_ep | w_ec | w_be]`` of the open window (H_ee with the nuisance's prior; None when
+        it is singular): what its Schur complement and its residual sum both need. The nuisance has a weak
+        prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a window
+        without rotation information stays solvable."""
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        k = self._w_ee.shape[0]
+        n = self.info.shape[0]
+        hee = self._w_ee + self._ridge(s_ref, tuple(self._prior_sd_k(k).tolist()))
+        _, x, info = lapack.dposv(hee, self._w_gram[n + 2 :, : n + 2])
+        return None if info != 0 else np.asarray(x, dtype=np.float64)
 
     def window_nuisance(self, window: object) -> F64 | None:
         """The open window's nuisance estimate at the current parameters when ``window`` is the open one
@@ -689,39 +714,27 @@ class InflightEstimator:
         k_p = pc / cc
         return pp - np.outer(k_p, pc), bp - k_p * bc, zz - bc * bc / cc
 
-    def _window_schur(self) -> WindowSchur:
+    def _window_schur(self, x: F64 | None = None) -> WindowSchur:
         """The open window's contribution with its nuisance eliminated: (info, rhs, z'z) of the parameters
-        and the blocks of the common unknown (parameters x common, common x common, its rhs). The
-        nuisance has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor)
-        so that a window without rotation information stays solvable."""
-        sol = self._solution
-        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-        k = self._w_ee.shape[0]
-        # unit weight: the data rows are not divided by s
-        ridge = (s_ref / self._prior_sd_k(k)) ** 2
-        hee = self._w_ee + np.diag(ridge)
-        ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
-        try:
-            k_pe = np.linalg.solve(hee, self._w_pe.T).T  # W_pe H_ee^-1
-            k_e = np.linalg.solve(hee, self._w_be)
-            k_c = np.linalg.solve(hee, ec)
-        except np.linalg.LinAlgError:
+        and the blocks of the common unknown (parameters x common, common x common, its rhs): the Schur
+        complement ``G_rr - G_re H_ee^-1 G_er`` of its Gram matrix, ``r`` = [parameters, common, z].
+        ``x``: :meth:`_window_solve` when already computed."""
+        n = self.info.shape[0]
+        x = self._window_solve() if x is None else x
+        if x is None:
             return self._w_pp, self._w_bp, self._w_zz, self._w_pc, self._w_cc, self._w_bc
-        return (
-            self._w_pp - k_pe @ self._w_pe.T,
-            self._w_bp - k_pe @ self._w_be,
-            self._w_zz - float(self._w_be @ k_e),
-            self._w_pc - k_pe @ ec,
-            self._w_cc - float(ec @ k_c),
-            self._w_bc - float(self._w_be @ k_c),
-        )
+        g = self._w_gram
+        sc = g[: n + 2, : n + 2] - g[n + 2 :, : n + 2].T @ x
+        zz, cc, bc = float(sc[n + 1, n + 1]), float(sc[n, n]), float(sc[n, n + 1])
+        return sc[:n, :n], sc[:n, n + 1], zz, sc[:n, n], cc, bc
 
     def _close_window(self) -> None:
         if self._win is None:
             return
         self._rev += 1
-        self._batch_window()
-        info, rhs, zz, pc, cc, bc = self._window_schur()
+        x = self._window_solve()
+        self._batch_window(x)
+        info, rhs, zz, pc, cc, bc = self._window_schur(x)
         self.info += info
         self.rhs += rhs
         self._zz += zz
@@ -763,44 +776,34 @@ class InflightEstimator:
             if self._w_ee.shape[0] != k:  # a new nuisance size: the nuisance's sums start again
                 g, sa = self._w_gram, self._w_sum
                 self._window_blocks(n, k)
-                keep = [*range(n), -2, -1]
-                self._w_gram[np.ix_(keep, keep)] = g[np.ix_(keep, keep)]
-                self._w_sum[:, keep] = sa[:, keep]
-            a = np.empty((3, n + k + 2))
+                self._w_gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
+                self._w_sum[:, : n + 2] = sa[:, : n + 2]
+            a = np.empty((3, n + 2 + k))
             a[:, :n] = rows
-            a[:, n:-2] = nuisance
-            a[:, -2] = 0.0 if common is None else common
-            a[:, -1] = z
+            a[:, n] = 0.0 if common is None else common
+            a[:, n + 1] = z
+            a[:, n + 2 :] = nuisance
             self._w_gram += a.T @ a
             self._w_sum += a
             self._w_n += 1
 
-    def _batch_window(self) -> None:
+    def _batch_window(self, x: F64 | None) -> None:
         """Add the closing window's residual sum to the open batch (``variance_inflation``): with the
         window's nuisance at its least-squares value e = H^-1 (b_e - W_ep p - w_ec c), the sum over the
-        window of z - rows p - common c - N e is c_w - M_w p - g_w c."""
+        window of z - rows p - common c - N e is c_w - M_w p - g_w c. ``x``: :meth:`_window_solve`."""
         k = self._w_ee.shape[0]
-        if self._w_n > 0 and self._w_sn.shape[1] == k:
-            sol = self._solution
-            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-            ridge = (s_ref / self._prior_sd_k(k)) ** 2
-            hee = self._w_ee + np.diag(ridge)
-            ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
-            try:
-                k_e = np.linalg.solve(hee, np.column_stack([self._w_be, self._w_pe.T, ec]))
-            except np.linalg.LinAlgError:
-                k_e = None
-            if k_e is not None:
-                self._b_c += self._w_sz - self._w_sn @ k_e[:, 0]
-                self._b_m += self._w_srows - self._w_sn @ k_e[:, 1:-1]
-                self._b_g += self._w_scom - self._w_sn @ k_e[:, -1]
-                self._b_n += self._w_n
-                self._b_windows += 1
-                if self._b_windows >= self.vif_batch_windows:
-                    self._batches.append(self._b_c, self._b_m, self._b_g, self._b_n)
-                    for a in (self._b_c, self._b_m, self._b_g):
-                        a[...] = 0.0
-                    self._b_n = self._b_windows = 0
+        n = self.info.shape[0]
+        if self._w_n > 0 and self._w_sn.shape[1] == k and x is not None:
+            self._b_c += self._w_sz - self._w_sn @ x[:, n + 1]
+            self._b_m += self._w_srows - self._w_sn @ x[:, :n]
+            self._b_g += self._w_scom - self._w_sn @ x[:, n]
+            self._b_n += self._w_n
+            self._b_windows += 1
+            if self._b_windows >= self.vif_batch_windows:
+                self._batches.append(self._b_c, self._b_m, self._b_g, self._b_n)
+                for a in (self._b_c, self._b_m, self._b_g):
+                    a[...] = 0.0
+                self._b_n = self._b_windows = 0
         for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
             a[...] = 0.0
         self._w_n = 0
@@ -838,16 +841,18 @@ class InflightEstimator:
             s2 = self._sigma_at(eff) ** 2
             lam = info / s2 + self.prior_info
             b = rhs / s2 + self.prior_info @ self.prior_mean
-            try:
-                cho = np.linalg.cholesky(lam)
-            except np.linalg.LinAlgError:
+            # LAPACK's Cholesky solve (its factor kept for the covariance below)
+            cho, theta, fail = lapack.dposv(lam, b)
+            if fail != 0:
                 return
-            theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
             self._theta = theta
             self._rev += 1
         self.common_estimate = self._common_value(theta, ws)
         s2 = self._sigma_at(eff) ** 2
-        cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
+        inv_u, fail = lapack.dpotri(cho)  # lam^-1 from its factor: the upper triangle
+        if fail != 0:
+            return
+        cov = np.triu(inv_u) + np.triu(inv_u, 1).T
         self._cov = cov  # white: the gate's predictive covariance
         vif = self._vif_at(s2)
         self._pub = None
