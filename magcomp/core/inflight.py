@@ -262,7 +262,9 @@ class WindowFieldRows(NamedTuple):
     common: F64
 
 
-def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRows:
+def window_field_rows(
+    r_nb: F64, y_mgauss: F64, x: F64, v: F64, like: WindowFieldRows | None = None
+) -> WindowFieldRows:
     """Rows of the relative form's unknowns written against the Earth field of a short window instead of
     an earlier sample (eqs. (2), (11), (13))::
 
@@ -274,9 +276,16 @@ def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRo
     unknown common to the flight, since a yaw error leaves it alone (the DPI invariance of eq. (3)). The
     soft-iron term is linearised at the current estimate, ``E R^T n ~ E v`` with ``v = y - d - Theta x``
     (as :func:`relative_rows`). Unlike the 0.3 s pairs, every throttle change within a window and every
-    one along the vertical, however slow, informs theta."""
-    n_r = x.shape[0]
+    one along the vertical, however slow, informs theta.
+
+    ``like``: this sample's rows at another linearisation point (another estimator's ``v``): only the
+    soft-iron columns differ, the rest is copied from it."""
     k = N_SOFT
+    if like is not None:
+        rows = like.rows.copy()
+        rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(k, 3).T
+        return WindowFieldRows(rows, like.z, like.field_cols, like.common)
+    n_r = x.shape[0]
     rows = np.empty((3, k + 3 + 3 * n_r))
     rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(k, 3).T
     rows[:, k : k + 3] = _EYE3
@@ -432,6 +441,7 @@ class InflightEstimator:
         self._rev = 0
         self._open_cache: tuple[tuple[int, bool, tuple[float, ...]], tuple[F64, F64]] | None = None
         self._ridge_cache: tuple[tuple[float, tuple[float, ...]], F64] | None = None
+        self._coef_cache: tuple[tuple[F64, float, int], F64] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -610,9 +620,7 @@ class InflightEstimator:
         to it; else the least-squares value for this row alone (information None: the residual is then
         what no nuisance value explains)."""
         k = nuisance.shape[1]
-        if window == self._win and self._w_ee.shape[0] == k and self._w_ee.any():
-            sol = self._solution
-            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        if window == self._win and self._w_ee.shape[0] == k and self._w_n > 0 and self._w_ee.any():
             sd = self._prior_sd_k(k)
             # the stage asks twice per row with nothing changed in between (window_nuisance, then add):
             # the second answer is the first (same inputs, same numbers); _rev changes with every input
@@ -620,15 +628,12 @@ class InflightEstimator:
             cached = self._open_cache
             if cached is not None and cached[0] == key:
                 return cached[1]
+            sol = self._solution
+            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
             hee = self._w_ee + self._ridge(s_ref, key[2])
             # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance
             # (their nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
-            n = self._theta.shape[0]
-            coef = np.zeros(n + 2 + k)
-            coef[:n] = -self._theta
-            coef[n] = -self.common_estimate if with_common else 0.0
-            coef[n + 1] = 1.0
-            b_e = self._w_gram[n + 2 :] @ coef
+            b_e = self._w_gram[self._theta.shape[0] + 2 :] @ self._b_e_coef(k, with_common)
             # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
             _, e_hat, info = lapack.dposv(hee, b_e)
             if info == 0:
@@ -636,6 +641,23 @@ class InflightEstimator:
                 self._open_cache = (key, out)
                 return out
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
+
+    def _b_e_coef(self, k: int, with_common: bool) -> F64:
+        """``[-p, -c, 1, 0_k]`` at the current parameters p and common unknown c (0 without ``with_common``):
+        the window Gram's nuisance rows times it are the nuisance's right-hand side. Built once per
+        solution (the parameters change only there)."""
+        c = self.common_estimate if with_common else 0.0
+        key = (self._theta, c, k)
+        cached = self._coef_cache
+        if cached is not None and cached[0][0] is key[0] and cached[0][1:] == key[1:]:
+            return cached[1]
+        n = self._theta.shape[0]
+        coef = np.zeros(n + 2 + k)
+        coef[:n] = -self._theta
+        coef[n] = -c
+        coef[n + 1] = 1.0
+        self._coef_cache = (key, coef)
+        return coef
 
     def _ridge(self, s_ref: float, sd: tuple[float, ...]) -> F64:
         """The nuisance prior's information at unit weight, ``diag((s_ref / sd)^2)`` (the data rows are not

@@ -24,6 +24,7 @@ from magcomp.core.inflight import (
     InflightMode,
     InflightParams,
     InflightSolution,
+    WindowFieldRows,
     absolute_rows,
     reference_yaw_error_rows,
     regressors,
@@ -454,7 +455,7 @@ class InflightStage:
             self._relinearise_window()
             self._rl_key = key
         gated = self.est.n_gated
-        self._win_field = self._add_window_row(
+        self._win_field, w = self._add_window_row(
             self.est, self._win_field, t_s, key, tau, r_nb, y, x, AP_YAW_TILT, relin
         )
         # the tilt model's estimator takes the samples with a raw gyro's yaw (a compass marked external never
@@ -463,8 +464,8 @@ class InflightStage:
         if self._gy_on and self.est_tilt is not None:
             self.est.theta_from = self.est_tilt
         if self._gy_on and self.est_tilt is not None and self.est.n_gated == gated:
-            self._win_field_tilt = self._add_window_row(
-                self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False
+            self._win_field_tilt, _ = self._add_window_row(
+                self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False, w
             )
         self.n_rows += 1
 
@@ -480,10 +481,13 @@ class InflightStage:
         x: F64,
         tilt_model: bool,
         relin: bool,
-    ) -> F64 | None:
+        like: WindowFieldRows | None = None,
+    ) -> tuple[F64 | None, WindowFieldRows]:
         """One sample's window-field rows into ``est`` (the tilt model's when ``tilt_model``); returns the
-        window field the yaw-rate column was written about (kept for the next window's first samples)."""
-        w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x))
+        window field the yaw-rate column was written about (kept for the next window's first samples) and
+        the rows (``like``: this sample's rows for the other estimator, whose columns but the soft-iron
+        ones they share)."""
+        w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x), like)
         est.vif_batch_windows = max(
             1, round(VIF_BATCH_S / (GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S))
         )
@@ -508,7 +512,7 @@ class InflightStage:
         est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
         if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
-        return win_field
+        return win_field, w
 
     @staticmethod
     def _yaw_tilt_cols(r_nb: F64, h_w: F64, tau: float) -> list[F64]:
