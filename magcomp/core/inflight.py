@@ -154,8 +154,6 @@ _SOFT_BASIS = np.concatenate([_SYM_BASIS, _ROT_BASIS])
 #: the identity, built once (read only): the per-sample rows copy it rather than call np.eye each time
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
-_ZEROS_3 = np.zeros((3, 3))
-_ZEROS_3.flags.writeable = False
 #: the eight headings of the heading-sigma rms (rad)
 _PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 N_SYM = _SYM_BASIS.shape[0]
@@ -174,7 +172,7 @@ def n_params(mode: InflightMode, n_motors: int) -> int:
 
 def soft_iron_matrix(e: F64) -> F64:
     """E (3x3, symmetric, traceless) of the relative form's soft-iron parameters."""
-    return np.asarray(np.tensordot(e, _SOFT_BASIS, axes=1), dtype=np.float64)
+    return np.asarray(e @ _SOFT_BASIS.reshape(N_SOFT, 9), dtype=np.float64).reshape(3, 3)
 
 
 def regressors(throttle_01: float, motors_01: tuple[float, ...] | None) -> F64:
@@ -442,6 +440,8 @@ class InflightEstimator:
         self._open_cache: tuple[tuple[int, bool, tuple[float, ...]], tuple[F64, F64]] | None = None
         self._ridge_cache: tuple[tuple[float, tuple[float, ...]], F64] | None = None
         self._coef_cache: tuple[tuple[F64, float, int], F64] | None = None
+        self._unc_cache: tuple[F64, F64, F64] | None = None  # uncalibrated(): theta's d and Theta views
+        self._grad_cache: tuple[tuple[float, float, float, int], F64, F64] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -620,27 +620,37 @@ class InflightEstimator:
         to it; else the least-squares value for this row alone (information None: the residual is then
         what no nuisance value explains)."""
         k = nuisance.shape[1]
-        if window == self._win and self._w_ee.shape[0] == k and self._w_n > 0 and self._w_ee.any():
-            sd = self._prior_sd_k(k)
-            # the stage asks twice per row with nothing changed in between (window_nuisance, then add):
-            # the second answer is the first (same inputs, same numbers); _rev changes with every input
-            key = (self._rev, with_common, tuple(sd.tolist()))
-            cached = self._open_cache
-            if cached is not None and cached[0] == key:
-                return cached[1]
-            sol = self._solution
-            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-            hee = self._w_ee + self._ridge(s_ref, key[2])
-            # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance
-            # (their nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
-            b_e = self._w_gram[self._theta.shape[0] + 2 :] @ self._b_e_coef(k, with_common)
-            # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
-            _, e_hat, info = lapack.dposv(hee, b_e)
-            if info == 0:
-                out = np.asarray(e_hat, dtype=np.float64), hee
-                self._open_cache = (key, out)
+        if window == self._win and self._w_ee.shape[0] == k:
+            out = self._open_nuisance(k, with_common)
+            if out is not None:
                 return out
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
+
+    def _open_nuisance(self, k: int, with_common: bool) -> tuple[F64, F64] | None:
+        """The open window's nuisance estimate and information (``_nuisance_estimate``; None when the
+        window has no rows with nuisance columns yet, or H_ee is singular)."""
+        sd = self._prior_sd_k(k)
+        # the stage asks twice per row with nothing changed in between (window_nuisance, then add): the
+        # second answer is the first (same inputs, same numbers); _rev changes with every input
+        key = (self._rev, with_common, tuple(sd.tolist()))
+        cached = self._open_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        if self._w_n == 0 or not self._w_ee.any():
+            return None
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        hee = self._w_ee + self._ridge(s_ref, key[2])
+        # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance (their
+        # nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
+        b_e = self._w_gram[self._theta.shape[0] + 2 :] @ self._b_e_coef(k, with_common)
+        # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
+        _, e_hat, info = lapack.dposv(hee, b_e)
+        if info != 0:
+            return None
+        out = np.asarray(e_hat, dtype=np.float64), hee
+        self._open_cache = (key, out)
+        return out
 
     def _b_e_coef(self, k: int, with_common: bool) -> F64:
         """``[-p, -c, 1, 0_k]`` at the current parameters p and common unknown c (0 without ``with_common``):
@@ -684,9 +694,12 @@ class InflightEstimator:
         """The open window's nuisance estimate at the current parameters when ``window`` is the open one
         and has rows (window-field rows: its horizontal Earth field first), else None."""
         k = self._w_ee.shape[0]
-        if window != self._win or k == 0 or not self._w_ee.any():
+        if window != self._win or k == 0:
             return None
-        return self._nuisance_estimate(_ZEROS_3[:, :1].repeat(k, axis=1), _ZEROS_3[0], window, True)[0]
+        out = self._open_nuisance(k, True)
+        if out is None:  # no rows with nuisance columns (or singular: what the last row alone gives, 0)
+            return None if self._w_n == 0 or not self._w_ee.any() else np.zeros(k)
+        return out[0]
 
     def add_norm(self, y_mgauss: F64, x: F64) -> None:
         """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``
@@ -974,11 +987,27 @@ class InflightEstimator:
         absolute), so ``du = dE u - dd - x dtheta`` and the heading moves by ``(u_x du_y - u_y du_x) /
         H^2``, i.e. by ``w . du`` with ``w = (-u_y, u_x, 0) / H^2``."""
         h_ned = self.field_ned_mgauss
-        h = max(float(np.hypot(h_ned[0], h_ned[1])), 50.0)
-        v_z = float(h_ned[2])
         k = self._k
         n = self.info.shape[0]
         mean_x0 = self._x0_sum / self.n if self.n else 0.0
+        # all but theta's columns depend on the Earth field only: built once per field
+        key = (float(h_ned[0]), float(h_ned[1]), float(h_ned[2]), n)
+        cached = self._grad_cache
+        if cached is None or cached[0] != key:
+            cached = self._grad_cache = (key, *self._heading_grads_field(n))
+        _, base, w = cached
+        g = np.empty((2, 8, n))
+        g[:] = base
+        for i, x0 in enumerate((mean_x0, self.x0_max)):  # only theta's columns depend on delta^2
+            g[i, :, k + 3 : k + 6] = -x0 * w
+        return g
+
+    def _heading_grads_field(self, n: int) -> tuple[F64, F64]:
+        """:meth:`_heading_grads` but theta's columns (8, n), and ``w`` (8, 3)."""
+        h_ned = self.field_ned_mgauss
+        h = max(float(np.hypot(h_ned[0], h_ned[1])), 50.0)
+        v_z = float(h_ned[2])
+        k = self._k
         u = np.empty((8, 3))
         u[:, 0] = h * np.cos(_PSI8_RAD)
         u[:, 1] = -h * np.sin(_PSI8_RAD)
@@ -986,19 +1015,17 @@ class InflightEstimator:
         w = np.zeros((8, 3))
         w[:, 0] = -u[:, 1] / (h * h)
         w[:, 1] = u[:, 0] / (h * h)
-        g = np.zeros((2, 8, n))
+        g = np.zeros((8, n))
         if self.mode == "absolute":
             for r in range(3):
-                g[:, :, 3 * r : 3 * r + 3] = -w[:, r : r + 1] * u
+                g[:, 3 * r : 3 * r + 3] = -w[:, r : r + 1] * u
         else:
-            g[:, :, :N_SOFT] = np.einsum("pi,kij,pj->pk", w, _SOFT_BASIS, u)
+            g[:, :N_SOFT] = np.einsum("pi,kij,pj->pk", w, _SOFT_BASIS, u)
             # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate stays 0):
             # it is the same in the corrected and the uncorrected heading
-            g[:, :, N_SOFT - 1] = 0.0
-        g[:, :, k : k + 3] = -w
-        for i, x0 in enumerate((mean_x0, self.x0_max)):  # only theta's columns depend on delta^2
-            g[i, :, k + 3 : k + 6] = -x0 * w
-        return g
+            g[:, N_SOFT - 1] = 0.0
+        g[:, k : k + 3] = -w
+        return g, w
 
     def _heading_sd_deg(self, cov: F64 | None, grads: F64 | None = None, spread: F64 | None = None) -> float:
         """Heading standard deviation (deg) the parameters' joint covariance ``cov`` leaves on a level
@@ -1046,9 +1073,12 @@ class InflightEstimator:
     def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
         """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
         point of the relative form's soft-iron columns."""
-        k = self._k
-        d = self._theta[k : k + 3]
-        th = self._theta[k + 3 :].reshape(-1, 3)
+        cached = self._unc_cache
+        if cached is None or cached[0] is not self._theta:
+            k = self._k
+            p = self._theta
+            cached = self._unc_cache = (p, p[k : k + 3], p[k + 3 :].reshape(-1, 3))
+        _, d, th = cached
         return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)
 
 
