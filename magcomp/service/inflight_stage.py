@@ -497,17 +497,20 @@ class InflightStage:
         if e_w is not None:
             win_field = np.array([e_w[0], e_w[1], est.common_estimate])
         h_w = est.field_ned_mgauss if win_field is None else win_field
-        cols = [w.field_cols, *self._yaw_tilt_cols(r_nb, h_w, tau)]
         ap_yaw = tilt_model and self._gy_on and AP_YAW_NUISANCE
-        sd = _window_prior_sd(ap_yaw)
         z = w.z
         if tilt_model and self._gy_on:
-            z, tilt = self._ap_yaw_tilt(est, t_s, key, r_nb, h_w, z)
-            cols[1] = cols[1] + tilt * tau  # the window's yaw rate tilts it too
-            if AP_YAW_NUISANCE:
-                cols.append(tilt)  # what the line fit leaves of the gyro yaw's error, one per window
-        est.nuisance_prior_sd = sd
-        nuis = np.concatenate(cols, axis=1)
+            psi, vh = self._ap_yaw_tilt(est, t_s, key, h_w)
+            # the tilt's column R^T (v x h) last: the window's yaw rate tilts it too (its column takes it
+            # times tau); the right-hand side with the tilt removed; with AP_YAW_NUISANCE the column stays,
+            # for what the line fit leaves of the gyro yaw's error, one per window
+            nuis = self._nuisance_cols(r_nb, h_w, tau, vh)
+            z = z - psi * nuis[:, -1]
+            if not AP_YAW_NUISANCE:
+                nuis = nuis[:, :-1]
+        else:
+            nuis = self._nuisance_cols(r_nb, h_w, tau)
+        est.nuisance_prior_sd = _window_prior_sd(ap_yaw)
         gated = est.n_gated
         est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
         if relin and est.n_gated == gated:
@@ -515,16 +518,30 @@ class InflightStage:
         return win_field, w
 
     @staticmethod
-    def _yaw_tilt_cols(r_nb: F64, h_w: F64, tau: float) -> list[F64]:
-        """The window's yaw-rate column (yaw error = rate * tau, about the window's field ``h_w``) and, with
-        TILT_PRIOR_RAD, the reference's tilt error about north and east (its vertical carries it)."""
-        if TILT_PRIOR_RAD <= 0.0:
-            return [reference_yaw_error_rows(r_nb, h_w) * tau]
-        # R^T [h]x: its column i is -R^T (e_i x h): the yaw column (reference_yaw_error_rows) and the tilt
-        # columns R^T (e_N x h), R^T (e_E x h) from one product (np.cross per column cost a tenth of a replay)
+    def _nuisance_cols(
+        r_nb: F64, h_w: F64, tau: float, vh: tuple[float, float, float] | None = None
+    ) -> F64:
+        """A window-field row's nuisance columns (3, k), all ``R^T c`` for NED vectors ``c``, so one product:
+        the window's horizontal field (R^T e_N, R^T e_E: ``WindowFieldRows.field_cols``), its yaw-rate
+        column (yaw error = rate * tau about the window's field ``h_w``: -R^T (e_D x h) tau, as
+        ``reference_yaw_error_rows``) and, with TILT_PRIOR_RAD, the reference's tilt error about north and
+        east (-R^T (e_N x h), -R^T (e_E x h): its vertical carries it). ``vh``: the tilt-from-yaw's ``v x h``
+        (AP_YAW_TILT): its column R^T (v x h) last, and added times tau to the yaw-rate column (the
+        window's yaw rate tilts it too)."""
         h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
-        m = r_nb.T @ np.array([[0.0, -h3, h2], [h3, 0.0, -h1], [-h2, h1, 0.0]])
-        return [m[:, 2:3] * tau, -m[:, 0:2]]
+        yaw = [h2 * tau, -h1 * tau, 0.0]  # -(e_D x h) tau
+        c = [[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]  # e_N, e_E (rows: N, E, D)
+        if vh is not None:
+            yaw = [yaw[i] + vh[i] * tau for i in range(3)]
+        for i in range(3):
+            c[i].append(yaw[i])
+        if TILT_PRIOR_RAD > 0.0:  # -(e_N x h) = (0, -h3, h2), -(e_E x h) = (h3, 0, -h1)
+            for row, tilt in zip(c, ((0.0, h3), (-h3, 0.0), (h2, -h1)), strict=True):
+                row.extend(tilt)
+        if vh is not None:
+            for i in range(3):
+                c[i].append(vh[i])
+        return np.asarray(r_nb.T @ np.array(c), dtype=np.float64)
 
     def _relinearise_window(self) -> None:
         """The window closing: its rows' yaw-rate and tilt columns written again about the window's final
@@ -542,14 +559,14 @@ class InflightStage:
         h_fin = np.array([e_w[0], e_w[1], self.est.common_estimate])
         self.est.refill_open_window(
             [
-                (r, z, np.hstack([fc, *self._yaw_tilt_cols(rn, h_fin, tau)]), com)
-                for r, z, fc, rn, tau, com in rows
+                (r, z, self._nuisance_cols(rn, h_fin, tau), com)
+                for r, z, _fc, rn, tau, com in rows
             ]
         )
 
     def _ap_yaw_tilt(
-        self, est: InflightEstimator, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64
-    ) -> tuple[F64, F64]:
+        self, est: InflightEstimator, t_s: float, key: tuple[int, int], h_w: F64
+    ) -> tuple[float, tuple[float, float, float]]:
         """The autopilot's tilt error that its own yaw error makes (AP_YAW_TILT). It subtracts the GPS
         acceleration ``a`` from the specific force with its own yaw, so a yaw error ``psi`` leaves a
         horizontal ``-psi a`` that it takes for gravity: its tilt is off by the rotation ``-psi a / g`` (NED,
@@ -557,16 +574,16 @@ class InflightStage:
         specific force, the one direction its accelerometer cannot see). ``psi`` = the autopilot's yaw minus
         the gyro's (known) + the gyro yaw's own error, which the windows' fields show: their direction
         against the WMM's, a straight line in time over the gyro chain (its bias) fitted to the closed
-        windows (``_frame_at``). Returns the right-hand side with the tilt removed and the tilt's column per
-        radian of yaw error (3, 1). ``est``: the estimator the rows go to (its windows' fields)."""
+        windows (``_frame_at``). Returns ``psi`` and ``v x h`` (NED, ``v = -a / g``): the tilt's column per
+        radian of yaw error is R^T (v x h) (``_nuisance_cols``), the right-hand side has ``psi`` times it
+        removed. ``est``: the estimator the rows go to (its windows' fields)."""
         if key != self._ap_key:
             if self._ap_key is not None:
                 self._frame_close(est, self._ap_key)
             self._ap_key = key
         psi = (self._ap_yaw_dev + self._frame_at(est, t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
         v1, v2 = -self._accel_h[0] / STANDARD_GRAVITY_M_S2, -self._accel_h[1] / STANDARD_GRAVITY_M_S2
-        col = (r_nb.T @ np.array(cross((v1, v2, 0.0), vec3(h_w)))).reshape(3, 1)  # R^T (v x h)
-        return z - psi * col[:, 0], col
+        return psi, cross((v1, v2, 0.0), vec3(h_w))
 
     @staticmethod
     def _frame_of(est: InflightEstimator, h: F64) -> float:
