@@ -529,18 +529,18 @@ class InflightStage:
         (AP_YAW_TILT): its column R^T (v x h) last, and added times tau to the yaw-rate column (the
         window's yaw rate tilts it too)."""
         h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
-        yaw = [h2 * tau, -h1 * tau, 0.0]  # -(e_D x h) tau
-        c = [[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]  # e_N, e_E (rows: N, E, D)
+        y1, y2, y3 = h2 * tau, -h1 * tau, 0.0  # -(e_D x h) tau
         if vh is not None:
-            yaw = [yaw[i] + vh[i] * tau for i in range(3)]
-        for i in range(3):
-            c[i].append(yaw[i])
-        if TILT_PRIOR_RAD > 0.0:  # -(e_N x h) = (0, -h3, h2), -(e_E x h) = (h3, 0, -h1)
-            for row, tilt in zip(c, ((0.0, h3), (-h3, 0.0), (h2, -h1)), strict=True):
-                row.extend(tilt)
+            y1, y2, y3 = y1 + vh[0] * tau, y2 + vh[1] * tau, vh[2] * tau
+        # rows N, E, D; columns e_N, e_E, the yaw rate's, then -(e_N x h) = (0, -h3, h2) and
+        # -(e_E x h) = (h3, 0, -h1) with TILT_PRIOR_RAD, then v x h
+        if TILT_PRIOR_RAD > 0.0:
+            c = [[1.0, 0.0, y1, 0.0, h3], [0.0, 1.0, y2, -h3, 0.0], [0.0, 0.0, y3, h2, -h1]]
+        else:
+            c = [[1.0, 0.0, y1], [0.0, 1.0, y2], [0.0, 0.0, y3]]
         if vh is not None:
-            for i in range(3):
-                c[i].append(vh[i])
+            for row, v in zip(c, vh, strict=True):
+                row.append(v)
         return np.asarray(r_nb.T @ np.array(c), dtype=np.float64)
 
     def _relinearise_window(self) -> None:
