@@ -924,10 +924,13 @@ class InflightEstimator:
         if THETA_MODEL_SPREAD:
             dth = p_o[th] - p[th]
             c_o = c_o + np.outer(dth, dth)
-        try:
-            g = np.linalg.solve(cov[th, th], cov[th, :]).T
-        except np.linalg.LinAlgError:
-            return None
+        _, g_t, fail = lapack.dposv(cov[th, th], cov[th, :])  # LAPACK's Cholesky: numpy's solve costs 5x
+        if fail != 0:  # not positive definite: a general solve, as singular as it is
+            try:
+                g_t = np.linalg.solve(cov[th, th], cov[th, :])
+            except np.linalg.LinAlgError:
+                return None
+        g = g_t.T
         mean = p + g @ (p_o[th] - p[th])
         cov_c = cov - g @ cov[th, :] + g @ c_o @ g.T
         return mean, 0.5 * (cov_c + cov_c.T)
