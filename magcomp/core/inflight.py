@@ -154,6 +154,8 @@ _SOFT_BASIS = np.concatenate([_SYM_BASIS, _ROT_BASIS])
 #: the identity, built once (read only): the per-sample rows copy it rather than call np.eye each time
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
+_ZERO3 = np.zeros(3)
+_ZERO3.flags.writeable = False
 #: the eight headings of the heading-sigma rms (rad)
 _PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 N_SYM = _SYM_BASIS.shape[0]
@@ -442,6 +444,7 @@ class InflightEstimator:
         self._coef_cache: tuple[tuple[F64, float, int], F64] | None = None
         self._unc_cache: tuple[F64, F64, F64] | None = None  # uncalibrated(): theta's d and Theta views
         self._grad_cache: tuple[tuple[float, float, float, int], F64, F64] | None = None
+        self._sd_key_cache: tuple[F64, int, tuple[float, ...]] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -610,6 +613,18 @@ class InflightEstimator:
             return sd
         return np.broadcast_to(np.asarray(sd, dtype=float), (k,))
 
+    def _prior_sd_key(self, k: int) -> tuple[float, ...]:
+        """:meth:`_prior_sd_k` as a tuple (a cache key); the same read-only array as the last call (the
+        stage's) is not read again."""
+        sd = self.nuisance_prior_sd
+        cached = self._sd_key_cache
+        if cached is not None and cached[0] is sd and cached[1] == k:
+            return cached[2]
+        out = tuple(self._prior_sd_k(k).tolist())
+        if isinstance(sd, np.ndarray) and not sd.flags.writeable:
+            self._sd_key_cache = (sd, k, out)
+        return out
+
     def _nuisance_estimate(
         self, nuisance: F64, r: F64, window: object, with_common: bool
     ) -> tuple[F64, F64 | None]:
@@ -629,10 +644,9 @@ class InflightEstimator:
     def _open_nuisance(self, k: int, with_common: bool) -> tuple[F64, F64] | None:
         """The open window's nuisance estimate and information (``_nuisance_estimate``; None when the
         window has no rows with nuisance columns yet, or H_ee is singular)."""
-        sd = self._prior_sd_k(k)
         # the stage asks twice per row with nothing changed in between (window_nuisance, then add): the
         # second answer is the first (same inputs, same numbers); _rev changes with every input
-        key = (self._rev, with_common, tuple(sd.tolist()))
+        key = (self._rev, with_common, self._prior_sd_key(k))
         cached = self._open_cache
         if cached is not None and cached[0] == key:
             return cached[1]
@@ -686,7 +700,7 @@ class InflightEstimator:
         s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
         k = self._w_ee.shape[0]
         n = self.info.shape[0]
-        hee = self._w_ee + self._ridge(s_ref, tuple(self._prior_sd_k(k).tolist()))
+        hee = self._w_ee + self._ridge(s_ref, self._prior_sd_key(k))
         _, x, info = lapack.dposv(hee, self._w_gram[n + 2 :, : n + 2])
         return None if info != 0 else np.asarray(x, dtype=np.float64)
 
@@ -813,11 +827,8 @@ class InflightEstimator:
                 self._window_blocks(n, k)
                 self._w_gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
                 self._w_sum[:, : n + 2] = sa[:, : n + 2]
-            a = np.empty((3, n + 2 + k))
-            a[:, :n] = rows
-            a[:, n] = 0.0 if common is None else common
-            a[:, n + 1] = z
-            a[:, n + 2 :] = nuisance
+            c = _ZERO3 if common is None else common
+            a = np.concatenate((rows, c.reshape(3, 1), z.reshape(3, 1), nuisance), axis=1)
             self._w_gram += a.T @ a
             self._w_sum += a
             self._w_n += 1
