@@ -47,8 +47,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import lapack
 
-from magcomp.core.linalg3 import cross, vec3
-
 F64 = NDArray[np.float64]
 
 InflightMode = Literal["absolute", "relative"]
@@ -212,9 +210,40 @@ def reference_yaw_error_rows(r_nb: F64, field_ref_n_mgauss: F64) -> F64:
     """Column (3, 1) of a small yaw error ``e`` (rad) of the absolute form's reference attitude: with the
     true attitude ``Rz(e) R_nb``, the Earth field in body axes is ``R_nb^T (h - e [e_3]x h)`` to first order
     (A ~ I). A nuisance of the absolute form (see :meth:`InflightEstimator.add`)."""
-    # linalg3.cross: numpy's np.cross arithmetic on floats (the same numbers), without its 15-40 us a call
-    e3_x_h = np.array(cross((0.0, 0.0, 1.0), vec3(field_ref_n_mgauss)))
-    return np.asarray(-(r_nb.T @ e3_x_h), dtype=np.float64).reshape(3, 1)
+    return np.asarray(r_nb.T @ np.array(_yaw_error_ned(field_ref_n_mgauss)), dtype=np.float64).reshape(3, 1)
+
+
+def _yaw_error_ned(h_ned: F64) -> tuple[float, float, float]:
+    """``-(e_3 x h)`` (NED): the Earth field's first-order change per radian of yaw error of the attitude
+    (``Rz(e) R_nb`` for ``R_nb``)."""
+    return (float(h_ned[1]), -float(h_ned[0]), 0.0)
+
+
+def window_nuisance_cols(
+    r_nb: F64, h_w: F64, tau: float, tilt: bool = True, vh: tuple[float, float, float] | None = None
+) -> F64:
+    """A window-field row's nuisance columns (3, k) (:func:`window_field_rows`), all ``R_nb^T c`` for NED
+    vectors ``c``, so one product: the window's horizontal field (``R^T e_N``, ``R^T e_E``: the row's
+    ``field_cols``); the rotation source's yaw-rate error about the window's field ``h_w`` (yaw error = rate x
+    ``tau``, the time from the window's middle: ``R^T (-(e_3 x h)) tau``, the column of
+    :func:`reference_yaw_error_rows`); with ``tilt``, its tilt error about north and east (``R^T (e_N x h)``,
+    ``R^T (e_E x h)``: the vertical carries it); with ``vh`` (the tilt that the autopilot's yaw error makes,
+    ``v x h``: ``InflightStage._ap_yaw_tilt``) its column ``R^T (v x h)`` last, added times ``tau`` to the
+    yaw-rate column too (the window's yaw rate tilts it as well)."""
+    h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
+    e1, e2, e3 = _yaw_error_ned(h_w)
+    y1, y2, y3 = e1 * tau, e2 * tau, e3 * tau
+    if vh is not None:
+        y1, y2, y3 = y1 + vh[0] * tau, y2 + vh[1] * tau, y3 + vh[2] * tau
+    # rows N, E, D; columns e_N, e_E, the yaw rate's, then e_N x h = (0, -h3, h2), e_E x h = (h3, 0, -h1)
+    if tilt:
+        c = [[1.0, 0.0, y1, 0.0, h3], [0.0, 1.0, y2, -h3, 0.0], [0.0, 0.0, y3, h2, -h1]]
+    else:
+        c = [[1.0, 0.0, y1], [0.0, 1.0, y2], [0.0, 0.0, y3]]
+    if vh is not None:
+        for row, v in zip(c, vh, strict=True):
+            row.append(v)
+    return np.asarray(r_nb.T @ np.array(c), dtype=np.float64)
 
 
 def relative_rows(

@@ -31,6 +31,7 @@ from magcomp.core.inflight import (
     relative_rows,
     rotation_error_rows,
     window_field_rows,
+    window_nuisance_cols,
 )
 from magcomp.core.linalg3 import cross, vec3
 from magcomp.core.rotations import so3_exp, so3_log
@@ -504,44 +505,18 @@ class InflightStage:
             # the tilt's column R^T (v x h) last: the window's yaw rate tilts it too (its column takes it
             # times tau); the right-hand side with the tilt removed; with AP_YAW_NUISANCE the column stays,
             # for what the line fit leaves of the gyro yaw's error, one per window
-            nuis = self._nuisance_cols(r_nb, h_w, tau, vh)
+            nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0, vh)
             z = z - psi * nuis[:, -1]
             if not AP_YAW_NUISANCE:
                 nuis = nuis[:, :-1]
         else:
-            nuis = self._nuisance_cols(r_nb, h_w, tau)
+            nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
         est.nuisance_prior_sd = _window_prior_sd(ap_yaw)
         gated = est.n_gated
         est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
         if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
         return win_field, w
-
-    @staticmethod
-    def _nuisance_cols(
-        r_nb: F64, h_w: F64, tau: float, vh: tuple[float, float, float] | None = None
-    ) -> F64:
-        """A window-field row's nuisance columns (3, k), all ``R^T c`` for NED vectors ``c``, so one product:
-        the window's horizontal field (R^T e_N, R^T e_E: ``WindowFieldRows.field_cols``), its yaw-rate
-        column (yaw error = rate * tau about the window's field ``h_w``: -R^T (e_D x h) tau, as
-        ``reference_yaw_error_rows``) and, with TILT_PRIOR_RAD, the reference's tilt error about north and
-        east (-R^T (e_N x h), -R^T (e_E x h): its vertical carries it). ``vh``: the tilt-from-yaw's ``v x h``
-        (AP_YAW_TILT): its column R^T (v x h) last, and added times tau to the yaw-rate column (the
-        window's yaw rate tilts it too)."""
-        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
-        y1, y2, y3 = h2 * tau, -h1 * tau, 0.0  # -(e_D x h) tau
-        if vh is not None:
-            y1, y2, y3 = y1 + vh[0] * tau, y2 + vh[1] * tau, vh[2] * tau
-        # rows N, E, D; columns e_N, e_E, the yaw rate's, then -(e_N x h) = (0, -h3, h2) and
-        # -(e_E x h) = (h3, 0, -h1) with TILT_PRIOR_RAD, then v x h
-        if TILT_PRIOR_RAD > 0.0:
-            c = [[1.0, 0.0, y1, 0.0, h3], [0.0, 1.0, y2, -h3, 0.0], [0.0, 0.0, y3, h2, -h1]]
-        else:
-            c = [[1.0, 0.0, y1], [0.0, 1.0, y2], [0.0, 0.0, y3]]
-        if vh is not None:
-            for row, v in zip(c, vh, strict=True):
-                row.append(v)
-        return np.asarray(r_nb.T @ np.array(c), dtype=np.float64)
 
     def _relinearise_window(self) -> None:
         """The window closing: its rows' yaw-rate and tilt columns written again about the window's final
@@ -559,7 +534,7 @@ class InflightStage:
         h_fin = np.array([e_w[0], e_w[1], self.est.common_estimate])
         self.est.refill_open_window(
             [
-                (r, z, self._nuisance_cols(rn, h_fin, tau), com)
+                (r, z, window_nuisance_cols(rn, h_fin, tau, TILT_PRIOR_RAD > 0.0), com)
                 for r, z, _fc, rn, tau, com in rows
             ]
         )
@@ -575,8 +550,8 @@ class InflightStage:
         the gyro's (known) + the gyro yaw's own error, which the windows' fields show: their direction
         against the WMM's, a straight line in time over the gyro chain (its bias) fitted to the closed
         windows (``_frame_at``). Returns ``psi`` and ``v x h`` (NED, ``v = -a / g``): the tilt's column per
-        radian of yaw error is R^T (v x h) (``_nuisance_cols``), the right-hand side has ``psi`` times it
-        removed. ``est``: the estimator the rows go to (its windows' fields)."""
+        radian of yaw error is R^T (v x h) (``window_nuisance_cols``), the right-hand side has ``psi`` times
+        it removed. ``est``: the estimator the rows go to (its windows' fields)."""
         if key != self._ap_key:
             if self._ap_key is not None:
                 self._frame_close(est, self._ap_key)
