@@ -158,10 +158,26 @@ _ZERO3.flags.writeable = False
 _PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 N_SYM = _SYM_BASIS.shape[0]
 N_SOFT = _SOFT_BASIS.shape[0]
-#: minus the soft-iron basis as one (3 N_SOFT, 3) matrix: ``(_NEG_SOFT_ROWS @ v).reshape(N_SOFT, 3).T`` is
-#: the (3, N_SOFT) block ``-[S_k v]`` in one product
-_NEG_SOFT_ROWS = -_SOFT_BASIS.reshape(3 * N_SOFT, 3)
+#: minus the soft-iron basis as one (3 N_SOFT, 3) matrix, rows in (i, k) order: ``(_NEG_SOFT_ROWS @ v)
+#: .reshape(3, N_SOFT)`` is the (3, N_SOFT) block ``-[S_k v]`` in one product
+_NEG_SOFT_ROWS = -_SOFT_BASIS.transpose(1, 0, 2).reshape(3 * N_SOFT, 3)
 _NEG_SOFT_ROWS.flags.writeable = False
+#: per number of regressors: the window-field rows' template (zeros, the hard iron's identity block) and the
+#: flat positions of the ``x_r I`` blocks' diagonals (regressor-major)
+_WINDOW_ROWS_TEMPLATE: dict[int, tuple[F64, NDArray[np.intp]]] = {}
+
+
+def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
+    t = _WINDOW_ROWS_TEMPLATE.get(n_r)
+    if t is None:
+        k = N_SOFT
+        m = k + 3 + 3 * n_r
+        rows = np.zeros((3, m))
+        rows[:, k : k + 3] = _EYE3
+        pos = np.array([i * m + k + 3 + 3 * r + i for r in range(n_r) for i in range(3)], dtype=np.intp)
+        rows.flags.writeable = False
+        t = _WINDOW_ROWS_TEMPLATE[n_r] = (rows, pos)
+    return t
 
 
 def n_params(mode: InflightMode, n_motors: int) -> int:
@@ -312,16 +328,14 @@ def window_field_rows(
     k = N_SOFT
     if like is not None:
         rows = like.rows.copy()
-        rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(k, 3).T
+        rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
         return WindowFieldRows(rows, like.z, like.field_cols, like.common)
-    n_r = x.shape[0]
-    rows = np.empty((3, k + 3 + 3 * n_r))
-    rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(k, 3).T
-    rows[:, k : k + 3] = _EYE3
-    # the x_r I blocks side by side: (r, i, j) -> (i, r j)
-    rows[:, k + 3 :] = np.multiply.outer(x, _EYE3).transpose(1, 0, 2).reshape(3, 3 * n_r)
-    rt = np.asarray(r_nb, dtype=np.float64).T
-    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
+    template, pos = _window_rows_template(x.shape[0])
+    rows = template.copy()
+    rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
+    rows.ravel()[pos] = np.repeat(x, 3)  # the x_r I blocks' diagonals
+    r = np.asarray(r_nb, dtype=np.float64)
+    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T.copy(), r[2].copy())
 
 
 class ResidualBatches:
