@@ -45,8 +45,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-
-from magcomp.core.linalg3 import cross, vec3
+from scipy.linalg import lapack
 
 F64 = NDArray[np.float64]
 
@@ -153,10 +152,32 @@ _SOFT_BASIS = np.concatenate([_SYM_BASIS, _ROT_BASIS])
 #: the identity, built once (read only): the per-sample rows copy it rather than call np.eye each time
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
+_ZERO3 = np.zeros(3)
+_ZERO3.flags.writeable = False
 #: the eight headings of the heading-sigma rms (rad)
 _PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 N_SYM = _SYM_BASIS.shape[0]
 N_SOFT = _SOFT_BASIS.shape[0]
+#: minus the soft-iron basis as one (3 N_SOFT, 3) matrix, rows in (i, k) order: ``(_NEG_SOFT_ROWS @ v)
+#: .reshape(3, N_SOFT)`` is the (3, N_SOFT) block ``-[S_k v]`` in one product
+_NEG_SOFT_ROWS = -_SOFT_BASIS.transpose(1, 0, 2).reshape(3 * N_SOFT, 3)
+_NEG_SOFT_ROWS.flags.writeable = False
+#: per number of regressors: the window-field rows' template (zeros, the hard iron's identity block) and the
+#: flat positions of the ``x_r I`` blocks' diagonals (regressor-major)
+_WINDOW_ROWS_TEMPLATE: dict[int, tuple[F64, NDArray[np.intp]]] = {}
+
+
+def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
+    t = _WINDOW_ROWS_TEMPLATE.get(n_r)
+    if t is None:
+        k = N_SOFT
+        m = k + 3 + 3 * n_r
+        rows = np.zeros((3, m))
+        rows[:, k : k + 3] = _EYE3
+        pos = np.array([i * m + k + 3 + 3 * r + i for r in range(n_r) for i in range(3)], dtype=np.intp)
+        rows.flags.writeable = False
+        t = _WINDOW_ROWS_TEMPLATE[n_r] = (rows, pos)
+    return t
 
 
 def n_params(mode: InflightMode, n_motors: int) -> int:
@@ -167,7 +188,7 @@ def n_params(mode: InflightMode, n_motors: int) -> int:
 
 def soft_iron_matrix(e: F64) -> F64:
     """E (3x3, symmetric, traceless) of the relative form's soft-iron parameters."""
-    return np.asarray(np.tensordot(e, _SOFT_BASIS, axes=1), dtype=np.float64)
+    return np.asarray(e @ _SOFT_BASIS.reshape(N_SOFT, 9), dtype=np.float64).reshape(3, 3)
 
 
 def regressors(throttle_01: float, motors_01: tuple[float, ...] | None) -> F64:
@@ -205,9 +226,40 @@ def reference_yaw_error_rows(r_nb: F64, field_ref_n_mgauss: F64) -> F64:
     """Column (3, 1) of a small yaw error ``e`` (rad) of the absolute form's reference attitude: with the
     true attitude ``Rz(e) R_nb``, the Earth field in body axes is ``R_nb^T (h - e [e_3]x h)`` to first order
     (A ~ I). A nuisance of the absolute form (see :meth:`InflightEstimator.add`)."""
-    # linalg3.cross: numpy's np.cross arithmetic on floats (the same numbers), without its 15-40 us a call
-    e3_x_h = np.array(cross((0.0, 0.0, 1.0), vec3(field_ref_n_mgauss)))
-    return np.asarray(-(r_nb.T @ e3_x_h), dtype=np.float64).reshape(3, 1)
+    return np.asarray(r_nb.T @ np.array(_yaw_error_ned(field_ref_n_mgauss)), dtype=np.float64).reshape(3, 1)
+
+
+def _yaw_error_ned(h_ned: F64) -> tuple[float, float, float]:
+    """``-(e_3 x h)`` (NED): the Earth field's first-order change per radian of yaw error of the attitude
+    (``Rz(e) R_nb`` for ``R_nb``)."""
+    return (float(h_ned[1]), -float(h_ned[0]), 0.0)
+
+
+def window_nuisance_cols(
+    r_nb: F64, h_w: F64, tau: float, tilt: bool = True, vh: tuple[float, float, float] | None = None
+) -> F64:
+    """A window-field row's nuisance columns (3, k) (:func:`window_field_rows`), all ``R_nb^T c`` for NED
+    vectors ``c``, so one product: the window's horizontal field (``R^T e_N``, ``R^T e_E``: the row's
+    ``field_cols``); the rotation source's yaw-rate error about the window's field ``h_w`` (yaw error = rate x
+    ``tau``, the time from the window's middle: ``R^T (-(e_3 x h)) tau``, the column of
+    :func:`reference_yaw_error_rows`); with ``tilt``, its tilt error about north and east (``R^T (e_N x h)``,
+    ``R^T (e_E x h)``: the vertical carries it); with ``vh`` (the tilt that the autopilot's yaw error makes,
+    ``v x h``: ``InflightStage._ap_yaw_tilt``) its column ``R^T (v x h)`` last, added times ``tau`` to the
+    yaw-rate column too (the window's yaw rate tilts it as well)."""
+    h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
+    e1, e2, e3 = _yaw_error_ned(h_w)
+    y1, y2, y3 = e1 * tau, e2 * tau, e3 * tau
+    if vh is not None:
+        y1, y2, y3 = y1 + vh[0] * tau, y2 + vh[1] * tau, y3 + vh[2] * tau
+    # rows N, E, D; columns e_N, e_E, the yaw rate's, then e_N x h = (0, -h3, h2), e_E x h = (h3, 0, -h1)
+    if tilt:
+        c = [[1.0, 0.0, y1, 0.0, h3], [0.0, 1.0, y2, -h3, 0.0], [0.0, 0.0, y3, h2, -h1]]
+    else:
+        c = [[1.0, 0.0, y1], [0.0, 1.0, y2], [0.0, 0.0, y3]]
+    if vh is not None:
+        for row, v in zip(c, vh, strict=True):
+            row.append(v)
+    return np.asarray(r_nb.T @ np.array(c), dtype=np.float64)
 
 
 def relative_rows(
@@ -255,7 +307,9 @@ class WindowFieldRows(NamedTuple):
     common: F64
 
 
-def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRows:
+def window_field_rows(
+    r_nb: F64, y_mgauss: F64, x: F64, v: F64, like: WindowFieldRows | None = None
+) -> WindowFieldRows:
     """Rows of the relative form's unknowns written against the Earth field of a short window instead of
     an earlier sample (eqs. (2), (11), (13))::
 
@@ -267,16 +321,21 @@ def window_field_rows(r_nb: F64, y_mgauss: F64, x: F64, v: F64) -> WindowFieldRo
     unknown common to the flight, since a yaw error leaves it alone (the DPI invariance of eq. (3)). The
     soft-iron term is linearised at the current estimate, ``E R^T n ~ E v`` with ``v = y - d - Theta x``
     (as :func:`relative_rows`). Unlike the 0.3 s pairs, every throttle change within a window and every
-    one along the vertical, however slow, informs theta."""
-    n_r = x.shape[0]
+    one along the vertical, however slow, informs theta.
+
+    ``like``: this sample's rows at another linearisation point (another estimator's ``v``): only the
+    soft-iron columns differ, the rest is copied from it."""
     k = N_SOFT
-    rows = np.empty((3, k + 3 + 3 * n_r))
-    rows[:, 0:k] = -np.einsum("kij,j->ik", _SOFT_BASIS, v)
-    rows[:, k : k + 3] = _EYE3
-    for r in range(n_r):
-        rows[:, k + 3 + 3 * r : k + 6 + 3 * r] = x[r] * _EYE3
-    rt = np.asarray(r_nb, dtype=np.float64).T
-    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), rt[:, 0:2].copy(), rt[:, 2].copy())
+    if like is not None:
+        rows = like.rows.copy()
+        rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
+        return WindowFieldRows(rows, like.z, like.field_cols, like.common)
+    template, pos = _window_rows_template(x.shape[0])
+    rows = template.copy()
+    rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
+    rows.ravel()[pos] = np.repeat(x, 3)  # the x_r I blocks' diagonals
+    r = np.asarray(r_nb, dtype=np.float64)
+    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T.copy(), r[2].copy())
 
 
 class ResidualBatches:
@@ -404,17 +463,9 @@ class InflightEstimator:
         # the open window of the rotation-rate nuisance (see add): its rows' blocks, folded into info/rhs
         # by a Schur complement when the window closes
         self._win: object = None
-        self._w_pp = np.zeros((n, n))
-        self._w_pe = np.zeros((n, 0))
-        self._w_ee = np.zeros((0, 0))
-        self._w_bp = np.zeros(n)
-        self._w_be = np.zeros(0)
-        self._w_zz = 0.0
-        # the window's blocks with the unknown common to the flight (``common`` in add)
-        self._w_pc = np.zeros(n)
-        self._w_ec = np.zeros(0)
-        self._w_cc = 0.0
-        self._w_bc = 0.0
+        # the window's blocks (``_window_blocks``): parameters x parameters, x nuisance, nuisance x nuisance,
+        # their right-hand sides and z'z, and with the unknown common to the flight (``common`` in add)
+        self._window_blocks(n, 0)
         self.n_windows = 0
         # the blocks of the one unknown common to the flight (the field norm of add_norm, or the vertical
         # Earth field of window-field rows: add(common=...)), eliminated when solving (a Schur complement,
@@ -432,13 +483,14 @@ class InflightEstimator:
         #: window's nuisance estimate is cached against it)
         self._rev = 0
         self._open_cache: tuple[tuple[int, bool, tuple[float, ...]], tuple[F64, F64]] | None = None
+        self._ridge_cache: tuple[tuple[float, tuple[float, ...]], F64] | None = None
+        self._coef_cache: tuple[tuple[F64, float, int], F64] | None = None
+        self._unc_cache: tuple[F64, F64, F64] | None = None  # uncalibrated(): theta's d and Theta views
+        self._grad_cache: tuple[tuple[float, float, float, int], F64, F64] | None = None
+        self._sd_key_cache: tuple[F64, int, tuple[float, ...]] | None = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
-        self._w_sz = np.zeros(3)
-        self._w_srows = np.zeros((3, n))
-        self._w_sn = np.zeros((3, 0))
-        self._w_scom = np.zeros(3)
         self._w_n = 0
         self._b_c = np.zeros(3)
         self._b_m = np.zeros((3, n))
@@ -448,6 +500,33 @@ class InflightEstimator:
         self._batches = ResidualBatches(n)
         #: nuisance windows per batch (the stage sets it from its window length: VIF_BATCH_S / window)
         self.vif_batch_windows = 15
+
+    def _window_blocks(self, n: int, k: int) -> None:
+        """The open window's sums for ``k`` nuisance columns, zero: the Gram matrix ``sum A'A`` and the sum
+        ``sum A`` of its samples' augmented rows ``A = [rows | common | z | nuisance]`` (3, n + 2 + k), one
+        matrix product per sample; the blocks the window's algebra reads are views of them."""
+        m = n + 2 + k
+        self._w_gram = g = np.zeros((m, m))
+        self._w_sum = sa = np.zeros((3, m))
+        c, z, e = n, n + 1, slice(n + 2, m)
+        self._w_pp, self._w_pe, self._w_ee = g[:n, :n], g[:n, e], g[e, e]
+        self._w_bp, self._w_be, self._w_pc, self._w_ec = g[:n, z], g[e, z], g[:n, c], g[e, c]
+        self._w_srows, self._w_sn, self._w_scom, self._w_sz = sa[:, :n], sa[:, e], sa[:, c], sa[:, z]
+
+    @property
+    def _w_zz(self) -> float:
+        n = self.info.shape[0]
+        return float(self._w_gram[n + 1, n + 1])
+
+    @property
+    def _w_cc(self) -> float:
+        n = self.info.shape[0]
+        return float(self._w_gram[n, n])
+
+    @property
+    def _w_bc(self) -> float:
+        n = self.info.shape[0]
+        return float(self._w_gram[n, n + 1])
 
     @property
     def sigma_mgauss(self) -> float:
@@ -511,7 +590,7 @@ class InflightEstimator:
         if common is not None:
             r = r - common * self.common_estimate
         if nuisance is not None:
-            e_hat, h_inv = self._nuisance_estimate(nuisance, r, window, common is not None)
+            e_hat, h_ee = self._nuisance_estimate(nuisance, r, window, common is not None)
             r = r - nuisance @ e_hat
         rn2 = float(r @ r)
         sol = self._solution
@@ -521,8 +600,9 @@ class InflightEstimator:
             s2 = max(sol.residual_rms_mgauss**2, GATE_SIGMA_FLOOR_MGAUSS**2)
             # pred >= s2 I, so r' pred^-1 r <= |r|^2 / s2: most samples pass without the 3x3 solve
             pred = s2 * np.eye(3) + rows @ self._cov @ rows.T if rn2 > GATE_CHI2_3DOF * s2 else None
-            if pred is not None and nuisance is not None and h_inv is not None:
-                pred = pred + s2 * (nuisance @ h_inv @ nuisance.T)  # the window's nuisance is uncertain too
+            if pred is not None and nuisance is not None and h_ee is not None:
+                # the window's nuisance is uncertain too (its covariance H_ee^-1, unit weight)
+                pred = pred + s2 * (nuisance @ np.linalg.solve(h_ee, nuisance.T))
             try:
                 m2 = 0.0 if pred is None else float(r @ np.linalg.solve(pred, r))
             except np.linalg.LinAlgError:
@@ -576,45 +656,107 @@ class InflightEstimator:
             return sd
         return np.broadcast_to(np.asarray(sd, dtype=float), (k,))
 
+    def _prior_sd_key(self, k: int) -> tuple[float, ...]:
+        """:meth:`_prior_sd_k` as a tuple (a cache key); the same read-only array as the last call (the
+        stage's) is not read again."""
+        sd = self.nuisance_prior_sd
+        cached = self._sd_key_cache
+        if cached is not None and cached[0] is sd and cached[1] == k:
+            return cached[2]
+        out = tuple(self._prior_sd_k(k).tolist())
+        if isinstance(sd, np.ndarray) and not sd.flags.writeable:
+            self._sd_key_cache = (sd, k, out)
+        return out
+
     def _nuisance_estimate(
         self, nuisance: F64, r: F64, window: object, with_common: bool
     ) -> tuple[F64, F64 | None]:
-        """The window's nuisance at the current parameters and its unit-weight covariance (so that the gate
-        judges what the nuisance cannot explain, with its uncertainty: a window-field row's residual is the
-        whole Earth field before it, and a window's yaw rate is poorly known from its first samples). The
-        open window's own estimate when this row belongs to it; else the least-squares value for this row
-        alone (covariance None: the residual is then what no nuisance value explains)."""
+        """The window's nuisance at the current parameters and its unit-weight information ``H_ee`` (the
+        inverse of its covariance: so that the gate judges what the nuisance cannot explain, with its
+        uncertainty: a window-field row's residual is the whole Earth field before it, and a window's yaw
+        rate is poorly known from its first samples). The open window's own estimate when this row belongs
+        to it; else the least-squares value for this row alone (information None: the residual is then
+        what no nuisance value explains)."""
         k = nuisance.shape[1]
-        if window == self._win and self._w_ee.shape[0] == k and self._w_ee.any():
-            sol = self._solution
-            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-            sd = self._prior_sd_k(k)
-            # the stage asks twice per row with nothing changed in between (window_nuisance, then add):
-            # the second answer is the first (same inputs, same numbers); _rev changes with every input
-            key = (self._rev, with_common, tuple(sd.tolist()))
-            cached = self._open_cache
-            if cached is not None and cached[0] == key:
-                return cached[1]
-            hee = self._w_ee + np.diag((s_ref / sd) ** 2)
-            try:
-                b_e = self._w_be - self._w_pe.T @ self._theta
-                if with_common and self._w_ec.shape[0] == k:
-                    b_e = b_e - self._w_ec * self.common_estimate
-                h_inv = np.asarray(np.linalg.inv(hee), dtype=np.float64)
-                out = np.asarray(h_inv @ b_e, dtype=np.float64), h_inv
-                self._open_cache = (key, out)
+        if window == self._win and self._w_ee.shape[0] == k:
+            out = self._open_nuisance(k, with_common)
+            if out is not None:
                 return out
-            except np.linalg.LinAlgError:
-                pass
         return np.asarray(np.linalg.lstsq(nuisance, r, rcond=None)[0], dtype=np.float64), None
+
+    def _open_nuisance(self, k: int, with_common: bool) -> tuple[F64, F64] | None:
+        """The open window's nuisance estimate and information (``_nuisance_estimate``; None when the
+        window has no rows with nuisance columns yet, or H_ee is singular)."""
+        # the stage asks twice per row with nothing changed in between (window_nuisance, then add): the
+        # second answer is the first (same inputs, same numbers); _rev changes with every input
+        key = (self._rev, with_common, self._prior_sd_key(k))
+        cached = self._open_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        if self._w_n == 0 or not self._w_ee.any():
+            return None
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        hee = self._w_ee + self._ridge(s_ref, key[2])
+        # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance (their
+        # nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
+        b_e = self._w_gram[self._theta.shape[0] + 2 :] @ self._b_e_coef(k, with_common)
+        # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
+        _, e_hat, info = lapack.dposv(hee, b_e)
+        if info != 0:
+            return None
+        out = np.asarray(e_hat, dtype=np.float64), hee
+        self._open_cache = (key, out)
+        return out
+
+    def _b_e_coef(self, k: int, with_common: bool) -> F64:
+        """``[-p, -c, 1, 0_k]`` at the current parameters p and common unknown c (0 without ``with_common``):
+        the window Gram's nuisance rows times it are the nuisance's right-hand side. Built once per
+        solution (the parameters change only there)."""
+        c = self.common_estimate if with_common else 0.0
+        key = (self._theta, c, k)
+        cached = self._coef_cache
+        if cached is not None and cached[0][0] is key[0] and cached[0][1:] == key[1:]:
+            return cached[1]
+        n = self._theta.shape[0]
+        coef = np.zeros(n + 2 + k)
+        coef[:n] = -self._theta
+        coef[n] = -c
+        coef[n + 1] = 1.0
+        self._coef_cache = (key, coef)
+        return coef
+
+    def _ridge(self, s_ref: float, sd: tuple[float, ...]) -> F64:
+        """The nuisance prior's information at unit weight, ``diag((s_ref / sd)^2)`` (the data rows are not
+        divided by s), built once per residual scale and prior."""
+        key = (s_ref, sd)
+        if self._ridge_cache is None or self._ridge_cache[0] != key:
+            self._ridge_cache = (key, np.diag((s_ref / np.asarray(sd)) ** 2))
+        return self._ridge_cache[1]
+
+    def _window_solve(self) -> F64 | None:
+        """``H_ee^-1 [W_ep | w_ec | w_be]`` of the open window (H_ee with the nuisance's prior; None when
+        it is singular): what its Schur complement and its residual sum both need. The nuisance has a weak
+        prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a window
+        without rotation information stays solvable."""
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        k = self._w_ee.shape[0]
+        n = self.info.shape[0]
+        hee = self._w_ee + self._ridge(s_ref, self._prior_sd_key(k))
+        _, x, info = lapack.dposv(hee, self._w_gram[n + 2 :, : n + 2])
+        return None if info != 0 else np.asarray(x, dtype=np.float64)
 
     def window_nuisance(self, window: object) -> F64 | None:
         """The open window's nuisance estimate at the current parameters when ``window`` is the open one
         and has rows (window-field rows: its horizontal Earth field first), else None."""
         k = self._w_ee.shape[0]
-        if window != self._win or k == 0 or not self._w_ee.any():
+        if window != self._win or k == 0:
             return None
-        return self._nuisance_estimate(np.zeros((3, k)), np.zeros(3), window, True)[0]
+        out = self._open_nuisance(k, True)
+        if out is None:  # no rows with nuisance columns (or singular: what the last row alone gives, 0)
+            return None if self._w_n == 0 or not self._w_ee.any() else np.zeros(k)
+        return out[0]
 
     def add_norm(self, y_mgauss: F64, x: F64) -> None:
         """One field-norm row (relative form): ``|u| = c`` with ``u = (I + E)(y - d - sum theta_r x_r)``
@@ -664,39 +806,27 @@ class InflightEstimator:
         k_p = pc / cc
         return pp - np.outer(k_p, pc), bp - k_p * bc, zz - bc * bc / cc
 
-    def _window_schur(self) -> WindowSchur:
+    def _window_schur(self, x: F64 | None = None) -> WindowSchur:
         """The open window's contribution with its nuisance eliminated: (info, rhs, z'z) of the parameters
-        and the blocks of the common unknown (parameters x common, common x common, its rhs). The
-        nuisance has a weak prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor)
-        so that a window without rotation information stays solvable."""
-        sol = self._solution
-        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-        k = self._w_ee.shape[0]
-        # unit weight: the data rows are not divided by s
-        ridge = (s_ref / self._prior_sd_k(k)) ** 2
-        hee = self._w_ee + np.diag(ridge)
-        ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
-        try:
-            k_pe = np.linalg.solve(hee, self._w_pe.T).T  # W_pe H_ee^-1
-            k_e = np.linalg.solve(hee, self._w_be)
-            k_c = np.linalg.solve(hee, ec)
-        except np.linalg.LinAlgError:
+        and the blocks of the common unknown (parameters x common, common x common, its rhs): the Schur
+        complement ``G_rr - G_re H_ee^-1 G_er`` of its Gram matrix, ``r`` = [parameters, common, z].
+        ``x``: :meth:`_window_solve` when already computed."""
+        n = self.info.shape[0]
+        x = self._window_solve() if x is None else x
+        if x is None:
             return self._w_pp, self._w_bp, self._w_zz, self._w_pc, self._w_cc, self._w_bc
-        return (
-            self._w_pp - k_pe @ self._w_pe.T,
-            self._w_bp - k_pe @ self._w_be,
-            self._w_zz - float(self._w_be @ k_e),
-            self._w_pc - k_pe @ ec,
-            self._w_cc - float(ec @ k_c),
-            self._w_bc - float(self._w_be @ k_c),
-        )
+        g = self._w_gram
+        sc = g[: n + 2, : n + 2] - g[n + 2 :, : n + 2].T @ x
+        zz, cc, bc = float(sc[n + 1, n + 1]), float(sc[n, n]), float(sc[n, n + 1])
+        return sc[:n, :n], sc[:n, n + 1], zz, sc[:n, n], cc, bc
 
     def _close_window(self) -> None:
         if self._win is None:
             return
         self._rev += 1
-        self._batch_window()
-        info, rhs, zz, pc, cc, bc = self._window_schur()
+        x = self._window_solve()
+        self._batch_window(x)
+        info, rhs, zz, pc, cc, bc = self._window_schur(x)
         self.info += info
         self.rhs += rhs
         self._zz += zz
@@ -704,9 +834,7 @@ class InflightEstimator:
         self._n_cc += cc
         self._n_bc += bc
         self.n_windows += 1
-        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
-            a[...] = 0.0
-        self._w_zz = self._w_cc = self._w_bc = 0.0
+        self._w_gram[...] = 0.0
         self._win = None
 
     def refill_open_window(self, samples: list[tuple[F64, F64, F64, F64 | None]]) -> None:
@@ -716,11 +844,8 @@ class InflightEstimator:
         if self._win is None:
             return
         self._rev += 1
-        for a in (self._w_pp, self._w_pe, self._w_ee, self._w_bp, self._w_be, self._w_pc, self._w_ec):
-            a[...] = 0.0
-        for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
-            a[...] = 0.0
-        self._w_zz = self._w_cc = self._w_bc = 0.0
+        self._w_gram[...] = 0.0
+        self._w_sum[...] = 0.0
         self._w_n = 0
         for rows, z, nuisance, common in samples:
             self._accumulate(rows, z, nuisance, self._win, common)
@@ -739,57 +864,35 @@ class InflightEstimator:
             if window != self._win:
                 self._close_window()
                 self._win = window
-            k = nuisance.shape[1]
-            if self._w_ee.shape[0] != k:
-                self._w_pe = np.zeros((self.info.shape[0], k))
-                self._w_ee, self._w_be = np.zeros((k, k)), np.zeros(k)
-            self._w_zz += float(z @ z)
-            self._w_pp += rows.T @ rows
-            self._w_pe += rows.T @ nuisance
-            self._w_ee += nuisance.T @ nuisance
-            self._w_bp += rows.T @ z
-            self._w_be += nuisance.T @ z
-            if self._w_sn.shape[1] != k:
-                self._w_sn = np.zeros((3, k))
-            self._w_sz += z
-            self._w_srows += rows
-            self._w_sn += nuisance
+            n, k = rows.shape[1], nuisance.shape[1]
+            if self._w_ee.shape[0] != k:  # a new nuisance size: the nuisance's sums start again
+                g, sa = self._w_gram, self._w_sum
+                self._window_blocks(n, k)
+                self._w_gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
+                self._w_sum[:, : n + 2] = sa[:, : n + 2]
+            c = _ZERO3 if common is None else common
+            a = np.concatenate((rows, c.reshape(3, 1), z.reshape(3, 1), nuisance), axis=1)
+            self._w_gram += a.T @ a
+            self._w_sum += a
             self._w_n += 1
-            if common is not None:
-                self._w_scom += common
-                if self._w_ec.shape[0] != k:
-                    self._w_ec = np.zeros(k)
-                self._w_pc += rows.T @ common
-                self._w_ec += nuisance.T @ common
-                self._w_cc += float(common @ common)
-                self._w_bc += float(common @ z)
 
-    def _batch_window(self) -> None:
+    def _batch_window(self, x: F64 | None) -> None:
         """Add the closing window's residual sum to the open batch (``variance_inflation``): with the
         window's nuisance at its least-squares value e = H^-1 (b_e - W_ep p - w_ec c), the sum over the
-        window of z - rows p - common c - N e is c_w - M_w p - g_w c."""
+        window of z - rows p - common c - N e is c_w - M_w p - g_w c. ``x``: :meth:`_window_solve`."""
         k = self._w_ee.shape[0]
-        if self._w_n > 0 and self._w_sn.shape[1] == k:
-            sol = self._solution
-            s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-            ridge = (s_ref / self._prior_sd_k(k)) ** 2
-            hee = self._w_ee + np.diag(ridge)
-            ec = self._w_ec if self._w_ec.shape[0] == k else np.zeros(k)
-            try:
-                k_e = np.linalg.solve(hee, np.column_stack([self._w_be, self._w_pe.T, ec]))
-            except np.linalg.LinAlgError:
-                k_e = None
-            if k_e is not None:
-                self._b_c += self._w_sz - self._w_sn @ k_e[:, 0]
-                self._b_m += self._w_srows - self._w_sn @ k_e[:, 1:-1]
-                self._b_g += self._w_scom - self._w_sn @ k_e[:, -1]
-                self._b_n += self._w_n
-                self._b_windows += 1
-                if self._b_windows >= self.vif_batch_windows:
-                    self._batches.append(self._b_c, self._b_m, self._b_g, self._b_n)
-                    for a in (self._b_c, self._b_m, self._b_g):
-                        a[...] = 0.0
-                    self._b_n = self._b_windows = 0
+        n = self.info.shape[0]
+        if self._w_n > 0 and self._w_sn.shape[1] == k and x is not None:
+            self._b_c += self._w_sz - self._w_sn @ x[:, n + 1]
+            self._b_m += self._w_srows - self._w_sn @ x[:, :n]
+            self._b_g += self._w_scom - self._w_sn @ x[:, n]
+            self._b_n += self._w_n
+            self._b_windows += 1
+            if self._b_windows >= self.vif_batch_windows:
+                self._batches.append(self._b_c, self._b_m, self._b_g, self._b_n)
+                for a in (self._b_c, self._b_m, self._b_g):
+                    a[...] = 0.0
+                self._b_n = self._b_windows = 0
         for a in (self._w_sz, self._w_srows, self._w_sn, self._w_scom):
             a[...] = 0.0
         self._w_n = 0
@@ -827,16 +930,19 @@ class InflightEstimator:
             s2 = self._sigma_at(eff) ** 2
             lam = info / s2 + self.prior_info
             b = rhs / s2 + self.prior_info @ self.prior_mean
-            try:
-                cho = np.linalg.cholesky(lam)
-            except np.linalg.LinAlgError:
+            # LAPACK's Cholesky solve (its factor kept for the covariance below)
+            cho, theta, fail = lapack.dposv(lam, b)
+            if fail != 0:
                 return
-            theta = np.linalg.solve(cho.T, np.linalg.solve(cho, b))
             self._theta = theta
             self._rev += 1
         self.common_estimate = self._common_value(theta, ws)
         s2 = self._sigma_at(eff) ** 2
-        cov = np.asarray(np.linalg.inv(lam), dtype=np.float64)
+        # lam^-1 from its factor (LAPACK's dpotri is as fast single-threaded, but 100x slower under
+        # OpenBLAS threads on a small matrix)
+        cov, fail = lapack.dpotrs(cho, np.eye(cho.shape[0]))
+        if fail != 0:
+            return
         self._cov = cov  # white: the gate's predictive covariance
         vif = self._vif_at(s2)
         self._pub = None
@@ -872,10 +978,13 @@ class InflightEstimator:
         if THETA_MODEL_SPREAD:
             dth = p_o[th] - p[th]
             c_o = c_o + np.outer(dth, dth)
-        try:
-            g = np.linalg.solve(cov[th, th], cov[th, :]).T
-        except np.linalg.LinAlgError:
-            return None
+        _, g_t, fail = lapack.dposv(cov[th, th], cov[th, :])  # LAPACK's Cholesky: numpy's solve costs 5x
+        if fail != 0:  # not positive definite: a general solve, as singular as it is
+            try:
+                g_t = np.linalg.solve(cov[th, th], cov[th, :])
+            except np.linalg.LinAlgError:
+                return None
+        g = g_t.T
         mean = p + g @ (p_o[th] - p[th])
         cov_c = cov - g @ cov[th, :] + g @ c_o @ g.T
         return mean, 0.5 * (cov_c + cov_c.T)
@@ -894,8 +1003,9 @@ class InflightEstimator:
         ``spread``: another model's parameters minus these (the heading they give apart is a model
         uncertainty, HEADING_MODEL_SPREAD)."""
         cov = cov * vif
-        model_deg = 0.0 if spread is None else self._heading_sd_deg(np.outer(spread, spread))
-        sd_deg = self._heading_sd_deg(cov)
+        grads = self._heading_grads()
+        model_deg = 0.0 if spread is None else self._heading_sd_deg(None, grads, spread)
+        sd_deg = self._heading_sd_deg(cov, grads)
         if HEADING_MODEL_SPREAD:
             sd_deg = math.hypot(sd_deg, model_deg)
         k = self._k
@@ -926,42 +1036,71 @@ class InflightEstimator:
             heading_model_deg=model_deg,
         )
 
-    def _heading_sd_deg(self, cov: F64) -> float:
-        """Heading standard deviation (deg) the parameters' joint covariance leaves on a level vehicle,
-        rms over eight headings, at the mean and at the largest delta^2 seen (the larger of the two).
+    def _heading_grads(self) -> F64:
+        """The heading's gradients (rad per unit parameter) of :meth:`_heading_sd_deg`: (2, 8, n), at the
+        mean and at the largest delta^2 seen, for each of the eight headings.
 
         The corrected field is ``u = (I + E)(y - d - theta x)`` (relative form; ``u = A^-1 (...)``,
         absolute), so ``du = dE u - dd - x dtheta`` and the heading moves by ``(u_x du_y - u_y du_x) /
-        H^2``. The joint covariance matters: in level yaw turns a compass tilted on its mount leaks the
-        vertical field into a constant horizontal offset, exactly as a hard iron does, so either alone is
-        poorly known while their sum, which is what the heading sees when level, is well known."""
+        H^2``, i.e. by ``w . du`` with ``w = (-u_y, u_x, 0) / H^2``."""
+        h_ned = self.field_ned_mgauss
+        k = self._k
+        n = self.info.shape[0]
+        mean_x0 = self._x0_sum / self.n if self.n else 0.0
+        # all but theta's columns depend on the Earth field only: built once per field
+        key = (float(h_ned[0]), float(h_ned[1]), float(h_ned[2]), n)
+        cached = self._grad_cache
+        if cached is None or cached[0] != key:
+            cached = self._grad_cache = (key, *self._heading_grads_field(n))
+        _, base, w = cached
+        g = np.empty((2, 8, n))
+        g[:] = base
+        for i, x0 in enumerate((mean_x0, self.x0_max)):  # only theta's columns depend on delta^2
+            g[i, :, k + 3 : k + 6] = -x0 * w
+        return g
+
+    def _heading_grads_field(self, n: int) -> tuple[F64, F64]:
+        """:meth:`_heading_grads` but theta's columns (8, n), and ``w`` (8, 3)."""
         h_ned = self.field_ned_mgauss
         h = max(float(np.hypot(h_ned[0], h_ned[1])), 50.0)
         v_z = float(h_ned[2])
         k = self._k
-        n = cov.shape[0]
-        mean_x0 = self._x0_sum / self.n if self.n else 0.0
-        x0s = (mean_x0, self.x0_max)
-        var = [0.0, 0.0]  # per x0, summed over the headings in order
-        for psi in _PSI8_RAD:
-            u = np.array([h * math.cos(psi), -h * math.sin(psi), v_z])
-            jac = np.zeros((3, n))
-            if self.mode == "absolute":
-                for r in range(3):
-                    jac[r, 3 * r : 3 * r + 3] = -u
-            else:
-                jac[:, :N_SOFT] = np.einsum("kij,j->ik", _SOFT_BASIS, u)
-                # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate
-                # stays 0): it is the same in the corrected and the uncorrected heading
-                jac[:, N_SOFT - 1] = 0.0
-            jac[:, k : k + 3] = -_EYE3
-            w = np.array([-u[1], u[0], 0.0]) / (h * h)
-            for i, x0 in enumerate(x0s):  # only theta's columns depend on delta^2
-                jac[:, k + 3 : k + 6] = -x0 * _EYE3
-                g = w @ jac
-                var[i] += float(g @ cov @ g)
-        worst = max(0.0, var[0] / 8.0)
-        worst = max(worst, var[1] / 8.0)
+        u = np.empty((8, 3))
+        u[:, 0] = h * np.cos(_PSI8_RAD)
+        u[:, 1] = -h * np.sin(_PSI8_RAD)
+        u[:, 2] = v_z
+        w = np.zeros((8, 3))
+        w[:, 0] = -u[:, 1] / (h * h)
+        w[:, 1] = u[:, 0] / (h * h)
+        g = np.zeros((8, n))
+        if self.mode == "absolute":
+            for r in range(3):
+                g[:, 3 * r : 3 * r + 3] = -w[:, r : r + 1] * u
+        else:
+            g[:, :N_SOFT] = np.einsum("pi,kij,pj->pk", w, _SOFT_BASIS, u)
+            # a yaw offset of the mount is neither seen by rotations nor corrected (its estimate stays 0):
+            # it is the same in the corrected and the uncorrected heading
+            g[:, N_SOFT - 1] = 0.0
+        g[:, k : k + 3] = -w
+        return g, w
+
+    def _heading_sd_deg(self, cov: F64 | None, grads: F64 | None = None, spread: F64 | None = None) -> float:
+        """Heading standard deviation (deg) the parameters' joint covariance ``cov`` leaves on a level
+        vehicle, rms over eight headings, at the mean and at the largest delta^2 seen (the larger of the
+        two); ``spread`` instead of ``cov``: the covariance ``outer(spread, spread)``. ``grads``:
+        :meth:`_heading_grads` when already computed.
+
+        The joint covariance matters: in level yaw turns a compass tilted on its mount leaks the vertical
+        field into a constant horizontal offset, exactly as a hard iron does, so either alone is poorly
+        known while their sum, which is what the heading sees when level, is well known."""
+        g = self._heading_grads() if grads is None else grads
+        if spread is not None:
+            var = np.square(g @ spread).sum(axis=1)
+        else:
+            assert cov is not None
+            var = np.einsum("ipa,ipa->i", g @ cov, g)
+        worst = max(0.0, float(var[0]) / 8.0)
+        worst = max(worst, float(var[1]) / 8.0)
         return math.degrees(math.sqrt(worst))
 
     def solve(self) -> InflightSolution:
@@ -991,9 +1130,12 @@ class InflightEstimator:
     def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
         """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
         point of the relative form's soft-iron columns."""
-        k = self._k
-        d = self._theta[k : k + 3]
-        th = self._theta[k + 3 :].reshape(-1, 3)
+        cached = self._unc_cache
+        if cached is None or cached[0] is not self._theta:
+            k = self._k
+            p = self._theta
+            cached = self._unc_cache = (p, p[k : k + 3], p[k + 3 :].reshape(-1, 3))
+        _, d, th = cached
         return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)
 
 

@@ -24,12 +24,14 @@ from magcomp.core.inflight import (
     InflightMode,
     InflightParams,
     InflightSolution,
+    WindowFieldRows,
     absolute_rows,
     reference_yaw_error_rows,
     regressors,
     relative_rows,
     rotation_error_rows,
     window_field_rows,
+    window_nuisance_cols,
 )
 from magcomp.core.linalg3 import cross, vec3
 from magcomp.core.rotations import so3_exp, so3_log
@@ -454,7 +456,7 @@ class InflightStage:
             self._relinearise_window()
             self._rl_key = key
         gated = self.est.n_gated
-        self._win_field = self._add_window_row(
+        self._win_field, w = self._add_window_row(
             self.est, self._win_field, t_s, key, tau, r_nb, y, x, AP_YAW_TILT, relin
         )
         # the tilt model's estimator takes the samples with a raw gyro's yaw (a compass marked external never
@@ -463,8 +465,8 @@ class InflightStage:
         if self._gy_on and self.est_tilt is not None:
             self.est.theta_from = self.est_tilt
         if self._gy_on and self.est_tilt is not None and self.est.n_gated == gated:
-            self._win_field_tilt = self._add_window_row(
-                self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False
+            self._win_field_tilt, _ = self._add_window_row(
+                self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False, w
             )
         self.n_rows += 1
 
@@ -480,10 +482,13 @@ class InflightStage:
         x: F64,
         tilt_model: bool,
         relin: bool,
-    ) -> F64 | None:
+        like: WindowFieldRows | None = None,
+    ) -> tuple[F64 | None, WindowFieldRows]:
         """One sample's window-field rows into ``est`` (the tilt model's when ``tilt_model``); returns the
-        window field the yaw-rate column was written about (kept for the next window's first samples)."""
-        w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x))
+        window field the yaw-rate column was written about (kept for the next window's first samples) and
+        the rows (``like``: this sample's rows for the other estimator, whose columns but the soft-iron
+        ones they share)."""
+        w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x), like)
         est.vif_batch_windows = max(
             1, round(VIF_BATCH_S / (GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S))
         )
@@ -493,36 +498,25 @@ class InflightStage:
         if e_w is not None:
             win_field = np.array([e_w[0], e_w[1], est.common_estimate])
         h_w = est.field_ned_mgauss if win_field is None else win_field
-        cols = [w.field_cols, *self._yaw_tilt_cols(r_nb, h_w, tau)]
-        sd = [WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S]
-        if TILT_PRIOR_RAD > 0.0:
-            sd += [TILT_PRIOR_RAD, TILT_PRIOR_RAD]
+        ap_yaw = tilt_model and self._gy_on and AP_YAW_NUISANCE
         z = w.z
         if tilt_model and self._gy_on:
-            z, tilt = self._ap_yaw_tilt(est, t_s, key, r_nb, h_w, z)
-            cols[1] = cols[1] + tilt * tau  # the window's yaw rate tilts it too
-            if AP_YAW_NUISANCE:
-                cols.append(tilt)  # what the line fit leaves of the gyro yaw's error, one per window
-                sd.append(AP_YAW_PRIOR_RAD)
-        est.nuisance_prior_sd = np.array(sd)
-        nuis = np.hstack(cols)
+            psi, vh = self._ap_yaw_tilt(est, t_s, key, h_w)
+            # the tilt's column R^T (v x h) last: the window's yaw rate tilts it too (its column takes it
+            # times tau); the right-hand side with the tilt removed; with AP_YAW_NUISANCE the column stays,
+            # for what the line fit leaves of the gyro yaw's error, one per window
+            nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0, vh)
+            z = z - psi * nuis[:, -1]
+            if not AP_YAW_NUISANCE:
+                nuis = nuis[:, :-1]
+        else:
+            nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
+        est.nuisance_prior_sd = _window_prior_sd(ap_yaw)
         gated = est.n_gated
         est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
         if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
-        return win_field
-
-    @staticmethod
-    def _yaw_tilt_cols(r_nb: F64, h_w: F64, tau: float) -> list[F64]:
-        """The window's yaw-rate column (yaw error = rate * tau, about the window's field ``h_w``) and, with
-        TILT_PRIOR_RAD, the reference's tilt error about north and east (its vertical carries it)."""
-        if TILT_PRIOR_RAD <= 0.0:
-            return [reference_yaw_error_rows(r_nb, h_w) * tau]
-        # R^T [h]x: its column i is -R^T (e_i x h): the yaw column (reference_yaw_error_rows) and the tilt
-        # columns R^T (e_N x h), R^T (e_E x h) from one product (np.cross per column cost a tenth of a replay)
-        h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
-        m = r_nb.T @ np.array([[0.0, -h3, h2], [h3, 0.0, -h1], [-h2, h1, 0.0]])
-        return [m[:, 2:3] * tau, -m[:, 0:2]]
+        return win_field, w
 
     def _relinearise_window(self) -> None:
         """The window closing: its rows' yaw-rate and tilt columns written again about the window's final
@@ -540,14 +534,14 @@ class InflightStage:
         h_fin = np.array([e_w[0], e_w[1], self.est.common_estimate])
         self.est.refill_open_window(
             [
-                (r, z, np.hstack([fc, *self._yaw_tilt_cols(rn, h_fin, tau)]), com)
-                for r, z, fc, rn, tau, com in rows
+                (r, z, window_nuisance_cols(rn, h_fin, tau, TILT_PRIOR_RAD > 0.0), com)
+                for r, z, _fc, rn, tau, com in rows
             ]
         )
 
     def _ap_yaw_tilt(
-        self, est: InflightEstimator, t_s: float, key: tuple[int, int], r_nb: F64, h_w: F64, z: F64
-    ) -> tuple[F64, F64]:
+        self, est: InflightEstimator, t_s: float, key: tuple[int, int], h_w: F64
+    ) -> tuple[float, tuple[float, float, float]]:
         """The autopilot's tilt error that its own yaw error makes (AP_YAW_TILT). It subtracts the GPS
         acceleration ``a`` from the specific force with its own yaw, so a yaw error ``psi`` leaves a
         horizontal ``-psi a`` that it takes for gravity: its tilt is off by the rotation ``-psi a / g`` (NED,
@@ -555,16 +549,16 @@ class InflightStage:
         specific force, the one direction its accelerometer cannot see). ``psi`` = the autopilot's yaw minus
         the gyro's (known) + the gyro yaw's own error, which the windows' fields show: their direction
         against the WMM's, a straight line in time over the gyro chain (its bias) fitted to the closed
-        windows (``_frame_at``). Returns the right-hand side with the tilt removed and the tilt's column per
-        radian of yaw error (3, 1). ``est``: the estimator the rows go to (its windows' fields)."""
+        windows (``_frame_at``). Returns ``psi`` and ``v x h`` (NED, ``v = -a / g``): the tilt's column per
+        radian of yaw error is R^T (v x h) (``window_nuisance_cols``), the right-hand side has ``psi`` times
+        it removed. ``est``: the estimator the rows go to (its windows' fields)."""
         if key != self._ap_key:
             if self._ap_key is not None:
                 self._frame_close(est, self._ap_key)
             self._ap_key = key
         psi = (self._ap_yaw_dev + self._frame_at(est, t_s, h_w) + math.pi) % (2.0 * math.pi) - math.pi
         v1, v2 = -self._accel_h[0] / STANDARD_GRAVITY_M_S2, -self._accel_h[1] / STANDARD_GRAVITY_M_S2
-        col = (r_nb.T @ np.array(cross((v1, v2, 0.0), vec3(h_w)))).reshape(3, 1)  # R^T (v x h)
-        return z - psi * col[:, 0], col
+        return psi, cross((v1, v2, 0.0), vec3(h_w))
 
     @staticmethod
     def _frame_of(est: InflightEstimator, h: F64) -> float:
@@ -779,6 +773,25 @@ class InflightStage:
             else sol.motor_theta_mgauss.tolist(),
             "time_s": dict(self.time_s),
         }
+
+
+_PRIOR_SD_CACHE: dict[tuple[float, ...], F64] = {}
+
+
+def _window_prior_sd(ap_yaw: bool) -> F64:
+    """The window-field rows' nuisance prior standard deviations: the window's horizontal field, its yaw
+    rate, with TILT_PRIOR_RAD its tilt about north and east, with ``ap_yaw`` the tilt-from-yaw nuisance
+    (AP_YAW_PRIOR_RAD). One read-only array per set of values (built once, not per row)."""
+    sd: tuple[float, ...] = (WINDOW_FIELD_PRIOR_MGAUSS, WINDOW_FIELD_PRIOR_MGAUSS, NUISANCE_PRIOR_RAD_S)
+    if TILT_PRIOR_RAD > 0.0:
+        sd += (TILT_PRIOR_RAD, TILT_PRIOR_RAD)
+    if ap_yaw:
+        sd += (AP_YAW_PRIOR_RAD,)
+    arr = _PRIOR_SD_CACHE.get(sd)
+    if arr is None:
+        arr = _PRIOR_SD_CACHE[sd] = np.array(sd)
+        arr.flags.writeable = False
+    return arr
 
 
 def _interpolate_rotation(att: deque[tuple[float, F64]], t_s: float) -> F64 | None:
