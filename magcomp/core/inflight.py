@@ -40,7 +40,7 @@ Units: mgauss, throttle 0..1; frames: body FRD, earth NED. No I/O.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -75,6 +75,13 @@ THETA_MODEL_SPREAD = True
 #: of ``_heading_sd_deg``, as a model uncertainty of the published heading sigma (in quadrature; it is
 #: always reported as ``InflightSolution.heading_model_deg``)
 HEADING_MODEL_SPREAD = True
+#: the published heading sigma also counts the spread of the estimate over time (``InflightEstimator.
+#: split_heading_deg``): the closed nuisance windows are dealt alternately, VIF_BATCH_S at a time, to two
+#: halves, each solved on its own, and the heading their calibrations give apart (rms over the heading grid,
+#: halved: the sd of the whole-data estimate when the halves are independent) is added in quadrature. It sees
+#: what biases the parameters without leaving a residual (the autopilot's tilt error that the hard iron
+#: absorbs in turns, docs/inflight.md "Short flights"), which the variance inflation cannot
+SPLIT_CHECK = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,6 +130,9 @@ class InflightSolution:
     #: heading (deg) the two models' calibrations give apart (0 without a second model; see
     #: HEADING_MODEL_SPREAD): included in ``heading_sigma_deg`` when that flag is on
     heading_model_deg: float = 0.0
+    #: heading (deg) the two alternate-batch halves' estimates give apart, halved (SPLIT_CHECK): included in
+    #: ``heading_sigma_deg`` when that flag is on
+    heading_split_deg: float = 0.0
 
 
 #: basis of the relative form's soft-iron correction E (L = I + E): symmetric and traceless (x-y, x+y-2z
@@ -498,6 +508,10 @@ class InflightEstimator:
         self._b_n = 0
         self._b_windows = 0
         self._batches = ResidualBatches(n)
+        #: the closed windows' Schur complements dealt to two halves, alternately per batch (SPLIT_CHECK):
+        #: per half [info, rhs, z'z, parameters x common, common x common, common rhs, windows]
+        self._halves: list[list[object]] = [[np.zeros((n, n)), np.zeros(n), 0.0, np.zeros(n), 0.0, 0.0, 0]
+                                            for _ in range(2)]  # fmt: skip
         #: nuisance windows per batch (the stage sets it from its window length: VIF_BATCH_S / window)
         self.vif_batch_windows = 15
 
@@ -640,6 +654,12 @@ class InflightEstimator:
         number of samples a batch effectively counts as one for lasting ones. Batches form over nuisance
         windows only. Departure from the paper: its observer has no covariance to inflate."""
         return self._vif_at(None)
+
+    @property
+    def split_checked(self) -> bool:
+        """Both halves of ``split_heading_deg`` hold a closed window: the estimate has met data one of its
+        halves did not use (SPLIT_CHECK; always True with the check off)."""
+        return not SPLIT_CHECK or min(int(h[6]) for h in self._halves) > 0  # type: ignore[call-overload]
 
     def _vif_at(self, s2: float | None) -> float:
         """:attr:`variance_inflation` with ``sigma_mgauss**2`` given when known (None: computed here)."""
@@ -827,6 +847,7 @@ class InflightEstimator:
         x = self._window_solve()
         self._batch_window(x)
         info, rhs, zz, pc, cc, bc = self._window_schur(x)
+        self._split_add(info, rhs, zz, pc, cc, bc)
         self.info += info
         self.rhs += rhs
         self._zz += zz
@@ -897,6 +918,37 @@ class InflightEstimator:
             a[...] = 0.0
         self._w_n = 0
 
+    def _split_add(self, info: F64, rhs: F64, zz: float, pc: F64, cc: float, bc: float) -> None:
+        """A closing window's Schur complement into its half (SPLIT_CHECK): halves alternate every
+        ``vif_batch_windows`` windows, the residual batches' length (the slow errors' correlation time)."""
+        h = self._halves[(self.n_windows // max(1, self.vif_batch_windows)) % 2]
+        h[0] = h[0] + info  # type: ignore[operator]
+        h[1] = h[1] + rhs  # type: ignore[operator]
+        h[2] = h[2] + zz  # type: ignore[operator]
+        h[3] = h[3] + pc  # type: ignore[operator]
+        h[4] = h[4] + cc  # type: ignore[operator]
+        h[5] = h[5] + bc  # type: ignore[operator]
+        h[6] = h[6] + 1  # type: ignore[operator]
+
+    def split_heading_deg(self, s2: float) -> float:
+        """The heading (deg, rms over the heading grid of ``_heading_sd_deg``) that the two halves' own
+        estimates give apart, halved: each half solved alone with the prior at the noise scale ``s2``
+        (mgauss^2). Two independent halves of equal information differ by twice the whole estimate's
+        standard deviation, so this estimates it from data each half did not use, whatever the cause of
+        the spread (a bias the residual cannot show: the hard iron taking the autopilot's tilt error in
+        turns). A half with no closed window is the prior: a large spread, honestly. Departure from the
+        paper: its observer has no uncertainty."""
+        est = []
+        prior_b = self.prior_info @ self.prior_mean
+        for h in self._halves:
+            info, rhs, _ = self._common_schur(h[0], h[3], h[4], h[1], h[5], h[2])  # type: ignore[arg-type]
+            try:
+                est.append(np.linalg.solve(info / s2 + self.prior_info, rhs / s2 + prior_b))
+            except np.linalg.LinAlgError:
+                return 0.0
+        dp = est[0] - est[1]
+        return 0.5 * self._heading_sd_deg(np.outer(dp, dp))
+
     def _common_value(self, p: F64, ws: WindowSchur | None = None) -> float:
         """The common unknown's least-squares value at parameters ``p`` (back-substitution of its Schur
         complement; 0 when there is none). ``ws``: :meth:`_window_schur` when already computed."""
@@ -957,6 +1009,12 @@ class InflightEstimator:
             self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif, dp)
         else:
             self._solution = self._build(theta, cov, s2, vif)
+        if SPLIT_CHECK and self.n_windows > 0:
+            split = self.split_heading_deg(s2)
+            sol = self._solution
+            self._solution = replace(
+                sol, heading_sigma_deg=math.hypot(sol.heading_sigma_deg, split), heading_split_deg=split
+            )
         self._rev += 1
         self._dirty = False
 

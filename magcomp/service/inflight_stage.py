@@ -667,7 +667,7 @@ class InflightStage:
                 # quarter turn its statistical sigma hides the misalignment and gyro errors it cannot model
                 # (the diagnosis's gate uses the same span)
                 turned = self.mode == "absolute" or self.yaw_span_deg >= MIN_RELATIVE_YAW_SPAN_DEG
-                if ok and turned and sig < MAX_APPLY_HEADING_SIGMA_DEG:
+                if ok and turned and sig < MAX_APPLY_HEADING_SIGMA_DEG and self.sigma_checked:
                     self.applied = True
                     self.first_applied_t = t_s
             if self.applied:
@@ -716,6 +716,14 @@ class InflightStage:
         }
 
     @property
+    def sigma_checked(self) -> bool:
+        """The heading sigma has been checked on data the estimate's other half did not use (both halves of
+        ``InflightEstimator.split_heading_deg`` hold data): before that, a bias that leaves no residual
+        (a short flight's, docs/inflight.md "Short flights") cannot show in it. A run started from a stored
+        state was checked by the run that stored it."""
+        return self.warm_started or (self.est is not None and self.est.split_checked)
+
+    @property
     def yaw_span_deg(self) -> float:
         """Heading span covered by the samples used so far (deg, unwrapped)."""
         return math.degrees(self.yaw_max - self.yaw_min) if self.yaw_max > self.yaw_min else 0.0
@@ -741,6 +749,10 @@ class InflightStage:
             parts.append(f"throttle^2 hardly varies (std {est.throttle2_std:.3f})")
         if span < MIN_RELATIVE_YAW_SPAN_DEG:
             parts.append(f"yaw span only {span:.0f} deg")
+        if not self.sigma_checked:
+            parts.append(
+                f"not yet checked on a second stretch of data (halves alternate every {VIF_BATCH_S:.0f} s)"
+            )
         sol = self.solution
         if sol is not None:
             parts.append(f"heading uncertainty {sol.heading_sigma_deg:.1f} deg")
@@ -766,6 +778,7 @@ class InflightStage:
             "theta_sigma_mgauss": None if sol is None else sol.theta_sigma_mgauss.tolist(),
             "heading_sigma_deg": None if sol is None else sol.heading_sigma_deg,
             "heading_model_deg": None if sol is None else sol.heading_model_deg,
+            "heading_split_deg": None if sol is None else sol.heading_split_deg,
             "residual_rms_mgauss": None if sol is None else sol.residual_rms_mgauss,
             "variance_inflation": None if sol is None else sol.variance_inflation,
             "motor_theta_mgauss": None
