@@ -80,7 +80,8 @@ HEADING_MODEL_SPREAD = True
 #: halves, each solved on its own, and the heading their calibrations give apart (rms over the heading grid,
 #: halved: the sd of the whole-data estimate when the halves are independent) is added in quadrature. It sees
 #: what biases the parameters without leaving a residual (the autopilot's tilt error that the hard iron
-#: absorbs in turns, docs/inflight.md "Short flights"), which the variance inflation cannot
+#: absorbs in turns, docs/inflight.md "Short flights"), which the variance inflation cannot. Relative form
+#: only: measured there; on log171's absolute-form compasses it delayed the causal correction by 30 s
 SPLIT_CHECK = True
 
 
@@ -658,8 +659,9 @@ class InflightEstimator:
     @property
     def split_checked(self) -> bool:
         """Both halves of ``split_heading_deg`` hold a closed window: the estimate has met data one of its
-        halves did not use (SPLIT_CHECK; always True with the check off)."""
-        return not SPLIT_CHECK or min(int(h[6]) for h in self._halves) > 0  # type: ignore[call-overload]
+        halves did not use (SPLIT_CHECK, relative form; always True with the check off or the absolute
+        form)."""
+        return not SPLIT_CHECK or self.mode != "relative" or min(int(h[6]) for h in self._halves) > 0  # type: ignore[call-overload]
 
     def _vif_at(self, s2: float | None) -> float:
         """:attr:`variance_inflation` with ``sigma_mgauss**2`` given when known (None: computed here)."""
@@ -1009,7 +1011,7 @@ class InflightEstimator:
             self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif, dp)
         else:
             self._solution = self._build(theta, cov, s2, vif)
-        if SPLIT_CHECK and self.n_windows > 0:
+        if SPLIT_CHECK and self.mode == "relative" and self.n_windows > 0:
             split = self.split_heading_deg(s2)
             sol = self._solution
             self._solution = replace(
