@@ -80,8 +80,9 @@ HEADING_MODEL_SPREAD = True
 #: halves, each solved on its own, and the heading their calibrations give apart (rms over the heading grid,
 #: halved: the sd of the whole-data estimate when the halves are independent) is added in quadrature. It sees
 #: what biases the parameters without leaving a residual (the autopilot's tilt error that the hard iron
-#: absorbs in turns, docs/inflight.md "Short flights"), which the variance inflation cannot. Relative form
-#: only: measured there; on log171's absolute-form compasses it delayed the causal correction by 30 s
+#: absorbs in turns, docs/inflight.md "Short flights"), which the variance inflation cannot. Both forms
+#: report it; only the relative form's apply decision uses it (``InflightStage.output``: on log171's
+#: absolute-form compasses it delayed the causal correction by 30 s)
 SPLIT_CHECK = True
 
 
@@ -1011,7 +1012,7 @@ class InflightEstimator:
             self._solution = self._build(self._pub[0], self._pub[1] / vif, s2, vif, dp)
         else:
             self._solution = self._build(theta, cov, s2, vif)
-        if SPLIT_CHECK and self.mode == "relative" and self.n_windows > 0:
+        if SPLIT_CHECK and self.n_windows > 0:
             split = self.split_heading_deg(s2)
             sol = self._solution
             self._solution = replace(

@@ -662,6 +662,8 @@ class InflightStage:
                 corrected = sol.calib_l @ y - sol.calib_d - bias
                 change = _horizontal_angle_deg(corrected, y)
                 sig = sol.heading_sigma_deg
+                if self.mode == "absolute":  # the split-half term reported, not decided on (log171's causal)
+                    sig = math.sqrt(max(sig * sig - sol.heading_split_deg**2, 0.0))
                 ok = sig < max(self.params.heading_ok_deg, change / APPLY_Z)
                 # the relative form tells the hard iron from the Earth field only by rotation: below a
                 # quarter turn its statistical sigma hides the misalignment and gyro errors it cannot model
