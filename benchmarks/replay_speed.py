@@ -204,7 +204,7 @@ def _whole_process(
     mmed = statistics.median(cpu_main)
     print(f"{'  its main process alone':<24} {'':<36}CPU min {min(cpu_main):6.2f} s  median {mmed:6.2f} s "
           f"(/ parse-only process {mmed / statistics.median(cpu[False]):.2f}, / in process "
-          f"{mmed / statistics.median(cpu_base):.2f}: the critical path with a second core free)")  # fmt: skip
+          f"{mmed / statistics.median(cpu_base):.2f}: the critical path, a second core free)")  # fmt: skip
     med, cmed = statistics.median(rep), statistics.median(cpu[True])
     print(
         f"replay --emit process / parse-only (in process): wall median {med / statistics.median(base):.2f}, "
