@@ -28,7 +28,7 @@ import struct
 import sys
 import threading
 from array import array
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -78,10 +78,11 @@ class ObserverProcess:
 
     def _flush(self) -> None:
         data = memoryview(self._buf.tobytes())
-        self._buf = array("d")
         try:
-            while data:
-                data = data[os.write(self._cmd, data):]
+            with _sigint_held():
+                while data:
+                    data = data[os.write(self._cmd, data):]
+                self._buf = array("d")
         except BrokenPipeError:
             self._answer()  # the child's own error, if it said one
             raise RuntimeError(f"the observer process ended early ({self._status()})") from None
@@ -97,10 +98,11 @@ class ObserverProcess:
 
     def _answer(self) -> dict[int, Final] | None:
         """The child's next answer (None: it ended without one); its error raised as a RuntimeError."""
-        head = self._res.read(_LEN.size)
-        if len(head) < _LEN.size:
-            return None
-        kind, payload = pickle.loads(self._res.read(_LEN.unpack(head)[0]))
+        with _sigint_held():
+            head = self._res.read(_LEN.size)
+            if len(head) < _LEN.size:
+                return None
+            kind, payload = pickle.loads(self._res.read(_LEN.unpack(head)[0]))
         if kind != "ok":
             raise RuntimeError(f"the observer process failed: {payload}")
         out: dict[int, Final] = payload
@@ -149,6 +151,24 @@ class RemoteTheta:
 
     def take(self, final: Final) -> None:
         self.local.state, self.local.converged, self.last_info = final
+
+
+@contextlib.contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT held pending while a block goes down the pipe or an answer comes up, delivered (as the
+    KeyboardInterrupt of Python's default handler) once it is whole: a ^C between two partial writes of a
+    block (a pipe write larger than PIPE_BUF may be cut short by a signal) would leave the child reading
+    every later message shifted by the bytes written, and one between the two reads of an answer would
+    leave the next read mid-answer. A SIGINT already pending as this starts is raised at the mask call,
+    before anything is written. The main thread only (where Python delivers signals)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def start(cfg: Config) -> ObserverProcess | None:
