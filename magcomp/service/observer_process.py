@@ -29,6 +29,7 @@ import sys
 import threading
 from array import array
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -171,11 +172,27 @@ def _sigint_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+def _foreign_threads() -> list[str]:
+    """The names of this process's native threads that Python's ``threading`` does not see and that do
+    not carry the process's own name: a library's own threads (the Rerun SDK's writer, batcher and
+    runtime workers, an allocator's background thread) that a fork would copy mid-lock. A BLAS pool's
+    threads keep the process's name and are not counted (they hold no lock between calls). Unreadable
+    (a thread ending as it is read): reported as one, so no fork."""
+    try:
+        own = Path("/proc/self/comm").read_text().strip()
+        tasks = Path("/proc/self/task")
+        names = [(t / "comm").read_text().strip() for t in tasks.iterdir()]
+    except OSError:
+        return ["?"]
+    return [n for n in names if n != own]
+
+
 def start(cfg: Config) -> ObserverProcess | None:
     """Fork the child; None (the observers then step inline) off Linux, or while this process runs another
     thread (a fork copies no lock another thread holds then: the first pass forks before its workers'
-    threads start; a caller's own threads, e.g. a viewer's, keep the observers inline)."""
-    if not sys.platform.startswith("linux") or threading.active_count() > 1:
+    threads start; a caller's own threads, e.g. a viewer's, keep the observers inline; so do a library's
+    native threads, :func:`_foreign_threads`, e.g. ``replay --rerun``'s)."""
+    if not sys.platform.startswith("linux") or threading.active_count() > 1 or _foreign_threads():
         return None
     cmd_r, cmd_w = os.pipe()
     res_r, res_w = os.pipe()

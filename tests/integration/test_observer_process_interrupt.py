@@ -4,11 +4,13 @@ ones (a pipe write cut short by the signal, then the rest dropped, would shift e
 
 from __future__ import annotations
 
+import _thread
 import os
 import select
 import signal
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,3 +72,27 @@ def test_a_sigint_mid_block_leaves_the_observer_stream_whole(monkeypatch: pytest
         assert remote.local.converged == inline.converged
     finally:
         proc.close()
+
+
+def test_no_fork_while_a_library_native_thread_runs() -> None:
+    """A thread ``threading`` does not see, named as a library names its own (the Rerun SDK's writer of
+    ``replay --rerun save=FILE``): the observers step inline."""
+    if threading.active_count() > 1 or observer_process._foreign_threads():
+        pytest.skip("threads running: start() would (rightly) not fork")
+    started, release = _thread.allocate_lock(), _thread.allocate_lock()
+    started.acquire()
+    release.acquire()
+
+    def native() -> None:
+        Path(f"/proc/self/task/{threading.get_native_id()}/comm").write_text("file_writer")
+        started.release()
+        release.acquire()  # until the test is done
+
+    _thread.start_new_thread(native, ())
+    started.acquire()  # the thread has its name
+    try:
+        assert threading.active_count() == 1  # not Python's: only the name tells
+        assert observer_process._foreign_threads() == ["file_writer"]
+        assert observer_process.start(Config()) is None
+    finally:
+        release.release()
