@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
+from magcomp.errors import MagcompError
 from magcomp.service.estimators import ThetaEstimator, ThetaStepInfo
 
 F64 = NDArray[np.float64]
@@ -49,6 +50,11 @@ _LEN = struct.Struct("<Q")
 
 #: what the child hands back for one compass: the estimator's state, converged, the last step's info
 Final = tuple[Any, bool, ThetaStepInfo | None]
+
+
+class ObserverProcessError(MagcompError, RuntimeError):
+    """The child ended early (killed: the OOM killer, a kill of its pid) or failed: the replay ends with
+    this one line (the CLI's error), not a traceback."""
 
 
 class ObserverProcess:
@@ -86,7 +92,7 @@ class ObserverProcess:
                 self._buf = array("d")
         except BrokenPipeError:
             self._answer()  # the child's own error, if it said one
-            raise RuntimeError(f"the observer process ended early ({self._status()})") from None
+            raise ObserverProcessError(f"the observer process ended early ({self._status()})") from None
 
     def query(self) -> dict[int, Final]:
         """Every observer's state once the child has run every step sent so far."""
@@ -94,18 +100,18 @@ class ObserverProcess:
         self._flush()
         out = self._answer()
         if out is None:
-            raise RuntimeError(f"the observer process ended early ({self._status()})")
+            raise ObserverProcessError(f"the observer process ended early ({self._status()})")
         return out
 
     def _answer(self) -> dict[int, Final] | None:
-        """The child's next answer (None: it ended without one); its error raised as a RuntimeError."""
+        """The child's next answer (None: it ended without one); its error raised (ObserverProcessError)."""
         with _sigint_held():
             head = self._res.read(_LEN.size)
             if len(head) < _LEN.size:
                 return None
             kind, payload = pickle.loads(self._res.read(_LEN.unpack(head)[0]))
         if kind != "ok":
-            raise RuntimeError(f"the observer process failed: {payload}")
+            raise ObserverProcessError(f"the observer process failed: {payload}")
         out: dict[int, Final] = payload
         return out
 
@@ -248,4 +254,4 @@ def _send(out: Any, msg: object) -> None:
     out.flush()
 
 
-__all__ = ["ObserverProcess", "RemoteTheta", "start"]
+__all__ = ["ObserverProcess", "ObserverProcessError", "RemoteTheta", "start"]

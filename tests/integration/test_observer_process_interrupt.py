@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from magcomp.adapters.config import Config
+from magcomp.errors import MagcompError
 from magcomp.service import observer_process
 from magcomp.service.estimators import ThetaEstimator
 
@@ -96,3 +97,19 @@ def test_no_fork_while_a_library_native_thread_runs() -> None:
         assert observer_process.start(Config()) is None
     finally:
         release.release()
+
+
+def test_a_killed_observer_process_is_a_one_line_error() -> None:
+    """The child killed (the OOM killer, a kill of its pid): a MagcompError, which the CLI prints as its one
+    line ``magcomp replay: error: ...`` with exit 1, not a traceback."""
+    if threading.active_count() > 1 or observer_process._foreign_threads():
+        pytest.skip("threads running: start() would (rightly) not fork")
+    proc = observer_process.start(Config())
+    assert proc is not None
+    est = proc.estimator(0, Config(), None)
+    os.kill(proc._pid, signal.SIGKILL)
+    with pytest.raises(MagcompError, match="observer process ended early"):
+        for _ in range(100_000):  # fills the block and writes it down the closed pipe
+            est.step((0.1, 0.2, 0.3), (200.0, 0.0, 400.0), 0.5, 0.02)
+        est.sync()
+    proc.close()
