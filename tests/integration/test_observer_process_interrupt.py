@@ -19,6 +19,7 @@ from magcomp.adapters.config import Config
 from magcomp.errors import MagcompError
 from magcomp.service import observer_process
 from magcomp.service.estimators import ThetaEstimator
+from tests.waiting import wait_for
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the observer process: Linux")
 
@@ -97,6 +98,7 @@ def test_no_fork_while_a_library_native_thread_runs() -> None:
         assert observer_process.start(Config()) is None
     finally:
         release.release()
+        wait_for(lambda: not observer_process._foreign_threads(), 30.0, "the native thread to end")
 
 
 def test_a_killed_observer_process_is_a_one_line_error() -> None:
