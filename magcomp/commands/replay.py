@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -171,8 +172,14 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
     for w in report.summary["warnings"]:
         print(f"warning: {w}")
     if report.interrupted:
-        print(f"interrupted: the summary covers the log up to {report.t_last_s:.1f} s", flush=True)
-    if args.emit:
+        if math.isfinite(report.t_last_s):
+            print(f"interrupted: the summary covers the log up to {report.t_last_s:.1f} s", flush=True)
+        else:  # stopped in the first pass (it reads the whole log before any heading) or before any sample
+            print("interrupted before the first heading: nothing to report", flush=True)
+    if args.emit and report.interrupted and report.emitted == 0:
+        Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
+        print(f"nothing written to {args.emit}")
+    elif args.emit:
         print(f"wrote {report.emitted} MAGCOMP_HEADING to {args.emit}")
     if args.json:
         write_json(args.json, report.to_json())

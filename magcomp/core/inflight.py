@@ -192,6 +192,17 @@ def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
     return t
 
 
+#: the largest magnitude a row, target or nuisance entry may have (mgauss, or mgauss per unit regressor):
+#: a million gauss, far beyond any magnetometer's range, and far below where the normal equations'
+#: products of up to ~10^4 rows of 30 such entries would overflow a float64
+ROW_ENTRY_MAX = 1e9
+
+
+def _bounded(a: F64) -> bool:
+    """Every entry finite and within :data:`ROW_ENTRY_MAX` (a NaN compares False)."""
+    return bool(np.abs(a).max() <= ROW_ENTRY_MAX)
+
+
 def n_params(mode: InflightMode, n_motors: int) -> int:
     """Size of the parameter vector: [A (9, row-major) if absolute | E (5) if relative] + d (3)
     + theta (3) + motors (3 m)."""
@@ -452,6 +463,8 @@ class InflightEstimator:
         self._theta: F64 = prior_mean.copy()
         self._cov: F64 | None = np.asarray(np.linalg.inv(self.prior_info), dtype=np.float64)
         self.n_gated = 0
+        #: rows left out as not finite (:meth:`_take`, :meth:`add_norm`)
+        self.n_nonfinite = 0
         self._solution: InflightSolution | None = None
         self._dirty = True
         self._clear_blocks(n)
@@ -600,6 +613,13 @@ class InflightEstimator:
 
         ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
         vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
+        if not (_bounded(rows) and _bounded(z) and (nuisance is None or _bounded(nuisance))
+                and (common is None or _bounded(common))):  # fmt: skip
+            # a NaN, an infinity or a value whose square products overflow (a damaged record upstream):
+            # left out. In the normal equations it would make every later solution NaN (LAPACK's
+            # Cholesky does not report a NaN matrix as a failure) or its heading sigma 0
+            self.n_nonfinite += 1
+            return math.nan
         if not gate:
             self._take(rows, z, x0, nuisance, window, common)
             return math.nan
@@ -793,6 +813,9 @@ class InflightEstimator:
         WMM's |h|: the relative form has no common scale (a traceless E) and a WMM norm is off by a few %
         locally; eliminating ``c`` keeps only the norm's variation. Weighted by sqrt(2): a pair's
         component has the noise of two samples, a norm row that of one sample projected on the field."""
+        if not (_bounded(y_mgauss) and _bounded(x)):  # as in add
+            self.n_nonfinite += 1
+            return
         k = self._k
         th = self._theta[k + 3 :].reshape(-1, 3)
         v = np.asarray(y_mgauss - self._theta[k : k + 3] - x[: th.shape[0]] @ th, dtype=np.float64)

@@ -41,6 +41,12 @@ FAST_IMU_DT_S = 0.05
 GYRO_JUMP_FLOOR_RAD_S = 3.0
 MAX_ANGULAR_ACCEL_RAD_S2 = 400.0
 GYRO_HOLDOFF_S = 0.5
+#: beyond any accelerometer's full scale (m/s^2, ~204 g: high-g accelerometers read +-200 g, flight IMUs
+#: +-16 to +-32 g): a sample beyond it is a damaged record, not a measurement, and is dropped (counted
+#: ``implausible``). One such value in the horizontal-acceleration low-pass (ACCEL_LP_S) stays in it for
+#: minutes and overflowed the in-flight rows built from it (a DataFlash log with flipped bytes: 8e35 m/s^2,
+#: every compass "corrected" with a NaN calibration)
+ACCEL_MAX_M_S2 = 2000.0
 #: time constant (s) of the low-pass on the horizontal kinematic acceleration that comes with the gyro's
 #: yaw: a GPS-aided autopilot corrects its tilt with the acceleration that GPS velocity confirms, over about
 #: a second (the simulator's complementary filter: 1 / kp_tilt = 1 s); it also keeps the motors' vibration
@@ -153,7 +159,11 @@ class AttitudeStage:
         if not all(map(math.isfinite, (t, gx, gy, gz, ax, ay, az))):
             self.counts["non_finite"] += 1
             return False
-        self.accel_norm = math.sqrt(ax * ax + ay * ay + az * az)
+        accel_norm = math.sqrt(ax * ax + ay * ay + az * az)
+        if accel_norm > ACCEL_MAX_M_S2:  # no accelerometer reads this: a damaged record (e.g. a flipped
+            self.counts["implausible"] += 1  # exponent bit in a DataFlash log), kept out of the low-pass
+            return False
+        self.accel_norm = accel_norm
         lim = self._gyro_sat
         saturated = abs(gx) >= lim or abs(gy) >= lim or abs(gz) >= lim
         raw, raw_t = self._gyro_raw, self._gyro_raw_t

@@ -146,6 +146,7 @@ SKIP_KEYS = (
     "truncated",
     "nonfinite",
     "non_finite",
+    "implausible",
     "saturated",
     "time_backwards",
     "clock_resets",

@@ -28,13 +28,15 @@ import struct
 import sys
 import threading
 from array import array
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
+from magcomp.errors import MagcompError
 from magcomp.service.estimators import ThetaEstimator, ThetaStepInfo
 
 F64 = NDArray[np.float64]
@@ -48,6 +50,11 @@ _LEN = struct.Struct("<Q")
 
 #: what the child hands back for one compass: the estimator's state, converged, the last step's info
 Final = tuple[Any, bool, ThetaStepInfo | None]
+
+
+class ObserverProcessError(MagcompError, RuntimeError):
+    """The child ended early (killed: the OOM killer, a kill of its pid) or failed: the replay ends with
+    this one line (the CLI's error), not a traceback."""
 
 
 class ObserverProcess:
@@ -78,13 +85,14 @@ class ObserverProcess:
 
     def _flush(self) -> None:
         data = memoryview(self._buf.tobytes())
-        self._buf = array("d")
         try:
-            while data:
-                data = data[os.write(self._cmd, data):]
+            with _sigint_held():
+                while data:
+                    data = data[os.write(self._cmd, data):]
+                self._buf = array("d")
         except BrokenPipeError:
             self._answer()  # the child's own error, if it said one
-            raise RuntimeError(f"the observer process ended early ({self._status()})") from None
+            raise ObserverProcessError(f"the observer process ended early ({self._status()})") from None
 
     def query(self) -> dict[int, Final]:
         """Every observer's state once the child has run every step sent so far."""
@@ -92,17 +100,18 @@ class ObserverProcess:
         self._flush()
         out = self._answer()
         if out is None:
-            raise RuntimeError(f"the observer process ended early ({self._status()})")
+            raise ObserverProcessError(f"the observer process ended early ({self._status()})")
         return out
 
     def _answer(self) -> dict[int, Final] | None:
-        """The child's next answer (None: it ended without one); its error raised as a RuntimeError."""
-        head = self._res.read(_LEN.size)
-        if len(head) < _LEN.size:
-            return None
-        kind, payload = pickle.loads(self._res.read(_LEN.unpack(head)[0]))
+        """The child's next answer (None: it ended without one); its error raised (ObserverProcessError)."""
+        with _sigint_held():
+            head = self._res.read(_LEN.size)
+            if len(head) < _LEN.size:
+                return None
+            kind, payload = pickle.loads(self._res.read(_LEN.unpack(head)[0]))
         if kind != "ok":
-            raise RuntimeError(f"the observer process failed: {payload}")
+            raise ObserverProcessError(f"the observer process failed: {payload}")
         out: dict[int, Final] = payload
         return out
 
@@ -151,11 +160,45 @@ class RemoteTheta:
         self.local.state, self.local.converged, self.last_info = final
 
 
+@contextlib.contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT held pending while a block goes down the pipe or an answer comes up, delivered (as the
+    KeyboardInterrupt of Python's default handler) once it is whole: a ^C between two partial writes of a
+    block (a pipe write larger than PIPE_BUF may be cut short by a signal) would leave the child reading
+    every later message shifted by the bytes written, and one between the two reads of an answer would
+    leave the next read mid-answer. A SIGINT already pending as this starts is raised at the mask call,
+    before anything is written. The main thread only (where Python delivers signals)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _foreign_threads() -> list[str]:
+    """The names of this process's native threads that Python's ``threading`` does not see and that do
+    not carry the process's own name: a library's own threads (the Rerun SDK's writer, batcher and
+    runtime workers, an allocator's background thread) that a fork would copy mid-lock. A BLAS pool's
+    threads keep the process's name and are not counted (they hold no lock between calls). Unreadable
+    (a thread ending as it is read): reported as one, so no fork."""
+    try:
+        own = Path("/proc/self/comm").read_text().strip()
+        tasks = Path("/proc/self/task")
+        names = [(t / "comm").read_text().strip() for t in tasks.iterdir()]
+    except OSError:
+        return ["?"]
+    return [n for n in names if n != own]
+
+
 def start(cfg: Config) -> ObserverProcess | None:
     """Fork the child; None (the observers then step inline) off Linux, or while this process runs another
     thread (a fork copies no lock another thread holds then: the first pass forks before its workers'
-    threads start; a caller's own threads, e.g. a viewer's, keep the observers inline)."""
-    if not sys.platform.startswith("linux") or threading.active_count() > 1:
+    threads start; a caller's own threads, e.g. a viewer's, keep the observers inline; so do a library's
+    native threads, :func:`_foreign_threads`, e.g. ``replay --rerun``'s)."""
+    if not sys.platform.startswith("linux") or threading.active_count() > 1 or _foreign_threads():
         return None
     cmd_r, cmd_w = os.pipe()
     res_r, res_w = os.pipe()
@@ -211,4 +254,4 @@ def _send(out: Any, msg: object) -> None:
     out.flush()
 
 
-__all__ = ["ObserverProcess", "RemoteTheta", "start"]
+__all__ = ["ObserverProcess", "ObserverProcessError", "RemoteTheta", "start"]

@@ -72,7 +72,7 @@ log = logging.getLogger("magcomp.pipeline")
 COUNT_KEYS = (
     "samples", "mag", "imu", "estimates", "non_finite", "saturated", "gyro_jumps", "mag_jumps",
     "gyro_gated", "time_backwards", "clock_resets", "reboots", "gaps", "observer_resets",
-    "throttle_jumps", "no_throttle",
+    "throttle_jumps", "no_throttle", "implausible",
 )  # fmt: skip
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -72,7 +74,11 @@ def test_cli_missing_file_is_a_one_line_error(tmp_path: Path, capsys: pytest.Cap
 def test_cli_rerun_save_writes_a_recording(skewed_log: Path) -> None:
     pytest.importorskip("magcomp.adapters.rerun_viz")
     rrd = skewed_log.parent / "diag.rrd"
-    assert main(["diagnose", str(skewed_log), "--rerun", f"save={rrd}"]) == 0
+    # in a process of its own: the Rerun SDK's native threads outlive the recording, and in this process
+    # they would keep later tests' replays from forking their observer process (observer_process.start)
+    cmd = [sys.executable, "-m", "magcomp", "diagnose", str(skewed_log), "--rerun", f"save={rrd}"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
     assert rrd.is_file() and rrd.stat().st_size > 10_000
 
 

@@ -47,6 +47,8 @@ def _started(monkeypatch: pytest.MonkeyPatch) -> list[ObserverProcess]:
     out: list[ObserverProcess] = []
     if threading.active_count() > 1:  # left by another test: start() would (rightly) not fork
         pytest.skip(f"threads running: {[t.name for t in threading.enumerate()]}")
+    if observer_process._foreign_threads():  # a library's native threads (e.g. the Rerun SDK's): as above
+        pytest.skip(f"native threads running: {observer_process._foreign_threads()}")
 
     def start(cfg: Config) -> ObserverProcess | None:
         proc = observer_process.start(cfg)
