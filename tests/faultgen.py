@@ -46,6 +46,14 @@ def record_time_s(rec: bytes) -> float:
     return int.from_bytes(rec[:8], "big") * 1e-6
 
 
+def rebooted_copy(records: list[bytes], t0_s: float, reboot_after_s: float) -> list[bytes]:
+    """``records`` with the autopilot rebooting ``reboot_after_s`` into the log: from there its clock restarts
+    at 0.3 s (``t0_s``: the simulated log's boot time, so that message times before the reboot stay)."""
+    u0 = record_time_s(records[0])
+    return retime(records, lambda i, old: old - (t0_s + reboot_after_s) + 0.3
+                  if record_time_s(records[i]) - u0 >= reboot_after_s else old)  # fmt: skip
+
+
 def rewrite(records: list[bytes], mtype: str, **fields: Any) -> list[bytes]:
     """Records with every ``mtype`` message's ``fields`` set to the given values (re-encoded)."""
     mod, mav = _mav()

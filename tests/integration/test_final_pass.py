@@ -17,7 +17,7 @@ from magcomp.service import final_pass
 from magcomp.service.replay import learn_pass, replay_log
 from magcomp.sim import SimConfig, simulate
 from tests.conftest import split_tlog_records
-from tests.faultgen import record_time_s, retime
+from tests.faultgen import rebooted_copy
 
 
 @pytest.fixture(scope="module")
@@ -28,9 +28,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     result = simulate(SimConfig(scenario="paper", duration_s=150.0, seed=4))
     write_tlog(result, d / "paper.tlog")
     recs = split_tlog_records((d / "paper.tlog").read_bytes())
-    u0 = record_time_s(recs[0])
-    rebooted = retime(recs, lambda i, old: old - (result.t0_s + 100.0) + 0.3
-                      if record_time_s(recs[i]) - u0 >= 100.0 else old)  # fmt: skip
+    rebooted = rebooted_copy(recs, result.t0_s, 100.0)
     (d / "reboot.tlog").write_bytes(b"".join(rebooted))
     return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog"}
 
