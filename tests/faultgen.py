@@ -54,6 +54,20 @@ def rebooted_copy(records: list[bytes], t0_s: float, reboot_after_s: float) -> l
                   if record_time_s(records[i]) - u0 >= reboot_after_s else old)  # fmt: skip
 
 
+def paper_and_rebooted(d: Any, duration_s: float, seed: int, reboot_after_s: float) -> dict[str, Any]:
+    """The paper's scenario (hand rotation, then flight, two compasses) written to ``d/paper.tlog``, and the
+    same log with the autopilot rebooting ``reboot_after_s`` in, ``d/reboot.tlog``."""
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.sim import SimConfig, simulate
+    from tests.conftest import split_tlog_records
+
+    result = simulate(SimConfig(scenario="paper", duration_s=duration_s, seed=seed))
+    write_tlog(result, d / "paper.tlog")
+    recs = split_tlog_records((d / "paper.tlog").read_bytes())
+    (d / "reboot.tlog").write_bytes(b"".join(rebooted_copy(recs, result.t0_s, reboot_after_s)))
+    return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog"}
+
+
 def rewrite(records: list[bytes], mtype: str, **fields: Any) -> list[bytes]:
     """Records with every ``mtype`` message's ``fields`` set to the given values (re-encoded)."""
     mod, mav = _mav()

@@ -16,8 +16,7 @@ from magcomp.core.types import FLAG_THETA_CONVERGED, HeadingEstimate
 from magcomp.service import final_pass
 from magcomp.service.replay import learn_pass, replay_log
 from magcomp.sim import SimConfig, simulate
-from tests.conftest import split_tlog_records
-from tests.faultgen import rebooted_copy
+from tests.faultgen import paper_and_rebooted
 
 
 @pytest.fixture(scope="module")
@@ -25,12 +24,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """The paper's scenario (hand rotation, then flight), 150 s, two compasses; and the same log with the
     autopilot rebooting 100 s in (its clock restarts at 0.3 s: boot offset and heading filters restart)."""
     d = tmp_path_factory.mktemp("final")
-    result = simulate(SimConfig(scenario="paper", duration_s=150.0, seed=4))
-    write_tlog(result, d / "paper.tlog")
-    recs = split_tlog_records((d / "paper.tlog").read_bytes())
-    rebooted = rebooted_copy(recs, result.t0_s, 100.0)
-    (d / "reboot.tlog").write_bytes(b"".join(rebooted))
-    return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog"}
+    return paper_and_rebooted(d, 150.0, 4, 100.0)
 
 
 @pytest.fixture(scope="module")

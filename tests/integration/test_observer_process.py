@@ -18,8 +18,7 @@ from magcomp.service import observer_process, replay
 from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.replay import replay_log
 from magcomp.sim import SimConfig, simulate
-from tests.conftest import split_tlog_records
-from tests.faultgen import rebooted_copy
+from tests.faultgen import paper_and_rebooted
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the observer process: Linux")
 
@@ -29,14 +28,10 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """The paper's scenario (hand rotation, then flight), 120 s, two compasses; and the same log with the
     autopilot rebooting 80 s in (the observers' filters reset: reset messages down the pipe)."""
     d = tmp_path_factory.mktemp("obsproc")
-    result = simulate(SimConfig(scenario="paper", duration_s=120.0, seed=7))
-    write_tlog(result, d / "paper.tlog")
-    recs = split_tlog_records((d / "paper.tlog").read_bytes())
-    rebooted = rebooted_copy(recs, result.t0_s, 80.0)
-    (d / "reboot.tlog").write_bytes(b"".join(rebooted))
+    logs = paper_and_rebooted(d, 120.0, 7, 80.0)
     # calibration and theta learned in flight: its state is saved every 10 s of the first pass too
     write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=120.0, seed=3)), d / "flight.tlog")
-    return {"paper": d / "paper.tlog", "reboot": d / "reboot.tlog", "flight": d / "flight.tlog"}
+    return {**logs, "flight": d / "flight.tlog"}
 
 
 def _started(monkeypatch: pytest.MonkeyPatch) -> list[ObserverProcess]:
