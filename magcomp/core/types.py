@@ -15,6 +15,10 @@ Vec3 = NDArray[np.float64]
 Mat3 = NDArray[np.float64]
 
 STANDARD_GRAVITY_M_S2 = 9.80665  # standard gravity g_n (exact, by definition)
+#: Earth's total field at the surface (WMM: about 22,000 nT in the South Atlantic anomaly to 67,000 nT near
+#: the magnetic poles), mgauss
+EARTH_MIN_MGAUSS = 220.0
+EARTH_MAX_MGAUSS = 670.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -53,11 +53,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.rotations import euler_from_dcms
+from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 
 F64 = NDArray[np.float64]
 
-EARTH_MIN_MGAUSS = 220.0
-EARTH_MAX_MGAUSS = 670.0
 
 
 @dataclass(frozen=True)

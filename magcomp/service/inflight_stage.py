@@ -35,7 +35,7 @@ from magcomp.core.inflight import (
 )
 from magcomp.core.linalg3 import cross, vec3
 from magcomp.core.rotations import so3_exp, so3_log
-from magcomp.core.types import STANDARD_GRAVITY_M_S2
+from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS, STANDARD_GRAVITY_M_S2
 
 if TYPE_CHECKING:
     from magcomp.service.attitude import GyroYaw
@@ -119,6 +119,11 @@ RELINEARISE_WINDOW = True
 WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
 #: the relative form is applied only once the heading has covered this span (deg; as the diagnosis's gate)
 MIN_RELATIVE_YAW_SPAN_DEG = 90.0
+#: the corrected field's strength must be an Earth field's: Earth's surface range (core.types) widened by the
+#: +-35 % a compass calibration within tolerance can leave (the diagnosis's gate, ``max_scale_error``). A
+#: compass stuck at one value learns a hard iron equal to its reading and corrects to ~0 mgauss: its heading
+#: is then noise, whatever the statistical sigma says.
+CORRECTED_FIELD_RANGE_MGAUSS = (0.65 * EARTH_MIN_MGAUSS, 1.35 * EARTH_MAX_MGAUSS)
 #: the relative form's rotation-source yaw-rate error (InflightEstimator.add) is taken as constant over
 #: windows this long (s). The error is the autopilot's compass-driven yaw correction, which varies on the
 #: time constant of that correction (2 s for a complementary filter with a 0.5/s yaw gain, longer for an
@@ -209,6 +214,8 @@ class InflightStage:
         self.time_s = dict.fromkeys(STATES, 0.0)
         self._last_t: float | None = None
         self.first_applied_t: float | None = None
+        #: the corrected field's strength at the last decision not to apply (mgauss), for why_not()
+        self.corrected_field_mgauss: float | None = None
         self.n_rows = 0
         #: samples with an attitude that the window-field rows left out because the motors were off
         self.n_motors_off = 0
@@ -669,7 +676,11 @@ class InflightStage:
                 # quarter turn its statistical sigma hides the misalignment and gyro errors it cannot model
                 # (the diagnosis's gate uses the same span)
                 turned = self.mode == "absolute" or self.yaw_span_deg >= MIN_RELATIVE_YAW_SPAN_DEG
-                if ok and turned and sig < MAX_APPLY_HEADING_SIGMA_DEG and self.sigma_checked:
+                strength = math.sqrt(float(corrected @ corrected))
+                self.corrected_field_mgauss = strength
+                lo, hi = CORRECTED_FIELD_RANGE_MGAUSS
+                earthly = lo <= strength <= hi
+                if ok and turned and earthly and sig < MAX_APPLY_HEADING_SIGMA_DEG and self.sigma_checked:
                     self.applied = True
                     self.first_applied_t = t_s
             if self.applied:
@@ -755,6 +766,13 @@ class InflightStage:
             parts.append(
                 f"not yet checked on a second stretch of data (halves alternate every {VIF_BATCH_S:.0f} s)"
             )
+        strength = self.corrected_field_mgauss
+        lo, hi = CORRECTED_FIELD_RANGE_MGAUSS
+        if strength is not None and not lo <= strength <= hi:
+            parts.append(
+                f"the corrected field is {strength:.0f} mgauss, outside Earth's {EARTH_MIN_MGAUSS:.0f}-"
+                f"{EARTH_MAX_MGAUSS:.0f} widened by +-35 % (a stuck or dead compass?)"
+            )
         sol = self.solution
         if sol is not None:
             parts.append(f"heading uncertainty {sol.heading_sigma_deg:.1f} deg")
@@ -771,6 +789,7 @@ class InflightStage:
             "applied": self.applied,
             "started_from_stored_state": self.warm_started,
             "applied_from_t_s": self.first_applied_t,
+            "corrected_field_mgauss": self.corrected_field_mgauss,
             "why_not_applied": None if self.applied else self.why_not(),
             "samples_used": 0 if est is None else est.n,
             "samples_gated": 0 if est is None else est.n_gated,

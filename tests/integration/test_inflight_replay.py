@@ -232,3 +232,24 @@ def test_heading_sigma_covers_the_error_beyond_the_oracle_with_the_two_models_ap
         inf["heading_sigma_deg"],
         inf["heading_model_deg"],
     )
+
+
+@pytest.mark.slow
+def test_a_stuck_compass_is_not_corrected_and_says_why(tmp_path: Path) -> None:
+    """A dead compass repeating one reading: the learned hard iron equals the reading, the corrected field is
+    ~0 mgauss and its heading noise, while the statistical sigma is small. It must not be published as
+    corrected; the working compass beside it still is."""
+    from magcomp.core.types import EARTH_MIN_MGAUSS
+    from tests.conftest import split_tlog_records
+    from tests.faultgen import rewrite
+
+    _, path = _flight(tmp_path, ["telemetry_hz=10"])
+    stuck = rewrite(split_tlog_records(path.read_bytes()), "SCALED_IMU2", xmag=120, ymag=-40, zmag=380)
+    path.write_bytes(b"".join(stuck))
+    rep = replay_log(path, Config())
+    c0, c1 = rep.summary["compasses"][:2]
+    assert c0["status"] == "corrected", c0["why"]
+    assert c1["status"] == "uncorrected", c1
+    assert "corrected field" in c1["why"], c1["why"]
+    strength = c1["inflight"].get("corrected_field_mgauss")
+    assert strength is not None and strength < 0.65 * EARTH_MIN_MGAUSS, strength
