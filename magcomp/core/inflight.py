@@ -739,9 +739,7 @@ class InflightEstimator:
             return cached[1]
         if self._w_n == 0 or not self._w_ee.any():
             return None
-        sol = self._solution
-        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-        hee = self._w_ee + self._ridge(s_ref, key[2])
+        hee = self._window_hee(key[2])
         # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance (their
         # nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
         b_e = self._w_gram[self._theta.shape[0] + 2 :] @ self._b_e_coef(k, with_common)
@@ -770,6 +768,13 @@ class InflightEstimator:
         self._coef_cache = (key, coef)
         return coef
 
+    def _window_hee(self, sd: tuple[float, ...]) -> F64:
+        """The open window's nuisance information H_ee with its prior, at the residual scale of the last
+        solution (the noise floor, at least 10 mgauss, before one)."""
+        sol = self._solution
+        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
+        return self._w_ee + self._ridge(s_ref, sd)
+
     def _ridge(self, s_ref: float, sd: tuple[float, ...]) -> F64:
         """The nuisance prior's information at unit weight, ``diag((s_ref / sd)^2)`` (the data rows are not
         divided by s), built once per residual scale and prior."""
@@ -783,11 +788,8 @@ class InflightEstimator:
         it is singular): what its Schur complement and its residual sum both need. The nuisance has a weak
         prior (0.2 rad/s, an attitude filter's gyro-bias clamp, at the noise floor) so that a window
         without rotation information stays solvable."""
-        sol = self._solution
-        s_ref = max(self.p.noise_floor_mgauss, 10.0) if sol is None else sol.residual_rms_mgauss
-        k = self._w_ee.shape[0]
         n = self.info.shape[0]
-        hee = self._w_ee + self._ridge(s_ref, self._prior_sd_key(k))
+        hee = self._window_hee(self._prior_sd_key(self._w_ee.shape[0]))
         _, x, info = lapack.dposv(hee, self._w_gram[n + 2 :, : n + 2])
         return None if info != 0 else np.asarray(x, dtype=np.float64)
 
