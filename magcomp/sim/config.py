@@ -234,7 +234,9 @@ class Variation:
     att_noise_deg: white noise on each reported ATTITUDE angle
     gps: emit GPS_RAW_INT, GLOBAL_POSITION_INT and SYSTEM_TIME
     ap_kp_yaw, ap_kp_tilt: the autopilot's complementary-filter gains (1/s; 0.5 and 1.0): how fast its
-        yaw follows the compass (or GPS yaw) and its tilt the accelerometer
+        yaw follows the compass (or GPS yaw) and its tilt the accelerometer. A real EKF pulls its yaw to the
+        compass far slower: 0.02-0.04 /s on log171 (benchmarks/autopilot_yaw_follow.py); 0.5 is the stress
+        case for a yaw that follows the disturbed compass
     gyro_noise_scale, gyro_bias_scale: multiply each IMU's gyro noise sigma (3 mrad/s) and bias draw
     hover_throttle: the multirotor's hover collective in ``ordinary`` (None: 0.5)
     current_max_a: battery current at full throttle (None: 40 A multirotor, 20 A fixed wing); the bias
@@ -597,10 +599,10 @@ def sample_variation(rng: np.random.Generator) -> dict[str, str]:
     0.15 / 0.92 / 1.5 / 3 mgauss, white noise x0.3-2, AR(1) 0-5 mgauss with tau 0.5-10 s, random walk
     0-0.3 mgauss/sqrt(s); autopilot yaw: 60 % its internal compass, 20 % an external compass 0, 20 % GPS
     yaw; autopilot calibration on 80 % (residual hard iron 0-40 mgauss, soft iron 0-5 %); ATTITUDE biases
-    roll/pitch +-2 deg, yaw +-3 deg, noise 0-0.5 deg; filter gains kp_yaw 0.2-1, kp_tilt 0.5-2; gyro noise
-    x0.5-3, bias x0-2; hover throttle 0.35-0.6; theta x0.3-2; place: latitude +-60 deg, any longitude, date
-    2025.0-2029.9; seed 0-2^31. The scenario (``ordinary`` multirotor or ``ordinary_plane``) is the caller's
-    choice."""
+    roll/pitch +-2 deg, yaw +-3 deg, noise 0-0.5 deg; filter gains kp_yaw 0.02-1 (log-uniform), kp_tilt
+    0.5-2; gyro noise x0.5-3, bias x0-2; hover throttle 0.35-0.6; theta x0.3-2; place: latitude +-60 deg,
+    any longitude, date 2025.0-2029.9; seed 0-2^31. The scenario (``ordinary`` multirotor or
+    ``ordinary_plane``) is the caller's choice."""
     out: dict[str, float | str] = {}
     if rng.random() < 0.4:
         out["telemetry_hz"] = float(rng.choice([1.0, 2.0, 4.0, 10.0]))
@@ -626,7 +628,9 @@ def sample_variation(rng: np.random.Generator) -> dict[str, str]:
     out["att_pitch_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
     out["att_yaw_bias_deg"] = round(float(rng.uniform(-3.0, 3.0)), 3)
     out["att_noise_deg"] = round(float(rng.uniform(0.0, 0.5)), 3)
-    out["ap_kp_yaw"] = round(float(rng.uniform(0.2, 1.0)), 3)
+    # log-uniform from a real EKF's slow compass pull (log171: 0.02-0.04 /s, a 25-50 s time constant;
+    # benchmarks/autopilot_yaw_follow.py) to a complementary filter's 1 /s
+    out["ap_kp_yaw"] = round(float(np.exp(rng.uniform(math.log(0.02), math.log(1.0)))), 4)
     out["ap_kp_tilt"] = round(float(rng.uniform(0.5, 2.0)), 3)
     out["gyro_noise_scale"] = round(float(rng.uniform(0.5, 3.0)), 3)
     out["gyro_bias_scale"] = round(float(rng.uniform(0.0, 2.0)), 3)

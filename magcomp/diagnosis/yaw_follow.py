@@ -1,0 +1,119 @@
+"""How fast the autopilot's yaw follows a compass: the gain of its compass correction, measured from a log.
+
+An attitude filter propagates its yaw with the gyro and pulls it toward the compass's heading:
+``d psi_ap / dt = psi_dot_gyro + b + k (psi_compass - psi_ap)`` (a complementary filter with gain ``k``, 1/s;
+an EKF's magnetometer update acts the same way to first order, with ``b`` the part of the gyro bias it has
+not learned). So the autopilot's yaw minus the gyro's integral, ``D = psi_ap - integral(psi_dot_gyro)``,
+changes at ``b + k (psi_compass - psi_ap)``: one straight-line fit over short windows gives ``k``.
+
+Why it matters: the relative form's nuisance models of the autopilot's yaw error (docs/inflight.md) assume
+how fast that yaw follows the disturbed compass; the simulator's autopilot (``ap_kp_yaw``, default 0.5/s)
+is one such assumption. Measured on log171 (ArduCopter 3.3, external compass 0): k = 0.04 /s on the
+ground (a 25 s time constant), consistent with 0 to 0.07 /s in flight (docs/measured-data.md).
+
+Pure, no I/O: arrays in, a :class:`YawFollow` out. Frames: body FRD, NED; angles in rad.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+#: the window (s) over which the yaw-rate difference is taken: short against the time constants sought
+#: (seconds to minutes), long against the attitude's message interval (0.02-0.1 s)
+WINDOW_S = 2.0
+#: windows need at least this many attitude samples
+MIN_SAMPLES_PER_WINDOW = 3
+#: tilt (rad) above which the tilt-compensated compass heading is left out (near 90 deg it is undefined)
+MAX_TILT_RAD = math.radians(45.0)
+
+
+@dataclass(frozen=True)
+class YawFollow:
+    """gain_per_s: k of the model above, 1/s, with its standard error; bias_rad_s: b; n_windows used;
+    spread_rad: rms of the compass's heading minus the autopilot's yaw over the windows (what k is
+    measured against: with a spread of a fraction of a degree, k is not determined)."""
+
+    gain_per_s: float
+    gain_sigma_per_s: float
+    bias_rad_s: float
+    n_windows: int
+    spread_rad: float
+
+
+def gyro_yaw_integral(t_s: F64, gyro_rad_s: F64, roll_rad: F64, pitch_rad: F64) -> F64:
+    """The yaw integral of the Euler yaw rate ``(q sin(roll) + r cos(roll)) / cos(pitch)`` (rad), the body
+    rates at ``t_s`` and the roll and pitch at the same times; rectangle rule, 0 at the first sample."""
+    rate = (gyro_rad_s[:, 1] * np.sin(roll_rad) + gyro_rad_s[:, 2] * np.cos(roll_rad)) / np.cos(pitch_rad)
+    return np.concatenate([[0.0], np.cumsum(rate[:-1] * np.diff(t_s))])
+
+
+def compass_heading_rad(field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64) -> F64:
+    """Tilt-compensated magnetic heading of eq. (24) on arrays (rad, wrapped to (-pi, pi])."""
+    mx, my, mz = field_b_mgauss[:, 0], field_b_mgauss[:, 1], field_b_mgauss[:, 2]
+    cr, sr, cp, sp = np.cos(roll_rad), np.sin(roll_rad), np.cos(pitch_rad), np.sin(pitch_rad)
+    xh = mx * cp + my * sr * sp + mz * cr * sp
+    yh = my * cr - mz * sr
+    return np.arctan2(-yh, xh)
+
+
+def yaw_follow_gain(
+    t_att_s: F64,
+    attitude_rad: F64,
+    t_imu_s: F64,
+    gyro_rad_s: F64,
+    t_mag_s: F64,
+    field_b_mgauss: F64,
+    t_start_s: float = -math.inf,
+    t_end_s: float = math.inf,
+    window_s: float = WINDOW_S,
+) -> YawFollow | None:
+    """Fit ``dD/dt = b + k (psi_compass - psi_ap)`` over ``window_s`` windows in [t_start_s, t_end_s).
+
+    attitude_rad: the autopilot's (roll, pitch, yaw) at ``t_att_s``; gyro_rad_s: body rates at ``t_imu_s``;
+    field_b_mgauss: the compass the autopilot fuses, as logged, at ``t_mag_s``. None when fewer than 5
+    windows hold data. A constant offset between the compass's heading and the autopilot's yaw (the
+    declination, a mounting angle) adds ``k`` times itself to the rate, which the intercept takes.
+    """
+    if len(t_att_s) < 2 or len(t_imu_s) < 2 or len(t_mag_s) < 2:
+        return None
+    roll_i = np.interp(t_imu_s, t_att_s, attitude_rad[:, 0])
+    pitch_i = np.interp(t_imu_s, t_att_s, attitude_rad[:, 1])
+    g = np.interp(t_att_s, t_imu_s, gyro_yaw_integral(t_imu_s, gyro_rad_s, roll_i, pitch_i))
+    psi_ap = np.unwrap(attitude_rad[:, 2])
+    d = psi_ap - g
+    m = np.column_stack([np.interp(t_att_s, t_mag_s, field_b_mgauss[:, k]) for k in range(3)])
+    psi_c = compass_heading_rad(m, attitude_rad[:, 0], attitude_rad[:, 1])
+    dc = np.angle(np.exp(1j * (psi_c - psi_ap)))
+    level = np.hypot(attitude_rad[:, 0], attitude_rad[:, 1]) < MAX_TILT_RAD
+    lo = max(t_start_s, float(t_att_s[0]), float(t_imu_s[0]), float(t_mag_s[0]))
+    hi = min(t_end_s, float(t_att_s[-1]), float(t_imu_s[-1]), float(t_mag_s[-1]))
+    rates: list[float] = []
+    offs: list[float] = []
+    for a in np.arange(lo, hi - window_s, window_s):
+        sel = (t_att_s >= a) & (t_att_s < a + window_s)
+        if int(sel.sum()) < MIN_SAMPLES_PER_WINDOW or not bool(level[sel].all()):
+            continue
+        tw, dw = t_att_s[sel], d[sel]
+        rates.append(float((dw[-1] - dw[0]) / (tw[-1] - tw[0])))
+        offs.append(float(np.mean(dc[sel])))
+    if len(rates) < 5:
+        return None
+    y = np.array(rates)
+    x = np.column_stack([np.ones(len(offs)), np.array(offs)])
+    sol, *_ = np.linalg.lstsq(x, y, rcond=None)
+    e = y - x @ sol
+    dof = max(1, len(y) - 2)
+    cov = float(e @ e) / dof * np.linalg.pinv(x.T @ x)
+    return YawFollow(
+        gain_per_s=float(sol[1]),
+        gain_sigma_per_s=float(math.sqrt(max(0.0, cov[1, 1]))),
+        bias_rad_s=float(sol[0]),
+        n_windows=len(y),
+        spread_rad=float(np.std(offs)),
+    )

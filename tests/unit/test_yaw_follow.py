@@ -1,0 +1,61 @@
+"""The autopilot's yaw-follow gain (magcomp.diagnosis.yaw_follow) recovered from simulated flights whose
+autopilot has a known compass-correction gain, and a measured log's (log171) far below the simulator's
+default (docs/measured-data.md)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from magcomp.diagnosis.yaw_follow import gyro_yaw_integral, yaw_follow_gain
+from magcomp.sim import SimConfig, simulate
+from magcomp.sim.config import apply_settings
+
+LOG171 = Path(__file__).resolve().parents[2].parent / "shared/data/measured/dronekit_log171_copter33_quad.bin"
+
+
+@pytest.mark.parametrize(("kp", "seed"), [(0.05, 3), (0.5, 4)])
+def test_the_simulated_autopilots_gain_is_recovered(kp: float, seed: int) -> None:
+    res = simulate(
+        apply_settings(SimConfig(scenario="ordinary", seed=seed, duration_s=240.0), [f"ap_kp_yaw={kp}"])
+    )
+    s = res.samples
+    fit = yaw_follow_gain(s.t_s, s.attitude_rad, s.t_s, s.gyro_rad_s[0], s.t_s, s.mag_mgauss[0])
+    assert fit is not None
+    assert abs(fit.gain_per_s - kp) < 0.15 * kp + 2.0 * fit.gain_sigma_per_s
+    assert fit.gain_sigma_per_s < 0.1 * kp
+
+
+def test_a_yaw_that_ignores_the_compass_has_no_gain() -> None:
+    """An attitude whose yaw is the gyro's own integral (k = 0) whatever the compass says."""
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 200.0, 0.02)
+    rate = 0.3 * np.sin(0.05 * t) + 0.1 * np.sin(0.31 * t)
+    gyro = np.column_stack([np.zeros_like(t), np.zeros_like(t), rate])
+    yaw = gyro_yaw_integral(t, gyro, np.zeros_like(t), np.zeros_like(t))
+    att = np.column_stack([np.zeros_like(t), np.zeros_like(t), yaw])
+    compass_yaw = yaw + np.radians(5.0) * np.sin(0.02 * t) + rng.normal(0.0, 0.01, t.size)
+    field = np.column_stack(
+        [300.0 * np.cos(compass_yaw), -300.0 * np.sin(compass_yaw), np.full_like(t, 400.0)]
+    )
+    fit = yaw_follow_gain(t, att, t, gyro, t, field)
+    assert fit is not None
+    assert abs(fit.gain_per_s) < 3.0 * fit.gain_sigma_per_s + 1e-3
+    assert math.degrees(fit.spread_rad) > 2.0
+
+
+@pytest.mark.skipif(not LOG171.exists(), reason="needs ../shared/data/measured (not in a user's clone)")
+def test_log171s_autopilot_follows_its_compass_far_slower_than_the_simulators_default() -> None:
+    from magcomp.adapters.mavlink_source import load_log
+
+    log = load_log(LOG171)
+    mag, att, thr = log.mag[0], log.attitude_rad, log.throttle_01
+    t_fly = float(thr.t_s[thr.values > 0.1][0])
+    fit = yaw_follow_gain(att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
+                          t_end_s=t_fly - 1.0)  # fmt: skip
+    assert fit is not None
+    # the simulator's default ap_kp_yaw is 0.5 /s; a 2 s time constant would be tens of sigmas away
+    assert fit.gain_per_s + 4.0 * fit.gain_sigma_per_s < 0.5 / 4.0
