@@ -194,9 +194,10 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             inf = c.get("inflight") or {}
             sig = inf.get("theta_sigma_mgauss") or [math.nan] * 3
             hs = inf.get("heading_sigma_deg")
+            mount = "" if inf.get("mount_yaw_observable", True) else " not counting the mount's yaw"
             cal_txt = (
                 f"calibrated in flight ({inf.get('form')} form, {cal['n']} samples, residual "
-                f"{cal['residual_rms_mgauss']:.1f} mgauss, heading +-{hs:.1f} deg)"
+                f"{cal['residual_rms_mgauss']:.1f} mgauss, heading +-{hs:.1f} deg{mount})"
             )
             lines.append(
                 f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "

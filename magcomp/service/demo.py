@@ -142,22 +142,38 @@ def save_true_states(result: Any, store: StateStore) -> None:
         store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float), theta, 0.0))
 
 
-def rms_after_learning(
+def errors_after_learning(
     result: Any, estimates: list[HeadingEstimate], mag_index: int = 0, learn_s: float = 60.0
-) -> tuple[float, float]:
-    """(corrected, uncorrected) rms heading error (deg) against the simulated truth over the flying samples
-    (throttle above 0.2) from ``learn_s`` after the first one: issue 9's "after the first 60 s of flight"."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """(corrected, uncorrected) heading errors (deg, wrapped) against the simulated truth over the flying
+    samples (throttle above 0.2) from ``learn_s`` after the first one: issue 9's "after the first 60 s of
+    flight"."""
     ests = [e for e in estimates if e.mag_index == mag_index]
     t = np.array([e.t_s for e in ests])
     k, _, _, truth = truth_at(result, t)
     flying = np.asarray(result.samples.throttle_01)[k] > 0.2
     t_fly = t[flying][0] if flying.any() else np.inf
     m = flying & (t >= t_fly + learn_s)
+    corrected = _wrap(np.array([e.heading_deg for e in ests])[m] - truth[m])
+    raw = _wrap(np.array([e.heading_raw_deg for e in ests])[m] - truth[m])
+    return corrected, raw
 
-    def rms(h: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(_wrap(h[m] - truth[m]) ** 2)))
 
-    return rms(np.array([e.heading_deg for e in ests])), rms(np.array([e.heading_raw_deg for e in ests]))
+def rms_after_learning(
+    result: Any, estimates: list[HeadingEstimate], mag_index: int = 0, learn_s: float = 60.0
+) -> tuple[float, float]:
+    """(corrected, uncorrected) rms of :func:`errors_after_learning`, deg."""
+    corrected, raw = errors_after_learning(result, estimates, mag_index, learn_s)
+    return float(np.sqrt(np.mean(corrected**2))), float(np.sqrt(np.mean(raw**2)))
+
+
+def offset_split(errors_deg: np.ndarray) -> tuple[float, float]:
+    """(constant part, rms of the rest) of a heading error series, deg. The constant part is what a compass
+    mounted a little rotated about the body's z axis gives: for a compass that is also the yaw reference
+    (the relative form) it is not observable, a rotation of the Earth's field in the horizontal (a
+    declination error) looking the same (docs/inflight.md, tenth pass)."""
+    mean = float(np.mean(errors_deg))
+    return mean, float(np.sqrt(np.mean((errors_deg - mean) ** 2)))
 
 
 def run_demo(

@@ -785,6 +785,11 @@ class InflightStage:
         return {
             "form": self.mode,
             "form_why": self.why,
+            # a compass mounted rotated about body z: the relative form cannot see it (its yaw reference is
+            # this compass; the rotation looks like a declination error), so it is in neither the heading
+            # nor its sigma; the absolute form sees it against the reference's yaw (docs/inflight.md, tenth
+            # pass)
+            "mount_yaw_observable": self.mode != "relative",
             "calibrated_by_autopilot": self.calibrated_by_autopilot,
             "applied": self.applied,
             "started_from_stored_state": self.warm_started,

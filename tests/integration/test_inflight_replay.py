@@ -253,3 +253,36 @@ def test_a_stuck_compass_is_not_corrected_and_says_why(tmp_path: Path) -> None:
     assert "corrected field" in c1["why"], c1["why"]
     strength = c1["inflight"].get("corrected_field_mgauss")
     assert strength is not None and strength < 0.65 * EARTH_MIN_MGAUSS, strength
+
+
+@pytest.mark.slow
+def test_the_relative_forms_excess_over_the_oracle_is_the_unobservable_mount_yaw(tmp_path: Path) -> None:
+    """Internal primary, 10 Hz, seed 4 (its compass mounted 1.95 deg rotated about body z, the largest of
+    seeds 0-5): the two-pass heading is 2.2x the oracle's rms, but what it lacks is a constant of about the
+    mount's yaw, which a compass that is its own yaw reference cannot see (a declination error looks the
+    same; the oracle is handed it). With the constant removed it is within 1.5x the oracle's; the summary
+    says the mount's yaw is not counted (docs/inflight.md, tenth pass)."""
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.core.rotations import so3_log
+    from magcomp.service.demo import errors_after_learning, offset_split, save_true_states
+
+    result, path = _flight(tmp_path, ["telemetry_hz=10"], seed=4, duration_s=600.0)
+    cfg = Config()
+    two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
+    store = StateStore(tmp_path / "oracle")
+    save_true_states(result, store)
+    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
+                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
+    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    c0 = two.summary["compasses"][0]
+    assert c0["status"] == "corrected" and c0["inflight"]["form"] == "relative"
+    assert c0["inflight"]["mount_yaw_observable"] is False
+    assert "not counting the mount's yaw" in "\n".join(summary_lines(two.summary))
+    offset, rest = offset_split(errors_after_learning(result, two.estimates, 0)[0])
+    o_offset, o_rest = offset_split(errors_after_learning(result, orc.estimates, 0)[0])
+    u, _, vt = np.linalg.svd(result.true_calibration(0)[0])
+    mount_z_deg = float(np.degrees(so3_log(u @ vt))[2])
+    assert abs(mount_z_deg) > 1.5  # the case the test is about
+    assert math.hypot(offset, rest) > 1.5 * math.hypot(o_offset, o_rest)  # fails 1.5x with the constant
+    assert rest < 1.5 * o_rest, (rest, o_rest)
+    assert abs(offset - mount_z_deg) < 0.6 * abs(mount_z_deg), (offset, mount_z_deg)
