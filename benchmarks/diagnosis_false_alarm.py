@@ -125,6 +125,9 @@ DISTINCT_MIN_MGAUSS = 4.0
 SIGNAL_BINS = (0.0, 1.0, 2.0, 4.0, 8.0, math.inf)
 
 
+#: --ap-kp-yaw: the simulated autopilot's compass-correction gain (None: the simulator's default)
+AP_KP_YAW: float | None = None
+
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
@@ -254,7 +257,10 @@ def varied_log(
     theta = _random_rotation(rng) @ THETA_PAPER * float(rng.uniform(0.5, 3.0))
     if vehicle_theta is not None:
         vehicle, theta, loc = vehicle_theta
+    from magcomp.sim.config import Variation
+
     cfg = SimConfig(
+        variation=Variation() if AP_KP_YAW is None else Variation(ap_kp_yaw=AP_KP_YAW),
         scenario=scenario,
         duration_s=float(rng.uniform(60.0, 133.0)),
         seed=seed,
@@ -435,8 +441,17 @@ def main() -> int:
         "--min-delta-bic", type=float, default=None, help="override SelectionParams.min_delta_bic"
     )
     ap.add_argument("--jsonl", default=None, help="append every run's record here as it finishes")
+    ap.add_argument(
+        "--ap-kp-yaw",
+        type=float,
+        default=None,
+        help="the simulated autopilot's compass pull (1/s; default the simulator's 0.5; a real EKF's: "
+        "0.02-0.04, benchmarks/autopilot_yaw_follow.py)",
+    )
     ap.add_argument("--summarise", nargs="*", default=None, help="only summarise earlier --jsonl files")
     args = ap.parse_args()
+    global AP_KP_YAW
+    AP_KP_YAW = args.ap_kp_yaw
     if args.sizes:
         if len(args.effects) != 1:
             ap.error("--sizes needs exactly one effect in --effects")
