@@ -21,6 +21,7 @@ the CLI live in :mod:`magcomp.diagnosis.report` and :mod:`magcomp.commands.diagn
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from functools import partial
 
@@ -54,6 +55,7 @@ from magcomp.diagnosis.model import CompassData
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
 from magcomp.diagnosis.selection import SelectionParams
+from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 from magcomp.errors import InputError
 
 __all__ = [
@@ -273,4 +275,30 @@ def diagnose(
     comps = [replace(c, heading=_heading(c, comps, heading_reference)) if c.observable else c for c in comps]
     if heading_reference is None and all(c.heading is None for c in comps):
         notes.append("no heading reference (no truth, no compass far from the wires): heading errors omitted")
+    follow = _yaw_follow_note(log, prim)
+    if follow:
+        notes.append(follow)
     return Diagnosis(log.source, prim, comps, notes)
+
+
+def _yaw_follow_note(log: LogData, compass: int) -> str | None:
+    """How fast the autopilot's yaw follows compass ``compass`` with the motors running (yaw_follow.py):
+    a real EKF's pull is slow (log171: 0.02 /s), a complementary filter's ~0.5 /s; how long the autopilot
+    keeps a compass error in its yaw, and so in its GPS-aided tilt."""
+    mag, att, thr = log.mag.get(compass), log.attitude_rad, log.throttle_01
+    if mag is None or len(att) < 2 or log.imu_t_s.size < 2 or len(thr) < 2:
+        return None
+    on = thr.t_s[thr.values > 0.1]
+    if on.size < 2:
+        return None
+    fit = yaw_follow_gain(
+        att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
+        t_start_s=float(on[0]) + 5.0, t_end_s=float(on[-1]),
+    )  # fmt: skip
+    if fit is None or not math.isfinite(fit.gain_per_s) or not math.isfinite(fit.gain_sigma_per_s):
+        return None
+    return (
+        f"the autopilot's yaw follows compass {compass}'s heading at {fit.gain_per_s:.3f} +- "
+        f"{fit.gain_sigma_per_s:.3f} /s with the motors running ({fit.n_windows} windows of 2 s; the yaw "
+        f"minus the gyro's integral against the compass's heading)"
+    )

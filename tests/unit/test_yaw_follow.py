@@ -59,3 +59,14 @@ def test_log171s_autopilot_follows_its_compass_far_slower_than_the_simulators_de
     assert fit is not None
     # the simulator's default ap_kp_yaw is 0.5 /s; a 2 s time constant would be tens of sigmas away
     assert fit.gain_per_s + 4.0 * fit.gain_sigma_per_s < 0.5 / 4.0
+
+
+@pytest.mark.skipif(not LOG171.exists(), reason="needs ../shared/data/measured (not in a user's clone)")
+def test_diagnose_notes_log171s_yaw_follow_gain_with_the_motors_running() -> None:
+    from magcomp.adapters.mavlink_source import load_log
+    from magcomp.diagnosis.engine import _yaw_follow_note
+
+    note = _yaw_follow_note(load_log(LOG171), 0)
+    assert note is not None and note.startswith("the autopilot's yaw follows compass 0's heading at ")
+    gain, sigma = (float(x) for x in note.split(" at ")[1].split(" /s")[0].split(" +- "))
+    assert abs(gain) < 3.0 * sigma + 0.02 and sigma < 0.05
