@@ -286,3 +286,32 @@ def test_the_relative_forms_excess_over_the_oracle_is_the_unobservable_mount_yaw
     assert math.hypot(offset, rest) > 1.5 * math.hypot(o_offset, o_rest)  # fails 1.5x with the constant
     assert rest < 1.5 * o_rest, (rest, o_rest)
     assert abs(offset - mount_z_deg) < 0.6 * abs(mount_z_deg), (offset, mount_z_deg)
+
+
+@pytest.mark.slow
+def test_an_autopilot_that_pulls_its_yaw_slowly_keeps_the_heading_and_theta(tmp_path: Path) -> None:
+    """The simulated autopilot pulled its yaw to the compass at 0.5 /s; log171's EKF does it at ~0.02 /s
+    (benchmarks/autopilot_yaw_follow.py). At 0.05 /s (10 Hz, seed 2, the worst offset-free causal ratio of
+    seeds 0-5) the estimate learned in flight still holds: theta within 10 %, and beyond the constant (the
+    mount's yaw and the autopilot's held tilt, not observable here) the causal and two-pass headings within
+    1.5x the oracle's (docs/inflight.md, tenth pass)."""
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.service.demo import errors_after_learning, offset_split, save_true_states
+
+    result, path = _flight(tmp_path, ["telemetry_hz=10", "ap_kp_yaw=0.05"], seed=2, duration_s=600.0)
+    cfg = Config()
+    causal = replay_log(path, cfg, keep_estimates=True)
+    two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
+    store = StateStore(tmp_path / "oracle")
+    save_true_states(result, store)
+    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
+                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
+    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    c0 = causal.summary["compasses"][0]
+    assert c0["status"] == "corrected", c0["why"]
+    theta, truth = np.asarray(c0["theta_mgauss"]), np.asarray(result.compasses[0].theta_mgauss)
+    assert np.linalg.norm(theta - truth) < 0.10 * np.linalg.norm(truth)
+    _, o_rest = offset_split(errors_after_learning(result, orc.estimates, 0)[0])
+    _, c_rest = offset_split(errors_after_learning(result, causal.estimates, 0)[0])
+    _, t_rest = offset_split(errors_after_learning(result, two.estimates, 0)[0])
+    assert c_rest < 1.5 * o_rest and t_rest < 1.5 * o_rest, (c_rest, t_rest, o_rest)
