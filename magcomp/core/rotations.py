@@ -215,6 +215,14 @@ def down_b_from_quat(q_nb: FloatSeq) -> Vec3:
     return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
+def euler_yaw_rate_coefs(roll_rad: float, pitch_rad: float) -> tuple[float, float]:
+    """``(sin roll, cos roll) / cos pitch``: the ZYX Euler yaw rate is ``q c0 + r c1`` for the body rates
+    (p, q, r) (plain floats; the pipeline's gyro yaw and the diagnosis's yaw-follow fit). cos(pitch) is
+    floored at 0.1: near 84 deg of pitch the yaw is undefined."""
+    cp = max(math.cos(pitch_rad), 0.1)
+    return (math.sin(roll_rad) / cp, math.cos(roll_rad) / cp)
+
+
 def quat_step_body_rate(
     q_nb: FloatSeq, omega_b_rad_s: FloatSeq, dt_s: float
 ) -> tuple[float, float, float, float]:

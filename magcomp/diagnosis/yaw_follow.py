@@ -8,8 +8,8 @@ changes at ``b + k (psi_compass - psi_ap)``: one straight-line fit over short wi
 
 Why it matters: the relative form's nuisance models of the autopilot's yaw error (docs/inflight.md) assume
 how fast that yaw follows the disturbed compass; the simulator's autopilot (``ap_kp_yaw``, default 0.5/s)
-is one such assumption. Measured on log171 (ArduCopter 3.3, external compass 0): k = 0.04 /s on the
-ground (a 25 s time constant), consistent with 0 to 0.07 /s in flight (docs/measured-data.md).
+is one such assumption. Measured on log171 (ArduCopter 3.3, external compass 0): about 0.02 /s on the
+ground and in flight, a time constant of tens of seconds (docs/measured-data.md).
 
 Pure, no I/O: arrays in, a :class:`YawFollow` out. Frames: body FRD, NED; angles in rad.
 """
@@ -21,6 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from magcomp.core.heading import tilt_compensated_heading_deg
+from magcomp.core.rotations import euler_yaw_rate_coefs
 
 F64 = NDArray[np.float64]
 
@@ -46,20 +49,14 @@ class YawFollow:
     spread_rad: float
 
 
-def gyro_yaw_integral(t_s: F64, gyro_rad_s: F64, roll_rad: F64, pitch_rad: F64) -> F64:
-    """The yaw integral of the Euler yaw rate ``(q sin(roll) + r cos(roll)) / cos(pitch)`` (rad), the body
-    rates at ``t_s`` and the roll and pitch at the same times; rectangle rule, 0 at the first sample."""
-    rate = (gyro_rad_s[:, 1] * np.sin(roll_rad) + gyro_rad_s[:, 2] * np.cos(roll_rad)) / np.cos(pitch_rad)
-    return np.concatenate([[0.0], np.cumsum(rate[:-1] * np.diff(t_s))])
-
-
-def compass_heading_rad(field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64) -> F64:
-    """Tilt-compensated magnetic heading of eq. (24) on arrays (rad, wrapped to (-pi, pi])."""
-    mx, my, mz = field_b_mgauss[:, 0], field_b_mgauss[:, 1], field_b_mgauss[:, 2]
-    cr, sr, cp, sp = np.cos(roll_rad), np.sin(roll_rad), np.cos(pitch_rad), np.sin(pitch_rad)
-    xh = mx * cp + my * sr * sp + mz * cr * sp
-    yh = my * cr - mz * sr
-    return np.arctan2(-yh, xh)
+def gyro_yaw_integral(t_imu_s: F64, gyro_rad_s: F64, t_att_s: F64, attitude_rad: F64) -> F64:
+    """The gyro's yaw (rad, 0 at the first IMU sample) as the pipeline integrates it
+    (service/attitude.py): the Euler yaw rate ``q c0 + r c1`` with the coefficients of the latest attitude
+    sample (core.rotations.euler_yaw_rate_coefs), trapezoids between IMU samples."""
+    coefs = np.array([euler_yaw_rate_coefs(float(r), float(p)) for r, p in attitude_rad[:, :2]])
+    k = np.clip(np.searchsorted(t_att_s, t_imu_s, side="right") - 1, 0, len(t_att_s) - 1)
+    rate = gyro_rad_s[:, 1] * coefs[k, 0] + gyro_rad_s[:, 2] * coefs[k, 1]
+    return np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t_imu_s))])
 
 
 def yaw_follow_gain(
@@ -82,13 +79,12 @@ def yaw_follow_gain(
     """
     if len(t_att_s) < 2 or len(t_imu_s) < 2 or len(t_mag_s) < 2:
         return None
-    roll_i = np.interp(t_imu_s, t_att_s, attitude_rad[:, 0])
-    pitch_i = np.interp(t_imu_s, t_att_s, attitude_rad[:, 1])
-    g = np.interp(t_att_s, t_imu_s, gyro_yaw_integral(t_imu_s, gyro_rad_s, roll_i, pitch_i))
+    g = np.interp(t_att_s, t_imu_s, gyro_yaw_integral(t_imu_s, gyro_rad_s, t_att_s, attitude_rad))
     psi_ap = np.unwrap(attitude_rad[:, 2])
     d = psi_ap - g
     m = np.column_stack([np.interp(t_att_s, t_mag_s, field_b_mgauss[:, k]) for k in range(3)])
-    psi_c = compass_heading_rad(m, attitude_rad[:, 0], attitude_rad[:, 1])
+    # eq. (24), tilt-compensated: the one implementation in core
+    psi_c = np.radians(tilt_compensated_heading_deg(m, attitude_rad[:, 0], attitude_rad[:, 1]))
     dc = np.angle(np.exp(1j * (psi_c - psi_ap)))
     level = np.hypot(attitude_rad[:, 0], attitude_rad[:, 1]) < MAX_TILT_RAD
     lo = max(t_start_s, float(t_att_s[0]), float(t_imu_s[0]), float(t_mag_s[0]))

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
 from magcomp.core.mahony import mahony_init
-from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, quat_step_body_rate
+from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, euler_yaw_rate_coefs, quat_step_body_rate
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_SATURATED, STANDARD_GRAVITY_M_S2, AttitudeSample
 from magcomp.service.align import TIME_OK, TIME_SKIP, Counts, check_time
 from magcomp.service.estimators import mahony_params
@@ -147,8 +147,7 @@ class AttitudeStage:
             self.att_dt = dt if self.att_dt is None else self.att_dt + 0.05 * (dt - self.att_dt)
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
-        cp = max(math.cos(s.pitch_rad), 0.1)
-        self._yaw_coef = (math.sin(s.roll_rad) / cp, math.cos(s.roll_rad) / cp)
+        self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
         self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) else self.yaw
         self._view = None
 

@@ -628,7 +628,7 @@ def sample_variation(rng: np.random.Generator) -> dict[str, str]:
     out["att_pitch_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
     out["att_yaw_bias_deg"] = round(float(rng.uniform(-3.0, 3.0)), 3)
     out["att_noise_deg"] = round(float(rng.uniform(0.0, 0.5)), 3)
-    # log-uniform from a real EKF's slow compass pull (log171: 0.02-0.04 /s, a 25-50 s time constant;
+    # log-uniform from a real EKF's slow compass pull (log171: 0.02-0.03 /s, a 35-50 s time constant;
     # benchmarks/autopilot_yaw_follow.py) to a complementary filter's 1 /s
     out["ap_kp_yaw"] = round(float(np.exp(rng.uniform(math.log(0.02), math.log(1.0)))), 4)
     out["ap_kp_tilt"] = round(float(rng.uniform(0.5, 2.0)), 3)

@@ -35,7 +35,7 @@ def test_a_yaw_that_ignores_the_compass_has_no_gain() -> None:
     t = np.arange(0.0, 200.0, 0.02)
     rate = 0.3 * np.sin(0.05 * t) + 0.1 * np.sin(0.31 * t)
     gyro = np.column_stack([np.zeros_like(t), np.zeros_like(t), rate])
-    yaw = gyro_yaw_integral(t, gyro, np.zeros_like(t), np.zeros_like(t))
+    yaw = gyro_yaw_integral(t, gyro, t, np.zeros((t.size, 3)))
     att = np.column_stack([np.zeros_like(t), np.zeros_like(t), yaw])
     compass_yaw = yaw + np.radians(5.0) * np.sin(0.02 * t) + rng.normal(0.0, 0.01, t.size)
     field = np.column_stack(
