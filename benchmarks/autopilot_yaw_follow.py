@@ -56,7 +56,8 @@ def show(name: str, r: YawFollow | None) -> None:
     tau = f"{1.0 / r.gain_per_s:.0f} s" if r.gain_per_s > 0 else "inf"
     spread = math.degrees(r.spread_rad)
     print(f"  {name}: k = {r.gain_per_s:.3f} +- {r.gain_sigma_per_s:.3f} /s (time constant {tau}), "
-          f"{r.n_windows} windows, compass - autopilot yaw spread {spread:.2f} deg")  # fmt: skip
+          f"{r.n_windows} windows ({r.n_left_out} left out as jumps), compass - autopilot yaw spread "
+          f"{spread:.2f} deg")  # fmt: skip
 
 
 def main() -> int:

@@ -446,7 +446,7 @@ def main() -> int:
         type=float,
         default=None,
         help="the simulated autopilot's compass pull (1/s; default the simulator's 0.5; a real EKF's: "
-        "0.02-0.04, benchmarks/autopilot_yaw_follow.py)",
+        "0.01-0.02 on log171, benchmarks/autopilot_yaw_follow.py)",
     )
     ap.add_argument("--summarise", nargs="*", default=None, help="only summarise earlier --jsonl files")
     args = ap.parse_args()

@@ -20,7 +20,7 @@ with the compass's true mounting rotation about body z beside it. For a compass 
 reference (the relative form) that rotation is not observable (it looks like a declination error; no
 yaw the compass does not steer is there to see it), so its part of the offset is the same with and without
 learning; the oracle knows it (docs/inflight.md, tenth pass). ``--set ap_kp_yaw=0.05`` gives the
-autopilot a real EKF's slow compass pull (log171: 0.02-0.04 /s; benchmarks/autopilot_yaw_follow.py).
+autopilot a real EKF's slow compass pull (log171: 0.01-0.02 /s; benchmarks/autopilot_yaw_follow.py).
 
     .venv/bin/python benchmarks/ordinary_flight.py [--rates 1 10 50] [--seeds 0 1 2] [--theta-scales 1 6]
         [--set KEY=VALUE ...] [--no-crb]

@@ -235,7 +235,7 @@ class Variation:
     gps: emit GPS_RAW_INT, GLOBAL_POSITION_INT and SYSTEM_TIME
     ap_kp_yaw, ap_kp_tilt: the autopilot's complementary-filter gains (1/s; 0.5 and 1.0): how fast its
         yaw follows the compass (or GPS yaw) and its tilt the accelerometer. A real EKF pulls its yaw to the
-        compass far slower: 0.02-0.04 /s on log171 (benchmarks/autopilot_yaw_follow.py); 0.5 is the stress
+        compass far slower: 0.01-0.02 /s on log171 (benchmarks/autopilot_yaw_follow.py); 0.5 is the stress
         case for a yaw that follows the disturbed compass
     gyro_noise_scale, gyro_bias_scale: multiply each IMU's gyro noise sigma (3 mrad/s) and bias draw
     hover_throttle: the multirotor's hover collective in ``ordinary`` (None: 0.5)
@@ -628,7 +628,7 @@ def sample_variation(rng: np.random.Generator) -> dict[str, str]:
     out["att_pitch_bias_deg"] = round(float(rng.uniform(-2.0, 2.0)), 3)
     out["att_yaw_bias_deg"] = round(float(rng.uniform(-3.0, 3.0)), 3)
     out["att_noise_deg"] = round(float(rng.uniform(0.0, 0.5)), 3)
-    # log-uniform from a real EKF's slow compass pull (log171: 0.02-0.03 /s, a 35-50 s time constant;
+    # log-uniform from a real EKF's slow compass pull (log171: 0.01-0.02 /s, a 50-100 s time constant;
     # benchmarks/autopilot_yaw_follow.py) to a complementary filter's 1 /s
     out["ap_kp_yaw"] = round(float(np.exp(rng.uniform(math.log(0.02), math.log(1.0)))), 4)
     out["ap_kp_tilt"] = round(float(rng.uniform(0.5, 2.0)), 3)

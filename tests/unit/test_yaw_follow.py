@@ -47,6 +47,30 @@ def test_a_yaw_that_ignores_the_compass_has_no_gain() -> None:
     assert math.degrees(fit.spread_rad) > 2.0
 
 
+def test_a_yaw_reset_is_a_jump_left_out_not_a_pull() -> None:
+    """An autopilot pulling at 0.05 /s whose yaw is realigned once by 15 deg (as an EKF at take-off): the
+    window with the jump is left out and the gain stays the pull's; kept, the jump alone moves it."""
+    rng = np.random.default_rng(11)
+    dt = 0.02
+    t = np.arange(0.0, 300.0, dt)
+    rate = 0.3 * np.sin(0.05 * t) + 0.1 * np.sin(0.31 * t)
+    gyro = np.column_stack([np.zeros_like(t), np.zeros_like(t), rate])
+    truth = np.cumsum(rate) * dt
+    compass = truth + np.radians(6.0) * np.sin(0.013 * t + 1.0)
+    yaw = np.empty_like(t)
+    yaw[0] = truth[0]
+    for i in range(1, t.size):
+        yaw[i] = yaw[i - 1] + rate[i - 1] * dt + 0.05 * (compass[i - 1] - yaw[i - 1]) * dt
+        if abs(t[i] - 101.0) < 0.5 * dt:
+            yaw[i] += math.radians(15.0)
+    att = np.column_stack([np.zeros_like(t), np.zeros_like(t), yaw])
+    psi = compass + rng.normal(0.0, 0.005, t.size)
+    field = np.column_stack([300.0 * np.cos(psi), -300.0 * np.sin(psi), np.full_like(t, 400.0)])
+    fit = yaw_follow_gain(t, att, t, gyro, t, field)
+    assert fit is not None and fit.n_left_out >= 1
+    assert abs(fit.gain_per_s - 0.05) < 0.01
+
+
 @pytest.mark.skipif(not LOG171.exists(), reason="needs ../shared/data/measured (not in a user's clone)")
 def test_log171s_autopilot_follows_its_compass_far_slower_than_the_simulators_default() -> None:
     from magcomp.adapters.mavlink_source import load_log
