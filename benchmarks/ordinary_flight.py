@@ -32,7 +32,6 @@ import argparse
 import itertools
 import sys
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +39,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
 from magcomp.core.rotations import so3_log
-from magcomp.service.demo import errors_after_learning, offset_split, rms_after_learning, save_true_states
+from magcomp.service.demo import errors_after_learning, offset_split, oracle_replay, rms_after_learning
 from magcomp.service.replay import replay_log
 
 try:
@@ -67,8 +65,6 @@ def main() -> int:
     from magcomp.sim.config import apply_settings
 
     cfg = Config()
-    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
-                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
     args = ap.parse_args()
     print("theta rate  seed  causal  two-pass  uncorrected  oracle  causal/oracle  theta err %  "
           "CRB trusted %  CRB window %  CRB gyro %  | offset causal / two-pass, mount yaw z  "
@@ -83,9 +79,7 @@ def main() -> int:
             write_tlog(result, path)
             causal = replay_log(path, cfg, keep_estimates=True)
             two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
-            store = StateStore(Path(tmp) / "oracle")
-            save_true_states(result, store)
-            orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+            orc = oracle_replay(result, path, Path(tmp) / "oracle", cfg)
         j = args.compass
         c_rms, raw_rms = rms_after_learning(result, causal.estimates, j)
         t_rms, _ = rms_after_learning(result, two.estimates, j)

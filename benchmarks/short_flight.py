@@ -30,8 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
-from magcomp.service.demo import rms_after_learning, save_true_states
+from magcomp.service.demo import oracle_replay, rms_after_learning
 from magcomp.service.replay import replay_log
 
 
@@ -49,8 +48,6 @@ def main() -> int:
     from magcomp.sim.config import apply_settings
 
     cfg = Config()
-    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
-                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
     off_cfg = replace(cfg, observer=replace(cfg.observer, learn=False))
     print("theta rate seed c | two-pass causal uncorr learn-off oracle | sigma split beyond/sigma | status | "
           "theta err %")  # fmt: skip
@@ -66,9 +63,7 @@ def main() -> int:
             two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
             causal = replay_log(path, cfg, keep_estimates=True)
             off = replay_log(path, off_cfg, keep_estimates=True)
-            store = StateStore(Path(tmp) / "oracle")
-            save_true_states(result, store)
-            orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+            orc = oracle_replay(result, path, Path(tmp) / "oracle", cfg)
         for j in range(len(result.compasses)):
             t_rms, t_raw = rms_after_learning(result, two.estimates, j, 0.0)
             c_rms, _ = rms_after_learning(result, causal.estimates, j, 0.0)

@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState, StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon, DaemonReport
+
+if TYPE_CHECKING:
+    from magcomp.service.replay import ReplayReport
 
 log = logging.getLogger("magcomp.demo")
 
@@ -140,6 +143,21 @@ def save_true_states(result: Any, store: StateStore) -> None:
         l_true, d_true = result.true_calibration(j)
         theta = np.asarray(c.theta_mgauss, dtype=float)
         store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float), theta, 0.0))
+
+
+def oracle_replay(result: Any, path: Any, store_dir: Any, cfg: Config | None = None) -> ReplayReport:
+    """The oracle of the benchmarks and tests: the same replay of ``path`` with the simulator's true
+    calibration and theta stored in ``store_dir`` (:func:`save_true_states`) and nothing learned."""
+    from pathlib import Path
+
+    from magcomp.service.replay import replay_log
+
+    cfg = cfg or Config()
+    store = StateStore(Path(store_dir))
+    save_true_states(result, store)
+    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
+                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
+    return replay_log(path, oracle_cfg, store=store, keep_estimates=True)
 
 
 def errors_after_learning(

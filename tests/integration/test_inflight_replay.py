@@ -16,7 +16,7 @@ import pytest
 from magcomp.adapters.config import Config
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_NO_THROTTLE
 from magcomp.service.console import summary_lines, write_json
-from magcomp.service.demo import rms_after_learning
+from magcomp.service.demo import oracle_replay, rms_after_learning
 from magcomp.service.replay import replay_log
 
 
@@ -202,8 +202,6 @@ def test_heading_sigma_covers_the_error_beyond_the_oracle_with_the_two_models_ap
     give apart is counted in the published sigma (core.inflight.HEADING_MODEL_SPREAD; docs/inflight.md):
     the error beyond the oracle's within two reported sigmas (2.7-3.3 sigmas without it)."""
     from magcomp.adapters.mavlink_emit import write_tlog
-    from magcomp.adapters.state_store import StateStore
-    from magcomp.service.demo import save_true_states
     from magcomp.sim import SimConfig, simulate
     from magcomp.sim.config import apply_settings
 
@@ -214,11 +212,7 @@ def test_heading_sigma_covers_the_error_beyond_the_oracle_with_the_two_models_ap
     write_tlog(result, path)
     cfg = Config()
     rep = replay_log(path, cfg, keep_estimates=True)
-    store = StateStore(tmp_path / "oracle")
-    save_true_states(result, store)
-    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
-                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
-    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     c0 = rep.summary["compasses"][0]
     assert c0["status"] == "corrected", c0["why"]
     inf = c0["inflight"]
@@ -262,18 +256,13 @@ def test_the_relative_forms_excess_over_the_oracle_is_the_unobservable_mount_yaw
     mount's yaw, which a compass that is its own yaw reference cannot see (a declination error looks the
     same; the oracle is handed it). With the constant removed it is within 1.5x the oracle's; the summary
     says the mount's yaw is not counted (docs/inflight.md, tenth pass)."""
-    from magcomp.adapters.state_store import StateStore
     from magcomp.core.rotations import so3_log
-    from magcomp.service.demo import errors_after_learning, offset_split, save_true_states
+    from magcomp.service.demo import errors_after_learning, offset_split
 
     result, path = _flight(tmp_path, ["telemetry_hz=10"], seed=4, duration_s=600.0)
     cfg = Config()
     two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
-    store = StateStore(tmp_path / "oracle")
-    save_true_states(result, store)
-    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
-                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
-    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     c0 = two.summary["compasses"][0]
     assert c0["status"] == "corrected" and c0["inflight"]["form"] == "relative"
     assert c0["inflight"]["mount_yaw_observable"] is False
@@ -295,18 +284,13 @@ def test_an_autopilot_that_pulls_its_yaw_slowly_keeps_the_heading_and_theta(tmp_
     seeds 0-5) the estimate learned in flight still holds: theta within 10 %, and beyond the constant (the
     mount's yaw and the autopilot's held tilt, not observable here) the causal and two-pass headings within
     1.5x the oracle's (docs/inflight.md, tenth pass)."""
-    from magcomp.adapters.state_store import StateStore
-    from magcomp.service.demo import errors_after_learning, offset_split, save_true_states
+    from magcomp.service.demo import errors_after_learning, offset_split
 
     result, path = _flight(tmp_path, ["telemetry_hz=10", "ap_kp_yaw=0.05"], seed=2, duration_s=600.0)
     cfg = Config()
     causal = replay_log(path, cfg, keep_estimates=True)
     two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
-    store = StateStore(tmp_path / "oracle")
-    save_true_states(result, store)
-    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
-                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
-    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     c0 = causal.summary["compasses"][0]
     assert c0["status"] == "corrected", c0["why"]
     theta, truth = np.asarray(c0["theta_mgauss"]), np.asarray(result.compasses[0].theta_mgauss)

@@ -8,14 +8,12 @@ heading was 1.55 deg (rms, in quadrature) beyond the oracle's, 4.5 sigmas."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
-from magcomp.service.demo import rms_after_learning, save_true_states
+from magcomp.service.demo import oracle_replay, rms_after_learning
 from magcomp.service.replay import replay_log
 
 #: a reported 1-sigma that the error beyond the oracle exceeds threefold is a false claim (a Gaussian
@@ -36,11 +34,7 @@ def test_short_flight_heading_sigma_covers_the_error_beyond_the_oracle(tmp_path:
     write_tlog(result, path)
     cfg = Config()
     two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
-    store = StateStore(tmp_path / "oracle")
-    save_true_states(result, store)
-    oracle_cfg = replace(cfg, observer=replace(cfg.observer, learn=False),
-                         calibration=replace(cfg.calibration, mode="stored"))  # fmt: skip
-    orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
+    orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     for j in range(len(result.compasses)):
         comp = two.summary["compasses"][j]
         if comp["status"] != "corrected":  # honestly not corrected: the why says so
