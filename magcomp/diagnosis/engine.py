@@ -291,10 +291,13 @@ def _yaw_follow_note(log: LogData, compass: int) -> str | None:
     on = thr.t_s[thr.values > 0.1]
     if on.size < 2:
         return None
-    fit = yaw_follow_gain(
-        att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
-        t_start_s=float(on[0]) + 5.0, t_end_s=float(on[-1]),
-    )  # fmt: skip
+    try:
+        fit = yaw_follow_gain(
+            att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
+            t_start_s=float(on[0]) + 5.0, t_end_s=float(on[-1]),
+        )  # fmt: skip
+    except (np.linalg.LinAlgError, ValueError):  # a note, never a reason for diagnose to fail
+        return None
     if fit is None or not math.isfinite(fit.gain_per_s) or not math.isfinite(fit.gain_sigma_per_s):
         return None
     return (

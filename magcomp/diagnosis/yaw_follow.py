@@ -64,6 +64,19 @@ def gyro_yaw_integral(t_imu_s: F64, gyro_rad_s: F64, t_att_s: F64, attitude_rad:
     return np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t_imu_s))])
 
 
+def _finite_increasing(t_s: F64, values: F64) -> tuple[F64, F64]:
+    """The rows with a finite time and finite values, in time order, repeated times dropped (a log's
+    series may hold NaN or out-of-order rows; np.interp needs increasing times)."""
+    t = np.asarray(t_s, dtype=float)
+    v = np.asarray(values, dtype=float).reshape(len(t), -1)
+    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
+    t, v = t[ok], v[ok]
+    order = np.argsort(t, kind="stable")
+    t, v = t[order], v[order]
+    keep = np.concatenate([[True], np.diff(t) > 0.0]) if t.size else np.zeros(0, dtype=bool)
+    return t[keep], v[keep]
+
+
 def yaw_follow_gain(
     t_att_s: F64,
     attitude_rad: F64,
@@ -82,6 +95,9 @@ def yaw_follow_gain(
     windows hold data. A constant offset between the compass's heading and the autopilot's yaw (the
     declination, a mounting angle) adds ``k`` times itself to the rate, which the intercept takes.
     """
+    t_att_s, attitude_rad = _finite_increasing(t_att_s, attitude_rad)
+    t_imu_s, gyro_rad_s = _finite_increasing(t_imu_s, gyro_rad_s)
+    t_mag_s, field_b_mgauss = _finite_increasing(t_mag_s, field_b_mgauss)
     if len(t_att_s) < 2 or len(t_imu_s) < 2 or len(t_mag_s) < 2:
         return None
     g = np.interp(t_att_s, t_imu_s, gyro_yaw_integral(t_imu_s, gyro_rad_s, t_att_s, attitude_rad))

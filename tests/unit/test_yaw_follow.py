@@ -94,3 +94,19 @@ def test_diagnose_notes_log171s_yaw_follow_gain_with_the_motors_running() -> Non
     assert note is not None and note.startswith("the autopilot's yaw follows compass 0's heading at ")
     gain, sigma = (float(x) for x in note.split(" at ")[1].split(" /s")[0].split(" +- "))
     assert abs(gain) < 3.0 * sigma + 0.02 and sigma < 0.05
+
+
+def test_nan_rows_and_disorder_are_left_out_not_a_crash() -> None:
+    cfg = apply_settings(SimConfig(scenario="ordinary", seed=5, duration_s=200.0), ["ap_kp_yaw=0.3"])
+    res = simulate(cfg)
+    s = res.samples
+    att = s.attitude_rad.copy()
+    att[100:140] = np.nan
+    gyro = s.gyro_rad_s[0].copy()
+    gyro[500] = np.inf
+    t_mag = s.t_s.copy()[::-1]
+    field = s.mag_mgauss[0][::-1].copy()
+    fit = yaw_follow_gain(s.t_s, att, s.t_s, gyro, t_mag, field)
+    assert fit is not None and math.isfinite(fit.gain_per_s)
+    assert abs(fit.gain_per_s - 0.3) < 0.15 * 0.3 + 2.0 * fit.gain_sigma_per_s
+    assert yaw_follow_gain(s.t_s[:1], att[:1], s.t_s, gyro, t_mag, field) is None
