@@ -63,7 +63,8 @@ def test_inflight_process_gives_the_inline_numbers(
     theta = np.array([e.theta_mgauss for e in rep.estimates])
     assert np.abs(theta).max() > 1.0
     np.testing.assert_array_equal(theta, [e.theta_mgauss for e in ref.estimates])
-    np.testing.assert_array_equal([e.heading_deg for e in rep.estimates], [e.heading_deg for e in ref.estimates])
+    heading = [e.heading_deg for e in rep.estimates]
+    np.testing.assert_array_equal(heading, [e.heading_deg for e in ref.estimates])
     assert (tmp_path / "a.tlog").read_bytes() == (tmp_path / "b.tlog").read_bytes()
     a, b = rep.to_json(), ref.to_json()
     a.pop("wall_s"), b.pop("wall_s")
