@@ -43,6 +43,8 @@ F64 = NDArray[np.float64]
 _CREATE, _FEED, _OUTPUT, _RESET_PAIRS, _RESTART, _STATE, _QUERY = (float(i) for i in range(7))
 #: float64s buffered before a write (below the pipe's 64 KiB)
 _BLOCK = 5000
+#: child processes at most (compasses dealt to them in turn): two cores beside the parent's
+CHILDREN = 2
 _NONE9 = (0.0,) * 9
 _NONE3 = (0.0,) * 3
 
@@ -85,32 +87,31 @@ class InflightSink(Protocol):
     ) -> InflightOutput | None: ...
 
 
-class InflightProcess:
-    """The child process and the two pipes to it (calls down, answers up)."""
+class _Child:
+    """One child process and the two pipes to it (calls down, answers up)."""
 
     def __init__(self, pid: int, cmd_w: int, res_r: int) -> None:
-        self._pid = pid
+        self.pid = pid
         self._cmd = cmd_w
         self._res = os.fdopen(res_r, "rb")
         self._buf = array("d")
-        self._closed = False
+        self.closed = False
 
-    def stage(self, idx: int, stage: InflightStage) -> RemoteInflight:
-        """Compass ``idx``'s stage, as just created by the parent, copied into the child."""
-        data = pickle.dumps(stage, protocol=pickle.HIGHEST_PROTOCOL)
-        pad = -len(data) % 8
-        self._buf.extend((_CREATE, float(idx), float((len(data) + pad) // 8 + 1), float(len(data))))
-        self._buf.frombytes(data + b"\0" * pad)
-        self._flush()
-        return RemoteInflight(self, idx, stage.mode)
+    def fds(self) -> tuple[int, int]:
+        return self._cmd, self._res.fileno()
 
     def put(self, vals: list[float]) -> None:
         buf = self._buf
         buf.extend(vals)
         if len(buf) >= _BLOCK:
-            self._flush()
+            self.flush()
 
-    def _flush(self) -> None:
+    def put_bytes(self, head: tuple[float, ...], data: bytes) -> None:
+        self._buf.extend(head)
+        self._buf.frombytes(data)
+        self.flush()
+
+    def flush(self) -> None:
         data = memoryview(self._buf.tobytes())
         try:
             with _sigint_held():
@@ -118,19 +119,19 @@ class InflightProcess:
                     data = data[os.write(self._cmd, data) :]
                 self._buf = array("d")
         except BrokenPipeError:
-            self._answer()  # the child's own error, if it said one
+            self.answer()  # the child's own error, if it said one
             raise InflightError(f"the in-flight process ended early ({self._status()})") from None
 
     def query(self) -> dict[int, InflightStage]:
-        """Every compass's stage once the child has run every call sent so far."""
+        """Its compasses' stages once the child has run every call sent so far."""
         self._buf.extend((_QUERY, 0.0, 0.0))
-        self._flush()
-        out = self._answer()
+        self.flush()
+        out = self.answer()
         if out is None:
             raise InflightError(f"the in-flight process ended early ({self._status()})")
         return out
 
-    def _answer(self) -> dict[int, InflightStage] | None:
+    def answer(self) -> dict[int, InflightStage] | None:
         """The child's next answer (None: it ended without one); its error raised (InflightError)."""
         with _sigint_held():
             head = self._res.read(8)
@@ -144,20 +145,55 @@ class InflightProcess:
 
     def close(self) -> None:
         """Close the pipes (the child exits on their end) and reap the child; idempotent."""
-        if self._closed:
+        if self.closed:
             return
-        self._closed = True
+        self.closed = True
         os.close(self._cmd)
         self._res.close()
         with contextlib.suppress(ChildProcessError):
-            os.waitpid(self._pid, 0)
+            os.waitpid(self.pid, 0)
 
     def _status(self) -> str:
         try:
-            pid, status = os.waitpid(self._pid, os.WNOHANG)
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
         except ChildProcessError:
             return "gone"
         return f"exit status {os.waitstatus_to_exitcode(status)}" if pid else "still running"
+
+
+class InflightProcess:
+    """The children (one per core, up to CHILDREN), each running the stages of the compasses dealt to it in
+    turn as they appear (compasses are independent: no stage reads another's)."""
+
+    def __init__(self, children: list[_Child]) -> None:
+        self.children = children
+        self._n_stages = 0
+
+    def stage(self, idx: int, stage: InflightStage) -> RemoteInflight:
+        """Compass ``idx``'s stage, as just created by the parent, copied into a child."""
+        child = self.children[self._n_stages % len(self.children)]
+        self._n_stages += 1
+        data = pickle.dumps(stage, protocol=pickle.HIGHEST_PROTOCOL)
+        pad = -len(data) % 8
+        head = (_CREATE, float(idx), float((len(data) + pad) // 8 + 1), float(len(data)))
+        child.put_bytes(head, data + b"\0" * pad)
+        return RemoteInflight(child, idx, stage.mode)
+
+    def query(self) -> dict[int, InflightStage]:
+        """Every compass's stage once the children have run every call sent so far."""
+        out: dict[int, InflightStage] = {}
+        for child in self.children:
+            out.update(child.query())
+        return out
+
+    def close(self) -> None:
+        """End every child; idempotent."""
+        for child in self.children:
+            child.close()
+
+    @property
+    def closed(self) -> bool:
+        return all(c.closed for c in self.children)
 
 
 class RemoteInflight:
@@ -165,7 +201,7 @@ class RemoteInflight:
     first pass applies no correction); :meth:`state` runs the stage's ``state()`` there for its side effects
     on the estimator (a save's), in order."""
 
-    def __init__(self, proc: InflightProcess, idx: int, mode: str) -> None:
+    def __init__(self, proc: _Child, idx: int, mode: str) -> None:
         self._proc = proc
         self._idx = float(idx)
         self._mode = mode
@@ -236,26 +272,41 @@ class RemoteInflight:
         return None
 
 
-def start() -> InflightProcess | None:
-    """Fork the child; None (the stage then runs inline) off Linux or while this process runs another
-    thread (as :func:`magcomp.service.observer_process.start`)."""
+def start(n: int | None = None) -> InflightProcess | None:
+    """Fork the children (``n``; default: CHILDREN, at most the machine's cores); None (the stages then run
+    inline) off Linux or while this process runs another thread (as
+    :func:`magcomp.service.observer_process.start`)."""
     if not sys.platform.startswith("linux") or threading.active_count() > 1 or _foreign_threads():
         return None
-    cmd_r, cmd_w = os.pipe()
-    res_r, res_w = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: never returns into the caller's code
-        code = 1
-        try:
-            os.close(cmd_w)
-            os.close(res_r)
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # ^C is the parent's to handle; EOF ends us
-            code = _serve(cmd_r, res_w)
-        finally:
-            os._exit(code)
-    os.close(cmd_r)
-    os.close(res_w)
-    return InflightProcess(pid, cmd_w, res_r)
+    n = n if n is not None else max(1, min(CHILDREN, os.cpu_count() or 1))
+    children: list[_Child] = []
+    for _ in range(n):
+        cmd_r, cmd_w = os.pipe()
+        res_r, res_w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: never returns into the caller's code
+            code = 1
+            try:
+                # every other descriptor closed: a pipe to another child (or the observers') left open here
+                # would keep that child from seeing its end, and the parent waiting for it
+                _close_all_but(cmd_r, res_w)
+                signal.signal(signal.SIGINT, signal.SIG_IGN)  # ^C is the parent's to handle; EOF ends us
+                code = _serve(cmd_r, res_w)
+            finally:
+                os._exit(code)
+        os.close(cmd_r)
+        os.close(res_w)
+        children.append(_Child(pid, cmd_w, res_r))
+    return InflightProcess(children)
+
+
+def _close_all_but(*keep: int) -> None:
+    """Close this process's file descriptors above stderr except ``keep`` (a forked child's first act)."""
+    for name in os.listdir("/proc/self/fd"):
+        fd = int(name)
+        if fd > 2 and fd not in keep:
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
 
 def _serve(cmd_r: int, res_w: int) -> int:

@@ -38,7 +38,7 @@ def _started(monkeypatch: pytest.MonkeyPatch) -> list[InflightProcess]:
         pytest.skip(f"threads running: {[t.name for t in threading.enumerate()]}")
 
     def start() -> InflightProcess | None:
-        proc = inflight_process.start()
+        proc = inflight_process.start(2)
         assert proc is not None
         out.append(proc)
         return proc
@@ -52,7 +52,7 @@ def test_inflight_process_gives_the_inline_numbers(
 ) -> None:
     started = _started(monkeypatch)
     rep = replay_log(flight, Config(), keep_estimates=True, two_pass=True, emit=tmp_path / "a.tlog")
-    assert len(started) == 1 and started[0]._closed
+    assert len(started) == 1 and started[0].closed
     monkeypatch.setattr(replay, "INFLIGHT_PROCESS", False)
     ref = replay_log(flight, Config(), keep_estimates=True, two_pass=True, emit=tmp_path / "b.tlog")
     assert len(started) == 1  # inline this time
@@ -77,9 +77,11 @@ def test_inflight_process_ends_with_a_stopped_replay(flight: Path, monkeypatch: 
     calls = iter(range(1000))
     rep = replay_log(flight, Config(), two_pass=True, should_stop=lambda: next(calls) >= 40)
     assert rep.interrupted
-    assert len(started) == 1 and started[0]._closed
-    with pytest.raises(ChildProcessError):  # reaped: no zombie left
-        os.waitpid(started[0]._pid, os.WNOHANG)
+    assert len(started) == 1 and started[0].closed
+    assert len(started[0].children) >= 1
+    for child in started[0].children:
+        with pytest.raises(ChildProcessError):  # reaped: no zombie left
+            os.waitpid(child.pid, os.WNOHANG)
 
 
 def test_no_fork_while_another_thread_runs() -> None:
@@ -95,12 +97,12 @@ def test_no_fork_while_another_thread_runs() -> None:
 
 def test_an_error_in_the_inflight_process_is_reported() -> None:
     """A call the child cannot run (a compass it was never given): its error, not a hang."""
-    proc = inflight_process.start()
+    proc = inflight_process.start(1)
     assert proc is not None
     st = InflightStage(0, Config().inflight, "relative", "test", None, 500.0)
     remote = proc.stage(0, st)
     remote.reset_pairs()
-    inflight_process.RemoteInflight(proc, 3, "relative").output(1.0, (200.0, 0.0, 400.0), 0.5, ())
+    inflight_process.RemoteInflight(proc.children[0], 3, "relative").output(1.0, (200.0, 0.0, 400.0), 0.5, ())
     with pytest.raises(RuntimeError, match="in-flight process failed: KeyError"):
         proc.query()
     proc.close()
