@@ -198,9 +198,19 @@ def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
 ROW_ENTRY_MAX = 1e9
 
 
+_MAX_REDUCE = np.maximum.reduce  # ndarray.max without its Python wrapper (a NaN propagates alike)
+
+
 def _bounded(a: F64) -> bool:
     """Every entry finite and within :data:`ROW_ENTRY_MAX` (a NaN compares False)."""
-    return bool(np.abs(a).max() <= ROW_ENTRY_MAX)
+    return bool(_MAX_REDUCE(np.abs(a), axis=None) <= ROW_ENTRY_MAX)
+
+
+def _augmented(rows: F64, z: F64, nuisance: F64, common: F64 | None) -> F64:
+    """A sample's augmented columns ``[rows | common | z | nuisance]`` (3, n + 2 + k): what the open window's
+    Gram matrix sums (``InflightEstimator._window_blocks``), checked whole by :func:`_bounded`."""
+    c = _ZERO3 if common is None else common
+    return np.concatenate((rows, c.reshape(3, 1), z.reshape(3, 1), nuisance), axis=1)
 
 
 def n_params(mode: InflightMode, n_motors: int) -> int:
@@ -613,15 +623,21 @@ class InflightEstimator:
 
         ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
         vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
-        if not (_bounded(rows) and _bounded(z) and (nuisance is None or _bounded(nuisance))
-                and (common is None or _bounded(common))):  # fmt: skip
+        # with a nuisance window, its augmented columns are built here and checked at once (one reduction,
+        # not four), then summed as they are
+        aug = None if nuisance is None else _augmented(rows, z, nuisance, common)
+        if not (
+            _bounded(aug)
+            if aug is not None
+            else _bounded(rows) and _bounded(z) and (common is None or _bounded(common))
+        ):
             # a NaN, an infinity or a value whose square products overflow (a damaged record upstream):
             # left out. In the normal equations it would make every later solution NaN (LAPACK's
             # Cholesky does not report a NaN matrix as a failure) or its heading sigma 0
             self.n_nonfinite += 1
             return math.nan
         if not gate:
-            self._take(rows, z, x0, nuisance, window, common)
+            self._take(rows, z, x0, nuisance, window, common, aug)
             return math.nan
         r = z - rows @ self._theta
         if common is not None:
@@ -647,14 +663,21 @@ class InflightEstimator:
             if m2 > GATE_CHI2_3DOF:
                 self.n_gated += 1
                 return math.sqrt(rn2)
-        self._take(rows, z, x0, nuisance, window, common)
+        self._take(rows, z, x0, nuisance, window, common, aug)
         return math.sqrt(rn2)
 
     def _take(
-        self, rows: F64, z: F64, x0: float, nuisance: F64 | None, window: object, common: F64 | None
+        self,
+        rows: F64,
+        z: F64,
+        x0: float,
+        nuisance: F64 | None,
+        window: object,
+        common: F64 | None,
+        aug: F64 | None = None,
     ) -> None:
         """One row into the normal equations and the throttle statistics (the gate passed or not asked)."""
-        self._accumulate(rows, z, nuisance, window, common)
+        self._accumulate(rows, z, nuisance, window, common, aug)
         self.n += 1
         self.x0_max = max(self.x0_max, x0)
         self._x0_sum += x0
@@ -902,9 +925,16 @@ class InflightEstimator:
         self._dirty = True
 
     def _accumulate(
-        self, rows: F64, z: F64, nuisance: F64 | None, window: object, common: F64 | None
+        self,
+        rows: F64,
+        z: F64,
+        nuisance: F64 | None,
+        window: object,
+        common: F64 | None,
+        aug: F64 | None = None,
     ) -> None:
-        """Fold one used sample into the normal equations, or into the open nuisance window's blocks."""
+        """Fold one used sample into the normal equations, or into the open nuisance window's blocks
+        (``aug``: its :func:`_augmented` columns when already built)."""
         self._rev += 1
         if nuisance is None:
             self._zz += float(z @ z)
@@ -920,8 +950,7 @@ class InflightEstimator:
                 self._window_blocks(n, k)
                 self._w_gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
                 self._w_sum[:, : n + 2] = sa[:, : n + 2]
-            c = _ZERO3 if common is None else common
-            a = np.concatenate((rows, c.reshape(3, 1), z.reshape(3, 1), nuisance), axis=1)
+            a = _augmented(rows, z, nuisance, common) if aug is None else aug
             self._w_gram += a.T @ a
             self._w_sum += a
             self._w_n += 1
