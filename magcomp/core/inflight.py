@@ -368,7 +368,8 @@ def window_field_rows(
     rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
     rows.ravel()[pos] = np.repeat(x, 3)  # the x_r I blocks' diagonals
     r = np.asarray(r_nb, dtype=np.float64)
-    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T.copy(), r[2].copy())
+    # views of R_nb (read only here and by the estimator, never written)
+    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T, r[2])
 
 
 class ResidualBatches:
