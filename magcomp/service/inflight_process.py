@@ -43,7 +43,9 @@ F64 = NDArray[np.float64]
 _CREATE, _FEED, _OUTPUT, _RESET_PAIRS, _RESTART, _STATE, _QUERY = (float(i) for i in range(7))
 #: float64s buffered before a write (below the pipe's 64 KiB)
 _BLOCK = 5000
-#: child processes at most (compasses dealt to them in turn): two cores beside the parent's
+#: child processes at most (compasses dealt to them in turn; no more than the machine's cores). One would be
+#: the critical path alone on a flight log (its two compasses' stages: 6.5 s CPU against the parent's 2.3 s,
+#: 10 min at 50 Hz); two share the cores with the parent (docs/benchmarks.md)
 CHILDREN = 2
 _NONE9 = (0.0,) * 9
 _NONE3 = (0.0,) * 3
