@@ -210,7 +210,8 @@ def _whole_process(
     mmed = statistics.median(cpu_main)
     print(f"{'  its main process alone':<24} {'':<36}CPU min {min(cpu_main):6.2f} s  median {mmed:6.2f} s "
           f"(/ parse-only process {mmed / statistics.median(cpu[False]):.2f}, / in process "
-          f"{mmed / statistics.median(cpu_base):.2f}: the critical path, a second core free)")  # fmt: skip
+          f"{mmed / statistics.median(cpu_base):.2f}: the critical path when a core is free for each child "
+          "and they take less)")  # fmt: skip
     kmed = statistics.median(cpu_kids)
     print(f"{'  its child processes':<24} {'':<36}CPU min {min(cpu_kids):6.2f} s  median {kmed:6.2f} s "
           f"(the first pass's observers and in-flight stages, up to {inflight_process.CHILDREN} children, "
