@@ -40,7 +40,7 @@ Units: mgauss, throttle 0..1; frames: body FRD, earth NED. No I/O.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -179,6 +179,18 @@ _NEG_SOFT_ROWS.flags.writeable = False
 _WINDOW_ROWS_TEMPLATE: dict[int, tuple[F64, NDArray[np.intp]]] = {}
 
 
+_IDENTITY: dict[int, F64] = {}
+
+
+def _identity(n: int) -> F64:
+    """The n x n identity, built once per size (read only: LAPACK's dpotrs copies its right-hand side)."""
+    eye = _IDENTITY.get(n)
+    if eye is None:
+        eye = _IDENTITY[n] = np.eye(n)
+        eye.flags.writeable = False
+    return eye
+
+
 def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
     t = _WINDOW_ROWS_TEMPLATE.get(n_r)
     if t is None:
@@ -198,9 +210,19 @@ def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
 ROW_ENTRY_MAX = 1e9
 
 
+_MAX_REDUCE = np.maximum.reduce  # ndarray.max without its Python wrapper (a NaN propagates alike)
+
+
 def _bounded(a: F64) -> bool:
     """Every entry finite and within :data:`ROW_ENTRY_MAX` (a NaN compares False)."""
-    return bool(np.abs(a).max() <= ROW_ENTRY_MAX)
+    return bool(_MAX_REDUCE(np.abs(a), axis=None) <= ROW_ENTRY_MAX)
+
+
+def _augmented(rows: F64, z: F64, nuisance: F64, common: F64 | None) -> F64:
+    """A sample's augmented columns ``[rows | common | z | nuisance]`` (3, n + 2 + k): what the open window's
+    Gram matrix sums (``InflightEstimator._window_blocks``), checked whole by :func:`_bounded`."""
+    c = _ZERO3 if common is None else common
+    return np.concatenate((rows, c.reshape(3, 1), z.reshape(3, 1), nuisance), axis=1)
 
 
 def n_params(mode: InflightMode, n_motors: int) -> int:
@@ -356,9 +378,11 @@ def window_field_rows(
     template, pos = _window_rows_template(x.shape[0])
     rows = template.copy()
     rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
-    rows.ravel()[pos] = np.repeat(x, 3)  # the x_r I blocks' diagonals
+    # the x_r I blocks' diagonals (one regressor: its value broadcast, no repeated array)
+    rows.ravel()[pos] = x[0] if x.shape[0] == 1 else np.repeat(x, 3)
     r = np.asarray(r_nb, dtype=np.float64)
-    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T.copy(), r[2].copy())
+    # views of R_nb (read only here and by the estimator, never written)
+    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T, r[2])
 
 
 class ResidualBatches:
@@ -453,6 +477,7 @@ class InflightEstimator:
             prior_sd = np.maximum(np.asarray(warm[1], dtype=float), 1e-6)
         self.prior_mean = prior_mean
         self.prior_info = np.diag(1.0 / prior_sd**2)
+        self._prior_b_cache: tuple[F64, F64, F64] | None = None
         self.info = np.zeros((n, n))  # data information, unit weight
         self.rhs = np.zeros(n)
         self.n = 0
@@ -613,15 +638,21 @@ class InflightEstimator:
 
         ``common`` (3,): the column of the one unknown common to the whole flight (window-field rows: the
         vertical Earth field), eliminated when solving; only with a ``nuisance`` window."""
-        if not (_bounded(rows) and _bounded(z) and (nuisance is None or _bounded(nuisance))
-                and (common is None or _bounded(common))):  # fmt: skip
+        # with a nuisance window, its augmented columns are built here and checked at once (one reduction,
+        # not four), then summed as they are
+        aug = None if nuisance is None else _augmented(rows, z, nuisance, common)
+        if not (
+            _bounded(aug)
+            if aug is not None
+            else _bounded(rows) and _bounded(z) and (common is None or _bounded(common))
+        ):
             # a NaN, an infinity or a value whose square products overflow (a damaged record upstream):
             # left out. In the normal equations it would make every later solution NaN (LAPACK's
             # Cholesky does not report a NaN matrix as a failure) or its heading sigma 0
             self.n_nonfinite += 1
             return math.nan
         if not gate:
-            self._take(rows, z, x0, nuisance, window, common)
+            self._take(rows, z, x0, nuisance, window, common, aug)
             return math.nan
         r = z - rows @ self._theta
         if common is not None:
@@ -647,14 +678,21 @@ class InflightEstimator:
             if m2 > GATE_CHI2_3DOF:
                 self.n_gated += 1
                 return math.sqrt(rn2)
-        self._take(rows, z, x0, nuisance, window, common)
+        self._take(rows, z, x0, nuisance, window, common, aug)
         return math.sqrt(rn2)
 
     def _take(
-        self, rows: F64, z: F64, x0: float, nuisance: F64 | None, window: object, common: F64 | None
+        self,
+        rows: F64,
+        z: F64,
+        x0: float,
+        nuisance: F64 | None,
+        window: object,
+        common: F64 | None,
+        aug: F64 | None = None,
     ) -> None:
         """One row into the normal equations and the throttle statistics (the gate passed or not asked)."""
-        self._accumulate(rows, z, nuisance, window, common)
+        self._accumulate(rows, z, nuisance, window, common, aug)
         self.n += 1
         self.x0_max = max(self.x0_max, x0)
         self._x0_sum += x0
@@ -902,9 +940,16 @@ class InflightEstimator:
         self._dirty = True
 
     def _accumulate(
-        self, rows: F64, z: F64, nuisance: F64 | None, window: object, common: F64 | None
+        self,
+        rows: F64,
+        z: F64,
+        nuisance: F64 | None,
+        window: object,
+        common: F64 | None,
+        aug: F64 | None = None,
     ) -> None:
-        """Fold one used sample into the normal equations, or into the open nuisance window's blocks."""
+        """Fold one used sample into the normal equations, or into the open nuisance window's blocks
+        (``aug``: its :func:`_augmented` columns when already built)."""
         self._rev += 1
         if nuisance is None:
             self._zz += float(z @ z)
@@ -920,8 +965,7 @@ class InflightEstimator:
                 self._window_blocks(n, k)
                 self._w_gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
                 self._w_sum[:, : n + 2] = sa[:, : n + 2]
-            c = _ZERO3 if common is None else common
-            a = np.concatenate((rows, c.reshape(3, 1), z.reshape(3, 1), nuisance), axis=1)
+            a = _augmented(rows, z, nuisance, common) if aug is None else aug
             self._w_gram += a.T @ a
             self._w_sum += a
             self._w_n += 1
@@ -968,7 +1012,7 @@ class InflightEstimator:
         turns). A half with no closed window is the prior: a large spread, honestly. Departure from the
         paper: its observer has no uncertainty."""
         est = []
-        prior_b = self.prior_info @ self.prior_mean
+        prior_b = self._prior_rhs()
         for h in self._halves:
             info, rhs, _ = self._common_schur(h[0], h[3], h[4], h[1], h[5], h[2])  # type: ignore[arg-type]
             try:
@@ -1007,10 +1051,11 @@ class InflightEstimator:
         ws = self._window_schur() if self._win is not None else None
         eff = self._effective(ws)
         info, rhs, _ = eff
+        prior_b = self._prior_rhs()
         for _ in range(2):
             s2 = self._sigma_at(eff) ** 2
             lam = info / s2 + self.prior_info
-            b = rhs / s2 + self.prior_info @ self.prior_mean
+            b = rhs / s2 + prior_b
             # LAPACK's Cholesky solve (its factor kept for the covariance below)
             cho, theta, fail = lapack.dposv(lam, b)
             if fail != 0:
@@ -1021,7 +1066,7 @@ class InflightEstimator:
         s2 = self._sigma_at(eff) ** 2
         # lam^-1 from its factor (LAPACK's dpotri is as fast single-threaded, but 100x slower under
         # OpenBLAS threads on a small matrix)
-        cov, fail = lapack.dpotrs(cho, np.eye(cho.shape[0]))
+        cov, fail = lapack.dpotrs(cho, _identity(cho.shape[0]))
         if fail != 0:
             return
         self._cov = cov  # white: the gate's predictive covariance
@@ -1045,11 +1090,24 @@ class InflightEstimator:
                 self._split_cache = (self.n_windows, self.split_heading_deg(s2))
             split = self._split_cache[1]
             sol = self._solution
-            self._solution = replace(
-                sol, heading_sigma_deg=math.hypot(sol.heading_sigma_deg, split), heading_split_deg=split
-            )
+            # the fields written out (``dataclasses.replace`` costs 6 us a solution in introspection)
+            self._solution = InflightSolution(
+                calib_l=sol.calib_l, calib_d=sol.calib_d, theta_mgauss=sol.theta_mgauss,
+                motor_theta_mgauss=sol.motor_theta_mgauss, theta_sigma_mgauss=sol.theta_sigma_mgauss,
+                heading_sigma_deg=math.hypot(sol.heading_sigma_deg, split),
+                residual_rms_mgauss=sol.residual_rms_mgauss, n=sol.n,
+                variance_inflation=sol.variance_inflation, heading_model_deg=sol.heading_model_deg,
+                heading_split_deg=split,
+            )  # fmt: skip
         self._rev += 1
         self._dirty = False
+
+    def _prior_rhs(self) -> F64:
+        """``prior_info @ prior_mean``, the prior's right-hand side (computed once per prior)."""
+        c = self._prior_b_cache
+        if c is None or c[0] is not self.prior_info or c[1] is not self.prior_mean:
+            c = self._prior_b_cache = (self.prior_info, self.prior_mean, self.prior_info @ self.prior_mean)
+        return c[2]
 
     def _conditioned(self, p: F64, cov: F64, other: InflightEstimator) -> tuple[F64, F64] | None:
         """This estimate conditioned on theta = ``other``'s theta (a Schur complement, no second pass):

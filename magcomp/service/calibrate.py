@@ -34,6 +34,7 @@ from magcomp.core.inflight import (
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
 from magcomp.service import estimators as est_core
 from magcomp.service.attitude import AttitudeStage
+from magcomp.service.inflight_process import InflightProcess, InflightSink
 from magcomp.service.inflight_stage import InflightOutput, InflightStage
 from magcomp.service.record import Float3, MagRecord
 
@@ -290,8 +291,12 @@ class CalibrateStage:
         earth_ned: F64,
         save: Callable[[CompassCorrector, float], None],
         text: Callable[[float, str, bool], None],
+        inflight_proc: InflightProcess | None = None,
     ) -> None:
+        """``inflight_proc``: the in-flight stages run in that process (a two-pass replay's first pass,
+        learn-only: nothing reads their answers back; service/inflight_process.py)."""
         self.cfg = cfg
+        self._remote = inflight_proc
         self.attitude = attitude
         self.throttle = throttle
         self.params = params
@@ -378,9 +383,11 @@ class CalibrateStage:
     def _inflight(self, rec: MagRecord, c: CompassCorrector) -> InflightOutput | None:
         """Feed the in-flight calibration of compass ``c`` and return its correction when it is usable."""
         t = rec.t_s
-        st = c.inflight
+        st: InflightSink | None = c.inflight_remote or c.inflight
         if st is None:
             st = c.inflight = self._stage(c, t)
+            if self._remote is not None:  # created here, then run in the child
+                st = c.inflight_remote = self._remote.stage(c.mag_index, st)
         if rec.reset:
             st.reset_pairs()
         thr = self.throttle.at(t)
@@ -407,7 +414,7 @@ class CalibrateStage:
             c.dirty = True
         return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)
 
-    def _rotations(self, c: CompassCorrector, st: InflightStage, t: float) -> tuple[F64 | None, F64 | None]:
+    def _rotations(self, c: CompassCorrector, st: InflightSink, t: float) -> tuple[F64 | None, F64 | None]:
         """(absolute attitude, relative-form rotation) for this sample, each None when it cannot be used."""
         att = self.attitude
         att_fresh = att.autopilot_fresh(t)

@@ -19,6 +19,7 @@ from magcomp.service.calibrate import (
 )
 from magcomp.service.estimators import ThetaEstimator
 from magcomp.service.heading import HeadingTrack
+from magcomp.service.inflight_process import RemoteInflight
 from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.theta import ThetaTracker
@@ -52,6 +53,10 @@ class CompassCorrector:
         self.heading = HeadingTrack(cfg.output.heading_tau_s)
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
+        #: the stage running in another process (a two-pass replay's first pass, service/inflight_process.py):
+        #: its calls go there; ``inflight`` is then the stage as created, until the pipeline's close takes
+        #: the child's back
+        self.inflight_remote: RemoteInflight | None = None
         self.rel_source: RotationSource = NO_ROTATION
         self.time_s = {"corrected": 0.0, "uncorrected": 0.0}
         self.n_out = 0
@@ -111,12 +116,19 @@ class CompassCorrector:
                 "coverage": cal.coverage,
                 "n": float(cal.n),
             }
-        inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
+        if self.inflight_remote is not None:
+            # the save's side effects on the estimator (``InflightStage.state``), run in the child in order;
+            # the memory store of that pass keeps only the state saved at close, with the child's stage back
+            self.inflight_remote.state()
+            inflight = self.stored_inflight
+        else:
+            inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
         if current_theta:
             self.theta.sync()
         theta = np.asarray(self.theta.est.theta_mgauss, dtype=float)
-        if cal is None and self.inflight is not None and self.inflight.solution is not None:
-            theta = np.asarray(self.inflight.solution.theta_mgauss, dtype=float)
+        st = self.inflight if self.inflight_remote is None else None
+        if cal is None and st is not None and st.solution is not None:
+            theta = np.asarray(st.solution.theta_mgauss, dtype=float)
         return CompassState(
             system_id=system_id,
             mag_index=self.mag_index,

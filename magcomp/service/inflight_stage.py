@@ -663,8 +663,8 @@ class InflightStage:
                 x = regressors(throttle_01, mot)
                 b = sol.theta_mgauss * x[0] + sol.motor_theta_mgauss.T @ x[1:]
                 bias3 = (float(b[0]), float(b[1]), float(b[2]))
-            bias = np.asarray(bias3)
             if not self.applied:
+                bias = np.asarray(bias3)
                 y = np.asarray(field_mgauss, dtype=float)
                 corrected = sol.calib_l @ y - sol.calib_d - bias
                 change = _horizontal_angle_deg(corrected, y)

@@ -23,7 +23,8 @@ backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`P
 theta stage feeds the observers without reading theta back into the records; the states every stage
 reaches are the same as in a full run. With a ``recorder`` it also records what the second pass needs
 (:mod:`magcomp.service.final_pass`); with ``observers`` the observers step in a process of their own
-(:mod:`magcomp.service.observer_process`).
+(:mod:`magcomp.service.observer_process`), with ``inflight_proc`` the in-flight calibration
+(:mod:`magcomp.service.inflight_process`).
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
+from magcomp.service.inflight_process import InflightProcess
 from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
@@ -101,7 +103,8 @@ class Pipeline:
     None: both run inline. ``learn_only``: no headings (see the module's doc). ``observers``: the observers
     of eq. (20) step in that process (a two-pass replay's first pass, learn-only: nothing reads theta back
     until :meth:`close`, which takes their final states over and ends the process;
-    service/observer_process.py).
+    service/observer_process.py). ``inflight_proc``: the in-flight stages run in that process (the same
+    pass; service/inflight_process.py).
     """
 
     def __init__(
@@ -115,6 +118,7 @@ class Pipeline:
         learn_only: bool = False,
         recorder: SampleRecorder | None = None,
         observers: ObserverProcess | None = None,
+        inflight_proc: InflightProcess | None = None,
     ) -> None:
         self.cfg = cfg
         self.store = store
@@ -124,6 +128,7 @@ class Pipeline:
         self._learn_only = learn_only
         self._recorder = recorder
         self._observers = observers
+        self._inflight_proc = inflight_proc
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
@@ -140,7 +145,7 @@ class Pipeline:
         self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._sysid,
                                     self.warnings, theta_at_close=observers is not None)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
-                                        self.persist.save, self._text)  # fmt: skip
+                                        self.persist.save, self._text, inflight_proc)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
         self.publish = PublishStage(cfg, self.counts)
         #: sample class -> its handler (:meth:`feed`)
@@ -349,8 +354,9 @@ class Pipeline:
         norm = float(np.linalg.norm(field))
         for c in self.correctors.values():
             c.calib.earth_ned = field
-            if c.inflight is not None:
-                c.inflight.restart(norm)
+            st = c.inflight_remote or c.inflight
+            if st is not None:
+                st.restart(norm)
         self._text(s.t_s, f"Earth field from the GPS position ({lat:.4f}, {lon:.4f}), {year:.1f}: "
                           f"{norm:.0f} mgauss, WMM")  # fmt: skip
 
@@ -358,6 +364,13 @@ class Pipeline:
 
     def close(self) -> None:
         """Feed what is still queued, save every compass's state and wait for the writes."""
+        if self._inflight_proc is not None:  # the in-flight stages back from their process, which ends
+            stages = self._inflight_proc.query()
+            for c in self.correctors.values():
+                if c.inflight_remote is not None:
+                    c.inflight, c.inflight_remote = stages[c.mag_index], None
+            self._inflight_proc.close()
+            self._inflight_proc = None
         for c in self.correctors.values():
             if c.calib.adopt_refined(c.clock.n_mag, force=True) and c.last_t is not None:
                 self.calibrate.refined(c, c.last_t)

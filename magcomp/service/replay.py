@@ -15,6 +15,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.final_pass import FinalCompass, PassProgress, SampleLog, final_compasses, final_pass
+from magcomp.service.inflight_process import start as start_inflight
 from magcomp.service.observer_process import start as start_observers
 from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
@@ -28,6 +29,8 @@ REPLAY_BATCH = 256
 #: the first pass of a two-pass replay steps its observers in a process of their own, where the platform
 #: forks (service/observer_process.py; the same numbers either way)
 OBSERVER_PROCESS = True
+#: ... and its in-flight calibration in another (service/inflight_process.py; the same numbers either way)
+INFLIGHT_PROCESS = True
 
 
 @dataclass
@@ -162,8 +165,9 @@ def _first_pass(
     samples = SampleLog()
     # the observers step on the second core (service/observer_process.py); forked before any thread starts
     observers = start_observers(cfg) if OBSERVER_PROCESS else None
+    inflight = start_inflight() if INFLIGHT_PROCESS else None
     pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True, recorder=samples, on_text=on_text,
-                        observers=observers)  # fmt: skip
+                        observers=observers, inflight_proc=inflight)  # fmt: skip
     try:
         facts = _learn(path, cfg, pipeline, should_stop, on_progress)
     except BaseException:
@@ -172,6 +176,8 @@ def _first_pass(
     finally:
         if observers is not None:
             observers.close()  # (pipeline.close() has taken their states; after an error: the child ends)
+        if inflight is not None:
+            inflight.close()  # (likewise the in-flight stages)
     if facts is None:
         samples.close()
         return None
