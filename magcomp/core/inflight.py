@@ -41,11 +41,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
 F64 = NDArray[np.float64]
 
@@ -84,6 +84,21 @@ HEADING_MODEL_SPREAD = True
 #: report it; only the relative form's apply decision uses it (``InflightStage.output``: on log171's
 #: absolute-form compasses it delayed the causal correction by 30 s)
 SPLIT_CHECK = True
+
+
+_LAPACK: ModuleType | None = None
+
+
+def _lapack() -> ModuleType:
+    """scipy's LAPACK wrappers (Cholesky solves), imported at the first solve: importing scipy.linalg costs
+    ~0.19 s of CPU, and the main process of a two-pass replay never solves (its first pass's in-flight
+    stages run in forked children, which import it themselves, beside the parse)."""
+    global _LAPACK
+    if _LAPACK is None:
+        from scipy.linalg import lapack
+
+        _LAPACK = lapack
+    return _LAPACK
 
 
 @dataclass(frozen=True, slots=True)
@@ -538,6 +553,8 @@ class InflightEstimator:
         self._unc_cache: tuple[F64, F64, F64] | None = None  # uncalibrated(): theta's d and Theta views
         self._grad_cache: tuple[tuple[float, float, float, int], F64, F64] | None = None
         self._sd_key_cache: tuple[F64, int, tuple[float, ...]] | None = None
+        self._eff_cache: tuple[tuple[int, float | None, tuple[float, ...]], tuple[F64, F64, float]] | None
+        self._eff_cache = None
         # residual batches for variance_inflation: the open window's sums of z, rows, nuisance and common
         # columns; the open batch's residual sum as c - M p - g common (per closed window, the nuisance
         # eliminated), its sample and window counts; the closed batches
@@ -600,7 +617,7 @@ class InflightEstimator:
         if self.n < 10 or n_dof < 10:
             return max(self.p.noise_floor_mgauss, 10.0)
         p = self._theta
-        info, rhs, zz = self._effective() if eff is None else eff
+        info, rhs, zz = self._effective_now() if eff is None else eff
         rss = zz - 2.0 * float(p @ rhs) + float(p @ info @ p)
         return max(self.p.noise_floor_mgauss, math.sqrt(max(rss, 0.0) / n_dof))
 
@@ -782,7 +799,7 @@ class InflightEstimator:
         # nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
         b_e = self._w_gram[self._theta.shape[0] + 2 :] @ self._b_e_coef(k, with_common)
         # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
-        _, e_hat, info = lapack.dposv(hee, b_e)
+        _, e_hat, info = _lapack().dposv(hee, b_e)
         if info != 0:
             return None
         out = np.asarray(e_hat, dtype=np.float64), hee
@@ -828,7 +845,7 @@ class InflightEstimator:
         without rotation information stays solvable."""
         n = self.info.shape[0]
         hee = self._window_hee(self._prior_sd_key(self._w_ee.shape[0]))
-        _, x, info = lapack.dposv(hee, self._w_gram[n + 2 :, : n + 2])
+        _, x, info = _lapack().dposv(hee, self._w_gram[n + 2 :, : n + 2])
         return None if info != 0 else np.asarray(x, dtype=np.float64)
 
     def window_nuisance(self, window: object) -> F64 | None:
@@ -1031,6 +1048,21 @@ class InflightEstimator:
             pc, cc, bc = pc + w_pc, cc + w_cc, bc + w_bc
         return 0.0 if cc <= 0.0 else float((bc - pc @ p) / cc)
 
+    def _effective_now(self) -> tuple[F64, F64, float]:
+        """:meth:`_effective` at the current state, kept until something it reads changes (the rows, the
+        solution: ``_rev``; the residual scale and the nuisance prior of the open window's H_ee). A replay's
+        final ``state()`` is asked in the child that learned it and again in the main process, which then
+        solves nothing (and never imports scipy's LAPACK: ``_lapack``)."""
+        sol = self._solution
+        key = (self._rev, None if sol is None else sol.residual_rms_mgauss,
+               self._prior_sd_key(self._w_ee.shape[0]))  # fmt: skip
+        cached = self._eff_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        eff = self._effective()
+        self._eff_cache = (key, eff)
+        return eff
+
     def _effective(self, ws: WindowSchur | None = None) -> tuple[F64, F64, float]:
         """(info, rhs, z'z) of every row so far, the open nuisance window and the norm rows included, the
         unknown common to the flight eliminated. ``ws``: :meth:`_window_schur` when already computed."""
@@ -1057,7 +1089,7 @@ class InflightEstimator:
             lam = info / s2 + self.prior_info
             b = rhs / s2 + prior_b
             # LAPACK's Cholesky solve (its factor kept for the covariance below)
-            cho, theta, fail = lapack.dposv(lam, b)
+            cho, theta, fail = _lapack().dposv(lam, b)
             if fail != 0:
                 return
             self._theta = theta
@@ -1066,7 +1098,7 @@ class InflightEstimator:
         s2 = self._sigma_at(eff) ** 2
         # lam^-1 from its factor (LAPACK's dpotri is as fast single-threaded, but 100x slower under
         # OpenBLAS threads on a small matrix)
-        cov, fail = lapack.dpotrs(cho, _identity(cho.shape[0]))
+        cov, fail = _lapack().dpotrs(cho, _identity(cho.shape[0]))
         if fail != 0:
             return
         self._cov = cov  # white: the gate's predictive covariance
@@ -1127,7 +1159,7 @@ class InflightEstimator:
         if THETA_MODEL_SPREAD:
             dth = p_o[th] - p[th]
             c_o = c_o + np.outer(dth, dth)
-        _, g_t, fail = lapack.dposv(cov[th, th], cov[th, :])  # LAPACK's Cholesky: numpy's solve costs 5x
+        _, g_t, fail = _lapack().dposv(cov[th, th], cov[th, :])  # LAPACK's Cholesky: numpy's solve costs 5x
         if fail != 0:  # not positive definite: a general solve, as singular as it is
             try:
                 g_t = np.linalg.solve(cov[th, th], cov[th, :])
