@@ -133,6 +133,9 @@ class AttitudeStage:
         #: tracked only once someone asks for the gyro's yaw (gyro_yaw_at: the in-flight relative form), so a
         #: log without in-flight calibration (a hand rotation) does not pay for it
         self._accel_wanted = False
+        #: the last DCMs built (autopilot_dcm, gyro_dcm) with what they were built from
+        self._att_dcm: tuple[tuple[float, float, float], F64] | None = None
+        self._gyro_dcm: tuple[tuple[float, float, float, float], F64] | None = None
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -304,8 +307,15 @@ class AttitudeStage:
         return self.att_t is not None and abs(t - self.att_t) <= stale_s
 
     def autopilot_dcm(self) -> F64:
-        """R_nb of the autopilot's ATTITUDE."""
-        return dcm_from_euler(self.roll, self.pitch, self.yaw)
+        """R_nb of the autopilot's ATTITUDE (read-only: built once per attitude, shared by the compasses and
+        the two forms: ATTITUDE comes at half the magnetometer's rate or slower)."""
+        key = (self.roll, self.pitch, self.yaw)
+        cached = self._att_dcm
+        if cached is None or cached[0] != key:
+            r = dcm_from_euler(*key)
+            r.flags.writeable = False
+            cached = self._att_dcm = (key, r)
+        return cached[1]
 
     def gyro_usable(self, t: float) -> bool:
         """The integrated gyro is a usable rotation source at ``t``: fast, fresh and running."""
@@ -330,5 +340,11 @@ class AttitudeStage:
         return self.imu_dt is not None and self.imu_dt <= FAST_IMU_DT_S
 
     def gyro_dcm(self) -> F64:
-        """R of the gyro integrated alone since :attr:`mahony_t0`."""
-        return dcm_from_quat(np.asarray(self.qg, dtype=float))
+        """R of the gyro integrated alone since :attr:`mahony_t0` (read-only: built once per IMU sample)."""
+        q = self.qg
+        cached = self._gyro_dcm
+        if cached is None or cached[0] is not q:
+            r = dcm_from_quat(np.asarray(q, dtype=float))
+            r.flags.writeable = False
+            cached = self._gyro_dcm = (q, r)
+        return cached[1]

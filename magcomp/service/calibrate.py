@@ -409,7 +409,7 @@ class CalibrateStage:
             gyro_yaw = None
             if r_rel is not None and external_compass(self.params, c.mag_index) is not True:
                 gyro_yaw = self.attitude.gyro_yaw_at(t, GYRO_MATCH_S, GYRO_YAW_MAX_DT_S)
-            st.feed(t, np.array(rec.raw), thr, self.throttle.motors, r_abs, self.earth_ned, r_rel,
+            st.feed(t, rec.raw, thr, self.throttle.motors, r_abs, self.earth_ned, r_rel,
                     r_t_s=r_t, throttle_t_s=thr_t, gyro_yaw=gyro_yaw)  # fmt: skip
             c.dirty = True
         return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)

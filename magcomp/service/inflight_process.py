@@ -71,7 +71,7 @@ class InflightSink(Protocol):
     def feed(
         self,
         t_s: float,
-        field_mgauss: F64,
+        field_mgauss: F64 | tuple[float, float, float],
         throttle_01: float,
         motors_01: tuple[float, ...],
         r_abs_nb: F64 | None,
@@ -209,6 +209,21 @@ class RemoteInflight:
         self._proc = proc
         self._idx = float(idx)
         self._mode = mode
+        # the last arrays sent and their floats: the attitude stage builds one read-only DCM per attitude or
+        # IMU sample, shared by both forms and compasses, and the Earth field changes only at a GPS fix
+        self._flats: list[tuple[F64, tuple[float, ...]]] = []
+
+    def _flat(self, a: F64 | None, none: tuple[float, ...]) -> tuple[float, ...]:
+        """(1, a's floats) or (0, ``none``): a feed call's layout of an optional array."""
+        if a is None:
+            return (0.0, *none)
+        for arr, flat in self._flats:
+            if arr is a:
+                return flat
+        flat = (1.0, *a.ravel().tolist())
+        if not a.flags.writeable:  # only arrays nobody can change later
+            self._flats = [(a, flat), *self._flats[:3]]
+        return flat
 
     @property
     def mode(self) -> str:
@@ -226,7 +241,7 @@ class RemoteInflight:
     def feed(
         self,
         t_s: float,
-        field_mgauss: F64,
+        field_mgauss: F64 | tuple[float, float, float],
         throttle_01: float,
         motors_01: tuple[float, ...],
         r_abs_nb: F64 | None,
@@ -236,22 +251,11 @@ class RemoteInflight:
         throttle_t_s: float | None = None,
         gyro_yaw: GyroYaw | None = None,
     ) -> None:
-        v: list[float] = [_FEED, self._idx, 0.0, t_s, *field_mgauss.tolist(), throttle_01]
-        if r_abs_nb is None:
-            v += (0.0, *_NONE9)
-        else:
-            v.append(1.0)
-            v += r_abs_nb.ravel().tolist()
-        if field_ref_n_mgauss is None:
-            v += (0.0, *_NONE3)
-        else:
-            v.append(1.0)
-            v += np.ravel(field_ref_n_mgauss).tolist()
-        if r_rel_nb is None:
-            v += (0.0, *_NONE9)
-        else:
-            v.append(1.0)
-            v += r_rel_nb.ravel().tolist()
+        y = field_mgauss.tolist() if isinstance(field_mgauss, np.ndarray) else field_mgauss
+        v: list[float] = [_FEED, self._idx, 0.0, t_s, *y, throttle_01]
+        v += self._flat(r_abs_nb, _NONE9)
+        v += self._flat(field_ref_n_mgauss, _NONE3)
+        v += self._flat(r_rel_nb, _NONE9)
         v += (0.0, 0.0) if r_t_s is None else (1.0, r_t_s)
         v += (0.0, 0.0) if throttle_t_s is None else (1.0, throttle_t_s)
         if gyro_yaw is None:

@@ -309,7 +309,7 @@ class InflightStage:
     def feed(
         self,
         t_s: float,
-        field_mgauss: F64,
+        field_mgauss: F64 | tuple[float, float, float],
         throttle_01: float,
         motors_01: tuple[float, ...],
         r_abs_nb: F64 | None,

@@ -133,6 +133,7 @@ class Pipeline:
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
         self._earth_ned = est_core.earth_field(cfg)
+        self._earth_ned.flags.writeable = False  # shared by every stage (and sent once: inflight_process)
         self._params: dict[str, float] = {}  # the autopilot's parameters (in-flight calibration)
         loc = cfg.location
         self._location = (loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year)
@@ -350,6 +351,7 @@ class Pipeline:
             return
         self._location = (lat, lon, alt, year)
         self._location_source = "gps"
+        field.flags.writeable = False
         self._earth_ned = self.calibrate.earth_ned = field
         norm = float(np.linalg.norm(field))
         for c in self.correctors.values():
