@@ -767,8 +767,11 @@ class _Converter:
         if self.mag_index is not None and index != self.mag_index:
             return []
         field = _vec(v.MagX, v.MagY, v.MagZ)
-        if self.undo_motor_comp and hasattr(v, "MOfsX"):
-            mofs = _vec(v.MOfsX, v.MOfsY, v.MOfsZ)
+        # the applied motor compensation: MOfsX/Y/Z in ArduPilot up to 4.0 (MAG, MAG2, MAG3), MOX/MOY/MOZ
+        # since the instance field I (AP_Compass/LogStructure.h)
+        mo = ("MOfsX", "MOfsY", "MOfsZ") if hasattr(v, "MOfsX") else ("MOX", "MOY", "MOZ")
+        if self.undo_motor_comp and hasattr(v, mo[0]):
+            mofs = _vec(*(getattr(v, a) for a in mo))
             if mofs.any() and np.isfinite(mofs).all():
                 field = field - mofs
                 self.counts["motor_comp_removed"] += 1
