@@ -1329,17 +1329,30 @@ ARDUPILOT_EXTERNAL_PARAMS = ("COMPASS_EXTERNAL", "COMPASS_EXTERN2", "COMPASS_EXT
 ARDUPILOT_OFFSET_PARAMS = ("COMPASS_OFS_", "COMPASS_OFS2_", "COMPASS_OFS3_")
 
 
+#: ArduPilot's EKF3 yaw sources that are not a compass (EK3_SRC1_YAW, AP_NavEKF_Source): 3 falls back to the
+#: compass only while the GPS yaw is lost
+EK3_YAW_NOT_COMPASS = {
+    2: "GPS",
+    3: "GPS",
+    6: "external navigation",
+    8: "the GSF yaw estimator (GPS velocity and the IMU)",
+}
+
+
 def yaw_reference(params: dict[str, float], mag_index: int) -> tuple[InflightMode, str]:
     """The form for compass ``mag_index`` from the autopilot's parameters, and why (one phrase).
 
-    absolute: the autopilot's yaw comes from GPS (ArduPilot EK3_SRC1_YAW = 2 or 3; PX4 EKF2_GPS_CTRL bit
-    3) or from another compass that is external (ArduPilot COMPASS_PRIMARY and COMPASS_EXTERNAL*).
+    absolute: the autopilot's yaw comes from no compass (ArduPilot EK3_SRC1_YAW = 2, 3, 6 or 8 with EKF3
+    active; PX4 EKF2_GPS_CTRL bit 3) or from another compass that is external (ArduPilot COMPASS_PRIMARY,
+    instance 0 since 4.1 orders compasses by COMPASS_PRIOn_ID, and COMPASS_EXTERNAL*).
     relative: the yaw is fused from this compass, or from an internal one that sees the same currents, or
     the parameters do not say (a tlog without PARAM_VALUE): the safe form.
     """
     src = params.get("EK3_SRC1_YAW")
-    if src is not None and int(src) in (2, 3):
-        return "absolute", f"the autopilot's yaw comes from GPS (EK3_SRC1_YAW = {int(src)})"
+    ekf3 = int(params.get("AHRS_EKF_TYPE", 3.0)) == 3  # EKF3's sources matter only when it flies
+    if ekf3 and src is not None and int(src) in EK3_YAW_NOT_COMPASS:
+        why = f"the autopilot's yaw comes from {EK3_YAW_NOT_COMPASS[int(src)]} (EK3_SRC1_YAW = {int(src)})"
+        return "absolute", why
     gps_ctrl = params.get("EKF2_GPS_CTRL")
     if gps_ctrl is not None and int(gps_ctrl) & 8:
         return "absolute", "the autopilot's yaw comes from GPS (EKF2_GPS_CTRL bit 3)"

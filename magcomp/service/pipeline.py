@@ -222,7 +222,11 @@ class Pipeline:
         return False
 
     def _on_param(self, sample: ParamSample) -> bool:
-        self._params[sample.name] = float(sample.value)
+        value = float(sample.value)
+        if not math.isfinite(value):  # a damaged record: the stages read parameters as integers and flags
+            self.counts["non_finite"] += 1
+            return False
+        self._params[sample.name] = value
         return False
 
     def _on_fix(self, sample: PositionSample) -> bool:

@@ -162,6 +162,10 @@ def test_warm_start_reproduces_the_stored_estimate() -> None:
         ({"COMPASS_PRIMARY": 0.0, "COMPASS_EXTERNAL": 0.0}, 1, "relative"),
         ({"COMPASS_PRIMARY": 1.0, "COMPASS_EXTERN2": 2.0}, 0, "absolute"),
         ({"EK3_SRC1_YAW": 2.0, "COMPASS_PRIMARY": 0.0}, 0, "absolute"),
+        ({"EK3_SRC1_YAW": 8.0, "COMPASS_EXTERNAL": 0.0}, 0, "absolute"),  # GSF: GPS velocity and IMU
+        ({"EK3_SRC1_YAW": 6.0}, 0, "absolute"),  # external navigation (vision)
+        ({"EK3_SRC1_YAW": 1.0, "COMPASS_EXTERNAL": 0.0}, 0, "relative"),  # the compass
+        ({"EK3_SRC1_YAW": 8.0, "AHRS_EKF_TYPE": 2.0}, 0, "relative"),  # EKF3 not the one flying
         ({"EKF2_GPS_CTRL": 15.0}, 0, "absolute"),
         ({"EKF2_GPS_CTRL": 7.0}, 0, "relative"),
     ],
