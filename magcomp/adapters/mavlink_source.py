@@ -61,6 +61,7 @@ import operator
 import os
 import re
 import stat
+import struct
 import sys
 from array import array
 from collections import deque
@@ -254,6 +255,23 @@ class _Clock:
 
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
+
+
+#: MAV_PARAM_TYPE's integer types (UINT8 .. INT64) as their struct codes, the value in the float's low bytes
+_PARAM_INT_CODES = {1: "<B", 2: "<b", 3: "<H", 4: "<h", 5: "<I", 6: "<i", 7: "<I", 8: "<i"}
+
+
+def param_value(value: float, param_type: int, bytewise: bool) -> float:
+    """A PARAM_VALUE's value. ArduPilot casts every parameter to the float field (C cast); PX4 copies an
+    integer parameter's bytes into it (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE: EKF2_GPS_CTRL = 15
+    reads 2.1e-44 as a float, PWM_MAIN_MIN1 = 1000 reads 1.4e-42). Integer types are decoded from their bytes
+    for a PX4 vehicle (``bytewise``), and whenever the float is no integer at all (the HEARTBEAT not seen
+    yet: a C-cast integer is always a whole float, a byte copy of a nonzero integer below 2^30 never is)."""
+    code = _PARAM_INT_CODES.get(param_type)
+    if code is None or not (bytewise or not math.isfinite(value) or value != math.floor(value)):
+        return value
+    raw = struct.pack("<f", value)
+    return float(struct.unpack_from(code, raw)[0])
 
 
 def _vec(x: float, y: float, z: float, scale: float = 1.0) -> np.ndarray:
@@ -529,8 +547,9 @@ class _Converter:
         if isinstance(name, bytes):
             name = name.decode("ascii", "replace")
         name = name.rstrip("\x00")
-        self.onboard_comp.param(name, float(msg.param_value))
-        return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, float(msg.param_value)))]
+        value = param_value(float(msg.param_value), int(msg.param_type), self.autopilot == MAV_AUTOPILOT_PX4)
+        self.onboard_comp.param(name, value)
+        return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, value))]
 
     # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
     def _px4_scaled_imu(self, out: list[tuple[str, Record]]) -> list[tuple[str, Record]]:

@@ -18,6 +18,7 @@ from magcomp.core.types import (
     HeartbeatSample,
     ImuSample,
     MagSample,
+    ParamSample,
     PowerSample,
     TemperatureSample,
     ThrottleSample,
@@ -419,3 +420,38 @@ def test_fast_tlog_reader_sees_every_message_mavutil_sees(tmp_path: Path) -> Non
         return n
 
     assert ours() == 9000 and mavutil_loop() == 9000
+
+
+def _bytewise(value: int) -> float:
+    """An INT32 parameter as PX4 sends it: its bytes copied into PARAM_VALUE's float."""
+    import struct
+
+    return float(struct.unpack("<f", struct.pack("<i", value))[0])
+
+
+@pytest.mark.parametrize("heartbeat_first", [True, False])
+def test_px4_integer_parameters_arrive_bytewise_and_are_decoded(
+    tmp_path: Path, heartbeat_first: bool
+) -> None:
+    """PX4 copies an integer parameter's bytes into PARAM_VALUE (its PWM_MAIN_FUNCn and PWM_MAIN_MINn/MAXn
+    are INT32): read as floats they are ~1e-42, which made every PWM range 1e-42 wide and the motors of
+    outputs 5-6 unknown. Decoded, outputs 5-6 are the motors, scaled 1100-1900 us."""
+    w = TlogWriter()
+    if heartbeat_first:
+        w.heartbeat(2, autopilot=12)  # MAV_AUTOPILOT_PX4
+    ints = {"PWM_MAIN_FUNC5": 101, "PWM_MAIN_FUNC6": 102, "PWM_MAIN_MIN5": 1100, "PWM_MAIN_MAX5": 1900,
+            "PWM_MAIN_MIN6": 1100, "PWM_MAIN_MAX6": 1900}  # fmt: skip
+    for name, value in ints.items():
+        w.add("PARAM_VALUE", param_id=name.encode(), param_value=_bytewise(value), param_type=6,
+              param_count=len(ints) + 1, param_index=0)  # fmt: skip
+    w.param("MC_ROLL_P", 6.5)  # a REAL32 parameter stays as it is
+    if not heartbeat_first:
+        w.heartbeat(2, autopilot=12)
+    w.raw_imu(1_000_000, (0, 0, -1000), (0, 0, 0), (100, 0, 0))
+    w.servo(1_000_000, [900, 900, 900, 900, 1900, 1500, 900, 900])
+    path = w.write(tmp_path / "px4.tlog")
+    params = {p.name: p.value for p in _samples_of(path, ParamSample)}
+    assert params == {**{k: float(v) for k, v in ints.items()}, "MC_ROLL_P": pytest.approx(6.5)}
+    data = load_log(path)
+    assert data.throttle_source == "motors:5,6"
+    np.testing.assert_allclose(data.motors_01.values, [[1.0, 0.5]])
