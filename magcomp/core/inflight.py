@@ -1343,8 +1343,9 @@ def yaw_reference(params: dict[str, float], mag_index: int) -> tuple[InflightMod
     """The form for compass ``mag_index`` from the autopilot's parameters, and why (one phrase).
 
     absolute: the autopilot's yaw comes from no compass (ArduPilot EK3_SRC1_YAW = 2, 3, 6 or 8 with EKF3
-    active; PX4 EKF2_GPS_CTRL bit 3) or from another compass that is external (ArduPilot COMPASS_PRIMARY,
-    instance 0 since 4.1 orders compasses by COMPASS_PRIOn_ID, and COMPASS_EXTERNAL*).
+    active; PX4 EKF2_GPS_CTRL bit 3, EKF2_MAG_TYPE = 5) or from another compass that is external
+    (ArduPilot COMPASS_PRIMARY, instance 0 since 4.1 orders compasses by COMPASS_PRIOn_ID, and
+    COMPASS_EXTERNAL*).
     relative: the yaw is fused from this compass, or from an internal one that sees the same currents, or
     the parameters do not say (a tlog without PARAM_VALUE): the safe form.
     """
@@ -1356,6 +1357,9 @@ def yaw_reference(params: dict[str, float], mag_index: int) -> tuple[InflightMod
     gps_ctrl = params.get("EKF2_GPS_CTRL")
     if gps_ctrl is not None and int(gps_ctrl) & 8:
         return "absolute", "the autopilot's yaw comes from GPS (EKF2_GPS_CTRL bit 3)"
+    mag_type = params.get("EKF2_MAG_TYPE")
+    if mag_type is not None and int(mag_type) == 5:  # PX4 EKF2: no magnetometer fused (GPS / vision yaw)
+        return "absolute", "the autopilot fuses no magnetometer (EKF2_MAG_TYPE = 5)"
     if "COMPASS_PRIMARY" not in params and not any(k in params for k in ARDUPILOT_EXTERNAL_PARAMS):
         return "relative", "the autopilot's yaw source is unknown (no compass parameters): rotations only"
     primary = int(params.get("COMPASS_PRIMARY", 0.0))

@@ -168,6 +168,8 @@ def test_warm_start_reproduces_the_stored_estimate() -> None:
         ({"EK3_SRC1_YAW": 8.0, "AHRS_EKF_TYPE": 2.0}, 0, "relative"),  # EKF3 not the one flying
         ({"EKF2_GPS_CTRL": 15.0}, 0, "absolute"),
         ({"EKF2_GPS_CTRL": 7.0}, 0, "relative"),
+        ({"EKF2_GPS_CTRL": 7.0, "EKF2_MAG_TYPE": 5.0}, 0, "absolute"),  # PX4 fusing no magnetometer
+        ({"EKF2_GPS_CTRL": 7.0, "EKF2_MAG_TYPE": 0.0}, 0, "relative"),
     ],
 )
 def test_yaw_reference_from_parameters(params: dict[str, float], idx: int, mode: str) -> None:
