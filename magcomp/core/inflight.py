@@ -1362,7 +1362,7 @@ def yaw_reference(params: dict[str, float], mag_index: int) -> tuple[InflightMod
         return "absolute", "the autopilot fuses no magnetometer (EKF2_MAG_TYPE = 5)"
     if "COMPASS_PRIMARY" not in params and not any(k in params for k in ARDUPILOT_EXTERNAL_PARAMS):
         return "relative", "the autopilot's yaw source is unknown (no compass parameters): rotations only"
-    primary = int(params.get("COMPASS_PRIMARY", 0.0))
+    primary = ardupilot_primary_compass(params)
     if primary == mag_index:
         return "relative", f"the autopilot's yaw is fused from this compass (primary {primary})"
     ext_key = ARDUPILOT_EXTERNAL_PARAMS[primary] if 0 <= primary < len(ARDUPILOT_EXTERNAL_PARAMS) else ""
@@ -1371,6 +1371,21 @@ def yaw_reference(params: dict[str, float], mag_index: int) -> tuple[InflightMod
         why = f"the autopilot's yaw comes from compass {primary}, external ({ext_key} = {int(ext)})"
         return "absolute", why
     return "relative", f"the autopilot's yaw comes from compass {primary}, internal: rotations only"
+
+
+#: ArduPilot's per-compass "use for yaw" flags, by compass index
+ARDUPILOT_USE_PARAMS = ("COMPASS_USE", "COMPASS_USE2", "COMPASS_USE3")
+
+
+def ardupilot_primary_compass(params: dict[str, float]) -> int:
+    """The compass ArduPilot's EKF takes its yaw from: COMPASS_PRIMARY (up to 4.0) when that compass is used
+    for yaw, else the first compass with COMPASS_USEn set (4.1 on has no COMPASS_PRIMARY: it orders the
+    compasses by COMPASS_PRIOn_ID, so the first usable one is the primary); 0 when nothing says."""
+    primary = int(params.get("COMPASS_PRIMARY", 0.0))
+    usable = [i for i, k in enumerate(ARDUPILOT_USE_PARAMS) if params.get(k, 1.0) != 0.0]
+    if primary in usable or not usable:
+        return primary
+    return usable[0]
 
 
 def calibrated_by_autopilot(params: dict[str, float], mag_index: int) -> bool | None:

@@ -168,6 +168,10 @@ def test_warm_start_reproduces_the_stored_estimate() -> None:
         ({"EK3_SRC1_YAW": 8.0, "AHRS_EKF_TYPE": 2.0}, 0, "relative"),  # EKF3 not the one flying
         ({"EKF2_GPS_CTRL": 15.0}, 0, "absolute"),
         ({"EKF2_GPS_CTRL": 7.0}, 0, "relative"),
+        # ArduPilot 4.1+: no COMPASS_PRIMARY; the first compass used for yaw is the primary
+        ({"COMPASS_EXTERNAL": 0.0, "COMPASS_EXTERN2": 1.0, "COMPASS_USE": 0.0}, 0, "absolute"),
+        ({"COMPASS_EXTERNAL": 0.0, "COMPASS_EXTERN2": 1.0, "COMPASS_USE": 0.0}, 1, "relative"),
+        ({"COMPASS_EXTERNAL": 1.0, "COMPASS_USE": 1.0}, 1, "absolute"),
         ({"EKF2_GPS_CTRL": 7.0, "EKF2_MAG_TYPE": 5.0}, 0, "absolute"),  # PX4 fusing no magnetometer
         ({"EKF2_GPS_CTRL": 7.0, "EKF2_MAG_TYPE": 0.0}, 0, "relative"),
     ],
