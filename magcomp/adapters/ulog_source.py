@@ -2,11 +2,13 @@
 
 Topics read (every multi-instance where it applies), with the field names of PX4 1.6 to 1.15:
 
-- magnetometers: ``sensor_mag`` (x, y, z, gauss, board frame, before PX4's calibration) when logged, else
-  ``vehicle_magnetometer`` (magnetometer_ga[3], calibrated by PX4: its CAL_MAGn offsets, scales and, when
-  CAL_MAG_COMP_TYP != 0, its own power compensation are already removed), else the ``magnetometer_ga`` of
-  old logs' ``sensor_combined`` (compass 0). gauss -> mgauss. A topic instance's compass index is the n of
-  the CAL_MAGn_ID parameter equal to its ``device_id``, else its multi-instance number.
+- magnetometers: ``vehicle_magnetometer`` (magnetometer_ga[3], body frame, calibrated by PX4: its CAL_MAGn
+  offsets, scales, rotation and, when CAL_MAG_COMP_TYP != 0, its own power compensation are already
+  removed) when logged, else ``sensor_mag`` (x, y, z, gauss, the sensor's frame before PX4's calibration),
+  calibrated here as PX4 would (offsets, scales, CAL_MAGn_ROT / SENS_BOARD_ROT; :func:`px4_calibrated_mag`),
+  else the ``magnetometer_ga`` of old logs' ``sensor_combined`` (compass 0). gauss -> mgauss. A topic
+  instance's compass index is the n of the CAL_MAGn_ID parameter equal to its ``device_id``, else its
+  multi-instance number.
 - IMU: ``sensor_combined`` (gyro_rad, accelerometer_m_s2), else ``vehicle_imu`` (delta_angle /
   delta_angle_dt, delta_velocity / delta_velocity_dt).
 - attitude: ``vehicle_attitude`` q[4] (scalar first, body FRD -> NED) -> roll, pitch, yaw; the body rates
@@ -202,8 +204,65 @@ def _compass_indices(params: Mapping[str, float], instances: list[tuple[int, int
     return out
 
 
+#: PX4's sensor rotations (src/lib/conversion/rotation.h ``rot_lookup``): roll, pitch, yaw in degrees by
+#: enum value, applied as the ZYX Euler DCM (board or external compass frame -> body FRD)
+PX4_ROTATIONS_DEG = (
+    (0, 0, 0), (0, 0, 45), (0, 0, 90), (0, 0, 135), (0, 0, 180), (0, 0, 225), (0, 0, 270), (0, 0, 315),
+    (180, 0, 0), (180, 0, 45), (180, 0, 90), (180, 0, 135), (0, 180, 0), (180, 0, 225), (180, 0, 270),
+    (180, 0, 315), (90, 0, 0), (90, 0, 45), (90, 0, 90), (90, 0, 135), (270, 0, 0), (270, 0, 45),
+    (270, 0, 90), (270, 0, 135), (0, 90, 0), (0, 270, 0), (0, 180, 90), (0, 180, 270), (90, 90, 0),
+    (180, 90, 0), (270, 90, 0), (90, 180, 0), (270, 180, 0), (90, 270, 0), (180, 270, 0), (270, 270, 0),
+    (90, 180, 90), (90, 0, 270), (90, 68, 293), (0, 315, 0), (90, 315, 0), (270, 0, 180), (270, 0, 270),
+    (0, 90, 180), (0, 9, 180), (0, 45, 0), (270, 0, 225), (270, 0, 315),
+)  # fmt: skip
+
+
+def px4_mag_rotation(params: Mapping[str, float], cal_index: int | None) -> F64:
+    """The rotation PX4 applies to compass ``cal_index``'s ``sensor_mag`` (sensor frame -> body FRD): an
+    external compass's CAL_MAGn_ROT (>= 0), else the board's (an internal compass: CAL_MAGn_ROT = -1),
+    SENS_BOARD_ROT fine-tuned by SENS_BOARD_X/Y/Z_OFF (deg). Identity when the parameters do not say."""
+    from magcomp.core.rotations import dcm_from_euler
+
+    def table(value: float | None) -> F64 | None:
+        if value is None or not np.isfinite(value) or not 0 <= int(value) < len(PX4_ROTATIONS_DEG):
+            return None
+        return dcm_from_euler(*np.radians(PX4_ROTATIONS_DEG[int(value)]))
+
+    rot = None if cal_index is None else params.get(f"CAL_MAG{cal_index}_ROT")
+    external = table(rot) if rot is not None and rot >= 0 else None
+    if external is not None:
+        return external
+    board = table(params.get("SENS_BOARD_ROT", 0.0))
+    offs = [params.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
+    fine = dcm_from_euler(*np.radians(offs)) if all(np.isfinite(offs)) else np.eye(3)
+    return fine @ (np.eye(3) if board is None else board)
+
+
+def px4_calibrated_mag(params: Mapping[str, float], cal_index: int | None, xyz_gauss: F64) -> F64:
+    """``sensor_mag`` (sensor frame, before PX4's calibration) as PX4's own calibration leaves it, without
+    its power compensation: ``R S (m - offset)`` (sensor_calibration/Magnetometer: CAL_MAGn_OFF, the
+    symmetric scale CAL_MAGn_SCALE / ODIAG, the rotation of :func:`px4_mag_rotation`), so that it is in the
+    body frame with the autopilot's calibration removed, as ``vehicle_magnetometer`` and ArduPilot's fields
+    are (the in-flight estimator's prior is that calibration)."""
+
+    def vec(key: str, default: float) -> F64:
+        if cal_index is None:
+            return np.full(3, default)
+        v = np.array([params.get(f"CAL_MAG{cal_index}_{a}{key}", default) for a in "XYZ"], dtype=np.float64)
+        return np.where(np.isfinite(v), v, default)
+
+    off, diag, odiag = vec("OFF", 0.0), vec("SCALE", 1.0), vec("ODIAG", 0.0)
+    scale = np.array(
+        [[diag[0], odiag[0], odiag[1]], [odiag[0], diag[1], odiag[2]], [odiag[1], odiag[2], diag[2]]]
+    )
+    m = px4_mag_rotation(params, cal_index) @ scale
+    return np.asarray((xyz_gauss - off) @ m.T, dtype=np.float64)
+
+
 def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) -> None:
-    for name in ("sensor_mag", "vehicle_magnetometer"):
+    # vehicle_magnetometer first: PX4's calibration applied, body frame, 2 Hz in the default logging profile;
+    # sensor_mag (1 Hz there, in the sensor's frame, before calibration) only without it, calibrated here
+    for name in ("vehicle_magnetometer", "sensor_mag"):
         found: list[tuple[int, int, F64, F64]] = []  # multi, device id, t, xyz gauss
         for multi, data in sorted(topics.get(name, {}).items()):
             xyz = (
@@ -218,7 +277,11 @@ def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
             t = np.asarray(data.get("timestamp_sample", data["timestamp"]), dtype=np.float64) * 1e-6
             found.append((multi, int(nonzero[0]) if nonzero.size else 0, t, xyz))
         indices = _compass_indices(tables.params, [(m, d) for m, d, _, _ in found])
-        for multi, _, t, xyz in found:
+        for multi, device_id, t, xyz in found:
+            if name == "sensor_mag":
+                n = indices[multi]
+                known = device_id != 0 and int(tables.params.get(f"CAL_MAG{n}_ID", 0)) == device_id
+                xyz = px4_calibrated_mag(tables.params, n if known else None, xyz)
             _add_mag(tables, indices[multi], t, xyz)
         if tables.mag:
             tables.mag_topic = name

@@ -17,6 +17,7 @@ both gives the same headings.
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 from collections.abc import Sequence
@@ -139,23 +140,46 @@ MAG_DEVICE_IDS = (396825, 396809, 263178)  # device ids of the form PX4 drivers 
 PX4_FN_MOTOR1 = 101
 
 
+def _sensor_frames(w: UlogWriter, n_mag: int) -> list[tuple[Any, Any]]:
+    """Per compass (R^T, offset gauss): a body-frame field ``m`` as its driver publishes it, ``R^T m +
+    offset``, with the parameters PX4's calibration undoes it with (``write_sim_ulog``'s ``sensor_frame``)."""
+    from magcomp.core.rotations import dcm_from_euler
+
+    w.param("SENS_BOARD_ROT", 2, is_int=True)  # yaw 90 (PX4's rotation enum)
+    out = []
+    for j in range(n_mag):
+        internal = j == 0
+        w.param(f"CAL_MAG{j}_ROT", -1 if internal else 8, is_int=True)  # 8: roll 180
+        r = dcm_from_euler(0.0, 0.0, math.pi / 2) if internal else dcm_from_euler(math.pi, 0.0, 0.0)
+        off = np.array([0.08, -0.05, 0.12]) * (1 + j)
+        for a, v in zip("XYZ", off, strict=True):
+            w.param(f"CAL_MAG{j}_{a}OFF", float(v))
+        out.append((r.T, off))
+    return out
+
+
 def write_sim_ulog(
     result: SimResult,
     path: str | os.PathLike[str],
     *,
     mag_topic: str = "sensor_mag",
     start_unix_s: float | None = None,
+    sensor_frame: bool = False,
 ) -> int:
     """Write ``result`` as a PX4 ULog (see the module docstring); returns the number of data messages.
 
-    ``mag_topic``: ``sensor_mag`` (x, y, z gauss) or ``vehicle_magnetometer`` (magnetometer_ga[3]); the
-    compasses are logged at the simulator's IMU rate, the attitude and outputs at their configured rates.
+    ``mag_topic``: ``sensor_mag`` (x, y, z gauss), ``vehicle_magnetometer`` (magnetometer_ga[3]) or
+    ``both`` (as PX4's default logging profile has them); the compasses are logged at the simulator's IMU
+    rate, the attitude and outputs at their configured rates. ``sensor_frame``: ``sensor_mag`` as a PX4
+    driver publishes it, before PX4's calibration: compass 0 internal on a board mounted yawed 90 deg
+    (SENS_BOARD_ROT 2, CAL_MAG0_ROT -1), the others external and rolled 180 deg (CAL_MAGn_ROT 8), each with
+    its CAL_MAGn_OFF offsets added (``vehicle_magnetometer`` stays in the body frame, calibrated).
     """
     from magcomp.adapters.mavlink_emit import _pwm, _rate_indices, default_start_unix_s
     from magcomp.core.rotations import quats_from_euler
 
-    if mag_topic not in ("sensor_mag", "vehicle_magnetometer"):
-        raise ValueError(f"mag_topic {mag_topic!r}: sensor_mag or vehicle_magnetometer")
+    if mag_topic not in ("sensor_mag", "vehicle_magnetometer", "both"):
+        raise ValueError(f"mag_topic {mag_topic!r}: sensor_mag, vehicle_magnetometer or both")
     cfg = result.config
     s = result.samples
     rates = cfg.rates
@@ -166,11 +190,12 @@ def write_sim_ulog(
     n_mag = s.mag_mgauss.shape[0]
 
     w = UlogWriter(start_us=int(t_us[0]))
-    if mag_topic == "sensor_mag":
+    mag_topics = ("sensor_mag", "vehicle_magnetometer") if mag_topic == "both" else (mag_topic,)
+    if "sensor_mag" in mag_topics:
         w.topic("sensor_mag", [("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"), ("float", "x"),
                                ("float", "y"), ("float", "z"), ("float", "temperature"),
                                ("uint32_t", "error_count")])  # fmt: skip
-    else:
+    if "vehicle_magnetometer" in mag_topics:
         vm_fields = [
             ("uint64_t", "timestamp_sample"),
             ("uint32_t", "device_id"),
@@ -190,6 +215,7 @@ def write_sim_ulog(
     w.info("ver_hw", "MAGCOMP_SIM")
     for j in range(n_mag):
         w.param(f"CAL_MAG{j}_ID", MAG_DEVICE_IDS[j], is_int=True)
+    raw_frame = _sensor_frames(w, n_mag) if sensor_frame else None
     motor_channels = (1, 2, 3, 4) if multirotor else (3,)
     for ch in range(1, 9):
         w.param(f"PWM_MAIN_FUNC{ch}", PX4_FN_MOTOR1 + motor_channels.index(ch) if ch in motor_channels else 0,
@@ -215,11 +241,13 @@ def write_sim_ulog(
         events.append((ti, 1, "sensor_combined", 0, [ti, *gyro[i], 0, 0, *acc[i], 0]))
         for j in range(n_mag):
             m = mag_ga[j, i]
-            if mag_topic == "sensor_mag":
-                values = [ti, ti, MAG_DEVICE_IDS[j], m[0], m[1], m[2], float(s.imu_temp_degc[j, i]), 0]
-            else:
+            if "sensor_mag" in mag_topics:
+                r = m if raw_frame is None else raw_frame[j][0] @ m + raw_frame[j][1]
+                values = [ti, ti, MAG_DEVICE_IDS[j], r[0], r[1], r[2], float(s.imu_temp_degc[j, i]), 0]
+                events.append((ti, 1 + j, "sensor_mag", j, values))
+            if "vehicle_magnetometer" in mag_topics:
                 values = [ti, ti, MAG_DEVICE_IDS[j], m[0], m[1], m[2], 0]
-            events.append((ti, 1 + j, mag_topic, j, values))
+                events.append((ti, 1 + j, "vehicle_magnetometer", j, values))
     for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
         ti = int(t_us[i])
         events.append((ti, 4, "vehicle_attitude", 0, [ti, ti, *q[i]]))
