@@ -3,12 +3,12 @@
 Topics read (every multi-instance where it applies), with the field names of PX4 1.6 to 1.15:
 
 - magnetometers: ``vehicle_magnetometer`` (magnetometer_ga[3], body frame, calibrated by PX4: its CAL_MAGn
-  offsets, scales, rotation and, when CAL_MAG_COMP_TYP != 0, its own power compensation are already
-  removed) when logged, else ``sensor_mag`` (x, y, z, gauss, the sensor's frame before PX4's calibration),
-  calibrated here as PX4 would (offsets, scales, CAL_MAGn_ROT / SENS_BOARD_ROT; :func:`px4_calibrated_mag`),
-  else the ``magnetometer_ga`` of old logs' ``sensor_combined`` (compass 0). gauss -> mgauss. A topic
-  instance's compass index is the n of the CAL_MAGn_ID parameter equal to its ``device_id``, else its
-  multi-instance number.
+  offsets, scales and rotation removed) when logged and PX4 subtracts no power compensation of its own
+  (CAL_MAG_COMP_TYP = 0), else ``sensor_mag`` (x, y, z, gauss, the sensor's frame before PX4's
+  calibration), calibrated here as PX4 would (offsets, scales, CAL_MAGn_ROT / SENS_BOARD_ROT;
+  :func:`px4_calibrated_mag`), else the ``magnetometer_ga`` of old logs' ``sensor_combined`` (compass 0).
+  gauss -> mgauss. A topic instance's compass index is the n of the CAL_MAGn_ID parameter equal to its
+  ``device_id``, else its multi-instance number.
 - IMU: ``sensor_combined`` (gyro_rad, accelerometer_m_s2), else ``vehicle_imu`` (delta_angle /
   delta_angle_dt, delta_velocity / delta_velocity_dt).
 - attitude: ``vehicle_attitude`` q[4] (scalar first, body FRD -> NED) -> roll, pitch, yaw; the body rates
@@ -261,8 +261,12 @@ def px4_calibrated_mag(params: Mapping[str, float], cal_index: int | None, xyz_g
 
 def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) -> None:
     # vehicle_magnetometer first: PX4's calibration applied, body frame, 2 Hz in the default logging profile;
-    # sensor_mag (1 Hz there, in the sensor's frame, before calibration) only without it, calibrated here
-    for name in ("vehicle_magnetometer", "sensor_mag"):
+    # sensor_mag (1 Hz there, in the sensor's frame, before calibration) only without it, calibrated here,
+    # or when PX4 subtracts its own power compensation (linear in throttle or current) from the other
+    comp = tables.params.get("CAL_MAG_COMP_TYP", 0.0)
+    own_comp = bool(np.isfinite(comp) and int(comp) != 0)
+    order = ("sensor_mag", "vehicle_magnetometer") if own_comp else ("vehicle_magnetometer", "sensor_mag")
+    for name in order:
         found: list[tuple[int, int, F64, F64]] = []  # multi, device id, t, xyz gauss
         for multi, data in sorted(topics.get(name, {}).items()):
             xyz = (
@@ -285,7 +289,7 @@ def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
             _add_mag(tables, indices[multi], t, xyz)
         if tables.mag:
             tables.mag_topic = name
-            if name == "vehicle_magnetometer" and int(tables.params.get("CAL_MAG_COMP_TYP", 0)) != 0:
+            if name == "vehicle_magnetometer" and own_comp:
                 # PX4 already subtracted its own power compensation from this topic (not undone here)
                 tables.counts["px4_mag_comp_applied"] = 1
             return
