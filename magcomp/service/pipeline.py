@@ -74,7 +74,7 @@ log = logging.getLogger("magcomp.pipeline")
 COUNT_KEYS = (
     "samples", "mag", "imu", "estimates", "non_finite", "saturated", "gyro_jumps", "mag_jumps",
     "gyro_gated", "time_backwards", "clock_resets", "reboots", "gaps", "observer_resets",
-    "throttle_jumps", "no_throttle", "implausible",
+    "throttle_jumps", "no_throttle", "implausible", "non_finite_params",
 )  # fmt: skip
 
 
@@ -224,7 +224,7 @@ class Pipeline:
     def _on_param(self, sample: ParamSample) -> bool:
         value = float(sample.value)
         if not math.isfinite(value):  # a damaged record: the stages read parameters as integers and flags
-            self.counts["non_finite"] += 1
+            self.counts["non_finite_params"] += 1
             return False
         self._params[sample.name] = value
         return False
