@@ -140,7 +140,9 @@ def _sim(name: str, scenario: str, settings: list[str], duration: float | None, 
         elif ulog:
             from magcomp.adapters.ulog_writer import write_sim_ulog
 
-            write_sim_ulog(result, path)
+            # as PX4's default logging profile has them: vehicle_magnetometer (body frame, calibrated) beside
+            # sensor_mag in the drivers' frames (a yawed board, a rolled external compass, offsets)
+            write_sim_ulog(result, path, mag_topic="both", sensor_frame=True)
         else:
             write_tlog(result, path)
         write_truth(result, path)
