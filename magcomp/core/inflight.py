@@ -578,12 +578,26 @@ class InflightEstimator:
         ``sum A`` of its samples' augmented rows ``A = [rows | common | z | nuisance]`` (3, n + 2 + k), one
         matrix product per sample; the blocks the window's algebra reads are views of them."""
         m = n + 2 + k
-        self._w_gram = g = np.zeros((m, m))
-        self._w_sum = sa = np.zeros((3, m))
+        self._w_gram = np.zeros((m, m))
+        self._w_sum = np.zeros((3, m))
+        self._window_views(n)
+
+    def _window_views(self, n: int) -> None:
+        """The views of the open window's sums that its algebra reads (``_window_blocks``)."""
+        g, sa = self._w_gram, self._w_sum
+        m = g.shape[0]
         c, z, e = n, n + 1, slice(n + 2, m)
         self._w_pp, self._w_pe, self._w_ee = g[:n, :n], g[:n, e], g[e, e]
         self._w_bp, self._w_be, self._w_pc, self._w_ec = g[:n, z], g[e, z], g[:n, c], g[e, c]
         self._w_srows, self._w_sn, self._w_scom, self._w_sz = sa[:, :n], sa[:, e], sa[:, c], sa[:, z]
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        """Unpickled (the in-flight stage sent to its process and taken back, service/inflight_process.py):
+        the window's views made again. Pickle copies a view as an array of its own, so the views would no
+        longer follow the window's sums: a row added after the round trip would go into ``_w_gram`` while
+        ``_w_ee`` and the others kept their old values."""
+        self.__dict__.update(state)
+        self._window_views(self.info.shape[0])
 
     @property
     def _w_zz(self) -> float:

@@ -248,3 +248,25 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
     st, _ = _run(0, NOISE_MGAUSS)
     assert st.est is not None and st.est.n > 1000
     assert 0.3 * calls[0] < hits[0] < 0.6 * calls[0], (hits[0], calls[0])
+
+
+def test_an_estimator_taken_through_pickle_keeps_summing_its_open_window() -> None:
+    """The in-flight stage goes to its process and back pickled (service/inflight_process.py). Pickle copies
+    the open window's views (``_w_ee``, ``_w_pp``, ...) as arrays of their own: rows added to the unpickled
+    estimator's open window must give what the original gives (without ``__setstate__`` the views stopped
+    following the window's sums)."""
+    import pickle
+
+    r, thr, _ = _flight(600, 4)
+    y = _measure(r, thr, np.eye(3), D_TRUE, 4, noise=NOISE_MGAUSS)
+    st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)))
+    for k in range(300):
+        st.feed(DT_S * k + 0.05, y[k], float(thr[k]), (), None, H_NED, r[k])  # ends inside a 2 s window
+    assert st.est is not None and st.est._win is not None
+    st.est.solve()
+    copy = pickle.loads(pickle.dumps(st))
+    for s in (st, copy):
+        for k in range(300, 310):  # the same window: 30.05 .. 30.95 s
+            s.feed(DT_S * k + 0.05, y[k], float(thr[k]), (), None, H_NED, r[k])
+    assert copy.est is not None
+    assert np.array_equal(copy.est.solve().theta_mgauss, st.est.solve().theta_mgauss)
