@@ -79,19 +79,24 @@ def ardupilot_params(
     return out
 
 
-def px4_params(terms: LinearTerms, instance: int) -> dict[str, float]:
+def px4_params(terms: LinearTerms, instance: int, calibration: F64 | None = None) -> dict[str, float]:
     """CAL_MAGn_[XYZ]COMP in the sensor (compass) frame, negated (PX4 adds it to the raw field).
 
+    ``calibration``: PX4's ``R S`` for this compass (:func:`magcomp.core.px4.px4_calibration_matrix`): the
+    fitted bias is in the body frame PX4's calibration puts the field in (vehicle_magnetometer, or sensor_mag
+    calibrated as PX4 does), and PX4 adds COMP before ``R S``, so the bias goes back through its inverse
+    (None: the identity, a compass PX4 neither rotates nor scales).
     Throttle type (CAL_MAG_COMP_TYP=1): gauss per unit throttle = mgauss / 1000.
     Current type (2): gauss per kA, numerically equal to mgauss per A.
     """
+    back = np.eye(3) if calibration is None else np.linalg.inv(calibration)
     out: dict[str, float] = {}
     if terms.per_amp_mgauss is not None:
         out["CAL_MAG_COMP_TYP"] = 2.0
-        k = -terms.per_amp_mgauss
+        k = -(back @ terms.per_amp_mgauss)
     else:
         out["CAL_MAG_COMP_TYP"] = 1.0
-        k = -terms.per_throttle_mgauss / 1000.0
+        k = -(back @ terms.per_throttle_mgauss) / 1000.0
     for axis, value in zip("XYZ", k, strict=True):
         out[f"CAL_MAG{instance}_{axis}COMP"] = round(float(value), 5)
     return out

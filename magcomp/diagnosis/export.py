@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.px4 import px4_calibration_matrix
 from magcomp.core.types import LogData
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, drive_columns
@@ -284,13 +285,14 @@ def autopilot_export(index: int, data: CompassData, fit: ModelFit, log: LogData 
         terms.per_amp_mgauss is not None and (terms.max_error_amp_mgauss or 0.0) < thr_only.max_error_mgauss
     )
     best = terms if use_current else thr_only
+    cal = _px4_calibration(log.params, index) if log is not None else None
     params = {
         "ardupilot": ardupilot_params(best, fit.a_mgauss, fit.field_strength_mgauss, index),
-        "px4": px4_params(best, index),
-        "px4_throttle": px4_params(thr_only, index),
+        "px4": px4_params(best, index, cal),
+        "px4_throttle": px4_params(thr_only, index, cal),
     }
     if terms.per_amp_mgauss is not None:
-        params["px4_current"] = px4_params(terms, index)
+        params["px4_current"] = px4_params(terms, index, cal)
     lo, hi = terms.throttle_range
     note = (
         "Both autopilots compensate linearly (k * throttle or k * current); eq. (11) is quadratic in "
@@ -306,6 +308,15 @@ def autopilot_export(index: int, data: CompassData, fit: ModelFit, log: LogData 
             "current ~ throttle^2, but a real current sensor also lags and carries other loads)."
         )
     return AutopilotExport(params, note)
+
+
+def _px4_calibration(params: dict[str, float], index: int) -> F64 | None:
+    """PX4's ``R S`` for compass ``index`` when the log's parameters describe it (its CAL_MAGn_ID is set: the
+    sources give a PX4 compass the index n of its CAL_MAGn_ID), else None."""
+    if not params.get(f"CAL_MAG{index}_ID"):
+        return None
+    m = px4_calibration_matrix(params, index)
+    return m if np.linalg.cond(m) < 1e6 else None
 
 
 def _fmt(v: F64) -> str:

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from magcomp.adapters.ulog_source import px4_calibrated_mag, px4_mag_rotation
 from magcomp.adapters.ulog_writer import write_sim_ulog
+from magcomp.core.px4 import px4_calibrated_mag, px4_mag_rotation
 from magcomp.core.types import MagSample
 
 
