@@ -78,7 +78,7 @@ class DataflashWriter:
 
     def define(self, name: str, fmt: str, columns: str) -> None:
         if len(name) > 4 or len(fmt) > 16 or len(columns) > 64 or len(fmt) != len(columns.split(",")):
-            raise ValueError(f"DataFlash format {name}: name <= 4, format <= 16, columns <= 64 chars, one each")
+            raise ValueError(f"DataFlash format {name}: name <= 4, format <= 16, columns <= 64 chars")
         st = struct.Struct("<" + "".join(_STRUCT[c] for c in fmt))
         mtype = 129 + len(self._types)
         if mtype > 255:
@@ -92,7 +92,8 @@ class DataflashWriter:
         self._data.append(HEAD + bytes([mtype]) + st.pack(*values))
 
     def to_bytes(self) -> bytes:
-        fmt_fmt = struct.pack("<BB4s16s64s", FMT_TYPE, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
+        cols = b"Type,Length,Name,Format,Columns"
+        fmt_fmt = struct.pack("<BB4s16s64s", FMT_TYPE, 89, b"FMT", b"BBnNZ", cols)
         return HEAD + bytes([FMT_TYPE]) + fmt_fmt + b"".join(self._fmts) + b"".join(self._data)
 
     def write(self, path: str | os.PathLike[str]) -> int:
@@ -146,7 +147,7 @@ def write_sim_dataflash(
     """Write ``result`` as an ArduPilot 4.x DataFlash log (see the module docstring); returns the number of
     data messages. ``motor_comp``: (J, 3) COMPASS_MOT*_X/Y/Z, mgauss per unit throttle (COMPASS_MOTCT = 1),
     or None (COMPASS_MOTCT = 0)."""
-    from magcomp.adapters.mavlink_emit import _pwm, _raw_imu_rows, _rate_indices, default_start_unix_s
+    from magcomp.adapters.mavlink_emit import _pwm, _rate_indices, _raw_imu_rows, default_start_unix_s
 
     cfg = result.config
     s = result.samples
@@ -165,8 +166,8 @@ def write_sim_dataflash(
     w = DataflashWriter()
     formats = dict(FORMATS)
     formats["CTUN"] = _COPTER_CTUN if multirotor else _PLANE_CTUN
-    for name, (fmt, cols) in formats.items():
-        w.define(name, fmt, cols)
+    for mname, (fmt, cols) in formats.items():
+        w.define(mname, fmt, cols)
 
     # the tlog twin's quantisation: gyro 1 mrad/s, accel 1 mG, compass 1 mgauss, PWM 1 us
     g = STANDARD_GRAVITY_M_S2
@@ -181,19 +182,19 @@ def write_sim_dataflash(
     ofs = {j: np.zeros(3) for j in range(n_mag)}
     pdict = dict(params)
     for j in range(n_mag):
-        k = "" if j == 0 else str(j + 1)
-        ofs[j] = np.array([pdict.get(f"COMPASS_OFS{k}_{a}", 0.0) for a in "XYZ"])
+        sfx = "" if j == 0 else str(j + 1)
+        ofs[j] = np.array([pdict.get(f"COMPASS_OFS{sfx}_{a}", 0.0) for a in "XYZ"])
 
     events: list[tuple[int, int, str, list[Any]]] = []
     t0 = int(t_us[0])
     vehicle = "ArduCopter" if multirotor else "ArduPlane"
     events.append((t0, -2, "MSG", [t0, f"{vehicle} {FIRMWARE_VERSION}".encode()]))
-    for name, value in params:
-        events.append((t0, -1, "PARM", [t0, name.encode(), float(value), float(value)]))
+    for pname, value in params:
+        events.append((t0, -1, "PARM", [t0, pname.encode(), float(value), float(value)]))
     for i in range(n):
         ti = int(t_us[i])
         for k in range(n_imu):
-            temp = float(s.imu_temp_degc[k, i])
+            temp = round(float(s.imu_temp_degc[k, i]) * 100.0) / 100.0
             events.append((ti, 1, "IMU", [ti, k, *gyro[k, i], *acc[k, i], 0, 0, temp, 1, 1, int(rates.imu_hz),
                                           int(rates.imu_hz)]))  # fmt: skip
     mag_rows = _raw_imu_rows(result) if rates.mag_hz is None else _rate_indices(n, rates.imu_hz, rates.mag_hz)
@@ -206,8 +207,9 @@ def write_sim_dataflash(
         for j in range(n_mag):
             mo = np.zeros(3, dtype=np.int64) if mot is None else np.round(mot[j] * last_thr).astype(np.int64)
             field = mag[j, i] + mo
-            events.append((ti, 2 + j, "MAG", [ti, j, *(int(v) for v in field), *(round(float(v)) for v in ofs[j]),
-                                              *(int(v) for v in mo), 1, ti & 0xFFFFFFFF]))  # fmt: skip
+            ofs_j = [round(float(v)) for v in ofs[j]]
+            values = [ti, j, *(int(v) for v in field), *ofs_j, *(int(v) for v in mo), 1, ti & 0xFFFFFFFF]
+            events.append((ti, 2 + j, "MAG", values))
     att_deg = np.degrees(s.attitude_rad)
     for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
         ti = int(t_us[i])
@@ -236,7 +238,7 @@ def write_sim_dataflash(
             r_c, p_c = round(float(att_deg[i, 0]) * 100.0), round(float(att_deg[i, 1]) * 100.0)
             tho = float(thr_01[i]) * 100.0  # Plane logs its throttle in percent
             asp = float(s.airspeed_m_s[i])
-            ctun = [ti, r_c, r_c, p_c, p_c, tho, 0.0, tho, asp, asp, 0, asp, 1.0, 0]
+            ctun = [ti, r_c, r_c, p_c, p_c, tho, 0.0, tho, asp, 1, asp, 1.0, 0]
         events.append((ti, 8, "CTUN", ctun))
     dt = 1.0 / rates.imu_hz
     consumed_mah = np.cumsum(s.current_a) * dt / 3.6
@@ -261,9 +263,9 @@ def write_sim_dataflash(
             ground = math.hypot(float(v[0]), float(v[1]))
             cog = math.degrees(math.atan2(float(v[1]), float(v[0]))) % 360.0 if ground > 0.5 else 0.0
             gps_yaw = float(yaw_true[i]) % 360.0 if cfg.variation.yaw_source == "truth" else 0.0
-            gps = [ti, 0, 3, ms, week, 14, 80, round(float(s.gps_lat_deg[i]) * 1e7),
-                   round(float(s.gps_lon_deg[i]) * 1e7), round(float(s.gps_alt_msl_m[i]) * 100.0), ground, cog,
-                   float(v[2]), gps_yaw, 1]  # fmt: skip
+            lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
+            alt_cm = round(float(s.gps_alt_msl_m[i]) * 100.0)
+            gps = [ti, 0, 3, ms, week, 14, 80, lat, lon, alt_cm, ground, cog, float(v[2]), gps_yaw, 1]
             events.append((ti, 10, "GPS", gps))
     events.sort(key=lambda e: (e[0], e[1]))
     for _, _, name, values in events:

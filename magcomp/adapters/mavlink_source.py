@@ -20,7 +20,8 @@ Units at this boundary (everything downstream uses them):
   BATTERY_STATUS (cell voltages mV summed, current cA) is used for battery 0 only while SYS_STATUS has not
   reported a current.
 - DataFlash: MAG/MAG2/MAG3 (or MAG with instance field I) in mgauss, IMU GyrX.. rad/s and AccX.. m/s^2,
-  ATT deg, RCOU C1.. / Ch1.. / Chan1.. us, CTUN ThO (0..1) or ThrOut (0..1000), CURR/BAT Volt and Curr
+  ATT deg, RCOU C1.. / Ch1.. / Chan1.. us, CTUN ThO (0..1) or ThrOut (0..1000) (Plane's CTUN, the one with
+  NavRoll: ThO / ThrOut in percent), CURR/BAT Volt and Curr
   (integer columns of old logs are cV / cA), PARM. When MAG records the motor compensation the autopilot
   applied (MOfsX..), it is subtracted by default (``undo_motor_comp``) so that the field is the one the
   motors actually disturbed. MAVLink compass fields carry no such record: with COMPASS_MOTCT = 1 / 2 the
@@ -720,7 +721,9 @@ class _Converter:
         if base == "RCOU":
             return self._df_rcou(v, stream, raw_s)
         if base == "CTUN":
-            if hasattr(v, "ThO"):
+            if hasattr(v, "NavRoll"):  # Plane's CTUN: ThO (4.x) / ThrOut (3.x) in percent
+                thr = float(getattr(v, "ThO", getattr(v, "ThrOut", math.nan))) * 0.01
+            elif hasattr(v, "ThO"):
                 thr = float(v.ThO)
             elif hasattr(v, "ThrOut"):
                 thr = v.ThrOut * 1e-3 if isinstance(v.ThrOut, int) else float(v.ThrOut)
@@ -1819,9 +1822,7 @@ class _GnssCollector:
             data.decimal_year = float(np.median(np.frombuffer(self.years, dtype=np.float64)))
 
 
-def _throttle_rows(
-    resolved: ResolvedThrottle, pwm: PwmRows, which: int, width: int = 0
-) -> Series:
+def _throttle_rows(resolved: ResolvedThrottle, pwm: PwmRows, which: int, width: int = 0) -> Series:
     """Throttle (``which`` 0: the 0..1 throttle) or per-channel outputs (1) of every PWM row that gives one
     (:func:`throttle_from_pwm`, row by row: the same numbers as streaming)."""
     out = Rows(width)
