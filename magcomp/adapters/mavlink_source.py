@@ -699,7 +699,12 @@ class _Converter:
             return []
         base = mtype.rstrip("0123456789")
         suffix = mtype[len(base) :]
-        index = int(getattr(v, "I", getattr(v, "Inst", 0))) if not suffix else int(suffix) - 1
+        # the instance field: I (MAG, IMU, GPS), Inst (BAT in recent 4.x) or Instance (BAT in early 4.x)
+        index = (
+            int(getattr(v, "I", getattr(v, "Inst", getattr(v, "Instance", 0))))
+            if not suffix
+            else int(suffix) - 1
+        )
         if base in ("MAG", "IMU") and not 0 <= index < DATAFLASH_MAX_INSTANCES:
             # DataFlash has no checksum: a corrupt instance byte would make a phantom compass or IMU
             self.counts["dataflash_bad_instance"] += 1

@@ -160,3 +160,26 @@ def test_plane_3x_ctun_throttrout_is_percent(tmp_path: Path) -> None:
     w.write(path)
     got = load_log(path, throttle_source="ctun").throttle_01.values
     np.testing.assert_allclose(got, 0.1 * np.arange(10), atol=1e-12)
+
+
+def test_bat_instance_field_spelled_instance(tmp_path: Path) -> None:
+    """Early ArduPilot 4.x logs BAT with the instance field ``Instance`` (later ``Inst``): battery 1's samples
+    must not be read as battery 0's."""
+    from magcomp.adapters.dataflash_writer import DataflashWriter
+
+    w = DataflashWriter()
+    w.define("MSG", "QZ", "TimeUS,Message")
+    w.define("ATT", "QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw")
+    w.define("BAT", "QBfffffcf", "TimeUS,Instance,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res")
+    w.add("MSG", [1000, b"ArduCopter V4.0.7"])
+    for k in range(10):
+        t = 2000 + 100_000 * k
+        w.add("ATT", [t, 0, 0, 0, 0, 9000, 9000, 0, 0])
+        w.add("BAT", [t + 10, 0, 16.0, 16.1, 12.0, 100.0, 1.0, 2500, 0.01])
+        w.add("BAT", [t + 20, 1, 5.0, 5.0, 0.5, 3.0, 0.0, 2500, 0.01])
+    path = tmp_path / "two_batteries.bin"
+    w.write(path)
+    data = load_log(path)
+    assert len(data.voltage_v) == len(data.current_a) == 10
+    np.testing.assert_allclose(data.voltage_v.values, 16.0)
+    np.testing.assert_allclose(data.current_a.values, 12.0)
