@@ -183,3 +183,16 @@ def test_bat_instance_field_spelled_instance(tmp_path: Path) -> None:
     assert len(data.voltage_v) == len(data.current_a) == 10
     np.testing.assert_allclose(data.voltage_v.values, 16.0)
     np.testing.assert_allclose(data.current_a.values, 12.0)
+
+
+def test_simulate_cli_writes_a_dataflash_bin(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from magcomp.cli import main
+
+    out = tmp_path / "run.bin"
+    args = ["simulate", "--scenario", "flight_multirotor", "--duration", "8", "--seed", "4"]
+    args += ["--compasses", "3"]
+    assert main([*args, "--out", str(out)]) == 0
+    assert out.read_bytes()[:3] == b"\xa3\x95\x80"  # a DataFlash FMT first
+    assert (tmp_path / "run.truth.json").exists() and "wrote" in capsys.readouterr().out
+    data = load_log(out)
+    assert sorted(data.mag) == [0, 1, 2] and data.vehicle_type == 2
