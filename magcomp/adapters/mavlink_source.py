@@ -1827,7 +1827,9 @@ class _GnssCollector:
             data.decimal_year = float(np.median(np.frombuffer(self.years, dtype=np.float64)))
 
 
-def _throttle_rows(resolved: ResolvedThrottle, pwm: PwmRows, which: int, width: int = 0) -> Series:
+def _throttle_rows(
+    resolved: ResolvedThrottle, pwm: PwmRows, which: int, width: int = 0
+) -> Series:
     """Throttle (``which`` 0: the 0..1 throttle) or per-channel outputs (1) of every PWM row that gives one
     (:func:`throttle_from_pwm`, row by row: the same numbers as streaming)."""
     out = Rows(width)
