@@ -5,7 +5,9 @@ Type 128 (FMT) defines each message: type, length (header included), a 4-char na
 and the comma-separated field names. The format characters are ArduPilot's: ``Q`` uint64, ``B`` uint8,
 ``h``/``H`` int16/uint16, ``i``/``I`` int32/uint32, ``f`` float, ``N`` char[16], ``Z`` char[64],
 ``c``/``C`` int16/uint16 x 0.01, ``e`` int32 x 0.01, ``L`` int32 x 1e-7 (latitude/longitude); the reader
-(pymavlink's DFReader) applies the multipliers.
+(pymavlink's DFReader) applies the multipliers. As ArduPilot 4.x writes it, each FMT comes just before the
+first message of its type, and UNIT / MULT / FMTU messages give every field's unit and multiplier (``#``
+marks the instance field; the FMTU multipliers describe, DFReader does not apply them).
 
 Messages and field lists (ArduPilot 4.x ``LogStructure.h``):
     PARM  TimeUS,Name,Value,Default               once at the start (the autopilot's parameters)
@@ -66,17 +68,53 @@ FORMATS: dict[str, tuple[str, str]] = {
     "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
 }
 
+# units and multipliers of the fields (FMTU), ArduPilot 4.x; the ids' meanings in _UNITS / _MULTS
+FIELD_UNITS: dict[str, tuple[str, str]] = {
+    "PARM": ("s---", "F---"),
+    "MSG": ("s-", "F-"),
+    "IMU": ("s#EEEooo--O--zz", "F-000000-----00"),
+    "MAG": ("s#GGGGGGGGG-s", "F-CCCCCCCCC-F"),
+    "ATT": ("sddddhhdh-", "FBBBBBBBB-"),
+    "RCOU": ("sYYYYYYYYYYYYYY", "F--------------"),
+    "BAT": ("s#vvAaXOw", "F-000C0?0"),
+    "GPS": ("s#-s-S-DUmnhnh-", "F--C-0BGGB000--"),
+}
+_UNITS = {
+    "-": "", "#": "instance", "s": "s", "E": "rad/s", "o": "m/s/s", "O": "degC", "z": "Hz", "G": "Gauss",
+    "d": "deg", "h": "degheading", "Y": "us", "v": "V", "A": "A", "a": "Ah", "X": "Wh", "w": "Ohm",
+    "S": "satellites", "D": "deglatitude", "U": "deglongitude", "m": "m", "n": "m/s",
+}  # fmt: skip
+_MULTS = {"-": 0.0, "?": 1.0, "0": 1.0, "B": 1e-2, "C": 1e-3, "F": 1e-6, "G": 1e-7}
+
 
 class DataflashWriter:
     """Build a DataFlash log in memory: :meth:`define` each message (its FMT), then :meth:`add` messages in
-    time order, then :meth:`write`. Values are given in the stored units (``c`` centi-units, ``L`` 1e-7)."""
+    time order, then :meth:`write`. Values are given in the stored units (``c`` centi-units, ``L`` 1e-7).
 
-    def __init__(self) -> None:
+    ``lazy_formats``: each FMT is written just before the first message of its type, as ArduPilot 4.x writes
+    them (else all at the start). ``units``: UNIT and MULT tables and an FMTU (units and multipliers of
+    every field, ``#`` the instance field) after each FMT defined with ``units`` / ``mults``, as 4.x logs
+    have them (the multipliers there describe the fields; DFReader applies only the format characters')."""
+
+    def __init__(self, *, lazy_formats: bool = False, units: bool = False) -> None:
         self._fmts: list[bytes] = []
         self._data: list[bytes] = []
         self._types: dict[str, tuple[int, struct.Struct]] = {}
+        self._pending: dict[str, bytes] = {}
+        self.lazy = lazy_formats
+        self.units = units
+        if units:
+            self.define("UNIT", "QbZ", "TimeUS,Id,Label")
+            self.define("MULT", "Qbd", "TimeUS,Id,Mult")
+            self.define("FMTU", "QBNN", "TimeUS,FmtType,UnitIds,MultIds")
+            if self.lazy:  # FMTU's own FMT first: an FMTU follows each later FMT
+                self._data.append(self._pending.pop("FMTU"))
+            for uid, label in _UNITS.items():
+                self.add("UNIT", [0, ord(uid), label.encode()])
+            for mid, mult in _MULTS.items():
+                self.add("MULT", [0, ord(mid), mult])
 
-    def define(self, name: str, fmt: str, columns: str) -> None:
+    def define(self, name: str, fmt: str, columns: str, units: str = "", mults: str = "") -> None:
         if len(name) > 4 or len(fmt) > 16 or len(columns) > 64 or len(fmt) != len(columns.split(",")):
             raise ValueError(f"DataFlash format {name}: name <= 4, format <= 16, columns <= 64 chars")
         st = struct.Struct("<" + "".join(_STRUCT[c] for c in fmt))
@@ -85,10 +123,21 @@ class DataflashWriter:
             raise ValueError("too many DataFlash formats")
         self._types[name] = (mtype, st)
         body = struct.pack("<BB4s16s64s", mtype, 3 + st.size, name.encode(), fmt.encode(), columns.encode())
-        self._fmts.append(HEAD + bytes([FMT_TYPE]) + body)
+        out = HEAD + bytes([FMT_TYPE]) + body
+        if self.units and units and mults:
+            fmtu_type, fmtu = self._types["FMTU"]
+            out += HEAD + bytes([fmtu_type]) + fmtu.pack(0, mtype, units.encode(), mults.encode())
+
+        if self.lazy:
+            self._pending[name] = out
+        else:
+            self._fmts.append(out)
 
     def add(self, name: str, values: Sequence[Any]) -> None:
         mtype, st = self._types[name]
+        pending = self._pending.pop(name, None) if self.lazy else None
+        if pending is not None:
+            self._data.append(pending)
         self._data.append(HEAD + bytes([mtype]) + st.pack(*values))
 
     def to_bytes(self) -> bytes:
@@ -143,10 +192,14 @@ def write_sim_dataflash(
     *,
     start_unix_s: float | None = None,
     motor_comp: Sequence[Sequence[float]] | np.ndarray | None = None,
+    units: bool = True,
+    lazy_formats: bool = True,
 ) -> int:
     """Write ``result`` as an ArduPilot 4.x DataFlash log (see the module docstring); returns the number of
     data messages. ``motor_comp``: (J, 3) COMPASS_MOT*_X/Y/Z, mgauss per unit throttle (COMPASS_MOTCT = 1),
-    or None (COMPASS_MOTCT = 0)."""
+    or None (COMPASS_MOTCT = 0). ``units`` (UNIT, MULT, FMTU messages) and ``lazy_formats`` (each FMT just
+    before its first message) as ArduPilot 4.x writes them (:class:`DataflashWriter`); off: all FMT first,
+    no units, as older logs."""
     from magcomp.adapters.mavlink_emit import _pwm, _rate_indices, _raw_imu_rows, default_start_unix_s
 
     cfg = result.config
@@ -163,11 +216,11 @@ def write_sim_dataflash(
     start_unix = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
     t_us = np.round(s.t_s * 1e6).astype(np.int64)
 
-    w = DataflashWriter()
+    w = DataflashWriter(units=units, lazy_formats=lazy_formats)
     formats = dict(FORMATS)
     formats["CTUN"] = _COPTER_CTUN if multirotor else _PLANE_CTUN
     for mname, (fmt, cols) in formats.items():
-        w.define(mname, fmt, cols)
+        w.define(mname, fmt, cols, *FIELD_UNITS.get(mname, ("", "")))
 
     # the tlog twin's quantisation: gyro 1 mrad/s, accel 1 mG, compass 1 mgauss, PWM 1 us
     g = STANDARD_GRAVITY_M_S2

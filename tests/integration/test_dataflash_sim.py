@@ -196,3 +196,31 @@ def test_simulate_cli_writes_a_dataflash_bin(tmp_path: Path, capsys: pytest.Capt
     assert (tmp_path / "run.truth.json").exists() and "wrote" in capsys.readouterr().out
     data = load_log(out)
     assert sorted(data.mag) == [0, 1, 2] and data.vehicle_type == 2
+
+
+def test_units_and_lazy_formats_read_like_a_plain_log(
+    ordinary: tuple[SimResult, Path, Path], tmp_path: Path
+) -> None:
+    """ArduPilot 4.x writes each FMT just before its first message and UNIT / MULT / FMTU tables (FMTU's
+    ``#`` makes DFReader index the instance field, its multipliers only rename units): the same samples as a
+    log with every FMT first and no units."""
+    from pymavlink import DFReader
+
+    result, _, binf = ordinary  # written with units and lazy formats (the default)
+    plain = tmp_path / "plain.bin"
+    write_sim_dataflash(result, plain, units=False, lazy_formats=False)
+    reader = DFReader.DFReader_binary(str(binf))
+    try:
+        mag = reader.recv_match(type="MAG")
+    finally:
+        reader.close()
+    assert mag is not None and mag.fmt.instance_field == "I" and mag.fmt.units[2] == "mGauss"
+    assert isinstance(mag.MagX, int)  # still mgauss: the FMTU multiplier C is not applied
+    a, b = load_log(plain), load_log(binf)
+    assert "garbage_bytes" not in b.counts and b.counts["messages"] == a.counts["messages"]
+    for j in (0, 1):
+        _same_series(a.mag[j], b.mag[j], 0.0)
+    _same_series(a.attitude_rad, b.attitude_rad, 0.0)
+    _same_series(a.throttle_01, b.throttle_01, 0.0)
+    _same_series(a.position, b.position, 0.0)
+    assert a.params == b.params and a.decimal_year == b.decimal_year
