@@ -23,8 +23,10 @@ Units at this boundary (everything downstream uses them):
   ATT deg, RCOU C1.. / Ch1.. / Chan1.. us, CTUN ThO (0..1) or ThrOut (0..1000) (Plane's CTUN, the one with
   NavRoll: ThO / ThrOut in percent), CURR/BAT Volt and Curr
   (integer columns of old logs are cV / cA), PARM. When MAG records the motor compensation the autopilot
-  applied (MOfsX..), it is subtracted by default (``undo_motor_comp``) so that the field is the one the
-  motors actually disturbed. MAVLink compass fields carry no such record: with COMPASS_MOTCT = 1 / 2 the
+  applied (MOfsX.. / MOX..), it is subtracted by default (``undo_motor_comp``) so that the field is the one
+  the motors actually disturbed; not when the logged parameters say the autopilot applies none
+  (COMPASS_MOTCT = 0 and no per-motor compensation): a non-zero offset is then a corrupt record
+  (``motor_comp_ignored``). MAVLink compass fields carry no such record: with COMPASS_MOTCT = 1 / 2 the
   compensation is rebuilt from COMPASS_MOT*/MOT2*/MOT3* and VFR_HUD.throttle / SYS_STATUS current and
   subtracted from when they are known (:mod:`magcomp.adapters.ardupilot_motcomp`).
 - Time: the message's own timestamp (time_boot_ms, time_usec, DataFlash TimeUS / TimeMS) in s. Messages
@@ -800,9 +802,14 @@ class _Converter:
         if self.undo_motor_comp and hasattr(v, mo[0]):
             mofs = _vec(*(getattr(v, a) for a in mo))
             if mofs.any() and np.isfinite(mofs).all():
-                field = field - mofs
-                self.counts["motor_comp_removed"] += 1
-                self.onboard_comp.record(index, mofs)
+                if self._df_motor_comp_off(index):
+                    # the autopilot applied none (COMPASS_MOTCT = 0, no per-motor compensation): a corrupt
+                    # record (DataFlash has no checksum), the logged field is the one it used
+                    self.counts["motor_comp_ignored"] += 1
+                else:
+                    field = field - mofs
+                    self.counts["motor_comp_removed"] += 1
+                    self.onboard_comp.record(index, mofs)
         if not np.isfinite(field).all():
             self.counts["nonfinite"] += 1
             return []
@@ -811,6 +818,15 @@ class _Converter:
             return []
         t_s = self.clock.stamp(stream, raw_s)
         return [] if t_s is None else [("MAG", MagSample(t_s, field, index))]
+
+    def _df_motor_comp_off(self, index: int) -> bool:
+        """True when the logged parameters say the autopilot adds no motor offset to compass ``index``:
+        COMPASS_MOTCT = 0 and, for compass 0, no per-motor compensation (COMPASS_PMOT_EN). Unknown parameters
+        (none logged yet): False."""
+        params = self.onboard_comp.params
+        if params.get("COMPASS_MOTCT", math.nan) != 0.0:  # NaN (not logged) != 0: not known to be off
+            return False
+        return not (index == 0 and params.get("COMPASS_PMOT_EN", 0.0))
 
     def _df_imu(self, v: Any, stream: str, raw_s: float, index: int) -> list[tuple[str, Record]]:
         gyro = _vec(v.GyrX, v.GyrY, v.GyrZ)

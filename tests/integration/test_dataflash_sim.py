@@ -224,3 +224,45 @@ def test_units_and_lazy_formats_read_like_a_plain_log(
     _same_series(a.throttle_01, b.throttle_01, 0.0)
     _same_series(a.position, b.position, 0.0)
     assert a.params == b.params and a.decimal_year == b.decimal_year
+
+
+def _mag_log(path: Path, params: dict[str, float], mox: list[int]) -> None:
+    """A small 4.x log: PARMs, ATT and MAG (compass 0, field (200, -100, 400) mgauss as logged) whose MOX is
+    ``mox[k]`` in message k."""
+    from magcomp.adapters.dataflash_writer import FORMATS, DataflashWriter
+
+    w = DataflashWriter(units=True, lazy_formats=True)
+    for name in ("PARM", "MSG", "ATT", "MAG"):
+        w.define(name, *FORMATS[name])
+    w.add("MSG", [1000, b"ArduCopter V4.5.7"])
+    for name, value in params.items():
+        w.add("PARM", [1000, name.encode(), value, value])
+    for k, mo in enumerate(mox):
+        t = 2000 + 20_000 * k
+        w.add("ATT", [t, 0, 0, 0, 0, 9000, 9000, 0, 0, 3])
+        w.add("MAG", [t + 10, 0, 200, -100, 400, 0, 0, 0, mo, 0, 0, 1, t])
+    w.write(path)
+
+
+def test_mag_motor_offset_with_compensation_off_is_not_subtracted(tmp_path: Path) -> None:
+    """With COMPASS_MOTCT = 0 the autopilot adds no motor offset: a non-zero MOX is a corrupt record (a byte
+    hit; DataFlash has no checksum). Subtracting it made a jump in the field and a warning that the
+    autopilot's compensation (off) 'was wrong'."""
+    mox = [0] * 50
+    mox[10], mox[30] = 8000, -5000  # two hit records
+    off = tmp_path / "off.bin"
+    _mag_log(off, {"COMPASS_MOTCT": 0.0, "COMPASS_MOT_X": 0.0}, mox)
+    data = load_log(off)
+    np.testing.assert_array_equal(data.mag[0].values, np.tile([200.0, -100.0, 400.0], (50, 1)))
+    assert data.counts["motor_comp_ignored"] == 2 and "motor_comp_removed" not in data.counts
+    # COMPASS_MOTCT = 1 (or the parameters unknown): the logged offset is the autopilot's, undone
+    for params in ({"COMPASS_MOTCT": 1.0, "COMPASS_MOT_X": 50.0}, {}):
+        on = tmp_path / "on.bin"
+        _mag_log(on, params, [25] * 50)
+        got = load_log(on)
+        np.testing.assert_array_equal(got.mag[0].values, np.tile([175.0, -100.0, 400.0], (50, 1)))
+        assert got.counts["motor_comp_removed"] == 50
+    # per-motor compensation (compass 0) adds an offset whatever COMPASS_MOTCT says
+    pm = tmp_path / "pmot.bin"
+    _mag_log(pm, {"COMPASS_MOTCT": 0.0, "COMPASS_PMOT_EN": 1.0}, [25] * 50)
+    assert load_log(pm).counts["motor_comp_removed"] == 50
