@@ -1157,6 +1157,34 @@ _DF_FMT_LEN = 89
 # (0.05-0.5 s of a log at 16-160 KiB/s) covers points seen every ~5 KiB, i.e. damage rates down to ~0.03 %
 # of bytes, for at most 16 KiB of lost data per isolated point.
 DAMAGE_MARGIN_BYTES = 8192
+#: bytes of each DataFlash format character (ArduPilot's AP_Logger; what DFReader unpacks)
+_DF_CHAR_BYTES = {
+    "a": 64, "b": 1, "B": 1, "g": 2, "h": 2, "H": 2, "i": 4, "I": 4, "f": 4, "n": 4, "N": 16, "Z": 64, "c": 2,
+    "C": 2, "e": 4, "E": 4, "L": 4, "d": 8, "M": 1, "q": 8, "Q": 8,
+}  # fmt: skip
+
+
+def _df_fmt_valid(data: Any, p: int) -> bool:
+    """An FMT message at ``p`` whose definition holds together: known format characters whose sizes add up to
+    its length, a name and one column per character. DataFlash has no checksum: a byte hit in a format string
+    would otherwise define a message wrongly (or make pymavlink's reader raise)."""
+    body = bytes(data[p + 3 : p + _DF_FMT_LEN])
+    length = body[1]
+    fmt = body[6:22].split(b"\0", 1)[0]
+    cols = body[22:86].split(b"\0", 1)[0]
+    name = body[2:6].split(b"\0", 1)[0]
+    try:
+        fmt_s, cols_s, name_s = fmt.decode("ascii"), cols.decode("ascii"), name.decode("ascii")
+    except UnicodeDecodeError:
+        return False
+    if not name_s.isprintable() or not name_s or not cols_s.isprintable():
+        return False
+    if any(c not in _DF_CHAR_BYTES for c in fmt_s):
+        return False
+    if body[0] == _DF_FMT_TYPE:
+        return length == _DF_FMT_LEN
+    n_cols = len(cols_s.split(",")) if cols_s else 0  # old logs define empty messages (STRT: no fields)
+    return 3 + sum(_DF_CHAR_BYTES[c] for c in fmt_s) == length and n_cols == len(fmt_s)
 
 
 class IntactSpans(NamedTuple):
@@ -1168,14 +1196,26 @@ class IntactSpans(NamedTuple):
     resyncs: int  # points of damage resynchronised past
 
 
+def _df_framed_next(data: Any, q: int, lengths: dict[int, int], n: int) -> bool:
+    """A message of a known type starts at ``q`` and ends where the next header (or the file) starts."""
+    if q < 0 or q + 3 > n:
+        return False
+    mlen = lengths.get(data[q + 2])
+    end = q + mlen if mlen else -1
+    return bool(mlen) and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95))
+
+
 def dataflash_intact_spans(
     data: bytes | memoryview | mmap.mmap, margin_bytes: int = DAMAGE_MARGIN_BYTES
 ) -> IntactSpans:
     """The byte ranges of a binary DataFlash log that hold whole messages, and how many bytes lie between
     them (damage). A message is believed when its type is known (from the FMT messages before it), the next
     message header (or the end of the file) follows it exactly, and it lies more than ``margin_bytes`` from
-    any damage (FMT messages excepted: the formats are kept so that later messages stay readable); anything
-    else is skipped up to the next header. pymavlink's reader stops indexing at the first unknown message
+    any damage (FMT messages excepted: the formats are kept so that later messages stay readable, also those
+    within the margin before it); anything else is skipped up to the next header. An FMT whose definition
+    does not hold together (format characters, length, columns: a byte hit inside it) is not believed, and
+    messages of a type without a believed FMT are skipped, not taken for damage, when a whole message of a
+    known type follows them (else one lost FMT quarantined the whole log). pymavlink's reader stops indexing at the first unknown message
     type, dropping the rest of a damaged log, and prints about every bad byte: it gets the believed messages
     only."""
     n = len(data)
@@ -1195,7 +1235,16 @@ def dataflash_intact_spans(
         mtype = data[p + 2]
         mlen = lengths.get(mtype)
         end = p + mlen if mlen else -1
-        if mlen and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95)):
+        framed = mlen and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95))
+        if framed and mtype == _DF_FMT_TYPE and not _df_fmt_valid(data, p):
+            # a whole FMT whose definition does not hold together (a byte hit inside it): skipped alone, its
+            # type's messages then skipped as types without an FMT, the rest believed
+            if p > start and p >= quarantine_end:
+                spans.append((start, p))
+            skipped += end - p
+            p = start = end
+            continue
+        if framed:
             if mtype == _DF_FMT_TYPE and data[p + 4] >= 3:
                 lengths[data[p + 3]] = data[p + 4]
             if p < quarantine_end:
@@ -1208,15 +1257,31 @@ def dataflash_intact_spans(
             continue
         if mlen and end > n:  # a message cut by the end of the file
             break
+        q = find(_DF_HEAD, p + 1) if not mlen else -1
+        hops = 0
+        while q >= 0 and q + 3 <= n and data[q + 2] not in lengths and hops < 8:
+            q, hops = find(_DF_HEAD, q + 1), hops + 1  # more messages of types without a believed FMT
+        if not mlen and _df_framed_next(data, q, lengths, n):
+            # types without a (believed) FMT before a whole message: those messages only are skipped, not
+            # damage (their FMT was lost: counting each of their messages as damage quarantined the whole log)
+            if p > start and p >= quarantine_end:
+                spans.append((start, p))
+            skipped += q - p
+            p = start = q
+            continue
         # damage: close the intact span short of the margin and resynchronise on the next header (no header
         # after it: the log's unfinished last write, nothing to distrust)
         q = find(_DF_HEAD, p + 1)
         q = n if q < 0 else q
         cut = p
+        formats: list[int] = []  # FMT messages within the margin before the damage: kept all the same
         while q < n and recent and recent[-1] > p - margin_bytes and recent[-1] >= start:
             cut = recent.pop()
+            if data[cut + 2] == _DF_FMT_TYPE:
+                formats.append(cut)
         if cut > start:
             spans.append((start, cut))
+        spans.extend((f, f + _DF_FMT_LEN) for f in reversed(formats))
         recent.clear()
         skipped += q - p
         resyncs += q < n

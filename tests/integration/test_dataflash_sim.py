@@ -266,3 +266,56 @@ def test_mag_motor_offset_with_compensation_off_is_not_subtracted(tmp_path: Path
     pm = tmp_path / "pmot.bin"
     _mag_log(pm, {"COMPASS_MOTCT": 0.0, "COMPASS_PMOT_EN": 1.0}, [25] * 50)
     assert load_log(pm).counts["motor_comp_removed"] == 50
+
+
+@pytest.fixture(scope="module")
+def plain_bin(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """A 60 s ordinary flight, every FMT first (FMT, PARM, MSG, IMU, MAG, ATT, RCOU, BAT, GPS, CTUN)."""
+    path = tmp_path_factory.mktemp("plain") / "plain.bin"
+    write_sim_dataflash(simulate(SimConfig(scenario="ordinary", duration_s=60.0, seed=2)), path, units=False,
+                        lazy_formats=False)  # fmt: skip
+    return path.read_bytes()
+
+
+def _fmt_offset(data: bytes, name: str) -> int:
+    for p in range(0, 4096, 89):
+        if data[p : p + 3] == b"\xa3\x95\x80" and data[p + 5 : p + 9].rstrip(b"\0") == name.encode():
+            return p
+    raise AssertionError(name)
+
+
+@pytest.mark.parametrize("hit", ["format_char", "length"])
+def test_a_byte_hit_in_one_fmt_loses_that_message_type_only(
+    plain_bin: bytes, tmp_path: Path, hit: str
+) -> None:
+    """A byte hit inside an FMT (DataFlash has no checksum): a bad format character made pymavlink's reader
+    raise (a traceback, not a one-line error), a bad length made every CTUN look like damage (the samples
+    around each dropped). Now that FMT is not believed and only its type's messages are skipped."""
+    p = _fmt_offset(plain_bin, "CTUN")
+    data = bytearray(plain_bin)
+    if hit == "format_char":
+        data[p + 3 + 6 + 3] = ord("\\")
+    else:
+        data[p + 4] = 200
+    path = tmp_path / "hit.bin"
+    path.write_bytes(bytes(data))
+    got = load_log(path)
+    assert {k: len(v) for k, v in got.mag.items()} == {0: 3000, 1: 3000}
+    assert len(got.attitude_rad) == 1500 and len(got.params) == 55 and got.throttle_source == "motors:1,2,3,4"
+    assert got.counts["dataflash_resyncs"] == 0 and got.counts["garbage_bytes"] > 0  # the CTUNs skipped
+
+
+def test_fmts_just_before_damage_are_kept(plain_bin: bytes, tmp_path: Path) -> None:
+    """Damage a little after the FMT block (and more later in the log): the FMTs within the damage margin
+    before it were dropped with the other messages there, so no later message had a format ("no DataFlash
+    messages found")."""
+    p = plain_bin.find(b"\xa3\x95", _fmt_offset(plain_bin, "CTUN") + 89 + 1000)
+    q = plain_bin.find(b"\xa3\x95", len(plain_bin) // 2)
+    data = bytearray(plain_bin)
+    data[p] ^= 0xFF  # two message headers hit
+    data[q] ^= 0xFF
+    path = tmp_path / "hit.bin"
+    path.write_bytes(bytes(data))
+    got = load_log(path)
+    assert got.counts["dataflash_resyncs"] == 2
+    assert len(got.mag[0]) > 0.9 * 3000 and len(got.attitude_rad) > 0.9 * 1500
