@@ -1214,12 +1214,13 @@ def dataflash_intact_spans(
     any damage (FMT messages excepted: the formats are kept so that later messages stay readable, also those
     within the margin before it); anything else is skipped up to the next header. An FMT whose definition
     does not hold together (format characters, length, columns: a byte hit inside it) is not believed, and
-    messages of a type without a believed FMT are skipped, not taken for damage, when a whole message of a
-    known type follows them (else one lost FMT quarantined the whole log). pymavlink's reader stops indexing at the first unknown message
-    type, dropping the rest of a damaged log, and prints about every bad byte: it gets the believed messages
-    only."""
+    messages of a type whose FMT was seen but not believed are skipped, not taken for damage, when a whole
+    message of a known type follows them (else one lost FMT quarantined the whole log). pymavlink's reader
+    stops indexing at the first unknown message type, dropping the rest of a damaged log, and prints about
+    every bad byte: it gets the believed messages only."""
     n = len(data)
     lengths: dict[int, int] = {_DF_FMT_TYPE: _DF_FMT_LEN}
+    lost: set[int] = set()  # types whose FMT was seen but not believed
     spans: list[tuple[int, int]] = []
     skipped = 0
     find = bytes(data).find if isinstance(data, memoryview) else data.find
@@ -1241,6 +1242,7 @@ def dataflash_intact_spans(
             # type's messages then skipped as types without an FMT, the rest believed
             if p > start and p >= quarantine_end:
                 spans.append((start, p))
+            lost.add(data[p + 3])
             skipped += end - p
             p = start = end
             continue
@@ -1257,13 +1259,14 @@ def dataflash_intact_spans(
             continue
         if mlen and end > n:  # a message cut by the end of the file
             break
-        q = find(_DF_HEAD, p + 1) if not mlen else -1
+        q = find(_DF_HEAD, p + 1) if mtype in lost else -1
         hops = 0
-        while q >= 0 and q + 3 <= n and data[q + 2] not in lengths and hops < 8:
-            q, hops = find(_DF_HEAD, q + 1), hops + 1  # more messages of types without a believed FMT
-        if not mlen and _df_framed_next(data, q, lengths, n):
-            # types without a (believed) FMT before a whole message: those messages only are skipped, not
-            # damage (their FMT was lost: counting each of their messages as damage quarantined the whole log)
+        while q >= 0 and q + 3 <= n and data[q + 2] in lost and hops < 8:
+            q, hops = find(_DF_HEAD, q + 1), hops + 1  # more messages of types whose FMT was lost
+        if mtype in lost and _df_framed_next(data, q, lengths, n):
+            # types whose FMT was seen but not believed, before a whole message: those messages only are
+            # skipped, not damage (counting each of them as damage quarantined the whole log); any other
+            # unknown type is damage (a hit type byte)
             if p > start and p >= quarantine_end:
                 spans.append((start, p))
             skipped += q - p
@@ -1271,6 +1274,8 @@ def dataflash_intact_spans(
             continue
         # damage: close the intact span short of the margin and resynchronise on the next header (no header
         # after it: the log's unfinished last write, nothing to distrust)
+        if mtype == _DF_FMT_TYPE and p + 4 <= n and data[p + 3] not in lengths:
+            lost.add(data[p + 3])  # an FMT not believed (its framing hit): its type's messages have no format
         q = find(_DF_HEAD, p + 1)
         q = n if q < 0 else q
         cut = p
