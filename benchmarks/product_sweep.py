@@ -124,7 +124,8 @@ def read_headings(path: Path) -> list[Est]:
 
 def _sim(name: str, scenario: str, settings: list[str], duration: float | None, seed: int,
          n_compasses: int = 2, effects: dict[str, float] | None = None, ulog: bool = False,
-         dataflash: bool = False) -> Callable[[Path], tuple[Path, Any]]:  # fmt: skip
+         dataflash: bool = False,
+         dataflash_4x: bool = False) -> Callable[[Path], tuple[Path, Any]]:  # fmt: skip
     def build(tmp: Path) -> tuple[Path, Any]:
         from magcomp.adapters.mavlink_emit import write_tlog, write_truth
 
@@ -132,8 +133,12 @@ def _sim(name: str, scenario: str, settings: list[str], duration: float | None, 
                         effects=effects or {})  # fmt: skip
         cfg = apply_settings(cfg, settings) if settings else cfg
         result = simulate(cfg)
-        path = tmp / (name + (".ulg" if ulog else ".bin" if dataflash else ".tlog"))
-        if dataflash:  # the tests' minimal ArduPilot DataFlash writer (FMT, MSG, IMU, MAG, CTUN)
+        path = tmp / (name + (".ulg" if ulog else ".bin" if dataflash or dataflash_4x else ".tlog"))
+        if dataflash_4x:  # as ArduPilot 4.x logs it (PARM, MSG, IMU, MAG, ATT, RCOU, CTUN, BAT, GPS)
+            from magcomp.adapters.dataflash_writer import write_sim_dataflash
+
+            write_sim_dataflash(result, path)
+        elif dataflash:  # the tests' minimal ArduPilot DataFlash writer (FMT, MSG, IMU, MAG, CTUN)
             from tests.faultgen import write_dataflash
 
             write_dataflash(result, path)
@@ -304,6 +309,15 @@ def cases(seed: int, quick: bool) -> list[Case]:
         Case("no_gps_msgs", _damaged("no_gps_msgs", ordinary, _drop(GPS_IDS), keep_truth=True)),
         Case(
             "dataflash_bin", _sim("dataflash_bin", "ordinary", ["theta_scale=6"], d, s + 34, dataflash=True)
+        ),
+        Case(
+            "dataflash_4x",
+            _sim("dataflash_4x", "ordinary", ["theta_scale=6"], d, s + 36, dataflash_4x=True),
+            causal=True,
+        ),
+        Case(
+            "dataflash_4x_plane",
+            _sim("dataflash_4x_plane", "ordinary_plane", [], d, s + 37, dataflash_4x=True),
         ),
         Case(
             "flipped_bin",

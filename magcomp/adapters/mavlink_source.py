@@ -20,10 +20,13 @@ Units at this boundary (everything downstream uses them):
   BATTERY_STATUS (cell voltages mV summed, current cA) is used for battery 0 only while SYS_STATUS has not
   reported a current.
 - DataFlash: MAG/MAG2/MAG3 (or MAG with instance field I) in mgauss, IMU GyrX.. rad/s and AccX.. m/s^2,
-  ATT deg, RCOU C1.. / Ch1.. / Chan1.. us, CTUN ThO (0..1) or ThrOut (0..1000), CURR/BAT Volt and Curr
+  ATT deg, RCOU C1.. / Ch1.. / Chan1.. us, CTUN ThO (0..1) or ThrOut (0..1000) (Plane's CTUN, the one with
+  NavRoll: ThO / ThrOut in percent), CURR/BAT Volt and Curr
   (integer columns of old logs are cV / cA), PARM. When MAG records the motor compensation the autopilot
-  applied (MOfsX..), it is subtracted by default (``undo_motor_comp``) so that the field is the one the
-  motors actually disturbed. MAVLink compass fields carry no such record: with COMPASS_MOTCT = 1 / 2 the
+  applied (MOfsX.. / MOX..), it is subtracted by default (``undo_motor_comp``) so that the field is the one
+  the motors actually disturbed; not when the logged parameters say the autopilot applies none
+  (COMPASS_MOTCT = 0 and no per-motor compensation): a non-zero offset is then a corrupt record
+  (``motor_comp_ignored``). MAVLink compass fields carry no such record: with COMPASS_MOTCT = 1 / 2 the
   compensation is rebuilt from COMPASS_MOT*/MOT2*/MOT3* and VFR_HUD.throttle / SYS_STATUS current and
   subtracted from when they are known (:mod:`magcomp.adapters.ardupilot_motcomp`).
 - Time: the message's own timestamp (time_boot_ms, time_usec, DataFlash TimeUS / TimeMS) in s. Messages
@@ -698,7 +701,12 @@ class _Converter:
             return []
         base = mtype.rstrip("0123456789")
         suffix = mtype[len(base) :]
-        index = int(getattr(v, "I", getattr(v, "Inst", 0))) if not suffix else int(suffix) - 1
+        # the instance field: I (MAG, IMU, GPS), Inst (BAT in recent 4.x) or Instance (BAT in early 4.x)
+        index = (
+            int(getattr(v, "I", getattr(v, "Inst", getattr(v, "Instance", 0))))
+            if not suffix
+            else int(suffix) - 1
+        )
         if base in ("MAG", "IMU") and not 0 <= index < DATAFLASH_MAX_INSTANCES:
             # DataFlash has no checksum: a corrupt instance byte would make a phantom compass or IMU
             self.counts["dataflash_bad_instance"] += 1
@@ -720,7 +728,9 @@ class _Converter:
         if base == "RCOU":
             return self._df_rcou(v, stream, raw_s)
         if base == "CTUN":
-            if hasattr(v, "ThO"):
+            if hasattr(v, "NavRoll"):  # Plane's CTUN: ThO (4.x) / ThrOut (3.x) in percent
+                thr = float(getattr(v, "ThO", getattr(v, "ThrOut", math.nan))) * 0.01
+            elif hasattr(v, "ThO"):
                 thr = float(v.ThO)
             elif hasattr(v, "ThrOut"):
                 thr = v.ThrOut * 1e-3 if isinstance(v.ThrOut, int) else float(v.ThrOut)
@@ -792,9 +802,14 @@ class _Converter:
         if self.undo_motor_comp and hasattr(v, mo[0]):
             mofs = _vec(*(getattr(v, a) for a in mo))
             if mofs.any() and np.isfinite(mofs).all():
-                field = field - mofs
-                self.counts["motor_comp_removed"] += 1
-                self.onboard_comp.record(index, mofs)
+                if self._df_motor_comp_off(index):
+                    # the autopilot applied none (COMPASS_MOTCT = 0, no per-motor compensation): a corrupt
+                    # record (DataFlash has no checksum), the logged field is the one it used
+                    self.counts["motor_comp_ignored"] += 1
+                else:
+                    field = field - mofs
+                    self.counts["motor_comp_removed"] += 1
+                    self.onboard_comp.record(index, mofs)
         if not np.isfinite(field).all():
             self.counts["nonfinite"] += 1
             return []
@@ -803,6 +818,15 @@ class _Converter:
             return []
         t_s = self.clock.stamp(stream, raw_s)
         return [] if t_s is None else [("MAG", MagSample(t_s, field, index))]
+
+    def _df_motor_comp_off(self, index: int) -> bool:
+        """True when the logged parameters say the autopilot adds no motor offset to compass ``index``:
+        COMPASS_MOTCT = 0 and, for compass 0, no per-motor compensation (COMPASS_PMOT_EN). Unknown parameters
+        (none logged yet): False."""
+        params = self.onboard_comp.params
+        if params.get("COMPASS_MOTCT", math.nan) != 0.0:  # NaN (not logged) != 0: not known to be off
+            return False
+        return not (index == 0 and params.get("COMPASS_PMOT_EN", 0.0))
 
     def _df_imu(self, v: Any, stream: str, raw_s: float, index: int) -> list[tuple[str, Record]]:
         gyro = _vec(v.GyrX, v.GyrY, v.GyrZ)
@@ -1133,6 +1157,34 @@ _DF_FMT_LEN = 89
 # (0.05-0.5 s of a log at 16-160 KiB/s) covers points seen every ~5 KiB, i.e. damage rates down to ~0.03 %
 # of bytes, for at most 16 KiB of lost data per isolated point.
 DAMAGE_MARGIN_BYTES = 8192
+#: bytes of each DataFlash format character (ArduPilot's AP_Logger; what DFReader unpacks)
+_DF_CHAR_BYTES = {
+    "a": 64, "b": 1, "B": 1, "g": 2, "h": 2, "H": 2, "i": 4, "I": 4, "f": 4, "n": 4, "N": 16, "Z": 64, "c": 2,
+    "C": 2, "e": 4, "E": 4, "L": 4, "d": 8, "M": 1, "q": 8, "Q": 8,
+}  # fmt: skip
+
+
+def _df_fmt_valid(data: Any, p: int) -> bool:
+    """An FMT message at ``p`` whose definition holds together: known format characters whose sizes add up to
+    its length, a name and one column per character. DataFlash has no checksum: a byte hit in a format string
+    would otherwise define a message wrongly (or make pymavlink's reader raise)."""
+    body = bytes(data[p + 3 : p + _DF_FMT_LEN])
+    length = body[1]
+    fmt = body[6:22].split(b"\0", 1)[0]
+    cols = body[22:86].split(b"\0", 1)[0]
+    name = body[2:6].split(b"\0", 1)[0]
+    try:
+        fmt_s, cols_s, name_s = fmt.decode("ascii"), cols.decode("ascii"), name.decode("ascii")
+    except UnicodeDecodeError:
+        return False
+    if not name_s.isprintable() or not name_s or not cols_s.isprintable():
+        return False
+    if any(c not in _DF_CHAR_BYTES for c in fmt_s):
+        return False
+    if body[0] == _DF_FMT_TYPE:
+        return length == _DF_FMT_LEN
+    n_cols = len(cols_s.split(",")) if cols_s else 0  # old logs define empty messages (STRT: no fields)
+    return 3 + sum(_DF_CHAR_BYTES[c] for c in fmt_s) == length and n_cols == len(fmt_s)
 
 
 class IntactSpans(NamedTuple):
@@ -1144,18 +1196,31 @@ class IntactSpans(NamedTuple):
     resyncs: int  # points of damage resynchronised past
 
 
+def _df_framed_next(data: Any, q: int, lengths: dict[int, int], n: int) -> bool:
+    """A message of a known type starts at ``q`` and ends where the next header (or the file) starts."""
+    if q < 0 or q + 3 > n:
+        return False
+    mlen = lengths.get(data[q + 2])
+    end = q + mlen if mlen else -1
+    return bool(mlen) and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95))
+
+
 def dataflash_intact_spans(
     data: bytes | memoryview | mmap.mmap, margin_bytes: int = DAMAGE_MARGIN_BYTES
 ) -> IntactSpans:
     """The byte ranges of a binary DataFlash log that hold whole messages, and how many bytes lie between
     them (damage). A message is believed when its type is known (from the FMT messages before it), the next
     message header (or the end of the file) follows it exactly, and it lies more than ``margin_bytes`` from
-    any damage (FMT messages excepted: the formats are kept so that later messages stay readable); anything
-    else is skipped up to the next header. pymavlink's reader stops indexing at the first unknown message
-    type, dropping the rest of a damaged log, and prints about every bad byte: it gets the believed messages
-    only."""
+    any damage (FMT messages excepted: the formats are kept so that later messages stay readable, also those
+    within the margin before it); anything else is skipped up to the next header. An FMT whose definition
+    does not hold together (format characters, length, columns: a byte hit inside it) is not believed, and
+    messages of a type whose FMT was seen but not believed are skipped, not taken for damage, when a whole
+    message of a known type follows them (else one lost FMT quarantined the whole log). pymavlink's reader
+    stops indexing at the first unknown message type, dropping the rest of a damaged log, and prints about
+    every bad byte: it gets the believed messages only."""
     n = len(data)
     lengths: dict[int, int] = {_DF_FMT_TYPE: _DF_FMT_LEN}
+    lost: set[int] = set()  # types whose FMT was seen but not believed
     spans: list[tuple[int, int]] = []
     skipped = 0
     find = bytes(data).find if isinstance(data, memoryview) else data.find
@@ -1171,7 +1236,17 @@ def dataflash_intact_spans(
         mtype = data[p + 2]
         mlen = lengths.get(mtype)
         end = p + mlen if mlen else -1
-        if mlen and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95)):
+        framed = mlen and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95))
+        if framed and mtype == _DF_FMT_TYPE and not _df_fmt_valid(data, p):
+            # a whole FMT whose definition does not hold together (a byte hit inside it): skipped alone, its
+            # type's messages then skipped as types without an FMT, the rest believed
+            if p > start and p >= quarantine_end:
+                spans.append((start, p))
+            lost.add(data[p + 3])
+            skipped += end - p
+            p = start = end
+            continue
+        if framed:
             if mtype == _DF_FMT_TYPE and data[p + 4] >= 3:
                 lengths[data[p + 3]] = data[p + 4]
             if p < quarantine_end:
@@ -1184,15 +1259,34 @@ def dataflash_intact_spans(
             continue
         if mlen and end > n:  # a message cut by the end of the file
             break
+        q = find(_DF_HEAD, p + 1) if mtype in lost else -1
+        hops = 0
+        while q >= 0 and q + 3 <= n and data[q + 2] in lost and hops < 8:
+            q, hops = find(_DF_HEAD, q + 1), hops + 1  # more messages of types whose FMT was lost
+        if mtype in lost and _df_framed_next(data, q, lengths, n):
+            # types whose FMT was seen but not believed, before a whole message: those messages only are
+            # skipped, not damage (counting each of them as damage quarantined the whole log); any other
+            # unknown type is damage (a hit type byte)
+            if p > start and p >= quarantine_end:
+                spans.append((start, p))
+            skipped += q - p
+            p = start = q
+            continue
         # damage: close the intact span short of the margin and resynchronise on the next header (no header
         # after it: the log's unfinished last write, nothing to distrust)
+        if mtype == _DF_FMT_TYPE and p + 4 <= n and data[p + 3] not in lengths:
+            lost.add(data[p + 3])  # an FMT not believed (its framing hit): its type's messages have no format
         q = find(_DF_HEAD, p + 1)
         q = n if q < 0 else q
         cut = p
+        formats: list[int] = []  # FMT messages within the margin before the damage: kept all the same
         while q < n and recent and recent[-1] > p - margin_bytes and recent[-1] >= start:
             cut = recent.pop()
+            if data[cut + 2] == _DF_FMT_TYPE:
+                formats.append(cut)
         if cut > start:
             spans.append((start, cut))
+        spans.extend((f, f + _DF_FMT_LEN) for f in reversed(formats))
         recent.clear()
         skipped += q - p
         resyncs += q < n

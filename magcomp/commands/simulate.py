@@ -77,8 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out = parser.add_mutually_exclusive_group(required=True)
     out.add_argument(
         "--out",
-        metavar="FILE.tlog",
-        help="write a tlog (or a PX4 ULog when FILE ends in .ulg) and FILE.truth.json / FILE.truth.npz",
+        metavar="FILE.tlog|FILE.ulg|FILE.bin",
+        help="write a tlog (a PX4 ULog when FILE ends in .ulg, an ArduPilot 4.x DataFlash log when it ends "
+        "in .bin) and FILE.truth.json / FILE.truth.npz",
     )
     out.add_argument("--link", metavar="URL", help="live endpoint: udpout:HOST:PORT or tcpout:HOST:PORT")
     parser.add_argument(
@@ -158,6 +159,10 @@ def execute(args: argparse.Namespace) -> int:
                 from magcomp.adapters.ulog_writer import write_sim_ulog
 
                 count = write_sim_ulog(result, args.out)  # PX4 ULog (sensor_mag, sensor_combined, ...)
+            elif str(args.out).lower().endswith(".bin"):
+                from magcomp.adapters.dataflash_writer import write_sim_dataflash
+
+                count = write_sim_dataflash(result, args.out)  # ArduPilot 4.x DataFlash (MAG, ATT, RCOU, ...)
             else:
                 count = write_tlog(result, args.out)
             json_path, npz_path = write_truth(result, args.out)
