@@ -33,13 +33,12 @@ import math
 import os
 import struct
 from collections.abc import Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from magcomp.adapters.files import write_file
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
-from magcomp.errors import InputError
 
 if TYPE_CHECKING:
     from magcomp.sim.simulate import SimResult
@@ -146,10 +145,7 @@ class DataflashWriter:
         return HEAD + bytes([FMT_TYPE]) + fmt_fmt + b"".join(self._fmts) + b"".join(self._data)
 
     def write(self, path: str | os.PathLike[str]) -> int:
-        try:
-            Path(path).write_bytes(self.to_bytes())
-        except OSError as exc:
-            raise InputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+        write_file(path, self.to_bytes())
         return len(self._data)
 
 

@@ -31,6 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.adapters.files import write_file
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 from magcomp.errors import InputError
 from magcomp.sim.simulate import SimResult
@@ -560,10 +561,7 @@ def write_tlog(
     for t, pkt in packets:
         chunks.append(round((start + t) * 1e6).to_bytes(8, "big"))
         chunks.append(pkt)
-    try:
-        Path(path).write_bytes(b"".join(chunks))
-    except OSError as exc:
-        raise InputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+    write_file(path, b"".join(chunks))
     return len(packets)
 
 

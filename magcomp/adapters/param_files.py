@@ -16,6 +16,7 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from magcomp.adapters.files import write_file
 from magcomp.errors import InputError
 
 MAV_PARAM_TYPE_INT32 = 6
@@ -68,10 +69,7 @@ def write_param_file(
         text, kind = format_mission_planner_param(params), "Mission Planner"
     else:
         raise InputError(f"{path}: use .params (QGroundControl) or .param (Mission Planner)")
-    try:
-        Path(path).write_text(text, encoding="ascii")
-    except OSError as exc:
-        raise InputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+    write_file(path, text.encode("ascii"))
     return kind
 
 

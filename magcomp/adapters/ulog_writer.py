@@ -22,12 +22,11 @@ import os
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from magcomp.errors import InputError
+from magcomp.adapters.files import write_file
 
 if TYPE_CHECKING:
     from magcomp.sim.simulate import SimResult
@@ -127,10 +126,7 @@ class UlogWriter:
         return header + flags + b"".join(self._definitions) + b"".join(self._data)
 
     def write(self, path: str | os.PathLike[str]) -> int:
-        try:
-            Path(path).write_bytes(self.to_bytes())
-        except OSError as exc:
-            raise InputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+        write_file(path, self.to_bytes())
         return len(self._data)
 
 
