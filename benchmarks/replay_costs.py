@@ -5,9 +5,15 @@
   (and scipy.optimize, which a replay no longer imports);
 * the observer: the whole :func:`~magcomp.core.observer.observer_step` against its theta-independent half
   (rotation increment, regressor, eq. (21) excitation, the sec. II-D low-pass on the regression), which
-  depends on the inputs alone and so could be computed over a block of samples in a learn-only pass.
+  depends on the inputs alone and so could be computed over a block of samples in a learn-only pass;
+* ``--inflight``: the in-flight calibration's layers on a simulated 10 min flight (the ordinary scenario,
+  calibration and theta learned in flight): a two-pass replay with the stage inline (no forked children), in
+  fresh processes, with one layer more switched on in each: no ``feed`` at all, ``feed``'s bookkeeping without
+  window rows, the rows built but not added to the estimators, everything. Each difference is that layer's
+  CPU; beside them the budget that issue 13's 1.0x leaves the stage on two cores (twice the parse-only
+  process, less the main process with the stage in its children).
 
-    .venv/bin/python benchmarks/replay_costs.py [--repeat 5]
+    .venv/bin/python benchmarks/replay_costs.py [--repeat 5] [--inflight]
 """
 
 from __future__ import annotations
@@ -162,11 +168,105 @@ def block_estimate(repeat: int, n: int = 58_787) -> None:
     )
 
 
+#: the in-flight layers: switched off by replacing one method for the run (a measurement, not a mode of
+#: magcomp: the replay's results are not used)
+_LAYER_SCRIPT = """
+import resource, sys, time
+from magcomp.adapters.config import Config
+import magcomp.service.replay as rp
+from magcomp.core import inflight as inf
+from magcomp.service import inflight_stage as ist
+layer, path = sys.argv[1], sys.argv[2]
+if layer != "forked":
+    rp.start_inflight = lambda n=None: None  # the stage inline, in this process
+if layer == "none":
+    ist.InflightStage.feed = lambda self, *a, **k: None
+elif layer == "feed":
+    ist.InflightStage._window_row = lambda self, *a, **k: None
+elif layer == "rows":
+    def _count(self, *a, **k):
+        self.n += 1
+        return 0.0
+    inf.InflightEstimator.add = _count
+rp.replay_log(path, Config(), emit=None, two_pass=True)
+own = resource.getrusage(resource.RUSAGE_SELF)
+kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(own.ru_utime + own.ru_stime, kids.ru_utime + kids.ru_stime)
+"""
+
+_PARSE_ONLY_SCRIPT = """
+import sys
+from magcomp.adapters.dialect import ensure_dialect
+ensure_dialect()
+from pymavlink import mavutil
+conn = mavutil.mavlink_connection(sys.argv[1], dialect="magcomp")
+while conn.recv_msg() is not None:
+    pass
+"""
+
+
+def _process_cpu(args: list[str], env: dict[str, str]) -> tuple[float, float]:
+    """CPU of ``python -c ...`` as (its own, what it printed of its children; 0 when it printed nothing)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    out = subprocess.run([sys.executable, "-c", *args], check=True, env=env, capture_output=True, text=True)
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    total = r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime
+    if not out.stdout.strip():
+        return total, 0.0
+    own, kids = (float(v) for v in out.stdout.split())
+    return own, kids
+
+
+def inflight_layers(repeat: int, duration_s: float = 600.0) -> None:
+    """The in-flight stage's layers (module docstring), medians of ``repeat`` fresh processes."""
+    import tempfile
+
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.sim import SimConfig, simulate
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    layers = ("none", "feed", "rows", "all", "forked")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "flight.tlog")
+        write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=duration_s, seed=0)), Path(path))
+        _process_cpu([_PARSE_ONLY_SCRIPT, path], env)  # bytecode written, the file in the page cache
+        runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("parse", *layers)}
+        for _ in range(repeat):  # interleaved, so that load from other processes hits all alike
+            runs["parse"].append(_process_cpu([_PARSE_ONLY_SCRIPT, path], env))
+            for layer in layers:
+                runs[layer].append(_process_cpu([_LAYER_SCRIPT, layer, path], env))
+    med = {k: statistics.median(o for o, _ in v) for k, v in runs.items()}
+    kids = statistics.median(c for _, c in runs["forked"])
+    print(f"in-flight stage, {duration_s:g} s ordinary flight, two-pass replay, CPU medians of {repeat}:")
+    steps = (
+        ("pymavlink parse-only process", "parse", None),
+        ("replay, stage inline, no feed", "none", None),
+        ("+ feed's bookkeeping (no window rows)", "feed", "none"),
+        ("+ window rows built, not added (nothing to solve)", "rows", "feed"),
+        ("+ added: gate, accumulation, solves (all)", "all", "rows"),
+    )
+    for name, key, prev in steps:
+        added = "" if prev is None else f"  (+{med[key] - med[prev]:.2f})"
+        print(f"  {name:<52} {med[key]:6.2f} s{added}")
+    budget = 2.0 * med["parse"] - med["forked"]
+    print(f"  forked (the default): main process {med['forked']:.2f} s, children {kids:.2f} s")
+    stage = med["all"] - med["none"]
+    print(f"  1.0x wall on 2 cores needs main + children <= 2 x parse-only: children <= {budget:.2f} s "
+          f"(main <= {med['parse']:.2f} s on its core); the stage inline costs {stage:.2f} s, "
+          f"its children {kids / max(budget, 1e-9):.1f}x the budget")  # fmt: skip
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--no-startup", action="store_true", help="skip the start-up processes")
+    ap.add_argument("--inflight", action="store_true", help="only the in-flight stage's layers")
     args = ap.parse_args()
+    if args.inflight:
+        inflight_layers(args.repeat)
+        return 0
     if not args.no_startup:
         startup(args.repeat)
     observer_split(args.repeat)
