@@ -10,8 +10,10 @@
   calibration and theta learned in flight): a two-pass replay with the stage inline (no forked children), in
   fresh processes, with one layer more switched on in each: no ``feed`` at all, ``feed``'s bookkeeping without
   window rows, the rows built but not added to the estimators, everything. Each difference is that layer's
-  CPU; beside them the budget that issue 13's 1.0x leaves the stage on two cores (twice the parse-only
-  process, less the main process with the stage in its children).
+  CPU. Then the default (the stage in forked children), and the same without window rows: every call still
+  sent down the pipe and decoded, i.e. the floor that no estimator can go below. Beside them the budget
+  that issue 13's 1.0x leaves the stage on two cores (twice the parse-only process, less the main process
+  with the stage in its children).
 
     .venv/bin/python benchmarks/replay_costs.py [--repeat 5] [--inflight]
 """
@@ -177,11 +179,11 @@ import magcomp.service.replay as rp
 from magcomp.core import inflight as inf
 from magcomp.service import inflight_stage as ist
 layer, path = sys.argv[1], sys.argv[2]
-if layer != "forked":
+if not layer.startswith("forked"):
     rp.start_inflight = lambda n=None: None  # the stage inline, in this process
 if layer == "none":
     ist.InflightStage.feed = lambda self, *a, **k: None
-elif layer == "feed":
+elif layer in ("feed", "forked-feed"):
     ist.InflightStage._window_row = lambda self, *a, **k: None
 elif layer == "rows":
     def _count(self, *a, **k):
@@ -227,7 +229,7 @@ def inflight_layers(repeat: int, duration_s: float = 600.0) -> None:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
-    layers = ("none", "feed", "rows", "all", "forked")
+    layers = ("none", "feed", "rows", "all", "forked", "forked-feed")
     with tempfile.TemporaryDirectory() as tmp:
         path = str(Path(tmp) / "flight.tlog")
         write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=duration_s, seed=0)), Path(path))
@@ -239,6 +241,7 @@ def inflight_layers(repeat: int, duration_s: float = 600.0) -> None:
                 runs[layer].append(_process_cpu([_LAYER_SCRIPT, layer, path], env))
     med = {k: statistics.median(o for o, _ in v) for k, v in runs.items()}
     kids = statistics.median(c for _, c in runs["forked"])
+    kids_floor = statistics.median(c for _, c in runs["forked-feed"])
     print(f"in-flight stage, {duration_s:g} s ordinary flight, two-pass replay, CPU medians of {repeat}:")
     steps = (
         ("pymavlink parse-only process", "parse", None),
@@ -252,6 +255,10 @@ def inflight_layers(repeat: int, duration_s: float = 600.0) -> None:
         print(f"  {name:<52} {med[key]:6.2f} s{added}")
     budget = 2.0 * med["parse"] - med["forked"]
     print(f"  forked (the default): main process {med['forked']:.2f} s, children {kids:.2f} s")
+    print(f"  forked, no window rows (every call still sent and decoded): main process "
+          f"{med['forked-feed']:.2f} s, children {kids_floor:.2f} s: the floor of any estimator "
+          f"(wall >= {max(med['forked-feed'], (med['forked-feed'] + kids_floor) / 2) / med['parse']:.2f}x "
+          "the parse-only process on 2 cores)")  # fmt: skip
     stage = med["all"] - med["none"]
     print(f"  1.0x wall on 2 cores needs main + children <= 2 x parse-only: children <= {budget:.2f} s "
           f"(main <= {med['parse']:.2f} s on its core); the stage inline costs {stage:.2f} s, "
