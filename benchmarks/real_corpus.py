@@ -1,0 +1,215 @@
+"""Real-flight corpus: magcomp's published heading against the heading the autopilot already had, per compass.
+
+    python benchmarks/real_corpus.py DIR [--modes two-pass,causal] [--json OUT]
+
+Every log in DIR (tlog, DataFlash .bin/.log, ULog; the development logs of ../shared/data/real-corpus.md are
+fetched there, never into the project) is replayed with no configuration, and each compass is scored on the
+samples with the motors running (throttle above FLYING_THROTTLE_01) and |roll|, |pitch| < 60 deg:
+
+* **att**: rms of (heading - the autopilot's yaw) with its circular mean removed;
+* **gyro**: rms of (heading - the yaw integrated from the logged gyro with the autopilot's roll and pitch),
+  each 10 s window's mean removed; where the gyro comes slower than 10 Hz, the autopilot's yaw on the same
+  windows instead.
+
+The baseline is the autopilot's own heading: the log's field as logged (its calibration and any onboard
+motor compensation applied) tilt-compensated with the autopilot's roll and pitch (eq. (24)). magcomp's is
+the published MAGCOMP_HEADING ``heading``. worse = att or gyro up by more than 10 % and 0.5 deg; better =
+both down by 10 % or more. The metrics are :mod:`magcomp.core.selfcheck`'s, the ones the product's own
+self-check uses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from magcomp.adapters.config import load_config
+from magcomp.adapters.mavlink_source import load_log
+from magcomp.core import selfcheck as sc
+from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.types import LogData
+from magcomp.errors import InputError
+from magcomp.service.evaluate import FLYING_THROTTLE_01
+from magcomp.service.replay import replay_log
+
+SUFFIXES = {".tlog", ".bin", ".log", ".ulg"}
+MAX_TILT_RAD = math.radians(60.0)
+
+
+@dataclass
+class Reference:
+    """What the scores are taken against, for one log."""
+
+    att_t: np.ndarray
+    roll: np.ndarray
+    pitch: np.ndarray
+    yaw_unwrapped: np.ndarray
+    thr_t: np.ndarray
+    thr: np.ndarray
+    gyro_t: np.ndarray | None  # None: the gyro is slower than 10 Hz (the autopilot's yaw is the reference)
+    gyro_yaw: np.ndarray
+    gyro_seg: np.ndarray
+
+
+def reference(data: LogData) -> Reference | None:
+    att = data.attitude_rad
+    if len(att) < 10 or len(data.throttle_01) < 2:
+        return None
+    roll, pitch, yaw = att.values[:, 0], att.values[:, 1], np.unwrap(att.values[:, 2])
+    gt, g = data.imu_t_s, data.gyro_rad_s
+    gyro_t: np.ndarray | None = None
+    gyro_yaw = gyro_seg = np.zeros(0)
+    if gt.size > 10 and float(np.median(np.diff(gt))) <= sc.MAX_GYRO_DT_S:
+        r = np.interp(gt, att.t_s, roll)
+        p = np.interp(gt, att.t_s, pitch)
+        gyro_yaw, gyro_seg = sc.integrate_yaw_rad(gt, sc.euler_yaw_rate_rad_s(g, r, p))
+        gyro_t = gt
+    return Reference(att.t_s, roll, pitch, yaw, data.throttle_01.t_s, data.throttle_01.values, gyro_t, gyro_yaw,
+                     gyro_seg)  # fmt: skip
+
+
+def score(ref: Reference, t: np.ndarray, heading_deg: np.ndarray) -> dict[str, float] | None:
+    """att / gyro / att in the top throttle quartile (deg) of one heading series at times ``t``."""
+    inside = (t >= ref.att_t[0]) & (t <= ref.att_t[-1])
+    t, h = t[inside], np.radians(heading_deg[inside])
+    if t.size < 20:
+        return None
+    roll = np.interp(t, ref.att_t, ref.roll)
+    pitch = np.interp(t, ref.att_t, ref.pitch)
+    thr = np.interp(t, ref.thr_t, ref.thr)
+    keep = (thr > FLYING_THROTTLE_01) & (np.abs(roll) < MAX_TILT_RAD) & (np.abs(pitch) < MAX_TILT_RAD)
+    if keep.sum() < 20:
+        return None
+    t, h, thr = t[keep], h[keep], thr[keep]
+    yaw = np.interp(t, ref.att_t, ref.yaw_unwrapped)
+    att = sc.offset_removed_rms_deg(h - yaw)
+    top = thr >= np.quantile(thr, 0.75)
+    att_top = sc.offset_removed_rms_deg(h[top] - yaw[top])
+    if ref.gyro_t is not None:
+        gy = np.interp(t, ref.gyro_t, ref.gyro_yaw)
+        seg = np.interp(t, ref.gyro_t, ref.gyro_seg).round()
+        gyro = sc.windowed_rms_deg(h - gy, sc.window_ids(t, seg))
+    else:
+        gyro = sc.windowed_rms_deg(h - yaw, sc.window_ids(t))
+    return {"att": att, "gyro": gyro, "att_top": att_top, "n": float(t.size)}
+
+
+def verdict(base: dict[str, float], new: dict[str, float]) -> str:
+    worse = any(new[k] > base[k] * 1.1 and new[k] > base[k] + 0.5 for k in ("att", "gyro"))
+    better = all(new[k] <= 0.9 * base[k] for k in ("att", "gyro"))
+    return "worse" if worse else "better" if better else "same"
+
+
+def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]]:
+    out: dict[int, dict[str, float]] = {}
+    for idx, s in sorted(data.mag.items()):
+        if len(s) < 20:
+            continue
+        r = np.interp(s.t_s, ref.att_t, ref.roll)
+        p = np.interp(s.t_s, ref.att_t, ref.pitch)
+        m = s.values
+        h = heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], np.cos(r), np.sin(r), np.cos(p), np.sin(p))
+        got = score(ref, s.t_s, h)
+        if got is not None:
+            out[idx] = got
+    return out
+
+
+def magcomp_scores(path: Path, ref: Reference, causal: bool) -> tuple[dict[int, dict[str, float]], dict[int, str]]:
+    rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal)
+    by: dict[int, list[tuple[float, float]]] = {}
+    for e in rep.estimates:
+        by.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg))
+    out: dict[int, dict[str, float]] = {}
+    for idx, rows in by.items():
+        a = np.asarray(rows)
+        got = score(ref, a[:, 0], a[:, 1])
+        if got is not None:
+            out[idx] = got
+    said = {int(c["index"]): f"{c['status']}: {c['why']}" for c in rep.summary.get("compasses", [])}
+    return out, said
+
+
+def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    for path in paths:
+        try:
+            data = load_log(path)
+        except InputError as exc:
+            print(f"{path.name}: {exc}", file=sys.stderr)
+            continue
+        ref = reference(data)
+        if ref is None:
+            print(f"{path.name}: no attitude or throttle to score against", file=sys.stderr)
+            continue
+        base = baseline_scores(data, ref)
+        per_mode = {m: magcomp_scores(path, ref, m == "causal") for m in modes}
+        for idx, b in base.items():
+            row: dict[str, Any] = {"log": path.name, "compass": idx, "autopilot": b}
+            for m, (scores, said) in per_mode.items():
+                got = scores.get(idx)
+                row[m] = got
+                row[m + "_verdict"] = verdict(b, got) if got is not None else "missing"
+                row[m + "_said"] = said.get(idx, "")
+            rows.append(row)
+            print(line(row, modes), flush=True)
+    return rows
+
+
+def _fmt(s: dict[str, float] | None) -> str:
+    return "-" if s is None else f"{s['att']:.1f} / {s['gyro']:.1f}"
+
+
+def line(row: dict[str, Any], modes: list[str]) -> str:
+    parts = [f"{row['log'][:58]:58s} {row['compass']}", f"{_fmt(row['autopilot']):>11s}"]
+    for m in modes:
+        parts.append(f"{_fmt(row[m]):>11s} {row[m + '_verdict']:7s}")
+    parts.append(row[modes[0] + "_said"][:70])
+    return "  ".join(parts)
+
+
+def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
+    out = []
+    for m in modes:
+        v = [r[m + "_verdict"] for r in rows]
+        big = [r for r in rows if r["autopilot"]["att"] >= 8.0 and r[m] is not None]
+        ratios = [r[m]["att"] / r["autopilot"]["att"] for r in big]
+        better_big = sum(r[m + "_verdict"] == "better" for r in big)
+        med = statistics.median(ratios) if ratios else math.nan
+        out.append(
+            f"{m}: {len(rows)} compasses: worse {v.count('worse')}, better {v.count('better')}, "
+            f"same {v.count('same')}, missing {v.count('missing')}; own heading >= 8 deg att: "
+            f"{better_big}/{len(big)} better, median att ratio {med:.2f}"
+        )
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("paths", nargs="+", help="log files or directories")
+    ap.add_argument("--modes", default="two-pass,causal")
+    ap.add_argument("--json", help="write the rows here")
+    args = ap.parse_args()
+    files: list[Path] = []
+    for p in map(Path, args.paths):
+        files += sorted(f for f in p.rglob("*") if f.suffix.lower() in SUFFIXES) if p.is_dir() else [p]
+    modes = args.modes.split(",")
+    print(f"{'log':58s} c  {'autopilot':>11s}  " + "  ".join(f"{m:>19s}" for m in modes) + "  what replay said")
+    rows = run(files, modes)
+    for s in summary(rows, modes):
+        print(s)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,206 @@
+"""The self-check against the gyro: is a corrected heading more consistent than the autopilot's own?
+
+Not in the paper (departure): the paper judges its correction against a motion-capture truth (Table III).
+A real flight has no truth, but it has two references that no compass steers on short time scales:
+
+* **gyro**: the yaw integrated from the gyro with the autopilot's roll and pitch (the Euler yaw rate
+  ``(q sin(roll) + r cos(roll)) / cos(pitch)``). A gyro's rate bias is ~constant over seconds, so over a
+  window of ``window_s`` (10 s) its integral is a constant plus a ramp of a fraction of a degree: the
+  window's mean is removed and what stays of (heading - gyro yaw) is the compass's own error on time scales
+  shorter than the window (the throttle-driven bias moves with every climb and turn, on those scales).
+  Where the gyro comes slower than 10 Hz (1-4 Hz telemetry) its integral is poor; the autopilot's own yaw
+  on the same windows takes its place (:func:`reference_yaw_rad` callers decide).
+* **att**: the autopilot's fused yaw over the whole flight, its constant offset (declination, mounting)
+  removed. Partly circular where that yaw comes from the compass judged.
+
+:func:`compare` judges a candidate heading (magcomp's corrected one) against a baseline (the autopilot's
+own field, tilt-compensated) on the same samples: per window the mean squared residual of each, and the
+paired difference of the windows (a paired test: the windows are the independent units; a 10 s window
+holds many correlated samples). The candidate *applies* only where its gain on the gyro is beyond the noise
+(its mean over the windows at least ``Z_APPLY`` standard errors above zero, with at least ``MIN_WINDOWS``
+windows) and it agrees no worse with the autopilot's yaw than the baseline does. Everything else keeps the
+baseline: never worse than what the autopilot already had.
+
+Pure numpy; angles in rad unless the name says deg; times in s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+#: window over which a gyro's integral is a constant plus a small ramp (s). A rate bias b leaves a ramp of
+#: rms b * W / sqrt(12) about the window's mean: 0.17 deg for 1e-3 rad/s (a MEMS gyro after the autopilot's
+#: start-up calibration), 3.3 deg for an uncalibrated 0.02 rad/s. Shorter windows keep less of the compass's
+#: error (a climb lasts seconds), longer ones more of the gyro's drift. The same 10 s as the issue's metric.
+WINDOW_S = 10.0
+#: a window needs this many samples for its mean to be removed with something left
+MIN_PER_WINDOW = 3
+#: a paired test needs an estimate of the spread between windows: at least this many windows
+MIN_WINDOWS = 4
+#: standard errors of the paired window difference the gain must reach (one-sided, ~2.3 % false apply
+#: under the normal approximation of the window mean)
+Z_APPLY = 2.0
+#: the gyro is integrated where it comes at least this often (s between samples); slower: the autopilot's yaw
+MAX_GYRO_DT_S = 0.1
+#: gaps in the gyro longer than this (s) restart its integral (a new window starts there)
+MAX_GYRO_GAP_S = 0.5
+
+
+def wrap_rad(a: F64) -> F64:
+    """Angles wrapped to [-pi, pi)."""
+    return np.asarray((np.asarray(a, dtype=float) + math.pi) % (2.0 * math.pi) - math.pi, dtype=float)
+
+
+def euler_yaw_rate_rad_s(gyro_b_rad_s: F64, roll_rad: F64, pitch_rad: F64) -> F64:
+    """ZYX Euler yaw rate ``(q sin(roll) + r cos(roll)) / cos(pitch)`` per sample (NaN where |cos(pitch)| <
+    0.25: the Euler yaw is not defined near +-90 deg of pitch)."""
+    g = np.asarray(gyro_b_rad_s, dtype=float)
+    cp = np.cos(pitch_rad)
+    rate = (g[:, 1] * np.sin(roll_rad) + g[:, 2] * np.cos(roll_rad)) / np.where(np.abs(cp) < 0.25, np.nan, cp)
+    return np.asarray(rate, dtype=float)
+
+
+def integrate_yaw_rad(t_s: F64, rate_rad_s: F64, max_gap_s: float = MAX_GYRO_GAP_S) -> tuple[F64, F64]:
+    """Trapezoid integral of a yaw rate; returns (yaw_rad, segment) where ``segment`` counts the restarts
+    (a gap over ``max_gap_s`` or a non-finite rate): yaws of two segments are not comparable."""
+    t = np.asarray(t_s, dtype=float)
+    r = np.asarray(rate_rad_s, dtype=float)
+    n = t.shape[0]
+    if n == 0:
+        return np.zeros(0), np.zeros(0)
+    dt = np.diff(t)
+    ok_r = np.isfinite(r)
+    step_ok = (dt > 0) & (dt <= max_gap_s) & ok_r[1:] & ok_r[:-1]
+    inc = np.where(step_ok, 0.5 * (np.nan_to_num(r[1:]) + np.nan_to_num(r[:-1])) * dt, 0.0)
+    seg = np.concatenate(([0.0], np.cumsum(~step_ok))).astype(float)
+    return np.concatenate(([0.0], np.cumsum(inc))), seg
+
+
+def window_ids(t_s: F64, segment: F64 | None = None, window_s: float = WINDOW_S) -> NDArray[np.int64]:
+    """An id per sample: one per ``window_s`` of time and per segment of the reference (a restart of the
+    gyro's integral starts a new window)."""
+    t = np.asarray(t_s, dtype=float)
+    if t.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    w = np.floor((t - t[0]) / window_s).astype(np.int64)
+    if segment is None:
+        return w
+    seg = np.asarray(segment, dtype=np.int64)
+    key = w * (int(seg.max()) + 1 if seg.size else 1) + seg
+    _, ids = np.unique(key, return_inverse=True)
+    return np.asarray(ids, dtype=np.int64)
+
+
+def window_mse(err_rad: F64, ids: NDArray[np.int64], min_per_window: int = MIN_PER_WINDOW) -> tuple[F64, F64]:
+    """Per window: (n, mean squared residual after the window's circular mean is removed, rad^2). Windows
+    with fewer than ``min_per_window`` samples are left out."""
+    e = wrap_rad(err_rad)
+    if e.size == 0:
+        return np.zeros(0), np.zeros(0)
+    nw = int(ids.max()) + 1
+    n = np.bincount(ids, minlength=nw).astype(float)
+    c = np.bincount(ids, np.cos(e), minlength=nw)
+    s = np.bincount(ids, np.sin(e), minlength=nw)
+    mean = np.arctan2(s, c)
+    res = wrap_rad(e - mean[ids])
+    ss = np.bincount(ids, res * res, minlength=nw)
+    keep = n >= min_per_window
+    return n[keep], ss[keep] / n[keep]
+
+
+def offset_removed_rms_deg(err_rad: F64) -> float:
+    """rms (deg) of wrapped angle differences after their circular mean is removed; NaN when empty."""
+    e = wrap_rad(err_rad)
+    if e.size == 0:
+        return math.nan
+    m = math.atan2(float(np.mean(np.sin(e))), float(np.mean(np.cos(e))))
+    r = wrap_rad(e - m)
+    return math.degrees(math.sqrt(float(np.mean(r * r))))
+
+
+def windowed_rms_deg(err_rad: F64, ids: NDArray[np.int64]) -> float:
+    """rms (deg) of the residuals with each window's circular mean removed (the gyro metric)."""
+    n, mse = window_mse(err_rad, ids)
+    if n.size == 0:
+        return math.nan
+    return math.degrees(math.sqrt(float(np.sum(n * mse) / np.sum(n))))
+
+
+@dataclass(frozen=True)
+class SelfCheck:
+    """The verdict of :func:`compare` (degrees; NaN where not measurable)."""
+
+    baseline_gyro_deg: float
+    candidate_gyro_deg: float
+    baseline_att_deg: float
+    candidate_att_deg: float
+    #: windows compared and the paired gain in standard errors (NaN: fewer than MIN_WINDOWS)
+    n_windows: int
+    z: float
+    applies: bool
+    reason: str
+
+    def describe(self) -> str:
+        """One line for the console: "heading vs gyro: 6.2 -> 2.5 deg (z 4.1, 23 windows)"."""
+        g = f"heading vs gyro: {self.baseline_gyro_deg:.1f} -> {self.candidate_gyro_deg:.1f} deg"
+        if math.isfinite(self.z):
+            g += f" (gain {self.z:.1f} sigma over {self.n_windows} windows)"
+        if math.isfinite(self.baseline_att_deg) and math.isfinite(self.candidate_att_deg):
+            g += f"; vs autopilot yaw {self.baseline_att_deg:.1f} -> {self.candidate_att_deg:.1f} deg"
+        return g
+
+
+def compare(
+    baseline_rad: F64,
+    candidate_rad: F64,
+    reference_rad: F64,
+    ids: NDArray[np.int64],
+    autopilot_yaw_rad: F64 | None = None,
+) -> SelfCheck:
+    """Judge ``candidate_rad`` against ``baseline_rad`` (headings of the same samples) with the windowed
+    reference (gyro yaw, or the autopilot's yaw where the gyro is slow; ``ids`` from :func:`window_ids`)
+    and, where given, the autopilot's yaw over the whole flight. See the module's doc for the rule."""
+    b = np.asarray(baseline_rad, dtype=float)
+    c = np.asarray(candidate_rad, dtype=float)
+    ref = np.asarray(reference_rad, dtype=float)
+    ok = np.isfinite(b) & np.isfinite(c) & np.isfinite(ref)
+    if autopilot_yaw_rad is not None:
+        ap = np.asarray(autopilot_yaw_rad, dtype=float)
+        ok &= np.isfinite(ap)
+    b, c, ref, ids_ok = b[ok], c[ok], ref[ok], ids[ok]
+    att_b = att_c = math.nan
+    if autopilot_yaw_rad is not None:
+        ap_ok = ap[ok]
+        att_b, att_c = offset_removed_rms_deg(b - ap_ok), offset_removed_rms_deg(c - ap_ok)
+    if ids_ok.size:
+        _, ids_ok = np.unique(ids_ok, return_inverse=True)
+    n_b, mse_b = window_mse(b - ref, ids_ok)
+    _, mse_c = window_mse(c - ref, ids_ok)
+    gyro_b = math.degrees(math.sqrt(float(np.sum(n_b * mse_b) / np.sum(n_b)))) if n_b.size else math.nan
+    gyro_c = math.degrees(math.sqrt(float(np.sum(n_b * mse_c) / np.sum(n_b)))) if n_b.size else math.nan
+    nw = int(n_b.size)
+    if nw < MIN_WINDOWS:
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False,
+                         f"only {nw} usable {WINDOW_S:.0f} s windows with the motors running")  # fmt: skip
+    d = mse_b - mse_c  # the gain per window (rad^2), paired
+    w = n_b / np.sum(n_b)
+    mean = float(np.sum(w * d))
+    var = float(np.sum(w * (d - mean) ** 2)) * nw / (nw - 1)
+    se = math.sqrt(var / nw)
+    z = mean / se if se > 0 else (math.inf if mean > 0 else -math.inf if mean < 0 else 0.0)
+    if not z >= Z_APPLY:
+        why = (
+            f"not better than the autopilot's own heading against the gyro beyond the noise "
+            f"({gyro_b:.1f} -> {gyro_c:.1f} deg, {z:+.1f} sigma)"
+        )
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
+    if math.isfinite(att_c) and att_c > att_b:
+        why = f"agrees less with the autopilot's yaw than its own heading ({att_b:.1f} -> {att_c:.1f} deg)"
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
+    return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, True, "better than the autopilot's own heading")
