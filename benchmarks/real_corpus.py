@@ -72,8 +72,8 @@ def reference(data: LogData) -> Reference | None:
         p = np.interp(gt, att.t_s, pitch)
         gyro_yaw, gyro_seg = sc.integrate_yaw_rad(gt, sc.euler_yaw_rate_rad_s(g, r, p))
         gyro_t = gt
-    return Reference(att.t_s, roll, pitch, yaw, data.throttle_01.t_s, data.throttle_01.values, gyro_t, gyro_yaw,
-                     gyro_seg)  # fmt: skip
+    thr = data.throttle_01
+    return Reference(att.t_s, roll, pitch, yaw, thr.t_s, thr.values, gyro_t, gyro_yaw, gyro_seg)
 
 
 def score(ref: Reference, t: np.ndarray, heading_deg: np.ndarray) -> dict[str, float] | None:
@@ -123,7 +123,10 @@ def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]
     return out
 
 
-def magcomp_scores(path: Path, ref: Reference, causal: bool) -> tuple[dict[int, dict[str, float]], dict[int, str]]:
+Scores = dict[int, dict[str, float]]
+
+
+def magcomp_scores(path: Path, ref: Reference, causal: bool) -> tuple[Scores, dict[int, str]]:
     rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal)
     by: dict[int, list[tuple[float, float]]] = {}
     for e in rep.estimates:
@@ -142,7 +145,7 @@ def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for path in paths:
         try:
-            data = load_log(path)
+            data = load_log(path, undo_motor_comp=False)  # the field as the autopilot had it
         except InputError as exc:
             print(f"{path.name}: {exc}", file=sys.stderr)
             continue
@@ -202,7 +205,8 @@ def main() -> int:
     for p in map(Path, args.paths):
         files += sorted(f for f in p.rglob("*") if f.suffix.lower() in SUFFIXES) if p.is_dir() else [p]
     modes = args.modes.split(",")
-    print(f"{'log':58s} c  {'autopilot':>11s}  " + "  ".join(f"{m:>19s}" for m in modes) + "  what replay said")
+    head = "  ".join(f"{m:>19s}" for m in modes)
+    print(f"{'log':58s} c  {'autopilot':>11s}  {head}  what replay said")
     rows = run(files, modes)
     for s in summary(rows, modes):
         print(s)

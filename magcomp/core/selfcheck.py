@@ -16,9 +16,11 @@ A real flight has no truth, but it has two references that no compass steers on 
 :func:`compare` judges a candidate heading (magcomp's corrected one) against a baseline (the autopilot's
 own field, tilt-compensated) on the same samples: per window the mean squared residual of each, and the
 paired difference of the windows (a paired test: the windows are the independent units; a 10 s window
-holds many correlated samples). The candidate *applies* only where its gain on the gyro is beyond the noise
-(its mean over the windows at least ``Z_APPLY`` standard errors above zero, with at least ``MIN_WINDOWS``
-windows) and it agrees no worse with the autopilot's yaw than the baseline does. Everything else keeps the
+holds many correlated samples; the log of the ratio of their mean squares, so that the gain is judged
+window by window rather than by the few windows of violent manoeuvre). The candidate *applies* only where
+it is no worse than the baseline against either reference and its gain is beyond the noise (the mean over
+at least ``MIN_WINDOWS`` windows ``Z_APPLY`` standard errors above zero) against the gyro, or against the
+autopilot's yaw where that yaw does not come from the compass judged. Everything else keeps the
 baseline: never worse than what the autopilot already had.
 
 Pure numpy; angles in rad unless the name says deg; times in s.
@@ -46,6 +48,9 @@ MIN_WINDOWS = 4
 #: standard errors of the paired window difference the gain must reach (one-sided, ~2.3 % false apply
 #: under the normal approximation of the window mean)
 Z_APPLY = 2.0
+#: floor on a window's mean square (rad^2): (0.5 deg)^2. A compass resolves ~1-2 mgauss of a ~200 mgauss
+#: horizontal field (0.3-0.6 deg); below that two headings are the same measurement
+FLOOR_RAD2 = math.radians(0.5) ** 2
 #: the gyro is integrated where it comes at least this often (s between samples); slower: the autopilot's yaw
 MAX_GYRO_DT_S = 0.1
 #: gaps in the gyro longer than this (s) restart its integral (a new window starts there)
@@ -114,6 +119,33 @@ def window_mse(err_rad: F64, ids: NDArray[np.int64], min_per_window: int = MIN_P
     return n[keep], ss[keep] / n[keep]
 
 
+def window_ms_about_mean(err_rad: F64, ids: NDArray[np.int64]) -> F64:
+    """Per window (ids 0..k-1, all kept): the mean square of the residual about the circular mean of *all*
+    samples (rad^2): what :func:`offset_removed_rms_deg` sums, window by window."""
+    e = wrap_rad(err_rad)
+    if e.size == 0:
+        return np.zeros(0)
+    m = math.atan2(float(np.mean(np.sin(e))), float(np.mean(np.cos(e))))
+    r = wrap_rad(e - m)
+    nw = int(ids.max()) + 1
+    n = np.bincount(ids, minlength=nw).astype(float)
+    ss = np.bincount(ids, r * r, minlength=nw)
+    return np.asarray(ss / np.maximum(n, 1.0), dtype=float)
+
+
+def paired_z(mse_b: F64, mse_c: F64) -> float:
+    """The mean over windows of log((mse_b + floor) / (mse_c + floor)) in standard errors: > 0 where the
+    candidate's windows are the quieter ones. Scale-free, so a few windows of violent manoeuvre do not
+    outweigh the rest; each mean square floored at the compass's resolution (FLOOR_RAD2)."""
+    nw = int(mse_b.size)
+    if nw < 2:
+        return math.nan
+    d = np.log((mse_b + FLOOR_RAD2) / (mse_c + FLOOR_RAD2))
+    mean = float(np.mean(d))
+    se = float(np.std(d, ddof=1)) / math.sqrt(nw)
+    return mean / se if se > 0 else (math.inf if mean > 0 else -math.inf if mean < 0 else 0.0)
+
+
 def offset_removed_rms_deg(err_rad: F64) -> float:
     """rms (deg) of wrapped angle differences after their circular mean is removed; NaN when empty."""
     e = wrap_rad(err_rad)
@@ -162,45 +194,53 @@ def compare(
     reference_rad: F64,
     ids: NDArray[np.int64],
     autopilot_yaw_rad: F64 | None = None,
+    yaw_independent: bool = False,
 ) -> SelfCheck:
     """Judge ``candidate_rad`` against ``baseline_rad`` (headings of the same samples) with the windowed
     reference (gyro yaw, or the autopilot's yaw where the gyro is slow; ``ids`` from :func:`window_ids`)
-    and, where given, the autopilot's yaw over the whole flight. See the module's doc for the rule."""
+    and, where given, the autopilot's yaw over the whole flight (``yaw_independent``: that yaw does not come
+    from this compass, so it is evidence too). The candidate applies where it is no worse than the baseline
+    against either reference and better beyond the noise (``Z_APPLY`` standard errors of the paired window
+    gain) against the gyro, or against the autopilot's yaw where that is independent."""
     b = np.asarray(baseline_rad, dtype=float)
     c = np.asarray(candidate_rad, dtype=float)
     ref = np.asarray(reference_rad, dtype=float)
     ok = np.isfinite(b) & np.isfinite(c) & np.isfinite(ref)
-    if autopilot_yaw_rad is not None:
-        ap = np.asarray(autopilot_yaw_rad, dtype=float)
+    ap = None if autopilot_yaw_rad is None else np.asarray(autopilot_yaw_rad, dtype=float)
+    if ap is not None:
         ok &= np.isfinite(ap)
     b, c, ref, ids_ok = b[ok], c[ok], ref[ok], ids[ok]
-    att_b = att_c = math.nan
-    if autopilot_yaw_rad is not None:
-        ap_ok = ap[ok]
-        att_b, att_c = offset_removed_rms_deg(b - ap_ok), offset_removed_rms_deg(c - ap_ok)
     if ids_ok.size:
         _, ids_ok = np.unique(ids_ok, return_inverse=True)
     n_b, mse_b = window_mse(b - ref, ids_ok)
     _, mse_c = window_mse(c - ref, ids_ok)
-    gyro_b = math.degrees(math.sqrt(float(np.sum(n_b * mse_b) / np.sum(n_b)))) if n_b.size else math.nan
-    gyro_c = math.degrees(math.sqrt(float(np.sum(n_b * mse_c) / np.sum(n_b)))) if n_b.size else math.nan
+    tot = float(np.sum(n_b))
+    gyro_b = math.degrees(math.sqrt(float(np.sum(n_b * mse_b)) / tot)) if n_b.size else math.nan
+    gyro_c = math.degrees(math.sqrt(float(np.sum(n_b * mse_c)) / tot)) if n_b.size else math.nan
     nw = int(n_b.size)
+    att_b = att_c = z_att = math.nan
+    if ap is not None and b.size:
+        ap_ok = ap[ok]
+        att_b, att_c = offset_removed_rms_deg(b - ap_ok), offset_removed_rms_deg(c - ap_ok)
+        if yaw_independent:
+            z_att = paired_z(window_ms_about_mean(b - ap_ok, ids_ok), window_ms_about_mean(c - ap_ok, ids_ok))
     if nw < MIN_WINDOWS:
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False,
                          f"only {nw} usable {WINDOW_S:.0f} s windows with the motors running")  # fmt: skip
-    d = mse_b - mse_c  # the gain per window (rad^2), paired
-    w = n_b / np.sum(n_b)
-    mean = float(np.sum(w * d))
-    var = float(np.sum(w * (d - mean) ** 2)) * nw / (nw - 1)
-    se = math.sqrt(var / nw)
-    z = mean / se if se > 0 else (math.inf if mean > 0 else -math.inf if mean < 0 else 0.0)
-    if not z >= Z_APPLY:
-        why = (
-            f"not better than the autopilot's own heading against the gyro beyond the noise "
-            f"({gyro_b:.1f} -> {gyro_c:.1f} deg, {z:+.1f} sigma)"
-        )
+    z = paired_z(mse_b, mse_c)
+    if gyro_c > gyro_b:
+        why = f"less consistent with the gyro than the autopilot's own ({gyro_b:.1f} -> {gyro_c:.1f} deg)"
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
     if math.isfinite(att_c) and att_c > att_b:
-        why = f"agrees less with the autopilot's yaw than its own heading ({att_b:.1f} -> {att_c:.1f} deg)"
+        why = f"in less agreement with the autopilot's yaw than its own ({att_b:.1f} -> {att_c:.1f} deg)"
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
-    return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, True, "better than the autopilot's own heading")
+    if not (z >= Z_APPLY or z_att >= Z_APPLY):
+        why = (
+            f"not better than the autopilot's own heading beyond the noise (against the gyro "
+            f"{gyro_b:.1f} -> {gyro_c:.1f} deg, {z:+.1f} sigma"
+            + (f"; against its yaw {att_b:.1f} -> {att_c:.1f} deg, {z_att:+.1f} sigma)" if yaw_independent
+               else ")")
+        )
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
+    return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, max(z, z_att) if math.isfinite(z_att) else z, True,
+                     "better than the autopilot's own heading")  # fmt: skip

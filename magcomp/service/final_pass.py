@@ -26,12 +26,13 @@ import math
 import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import IO, TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core import selfcheck
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_CONVERGED, HeadingEstimate
 from magcomp.service.calibrate import apply_eq2
@@ -46,8 +47,9 @@ F64 = NDArray[np.float64]
 
 #: the sample log's columns (one row per magnetometer sample that reached the heading stage)
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
- SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT) = range(20)  # fmt: skip
-N_COLS = 20
+ SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
+ IMU_DT) = range(24)  # fmt: skip
+N_COLS = 24
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
 #: 8192 rows of 20 float64 are 1.3 MB
 CHUNK_ROWS = 8192
@@ -64,7 +66,10 @@ class SampleLog:
         self._file: IO[bytes] | None = None
         self._rebooted: set[int] = set()
 
-    def add(self, rec: MagRecord, boot_offset_s: float) -> None:
+    def add(self, rec: MagRecord, boot_offset_s: float, yaws: Float3 = (math.nan, math.nan, math.nan),
+            imu_dt_s: float = math.nan) -> None:
+        """One sample; ``yaws``: the autopilot's yaw, the raw gyro's integrated yaw and its epoch (rad, rad,
+        count) at the sample, ``imu_dt_s`` the IMU's interval: for the self-check (core/selfcheck.py)."""
         reboot = False
         if self._rebooted:
             idx = rec.mag_index
@@ -77,7 +82,8 @@ class SampleLog:
         buf = self._buf
         buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
                     rec.reset, math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
-                    rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot))  # fmt: skip
+                    rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws,
+                    imu_dt_s))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 
@@ -202,6 +208,70 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     psi_raw = heading_from_trig_deg(field_cal[:, 0], field_cal[:, 1], field_cal[:, 2], *trig)  # eq. (24)
     psi = np.where(have, heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig), psi_raw)
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
+
+
+#: the throttle above which the motors count as running (0..1): as the corrected heading differs from the
+#: autopilot's only through the bias theta * throttle^2, an idle motor's few percent leave nothing to judge
+MOTORS_RUNNING_01 = 0.05
+#: beyond this roll or pitch (rad) the tilt-compensated heading is dominated by the tilt's own error
+MAX_TILT_COS = math.cos(math.radians(60.0))
+
+
+def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
+    """(t, baseline heading, candidate heading, autopilot yaw, gyro yaw, gyro epoch, IMU dt) of compass
+    ``idx``'s samples with the motors running and the tilt below 60 deg, from one chunk (rad)."""
+    m = rows[:, MAG] == idx
+    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > MOTORS_RUNNING_01)
+    m &= (rows[:, COS_ROLL] > MAX_TILT_COS) & (rows[:, COS_PITCH] > MAX_TILT_COS)
+    r = rows[m]
+    trig = (r[:, COS_ROLL], r[:, SIN_ROLL], r[:, COS_PITCH], r[:, SIN_PITCH])
+    base = heading_from_trig_deg(r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z], *trig)  # eq. (24), the logged field
+    cand = cor.psi_deg[m]
+    return np.column_stack((r[:, T], np.radians(base), np.radians(cand), r[:, AP_YAW], r[:, GYRO_YAW],
+                            r[:, GYRO_EPOCH], r[:, IMU_DT]))  # fmt: skip
+
+
+def self_check(cols: F64, yaw_independent: bool = False) -> selfcheck.SelfCheck:
+    """The verdict of :func:`magcomp.core.selfcheck.compare` on :func:`_check_rows`' columns: the gyro's
+    integrated yaw is the windowed reference where the IMU comes at least every MAX_GYRO_DT_S, else the
+    autopilot's yaw."""
+    t, base, cand, ap, gyaw, epoch, imu_dt = cols.T
+    fast = np.isfinite(imu_dt) & (imu_dt <= selfcheck.MAX_GYRO_DT_S)
+    has_ap = bool(np.isfinite(ap).any())
+    if fast.size and float(np.mean(fast)) >= 0.5:
+        keep = fast & np.isfinite(gyaw)
+        ids = selfcheck.window_ids(t[keep], epoch[keep])
+        return selfcheck.compare(base[keep], cand[keep], gyaw[keep], ids, ap[keep] if has_ap else None,
+                                 yaw_independent)
+    return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None, yaw_independent)
+
+
+def self_check_finals(
+    samples: SampleLog, finals: dict[int, FinalCompass], yaw_independent: frozenset[int] = frozenset()
+) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck]]:
+    """The self-check of every corrected compass over the whole log (:mod:`magcomp.core.selfcheck`): where
+    the corrected heading is not better than the autopilot's own against the gyro beyond the noise, or
+    agrees less with the autopilot's yaw, its final state becomes "uncorrected" and the second pass
+    publishes the autopilot's own field through the same heading filter. ``yaw_independent``: compasses
+    whose autopilot yaw comes from elsewhere (another compass, GPS): that yaw is evidence too."""
+    judged = [i for i, f in finals.items() if f.coeffs is not None]
+    if not judged:
+        return finals, {}
+    parts: dict[int, list[F64]] = {i: [] for i in judged}
+    for rows in samples.chunks():
+        cor = correct(rows, finals)
+        for i in judged:
+            parts[i].append(_check_rows(rows, cor, i))
+    out = dict(finals)
+    checks: dict[int, selfcheck.SelfCheck] = {}
+    for i in judged:
+        cols = np.concatenate(parts[i]) if parts[i] else np.zeros((0, 7))
+        chk = checks[i] = self_check(cols, i in yaw_independent)
+        if not chk.applies:
+            f = finals[i]
+            out[i] = replace(f, coeffs=None, inflight=False, theta=(0.0, 0.0, 0.0), converged=False,
+                             accounts=None if f.accounts is None else "uncorrected")  # fmt: skip
+    return out, checks
 
 
 def filter_and_publish(

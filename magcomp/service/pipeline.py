@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from magcomp.adapters.config import Config
+from magcomp.core.selfcheck import SelfCheck
 from magcomp.core.types import (
     AttitudeSample,
     ClockResetSample,
@@ -62,7 +63,7 @@ from magcomp.service.inflight_process import InflightProcess
 from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
-from magcomp.service.record import MagRecord
+from magcomp.service.record import Float3, MagRecord
 from magcomp.service.summary import Status, compass_summary
 from magcomp.service.theta import ThetaStage
 from magcomp.service.workers import Workers
@@ -82,7 +83,7 @@ class SampleRecorder(Protocol):
     """Takes each magnetometer record after the attitude stage (a two-pass replay's first pass:
     :class:`magcomp.service.final_pass.SampleLog`)."""
 
-    def add(self, rec: MagRecord, boot_offset_s: float) -> None: ...
+    def add(self, rec: MagRecord, boot_offset_s: float, yaws: Float3, imu_dt_s: float) -> None: ...
 
     def reboot(self, compasses: Iterable[int]) -> None: ...
 
@@ -132,6 +133,8 @@ class Pipeline:
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
+        #: the self-check of each corrected compass against the gyro (the two-pass replay's, over the log)
+        self.self_checks: dict[int, SelfCheck] = {}
         self._earth_ned = est_core.earth_field(cfg)
         self._earth_ned.flags.writeable = False  # shared by every stage (and sent once: inflight_process)
         self._params: dict[str, float] = {}  # the autopilot's parameters (in-flight calibration)
@@ -273,7 +276,11 @@ class Pipeline:
             return False
         self.attitude.stamp(rec)
         if self._recorder is not None:
-            self._recorder.add(rec, self._boot_offset_s)
+            a = self.attitude
+            ap_yaw = a.yaw if a.att_t is not None else math.nan
+            imu_dt = math.nan if a.imu_dt is None else a.imu_dt
+            yaws = (ap_yaw, a.gyro_yaw_rad, float(a.gyro_yaw_epoch))
+            self._recorder.add(rec, self._boot_offset_s, yaws, imu_dt)
         self.calibrate.run(rec, c)
         self.theta.run(rec, c)
         if self._learn_only:
@@ -395,7 +402,9 @@ class Pipeline:
         """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
         calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
         no NaN)."""
-        compasses = [compass_summary(c, self._status(c)) for _, c in sorted(self.correctors.items())]
+        checks = self.self_checks
+        compasses = [compass_summary(c, self._status(c), checks.get(i))
+                     for i, c in sorted(self.correctors.items())]
         lat, lon, alt, year = self._location
         return json_safe(
             {
@@ -414,8 +423,27 @@ class Pipeline:
             }
         )
 
+    def yaw_independent(self) -> frozenset[int]:
+        """The compasses whose autopilot yaw comes from elsewhere (the in-flight stage's absolute form:
+        another compass, GPS): that yaw is independent evidence for the self-check."""
+        return frozenset(
+            i for i, c in self.correctors.items() if c.inflight is not None and c.inflight.mode == "absolute"
+        )
+
     def _status(self, c: CompassCorrector) -> Status:
-        """(corrected | uncorrected, why) for the summary: one phrase a user can act on."""
+        """(corrected | uncorrected, why) for the summary: one phrase a user can act on, with the verdict of
+        the self-check against the gyro where one was made."""
+        st = self._learned_status(c)
+        chk = self.self_checks.get(c.mag_index)
+        if chk is None or st.status != "corrected":
+            return st
+        if chk.applies:
+            return Status("corrected", f"{st.why}; {chk.describe()}")
+        return Status("uncorrected", f"the autopilot's own heading published: the correction ({st.why}) is "
+                                     f"{chk.reason.removeprefix('is ')}")  # fmt: skip
+
+    def _learned_status(self, c: CompassCorrector) -> Status:
+        """What the learning says of a compass (corrected | uncorrected, why), before the self-check."""
         if self.throttle.t is None:
             why = "disabled in the configuration" if not self.throttle.enabled else "none in the input"
             return Status("uncorrected", f"no throttle source ({why})")

@@ -14,7 +14,14 @@ from typing import Any
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
-from magcomp.service.final_pass import FinalCompass, PassProgress, SampleLog, final_compasses, final_pass
+from magcomp.service.final_pass import (
+    FinalCompass,
+    PassProgress,
+    SampleLog,
+    final_compasses,
+    final_pass,
+    self_check_finals,
+)
 from magcomp.service.inflight_process import start as start_inflight
 from magcomp.service.observer_process import start as start_observers
 from magcomp.service.persist import StateSink
@@ -321,6 +328,9 @@ def replay_log(
             except KeyboardInterrupt:
                 first = None
             finals = final_compasses(first.pipeline) if first is not None else None
+            if first is not None and finals is not None:  # never worse than the autopilot's own heading
+                finals, checks = self_check_finals(first.samples, finals, first.pipeline.yaw_independent())
+                first.pipeline.self_checks.update(checks)
         if first is not None and finals is not None:
             pipeline = first.pipeline
             report = _second_pass(path, cfg, first, finals, emit, keep_estimates, on_estimate, should_stop,

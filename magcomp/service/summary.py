@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import NamedTuple
 
 import numpy as np
 
+from magcomp.core.selfcheck import SelfCheck
 from magcomp.service.compass import CompassCorrector
 
 
@@ -16,7 +18,7 @@ class Status(NamedTuple):
     why: str
 
 
-def compass_summary(c: CompassCorrector, status: Status) -> dict[str, object]:
+def compass_summary(c: CompassCorrector, status: Status, check: SelfCheck | None = None) -> dict[str, object]:
     """Calibration, theta, whether the headings are corrected and why: one compass."""
     cal = c.calibration
     st = c.inflight
@@ -56,4 +58,5 @@ def compass_summary(c: CompassCorrector, status: Status) -> dict[str, object]:
         "why": status.why,
         "time_s": dict(c.time_s),
         "inflight": None if st is None else {**st.summary(), "rotation": c.rel_source.kind},
+        "self_check": None if check is None else asdict(check),
     }
