@@ -288,6 +288,7 @@ class AttitudeStage:
         rec.down, rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch = self.view()
         t = rec.t_s
         rec.gyro = self.gyro
+        rec.gyro_yaw, rec.gyro_epoch = self.gyro_yaw_rad, float(self.gyro_yaw_epoch)
         fresh = self.imu_t is not None and abs(t - self.imu_t) <= self._stale_s
         if t <= self.gyro_bad_until:  # the gyro gate: no observer, no calibration
             fresh = False

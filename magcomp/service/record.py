@@ -8,6 +8,7 @@ The publish stage turns it into a :class:`~magcomp.core.types.HeadingEstimate` o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from magcomp.core.types import MagSample
@@ -51,6 +52,10 @@ class MagRecord:
     gyro_fresh: bool = False
     #: the bias-corrected body rate of the latest IMU sample (rad/s)
     gyro: Float3 = ZERO3
+    #: the raw gyro's yaw integrated at the IMU's rate up to the latest IMU sample (rad) and its epoch
+    #: (restarts of the integral); the heading filter propagates with its change between two samples
+    gyro_yaw: float = math.nan
+    gyro_epoch: float = -1.0
     # ---- calibrate (service/calibrate.py): eq. (2) u = L v - d; calibrated: a calibration is applied
     field_cal: Float3 = ZERO3
     calibrated: bool = False
