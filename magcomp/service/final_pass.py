@@ -292,7 +292,8 @@ def filter_and_publish(
             rows[:, GYRO_EPOCH])  # fmt: skip
     lists = [c.tolist() for c in cols]
     rows_iter = enumerate(zip(*lists, strict=True))
-    for i, (t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep) in rows_iter:
+    for i, row in rows_iter:
+        t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep = row
         idx = int(mf)
         c = correctors[idx]
         prev_t = None if prev != prev else prev  # NaN: no previous sample
