@@ -214,16 +214,23 @@ def compare(
         _, ids_ok = np.unique(ids_ok, return_inverse=True)
     n_b, mse_b = window_mse(b - ref, ids_ok)
     _, mse_c = window_mse(c - ref, ids_ok)
-    tot = float(np.sum(n_b))
-    gyro_b = math.degrees(math.sqrt(float(np.sum(n_b * mse_b)) / tot)) if n_b.size else math.nan
-    gyro_c = math.degrees(math.sqrt(float(np.sum(n_b * mse_c)) / tot)) if n_b.size else math.nan
-    nw = int(n_b.size)
     att_b = att_c = z_att = math.nan
     if ap is not None and b.size:
         ap_ok = ap[ok]
         att_b, att_c = offset_removed_rms_deg(b - ap_ok), offset_removed_rms_deg(c - ap_ok)
         if yaw_independent:
             z_att = paired_z(window_ms_about_mean(b - ap_ok, ids_ok), window_ms_about_mean(c - ap_ok, ids_ok))
+    return decide(n_b, mse_b, mse_c, att_b, att_c, z_att)
+
+
+def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: float) -> SelfCheck:
+    """The rule of :func:`compare` on its window statistics: per window the samples and the mean squared
+    residuals against the windowed reference (rad^2), the rms against the autopilot's yaw (deg) and the paired
+    gain against it in standard errors (NaN: that yaw is not independent evidence)."""
+    tot = float(np.sum(n_w))
+    gyro_b = math.degrees(math.sqrt(float(np.sum(n_w * mse_b)) / tot)) if n_w.size else math.nan
+    gyro_c = math.degrees(math.sqrt(float(np.sum(n_w * mse_c)) / tot)) if n_w.size else math.nan
+    nw = int(n_w.size)
     if nw < MIN_WINDOWS:
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False,
                          f"only {nw} usable {WINDOW_S:.0f} s windows with the motors running")  # fmt: skip
@@ -238,9 +245,79 @@ def compare(
         why = (
             f"not better than the autopilot's own heading beyond the noise (against the gyro "
             f"{gyro_b:.1f} -> {gyro_c:.1f} deg, {z:+.1f} sigma"
-            + (f"; against its yaw {att_b:.1f} -> {att_c:.1f} deg, {z_att:+.1f} sigma)" if yaw_independent
-               else ")")
+            + (f"; against its yaw {att_b:.1f} -> {att_c:.1f} deg, {z_att:+.1f} sigma)"
+               if math.isfinite(z_att) else ")")
         )
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
     return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, max(z, z_att) if math.isfinite(z_att) else z, True,
                      "better than the autopilot's own heading")  # fmt: skip
+
+
+class RunningSelfCheck:
+    """:func:`compare` sample by sample (the live daemon, ``replay --causal``): samples are added as they
+    come, a window closes every ``WINDOW_S`` (or where the reference's segment changes) and the verdict is
+    taken again from the closed windows. Against the autopilot's yaw the sums are kept per window about a fixed
+    offset (the first sample's), so the whole-flight rms with its mean removed follows from them."""
+
+    def __init__(self, yaw_independent: bool = False) -> None:
+        self.yaw_independent = yaw_independent
+        self._key: tuple[int, float] | None = None
+        self._t0 = math.nan
+        self._rows: list[tuple[float, float, float, float]] = []
+        self._n: list[float] = []
+        self._mse_b: list[float] = []
+        self._mse_c: list[float] = []
+        self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
+        self._off: tuple[float, float] | None = None
+        self.verdict: SelfCheck | None = None
+
+    def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
+            ap_yaw_rad: float) -> bool:  # fmt: skip
+        """One sample (rad; ``ap_yaw_rad`` NaN: none); True when a window closed (the verdict was renewed)."""
+        if self._t0 != self._t0:
+            self._t0 = t_s
+        key = (int((t_s - self._t0) // WINDOW_S), segment)
+        closed = False
+        if key != self._key:
+            closed = self._close()
+            self._key = key
+        self._rows.append((base_rad, cand_rad, ref_rad, ap_yaw_rad))
+        return closed
+
+    def _close(self) -> bool:
+        rows, self._rows = self._rows, []
+        if len(rows) < MIN_PER_WINDOW:
+            return False
+        a = np.asarray(rows, dtype=float)
+        ids = np.zeros(a.shape[0], dtype=np.int64)
+        n, mb = window_mse(a[:, 0] - a[:, 2], ids)
+        _, mc = window_mse(a[:, 1] - a[:, 2], ids)
+        self._n.append(float(n[0]))
+        self._mse_b.append(float(mb[0]))
+        self._mse_c.append(float(mc[0]))
+        ap = a[:, 3]
+        if np.isfinite(ap).all():
+            if self._off is None:
+                self._off = (float(a[0, 0] - ap[0]), float(a[0, 1] - ap[0]))
+            eb = wrap_rad(a[:, 0] - ap - self._off[0])
+            ec = wrap_rad(a[:, 1] - ap - self._off[1])
+            sums = (float(eb.size), float(eb.sum()), float(eb @ eb), float(ec.sum()), float(ec @ ec))
+            self._att.append(sums)
+        self.verdict = self._decide()
+        return True
+
+    def _decide(self) -> SelfCheck:
+        att_b = att_c = z_att = math.nan
+        if self._att and len(self._att) == len(self._n):
+            s = np.asarray(self._att)
+            n = s[:, 0]
+            tot = float(n.sum())
+            mb, mc = float(s[:, 1].sum()) / tot, float(s[:, 3].sum()) / tot
+            att_b = math.degrees(math.sqrt(max(0.0, float(s[:, 2].sum()) / tot - mb * mb)))
+            att_c = math.degrees(math.sqrt(max(0.0, float(s[:, 4].sum()) / tot - mc * mc)))
+            if self.yaw_independent:
+                ms_b = (s[:, 2] - 2.0 * mb * s[:, 1]) / n + mb * mb
+                ms_c = (s[:, 4] - 2.0 * mc * s[:, 3]) / n + mc * mc
+                z_att = paired_z(ms_b, ms_c)
+        n_w, mse_b, mse_c = np.asarray(self._n), np.asarray(self._mse_b), np.asarray(self._mse_c)
+        return decide(n_w, mse_b, mse_c, att_b, att_c, z_att)

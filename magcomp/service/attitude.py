@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import Config
 from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, euler_yaw_rate_coefs, quat_step_body_rate
+from magcomp.core.selfcheck import MAX_GYRO_DT_S
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_SATURATED, STANDARD_GRAVITY_M_S2, AttitudeSample
 from magcomp.service.align import TIME_OK, TIME_SKIP, Counts, check_time
 from magcomp.service.estimators import mahony_params
@@ -289,6 +290,8 @@ class AttitudeStage:
         t = rec.t_s
         rec.gyro = self.gyro
         rec.gyro_yaw, rec.gyro_epoch = self.gyro_yaw_rad, float(self.gyro_yaw_epoch)
+        rec.ap_yaw = self.yaw if self.att_t is not None else math.nan
+        rec.imu_fast = self.imu_dt is not None and self.imu_dt <= MAX_GYRO_DT_S
         fresh = self.imu_t is not None and abs(t - self.imu_t) <= self._stale_s
         if t <= self.gyro_bad_until:  # the gyro gate: no observer, no calibration
             fresh = False

@@ -12,9 +12,15 @@ from __future__ import annotations
 import math
 
 from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.selfcheck import RunningSelfCheck
+from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.record import MagRecord
 
+#: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)
+MOTORS_RUNNING_01 = 0.05
+#: beyond 60 deg of roll or pitch the tilt-compensated heading is dominated by the tilt's own error
+MAX_TILT_COS = 0.5
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
 MIN_COS_PITCH = 0.25
 
@@ -22,18 +28,36 @@ MIN_COS_PITCH = 0.25
 class HeadingTrack:
     """One compass's two heading filters (corrected, uncorrected) and their last outputs (deg)."""
 
-    __slots__ = ("corrected", "corrected_deg", "gyro_epoch", "gyro_yaw", "raw", "raw_deg")
+    __slots__ = (
+        "_last_rate",
+        "check",
+        "corrected",
+        "corrected_deg",
+        "gyro_epoch",
+        "gyro_yaw",
+        "own",
+        "own_deg",
+        "raw",
+        "raw_deg",
+    )  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.corrected = est_core.HeadingFilter(tau_s)
         self.raw = est_core.HeadingFilter(tau_s)
+        #: the autopilot's own field (as logged) through the same filter: what is published while the
+        #: self-check has not found an in-flight correction better (the live form of the two-pass check)
+        self.own = est_core.HeadingFilter(tau_s)
+        self.own_deg = math.nan
+        self.check: RunningSelfCheck | None = None
         self.corrected_deg = self.raw_deg = math.nan
+        self._last_rate = (math.nan, 0.0)
         self.gyro_yaw = math.nan
         self.gyro_epoch = -1.0
 
     def reset(self) -> None:
         self.corrected.reset()
         self.raw.reset()
+        self.own.reset()
 
     def step(
         self,
@@ -63,6 +87,14 @@ class HeadingTrack:
             self.reset()
         raw = self.raw_deg = self.raw.update(psi_raw, rate, dt)
         self.corrected_deg = self.corrected.update(psi, rate, dt) if corrected else raw
+        self._last_rate = (rate, dt)
+
+    def step_own(self, psi_own: float) -> float:
+        """The autopilot's own heading through its filter, with the rate and interval of the last
+        :meth:`step` (call right after it)."""
+        rate, dt = self._last_rate
+        self.own_deg = self.own.update(psi_own, rate, dt)
+        return self.own_deg
 
 
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
@@ -71,7 +103,10 @@ def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: 
 
 
 def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
-    """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360))."""
+    """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
+    in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
+    field through the same filter (its flags without FLAG_CALIBRATED) until the running self-check
+    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise."""
     cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
@@ -85,3 +120,20 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
                0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
                rec.gyro_epoch)  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
+    if rec.inflight is None and track.check is None:
+        return
+    vx, vy, vz = rec.raw
+    psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
+    own = track.step_own(psi_own)
+    chk = track.check
+    if rec.inflight is not None and rec.have_throttle:
+        if chk is None:
+            chk = track.check = RunningSelfCheck(rec.inflight.yaw_independent)
+        if rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS:
+            ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
+            if ref == ref:  # not NaN
+                chk.add(rec.t_s, math.radians(psi_own), math.radians(psi), ref, seg, rec.ap_yaw)
+    verdict = chk.verdict if chk is not None else None
+    if rec.inflight is None or verdict is None or not verdict.applies:
+        rec.heading_deg = own
+        rec.flags &= ~(FLAG_CALIBRATED | FLAG_THETA_CONVERGED)

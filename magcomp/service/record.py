@@ -56,6 +56,10 @@ class MagRecord:
     #: (restarts of the integral); the heading filter propagates with its change between two samples
     gyro_yaw: float = math.nan
     gyro_epoch: float = -1.0
+    #: the autopilot's yaw (rad, NaN: no ATTITUDE yet) and whether the IMU comes fast enough (selfcheck's
+    #: MAX_GYRO_DT_S) for its integral to be the self-check's reference
+    ap_yaw: float = math.nan
+    imu_fast: bool = False
     # ---- calibrate (service/calibrate.py): eq. (2) u = L v - d; calibrated: a calibration is applied
     field_cal: Float3 = ZERO3
     calibrated: bool = False
