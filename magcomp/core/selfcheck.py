@@ -48,6 +48,9 @@ MIN_WINDOWS = 4
 #: standard errors of the paired window difference the gain must reach (one-sided, ~2.3 % false apply
 #: under the normal approximation of the window mean)
 Z_APPLY = 2.0
+#: the running check judges the correction on its latest windows only (2 min): while learning in flight the
+#: correction changes with each re-solve, and the windows of an earlier, worse estimate say nothing of it
+RECENT_WINDOWS = 12
 #: floor on a window's mean square (rad^2): (0.5 deg)^2. A compass resolves ~1-2 mgauss of a ~200 mgauss
 #: horizontal field (0.3-0.6 deg); below that two headings are the same measurement
 FLOOR_RAD2 = math.radians(0.5) ** 2
@@ -256,8 +259,8 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
 class RunningSelfCheck:
     """:func:`compare` sample by sample (the live daemon, ``replay --causal``): samples are added as they
     come, a window closes every ``WINDOW_S`` (or where the reference's segment changes) and the verdict is
-    taken again from the closed windows. Against the autopilot's yaw the sums are kept per window about a fixed
-    offset (the first sample's), so the whole-flight rms with its mean removed follows from them."""
+    taken again from the latest RECENT_WINDOWS closed windows. Against the autopilot's yaw the sums are kept
+    per window about a fixed offset (the first sample's), so the rms with its mean removed follows from them."""
 
     def __init__(self, yaw_independent: bool = False) -> None:
         self.yaw_independent = yaw_independent
@@ -307,7 +310,10 @@ class RunningSelfCheck:
         return True
 
     def _decide(self) -> SelfCheck:
+        k = RECENT_WINDOWS
+        del self._n[:-k], self._mse_b[:-k], self._mse_c[:-k]
         att_b = att_c = z_att = math.nan
+        del self._att[:-k]
         if self._att and len(self._att) == len(self._n):
             s = np.asarray(self._att)
             n = s[:, 0]

@@ -120,12 +120,12 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
                0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
                rec.gyro_epoch)  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
-    if rec.inflight is None and track.check is None:
-        return
     vx, vy, vz = rec.raw
     psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
-    own = track.step_own(psi_own)
+    own = track.step_own(psi_own)  # every sample: the filter's state stays current
     chk = track.check
+    if rec.inflight is None and chk is None:
+        return
     if rec.inflight is not None and rec.have_throttle:
         if chk is None:
             chk = track.check = RunningSelfCheck(rec.inflight.yaw_independent)
