@@ -259,8 +259,9 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
 class RunningSelfCheck:
     """:func:`compare` sample by sample (the live daemon, ``replay --causal``): samples are added as they
     come, a window closes every ``WINDOW_S`` (or where the reference's segment changes) and the verdict is
-    taken again from the latest RECENT_WINDOWS closed windows. Against the autopilot's yaw the sums are kept
-    per window about a fixed offset (the first sample's), so the rms with its mean removed follows from them."""
+    taken again from the latest RECENT_WINDOWS closed windows. Against the autopilot's yaw the sums are
+    kept per window about a fixed offset (the first sample's), so the rms without its mean follows from them.
+    :attr:`offset_rad`: the circular mean of (baseline - candidate) over every sample added."""
 
     def __init__(self, yaw_independent: bool = False) -> None:
         self.yaw_independent = yaw_independent
@@ -272,7 +273,13 @@ class RunningSelfCheck:
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
         self._off: tuple[float, float] | None = None
+        self._sin = self._cos = 0.0
         self.verdict: SelfCheck | None = None
+
+    @property
+    def offset_rad(self) -> float:
+        """The circular mean of (baseline - candidate) so far (rad; 0 before any sample)."""
+        return math.atan2(self._sin, self._cos) if self._sin or self._cos else 0.0
 
     def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
             ap_yaw_rad: float) -> bool:  # fmt: skip
@@ -285,6 +292,8 @@ class RunningSelfCheck:
             closed = self._close()
             self._key = key
         self._rows.append((base_rad, cand_rad, ref_rad, ap_yaw_rad))
+        self._sin += math.sin(base_rad - cand_rad)
+        self._cos += math.cos(base_rad - cand_rad)
         return closed
 
     def _close(self) -> bool:

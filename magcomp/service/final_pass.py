@@ -127,6 +127,9 @@ class FinalCompass:
     theta: Float3
     converged: bool
     accounts: str | None
+    #: added to the corrected heading (deg): in the relative form the correction cannot know the heading's
+    #: constant part (the mount's yaw), so it takes the autopilot's own (the self-check's mean difference)
+    heading_offset_deg: float = 0.0
 
 
 def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
@@ -207,6 +210,10 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     trig = (rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH], rows[:, SIN_PITCH])
     psi_raw = heading_from_trig_deg(field_cal[:, 0], field_cal[:, 1], field_cal[:, 2], *trig)  # eq. (24)
     psi = np.where(have, heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig), psi_raw)
+    for idx, f in finals.items():
+        if f.heading_offset_deg and f.coeffs is not None:
+            m = (mag == idx) & have
+            psi[m] = (psi[m] + f.heading_offset_deg) % 360.0
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
@@ -267,6 +274,10 @@ def self_check_finals(
     for i in judged:
         cols = np.concatenate(parts[i]) if parts[i] else np.zeros((0, 7))
         chk = checks[i] = self_check(cols, i in yaw_independent)
+        if chk.applies and i not in yaw_independent and cols.shape[0]:
+            d = cols[:, 1] - cols[:, 2]  # the autopilot's own minus the corrected heading (rad)
+            off = math.degrees(math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d)))))
+            out[i] = replace(finals[i], heading_offset_deg=off)
         if not chk.applies:
             f = finals[i]
             out[i] = replace(f, coeffs=None, inflight=False, theta=(0.0, 0.0, 0.0), converged=False,
