@@ -11,7 +11,8 @@ import pytest
 from magcomp.adapters.config import Config
 from magcomp.service.replay import replay_log
 
-LOG171 = Path(__file__).parents[2].parent / "shared" / "data" / "measured" / "dronekit_log171_copter33_quad.bin"
+MEASURED = Path(__file__).parents[2].parent / "shared" / "data" / "measured"
+LOG171 = MEASURED / "dronekit_log171_copter33_quad.bin"
 
 pytestmark = pytest.mark.needs_shared
 

@@ -11,8 +11,10 @@ import pytest
 from magcomp.core import selfcheck as sc
 from magcomp.service.heading import HeadingTrack
 
+Flight = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.random.Generator]
 
-def _flight(seed: int, n_s: float = 300.0, rate_hz: float = 10.0) -> tuple[np.ndarray, ...]:
+
+def _flight(seed: int, n_s: float = 300.0, rate_hz: float = 10.0) -> Flight:
     """Times, a true yaw (turns), a gyro-integrated yaw with a small rate bias, and a throttle that climbs and
     descends over seconds (what bends a compass)."""
     rng = np.random.default_rng(seed)
@@ -63,7 +65,7 @@ def test_worse_against_the_autopilot_yaw_does_not_apply() -> None:
 
 
 def test_too_short_to_judge() -> None:
-    t, yaw, gyro, thr, rng = _flight(4, n_s=25.0)
+    t, yaw, gyro, thr, _ = _flight(4, n_s=25.0)
     base = yaw + np.radians(12.0) * thr**2
     chk = sc.compare(base, yaw, gyro, sc.window_ids(t))
     assert not chk.applies and chk.n_windows < sc.MIN_WINDOWS
