@@ -19,8 +19,9 @@ paired difference of the windows (a paired test: the windows are the independent
 holds many correlated samples; the log of the ratio of their mean squares, so that the gain is judged
 window by window rather than by the few windows of violent manoeuvre). The candidate *applies* only where
 it is no worse than the baseline against either reference and its gain is beyond the noise (the mean over
-at least ``MIN_WINDOWS`` windows ``Z_APPLY`` standard errors above zero) against the gyro, or against the
-autopilot's yaw where that yaw does not come from the compass judged. Everything else keeps the
+at least ``MIN_WINDOWS`` windows above zero by the Student-t bound :func:`t_critical`) against the gyro, or
+against the autopilot's yaw (where that yaw is fused from the compass judged it favours the baseline, so a
+gain against it is conservative evidence). Everything else keeps the
 baseline: never worse than what the autopilot already had.
 
 Pure numpy; angles in rad unless the name says deg; times in s.
@@ -28,11 +29,13 @@ Pure numpy; angles in rad unless the name says deg; times in s.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import t as student_t
 
 F64 = NDArray[np.float64]
 
@@ -43,10 +46,13 @@ F64 = NDArray[np.float64]
 WINDOW_S = 10.0
 #: a window needs this many samples for its mean to be removed with something left
 MIN_PER_WINDOW = 3
-#: a paired test needs an estimate of the spread between windows: at least this many windows
-MIN_WINDOWS = 4
-#: standard errors of the paired window difference the gain must reach (one-sided, ~2.3 % false apply
-#: under the normal approximation of the window mean)
+#: a paired test needs an estimate of the spread between windows: at least this many windows (2 degrees of
+#: freedom; with so few the Student-t bound below asks for a gain of 6 standard errors)
+MIN_WINDOWS = 3
+#: one-sided confidence the gain must reach: the mean paired gain over n windows must exceed the Student-t
+#: quantile with n - 1 degrees of freedom in standard errors (2.0 for many windows: ~2.3 % false apply)
+P_APPLY = 0.977
+#: the large-sample limit of that bound (standard errors)
 Z_APPLY = 2.0
 #: the running check judges the correction on its latest windows only (2 min): while learning in flight the
 #: correction changes with each re-solve, and the windows of an earlier, worse estimate say nothing of it
@@ -54,10 +60,31 @@ RECENT_WINDOWS = 12
 #: floor on a window's mean square (rad^2): (0.5 deg)^2. A compass resolves ~1-2 mgauss of a ~200 mgauss
 #: horizontal field (0.3-0.6 deg); below that two headings are the same measurement
 FLOOR_RAD2 = math.radians(0.5) ** 2
-#: the gyro is integrated where it comes at least this often (s between samples); slower: the autopilot's yaw
-MAX_GYRO_DT_S = 0.1
+#: the gyro is integrated where its samples come at least this often (s); slower (below 10 Hz), the
+#: autopilot's yaw is the windowed reference. A 10 Hz stream's intervals jitter by tens of ms around 0.1 s,
+#: so the cut is at one and a half of its intervals: a reference that flipped sample by sample would close
+#: a window at each flip
+MAX_GYRO_DT_S = 0.15
 #: gaps in the gyro longer than this (s) restart its integral (a new window starts there)
 MAX_GYRO_GAP_S = 0.5
+
+
+@functools.lru_cache(maxsize=256)
+def t_critical(n_windows: int) -> float:
+    """The gain (standard errors) that ``n_windows`` paired windows must reach: the P_APPLY quantile of
+    Student's t with n - 1 degrees of freedom (inf below 2 windows)."""
+    if n_windows < 2:
+        return math.inf
+    return float(student_t.ppf(P_APPLY, n_windows - 1))
+
+
+def att_tolerance_deg(att_deg: float, n_windows: int) -> float:
+    """How much larger an rms against the autopilot's yaw may come out and still be "no worse": its own
+    sampling error over ``n_windows`` independent windows (an rms of n values scatters by 1/sqrt(2 n) of
+    itself), not below the compass's resolution (FLOOR_RAD2's 0.5 deg). Where the autopilot's yaw is fused
+    from the compass judged it holds part of the baseline's error, so a better candidate can come out
+    slightly further from it."""
+    return max(math.sqrt(FLOOR_RAD2) * 180.0 / math.pi, att_deg / math.sqrt(2.0 * max(n_windows, 1)))
 
 
 def wrap_rad(a: F64) -> F64:
@@ -180,6 +207,9 @@ class SelfCheck:
     z: float
     applies: bool
     reason: str
+    #: worse beyond the noise (a paired loss past the Student-t bound against the gyro, or further from the
+    #: autopilot's yaw than its tolerance): what switches a running correction off again
+    worse: bool = False
 
     def describe(self) -> str:
         """One line for the console: "heading vs gyro: 6.2 -> 2.5 deg (z 4.1, 23 windows)"."""
@@ -197,14 +227,13 @@ def compare(
     reference_rad: F64,
     ids: NDArray[np.int64],
     autopilot_yaw_rad: F64 | None = None,
-    yaw_independent: bool = False,
 ) -> SelfCheck:
     """Judge ``candidate_rad`` against ``baseline_rad`` (headings of the same samples) with the windowed
     reference (gyro yaw, or the autopilot's yaw where the gyro is slow; ``ids`` from :func:`window_ids`)
-    and, where given, the autopilot's yaw over the whole flight (``yaw_independent``: that yaw does not come
-    from this compass, so it is evidence too). The candidate applies where it is no worse than the baseline
-    against either reference and better beyond the noise (``Z_APPLY`` standard errors of the paired window
-    gain) against the gyro, or against the autopilot's yaw where that is independent."""
+    and, where given, the autopilot's yaw over the whole flight. The candidate applies where it is no worse
+    than the baseline against either reference and better beyond the noise (the paired window gain beyond
+    :func:`t_critical`) against either. Where the autopilot's yaw is fused from this compass it carries the
+    baseline's own error and favours it: a candidate that agrees better with it all the same is better."""
     b = np.asarray(baseline_rad, dtype=float)
     c = np.asarray(candidate_rad, dtype=float)
     ref = np.asarray(reference_rad, dtype=float)
@@ -221,8 +250,7 @@ def compare(
     if ap is not None and b.size:
         ap_ok = ap[ok]
         att_b, att_c = offset_removed_rms_deg(b - ap_ok), offset_removed_rms_deg(c - ap_ok)
-        if yaw_independent:
-            z_att = paired_z(window_ms_about_mean(b - ap_ok, ids_ok), window_ms_about_mean(c - ap_ok, ids_ok))
+        z_att = paired_z(window_ms_about_mean(b - ap_ok, ids_ok), window_ms_about_mean(c - ap_ok, ids_ok))
     return decide(n_b, mse_b, mse_c, att_b, att_c, z_att)
 
 
@@ -238,13 +266,14 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False,
                          f"only {nw} usable {WINDOW_S:.0f} s windows with the motors running")  # fmt: skip
     z = paired_z(mse_b, mse_c)
+    crit = t_critical(nw)
     if gyro_c > gyro_b:
         why = f"less consistent with the gyro than the autopilot's own ({gyro_b:.1f} -> {gyro_c:.1f} deg)"
-        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
-    if math.isfinite(att_c) and att_c > att_b:
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=z <= -crit)
+    if math.isfinite(att_c) and att_c > att_b + att_tolerance_deg(att_b, nw):
         why = f"in less agreement with the autopilot's yaw than its own ({att_b:.1f} -> {att_c:.1f} deg)"
-        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
-    if not (z >= Z_APPLY or z_att >= Z_APPLY):
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=True)
+    if not (z >= crit or z_att >= crit):
         why = (
             f"not better than the autopilot's own heading beyond the noise (against the gyro "
             f"{gyro_b:.1f} -> {gyro_c:.1f} deg, {z:+.1f} sigma"
@@ -259,12 +288,11 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
 class RunningSelfCheck:
     """:func:`compare` sample by sample (the live daemon, ``replay --causal``): samples are added as they
     come, a window closes every ``WINDOW_S`` (or where the reference's segment changes) and the verdict is
-    taken again from the latest RECENT_WINDOWS closed windows. Against the autopilot's yaw the sums are
-    kept per window about a fixed offset (the first sample's), so the rms without its mean follows from them.
-    :attr:`offset_rad`: the circular mean of (baseline - candidate) over every sample added."""
+    taken again from the latest RECENT_WINDOWS closed windows (against the gyro) and from every window
+    (against the autopilot's yaw, whose sums are kept per window about a fixed offset, the first sample's,
+    so the rms without its mean follows from them)."""
 
-    def __init__(self, yaw_independent: bool = False) -> None:
-        self.yaw_independent = yaw_independent
+    def __init__(self) -> None:
         self._key: tuple[int, float] | None = None
         self._t0 = math.nan
         self._rows: list[tuple[float, float, float, float]] = []
@@ -273,13 +301,11 @@ class RunningSelfCheck:
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
         self._off: tuple[float, float] | None = None
-        self._sin = self._cos = 0.0
         self.verdict: SelfCheck | None = None
-
-    @property
-    def offset_rad(self) -> float:
-        """The circular mean of (baseline - candidate) so far (rad; 0 before any sample)."""
-        return math.atan2(self._sin, self._cos) if self._sin or self._cos else 0.0
+        #: the correction is published: switched on where the verdict applies, off only where it is worse
+        #: beyond the noise (hysteresis: a verdict near its bound does not make the heading flip back and
+        #: forth between two headings whose constant parts differ)
+        self.on = False
 
     def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
             ap_yaw_rad: float) -> bool:  # fmt: skip
@@ -292,8 +318,6 @@ class RunningSelfCheck:
             closed = self._close()
             self._key = key
         self._rows.append((base_rad, cand_rad, ref_rad, ap_yaw_rad))
-        self._sin += math.sin(base_rad - cand_rad)
-        self._cos += math.cos(base_rad - cand_rad)
         return closed
 
     def _close(self) -> bool:
@@ -315,24 +339,25 @@ class RunningSelfCheck:
             ec = wrap_rad(a[:, 1] - ap - self._off[1])
             sums = (float(eb.size), float(eb.sum()), float(eb @ eb), float(ec.sum()), float(ec @ ec))
             self._att.append(sums)
-        self.verdict = self._decide()
+        v = self.verdict = self._decide()
+        self.on = v.applies or (self.on and not v.worse)
         return True
 
     def _decide(self) -> SelfCheck:
         k = RECENT_WINDOWS
         del self._n[:-k], self._mse_b[:-k], self._mse_c[:-k]
         att_b = att_c = z_att = math.nan
-        del self._att[:-k]
-        if self._att and len(self._att) == len(self._n):
+        if self._att:
+            # against the autopilot's yaw over every window since the check began: the candidate's constant
+            # part drifting as the estimate is re-solved is an error there, as it is in the published heading
             s = np.asarray(self._att)
             n = s[:, 0]
             tot = float(n.sum())
             mb, mc = float(s[:, 1].sum()) / tot, float(s[:, 3].sum()) / tot
             att_b = math.degrees(math.sqrt(max(0.0, float(s[:, 2].sum()) / tot - mb * mb)))
             att_c = math.degrees(math.sqrt(max(0.0, float(s[:, 4].sum()) / tot - mc * mc)))
-            if self.yaw_independent:
-                ms_b = (s[:, 2] - 2.0 * mb * s[:, 1]) / n + mb * mb
-                ms_c = (s[:, 4] - 2.0 * mc * s[:, 3]) / n + mc * mc
-                z_att = paired_z(ms_b, ms_c)
+            ms_b = (s[-k:, 2] - 2.0 * mb * s[-k:, 1]) / n[-k:] + mb * mb
+            ms_c = (s[-k:, 4] - 2.0 * mc * s[-k:, 3]) / n[-k:] + mc * mc
+            z_att = paired_z(ms_b, ms_c)
         n_w, mse_b, mse_c = np.asarray(self._n), np.asarray(self._mse_b), np.asarray(self._mse_c)
         return decide(n_w, mse_b, mse_c, att_b, att_c, z_att)

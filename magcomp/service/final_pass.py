@@ -127,9 +127,6 @@ class FinalCompass:
     theta: Float3
     converged: bool
     accounts: str | None
-    #: added to the corrected heading (deg): in the relative form the correction cannot know the heading's
-    #: constant part (the mount's yaw), so it takes the autopilot's own (the self-check's mean difference)
-    heading_offset_deg: float = 0.0
 
 
 def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
@@ -210,10 +207,7 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     trig = (rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH], rows[:, SIN_PITCH])
     psi_raw = heading_from_trig_deg(field_cal[:, 0], field_cal[:, 1], field_cal[:, 2], *trig)  # eq. (24)
     psi = np.where(have, heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig), psi_raw)
-    for idx, f in finals.items():
-        if f.heading_offset_deg and f.coeffs is not None:
-            m = (mag == idx) & have
-            psi[m] = (psi[m] + f.heading_offset_deg) % 360.0
+
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
@@ -238,7 +232,7 @@ def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
                             r[:, GYRO_EPOCH], r[:, IMU_DT]))  # fmt: skip
 
 
-def self_check(cols: F64, yaw_independent: bool = False) -> selfcheck.SelfCheck:
+def self_check(cols: F64) -> selfcheck.SelfCheck:
     """The verdict of :func:`magcomp.core.selfcheck.compare` on :func:`_check_rows`' columns: the gyro's
     integrated yaw is the windowed reference where the IMU comes at least every MAX_GYRO_DT_S, else the
     autopilot's yaw."""
@@ -248,19 +242,17 @@ def self_check(cols: F64, yaw_independent: bool = False) -> selfcheck.SelfCheck:
     if fast.size and float(np.mean(fast)) >= 0.5:
         keep = fast & np.isfinite(gyaw)
         ids = selfcheck.window_ids(t[keep], epoch[keep])
-        return selfcheck.compare(base[keep], cand[keep], gyaw[keep], ids, ap[keep] if has_ap else None,
-                                 yaw_independent)
-    return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None, yaw_independent)
+        return selfcheck.compare(base[keep], cand[keep], gyaw[keep], ids, ap[keep] if has_ap else None)
+    return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None)
 
 
 def self_check_finals(
-    samples: SampleLog, finals: dict[int, FinalCompass], yaw_independent: frozenset[int] = frozenset()
+    samples: SampleLog, finals: dict[int, FinalCompass]
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck]]:
     """The self-check of every corrected compass over the whole log (:mod:`magcomp.core.selfcheck`): where
     the corrected heading is not better than the autopilot's own against the gyro beyond the noise, or
     agrees less with the autopilot's yaw, its final state becomes "uncorrected" and the second pass
-    publishes the autopilot's own field through the same heading filter. ``yaw_independent``: compasses
-    whose autopilot yaw comes from elsewhere (another compass, GPS): that yaw is evidence too."""
+    publishes the autopilot's own field through the same heading filter."""
     judged = [i for i, f in finals.items() if f.coeffs is not None]
     if not judged:
         return finals, {}
@@ -273,11 +265,7 @@ def self_check_finals(
     checks: dict[int, selfcheck.SelfCheck] = {}
     for i in judged:
         cols = np.concatenate(parts[i]) if parts[i] else np.zeros((0, 7))
-        chk = checks[i] = self_check(cols, i in yaw_independent)
-        if chk.applies and i not in yaw_independent and cols.shape[0]:
-            d = cols[:, 1] - cols[:, 2]  # the autopilot's own minus the corrected heading (rad)
-            off = math.degrees(math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d)))))
-            out[i] = replace(finals[i], heading_offset_deg=off)
+        chk = checks[i] = self_check(cols)
         if not chk.applies:
             f = finals[i]
             out[i] = replace(f, coeffs=None, inflight=False, theta=(0.0, 0.0, 0.0), converged=False,

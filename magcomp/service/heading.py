@@ -106,10 +106,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
     field through the same filter (its flags without FLAG_CALIBRATED) until the running self-check
-    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
-    the relative form (the autopilot's yaw comes from this compass) the correction cannot know the heading's
-    constant part (the mount's yaw): it is taken from the autopilot's own heading (their circular mean
-    difference), so that switching between the two does not jump."""
+    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise."""
     cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
@@ -131,14 +128,11 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         return
     if rec.inflight is not None and rec.have_throttle:
         if chk is None:
-            chk = track.check = RunningSelfCheck(rec.inflight.yaw_independent)
+            chk = track.check = RunningSelfCheck()
         if rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(psi), ref, seg, rec.ap_yaw)
-    verdict = chk.verdict if chk is not None else None
-    if rec.inflight is None or verdict is None or not verdict.applies or chk is None:
+    if rec.inflight is None or chk is None or not chk.on:
         rec.heading_deg = own
         rec.flags &= ~(FLAG_CALIBRATED | FLAG_THETA_CONVERGED)
-    elif not chk.yaw_independent:  # the relative form: the heading's constant part is the autopilot's
-        rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0

@@ -152,8 +152,6 @@ class InflightOutput:
     theta_mgauss: tuple[float, float, float]
     bias_mgauss: tuple[float, float, float]
     converged: bool
-    #: the autopilot's yaw does not come from this compass (the absolute form): evidence for the self-check
-    yaw_independent: bool = False
 
 
 class InflightStage:
@@ -692,7 +690,6 @@ class InflightStage:
                     theta_mgauss=self._theta3,
                     bias_mgauss=bias3,
                     converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
-                    yaw_independent=self.mode == "absolute",
                 )
         self.account(t_s, state)
         return out

@@ -423,13 +423,6 @@ class Pipeline:
             }
         )
 
-    def yaw_independent(self) -> frozenset[int]:
-        """The compasses whose autopilot yaw comes from elsewhere (the in-flight stage's absolute form:
-        another compass, GPS): that yaw is independent evidence for the self-check."""
-        return frozenset(
-            i for i, c in self.correctors.items() if c.inflight is not None and c.inflight.mode == "absolute"
-        )
-
     def _status(self, c: CompassCorrector) -> Status:
         """(corrected | uncorrected, why) for the summary: one phrase a user can act on, with the verdict of
         the self-check against the gyro where one was made."""

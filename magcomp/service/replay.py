@@ -329,7 +329,7 @@ def replay_log(
                 first = None
             finals = final_compasses(first.pipeline) if first is not None else None
             if first is not None and finals is not None:  # never worse than the autopilot's own heading
-                finals, checks = self_check_finals(first.samples, finals, first.pipeline.yaw_independent())
+                finals, checks = self_check_finals(first.samples, finals)
                 first.pipeline.self_checks.update(checks)
         if first is not None and finals is not None:
             pipeline = first.pipeline
