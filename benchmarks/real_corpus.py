@@ -126,7 +126,9 @@ def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]
 Scores = dict[int, dict[str, float]]
 
 
-def magcomp_scores(path: Path, ref: Reference, causal: bool) -> tuple[Scores, dict[int, str]]:
+def magcomp_scores(
+    path: Path, ref: Reference, causal: bool
+) -> tuple[Scores, dict[int, str], dict[int, float]]:
     rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal)
     by: dict[int, list[tuple[float, float]]] = {}
     for e in rep.estimates:
@@ -138,7 +140,12 @@ def magcomp_scores(path: Path, ref: Reference, causal: bool) -> tuple[Scores, di
         if got is not None:
             out[idx] = got
     said = {int(c["index"]): f"{c['status']}: {c['why']}" for c in rep.summary.get("compasses", [])}
-    return out, said
+    sigma = {  # the heading uncertainty printed for a corrected compass (deg, 1 sigma)
+        int(c["index"]): float(c["inflight"]["heading_sigma_deg"])
+        for c in rep.summary.get("compasses", [])
+        if c["status"] == "corrected" and (c.get("inflight") or {}).get("heading_sigma_deg") is not None
+    }
+    return out, said, sigma
 
 
 def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
@@ -157,9 +164,10 @@ def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
         per_mode = {m: magcomp_scores(path, ref, m == "causal") for m in modes}
         for idx, b in base.items():
             row: dict[str, Any] = {"log": path.name, "compass": idx, "autopilot": b}
-            for m, (scores, said) in per_mode.items():
+            for m, (scores, said, sigma) in per_mode.items():
                 got = scores.get(idx)
                 row[m] = got
+                row[m + "_sigma"] = sigma.get(idx)
                 row[m + "_verdict"] = verdict(b, got) if got is not None else "missing"
                 row[m + "_said"] = said.get(idx, "")
             rows.append(row)
@@ -187,6 +195,13 @@ def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
         ratios = [r[m]["att"] / r["autopilot"]["att"] for r in big]
         better_big = sum(r[m + "_verdict"] == "better" for r in big)
         med = statistics.median(ratios) if ratios else math.nan
+        cov = [(r[m]["gyro"], r[m + "_sigma"]) for r in rows if r[m] is not None and r.get(m + "_sigma")]
+        in1 = sum(g <= s for g, s in cov)
+        in2 = sum(g <= 2 * s for g, s in cov)
+        out.append(
+            f"{m}: printed +-sigma of {len(cov)} corrected compasses vs their realised error (gyro): "
+            f"within 1 sigma {in1}/{len(cov)}, within 2 sigma {in2}/{len(cov)}"
+        )
         out.append(
             f"{m}: {len(rows)} compasses: worse {v.count('worse')}, better {v.count('better')}, "
             f"same {v.count('same')}, missing {v.count('missing')}; own heading >= 8 deg att: "
