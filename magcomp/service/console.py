@@ -199,10 +199,12 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                 f"calibrated in flight ({inf.get('form')} form, {cal['n']} samples, residual "
                 f"{cal['residual_rms_mgauss']:.1f} mgauss, heading +-{hs:.1f} deg{mount})"
             )
+            chk = c.get("self_check")
+            gain = "" if not chk else f"; {_gain_text(chk)}"
             lines.append(
                 f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "
                 f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) "
-                f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss ({conv}){_time_text(c)}"
+                f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss ({conv}){gain}{_time_text(c)}"
             )
             continue
         lines.append(
@@ -210,6 +212,13 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) mgauss ({conv})"
         )
     return lines
+
+
+def _gain_text(chk: dict[str, Any]) -> str:
+    """The self-check's gain, as :meth:`magcomp.core.selfcheck.SelfCheck.describe` words it."""
+    from magcomp.core.selfcheck import SelfCheck
+
+    return SelfCheck(**chk).describe()
 
 
 def _time_text(c: dict[str, Any]) -> str:

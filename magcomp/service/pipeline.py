@@ -402,8 +402,7 @@ class Pipeline:
         """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
         calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
         no NaN)."""
-        checks = self.self_checks
-        compasses = [compass_summary(c, self._status(c), checks.get(i))
+        compasses = [compass_summary(c, self._status(c), self._check(c)[0])
                      for i, c in sorted(self.correctors.items())]
         lat, lon, alt, year = self._location
         return json_safe(
@@ -427,13 +426,24 @@ class Pipeline:
         """(corrected | uncorrected, why) for the summary: one phrase a user can act on, with the verdict of
         the self-check against the gyro where one was made."""
         st = self._learned_status(c)
-        chk = self.self_checks.get(c.mag_index)
+        chk, on = self._check(c)
         if chk is None or st.status != "corrected":
             return st
-        if chk.applies:
+        if on:
             return Status("corrected", f"{st.why}; {chk.describe()}")
-        return Status("uncorrected", f"the autopilot's own heading published: the correction ({st.why}) is "
-                                     f"{chk.reason.removeprefix('is ')}")  # fmt: skip
+        return Status("uncorrected", f"publishing the autopilot's own heading (the correction learned in "
+                                     f"flight: {chk.reason})")  # fmt: skip
+
+    def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
+        """A compass's self-check and whether its correction is published: the two-pass replay's over the
+        whole log, else the live one's latest verdict (service/heading.py)."""
+        chk = self.self_checks.get(c.mag_index)
+        if chk is not None:
+            return chk, chk.applies
+        run = c.heading.check
+        if run is not None and run.verdict is not None:
+            return run.verdict, run.on
+        return None, False
 
     def _learned_status(self, c: CompassCorrector) -> Status:
         """What the learning says of a compass (corrected | uncorrected, why), before the self-check."""
