@@ -56,7 +56,11 @@ P_APPLY = 0.977
 Z_APPLY = 2.0
 #: the running check judges the correction on its latest windows only (2 min): while learning in flight the
 #: correction changes with each re-solve, and the windows of an earlier, worse estimate say nothing of it
-RECENT_WINDOWS = 12
+RECENT_S = 120.0
+#: the running check's window (s): half the batch's, so that a live correction is judged on twice the
+#: windows in the same time (its gyro ramp is half as large; the compass's errors of a climb or a turn last
+#: seconds, within it)
+LIVE_WINDOW_S = 5.0
 #: floor on a window's mean square (rad^2): (0.5 deg)^2. A compass resolves ~1-2 mgauss of a ~200 mgauss
 #: horizontal field (0.3-0.6 deg); below that two headings are the same measurement
 FLOOR_RAD2 = math.radians(0.5) ** 2
@@ -264,7 +268,7 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
     nw = int(n_w.size)
     if nw < MIN_WINDOWS:
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False,
-                         f"only {nw} usable {WINDOW_S:.0f} s windows with the motors running")  # fmt: skip
+                         f"only {nw} usable windows with the motors running")  # fmt: skip
     z = paired_z(mse_b, mse_c)
     crit = t_critical(nw)
     if gyro_c > gyro_b:
@@ -287,12 +291,12 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
 
 class RunningSelfCheck:
     """:func:`compare` sample by sample (the live daemon, ``replay --causal``): samples are added as they
-    come, a window closes every ``WINDOW_S`` (or where the reference's segment changes) and the verdict is
-    taken again from the latest RECENT_WINDOWS closed windows (against the gyro) and from every window
-    (against the autopilot's yaw, whose sums are kept per window about a fixed offset, the first sample's,
-    so the rms without its mean follows from them)."""
+    come, a window closes every ``window_s`` (or where the reference's segment changes) and the verdict is
+    taken again from the closed windows of the latest RECENT_S (against the autopilot's yaw the sums are
+    kept per window about a fixed offset, the first sample's: the rms without its mean follows from them)."""
 
-    def __init__(self) -> None:
+    def __init__(self, window_s: float = LIVE_WINDOW_S) -> None:
+        self.window_s = window_s
         self._key: tuple[int, float] | None = None
         self._t0 = math.nan
         self._rows: list[tuple[float, float, float, float]] = []
@@ -300,6 +304,7 @@ class RunningSelfCheck:
         self._mse_b: list[float] = []
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
+        self._offset_sums: list[tuple[float, float]] = []  # per window: sum sin, sum cos of (base - cand)
         self._off: tuple[float, float] | None = None
         self.verdict: SelfCheck | None = None
         #: the correction is published: switched on where the verdict applies, off only where it is worse
@@ -307,12 +312,20 @@ class RunningSelfCheck:
         #: forth between two headings whose constant parts differ)
         self.on = False
 
+    @property
+    def offset_rad(self) -> float:
+        """The circular mean of (baseline - candidate) over the windows the verdict was taken on (rad)."""
+        if not self._offset_sums:
+            return 0.0
+        s = np.asarray(self._offset_sums)
+        return math.atan2(float(s[:, 0].sum()), float(s[:, 1].sum()))
+
     def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
             ap_yaw_rad: float) -> bool:  # fmt: skip
         """One sample (rad; ``ap_yaw_rad`` NaN: none); True when a window closed (the verdict was renewed)."""
         if self._t0 != self._t0:
             self._t0 = t_s
-        key = (int((t_s - self._t0) // WINDOW_S), segment)
+        key = (int((t_s - self._t0) // self.window_s), segment)
         closed = False
         if key != self._key:
             closed = self._close()
@@ -329,6 +342,8 @@ class RunningSelfCheck:
         n, mb = window_mse(a[:, 0] - a[:, 2], ids)
         _, mc = window_mse(a[:, 1] - a[:, 2], ids)
         self._n.append(float(n[0]))
+        dbc = a[:, 0] - a[:, 1]
+        self._offset_sums.append((float(np.sin(dbc).sum()), float(np.cos(dbc).sum())))
         self._mse_b.append(float(mb[0]))
         self._mse_c.append(float(mc[0]))
         ap = a[:, 3]
@@ -344,20 +359,19 @@ class RunningSelfCheck:
         return True
 
     def _decide(self) -> SelfCheck:
-        k = RECENT_WINDOWS
-        del self._n[:-k], self._mse_b[:-k], self._mse_c[:-k]
+        k = max(MIN_WINDOWS, int(RECENT_S / self.window_s))
+        del self._n[:-k], self._mse_b[:-k], self._mse_c[:-k], self._offset_sums[:-k]
         att_b = att_c = z_att = math.nan
+        del self._att[:-k]
         if self._att:
-            # against the autopilot's yaw over every window since the check began: the candidate's constant
-            # part drifting as the estimate is re-solved is an error there, as it is in the published heading
             s = np.asarray(self._att)
             n = s[:, 0]
             tot = float(n.sum())
             mb, mc = float(s[:, 1].sum()) / tot, float(s[:, 3].sum()) / tot
             att_b = math.degrees(math.sqrt(max(0.0, float(s[:, 2].sum()) / tot - mb * mb)))
             att_c = math.degrees(math.sqrt(max(0.0, float(s[:, 4].sum()) / tot - mc * mc)))
-            ms_b = (s[-k:, 2] - 2.0 * mb * s[-k:, 1]) / n[-k:] + mb * mb
-            ms_c = (s[-k:, 4] - 2.0 * mc * s[-k:, 3]) / n[-k:] + mc * mc
+            ms_b = (s[:, 2] - 2.0 * mb * s[:, 1]) / n + mb * mb
+            ms_c = (s[:, 4] - 2.0 * mc * s[:, 3]) / n + mc * mc
             z_att = paired_z(ms_b, ms_c)
         n_w, mse_b, mse_c = np.asarray(self._n), np.asarray(self._mse_b), np.asarray(self._mse_c)
         return decide(n_w, mse_b, mse_c, att_b, att_c, z_att)

@@ -325,6 +325,8 @@ class CalibrateStage:
                 # eq. (2) with the in-flight L and d (its theta and bias come with it: service/theta.py)
                 rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
                 return
+            if c.inflight is not None and c.inflight_remote is None:
+                rec.shadow = c.inflight.candidate()
         if k is not None:
             rec.flags |= FLAG_CALIBRATED
             rec.calibrated = True

@@ -15,6 +15,7 @@ from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.selfcheck import RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
+from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import MagRecord
 
 #: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)
@@ -102,11 +103,26 @@ def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: 
     return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
 
 
+def _shadow_heading_deg(rec: MagRecord) -> float | None:
+    """Eq. (2), eq. (11) and eq. (24) with the in-flight solution not yet applied (``rec.shadow``)."""
+    if rec.shadow is None or not rec.have_throttle:
+        return None
+    coeffs, theta = rec.shadow
+    ux, uy, uz = apply_eq2(coeffs, *rec.raw)
+    d2 = rec.throttle_01 * rec.throttle_01
+    return heading_from_trig_deg(ux - theta[0] * d2, uy - theta[1] * d2, uz - theta[2] * d2, rec.cos_roll,
+                                 rec.sin_roll, rec.cos_pitch, rec.sin_pitch)  # fmt: skip
+
+
 def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
     field through the same filter (its flags without FLAG_CALIBRATED) until the running self-check
-    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise."""
+    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
+    the relative form the correction cannot know the heading's constant part (the mount's yaw), and the
+    estimate's moves as it is re-solved in flight: the published heading takes its constant part from the
+    autopilot's own over the check's latest windows (their circular mean difference), so that it neither
+    jumps when the correction switches on nor drifts with the re-solves."""
     cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
@@ -124,15 +140,19 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
     own = track.step_own(psi_own)  # every sample: the filter's state stays current
     chk = track.check
-    if rec.inflight is None and chk is None:
+    cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
+    if cand is None and chk is None:
         return
-    if rec.inflight is not None and rec.have_throttle:
+    if cand is not None and rec.have_throttle:
         if chk is None:
             chk = track.check = RunningSelfCheck()
+            chk.on = rec.inflight is not None and rec.inflight.warm_started  # judged on its own flight
         if rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
-                chk.add(rec.t_s, math.radians(psi_own), math.radians(psi), ref, seg, rec.ap_yaw)
+                chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
     if rec.inflight is None or chk is None or not chk.on:
         rec.heading_deg = own
         rec.flags &= ~(FLAG_CALIBRATED | FLAG_THETA_CONVERGED)
+    elif rec.inflight.relative:  # the mount's yaw is not observable: the constant part is the autopilot's
+        rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0

@@ -152,6 +152,10 @@ class InflightOutput:
     theta_mgauss: tuple[float, float, float]
     bias_mgauss: tuple[float, float, float]
     converged: bool
+    #: started from a stored state (a previous flight's correction): the self-check starts it published
+    warm_started: bool = False
+    #: the relative form: the heading's constant part (the mount's yaw) is not observable
+    relative: bool = False
 
 
 class InflightStage:
@@ -631,6 +635,13 @@ class InflightStage:
 
     # ---------------------------------------------------------------------------------------- applying
 
+    def candidate(self) -> tuple[tuple[float, ...], tuple[float, float, float]] | None:
+        """The latest solution's L, d (12 floats) and theta while it is not applied (None: no solution yet,
+        or applied): what the self-check judges in the shadow before the stage applies it."""
+        if self.applied or self.solution is None or not self._coeffs:
+            return None
+        return self._coeffs, self._theta3
+
     def output(
         self,
         t_s: float,
@@ -690,6 +701,8 @@ class InflightStage:
                     theta_mgauss=self._theta3,
                     bias_mgauss=bias3,
                     converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
+                    warm_started=self.warm_started,
+                    relative=self.mode == "relative",
                 )
         self.account(t_s, state)
         return out

@@ -60,6 +60,9 @@ class MagRecord:
     #: MAX_GYRO_DT_S) for its integral to be the self-check's reference
     ap_yaw: float = math.nan
     imu_fast: bool = False
+    #: the in-flight solution not yet applied (L and d as 12 floats, theta): judged by the self-check in the
+    #: shadow, so that its evidence is there when the stage applies it
+    shadow: tuple[tuple[float, ...], Float3] | None = None
     # ---- calibrate (service/calibrate.py): eq. (2) u = L v - d; calibrated: a calibration is applied
     field_cal: Float3 = ZERO3
     calibrated: bool = False
