@@ -33,12 +33,13 @@ Units at this boundary (everything downstream uses them):
   without one (VFR_HUD, SYS_STATUS, BATTERY_STATUS, HEARTBEAT, PARAM_VALUE) get the latest time seen. A
   jump back of more than ``RESET_JUMP_S`` is a reboot of the autopilot: an offset keeps ``t_s`` monotonic,
   ``counts["clock_resets"]`` counts them and ``samples()`` yields a ClockResetSample (the pipeline ends its
-  calibration window and filters there). Streams stamped ``time_usec`` on a clock of their own (ArduCopter
-  3.1/3.2's RAW_IMU and SERVO_OUTPUT_RAW, 2.57-2.87 s behind ``time_boot_ms``) are moved onto the
-  ``time_boot_ms`` clock by an offset measured from messages sent together, by the tlog's receive stamps or
-  a link's arrival times (:class:`StreamOffsets`; ``counts["clock_aligned"]``, said once per stream). A jump either way is believed only once the next timestamp
+  calibration window and filters there). A jump either way is believed only once the next timestamp
   confirms it; a lone corrupt timestamp is dropped (``counts["time_jumps"]``). Smaller steps back within
-  one message stream are dropped (``counts["time_backwards"]``).
+  one message stream are dropped (``counts["time_backwards"]``). Streams stamped ``time_usec`` on a clock
+  of their own (ArduCopter 3.1/3.2's RAW_IMU and SERVO_OUTPUT_RAW, 2.57-2.87 s behind ``time_boot_ms``)
+  are moved onto the ``time_boot_ms`` clock by an offset measured from messages sent together, by the
+  tlog's receive stamps or a link's arrival times (:class:`StreamOffsets`; ``counts["clock_aligned"]``,
+  said once per stream).
 - Bad input is skipped and counted, never fatal: ``bad_crc``, ``garbage_bytes``, ``truncated``,
   ``nonfinite``. A file with no usable message at all is an :class:`~magcomp.errors.InputError`.
 
