@@ -128,3 +128,51 @@ def test_small_or_inconsistent_differences_are_not_applied() -> None:
     apart = [m for k in range(40) for m in (("RAW_IMU", 10.0 + 0.1 * k, 5.0 + 0.1 * k),
              ("SCALED_IMU2", 12.6 + 0.1 * k, 5.0 + 0.1 * k + 0.05))]  # fmt: skip
     assert _stream(apart).offset_s == {}
+
+
+def test_a_live_link_finds_the_offset_from_arrival_times(twins: tuple[Path, Path]) -> None:
+    """Live: the same stream sent over UDP, paced at 10x its own time, the receiver pairing by arrival."""
+    import socket
+    import threading
+    import time
+
+    from tests.faultgen import record_time_s
+
+    _, shifted = twins
+    recs = split_tlog_records(shifted.read_bytes())
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    src = MavSource(f"udpin:127.0.0.1:{port}", live_timeout_s=0.1)
+    done = threading.Event()
+
+    def send() -> None:  # the flight controller: each record at its own time / 10 (a burst arrives together)
+        out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            t0, wall0 = record_time_s(recs[0]), time.monotonic()
+            for rec in recs:
+                if done.is_set():
+                    return
+                ahead = (record_time_s(rec) - t0) / 10.0 - (time.monotonic() - wall0)
+                if ahead > 0.0:
+                    time.sleep(ahead)  # pacing, not waiting for anything
+                out.sendto(rec[8:], ("127.0.0.1", port))
+        finally:
+            out.close()
+            src.close()  # the receiving loop ends at its next timeout
+
+    th = threading.Thread(target=send, daemon=True)
+    th.start()
+    offsets = src._conv.clock.offsets.offset_s
+    try:
+        for _ in src.samples():
+            if set(SHIFTED) <= set(offsets):
+                break
+    finally:
+        done.set()
+        src.close()
+        th.join(timeout=10.0)
+    assert set(offsets) == set(SHIFTED)
+    for stream in SHIFTED:
+        assert abs(offsets[stream] - OFFSET_S) < 0.010, (stream, offsets[stream])
