@@ -226,7 +226,9 @@ class Pipeline:
         if not math.isfinite(value):  # a damaged record: the stages read parameters as integers and flags
             self.counts["non_finite_params"] += 1
             return False
-        self._params[sample.name] = value
+        if self._params.get(sample.name) != value:
+            self._params[sample.name] = value
+            self.calibrate.params_version += 1  # the in-flight stages re-decide their reference
         return False
 
     def _on_fix(self, sample: PositionSample) -> bool:
