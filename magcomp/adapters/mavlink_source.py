@@ -1617,6 +1617,11 @@ class MavSource:
     def autopilot(self) -> int:
         return self._conv.autopilot
 
+    def clock_offsets(self) -> dict[str, float]:
+        """Streams moved onto the ``time_boot_ms`` clock and the offset added to their times (s)
+        (:class:`StreamOffsets`); empty when all streams share one clock."""
+        return dict(self._conv.clock.offsets.offset_s)
+
     def _classify(self, target: str) -> str:
         if _is_live(target):
             return "live"

@@ -51,7 +51,7 @@ def _offsets(path: Path) -> tuple[dict[str, float], dict[str, int]]:
     src = MavSource(str(path))
     for _ in src.samples():
         pass
-    return dict(src._conv.clock.offsets.offset_s), dict(src.counts)
+    return src.clock_offsets(), dict(src.counts)
 
 
 def test_offset_found_within_10_ms_and_counted_once(twins: tuple[Path, Path]) -> None:
@@ -66,18 +66,21 @@ def test_offset_found_within_10_ms_and_counted_once(twins: tuple[Path, Path]) ->
     assert offsets == {} and counts.get("clock_aligned", 0) == 0
 
 
-def _headings(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def _headings(path: Path) -> tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
     rep = replay_log(path, Config(), keep_estimates=True, two_pass=True)
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for idx in sorted({e.mag_index for e in rep.estimates}):
         es = [e for e in rep.estimates if e.mag_index == idx]
         out[idx] = (np.array([e.t_s for e in es]), np.array([e.heading_deg for e in es]))
-    return out
+    return out, rep.to_json()
 
 
 def test_replay_headings_match_the_twin_on_one_clock(twins: tuple[Path, Path]) -> None:
     clean, shifted = twins
-    ref, got = _headings(clean), _headings(shifted)
+    (ref, ref_json), (got, got_json) = _headings(clean), _headings(shifted)
+    assert "clock_offsets_s" not in ref_json
+    assert set(got_json["clock_offsets_s"]) == set(SHIFTED)
+    assert got_json["source_counts"]["clock_aligned"] == 2
     assert set(ref) == set(got) == {0, 1}
     for idx in ref:
         t_ref, h_ref = ref[idx]
