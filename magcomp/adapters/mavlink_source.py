@@ -235,14 +235,14 @@ class StreamOffsets:
     """Per-stream clock offsets of ``time_usec`` streams to the ``time_boot_ms`` clock, from messages sent
     together (issue 23, item 4).
 
-    Consecutive messages of one sender received within :data:`PAIR_RX_S` of each other (the tlog's receive
-    stamp, or a live link's arrival time) were sent in one burst; each such pair of a ``time_usec`` stream
-    and a ``time_boot_ms`` one gives one difference of their stamps. Pairs are kept per kind (stream,
-    partner, which came first); of the kinds whose differences agree (IQR at most :data:`OFFSET_MAX_IQR_S`)
-    :meth:`estimate` takes the one stamped at the same instant, and its median is the offset. It is
-    applied (``offset_s``, added to the stream's raw time) when larger than :data:`OFFSET_MIN_S`; said once
-    per stream and counted in ``counts["clock_aligned"]``. A reboot (:meth:`reset`) starts the pairs again
-    and keeps the offsets until the new boot's pairs say otherwise.
+    Consecutive messages of one sender (system id) received within :data:`PAIR_RX_S` of each other (the
+    tlog's receive stamp, or a live link's arrival time) were sent in one burst; each such pair of a
+    ``time_usec`` stream and a ``time_boot_ms`` one gives one difference of their stamps. Pairs are kept
+    per kind (stream, partner, which came first); of the kinds whose differences agree (IQR at most
+    :data:`OFFSET_MAX_IQR_S`) :meth:`estimate` takes the one stamped at the same instant, and its median
+    is the offset. It is applied (``offset_s``, added to the stream's raw time) when larger than
+    :data:`OFFSET_MIN_S`; said once per stream and counted in ``counts["clock_aligned"]``. A reboot
+    (:meth:`reset`) starts the pairs again and keeps the offsets until the new boot's pairs say otherwise.
     """
 
     def __init__(self, counts: dict[str, int]) -> None:
@@ -250,7 +250,7 @@ class StreamOffsets:
         self.offset_s: dict[str, float] = {}
         self._pairs: dict[tuple[str, str, int], deque[float]] = {}
         self._new: dict[tuple[str, str, int], int] = {}
-        self._last: tuple[str, float, float] | None = None
+        self._last: tuple[str, float, float, int] | None = None
         self._said: set[str] = set()
 
     def reset(self) -> None:
@@ -258,11 +258,11 @@ class StreamOffsets:
         self._new.clear()
         self._last = None
 
-    def observe(self, stream: str, raw_s: float, rx_s: float) -> None:
-        """One message's stream, raw stamp (s) and receive time (s)."""
+    def observe(self, stream: str, raw_s: float, rx_s: float, src: int = -1) -> None:
+        """One message's stream, raw stamp (s), receive time (s) and sender (system id)."""
         last = self._last
-        self._last = (stream, raw_s, rx_s)
-        if last is None or abs(rx_s - last[2]) > PAIR_RX_S:
+        self._last = (stream, raw_s, rx_s, src)
+        if last is None or abs(rx_s - last[2]) > PAIR_RX_S or src != last[3]:
             return
         if stream in USEC_STREAMS:
             if last[0] not in MS_STREAMS:
@@ -340,13 +340,14 @@ class _Clock:
         #: the receive time (s) of the message being converted: the tlog's stamp or a link's arrival time;
         #: None where there is none (DataFlash, a raw MAVLink file)
         self.rx_s: float | None = None
+        self.rx_src = -1  # the sender's system id (only consecutive messages of one sender pair)
         self.offsets = StreamOffsets(counts)
 
     def observe(self, stream: str, raw_s: float) -> None:
         """A message that is not stamped (nothing of it is kept) but pairs with its neighbours."""
         rx = self.rx_s
         if rx is not None and math.isfinite(raw_s):
-            self.offsets.observe(stream, raw_s, rx)
+            self.offsets.observe(stream, raw_s, rx, self.rx_src)
 
     def stamp(self, stream: str, raw_s: float) -> float | None:
         if not math.isfinite(raw_s):
@@ -355,7 +356,7 @@ class _Clock:
         rx = self.rx_s
         if rx is not None:  # streams on a clock of their own moved onto the time_boot_ms clock
             offsets = self.offsets
-            offsets.observe(stream, raw_s, rx)
+            offsets.observe(stream, raw_s, rx, self.rx_src)
             if offsets.offset_s:
                 raw_s += offsets.offset_s.get(stream, 0.0)
         top = self.max_raw_s
@@ -560,6 +561,7 @@ class _Converter:
         rx = getattr(msg, "_timestamp", None)
         if rx is not None:
             self.clock.rx_s = float(rx)
+            self.clock.rx_src = int(msg.get_srcSystem())
         mtype = msg.get_type()
         handler = getattr(self, f"_m_{mtype}", None)
         return handler(msg) if handler is not None else []
@@ -1150,8 +1152,9 @@ def iter_mavlink_frames(
     byte after it, which checks its framing) might not be whole yet, and returns the offset to resume from,
     with the next chunk appended; the messages and counts are the same as for the whole input at once.
     ``reference_mav`` (tests): decode the same frames with pymavlink's ``MAVLink.decode`` instead.
-    ``rx_into``: an object whose ``rx_s`` is set to each yielded message's tlog receive stamp (s) before it
-    is yielded (the clock of :class:`StreamOffsets`); raw streams (``ts_len`` 0) have none.
+    ``rx_into``: an object whose ``rx_s`` and ``rx_src`` are set to each yielded message's tlog receive
+    stamp (s) and sender's system id before it is yielded (for :class:`StreamOffsets`); raw streams
+    (``ts_len`` 0) have no receive stamp.
     """
     mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
     view = memoryview(data)
@@ -1220,6 +1223,7 @@ def iter_mavlink_frames(
             counts["messages"] += 1
             if rx_into is not None and ts_len == 8:
                 rx_into.rx_s = _TLOG_STAMP.unpack_from(data, p)[0] * 1e-6
+                rx_into.rx_src = data[h + 5] if magic == MAGIC_V2 else data[h + 3]
             yield handler, msg
         elif not next_ok:  # framing of an unchecked packet is doubtful: resynchronise byte by byte
             counts["garbage_bytes"] += 1

@@ -95,11 +95,12 @@ def test_replay_headings_match_the_twin_on_one_clock(twins: tuple[Path, Path]) -
         assert float(np.sqrt(np.mean(err**2))) < 0.5, idx
 
 
-def _stream(messages: list[tuple[str, float, float]]) -> StreamOffsets:
+def _stream(messages: list[tuple[str, float, float]], src: tuple[int, int] = (1, 1)) -> StreamOffsets:
+    """Messages observed in turn, the usec streams' from system ``src[0]``, the others' from ``src[1]``."""
     counts: dict[str, Any] = {"clock_aligned": 0}
     so = StreamOffsets(counts)
     for name, raw, rx in messages:
-        so.observe(name, raw, rx)
+        so.observe(name, raw, rx, src[0] if name in SHIFTED else src[1])
     return so
 
 
@@ -179,3 +180,11 @@ def test_a_live_link_finds_the_offset_from_arrival_times(twins: tuple[Path, Path
     assert set(offsets) == set(SHIFTED)
     for stream in SHIFTED:
         assert abs(offsets[stream] - OFFSET_S) < 0.010, (stream, offsets[stream])
+
+
+def test_only_messages_of_one_sender_pair() -> None:
+    """Two vehicles in one tlog: vehicle 1's RAW_IMU right before vehicle 2's SCALED_IMU2 is no pair."""
+    msgs = [m for k in range(40) for m in (("RAW_IMU", 10.0 + 0.1 * k, 5.0 + 0.1 * k),
+            ("SCALED_IMU2", 12.5 + 0.1 * k, 5.0 + 0.1 * k + 0.005))]  # fmt: skip
+    assert abs(_stream(msgs).offset_s["RAW_IMU"] - 2.5) < 1e-9  # one sender: aligned
+    assert _stream(msgs, src=(1, 2)).offset_s == {}
