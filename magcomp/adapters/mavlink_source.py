@@ -35,7 +35,11 @@ Units at this boundary (everything downstream uses them):
   ``counts["clock_resets"]`` counts them and ``samples()`` yields a ClockResetSample (the pipeline ends its
   calibration window and filters there). A jump either way is believed only once the next timestamp
   confirms it; a lone corrupt timestamp is dropped (``counts["time_jumps"]``). Smaller steps back within
-  one message stream are dropped (``counts["time_backwards"]``).
+  one message stream are dropped (``counts["time_backwards"]``). Streams stamped ``time_usec`` on a clock
+  of their own (ArduCopter 3.1/3.2's RAW_IMU and SERVO_OUTPUT_RAW, 2.57-2.87 s behind ``time_boot_ms``)
+  are moved onto the ``time_boot_ms`` clock by an offset measured from messages sent together, by the
+  tlog's receive stamps or a link's arrival times (:class:`StreamOffsets`; ``counts["clock_aligned"]``,
+  said once per stream).
 - Bad input is skipped and counted, never fatal: ``bad_crc``, ``garbage_bytes``, ``truncated``,
   ``nonfinite``. A file with no usable message at all is an :class:`~magcomp.errors.InputError`.
 
@@ -58,6 +62,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import math
 import mmap
 import operator
@@ -111,6 +116,8 @@ from magcomp.errors import InputError
 if TYPE_CHECKING:
     from magcomp.adapters.ulog_source import UlogSource
 
+log = logging.getLogger("magcomp.source")
+
 G_M_S2 = 9.80665
 _MG_TO_M_S2 = G_M_S2 * 1e-3
 RESET_JUMP_S = 5.0  # a timestamp this far behind the newest one is an autopilot reboot
@@ -139,6 +146,7 @@ WANTED_MAVLINK = (
     "ATTITUDE",
     "SERVO_OUTPUT_RAW",
     "RC_CHANNELS",
+    "RC_CHANNELS_RAW",  # only for the clock offsets: ArduPilot sends it right after SERVO_OUTPUT_RAW
     "VFR_HUD",
     "SCALED_IMU2",
     "SCALED_IMU3",
@@ -198,6 +206,126 @@ class ThrottleRecord:
 Record = Sample | PwmRecord | ThrottleRecord
 
 
+#: MAVLink streams stamped ``time_usec`` (us since boot) and those stamped ``time_boot_ms``. ArduCopter
+#: 3.1/3.2 stamps the former on a clock of its own, 2.57-2.87 s behind the latter (issue 23, item 4):
+#: :class:`StreamOffsets` measures and removes the difference.
+USEC_STREAMS = frozenset({"RAW_IMU", "SERVO_OUTPUT_RAW", "HIGHRES_IMU", "ACTUATOR_OUTPUT_STATUS"})
+MS_STREAMS = frozenset({"SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
+                        "RC_CHANNELS", "RC_CHANNELS_RAW", "SCALED_PRESSURE"})  # fmt: skip
+#: two messages received this close together (s) were sent together, in one burst: at 57600 baud one
+#: 40-byte message takes 7 ms on the wire, so 20 ms is two or three messages apart (measured on the squilter
+#: tlogs: 91-98 % of the RAW_IMU -> SCALED_IMU2 pairs arrive within it)
+PAIR_RX_S = 0.02
+#: the last pairs of one kind kept (the estimate follows a drift or a new boot, outliers outvoted)
+OFFSET_WINDOW = 31
+#: pairs of one kind needed before their median is believed (at 2 Hz telemetry: 4.5 s)
+OFFSET_MIN_PAIRS = 9
+#: a kind of pair is "sent together" only when its stamp differences agree this well (s): messages stamped
+#: in one send call differ by the call's duration (measured IQR 0.2-1.4 ms on the squilter tlogs), messages
+#: from different scheduler slots by whole loop periods (10-20 ms at 50-100 Hz; measured IQR 36-260 ms)
+OFFSET_MAX_IQR_S = 0.005
+#: an offset is applied only when larger than this (s): one period of a 20 Hz stream, the fastest telemetry
+#: rate ArduPilot streams these at, below which pairing by receive time cannot tell it from the send slots
+OFFSET_MIN_S = 0.05
+#: re-evaluate a kind of pair every this many new pairs (a median of OFFSET_WINDOW values each time)
+OFFSET_EVAL_EVERY = 8
+
+
+class StreamOffsets:
+    """Per-stream clock offsets of ``time_usec`` streams to the ``time_boot_ms`` clock, from messages sent
+    together (issue 23, item 4).
+
+    Consecutive messages of one sender (system id) received within :data:`PAIR_RX_S` of each other (the
+    tlog's receive stamp, or a live link's arrival time) were sent in one burst; each such pair of a
+    ``time_usec`` stream and a ``time_boot_ms`` one gives one difference of their stamps. Pairs are kept
+    per kind (stream, partner, which came first); of the kinds whose differences agree (IQR at most
+    :data:`OFFSET_MAX_IQR_S`) :meth:`estimate` takes the one stamped at the same instant, and its median
+    is the offset. It is applied (``offset_s``, added to the stream's raw time) when larger than
+    :data:`OFFSET_MIN_S`; said once per stream and counted in ``counts["clock_aligned"]``. A reboot
+    (:meth:`reset`) starts the pairs again and keeps the offsets until the new boot's pairs say otherwise.
+    """
+
+    def __init__(self, counts: dict[str, int]) -> None:
+        self.counts = counts
+        self.offset_s: dict[str, float] = {}
+        self._pairs: dict[tuple[str, str, int], deque[float]] = {}
+        self._new: dict[tuple[str, str, int], int] = {}
+        self._last: tuple[str, float, float, int] | None = None
+        self._said: set[str] = set()
+
+    def reset(self) -> None:
+        self._pairs.clear()
+        self._new.clear()
+        self._last = None
+
+    def observe(self, stream: str, raw_s: float, rx_s: float, src: int = -1) -> None:
+        """One message's stream, raw stamp (s), receive time (s) and sender (system id)."""
+        last = self._last
+        self._last = (stream, raw_s, rx_s, src)
+        if last is None or abs(rx_s - last[2]) > PAIR_RX_S or src != last[3]:
+            return
+        if stream in USEC_STREAMS:
+            if last[0] not in MS_STREAMS:
+                return
+            key, diff = (stream, last[0], -1), last[1] - raw_s
+        elif stream in MS_STREAMS and last[0] in USEC_STREAMS:
+            key, diff = (last[0], stream, 1), raw_s - last[1]
+        else:
+            return
+        pairs = self._pairs.get(key)
+        if pairs is None:
+            pairs = self._pairs[key] = deque(maxlen=OFFSET_WINDOW)
+        pairs.append(diff)
+        n_new = self._new.get(key, 0) + 1
+        if len(pairs) >= OFFSET_MIN_PAIRS and (n_new >= OFFSET_EVAL_EVERY or len(pairs) == OFFSET_MIN_PAIRS):
+            n_new = 0
+            self._evaluate(key[0])
+        self._new[key] = n_new
+
+    def estimate(self, stream: str) -> tuple[float, float, int] | None:
+        """(offset, IQR, pairs) of ``stream`` from its kinds of pair that agree (IQR at most
+        :data:`OFFSET_MAX_IQR_S`); None while none does.
+
+        A partner sent after the stream's message was stamped no earlier than it, so each consistent kind
+        with the partner after gives an upper bound of the offset and each with the partner before a lower
+        bound (the tail of the previous burst on a link that runs bursts together: on the squilter tlogs
+        20 ms and 180 ms below, one and nine 50 Hz scheduler slots). The offset is the tightest upper
+        bound, the message sent right after in the same call; a lower bound alone only once its kind has
+        a whole window of pairs and still no partner after agrees."""
+        upper: tuple[float, float, int] | None = None
+        lower: tuple[float, float, int] | None = None
+        for key, pairs in self._pairs.items():
+            n = len(pairs)
+            if key[0] != stream or n < OFFSET_MIN_PAIRS:
+                continue
+            v = sorted(pairs)
+            iqr = v[(3 * n) // 4] - v[n // 4]
+            if iqr > OFFSET_MAX_IQR_S:
+                continue
+            med = v[n // 2]
+            if key[2] > 0:
+                if upper is None or med < upper[0]:
+                    upper = (med, iqr, n)
+            elif n == OFFSET_WINDOW and (lower is None or med > lower[0]):
+                lower = (med, iqr, n)
+        return upper if upper is not None else lower
+
+    def _evaluate(self, stream: str) -> None:
+        est = self.estimate(stream)
+        if est is None:
+            return  # no kind of pair stamped at one instant (yet): the offset stays as it is
+        med = est[0]
+        if abs(med) <= OFFSET_MIN_S:
+            self.offset_s.pop(stream, None)
+            return
+        self.offset_s[stream] = med
+        if stream not in self._said:
+            self._said.add(stream)
+            self.counts["clock_aligned"] += 1
+            how = "behind" if med > 0 else "ahead of"
+            log.info("%s time_usec %.2f s %s time_boot_ms: aligned", stream, abs(med), how)
+
+
 class _Clock:
     """Monotonic source time from per-stream raw timestamps, with reboot detection (see module docstring)."""
 
@@ -209,11 +337,28 @@ class _Clock:
         self.last_t_s = 0.0
         self.pending_s: float | None = None  # a jumped timestamp waiting for a second one to confirm it
         self.reboot_pending = False  # a reboot was detected; MavSource.samples() yields the event
+        #: the receive time (s) of the message being converted: the tlog's stamp or a link's arrival time;
+        #: None where there is none (DataFlash, a raw MAVLink file)
+        self.rx_s: float | None = None
+        self.rx_src = -1  # the sender's system id (only consecutive messages of one sender pair)
+        self.offsets = StreamOffsets(counts)
+
+    def observe(self, stream: str, raw_s: float) -> None:
+        """A message that is not stamped (nothing of it is kept) but pairs with its neighbours."""
+        rx = self.rx_s
+        if rx is not None and math.isfinite(raw_s):
+            self.offsets.observe(stream, raw_s, rx, self.rx_src)
 
     def stamp(self, stream: str, raw_s: float) -> float | None:
         if not math.isfinite(raw_s):
             self.counts["nonfinite"] += 1
             return None
+        rx = self.rx_s
+        if rx is not None:  # streams on a clock of their own moved onto the time_boot_ms clock
+            offsets = self.offsets
+            offsets.observe(stream, raw_s, rx, self.rx_src)
+            if offsets.offset_s:
+                raw_s += offsets.offset_s.get(stream, 0.0)
         top = self.max_raw_s
         if top is None:
             self.max_raw_s = raw_s
@@ -231,6 +376,7 @@ class _Clock:
                 self.offset_s += top - raw_s
                 self.counts["clock_resets"] += 1
                 self.reboot_pending = True
+                self.offsets.reset()
             self.max_raw_s = raw_s
             self.last_by_stream = {}
         else:
@@ -410,6 +556,12 @@ class _Converter:
 
     # --- MAVLink -----------------------------------------------------------------------------------------
     def mavlink(self, msg: Any) -> list[tuple[str, Record]]:
+        """A pymavlink message (a live link's, or the tests' reference decode): its arrival time, when it
+        has one, is the receive time of :class:`StreamOffsets`."""
+        rx = getattr(msg, "_timestamp", None)
+        if rx is not None:
+            self.clock.rx_s = float(rx)
+            self.clock.rx_src = int(msg.get_srcSystem())
         mtype = msg.get_type()
         handler = getattr(self, f"_m_{mtype}", None)
         return handler(msg) if handler is not None else []
@@ -501,6 +653,10 @@ class _Converter:
             if value != 0xFFFF:
                 pwm[i] = float(value)
         return [("RC_CHANNELS", PwmRecord(t_s, "rc", pwm))]
+
+    def _m_RC_CHANNELS_RAW(self, msg: Any) -> list[tuple[str, Record]]:
+        self.clock.observe("RC_CHANNELS_RAW", msg.time_boot_ms * 1e-3)  # pairs with SERVO_OUTPUT_RAW
+        return []
 
     def _m_VFR_HUD(self, msg: Any) -> list[tuple[str, Record]]:
         thr = min(1.0, max(0.0, float(msg.throttle) * 0.01))  # percent -> 0..1
@@ -968,6 +1124,8 @@ def _crc_function(mod: Any) -> Callable[[Any, int], int]:
     return slow
 
 
+_TLOG_STAMP = struct.Struct(">Q")  # a tlog record's receive time, us since 1970
+
 #: bytes read from a log file at a time (the tlog / raw MAVLink reader keeps at most this plus one frame)
 READ_CHUNK_BYTES = 1 << 20
 #: the longest MAVLink frame (MAVLink 2: 10-byte header, 255-byte payload, CRC, 13-byte signature)
@@ -984,6 +1142,7 @@ def iter_mavlink_frames(
     ignore_crc: bool = False,
     reference_mav: Any = None,
     final: bool = True,
+    rx_into: Any = None,
 ) -> Generator[tuple[Callable[[Any], Any], Any], None, int]:
     """Walk tlog framing (``ts_len`` = 8) or a raw MAVLink stream (0); yield (handler, message) for the ids
     in ``decoders`` only, CRC-checked (X.25 with the message's crc_extra) and unpacked with a precompiled
@@ -993,6 +1152,9 @@ def iter_mavlink_frames(
     byte after it, which checks its framing) might not be whole yet, and returns the offset to resume from,
     with the next chunk appended; the messages and counts are the same as for the whole input at once.
     ``reference_mav`` (tests): decode the same frames with pymavlink's ``MAVLink.decode`` instead.
+    ``rx_into``: an object whose ``rx_s`` and ``rx_src`` are set to each yielded message's tlog receive
+    stamp (s) and sender's system id before it is yielded (for :class:`StreamOffsets`); raw streams
+    (``ts_len`` 0) have no receive stamp.
     """
     mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
     view = memoryview(data)
@@ -1059,6 +1221,9 @@ def iter_mavlink_frames(
                     p += 1
                 continue
             counts["messages"] += 1
+            if rx_into is not None and ts_len == 8:
+                rx_into.rx_s = _TLOG_STAMP.unpack_from(data, p)[0] * 1e-6
+                rx_into.rx_src = data[h + 5] if magic == MAGIC_V2 else data[h + 3]
             yield handler, msg
         elif not next_ok:  # framing of an unchecked packet is doubtful: resynchronise byte by byte
             counts["garbage_bytes"] += 1
@@ -1470,6 +1635,11 @@ class MavSource:
     def autopilot(self) -> int:
         return self._conv.autopilot
 
+    def clock_offsets(self) -> dict[str, float]:
+        """Streams moved onto the ``time_boot_ms`` clock and the offset added to their times (s)
+        (:class:`StreamOffsets`); empty when all streams share one clock."""
+        return dict(self._conv.clock.offsets.offset_s)
+
     def _classify(self, target: str) -> str:
         if _is_live(target):
             return "live"
@@ -1579,6 +1749,7 @@ class MavSource:
                 crc16=_crc_function(mod),
                 ignore_crc=bool(mod.MAVLINK_IGNORE_CRC),
                 reference_mav=mod.MAVLink(None) if self._reference_decode else None,
+                rx_into=conv.clock,
             )
         if self.counts["messages"] == 0:
             raise InputError(f"{path}: no valid MAVLink messages found")

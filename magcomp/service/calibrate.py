@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.inflight import (
+    InflightMode,
     calibrated_by_autopilot,
     external_compass,
     relative_rotation_source,
@@ -305,6 +306,10 @@ class CalibrateStage:
         self._text = text
         self._at_rest = cfg.calibration.max_throttle_01
         self._inflight_on = cfg.observer.learn and cfg.inflight.enabled
+        #: counts the parameters received (the pipeline increments it); each compass's stage was decided at
+        #: the count in ``_decided``
+        self.params_version = 0
+        self._decided: dict[int, int] = {}
 
     def run(self, rec: MagRecord, c: CompassCorrector) -> None:
         """Fills ``rec.field_cal`` (eq. (2)), ``rec.calibrated`` and ``rec.inflight``."""
@@ -366,25 +371,51 @@ class CalibrateStage:
 
     # ---------------------------------------------------------------------------------------- in flight
 
-    def _stage(self, c: CompassCorrector, t: float) -> InflightStage:
-        """The in-flight calibration of compass ``c``, created at its first sample with the throttle known."""
+    def _reference(self, c: CompassCorrector) -> tuple[InflightMode, str, bool | None]:
+        """(form, why, calibrated by the autopilot) of compass ``c`` from the parameters known now."""
         icfg = self.cfg.inflight
+        mode: InflightMode
         if icfg.reference == "auto":
             mode, why = yaw_reference(self.params, c.mag_index)
         else:
             mode = "absolute" if icfg.reference == "absolute" else "relative"
             why = "set in the configuration ([inflight] reference)"
-        cal = calibrated_by_autopilot(self.params, c.mag_index)
+        return mode, why, calibrated_by_autopilot(self.params, c.mag_index)
+
+    def _stage(self, c: CompassCorrector, t: float, again: str = "") -> InflightStage:
+        """The in-flight calibration of compass ``c``, created at its first sample with the throttle known
+        (``again``: re-created, and why)."""
+        mode, why, cal = self._reference(c)
         norm = float(np.linalg.norm(self.earth_ned))
-        st = InflightStage(c.mag_index, icfg, mode, why, cal, norm, c.stored_inflight)
-        self._text(t, f"compass {c.mag_index}: learning calibration and theta in flight ({mode} form: "
-                      f"{why}); a motors-off hand rotation, if one comes, takes precedence",
-                   False)  # fmt: skip
+        st = InflightStage(c.mag_index, self.cfg.inflight, mode, why, cal, norm, c.stored_inflight)
+        self._decided[c.mag_index] = self.params_version
+        head = f"compass {c.mag_index}: {again}learning calibration and theta in flight"
+        self._text(t, f"{head} ({mode} form: {why}); a motors-off hand rotation, if one comes, takes "
+                      "precedence", False)  # fmt: skip
         return st
+
+    def _redecide(self, c: CompassCorrector, t: float) -> None:
+        """Parameters arrived since compass ``c``'s stage was created (a tlog's parameters often come
+        seconds after the first samples, issue 23 item 5): when they change its form, why, or whether
+        the autopilot calibrated it, the stage starts again with them (what it learned was learned against
+        the wrong reference). Its rows before the parameters are lost: they come at the start, before
+        the motors run, when it has hardly any."""
+        self._decided[c.mag_index] = self.params_version
+        old = c.inflight
+        if old is None or self._reference(c) == (old.mode, old.why, old.calibrated_by_autopilot):
+            return
+        remote = c.inflight_remote
+        st = c.inflight = self._stage(c, t, "the autopilot's parameters arrived: re-")
+        if self._remote is not None and remote is not None:
+            c.inflight_remote = self._remote.stage(c.mag_index, st, replacing=remote)
+        c.rel_source = NO_ROTATION
+
 
     def _inflight(self, rec: MagRecord, c: CompassCorrector) -> InflightOutput | None:
         """Feed the in-flight calibration of compass ``c`` and return its correction when it is usable."""
         t = rec.t_s
+        if c.inflight is not None and self._decided.get(c.mag_index) != self.params_version:
+            self._redecide(c, t)
         st: InflightSink | None = c.inflight_remote or c.inflight
         if st is None:
             st = c.inflight = self._stage(c, t)

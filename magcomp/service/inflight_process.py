@@ -173,10 +173,16 @@ class InflightProcess:
         self.children = children
         self._n_stages = 0
 
-    def stage(self, idx: int, stage: InflightStage) -> RemoteInflight:
-        """Compass ``idx``'s stage, as just created by the parent, copied into a child."""
-        child = self.children[self._n_stages % len(self.children)]
-        self._n_stages += 1
+    def stage(
+        self, idx: int, stage: InflightStage, replacing: RemoteInflight | None = None
+    ) -> RemoteInflight:
+        """Compass ``idx``'s stage, as just created by the parent, copied into a child (``replacing``: the
+        stage it replaces, in that one's child)."""
+        if replacing is not None:
+            child = replacing._proc
+        else:
+            child = self.children[self._n_stages % len(self.children)]
+            self._n_stages += 1
         data = pickle.dumps(stage, protocol=pickle.HIGHEST_PROTOCOL)
         pad = -len(data) % 8
         head = (_CREATE, float(idx), float((len(data) + pad) // 8 + 1), float(len(data)))

@@ -72,6 +72,11 @@ __all__ = ["CalibrationSummary", "CompassCorrector", "Pipeline", "json_safe"]
 
 log = logging.getLogger("magcomp.pipeline")
 
+#: a log's date re-takes the Earth field taken at another date only when they are this far apart (years):
+#: the field's secular change is at most ~150 nT (1.5 mgauss) a year, so 0.1 year moves it by 0.15 mgauss,
+#: far below a compass's noise (1-3 mgauss); nearer dates are not worth restarting the in-flight rows for
+RETAKE_YEARS = 0.1
+
 COUNT_KEYS = (
     "samples", "mag", "imu", "estimates", "non_finite", "saturated", "gyro_jumps", "mag_jumps",
     "gyro_gated", "time_backwards", "clock_resets", "reboots", "gaps", "observer_resets",
@@ -141,7 +146,8 @@ class Pipeline:
         loc = cfg.location
         self._location = (loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year)
         self._location_source = "config"
-        self._gps_year: float | None = None
+        self._gps_year: float | None = None  # the log's date (decimal year), once it has said one
+        self._date_source = "config"  # the WMM's date: the configured one, or the log's
         self._boot_offset_s = 0.0  # t_s - the autopilot's own clock (changes at each reboot)
         self.align = AlignStage(cfg, self.counts, self._text)
         self.throttle = self.align.throttle
@@ -229,7 +235,9 @@ class Pipeline:
         if not math.isfinite(value):  # a damaged record: the stages read parameters as integers and flags
             self.counts["non_finite_params"] += 1
             return False
-        self._params[sample.name] = value
+        if self._params.get(sample.name) != value:
+            self._params[sample.name] = value
+            self.calibrate.params_version += 1  # the in-flight stages re-decide their reference
         return False
 
     def _on_fix(self, sample: PositionSample) -> bool:
@@ -237,10 +245,24 @@ class Pipeline:
         return False
 
     def _on_time(self, sample: TimeSample) -> bool:
-        yr = float(sample.decimal_year)
-        if math.isfinite(yr) and 2010.0 <= yr < 2030.0:
-            self._gps_year = yr
+        self._log_date(float(sample.decimal_year), sample.t_s)
         return False
+
+    def _log_date(self, year: float, t_s: float) -> None:
+        """A date the log carries (SYSTEM_TIME, a GPS record's week and time, GPS_RAW_INT's Unix time): the
+        WMM's epoch. The first one re-takes a field taken at the configured date (a fix before the date,
+        or no fix at all: the configured place at the log's date)."""
+        if not (math.isfinite(year) and 2010.0 <= year < 2030.0):
+            return
+        first = self._gps_year is None
+        self._gps_year = year
+        lat, lon, alt, used = self._location
+        if first and abs(year - used) <= RETAKE_YEARS:
+            self._date_source = "log"  # the field in use is the log date's already
+        elif first:
+            where = "GPS position" if self._location_source == "gps" else "configured location"
+            self._take_field(lat, lon, alt, year, t_s, f"Earth field at the log's date, {year:.1f} (was "
+                                                       f"{used:.1f}), at the {where}")  # fmt: skip
 
     def last_estimate(self) -> HeadingEstimate:
         """The estimate of the last magnetometer sample for which :meth:`feed` returned True."""
@@ -342,7 +364,9 @@ class Pipeline:
         return False
 
     def _on_position(self, s: PositionSample) -> None:
-        """The first trusted GNSS fix sets the Earth field (WMM at the vehicle, at the log's date)."""
+        """The first trusted GNSS fix sets the Earth field (WMM at the vehicle, at the log's date). A GPS
+        record carries the date even without a fix."""
+        self._log_date(s.decimal_year, s.t_s)
         if self._location_source == "gps" or not s.fix_ok:
             return
         lat, lon, alt = s.lat_deg, s.lon_deg, s.alt_m
@@ -352,16 +376,23 @@ class Pipeline:
             return
         if lat == 0.0 and lon == 0.0:  # "no position" as some autopilots send it
             return
-        year = s.decimal_year if math.isfinite(s.decimal_year) else self._gps_year
-        if year is None or not (2010.0 <= year < 2030.0):
-            year = self._location[3]
+        year = self._gps_year if self._gps_year is not None else self._location[3]
         alt = alt if math.isfinite(alt) and -1000.0 < alt < 20000.0 else 0.0
+        self._take_field(lat, lon, alt, year, s.t_s, f"Earth field from the GPS position ({lat:.4f}, "
+                                                     f"{lon:.4f}), {year:.1f}", source="gps")  # fmt: skip
+
+    def _take_field(self, lat: float, lon: float, alt: float, year: float, t_s: float, what: str,
+                    source: str | None = None) -> None:  # fmt: skip
+        """The Earth field from the WMM at this place and date, into every stage (in-flight rows made
+        against the old one are dropped); ``source``: where the place came from, when it changes."""
         try:
             field = earth_field_ned_mgauss(lat, lon, alt, year)
-        except Exception:  # an out-of-range date or place: keep the configured field
+        except Exception:  # an out-of-range date or place: keep the field in use
             return
         self._location = (lat, lon, alt, year)
-        self._location_source = "gps"
+        if source is not None:
+            self._location_source = source
+        self._date_source = "log" if year == self._gps_year else "config"
         field.flags.writeable = False
         self._earth_ned = self.calibrate.earth_ned = field
         norm = float(np.linalg.norm(field))
@@ -370,8 +401,7 @@ class Pipeline:
             st = c.inflight_remote or c.inflight
             if st is not None:
                 st.restart(norm)
-        self._text(s.t_s, f"Earth field from the GPS position ({lat:.4f}, {lon:.4f}), {year:.1f}: "
-                          f"{norm:.0f} mgauss, WMM")  # fmt: skip
+        self._text(t_s, f"{what}: {norm:.0f} mgauss, WMM")
 
     # ------------------------------------------------------------------------------------------ end
 
@@ -416,6 +446,7 @@ class Pipeline:
                     "lon_deg": lon,
                     "alt_m": alt,
                     "decimal_year": year,
+                    "date_source": self._date_source,
                     "ned_mgauss": np.asarray(self._earth_ned, dtype=float).tolist(),
                 },
                 "compasses": compasses,

@@ -126,6 +126,12 @@ class _FirstPass:
 class _SourceFacts:
     counts: dict[str, int]
     onboard: dict[Any, Any]
+    clock_offsets: dict[str, float]
+
+
+def _clock_offsets(source: Any) -> dict[str, float]:
+    """The streams a MAVLink source moved onto the time_boot_ms clock, and by how much (s)."""
+    return source.clock_offsets() if hasattr(source, "clock_offsets") else {}
 
 
 def _learn(
@@ -156,7 +162,7 @@ def _learn(
         source.close()
         pipeline.close()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
-    return _SourceFacts(dict(source.counts), onboard)
+    return _SourceFacts(dict(source.counts), onboard, _clock_offsets(source))
 
 
 def _first_pass(
@@ -380,7 +386,7 @@ def _second_pass(
     finally:
         outputs.close()
         first.samples.close()
-    summary = _with_onboard(first.pipeline.summary(), first.source.onboard)
+    summary = _with_onboard(first.pipeline.summary(), first.source.onboard, first.source.clock_offsets)
     return ReplayReport(
         path=str(path),
         summary=summary,
@@ -394,8 +400,13 @@ def _second_pass(
     )
 
 
-def _with_onboard(summary: dict[str, Any], onboard: dict[Any, Any]) -> dict[str, Any]:
-    """The summary with the check of ArduPilot's own motor compensation, when the source undid one."""
+def _with_onboard(
+    summary: dict[str, Any], onboard: dict[Any, Any], clock_offsets: dict[str, float]
+) -> dict[str, Any]:
+    """The summary with the check of ArduPilot's own motor compensation, when the source undid one, and
+    the streams' clock offsets (s), when it aligned any."""
+    if clock_offsets:
+        summary["clock_offsets_s"] = dict(sorted(clock_offsets.items()))
     if onboard:  # ArduPilot's own motor compensation was undone: was it right? (issue 9, item 7)
         from magcomp.adapters.ardupilot_motcomp import onboard_comp_warnings
 
@@ -436,7 +447,7 @@ def _replay(
         outputs.close()
         pipeline.close()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
-    summary = _with_onboard(pipeline.summary(), onboard)
+    summary = _with_onboard(pipeline.summary(), onboard, _clock_offsets(source))
     return ReplayReport(
         path=str(path),
         summary=summary,
