@@ -211,8 +211,8 @@ class SelfCheck:
     z: float
     applies: bool
     reason: str
-    #: worse beyond the noise (a paired loss past the Student-t bound against the gyro, or further from the
-    #: autopilot's yaw than its tolerance): what switches a running correction off again
+    #: worse than the baseline (less consistent with the gyro, or further from the autopilot's yaw than its
+    #: tolerance): what switches a running correction off again; "not better beyond the noise" does not
     worse: bool = False
 
     def describe(self) -> str:
@@ -273,7 +273,7 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
     crit = t_critical(nw)
     if gyro_c > gyro_b:
         why = f"less consistent with the gyro than the autopilot's own ({gyro_b:.1f} -> {gyro_c:.1f} deg)"
-        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=z <= -crit)
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=True)
     if math.isfinite(att_c) and att_c > att_b + att_tolerance_deg(att_b, nw):
         why = f"in less agreement with the autopilot's yaw than its own ({att_b:.1f} -> {att_c:.1f} deg)"
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=True)

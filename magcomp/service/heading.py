@@ -16,6 +16,7 @@ from magcomp.core.selfcheck import RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
+from magcomp.service.inflight_stage import InflightOutput
 from magcomp.service.record import MagRecord
 
 #: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)
@@ -114,15 +115,27 @@ def _shadow_heading_deg(rec: MagRecord) -> float | None:
                                  rec.sin_roll, rec.cos_pitch, rec.sin_pitch)  # fmt: skip
 
 
+def _within_baseline(out: InflightOutput, chk: RunningSelfCheck) -> bool:
+    """The estimate's own heading uncertainty is below the error measured of the autopilot's own heading
+    (against its yaw, else the gyro): a correction that may itself be off by more than what it corrects
+    cannot be shown to help, whatever a few windows say."""
+    v = chk.verdict
+    if v is None:
+        return False
+    base = v.baseline_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.baseline_gyro_deg
+    return out.heading_sigma_deg <= base
+
+
 def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
     field through the same filter (its flags without FLAG_CALIBRATED) until the running self-check
     (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
-    the relative form the correction cannot know the heading's constant part (the mount's yaw), and the
-    estimate's moves as it is re-solved in flight: the published heading takes its constant part from the
-    autopilot's own over the check's latest windows (their circular mean difference), so that it neither
-    jumps when the correction switches on nor drifts with the re-solves."""
+    flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be known
+    at all: the mount's yaw), which no window of the check sees: the published heading takes its constant
+    part from the autopilot's own over the check's latest windows (their circular mean difference), so that
+    it neither jumps when the correction switches on or off nor drifts with the re-solves. The two-pass
+    replay, whose correction is fixed over the log, keeps its own."""
     cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
@@ -151,8 +164,8 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-    if rec.inflight is None or chk is None or not chk.on:
+    if rec.inflight is None or chk is None or not chk.on or not _within_baseline(rec.inflight, chk):
         rec.heading_deg = own
         rec.flags &= ~(FLAG_CALIBRATED | FLAG_THETA_CONVERGED)
-    elif rec.inflight.relative:  # the mount's yaw is not observable: the constant part is the autopilot's
+    else:  # the constant part is the autopilot's own (see the doc)
         rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0

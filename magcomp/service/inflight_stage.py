@@ -156,6 +156,8 @@ class InflightOutput:
     warm_started: bool = False
     #: the relative form: the heading's constant part (the mount's yaw) is not observable
     relative: bool = False
+    #: the estimate's own heading uncertainty (deg, 1 sigma)
+    heading_sigma_deg: float = 0.0
 
 
 class InflightStage:
@@ -703,6 +705,7 @@ class InflightStage:
                     converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
                     warm_started=self.warm_started,
                     relative=self.mode == "relative",
+                    heading_sigma_deg=sol.heading_sigma_deg,
                 )
         self.account(t_s, state)
         return out
