@@ -162,6 +162,9 @@ class OutputConfig:
 
     rate_hz: float = 0.0
     heading_tau_s: float = 1.0
+    #: publish a correction only where the self-check against the gyro and the autopilot's yaw finds it
+    #: better than the autopilot's own heading (docs/real-flights.md); false: as soon as it is learned
+    self_check: bool = True
     source_system: int = 0
     source_component: int = 191
 

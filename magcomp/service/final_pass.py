@@ -249,11 +249,11 @@ def self_check(cols: F64) -> selfcheck.SelfCheck:
 def self_check_finals(
     samples: SampleLog, finals: dict[int, FinalCompass]
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck]]:
-    """The self-check of every corrected compass over the whole log (:mod:`magcomp.core.selfcheck`): where
-    the corrected heading is not better than the autopilot's own against the gyro beyond the noise, or
+    """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
+    flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is not better than the autopilot's own against the gyro beyond the noise, or
     agrees less with the autopilot's yaw, its final state becomes "uncorrected" and the second pass
     publishes the autopilot's own field through the same heading filter."""
-    judged = [i for i, f in finals.items() if f.coeffs is not None]
+    judged = [i for i, f in finals.items() if f.coeffs is not None and f.inflight]
     if not judged:
         return finals, {}
     parts: dict[int, list[F64]] = {i: [] for i in judged}

@@ -41,9 +41,12 @@ class HeadingTrack:
         "own_deg",
         "raw",
         "raw_deg",
+        "self_check",
     )  # fmt: skip
 
-    def __init__(self, tau_s: float) -> None:
+    def __init__(self, tau_s: float, self_check: bool = True) -> None:
+        #: judge in-flight corrections before publishing them (``[output] self_check``)
+        self.self_check = self_check
         self.corrected = est_core.HeadingFilter(tau_s)
         self.raw = est_core.HeadingFilter(tau_s)
         #: the autopilot's own field (as logged) through the same filter: what is published while the
@@ -149,6 +152,8 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
                0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
                rec.gyro_epoch)  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
+    if not track.self_check:
+        return
     vx, vy, vz = rec.raw
     psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
     own = track.step_own(psi_own)  # every sample: the filter's state stays current

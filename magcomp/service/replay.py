@@ -334,7 +334,7 @@ def replay_log(
             except KeyboardInterrupt:
                 first = None
             finals = final_compasses(first.pipeline) if first is not None else None
-            if first is not None and finals is not None:  # never worse than the autopilot's own heading
+            if first is not None and finals is not None and cfg.output.self_check:  # never worse than its own
                 finals, checks = self_check_finals(first.samples, finals)
                 first.pipeline.self_checks.update(checks)
         if first is not None and finals is not None:

@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.dataflash_writer import gps_week_ms, sim_parameters, write_sim_dataflash
 from magcomp.adapters.mavlink_emit import default_start_unix_s, write_tlog
 from magcomp.adapters.mavlink_source import load_log
@@ -20,6 +19,7 @@ from magcomp.service.demo import rms_after_learning
 from magcomp.service.replay import replay_log
 from magcomp.sim import SimConfig, SimResult, simulate
 from magcomp.sim.config import apply_settings
+from tests.configs import ESTIMATOR_ONLY
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_gps_week_and_time_of_week() -> None:
 
 def test_bin_replays_like_its_tlog_twin(ordinary: tuple[SimResult, Path, Path]) -> None:
     result, tlog, binf = ordinary
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     a = replay_log(tlog, cfg, keep_estimates=True)
     b = replay_log(binf, cfg, keep_estimates=True)
     assert len(a.estimates) == len(b.estimates) > 0
@@ -110,7 +110,7 @@ def test_onboard_motor_compensation_in_mag_is_removed(
     for j in (0, 1):
         _same_series(plain.mag[j], undone.mag[j], 0.0)
     assert undone.counts["motor_comp_removed"] > 0
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     a = replay_log(binf, cfg, keep_estimates=True)
     b = replay_log(comp, cfg, keep_estimates=True)
     for j in (0, 1):

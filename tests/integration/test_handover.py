@@ -11,11 +11,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.cli import main
 from magcomp.core.types import FLAG_CALIBRATED, HeadingEstimate
 from magcomp.service.replay import replay_log
+from tests.configs import ESTIMATOR_ONLY
 
 pytestmark = pytest.mark.slow
 
@@ -75,8 +75,8 @@ def test_save_state_then_replay_starts_corrected(
     if command == "fit":  # an ordinary flight has no bench sweep: said in one line, not an error
         assert "note: no offline fit" in out
 
-    warm = replay_log(today, Config(), store=StateStore(state_dir), keep_estimates=True)
-    fresh = replay_log(today, Config(), keep_estimates=True, two_pass=False)
+    warm = replay_log(today, ESTIMATOR_ONLY, store=StateStore(state_dir), keep_estimates=True)
+    fresh = replay_log(today, ESTIMATOR_ONLY, keep_estimates=True, two_pass=False)
     for c in warm.summary["compasses"]:
         assert c["inflight"]["started_from_stored_state"] is True
         assert c["status"] == "corrected"

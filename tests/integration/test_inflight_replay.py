@@ -13,11 +13,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_NO_THROTTLE
 from magcomp.service.console import summary_lines, write_json
 from magcomp.service.demo import oracle_replay, rms_after_learning
 from magcomp.service.replay import replay_log
+from tests.configs import ESTIMATOR_ONLY
 
 
 def _flight(
@@ -39,7 +39,7 @@ def test_internal_primary_compass_is_corrected_without_a_hand_rotation(tmp_path:
     """The autopilot's yaw follows the disturbed compass; the relative form uses only the rotations between
     samples (the autopilot's attitude, its slow compass-driven yaw drift estimated), not that yaw."""
     result, path = _flight(tmp_path, ["telemetry_hz=50"])
-    rep = replay_log(path, Config(), keep_estimates=True)
+    rep = replay_log(path, ESTIMATOR_ONLY, keep_estimates=True)
     c0 = rep.summary["compasses"][0]
     assert c0["status"] == "corrected", c0["why"]
     assert c0["inflight"]["form"] == "relative" and c0["inflight"]["rotation"] == "attitude"
@@ -57,7 +57,7 @@ def test_internal_primary_compass_is_corrected_without_a_hand_rotation(tmp_path:
 def test_external_primary_gives_the_absolute_form_and_theta_within_ten_percent(tmp_path: Path) -> None:
     """Like log171: compass 0 external (the autopilot's yaw), compass 1 internal with the current's field."""
     result, path = _flight(tmp_path, ["telemetry_hz=50", "external_compass0=on"])
-    rep = replay_log(path, Config(), keep_estimates=True)
+    rep = replay_log(path, ESTIMATOR_ONLY, keep_estimates=True)
     c1 = rep.summary["compasses"][1]
     assert c1["inflight"]["form"] == "absolute", c1["inflight"]["form_why"]
     assert c1["status"] == "corrected"
@@ -72,7 +72,7 @@ def test_one_hertz_telemetry_is_not_a_gap_on_every_sample(tmp_path: Path) -> Non
     """1 Hz RAW_IMU (a telemetry tlog): no gap, no observer reset per sample; every compass says what it is
     doing and why, and the JSON is strictly valid."""
     _, path = _flight(tmp_path, ["telemetry_hz=1"], duration_s=120.0)
-    rep = replay_log(path, Config())
+    rep = replay_log(path, ESTIMATOR_ONLY)
     counts = rep.summary["counts"]
     assert counts["mag"] > 200
     assert counts["gaps"] == 0
@@ -94,7 +94,7 @@ def test_one_hertz_telemetry_is_not_a_gap_on_every_sample(tmp_path: Path) -> Non
 
 def test_no_throttle_source_is_said_per_compass(tmp_path: Path) -> None:
     _, path = _flight(tmp_path, ["telemetry_hz=10"], duration_s=60.0)
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     cfg = replace(cfg, input=replace(cfg.input, throttle_source="none"))
     rep = replay_log(path, cfg)
     for c in rep.summary["compasses"]:
@@ -105,7 +105,7 @@ def test_no_throttle_source_is_said_per_compass(tmp_path: Path) -> None:
 
 def test_two_pass_replay_starts_corrected_and_says_so(tmp_path: Path) -> None:
     _, path = _flight(tmp_path, ["telemetry_hz=50", "external_compass0=on"], duration_s=150.0)
-    rep = replay_log(path, Config(), keep_estimates=True, two_pass=True)
+    rep = replay_log(path, ESTIMATOR_ONLY, keep_estimates=True, two_pass=True)
     assert rep.summary["passes"] == 2
     c1 = rep.summary["compasses"][1]
     assert c1["inflight"]["started_from_stored_state"]
@@ -156,7 +156,7 @@ def test_four_hertz_telemetry_matches_attitude_and_throttle_to_the_field_time(
         orig(self, t_s, y, x, r_nb, ref)
 
     monkeypatch.setattr(inflight_stage.InflightStage, "_use", spy)
-    replay_log(path, Config())
+    replay_log(path, ESTIMATOR_ONLY)
     s = result.samples
     assert len(used) > 0.9 * 150.0 * 4.0
     ang, dthr = [], []
@@ -180,7 +180,7 @@ def test_theta_from_the_tilt_model_within_ten_percent_at_ten_hertz(tmp_path: Pat
     that theta (``inflight_stage.TILT_CONDITION``; docs/inflight.md, seventh pass): theta within 10 % and
     within three of its own sigmas, the heading corrected."""
     result, path = _flight(tmp_path, ["telemetry_hz=10"], seed=seed, duration_s=300.0)
-    rep = replay_log(path, Config(), keep_estimates=True)
+    rep = replay_log(path, ESTIMATOR_ONLY, keep_estimates=True)
     c0 = rep.summary["compasses"][0]
     assert c0["status"] == "corrected", c0["why"]
     theta, truth = np.asarray(c0["theta_mgauss"]), np.asarray(result.compasses[0].theta_mgauss)
@@ -210,7 +210,7 @@ def test_heading_sigma_covers_the_error_beyond_the_oracle_with_the_two_models_ap
     )
     path = tmp_path / "ordinary.tlog"
     write_tlog(result, path)
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     rep = replay_log(path, cfg, keep_estimates=True)
     orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     c0 = rep.summary["compasses"][0]
@@ -240,7 +240,7 @@ def test_a_stuck_compass_is_not_corrected_and_says_why(tmp_path: Path) -> None:
     _, path = _flight(tmp_path, ["telemetry_hz=10"])
     stuck = rewrite(split_tlog_records(path.read_bytes()), "SCALED_IMU2", xmag=120, ymag=-40, zmag=380)
     path.write_bytes(b"".join(stuck))
-    rep = replay_log(path, Config())
+    rep = replay_log(path, ESTIMATOR_ONLY)
     c0, c1 = rep.summary["compasses"][:2]
     assert c0["status"] == "corrected", c0["why"]
     assert c1["status"] == "uncorrected", c1
@@ -260,7 +260,7 @@ def test_the_relative_forms_excess_over_the_oracle_is_the_unobservable_mount_yaw
     from magcomp.service.demo import errors_after_learning, offset_split
 
     result, path = _flight(tmp_path, ["telemetry_hz=10"], seed=4, duration_s=600.0)
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
     orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     c0 = two.summary["compasses"][0]
@@ -287,7 +287,7 @@ def test_an_autopilot_that_pulls_its_yaw_slowly_keeps_the_heading_and_theta(tmp_
     from magcomp.service.demo import errors_after_learning, offset_split
 
     result, path = _flight(tmp_path, ["telemetry_hz=10", "ap_kp_yaw=0.05"], seed=2, duration_s=600.0)
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     causal = replay_log(path, cfg, keep_estimates=True)
     two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
     orc = oracle_replay(result, path, tmp_path / "oracle", cfg)

@@ -22,6 +22,7 @@ from magcomp.core.types import (
 )
 from magcomp.geomag import earth_field_ned_mgauss
 from magcomp.service.pipeline import Pipeline
+from tests.configs import ESTIMATOR_ONLY
 
 G = 9.80665
 THETA = np.array([-61.0, 26.4, -12.0])
@@ -104,7 +105,7 @@ def test_pipeline_learns_calibration_then_theta_and_corrects_heading_in_the_pan(
     stream: tuple[list[Sample], dict[str, np.ndarray]],
 ) -> None:
     samples, truth = stream
-    _, ests = run(Config(), samples)
+    _, ests = run(ESTIMATOR_ONLY, samples)
     assert len(ests) == len(truth["t"])
     t = np.array([e.t_s for e in ests])
     np.testing.assert_array_equal(t, truth["t"])

@@ -76,7 +76,7 @@ def test_running_form_agrees_with_the_batch_form() -> None:
     base = yaw + np.radians(10.0) * thr**2 + rng.normal(0, np.radians(1.0), t.size)
     cand = yaw + 0.4 + rng.normal(0, np.radians(1.0), t.size)
     batch = sc.compare(base, cand, gyro, sc.window_ids(t), yaw)
-    run = sc.RunningSelfCheck()
+    run = sc.RunningSelfCheck(window_s=sc.WINDOW_S)
     for i in range(t.size):
         run.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, float(yaw[i]))
     run.add(1e9, 0.0, 0.0, 0.0, 0.0, 0.0)  # closes the last window
