@@ -250,9 +250,10 @@ def self_check_finals(
     samples: SampleLog, finals: dict[int, FinalCompass]
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck]]:
     """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
-    flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is not better than the autopilot's own against the gyro beyond the noise, or
-    agrees less with the autopilot's yaw, its final state becomes "uncorrected" and the second pass
-    publishes the autopilot's own field through the same heading filter."""
+    flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is
+    not better than the autopilot's own beyond the noise, or worse against the gyro or the autopilot's yaw,
+    its final state becomes "uncorrected" and the second pass publishes the autopilot's own field through
+    the same heading filter."""
     judged = [i for i, f in finals.items() if f.coeffs is not None and f.inflight]
     if not judged:
         return finals, {}
