@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from magcomp.core import selfcheck
 from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.hover_theta import HoverTheta, fit_hover_theta
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_CONVERGED, HeadingEstimate
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.heading import yaw_rate
@@ -246,24 +247,65 @@ def self_check(cols: F64) -> selfcheck.SelfCheck:
     return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None)
 
 
+#: eq. (2) as the identity: the autopilot's calibration of the field as logged (L = I, d = 0)
+IDENTITY_COEFFS = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def _hover_rows(rows: F64, idx: int) -> F64:
+    """(t, field as logged xyz, roll, pitch, autopilot yaw, throttle, and the self-check's gyro yaw, epoch,
+    IMU dt) of compass ``idx``'s samples with the motors running and the tilt below 60 deg."""
+    m = rows[:, MAG] == idx
+    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > MOTORS_RUNNING_01)
+    m &= (rows[:, COS_ROLL] > MAX_TILT_COS) & (rows[:, COS_PITCH] > MAX_TILT_COS)
+    r = rows[m]
+    roll = np.arctan2(r[:, SIN_ROLL], r[:, COS_ROLL])
+    pitch = np.arctan2(r[:, SIN_PITCH], r[:, COS_PITCH])
+    cols = (r[:, T], r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z], roll, pitch, r[:, AP_YAW], r[:, THR],
+            r[:, GYRO_YAW], r[:, GYRO_EPOCH], r[:, IMU_DT])  # fmt: skip
+    return np.column_stack(cols)
+
+
+def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
+    """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
+    the self-check of the heading it gives; None where theta cannot be fitted."""
+    if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
+        return None
+    t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
+    fit = fit_hover_theta(cols[:, 1:4], roll, pitch, yaw, thr)
+    if fit is None:
+        return None
+    d2 = thr * thr
+    th = fit.theta_mgauss
+    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
+    base = heading_from_trig_deg(mx, my, mz, *trig)
+    cand = heading_from_trig_deg(mx - th[0] * d2, my - th[1] * d2, mz - th[2] * d2, *trig)  # eq. (11), (24)
+    check_cols = np.column_stack((t, np.radians(base), np.radians(cand), yaw, gyaw, epoch, imu_dt))
+    return fit, self_check(check_cols)
+
+
 def self_check_finals(
     samples: SampleLog, finals: dict[int, FinalCompass]
-) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck]]:
+) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck], dict[int, HoverTheta]]:
     """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
     flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is
     not better than the autopilot's own beyond the noise, or worse against the gyro or the autopilot's yaw,
     its final state becomes "uncorrected" and the second pass publishes the autopilot's own field through
-    the same heading filter."""
+    the same heading filter. Every compass left uncorrected then gets theta against the autopilot's own
+    calibration (core/hover_theta.py: a hover determines theta, not a calibration), published where that
+    passes the same check."""
     judged = [i for i, f in finals.items() if f.coeffs is not None and f.inflight]
-    if not judged:
-        return finals, {}
+    hover = [i for i, f in finals.items() if f.coeffs is None or f.inflight]
     parts: dict[int, list[F64]] = {i: [] for i in judged}
+    hparts: dict[int, list[F64]] = {i: [] for i in hover}
     for rows in samples.chunks():
         cor = correct(rows, finals)
         for i in judged:
             parts[i].append(_check_rows(rows, cor, i))
+        for i in hover:
+            hparts[i].append(_hover_rows(rows, i))
     out = dict(finals)
     checks: dict[int, selfcheck.SelfCheck] = {}
+    hovers: dict[int, HoverTheta] = {}
     for i in judged:
         cols = np.concatenate(parts[i]) if parts[i] else np.zeros((0, 7))
         chk = checks[i] = self_check(cols)
@@ -271,7 +313,20 @@ def self_check_finals(
             f = finals[i]
             out[i] = replace(f, coeffs=None, inflight=False, theta=(0.0, 0.0, 0.0), converged=False,
                              accounts=None if f.accounts is None else "uncorrected")  # fmt: skip
-    return out, checks
+    for i in hover:
+        if i in checks and checks[i].applies:
+            continue
+        got = hover_candidate(np.concatenate(hparts[i]) if hparts[i] else np.zeros((0, 11)))
+        if got is None or not got[1].applies:
+            continue
+        fit, chk = got
+        th = fit.theta_mgauss.tolist()
+        f = finals[i]
+        out[i] = FinalCompass(IDENTITY_COEFFS, True, (th[0], th[1], th[2]), False,
+                              None if f.accounts is None else "corrected")  # fmt: skip
+        checks[i] = chk
+        hovers[i] = fit
+    return out, checks, hovers
 
 
 def filter_and_publish(

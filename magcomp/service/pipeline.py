@@ -37,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from magcomp.adapters.config import Config
+from magcomp.core.hover_theta import HoverTheta
 from magcomp.core.selfcheck import SelfCheck
 from magcomp.core.types import (
     AttitudeSample,
@@ -140,6 +141,9 @@ class Pipeline:
         self.correctors: dict[int, CompassCorrector] = {}
         #: the self-check of each corrected compass against the gyro (the two-pass replay's, over the log)
         self.self_checks: dict[int, SelfCheck] = {}
+        #: theta fitted against the autopilot's calibration where the flight does not determine one, published
+        #: where it passed the self-check (the two-pass replay's; service/final_pass.py)
+        self.hover_thetas: dict[int, HoverTheta] = {}
         self._earth_ned = est_core.earth_field(cfg)
         self._earth_ned.flags.writeable = False  # shared by every stage (and sent once: inflight_process)
         self._params: dict[str, float] = {}  # the autopilot's parameters (in-flight calibration)
@@ -458,6 +462,9 @@ class Pipeline:
         the self-check against the gyro where one was made."""
         st = self._learned_status(c)
         chk, on = self._check(c)
+        if c.mag_index in self.hover_thetas and chk is not None and on:
+            why = f"theta against the autopilot's calibration (none determined by the flight: {st.why})"
+            return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
             return st
         if on:

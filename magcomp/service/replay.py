@@ -335,8 +335,9 @@ def replay_log(
                 first = None
             finals = final_compasses(first.pipeline) if first is not None else None
             if first is not None and finals is not None and cfg.output.self_check:  # never worse than its own
-                finals, checks = self_check_finals(first.samples, finals)
+                finals, checks, hovers = self_check_finals(first.samples, finals)
                 first.pipeline.self_checks.update(checks)
+                first.pipeline.hover_thetas.update(hovers)
         if first is not None and finals is not None:
             pipeline = first.pipeline
             report = _second_pass(path, cfg, first, finals, emit, keep_estimates, on_estimate, should_stop,

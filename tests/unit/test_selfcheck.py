@@ -114,3 +114,28 @@ def test_heading_filter_propagates_with_the_integrated_gyro() -> None:
         errs[use_integral] = float(np.sqrt(np.mean(np.square(err[4:]))))
     assert errs[True] < 0.01
     assert errs[False] > 5.0
+
+
+def test_hover_theta_is_recovered_against_the_autopilots_calibration() -> None:
+    """A hover with 60 deg of yaw and the throttle between 0.4 and 0.6: theta of eq. (11) is fitted with the
+    autopilot's calibration held (core/hover_theta.py) to within 3 sigma and 10 %; a constant throttle gives
+    no fit."""
+    from magcomp.core.hover_theta import body_from_nav, fit_hover_theta
+
+    rng = np.random.default_rng(7)
+    n = 3000
+    t = np.arange(n) * 0.1
+    roll = np.radians(2.0) * np.sin(t / 3.0)
+    pitch = np.radians(2.0) * np.cos(t / 4.0)
+    yaw = np.radians(30.0) * np.sin(t / 40.0)
+    thr = 0.5 + 0.1 * np.sin(t / 2.3) * np.sin(t / 17.0)
+    e_n = np.array([200.0, 10.0, 450.0])
+    theta = np.array([-80.0, 140.0, 60.0])
+    m = np.einsum("nij,j->ni", body_from_nav(roll, pitch, yaw), e_n) + theta * (thr**2)[:, None]
+    m += rng.normal(0, 2.0, m.shape)
+    fit = fit_hover_theta(m, roll, pitch, yaw, thr)
+    assert fit is not None
+    err = fit.theta_mgauss - theta
+    assert np.all(np.abs(err) < 3 * fit.theta_sigma_mgauss + 1e-9)
+    assert np.linalg.norm(err) < 0.1 * np.linalg.norm(theta)
+    assert fit_hover_theta(m, roll, pitch, yaw, np.full(n, 0.5)) is None
