@@ -125,6 +125,13 @@ class AttitudeStage:
         # the filter (a new epoch)
         self.gyro_yaw_rad = 0.0
         self.gyro_yaw_epoch = 0
+        #: the same integral of the bias-corrected gyro (the attitude filter's bias removed): what the heading
+        #: filter propagates with and the self-check's reference (service/heading.py), same epochs
+        self.heading_yaw_rad = 0.0
+        self._heading_rate_prev = 0.0
+        #: (sin roll, cos roll) / cos pitch of the latest attitude view (the autopilot's or the filter's, as
+        #: the headings use it): the coefficients of that integral
+        self._heading_coef = (0.0, 1.0)
         self._yaw_coef = (0.0, 1.0)  # (sin roll, cos roll) / cos pitch of the latest ATTITUDE
         self._yaw_rate_prev = 0.0
         #: the horizontal kinematic acceleration in the gyro chain's yaw frame (north, east; m/s^2),
@@ -205,6 +212,9 @@ class AttitudeStage:
             rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
             self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
             self._yaw_rate_prev = rate
+            rate_c = self._heading_coef[0] * self.gyro[1] + self._heading_coef[1] * self.gyro[2]
+            self.heading_yaw_rad += 0.5 * (rate_c + self._heading_rate_prev) * (t - prev_t)
+            self._heading_rate_prev = rate_c
             if self._accel_wanted:
                 self._track_accel(ax, ay, az, t - prev_t)
             return False
@@ -245,6 +255,7 @@ class AttitudeStage:
         self._yaw_rate_prev = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
         self.imu_t = t
         self.gyro = (gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2]))
+        self._heading_rate_prev = self._heading_coef[0] * self.gyro[1] + self._heading_coef[1] * self.gyro[2]
 
     def _gate_gyro(self, t: float) -> bool:
         """A saturated or jumping gyro sample at ``t``: gyro and attitude untrusted until GYRO_HOLDOFF_S
@@ -282,6 +293,7 @@ class AttitudeStage:
             roll, pitch = self.roll, self.pitch
         a = AttitudeView(down, math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch))
         self._view = a
+        self._heading_coef = euler_yaw_rate_coefs(roll, pitch)
         return a
 
     def stamp(self, rec: MagRecord) -> None:
@@ -289,7 +301,7 @@ class AttitudeStage:
         rec.down, rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch = self.view()
         t = rec.t_s
         rec.gyro = self.gyro
-        rec.gyro_yaw, rec.gyro_epoch = self.gyro_yaw_rad, float(self.gyro_yaw_epoch)
+        rec.gyro_yaw, rec.gyro_epoch = self.heading_yaw_rad, float(self.gyro_yaw_epoch)
         rec.ap_yaw = self.yaw if self.att_t is not None else math.nan
         rec.imu_fast = self.imu_dt is not None and self.imu_dt <= MAX_GYRO_DT_S
         fresh = self.imu_t is not None and abs(t - self.imu_t) <= self._stale_s

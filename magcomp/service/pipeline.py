@@ -305,7 +305,7 @@ class Pipeline:
             a = self.attitude
             ap_yaw = a.yaw if a.att_t is not None else math.nan
             imu_dt = math.nan if a.imu_dt is None else a.imu_dt
-            yaws = (ap_yaw, a.gyro_yaw_rad, float(a.gyro_yaw_epoch))
+            yaws = (ap_yaw, a.heading_yaw_rad, float(a.gyro_yaw_epoch))
             self._recorder.add(rec, self._boot_offset_s, yaws, imu_dt)
         self.calibrate.run(rec, c)
         self.theta.run(rec, c)

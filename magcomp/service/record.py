@@ -52,7 +52,7 @@ class MagRecord:
     gyro_fresh: bool = False
     #: the bias-corrected body rate of the latest IMU sample (rad/s)
     gyro: Float3 = ZERO3
-    #: the raw gyro's yaw integrated at the IMU's rate up to the latest IMU sample (rad) and its epoch
+    #: the bias-corrected gyro's yaw integrated at the IMU's rate up to the latest IMU sample (rad), its epoch
     #: (restarts of the integral); the heading filter propagates with its change between two samples
     gyro_yaw: float = math.nan
     gyro_epoch: float = -1.0
