@@ -431,7 +431,9 @@ def _vec(x: float, y: float, z: float, scale: float = 1.0) -> np.ndarray:
 _IMU_T, _IMU_GYRO, _IMU_ACCEL, _IMU_INDEX = (
     ImuSample.__dict__[name] for name in ("t_s", "gyro_b_rad_s", "accel_b_m_s2", "imu_index")
 )
-_MAG_T, _MAG_FIELD, _MAG_INDEX = (MagSample.__dict__[name] for name in ("t_s", "field_b_mgauss", "mag_index"))
+_MAG_T, _MAG_FIELD, _MAG_INDEX, _MAG_ONBOARD = (
+    MagSample.__dict__[name] for name in ("t_s", "field_b_mgauss", "mag_index", "onboard_mgauss")
+)
 _set = object.__setattr__  # the frozen dataclasses' __setattr__ refuses every attribute
 Float3 = tuple[float, float, float]
 
@@ -479,9 +481,12 @@ class WireMagSample(MagSample):
     __slots__ = ("field_xyz",)
     field_xyz: Float3
 
-    def __init__(self, t_s: float, field_b_mgauss: Float3 | Vec3, mag_index: int = 0) -> None:
+    def __init__(
+        self, t_s: float, field_b_mgauss: Float3 | Vec3, mag_index: int = 0, onboard: Float3 | None = None
+    ) -> None:
         _MAG_T.__set__(self, t_s)
         _MAG_INDEX.__set__(self, mag_index)
+        _MAG_ONBOARD.__set__(self, onboard)
         _set(self, "field_xyz", _floats(field_b_mgauss))
 
     @property  # type: ignore[override]
@@ -492,7 +497,7 @@ class WireMagSample(MagSample):
         return self.field_xyz
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return MagSample, (self.t_s, self.field_b_mgauss, self.mag_index)
+        return MagSample, (self.t_s, self.field_b_mgauss, self.mag_index, self.onboard_mgauss)
 
 
 def _floats(v: Float3 | Vec3) -> Float3:
@@ -577,12 +582,14 @@ class _Converter:
             self.counts["mag_zero"] += 1
         elif self.mag_index is None or self.mag_index == index:
             fx, fy, fz = float(xmag), float(ymag), float(zmag)  # mgauss
+            onboard: Float3 | None = None
             if self.undo_motor_comp and self.onboard_comp.params and self.autopilot != MAV_AUTOPILOT_PX4:
                 o = self.onboard_comp.offset(index, self.counts)
                 if o is not None:  # the autopilot added o (COMPASS_MOTCT): the field the motors disturbed
                     fx, fy, fz = fx - o[0], fy - o[1], fz - o[2]
+                    onboard = (float(o[0]), float(o[1]), float(o[2]))
                     self.counts["motor_comp_removed"] += 1
-            out.append((origin, WireMagSample(t_s, (fx, fy, fz), index)))
+            out.append((origin, WireMagSample(t_s, (fx, fy, fz), index, onboard)))
         temp = getattr(msg, "temperature", 0)
         if temp and self._keep():  # 0 = not provided (common.xml)
             out.append((origin, TemperatureSample(t_s, temp * 0.01, _IMU_SENSOR_NAMES[index])))
@@ -952,6 +959,7 @@ class _Converter:
         if self.mag_index is not None and index != self.mag_index:
             return []
         field = _vec(v.MagX, v.MagY, v.MagZ)
+        onboard: Float3 | None = None
         # the applied motor compensation: MOfsX/Y/Z in ArduPilot up to 4.0 (MAG, MAG2, MAG3), MOX/MOY/MOZ
         # since the instance field I (AP_Compass/LogStructure.h)
         mo = ("MOfsX", "MOfsY", "MOfsZ") if hasattr(v, "MOfsX") else ("MOX", "MOY", "MOZ")
@@ -964,6 +972,7 @@ class _Converter:
                     self.counts["motor_comp_ignored"] += 1
                 else:
                     field = field - mofs
+                    onboard = (float(mofs[0]), float(mofs[1]), float(mofs[2]))
                     self.counts["motor_comp_removed"] += 1
                     self.onboard_comp.record(index, mofs)
         if not np.isfinite(field).all():
@@ -973,7 +982,7 @@ class _Converter:
             self.counts["mag_zero"] += 1
             return []
         t_s = self.clock.stamp(stream, raw_s)
-        return [] if t_s is None else [("MAG", MagSample(t_s, field, index))]
+        return [] if t_s is None else [("MAG", MagSample(t_s, field, index, onboard))]
 
     def _df_motor_comp_off(self, index: int) -> bool:
         """True when the logged parameters say the autopilot adds no motor offset to compass ``index``:

@@ -44,6 +44,9 @@ class MagSample:
     t_s: float
     field_b_mgauss: Vec3
     mag_index: int = 0
+    #: the motor compensation the autopilot had added to this field and the source removed (ArduPilot's
+    #: COMPASS_MOT / MAG.MOX..), mgauss; None: none. field + onboard is the field as the autopilot had it
+    onboard_mgauss: tuple[float, float, float] | None = None
 
     def floats(self) -> tuple[float, float, float]:
         """The field as three Python floats (see :meth:`ImuSample.floats`)."""

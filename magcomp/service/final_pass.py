@@ -39,7 +39,7 @@ from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.heading import yaw_rate
 from magcomp.service.publish import HeadingEncoder, HeadingValues, TlogWriter
-from magcomp.service.record import Float3, MagRecord
+from magcomp.service.record import ZERO3, Float3, MagRecord
 
 if TYPE_CHECKING:
     from magcomp.service.pipeline import Pipeline
@@ -49,8 +49,8 @@ F64 = NDArray[np.float64]
 #: the sample log's columns (one row per magnetometer sample that reached the heading stage)
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
  SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
- IMU_DT) = range(24)  # fmt: skip
-N_COLS = 24
+ IMU_DT, ONB_X, ONB_Y, ONB_Z) = range(27)  # fmt: skip
+N_COLS = 27
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
 #: 8192 rows of 20 float64 are 1.3 MB
 CHUNK_ROWS = 8192
@@ -80,11 +80,12 @@ class SampleLog:
         prev = rec.prev_t
         vx, vy, vz = rec.raw
         _, gy, gz = rec.gyro
+        onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
         buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
                     rec.reset, math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
                     rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws,
-                    imu_dt_s))  # fmt: skip
+                    imu_dt_s, *onb))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 
@@ -183,7 +184,7 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     mag = rows[:, MAG].astype(np.int64)
     have = rows[:, HAVE_THR] != 0.0
     raw = rows[:, RAW_X:RAW_Z + 1]
-    field_cal = raw.copy()
+    field_cal = raw + rows[:, ONB_X:ONB_Z + 1]  # uncorrected: the field as the autopilot had it
     theta = np.zeros((n, 3))
     calibrated = np.zeros(n, dtype=bool)
     flags = rows[:, FLAGS].astype(np.int64)
@@ -227,7 +228,8 @@ def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
     m &= (rows[:, COS_ROLL] > MAX_TILT_COS) & (rows[:, COS_PITCH] > MAX_TILT_COS)
     r = rows[m]
     trig = (r[:, COS_ROLL], r[:, SIN_ROLL], r[:, COS_PITCH], r[:, SIN_PITCH])
-    base = heading_from_trig_deg(r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z], *trig)  # eq. (24), the logged field
+    own = r[:, RAW_X:RAW_Z + 1] + r[:, ONB_X:ONB_Z + 1]  # the field as the autopilot had it
+    base = heading_from_trig_deg(own[:, 0], own[:, 1], own[:, 2], *trig)  # eq. (24)
     cand = cor.psi_deg[m]
     return np.column_stack((r[:, T], np.radians(base), np.radians(cand), r[:, AP_YAW], r[:, GYRO_YAW],
                             r[:, GYRO_EPOCH], r[:, IMU_DT]))  # fmt: skip
@@ -260,8 +262,9 @@ def _hover_rows(rows: F64, idx: int) -> F64:
     r = rows[m]
     roll = np.arctan2(r[:, SIN_ROLL], r[:, COS_ROLL])
     pitch = np.arctan2(r[:, SIN_PITCH], r[:, COS_PITCH])
-    cols = (r[:, T], r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z], roll, pitch, r[:, AP_YAW], r[:, THR],
-            r[:, GYRO_YAW], r[:, GYRO_EPOCH], r[:, IMU_DT])  # fmt: skip
+    own = r[:, RAW_X:RAW_Z + 1] + r[:, ONB_X:ONB_Z + 1]  # the field as the autopilot had it
+    cols = (r[:, T], own[:, 0], own[:, 1], own[:, 2], roll, pitch, r[:, AP_YAW], r[:, THR], r[:, GYRO_YAW],
+            r[:, GYRO_EPOCH], r[:, IMU_DT])  # fmt: skip
     return np.column_stack(cols)
 
 

@@ -155,8 +155,13 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     if not track.self_check:
         return
     vx, vy, vz = rec.raw
+    onb = rec.sample.onboard_mgauss
+    if onb is not None:  # the autopilot's own motor compensation, which the source removed, put back
+        vx, vy, vz = vx + onb[0], vy + onb[1], vz + onb[2]
     psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
     own = track.step_own(psi_own)  # every sample: the filter's state stays current
+    if not rec.calibrated:  # nothing of magcomp's applies: the autopilot's own heading
+        rec.heading_deg = own
     chk = track.check
     cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
     if cand is None and chk is None:
