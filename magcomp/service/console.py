@@ -190,6 +190,16 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                 f"{_time_text(c)}"
             )
             continue
+        if cal is not None and cal["source"] == "autopilot" and status == "corrected":
+            sig = cal.get("theta_sigma_mgauss") or [math.nan] * 3
+            chk = c.get("self_check")
+            gain = "" if not chk else f"; {_gain_text(chk)}"
+            lines.append(
+                f"compass {c['index']}: {c['estimates']} headings, corrected, the autopilot's calibration "
+                f"kept (the flight determines none of its own), theta = ({th[0]:.1f}, {th[1]:.1f}, "
+                f"{th[2]:.1f}) +- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss{gain}{_time_text(c)}"
+            )
+            continue
         if cal is not None and cal["source"] == "in-flight":
             inf = c.get("inflight") or {}
             sig = inf.get("theta_sigma_mgauss") or [math.nan] * 3

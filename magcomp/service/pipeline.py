@@ -436,7 +436,7 @@ class Pipeline:
         """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
         calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
         no NaN)."""
-        compasses = [compass_summary(c, self._status(c), self._check(c)[0])
+        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self.hover_thetas.get(i))
                      for i, c in sorted(self.correctors.items())]
         lat, lon, alt, year = self._location
         return json_safe(

@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from magcomp.core.hover_theta import HoverTheta
 from magcomp.core.selfcheck import SelfCheck
 from magcomp.service.compass import CompassCorrector
 
@@ -18,7 +19,9 @@ class Status(NamedTuple):
     why: str
 
 
-def compass_summary(c: CompassCorrector, status: Status, check: SelfCheck | None = None) -> dict[str, object]:
+def compass_summary(
+    c: CompassCorrector, status: Status, check: SelfCheck | None = None, hover: HoverTheta | None = None
+) -> dict[str, object]:
     """Calibration, theta, whether the headings are corrected and why: one compass."""
     cal = c.calibration
     st = c.inflight
@@ -46,6 +49,16 @@ def compass_summary(c: CompassCorrector, status: Status, check: SelfCheck | None
             "n": sol.n,
             "L": sol.calib_l.tolist(),
             "d_mgauss": sol.calib_d.tolist(),
+        }
+    if hover is not None and status.status == "corrected":  # theta against the autopilot's calibration
+        calibrated = True
+        theta = hover.theta_mgauss.tolist()
+        converged = False
+        calib_doc = {
+            "source": "autopilot",
+            "residual_rms_mgauss": hover.residual_rms_mgauss,
+            "n": hover.n,
+            "theta_sigma_mgauss": hover.theta_sigma_mgauss.tolist(),
         }
     return {
         "index": c.mag_index,

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.service.demo import oracle_replay, rms_after_learning
 from magcomp.service.replay import replay_log
+from tests.configs import ESTIMATOR_ONLY
 
 #: a reported 1-sigma that the error beyond the oracle exceeds threefold is a false claim (a Gaussian
 #: error does so 0.3 % of the time)
@@ -32,7 +32,7 @@ def test_short_flight_heading_sigma_covers_the_error_beyond_the_oracle(tmp_path:
                                      ["telemetry_hz=10"]))  # fmt: skip
     path = tmp_path / "short.tlog"
     write_tlog(result, path)
-    cfg = Config()
+    cfg = ESTIMATOR_ONLY
     two = replay_log(path, cfg, keep_estimates=True, two_pass=True)
     orc = oracle_replay(result, path, tmp_path / "oracle", cfg)
     for j in range(len(result.compasses)):
