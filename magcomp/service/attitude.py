@@ -304,6 +304,7 @@ class AttitudeStage:
         rec.gyro_yaw, rec.gyro_epoch = self.heading_yaw_rad, float(self.gyro_yaw_epoch)
         rec.ap_yaw = self.yaw if self.att_t is not None else math.nan
         rec.imu_fast = self.imu_dt is not None and self.imu_dt <= MAX_GYRO_DT_S
+        rec.imu_dt = math.nan if self.imu_dt is None else self.imu_dt
         fresh = self.imu_t is not None and abs(t - self.imu_t) <= self._stale_s
         if t <= self.gyro_bad_until:  # the gyro gate: no observer, no calibration
             fresh = False

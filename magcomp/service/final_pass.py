@@ -347,18 +347,20 @@ def filter_and_publish(
     cols = (rows[:, T], rows[:, MAG], rows[:, HAVE_THR], rows[:, RESET], rows[:, PREV_T], rows[:, GYRO_FRESH],
             rows[:, GYRO_Y], rows[:, GYRO_Z], rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
             rows[:, REBOOT], cor.psi_deg, cor.psi_raw_deg, cor.corrected, rows[:, GYRO_YAW],
-            rows[:, GYRO_EPOCH])  # fmt: skip
+            rows[:, GYRO_EPOCH], rows[:, IMU_DT])  # fmt: skip
     lists = [c.tolist() for c in cols]
     rows_iter = enumerate(zip(*lists, strict=True))
     for i, row in rows_iter:
-        t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep = row
+        t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep, imu_dt = (
+            row
+        )
         idx = int(mf)
         c = correctors[idx]
         prev_t = None if prev != prev else prev  # NaN: no previous sample
         dt = 0.0 if prev_t is None or reset else t - prev_t
         track = c.heading
         restart = bool(reset or reboot or not fresh)
-        track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt, gyaw, gep)
+        track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt, gyaw, gep, imu_dt)
         if have and idx in stages:
             st = stages[idx]
             assert st is not None

@@ -74,6 +74,7 @@ class HeadingTrack:
         dt: float,
         gyro_yaw: float = math.nan,
         gyro_epoch: float = -1.0,
+        imu_dt: float = math.nan,
     ) -> None:
         """Both filters over one sample; the results in :attr:`corrected_deg` and :attr:`raw_deg`. ``psi`` /
         ``psi_raw``: eq. (24) of the corrected and the calibrated-only field; ``corrected``: the throttle is
@@ -82,12 +83,14 @@ class HeadingTrack:
         interval (0: none). ``gyro_yaw`` / ``gyro_epoch``: the gyro's yaw integrated at the IMU's rate; where
         the previous sample had one of the same epoch, the filter propagates with its change over the interval
         (the mean rate) rather than the latest IMU sample's rate times the interval, which at 2-4 Hz
-        telemetry or ULog compass rates misses most of a turn. Used by the per-sample stage and by the
-        two-pass replay's second pass."""
+        telemetry or ULog compass rates misses most of a turn. Only where the interval holds several IMU
+        samples (``imu_dt``): where the gyro comes with the field (RAW_IMU), one sample per interval, its own
+        rate is kept (the paper's pan: 1.66 deg max error that way, 2.97 with the trapezoid). Used by the
+        per-sample stage and by the two-pass replay's second pass."""
         prev_yaw, prev_epoch = self.gyro_yaw, self.gyro_epoch
         self.gyro_yaw, self.gyro_epoch = gyro_yaw, gyro_epoch
-        if dt > 0.0 and prev_epoch == gyro_epoch and gyro_yaw - prev_yaw == gyro_yaw - prev_yaw:  # not NaN
-            rate = (gyro_yaw - prev_yaw) / dt
+        if dt > 1.5 * imu_dt and prev_epoch == gyro_epoch and gyro_yaw - prev_yaw == gyro_yaw - prev_yaw:
+            rate = (gyro_yaw - prev_yaw) / dt  # several IMU samples in the interval (NaN imu_dt: never)
         if restart:
             self.reset()
         raw = self.raw_deg = self.raw.update(psi_raw, rate, dt)
@@ -150,7 +153,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     _, gy, gz = rec.gyro
     track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, yaw_rate(gy, gz, cr, sr, cp),
                0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
-               rec.gyro_epoch)  # fmt: skip
+               rec.gyro_epoch, rec.imu_dt)  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
     if not track.self_check:
         return

@@ -60,6 +60,8 @@ class MagRecord:
     #: MAX_GYRO_DT_S) for its integral to be the self-check's reference
     ap_yaw: float = math.nan
     imu_fast: bool = False
+    #: the IMU's interval (s; NaN: unknown)
+    imu_dt: float = math.nan
     #: the in-flight solution not yet applied (L and d as 12 floats, theta): judged by the self-check in the
     #: shadow, so that its evidence is there when the stage applies it
     shadow: tuple[tuple[float, ...], Float3] | None = None

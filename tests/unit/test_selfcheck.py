@@ -109,7 +109,7 @@ def test_heading_filter_propagates_with_the_integrated_gyro() -> None:
         for k in range(0, t.size, every):
             psi = math.degrees(yaw[k]) % 360.0
             gy = float(yaw[k]) if use_integral else math.nan
-            track.step(psi, psi, True, k == 0, float(rate[k]), 0.0 if k == 0 else dt_mag, gy, 0.0)
+            track.step(psi, psi, True, k == 0, float(rate[k]), 0.0 if k == 0 else dt_mag, gy, 0.0, dt_imu)
             err.append((track.corrected_deg - psi + 180.0) % 360.0 - 180.0)
         errs[use_integral] = float(np.sqrt(np.mean(np.square(err[4:]))))
     assert errs[True] < 0.01
