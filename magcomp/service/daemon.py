@@ -36,7 +36,7 @@ from magcomp.adapters.state_store import StateStore
 from magcomp.core.types import HeadingEstimate
 from magcomp.errors import InputError
 from magcomp.service.pipeline import Pipeline
-from magcomp.service.publish import HeadingEncoder, LinkSink
+from magcomp.service.publish import HeadingEncoder, LinkSink, NamedValues
 from magcomp.service.replay import source_throttle
 from magcomp.service.workers import Workers
 
@@ -267,6 +267,8 @@ class Daemon:
         self.pipelines: dict[tuple[int, int], Pipeline] = {}
         self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
         self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
+        #: NAMED_VALUE_FLOAT per encoder (vehicle), decimated (``[output] named_values_hz``)
+        self._named: dict[HeadingEncoder, NamedValues] = {}
         self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
         self.published = 0
         self.connects = 0
@@ -353,6 +355,13 @@ class Daemon:
                     enc.set_system(self.pipeline.system_id)
                     self._sysid_set = True
             self._write_all(est.t_s, enc.encode(est))
+            named = self._named.get(enc)
+            if named is None:
+                named = self._named[enc] = NamedValues(enc, self.cfg.output.named_values_hz)
+            t_boot = est.t_boot_s if est.t_boot_s == est.t_boot_s else est.t_s  # NaN: the same clock
+            for packet in named.packets(est.t_s, t_boot, est.mag_index, est.heading_deg, est.theta_mgauss,
+                                        est.flags):  # fmt: skip
+                self._write_all(est.t_s, packet)
         self.latency_s.append(time.perf_counter() - t_arrival)
         self.published += 1
         if self.on_estimate is not None:
