@@ -89,10 +89,12 @@ from magcomp.adapters.throttle import (
     resolve_throttle,
     throttle_from_pwm,
 )
+from magcomp.core.identity import uid_from_autopilot_version, uid_from_board_msg
 from magcomp.core.types import (
     AttitudeSample,
     ClockResetSample,
     HeartbeatSample,
+    IdentitySample,
     ImuSample,
     LogData,
     MagSample,
@@ -149,6 +151,7 @@ WANTED_MAVLINK = (
     "HIGHRES_IMU",
     "ATTITUDE_QUATERNION",
     "ACTUATOR_OUTPUT_STATUS",
+    "AUTOPILOT_VERSION",
 )
 WANTED_DATAFLASH = (
     "MAG",
@@ -398,6 +401,7 @@ class _Converter:
         self.vehicle_type = -1
         self.autopilot = -1
         self.system_id = -1
+        self.uid: str | None = None  # the vehicle's unique id (magcomp.core.identity)
         self._pwm_columns: dict[str, list[tuple[str, int]]] = {}
         self._df_converters: dict[int, tuple[Any, list[tuple[str, int, Any, float]]]] = {}
 
@@ -544,6 +548,13 @@ class _Converter:
         self.system_id = int(msg.get_srcSystem())
         hb = HeartbeatSample(self.clock.last_t_s, self.vehicle_type, self.autopilot, self.system_id)
         return [("HEARTBEAT", hb)]
+
+    def _m_AUTOPILOT_VERSION(self, msg: Any) -> list[tuple[str, Record]]:
+        uid = uid_from_autopilot_version(int(msg.uid), getattr(msg, "uid2", None))
+        if uid is None or uid == self.uid:  # (sent again on every request: said once)
+            return []
+        self.uid = uid
+        return [("AUTOPILOT_VERSION", IdentitySample(self.clock.last_t_s, uid, int(msg.get_srcSystem())))]
 
     def _m_PARAM_VALUE(self, msg: Any) -> list[tuple[str, Record]]:
         name = msg.param_id
@@ -777,6 +788,12 @@ class _Converter:
         return [("GPS", PositionSample(self.clock.last_t_s, lat, lon, alt, year, fix_ok))]
 
     def _df_msg(self, text: str) -> list[tuple[str, Record]]:
+        uid = uid_from_board_msg(text)
+        if uid is not None:
+            if uid == self.uid:
+                return []
+            self.uid = uid
+            return [("MSG", IdentitySample(self.clock.last_t_s, uid, 1))]
         lowered = text.lower()
         vtype = -1
         if "copter" in lowered:

@@ -98,6 +98,11 @@ class HeadingEncoder:
         slow = self._mod.x25crc
         self._crc: Any = (lambda b: fast(b, 0xFFFF)) if fast is not None else (lambda b: slow(b).crc)
 
+    @property
+    def module(self) -> Any:
+        """The generated dialect module (message classes and enums)."""
+        return self._mod
+
     def set_system(self, system_id: int) -> None:
         if not self._fixed_system:
             self.mav.srcSystem = int(system_id) & 0xFF

@@ -62,7 +62,7 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
     worker.start()
     try:
         wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+        link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
         wait_for(lambda: len(ests) >= n_mag, 60.0, "every estimate")
         last_ms = round(ests[-1].t_boot_s * 1000)
         wait_for(lambda: any(m.time_boot_ms >= last_ms - 600 for m in list(got)), 60.0, "the last values")
@@ -72,6 +72,8 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
         stop.set()
         rx.join()
         sock.close()
+    # the daemon asked the flight controller for its unique id (AUTOPILOT_VERSION: the key of its state)
+    assert link.received.get("COMMAND_LONG", 0) >= 1
     names = {m.name for m in got}
     assert names == {*named_value_names(0), *named_value_names(1)}
     # decimated to 2 Hz per compass on message time, not one per sample (~100 Hz)
