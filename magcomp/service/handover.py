@@ -49,7 +49,9 @@ def save_learned_state(log_path: str | Path, cfg: Config, store: StateStore) -> 
         return [f"state: nothing saved to {store.directory}: no magnetometer samples in the log"]
     lines = []
     for idx, c in sorted(comps.items()):
-        state = next((s for (*_, j), s in mem.states.items() if j == idx), None)
+        # the vehicle as the log named it at the end (a state saved before its id arrived is not it)
+        key = (int(summary.get("system_id") or 1), summary.get("vehicle_uid"), idx)
+        state = mem.states.get(key) or next((s for (*_, j), s in mem.states.items() if j == idx), None)
         if c.get("status") != "corrected" or state is None:
             lines.append(f"compass {idx}: nothing saved: {c.get('why') or 'not corrected'}")
             continue
