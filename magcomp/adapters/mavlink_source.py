@@ -1698,6 +1698,14 @@ class _SenderStream:
         return out
 
 
+def sender_stream(spec: str | ThrottleSpec, counts: dict[str, int] | None = None) -> _SenderStream:
+    """A converter for the messages of one sender handed over one at a time (a host that owns the link:
+    :mod:`magcomp.service.companion`); ``push(msg)`` returns that message's samples."""
+    counts = counts if counts is not None else _Counts()
+    conv = _Converter(counts, mag_index=None, undo_motor_comp=True)
+    return _SenderStream(parse_throttle_source(spec), conv, {})
+
+
 def _throttle_sample(
     resolved: ResolvedThrottle | None, rec: PwmRecord | ThrottleRecord
 ) -> ThrottleSample | None:
