@@ -39,7 +39,7 @@ def _mpstate(master: FakeLink, out: FakeLink) -> Any:
                            master=lambda: master, mav_outputs=[out])  # fmt: skip
 
 
-def _decode(data: bytes) -> list[Any]:
+def _decode(data: bytes | bytearray) -> list[Any]:
     from magcomp.adapters.dialect import ensure_dialect
 
     mav = ensure_dialect().MAVLink(None)
