@@ -79,6 +79,8 @@ class Diagnosis:
     primary: int
     compasses: list[CompassDiagnosis]
     notes: list[str]
+    #: MAV_AUTOPILOT of the log (3 ArduPilot, 12 PX4, -1 unknown): whose parameters the report prints
+    autopilot: int = -1
 
     def compass(self, index: int) -> CompassDiagnosis:
         for c in self.compasses:
