@@ -382,6 +382,15 @@ def open_viz(
     )
 
 
+def discard_viz(viz: Viz) -> None:
+    """Close ``viz`` after its command failed (the input could not be read, held no compass): a recording
+    file it started (``save=PATH.rrd``) is removed, so a failed command leaves nothing behind."""
+    viz.close()
+    mode = getattr(viz, "mode", None)
+    if isinstance(mode, VizMode) and mode.kind == "save":
+        Path(mode.target).unlink(missing_ok=True)
+
+
 SERVING_MESSAGE = "serving the viewer; press ^C to stop"
 
 
@@ -773,7 +782,7 @@ class RerunViz:
                 )
                 rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
                 self._url = web_viewer_url(wport, grpc_url)
-                self._notice = f"{prefix}Rerun web viewer: {self._url}"
+                self._notice = prefix + serve_notice(self._url, gport, wport)
             else:  # pragma: no cover - parse_mode only returns the four kinds
                 raise MagcompError(f"--rerun: unknown mode {mode.kind!r}")
         except MagcompError:
@@ -1230,6 +1239,66 @@ def _cloud_radius(pts: NDArray[np.float64]) -> float:
     if pts.shape[0] == 0:
         return 1.0
     return max(float(np.median(np.linalg.norm(pts, axis=1))) / 80.0, 0.5)
+
+
+def listening_hosts(port: int, proc_net: Path = Path("/proc/net")) -> set[str] | None:
+    """The local addresses a TCP socket listens on at ``port`` ("0.0.0.0" / "::" for every interface), read
+    from ``/proc/net/tcp`` and ``tcp6``; None where the system does not say (not Linux)."""
+    import ipaddress
+
+    found: set[str] | None = None
+    for name, width in (("tcp", 8), ("tcp6", 32)):
+        try:
+            lines = (proc_net / name).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        found = found if found is not None else set()
+        for line in lines:
+            parts = line.split()
+            if len(parts) < 4 or parts[3] != "0A":  # 0A: LISTEN
+                continue
+            addr_hex, _, port_hex = parts[1].partition(":")
+            if int(port_hex, 16) != port or len(addr_hex) != width:
+                continue
+            raw = bytes.fromhex(addr_hex)
+            # the kernel prints each 32-bit word in host (little-endian) order
+            packed = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+            found.add(str(ipaddress.ip_address(packed)))
+    return found
+
+
+def _this_host_address() -> str:
+    """An address other machines may reach this one at (the route to a private network; no packet sent)."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("10.255.255.255", 1))
+            return str(s.getsockname()[0])
+    except OSError:
+        return socket.gethostname()
+
+
+def serve_notice(url: str, grpc_port: int, web_port: int, hosts: set[str] | None = None) -> str:
+    """What ``serve`` prints: the page to open here, where the two servers really listen, and how to reach
+    them from another machine (the port forward for a headless one)."""
+    if hosts is None:
+        hosts = (listening_hosts(web_port) or set()) | (listening_hosts(grpc_port) or set())
+    forward = (f"ssh -L {web_port}:127.0.0.1:{web_port} -L {grpc_port}:127.0.0.1:{grpc_port} "
+               "USER@THIS-MACHINE")  # fmt: skip
+    lines = [f"Rerun web viewer: {url}"]
+    if hosts & {"0.0.0.0", "::"}:
+        ip = _this_host_address()
+        remote = web_viewer_url(web_port, f"rerun+http://{ip}:{grpc_port}/proxy").replace("127.0.0.1", ip, 1)
+        lines.append(f"  listening on all network interfaces (ports {web_port} and {grpc_port}): from "
+                     f"another machine open {remote}, or forward both ports ({forward}) and open the URL "
+                     "above")  # fmt: skip
+    elif hosts:
+        where = ", ".join(sorted(hosts))
+        lines.append(f"  listening on {where} only (ports {web_port} and {grpc_port}); from another machine "
+                     f"forward both ports ({forward}) and open the URL above")  # fmt: skip
+    else:
+        lines.append(f"  ports {web_port} (page) and {grpc_port} (data); on a headless machine forward both "
+                     f"({forward}) and open the URL above")  # fmt: skip
+    return "\n".join(lines)
 
 
 def web_viewer_url(web_port: int, grpc_url: str) -> str:

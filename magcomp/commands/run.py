@@ -35,6 +35,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_rerun_argument(parser)
 
 
+def feed_hint(master: str) -> str | None:
+    """For a master that listens (udpin:, tcpin:), one line on how to send it a vehicle's MAVLink; None for
+    a master that connects out (it needs no feeding)."""
+    text = master.strip()
+    for prefix, proto, sim in (("udpin:", "udp", "udpout"), ("tcpin:", "tcp", "tcpout")):
+        if text.startswith(prefix):
+            host, _, port = text[len(prefix) :].rpartition(":")
+            here = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+            return (
+                f"waiting for MAVLink on {proto} port {port}. Send it a vehicle's stream: MAVProxy "
+                f"`mavproxy.py --master /dev/ttyACM0 --out {proto}:{here}:{port}`, ArduPilot SITL "
+                f"`sim_vehicle.py --out {proto}:{here}:{port}`, a ground station's MAVLink forwarding to "
+                f"{here}:{port}; or, without hardware, `magcomp simulate --link {sim}:{here}:{port}`"
+            )
+    return None
+
+
 def execute(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -68,6 +85,9 @@ def execute(args: argparse.Namespace) -> int:
     if viz.notice:
         print(viz.notice, flush=True)
     primary = primary_compass(cfg.input.compasses)
+    hint = feed_hint(args.master)
+    if hint is not None:
+        print(hint, flush=True)
 
     def show(est: HeadingEstimate) -> None:
         if est.mag_index == primary:
