@@ -144,7 +144,12 @@ def _run(args: argparse.Namespace, cfg: Config, store: Any, viewer: _ViewerBlock
         t_first[1] = t_s
         bar.goto(t_first[2] + t_s - t_first[0])
 
-    with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:
+    from magcomp.adapters.log_span import estimate_span_s
+
+    span = estimate_span_s(args.log)
+    passes = 1 if args.causal or store is not None else 2
+    total = span * passes if span is not None else None
+    with Progress(f"replay {Path(args.log).name}", total=total, unit="s of log") as bar:
         report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_clouds=viewer is not None,
                             on_estimate=viewer.add if viewer is not None else None,
                             on_text=lambda t, m: texts.append((t, m)),

@@ -237,13 +237,17 @@ def _quiet_tqdm() -> Any:
 class Progress:
     """A tqdm bar on stderr when :func:`progress_enabled`, else nothing (never in logs or JSON).
 
-    ``total`` None: no known end (shows the count and the rate). Use as a context manager; ``update(n)``
-    adds ``n``, ``goto(x)`` moves to ``x``."""
+    ``total`` None: no known end (shows the count and the rate); else the count of the total and the time
+    left (ETA). Use as a context manager; ``update(n)`` adds ``n``, ``goto(x)`` moves to ``x`` (an estimated
+    total that was short is not passed: the bar stays at its end)."""
 
     def __init__(self, desc: str, total: float | None = None, unit: str = "it") -> None:
         self._bar: Any = None
+        self._total = total
         if progress_enabled():
-            fmt = None if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
+            known = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} " + unit
+            known += " [{elapsed}<{remaining}]"
+            fmt = known if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
             self._bar = _quiet_tqdm()(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
                                       dynamic_ncols=True, mininterval=0.25, bar_format=fmt)  # fmt: skip
 
@@ -252,6 +256,8 @@ class Progress:
             self._bar.update(n)
 
     def goto(self, x: float) -> None:
+        if self._total:
+            x = min(x, self._total)
         if self._bar is not None and x > self._bar.n:
             self._bar.update(x - self._bar.n)
 
