@@ -123,11 +123,15 @@ def _plot_motors_off_step(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: st
 
 
 def _plot_heading(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str] | None:
-    """Heading change of the compass under each model, when there is a reference."""
+    """Heading change of the compass under each model and of the reference heading (the truth, or the compass
+    far from the wires), wrapped to +-180 deg, when there is a reference."""
     t = c.data.t_s - c.data.t_s[0]
     if c.heading is None:
         return None
     fig, ax = plt.subplots(figsize=(10, 3.5))
+    ref = c.heading.reference_yaw_rad
+    if ref is not None and len(ref) == len(t):
+        ax.plot(t, heading_change_deg(ref), ".", ms=1.0, color="k", label=f"reference: {c.heading.reference}")
     for label, fit, remove, color in (
         ("uncompensated", c.baseline, False, "tab:red"),
         ("paper", c.baseline, True, "tab:orange"),

@@ -40,6 +40,8 @@ class HeadingErrors:
     reference: str
     rms_deg: dict[str, float]
     max_deg: dict[str, float]
+    #: the reference heading at the compass's sample times (rad; the report's heading plot), if kept
+    reference_yaw_rad: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,11 @@ log's own autopilot's parameters."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from types import SimpleNamespace
+
 import numpy as np
+import pytest
 
 from magcomp.diagnosis.report import _autopilot_lines, _own_params, _text, heading_change_deg
 
@@ -32,3 +36,35 @@ def test_only_the_logs_autopilot_parameters_are_printed() -> None:
     assert "CAL_MAG0_XCOMP" in px4 and "COMPASS_MOT" not in px4
     assert "COMPASS_MOT_X" in unknown and "CAL_MAG0_XCOMP" in unknown
     assert _own_params("px4_current", 12) and not _own_params("px4_current", 3)
+
+
+class _Axes:
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, np.ndarray]] = []
+
+    def plot(self, t: np.ndarray, y: np.ndarray, *args: object, label: str = "", **kw: object) -> None:
+        self.lines.append((label, np.asarray(y)))
+
+    def __getattr__(self, name: str) -> object:  # set_ylim, set_yticks, legend, grid, ...
+        return lambda *a, **k: None
+
+
+def test_heading_plot_draws_the_reference_and_stays_wrapped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from magcomp.diagnosis import report
+    from magcomp.diagnosis.results import HeadingErrors
+
+    ax = _Axes()
+    fig = SimpleNamespace(tight_layout=lambda: None, savefig=lambda *a, **k: None)
+    plt = SimpleNamespace(subplots=lambda **k: (fig, ax), close=lambda f: None)
+    n = 5000
+    monkeypatch.setattr(report, "compass_yaw_rad", lambda data, fit, remove: np.linspace(0.0, 60 * np.pi, n))
+    ref = np.linspace(0.0, 60 * np.pi, n) + 0.01
+    c = SimpleNamespace(data=SimpleNamespace(t_s=np.arange(n) * 0.1), index=0, baseline=None, extended=None,
+                        heading=HeadingErrors("truth", {}, {}, reference_yaw_rad=ref))  # fmt: skip
+    out = report._plot_heading(c, plt, tmp_path, "r")  # type: ignore[arg-type]
+    assert out is not None
+    labels = [label for label, _ in ax.lines]
+    assert labels[0] == "reference: truth" and len(labels) == 4
+    assert all(y.min() >= -180.0 and y.max() < 180.0 for _, y in ax.lines)
