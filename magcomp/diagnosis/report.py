@@ -71,15 +71,18 @@ def _plot_bias(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple
     bias_b = cols_b @ c.baseline.coefs
     bias_e = c.bias_mgauss(c.extended)
     order = np.argsort(thr)
+    pick = thin_indices(len(thr))  # a 2 h log: a readable cloud, not a solid bar
+    centres, medians = binned_median(thr, meas)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for i, ax in enumerate(axes):
-        ax.plot(thr, meas[:, i], ".", ms=1.5, color="0.6", label="measured")
+        ax.plot(thr[pick], meas[pick, i], ".", ms=1.5, color="0.6", label="measured")
+        ax.plot(centres, medians[:, i], "o-", ms=3, lw=1, color="k", label="measured, median per bin")
         ax.plot(thr[order], bias_b[order, i], color="tab:red", lw=1, label="theta throttle^2 (eq. 11)")
-        ax.plot(thr[order], bias_e[order, i], ".", ms=1, color="tab:green", label="extended")
+        ax.plot(thr[pick], bias_e[pick, i], ".", ms=1, color="tab:green", label="extended")
         ax.set_xlabel("throttle 0..1")
         ax.set_title(f"{'XYZ'[i]} bias, mgauss")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, markerscale=6)
+    axes[0].legend(fontsize=7, markerscale=2)
     fig.tight_layout()
     name = f"{stem}_compass{c.index}_bias.png"
     fig.savefig(out_dir / name, dpi=90)
@@ -87,8 +90,36 @@ def _plot_bias(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple
     return (
         name,
         "Bias against throttle: the measured field minus the fitted Earth field and hard iron "
-        "(grey), the paper's model (red), the extended model (green).",
+        "(grey; black: its median per throttle bin), the paper's model (red), the extended model (green).",
     )
+
+
+#: points drawn per scatter series: more make a solid bar at the figure's size
+MAX_POINTS = 4000
+
+
+def thin_indices(n: int, cap: int = MAX_POINTS) -> NDArray[np.int64]:
+    """At most ``cap`` indices spread evenly over ``0..n-1`` (all of them when ``n <= cap``)."""
+    if n <= cap:
+        return np.arange(n, dtype=np.int64)
+    return np.unique(np.linspace(0, n - 1, cap).round().astype(np.int64))
+
+
+def binned_median(x: F64, y: F64, bins: int = 20) -> tuple[F64, F64]:
+    """Median of ``y`` (n, k) in ``bins`` equal-width bins of ``x`` holding at least 10 samples."""
+    finite = np.isfinite(x) & np.all(np.isfinite(y), axis=1)
+    x, y = x[finite], y[finite]
+    if x.size == 0:
+        return np.zeros(0), np.zeros((0, y.shape[1]))
+    edges = np.linspace(float(x.min()), float(x.max()) + 1e-12, bins + 1)
+    which = np.digitize(x, edges) - 1
+    cs, ms = [], []
+    for b in range(bins):
+        m = which == b
+        if np.count_nonzero(m) >= 10:
+            cs.append(0.5 * (edges[b] + edges[b + 1]))
+            ms.append(np.median(y[m], axis=0))
+    return np.asarray(cs), np.asarray(ms).reshape(len(ms), y.shape[1])
 
 
 def _plot_motors_off_step(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str] | None:
@@ -131,7 +162,8 @@ def _plot_heading(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tu
     fig, ax = plt.subplots(figsize=(10, 3.5))
     ref = c.heading.reference_yaw_rad
     if ref is not None and len(ref) == len(t):
-        ax.plot(t, heading_change_deg(ref), ".", ms=1.0, color="k", label=f"reference: {c.heading.reference}")
+        ax.plot(t, heading_change_deg(ref), ".", ms=0.6, color="k", zorder=5,
+                label=f"reference: {c.heading.reference}")  # fmt: skip
     for label, fit, remove, color in (
         ("uncompensated", c.baseline, False, "tab:red"),
         ("paper", c.baseline, True, "tab:orange"),

@@ -68,3 +68,15 @@ def test_heading_plot_draws_the_reference_and_stays_wrapped(
     labels = [label for label, _ in ax.lines]
     assert labels[0] == "reference: truth" and len(labels) == 4
     assert all(y.min() >= -180.0 and y.max() < 180.0 for _, y in ax.lines)
+
+
+def test_bias_plot_points_are_thinned_at_any_log_length() -> None:
+    from magcomp.diagnosis.report import MAX_POINTS, binned_median, thin_indices
+
+    assert len(thin_indices(100)) == 100
+    idx = thin_indices(2 * 3600 * 50)  # 2 h at 50 Hz
+    assert len(idx) <= MAX_POINTS and idx[0] == 0 and idx[-1] == 2 * 3600 * 50 - 1
+    x = np.linspace(0.0, 1.0, 10_000)
+    centres, med = binned_median(x, np.column_stack([x**2, -x, 0 * x]))
+    assert len(centres) == 20
+    np.testing.assert_allclose(med[:, 0], centres**2, atol=0.01)
