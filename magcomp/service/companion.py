@@ -81,11 +81,8 @@ class Companion:
         v = _Vehicle(sender_stream(spec), pipeline, enc,
                      NamedValues(enc, self.cfg.output.named_values_hz), {})  # fmt: skip
         self.vehicles[key] = v
-        m = enc.module
-        for cmd, p1 in ((m.MAV_CMD_REQUEST_MESSAGE, 148.0), (m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1.0)):
-            msg = m.MAVLink_command_long_message(key[0], key[1], cmd, 0, p1, 0, 0, 0, 0, 0, 0)
-            self._send(bytes(msg.pack(enc.mav)))
-            enc.mav.seq = (enc.mav.seq + 1) & 0xFF
+        for packet in enc.identity_requests(key[0], key[1]):
+            self._send(packet)
         return v
 
     def _publish(self, v: _Vehicle, est: HeadingEstimate) -> None:

@@ -349,20 +349,13 @@ class Daemon:
         return p, self._encoders[key]
 
     def _request_identity(self, key: tuple[int, int], enc: HeadingEncoder) -> None:
-        """Ask a new sender for AUTOPILOT_VERSION (its unique id keys its state: Pipeline._on_identity), as a
-        ground station does at connect: MAV_CMD_REQUEST_MESSAGE and the older
-        MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES. An autopilot that answers neither keeps the state of its
-        system id."""
-        m = enc.module
-        asks = ((m.MAV_CMD_REQUEST_MESSAGE, 148.0), (m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1.0))
+        """Ask a new sender for AUTOPILOT_VERSION (its unique id keys its state: Pipeline._on_identity). An
+        autopilot that does not answer keeps the state of its system id."""
         with self._lock:
             sink = self._master_sink
             if sink is None:
                 return
-            for cmd, p1 in asks:
-                msg = m.MAVLink_command_long_message(key[0], key[1], cmd, 0, p1, 0, 0, 0, 0, 0, 0)
-                packet = bytes(msg.pack(enc.mav))
-                enc.mav.seq = (enc.mav.seq + 1) & 0xFF
+            for packet in enc.identity_requests(key[0], key[1]):
                 sink.write_packet(0.0, packet)
 
     def _publish(self, est: HeadingEstimate, t_arrival: float, enc: HeadingEncoder | None = None) -> None:

@@ -191,6 +191,17 @@ class HeadingEncoder:
         self.mav.seq = (self.mav.seq + 1) & 0xFF
         return out
 
+    def identity_requests(self, target_system: int, target_component: int) -> list[bytes]:
+        """Asking a vehicle for AUTOPILOT_VERSION (its unique id keys its saved state), as a ground station
+        does at connect: MAV_CMD_REQUEST_MESSAGE and the older MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES."""
+        m = self._mod
+        out = []
+        for cmd, p1 in ((m.MAV_CMD_REQUEST_MESSAGE, 148.0), (m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1.0)):
+            msg = m.MAVLink_command_long_message(target_system, target_component, cmd, 0, p1, *(0,) * 6)
+            out.append(bytes(msg.pack(self.mav)))
+            self.mav.seq = (self.mav.seq + 1) & 0xFF
+        return out
+
     def heartbeat(self) -> bytes:
         """A HEARTBEAT of an onboard companion (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID)."""
         m = self._mod
