@@ -1776,6 +1776,7 @@ def load_log(
     *,
     undo_motor_comp: bool = True,
     window: Window | None = None,
+    on_progress: Callable[[float], None] | None = None,
 ) -> LogData:
     """Read a whole log into columns (:class:`~magcomp.core.types.LogData`), in the module's fixed units.
 
@@ -1787,7 +1788,8 @@ def load_log(
     (:mod:`magcomp.adapters.columns`), ~8 bytes per value kept. ``window`` keeps only the rows in a time
     window (and one neighbour each side), cut while reading; the whole file is still read (parameters and
     the vehicle type can come at any time). PX4 ULog (:func:`~magcomp.adapters.ulog_source.load_ulog`)
-    ignores it.
+    ignores it. ``on_progress``: called every thousand messages or so with the message time reached (s; a
+    progress bar), not for ULog (read whole by pyulog).
     """
     target = os.fspath(path)
     if _is_ulog(target):
@@ -1799,10 +1801,25 @@ def load_log(
     )
     if source._kind == "live":
         raise InputError(f"{target}: load_log reads files; use open_source for live links")
+    records = source.records()
+    if on_progress is not None:
+        records = _reporting(records, on_progress)
     try:
-        return _collect(source, source.records(), window)
+        return _collect(source, records, window)
     finally:
         source.close()
+
+
+def _reporting(
+    records: Iterator[tuple[str, Record]], on_progress: Callable[[float], None], every: int = 1024
+) -> Iterator[tuple[str, Record]]:
+    """``records`` with ``on_progress(t_s)`` every ``every`` of them."""
+    for i, item in enumerate(records):
+        if i % every == 0:
+            t = getattr(item[1], "t_s", None)
+            if t is not None:
+                on_progress(float(t))
+        yield item
 
 
 # compass 0 in several messages: RAW_IMU, then SCALED_IMU and the rest, then PX4's HIGHRES_IMU (calibrated)

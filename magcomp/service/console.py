@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -271,6 +273,25 @@ class Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def reading_progress(desc: str, path: str | Path) -> Iterator[Callable[[float], None]]:
+    """A :class:`Progress` for reading a log: yields the ``on_progress(t_s)`` to hand the reader; the total
+    is the log's span when its two ends say (magcomp.adapters.log_span), so the bar shows the time left."""
+    from magcomp.adapters.log_span import estimate_span_s
+
+    first: list[float] = []
+    with Progress(desc, total=estimate_span_s(path), unit="s of log") as bar:
+
+        def on_progress(t_s: float) -> None:
+            if not math.isfinite(t_s):
+                return
+            if not first:
+                first.append(t_s)
+            bar.goto(t_s - first[0])
+
+        yield on_progress
 
 
 class Busy:

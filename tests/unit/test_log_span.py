@@ -60,3 +60,26 @@ def test_replay_bar_shows_the_total_and_time_left(
     assert main(["replay", str(tlog), "--causal"]) == 0
     err = capsys.readouterr().err
     assert f"/{span:.0f} s of log [" in err and "<" in err
+
+
+def test_fit_reading_bar_shows_the_total_and_time_left(
+    sim: tuple[Path, Path, float], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from magcomp.cli import main
+    from magcomp.service import console
+
+    monkeypatch.setattr(console, "progress_enabled", lambda: True)
+    tlog, _, span = sim
+    main(["fit", str(tlog)])  # a tumble has no bench sweep: the fit's own error is not the point here
+    err = capsys.readouterr().err
+    assert "fit: reading s.tlog" in err and f"/{span:.0f} s of log [" in err and "<" in err
+
+
+def test_load_log_reports_progress_in_message_time(sim: tuple[Path, Path, float]) -> None:
+    from magcomp.adapters.mavlink_source import load_log
+
+    tlog, _, span = sim
+    seen: list[float] = []
+    load_log(tlog, on_progress=seen.append)
+    assert len(seen) >= 3 and seen == sorted(seen)
+    assert seen[-1] - seen[0] > 0.5 * span
