@@ -22,7 +22,7 @@ import logging
 import math
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -233,6 +233,38 @@ class StateStore:
         if state.system_id != system_id or state.mag_index != mag_index or state.vehicle_uid != uid:
             return self._damaged(path, "holds another vehicle or compass")
         return state
+
+    def list_states(self) -> list[tuple[Path, CompassState]]:
+        """Every readable state in the directory (a damaged file: a warning, left out)."""
+        out = []
+        for path in sorted(self.directory.glob("vehicle-*-compass-*.json")):
+            try:
+                doc = json.loads(path.read_text(encoding="utf-8"))
+                payload = doc["state"]
+                if doc.get("format") != FORMAT or _digest(payload) != doc.get("sha256"):
+                    raise ValueError("not a magcomp state file or checksum mismatch")
+                out.append((path, CompassState.from_payload(payload)))
+            except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+                self._damaged(path, f"unreadable ({exc.__class__.__name__}: {exc})")
+        return out
+
+    def adopt(self, system_id: int, uid: str, force: bool = False) -> list[str]:
+        """The states of ``system_id`` without identity become vehicle (``system_id``, ``uid``)'s: saved under
+        its name, the old files removed (they are no longer anyone else's). A compass for which the vehicle
+        has its own state already is skipped unless ``force``. Returns one line per compass."""
+        lines = []
+        for path, st in self.list_states():
+            if st.system_id != system_id or st.vehicle_uid is not None:
+                continue
+            target = self.path_for(system_id, st.mag_index, uid)
+            if target.exists() and not force:
+                lines.append(f"compass {st.mag_index}: kept {target.name} (the vehicle's own state; --force "
+                             f"replaces it with {path.name})")  # fmt: skip
+                continue
+            self.save(replace(st, vehicle_uid=uid))
+            path.unlink()
+            lines.append(f"compass {st.mag_index}: {path.name} -> {target.name}")
+        return lines or [f"no state of system {system_id} without identity in {self.directory}"]
 
     def _damaged(self, path: Path, why: str) -> CompassState | None:
         msg = f"state file {path} is damaged ({why}); starting fresh for this compass"

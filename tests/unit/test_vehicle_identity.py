@@ -94,3 +94,26 @@ def test_every_load_and_first_overwrite_is_one_log_line(
     assert len(lines) == 3, lines
     assert "new file" in lines[0] and UID_A in lines[0]
     assert "<-" in lines[1] and "overwriting the state saved" in lines[2]
+
+
+def test_state_adopt_moves_a_system_ids_states_to_one_vehicle(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from magcomp.cli import main
+
+    store = StateStore(tmp_path)
+    store.save(_state(idx=0, theta=5.0))
+    store.save(_state(idx=1, theta=6.0))
+    store.save(_state(idx=1, uid=UID_A, theta=9.0))  # the vehicle already has its own compass 1
+    assert main(["state", "list", "--state-dir", str(tmp_path)]) == 0
+    listed = capsys.readouterr().out
+    assert "vehicle 1 (no identity) compass 0" in listed and f"vehicle 1 id {UID_A} compass 1" in listed
+    assert main(["state", "adopt", "1", UID_A.upper(), "--state-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "compass 0: vehicle-1-compass-0.json ->" in out and "compass 1: kept" in out
+    again = StateStore(tmp_path)
+    a0, a1 = again.load(1, 0, UID_A), again.load(1, 1, UID_A)
+    assert a0 is not None and a0.theta_mgauss[0] == 5.0
+    assert a1 is not None and a1.theta_mgauss[0] == 9.0  # not replaced without --force
+    assert again.load(1, 0) is None and again.load(1, 1) is not None
+    assert main(["state", "adopt", "1", "zz", "--state-dir", str(tmp_path)]) != 0
