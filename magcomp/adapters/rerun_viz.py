@@ -235,7 +235,8 @@ class NullViz:
 # ----------------------------------------------------------------------------------------------------------
 
 MODE_HELP = (
-    "show the run in Rerun: spawn (native viewer), serve (web viewer on this machine; prints the URL), "
+    "show the run in Rerun: spawn (native viewer), serve[=ADDRESS] (web viewer on this machine, its data on "
+    "127.0.0.1 unless ADDRESS, e.g. 0.0.0.0 for every interface; prints the URL), "
     "connect[=URL] (a running viewer, default "
     + DEFAULT_CONNECT_URL
     + "), save=PATH.rrd (a recording file), "
@@ -243,9 +244,15 @@ MODE_HELP = (
 )
 
 
+#: ``serve``'s data server listens here unless ``serve=ADDRESS`` says otherwise (issue 27: the recording is
+#: not offered to the network by default; a headless machine is reached through a port forward)
+SERVE_LOCAL = "127.0.0.1"
+
+
 @dataclass(frozen=True, slots=True)
 class VizMode:
-    """A parsed ``--rerun`` value: ``kind`` spawn | serve | connect | save; ``target`` the URL or path."""
+    """A parsed ``--rerun`` value: ``kind`` spawn | serve | connect | save; ``target`` the URL or path (serve:
+    the data server's bind address)."""
 
     kind: str
     target: str = ""
@@ -310,7 +317,16 @@ def parse_mode(mode: str, environ: Mapping[str, str] | None = None) -> VizMode:
                 "--rerun spawn needs a display ($DISPLAY/$WAYLAND_DISPLAY unset); "
                 "use --rerun serve or save=PATH.rrd"
             )
-        return VizMode(kind)
+        return VizMode(kind, SERVE_LOCAL if kind == "serve" else "")
+    if kind == "serve":  # serve=ADDRESS: the data server's bind address (0.0.0.0: every interface)
+        import ipaddress
+
+        try:
+            ipaddress.ip_address(target)
+        except ValueError:
+            raise MagcompError(f"--rerun serve=ADDRESS: an IP address to listen on (0.0.0.0: every "
+                               f"interface), got {target!r}") from None  # fmt: skip
+        return VizMode("serve", target)
     if kind == "connect":
         if sep and not target:
             raise MagcompError("--rerun connect=URL: the URL is empty")
@@ -327,7 +343,8 @@ def parse_mode(mode: str, environ: Mapping[str, str] | None = None) -> VizMode:
             raise MagcompError(f"--rerun save=PATH.rrd: the directory {str(path.parent)!r} does not exist")
         return VizMode("save", str(path))
     raise MagcompError(
-        f"--rerun: unknown mode {mode!r}; expected spawn, serve, connect[=URL], save=PATH.rrd or auto"
+        f"--rerun: unknown mode {mode!r}; expected spawn, serve[=ADDRESS], connect[=URL], save=PATH.rrd "
+        "or auto"
     )
 
 
@@ -777,9 +794,10 @@ class RerunViz:
             elif mode.kind == "serve":
                 gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
                 wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
-                grpc_url = rec.serve_grpc(
-                    grpc_port=gport, default_blueprint=blueprint, server_memory_limit="512MiB"
-                )
+                server = rr.GrpcServerSink(bind_ip=mode.target or SERVE_LOCAL, port=gport,
+                                           server_memory_limit="512MiB")  # fmt: skip
+                rec.set_sinks(server, default_blueprint=blueprint)
+                grpc_url = str(server.uri)
                 rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
                 self._url = web_viewer_url(wport, grpc_url)
                 self._notice = prefix + serve_notice(self._url, gport, wport)
@@ -1278,25 +1296,25 @@ def _this_host_address() -> str:
 
 
 def serve_notice(url: str, grpc_port: int, web_port: int, hosts: set[str] | None = None) -> str:
-    """What ``serve`` prints: the page to open here, where the two servers really listen, and how to reach
-    them from another machine (the port forward for a headless one)."""
+    """What ``serve`` prints: the page to open here, where the data server really listens (``hosts``: its
+    addresses; default read from the system), and how to reach it from another machine."""
     if hosts is None:
-        hosts = (listening_hosts(web_port) or set()) | (listening_hosts(grpc_port) or set())
+        hosts = listening_hosts(grpc_port) or set()
     forward = (f"ssh -L {web_port}:127.0.0.1:{web_port} -L {grpc_port}:127.0.0.1:{grpc_port} "
                "USER@THIS-MACHINE")  # fmt: skip
     lines = [f"Rerun web viewer: {url}"]
     if hosts & {"0.0.0.0", "::"}:
         ip = _this_host_address()
         remote = web_viewer_url(web_port, f"rerun+http://{ip}:{grpc_port}/proxy").replace("127.0.0.1", ip, 1)
-        lines.append(f"  listening on all network interfaces (ports {web_port} and {grpc_port}): from "
-                     f"another machine open {remote}, or forward both ports ({forward}) and open the URL "
-                     "above")  # fmt: skip
+        lines.append(f"  the data (port {grpc_port}) is offered on every network interface: from another "
+                     f"machine open {remote}")  # fmt: skip
     elif hosts:
         where = ", ".join(sorted(hosts))
-        lines.append(f"  listening on {where} only (ports {web_port} and {grpc_port}); from another machine "
-                     f"forward both ports ({forward}) and open the URL above")  # fmt: skip
+        lines.append(f"  the data (port {grpc_port}) is served on {where} only: from another machine forward "
+                     f"both ports ({forward}) and open the URL above; --rerun serve=0.0.0.0 offers it to the "
+                     "network")  # fmt: skip
     else:
-        lines.append(f"  ports {web_port} (page) and {grpc_port} (data); on a headless machine forward both "
+        lines.append(f"  ports {web_port} (page) and {grpc_port} (data); from another machine forward both "
                      f"({forward}) and open the URL above")  # fmt: skip
     return "\n".join(lines)
 
