@@ -59,7 +59,7 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz
     from magcomp.adapters.state_store import StateStore
-    from magcomp.core.types import HeadingEstimate
+    from magcomp.core.types import HeadingEstimate, PowerSample
     from magcomp.errors import InputError
     from magcomp.service.console import (
         check_output_path,
@@ -93,7 +93,12 @@ def execute(args: argparse.Namespace) -> int:
         if est.mag_index == primary:
             viz.log_estimate(est)
 
-    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text)
+    def power(s: PowerSample) -> None:
+        if s.battery_index == 0:  # beside the throttle, which comes with the estimates
+            viz.log_power(s.t_s, float("nan"), s.current_a, s.voltage_v)
+
+    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text,
+                    on_power=power)  # fmt: skip
 
     def on_signal(signum: int, frame: object) -> None:
         daemon.request_stop()  # a flag only: a second signal during the first cannot deadlock

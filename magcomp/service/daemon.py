@@ -33,7 +33,7 @@ import numpy as np
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
-from magcomp.core.types import HeadingEstimate
+from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.errors import InputError
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, LinkSink, NamedValues
@@ -248,7 +248,9 @@ class Daemon:
         store: StateStore | None = None,
         on_estimate: Callable[[HeadingEstimate], None] | None = None,
         on_text: Callable[[float, str], None] | None = None,
+        on_power: Callable[[PowerSample], None] | None = None,
     ) -> None:
+        """``on_power``: each battery sample of the first vehicle (the viewer's current and voltage)."""
         check_link_url(master, "--master")
         for url in outs:
             check_link_url(url, "--out")
@@ -258,6 +260,7 @@ class Daemon:
         self.last_error: str | None = None
         self.store = store
         self.on_estimate = on_estimate
+        self.on_power = on_power
         self.workers = Workers.threads()
         self.pipeline = Pipeline(cfg, store=store, on_text=on_text, workers=self.workers)
         self._on_text = on_text
@@ -527,6 +530,7 @@ class Daemon:
         """Samples from the source through the pipeline to the sinks until the source ends or fails."""
         key: tuple[int, int] | None = None
         pipeline, enc = self.pipeline, self.encoder
+        on_power = self.on_power
         for sender, sample in source.vehicle_samples():
             t_arrival = time.perf_counter()
             self._last_rx = time.monotonic()
@@ -536,6 +540,8 @@ class Daemon:
             if sender != key:
                 key = sender
                 pipeline, enc = self._vehicle(sender)
+            if on_power is not None and type(sample) is PowerSample and pipeline is self.pipeline:
+                on_power(sample)
             est = pipeline.process(sample)
             if est is not None:
                 self._publish(est, t_arrival, enc)

@@ -15,7 +15,7 @@ import pytest
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
-from magcomp.core.types import HeadingEstimate
+from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.publish import named_value_names
@@ -56,8 +56,9 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
     n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
     port = free_udp_port()
     ests: list[HeadingEstimate] = []
+    powers: list[PowerSample] = []
     daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg, outs=[f"udpout:127.0.0.1:{sock.getsockname()[1]}"],
-                    store=StateStore(tmp_path), on_estimate=ests.append)  # fmt: skip
+                    store=StateStore(tmp_path), on_estimate=ests.append, on_power=powers.append)  # fmt: skip
     worker = threading.Thread(target=daemon.run)
     worker.start()
     try:
@@ -72,6 +73,8 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
         stop.set()
         rx.join()
         sock.close()
+    # the battery samples reach the viewer's hook (run's current and voltage plots)
+    assert len(powers) > 10 and all(8.0 < p.voltage_v < 30.0 for p in powers if p.voltage_v == p.voltage_v)
     # the daemon asked the flight controller for its unique id (AUTOPILOT_VERSION: the key of its state)
     assert link.received.get("COMMAND_LONG", 0) >= 1
     names = {m.name for m in got}

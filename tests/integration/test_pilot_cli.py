@@ -63,10 +63,11 @@ def test_run_says_how_to_feed_it_and_that_command_works(tmp_path: Path) -> None:
 
     port = free_udp_port()
     summary = tmp_path / "sum.json"
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    rrd = tmp_path / "run.rrd"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "0"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
-         str(tmp_path / "state"), "--json", str(summary)],
+         str(tmp_path / "state"), "--json", str(summary), "--rerun", f"save={rrd}"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=REPO, text=True,
     )  # fmt: skip
     assert proc.stdout is not None and proc.stderr is not None
@@ -84,6 +85,16 @@ def test_run_says_how_to_feed_it_and_that_command_works(tmp_path: Path) -> None:
         code = finish(proc)
     assert code == 0, err.join()
     assert json.loads(summary.read_text())["published"] > 0
+    # run's view: theta, the headings, the bias, and the battery's current and voltage are in the recording
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(str(rrd)).stream():
+        batch = chunk.to_record_batch()
+        if "Scalars:scalars" in batch.schema.names:  # data rows, not the static series styles
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + batch.num_rows
+    for path in ("/theta/x", "/heading/corrected", "/bias/estimate", "/power/current", "/power/voltage"):
+        assert rows.get(path, 0) > 0, (path, rows)
 
 
 def test_listening_hosts_reads_the_real_bind_address() -> None:
