@@ -158,6 +158,9 @@ class OutputConfig:
 
     heading_tau_s: time constant of the gyro-aided complementary filter on both headings (0 = the raw
     per-sample tilt-compensated eq. (24)); see :class:`magcomp.service.estimators.HeadingFilter`.
+
+    named_values_hz: NAMED_VALUE_FLOAT values a pilot sees without the dialect (MC_HDG0, MC_THETA0,
+    MC_STAT0 ...; docs/pilots.md) at most this often per compass, message time, on live links (0 = none).
     """
 
     rate_hz: float = 0.0
@@ -165,6 +168,7 @@ class OutputConfig:
     #: publish a correction only where the self-check against the gyro and the autopilot's yaw finds it
     #: better than the autopilot's own heading (docs/real-flights.md); false: as soon as it is learned
     self_check: bool = True
+    named_values_hz: float = 2.0
     source_system: int = 0
     source_component: int = 191
 
@@ -270,6 +274,7 @@ _RULES: dict[tuple[str, str], tuple[Any, str]] = {
         "be in [2010, 2030) (WMM 2010-2025 validity)",
     ),
     ("output", "rate_hz"): (_non_negative, "be >= 0 (0 = every magnetometer sample)"),
+    ("output", "named_values_hz"): (lambda v: 0.0 <= v <= 50.0, "be in [0, 50] Hz (0 = none)"),
     ("output", "heading_tau_s"): (lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)"),
     ("output", "source_system"): (lambda v: 0 <= v <= 255, "be in 0..255 (0 = the vehicle's own id)"),
     ("output", "source_component"): (lambda v: 1 <= v <= 255, "be in 1..255"),

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from magcomp.adapters.files import write_file
+from magcomp.core.identity import board_msg
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 if TYPE_CHECKING:
@@ -238,6 +239,7 @@ def write_sim_dataflash(
     t0 = int(t_us[0])
     vehicle = "ArduCopter" if multirotor else "ArduPlane"
     events.append((t0, -2, "MSG", [t0, f"{vehicle} {FIRMWARE_VERSION}".encode()]))
+    events.append((t0, -2, "MSG", [t0, board_msg(result.config.uid).encode()]))  # the board's unique id
     for pname, value in params:
         events.append((t0, -1, "PARM", [t0, pname.encode(), float(value), float(value)]))
     for i in range(n):

@@ -173,3 +173,66 @@ def encode_heading(mav: Any, est: HeadingEstimate) -> bytes:
 def send_heading(conn: Any, est: HeadingEstimate) -> None:
     """Send one MAGCOMP_HEADING over a mavutil connection opened with ``dialect="magcomp"``."""
     conn.mav.send(heading_message(est))
+
+
+# ------------------------------------------------------------------------------- installing for other tools
+
+#: the environment that makes any pymavlink program (MAVProxy, mavlogdump.py, scripts) load this dialect
+#: once it is installed: mavutil reads MAVLINK_DIALECT when it is imported, MAVLINK20 picks the v20 folder
+DIALECT_ENV = {"MAVLINK20": "1", "MAVLINK_DIALECT": DIALECT_NAME}
+
+
+def default_install_dir() -> Path:
+    """pymavlink's ``dialects`` folder (holding ``v10/`` and ``v20/``): where ``mavutil.set_dialect``
+    imports a dialect from."""
+    return shipped_xml_dir().parent
+
+
+def install_dialect(dest: Path | None = None) -> list[Path]:
+    """Put the generated ``magcomp`` module and ``magcomp.xml`` into ``dest``/v20 and ``dest``/v10 (default:
+    pymavlink's own dialects folder), so that ``--dialect magcomp`` (mavlogdump.py, MAVProxy) and
+    ``MAVLINK_DIALECT=magcomp`` find it. The v10 copy is the same MAVLink 2 module: a program that does not
+    set MAVLINK20 imports the dialect from v10, and MAGCOMP_HEADING (id 45000) exists only in MAVLink 2
+    framing, which that module reads as well as MAVLink 1. Returns the files written.
+
+    Raises MagcompError (one line) when the folder is missing or not writable."""
+    target = Path(dest) if dest is not None else default_install_dir()
+    if not target.is_dir():
+        raise MagcompError(f"dialect folder {target} does not exist (pymavlink's is {default_install_dir()})")
+    generated = bindings_path()
+    if not generated.exists():
+        generate_bindings(XML_PATH, generated)
+    written: list[Path] = []
+    for sub in ("v20", "v10"):
+        folder = target / sub
+        try:
+            folder.mkdir(exist_ok=True)
+            for src, name in ((generated, f"{DIALECT_NAME}.py"), (XML_PATH, f"{DIALECT_NAME}.xml")):
+                staged = folder / f".{name}.{os.getpid()}.tmp"
+                shutil.copyfile(src, staged)
+                os.replace(staged, folder / name)
+                written.append(folder / name)
+        except OSError as exc:
+            hint = " (pymavlink was installed by another user: use its environment, or --dest)"
+            why = exc.strerror or exc
+            raise MagcompError(f"cannot write the dialect into {folder}: {why}{hint}") from None
+    return written
+
+
+def installed_files(dest: Path | None = None) -> list[Path]:
+    """The magcomp dialect files present in ``dest`` (default: pymavlink's dialects folder)."""
+    target = Path(dest) if dest is not None else default_install_dir()
+    found = (sorted((target / sub).glob(f"{DIALECT_NAME}.*")) for sub in ("v20", "v10"))
+    return [p for files in found for p in files if p.is_file()]
+
+
+def uninstall_dialect(dest: Path | None = None) -> list[Path]:
+    """Remove what :func:`install_dialect` wrote. Returns the files removed."""
+    removed = []
+    for p in installed_files(dest):
+        try:
+            p.unlink()
+        except OSError as exc:
+            raise MagcompError(f"cannot remove {p}: {exc.strerror or exc}") from None
+        removed.append(p)
+    return removed

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.files import write_file
+from magcomp.core.identity import uid2_bytes, uid64
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 from magcomp.errors import InputError
 from magcomp.sim.simulate import SimResult
@@ -203,6 +204,13 @@ def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, i
     return events
 
 
+def _autopilot_version(apm: Any, uid: str) -> Any:
+    """AUTOPILOT_VERSION naming the simulated board's unique id (uid2, and its first 8 bytes in uid), as an
+    autopilot answers a ground station's request at connect."""
+    return apm.MAVLink_autopilot_version_message(0, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, uid64(uid),
+                                                 uid2_bytes(uid))  # fmt: skip
+
+
 def build_messages(result: SimResult, start_unix_s: float | None = None) -> list[tuple[float, int, Any]]:
     """All messages as (boot time s, priority, unpacked MAVLink message object), in send order.
 
@@ -229,6 +237,7 @@ def build_messages(result: SimResult, start_unix_s: float | None = None) -> list
                 apm.MAVLink_param_value_message(name.encode(), value, MAV_PARAM_TYPE_REAL32, len(params), i),
             )
         )
+    events.append((t_first, -1, _autopilot_version(apm, cfg.uid)))
     for i in _rate_indices(n, rates.imu_hz, rates.heartbeat_hz):
         events.append(
             (
@@ -458,6 +467,7 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
     for i, (name, value) in enumerate(params):
         msg = apm.MAVLink_param_value_message(name.encode(), value, MAV_PARAM_TYPE_REAL32, len(params), i)
         events.append((t_first, -1, msg))
+    events.append((t_first, -1, _autopilot_version(apm, cfg.uid)))
     for i in _rate_indices(n, rates.imu_hz, rates.heartbeat_hz):
         hb = apm.MAVLink_heartbeat_message(
             MAV_TYPE_QUADROTOR if multirotor else MAV_TYPE_FIXED_WING,

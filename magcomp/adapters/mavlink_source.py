@@ -94,10 +94,12 @@ from magcomp.adapters.throttle import (
     resolve_throttle,
     throttle_from_pwm,
 )
+from magcomp.core.identity import uid_from_autopilot_version, uid_from_board_msg
 from magcomp.core.types import (
     AttitudeSample,
     ClockResetSample,
     HeartbeatSample,
+    IdentitySample,
     ImuSample,
     LogData,
     MagSample,
@@ -157,6 +159,7 @@ WANTED_MAVLINK = (
     "HIGHRES_IMU",
     "ATTITUDE_QUATERNION",
     "ACTUATOR_OUTPUT_STATUS",
+    "AUTOPILOT_VERSION",
 )
 WANTED_DATAFLASH = (
     "MAG",
@@ -549,6 +552,7 @@ class _Converter:
         self.vehicle_type = -1
         self.autopilot = -1
         self.system_id = -1
+        self.uid: str | None = None  # the vehicle's unique id (magcomp.core.identity)
         self._pwm_columns: dict[str, list[tuple[str, int]]] = {}
         self._df_converters: dict[int, tuple[Any, list[tuple[str, int, Any, float]]]] = {}
 
@@ -707,6 +711,13 @@ class _Converter:
         self.system_id = int(msg.get_srcSystem())
         hb = HeartbeatSample(self.clock.last_t_s, self.vehicle_type, self.autopilot, self.system_id)
         return [("HEARTBEAT", hb)]
+
+    def _m_AUTOPILOT_VERSION(self, msg: Any) -> list[tuple[str, Record]]:
+        uid = uid_from_autopilot_version(int(msg.uid), getattr(msg, "uid2", None))
+        if uid is None or uid == self.uid:  # (sent again on every request: said once)
+            return []
+        self.uid = uid
+        return [("AUTOPILOT_VERSION", IdentitySample(self.clock.last_t_s, uid, int(msg.get_srcSystem())))]
 
     def _m_PARAM_VALUE(self, msg: Any) -> list[tuple[str, Record]]:
         name = msg.param_id
@@ -940,6 +951,12 @@ class _Converter:
         return [("GPS", PositionSample(self.clock.last_t_s, lat, lon, alt, year, fix_ok))]
 
     def _df_msg(self, text: str) -> list[tuple[str, Record]]:
+        uid = uid_from_board_msg(text)
+        if uid is not None:
+            if uid == self.uid:
+                return []
+            self.uid = uid
+            return [("MSG", IdentitySample(self.clock.last_t_s, uid, 1))]
         lowered = text.lower()
         vtype = -1
         if "copter" in lowered:
@@ -1891,6 +1908,14 @@ class _SenderStream:
         return out
 
 
+def sender_stream(spec: str | ThrottleSpec, counts: dict[str, int] | None = None) -> _SenderStream:
+    """A converter for the messages of one sender handed over one at a time (a host that owns the link:
+    :mod:`magcomp.service.companion`); ``push(msg)`` returns that message's samples."""
+    counts = counts if counts is not None else _Counts()
+    conv = _Converter(counts, mag_index=None, undo_motor_comp=True)
+    return _SenderStream(parse_throttle_source(spec), conv, {})
+
+
 def _throttle_sample(
     resolved: ResolvedThrottle | None, rec: PwmRecord | ThrottleRecord
 ) -> ThrottleSample | None:
@@ -1961,6 +1986,7 @@ def load_log(
     *,
     undo_motor_comp: bool = True,
     window: Window | None = None,
+    on_progress: Callable[[float], None] | None = None,
 ) -> LogData:
     """Read a whole log into columns (:class:`~magcomp.core.types.LogData`), in the module's fixed units.
 
@@ -1972,7 +1998,8 @@ def load_log(
     (:mod:`magcomp.adapters.columns`), ~8 bytes per value kept. ``window`` keeps only the rows in a time
     window (and one neighbour each side), cut while reading; the whole file is still read (parameters and
     the vehicle type can come at any time). PX4 ULog (:func:`~magcomp.adapters.ulog_source.load_ulog`)
-    ignores it.
+    ignores it. ``on_progress``: called every thousand messages or so with the message time reached (s; a
+    progress bar), not for ULog (read whole by pyulog).
     """
     target = os.fspath(path)
     if _is_ulog(target):
@@ -1984,10 +2011,25 @@ def load_log(
     )
     if source._kind == "live":
         raise InputError(f"{target}: load_log reads files; use open_source for live links")
+    records = source.records()
+    if on_progress is not None:
+        records = _reporting(records, on_progress)
     try:
-        return _collect(source, source.records(), window)
+        return _collect(source, records, window)
     finally:
         source.close()
+
+
+def _reporting(
+    records: Iterator[tuple[str, Record]], on_progress: Callable[[float], None], every: int = 1024
+) -> Iterator[tuple[str, Record]]:
+    """``records`` with ``on_progress(t_s)`` every ``every`` of them."""
+    for i, item in enumerate(records):
+        if i % every == 0:
+            t = getattr(item[1], "t_s", None)
+            if t is not None:
+                on_progress(float(t))
+        yield item
 
 
 # compass 0 in several messages: RAW_IMU, then SCALED_IMU and the rest, then PX4's HIGHRES_IMU (calibrated)

@@ -235,7 +235,8 @@ class NullViz:
 # ----------------------------------------------------------------------------------------------------------
 
 MODE_HELP = (
-    "show the run in Rerun: spawn (native viewer), serve (web viewer on this machine; prints the URL), "
+    "show the run in Rerun: spawn (native viewer), serve[=ADDRESS] (web viewer on this machine, its data on "
+    "127.0.0.1 unless ADDRESS, e.g. 0.0.0.0 for every interface; prints the URL), "
     "connect[=URL] (a running viewer, default "
     + DEFAULT_CONNECT_URL
     + "), save=PATH.rrd (a recording file), "
@@ -243,9 +244,15 @@ MODE_HELP = (
 )
 
 
+#: ``serve``'s data server listens here unless ``serve=ADDRESS`` says otherwise (issue 27: the recording is
+#: not offered to the network by default; a headless machine is reached through a port forward)
+SERVE_LOCAL = "127.0.0.1"
+
+
 @dataclass(frozen=True, slots=True)
 class VizMode:
-    """A parsed ``--rerun`` value: ``kind`` spawn | serve | connect | save; ``target`` the URL or path."""
+    """A parsed ``--rerun`` value: ``kind`` spawn | serve | connect | save; ``target`` the URL or path (serve:
+    the data server's bind address)."""
 
     kind: str
     target: str = ""
@@ -310,7 +317,16 @@ def parse_mode(mode: str, environ: Mapping[str, str] | None = None) -> VizMode:
                 "--rerun spawn needs a display ($DISPLAY/$WAYLAND_DISPLAY unset); "
                 "use --rerun serve or save=PATH.rrd"
             )
-        return VizMode(kind)
+        return VizMode(kind, SERVE_LOCAL if kind == "serve" else "")
+    if kind == "serve":  # serve=ADDRESS: the data server's bind address (0.0.0.0: every interface)
+        import ipaddress
+
+        try:
+            ipaddress.ip_address(target)
+        except ValueError:
+            raise MagcompError(f"--rerun serve=ADDRESS: an IP address to listen on (0.0.0.0: every "
+                               f"interface), got {target!r}") from None  # fmt: skip
+        return VizMode("serve", target)
     if kind == "connect":
         if sep and not target:
             raise MagcompError("--rerun connect=URL: the URL is empty")
@@ -327,7 +343,8 @@ def parse_mode(mode: str, environ: Mapping[str, str] | None = None) -> VizMode:
             raise MagcompError(f"--rerun save=PATH.rrd: the directory {str(path.parent)!r} does not exist")
         return VizMode("save", str(path))
     raise MagcompError(
-        f"--rerun: unknown mode {mode!r}; expected spawn, serve, connect[=URL], save=PATH.rrd or auto"
+        f"--rerun: unknown mode {mode!r}; expected spawn, serve[=ADDRESS], connect[=URL], save=PATH.rrd "
+        "or auto"
     )
 
 
@@ -380,6 +397,15 @@ def open_viz(
         grpc_port=grpc_port,
         web_port=web_port,
     )
+
+
+def discard_viz(viz: Viz) -> None:
+    """Close ``viz`` after its command failed (the input could not be read, held no compass): a recording
+    file it started (``save=PATH.rrd``) is removed, so a failed command leaves nothing behind."""
+    viz.close()
+    mode = getattr(viz, "mode", None)
+    if isinstance(mode, VizMode) and mode.kind == "save":
+        Path(mode.target).unlink(missing_ok=True)
 
 
 SERVING_MESSAGE = "serving the viewer; press ^C to stop"
@@ -768,12 +794,13 @@ class RerunViz:
             elif mode.kind == "serve":
                 gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
                 wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
-                grpc_url = rec.serve_grpc(
-                    grpc_port=gport, default_blueprint=blueprint, server_memory_limit="512MiB"
-                )
+                server = rr.GrpcServerSink(bind_ip=mode.target or SERVE_LOCAL, port=gport,
+                                           server_memory_limit="512MiB")  # fmt: skip
+                rec.set_sinks(server, default_blueprint=blueprint)
+                grpc_url = str(server.uri)
                 rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
                 self._url = web_viewer_url(wport, grpc_url)
-                self._notice = f"{prefix}Rerun web viewer: {self._url}"
+                self._notice = prefix + serve_notice(self._url, gport, wport)
             else:  # pragma: no cover - parse_mode only returns the four kinds
                 raise MagcompError(f"--rerun: unknown mode {mode.kind!r}")
         except MagcompError:
@@ -1230,6 +1257,66 @@ def _cloud_radius(pts: NDArray[np.float64]) -> float:
     if pts.shape[0] == 0:
         return 1.0
     return max(float(np.median(np.linalg.norm(pts, axis=1))) / 80.0, 0.5)
+
+
+def listening_hosts(port: int, proc_net: Path = Path("/proc/net")) -> set[str] | None:
+    """The local addresses a TCP socket listens on at ``port`` ("0.0.0.0" / "::" for every interface), read
+    from ``/proc/net/tcp`` and ``tcp6``; None where the system does not say (not Linux)."""
+    import ipaddress
+
+    found: set[str] | None = None
+    for name, width in (("tcp", 8), ("tcp6", 32)):
+        try:
+            lines = (proc_net / name).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        found = found if found is not None else set()
+        for line in lines:
+            parts = line.split()
+            if len(parts) < 4 or parts[3] != "0A":  # 0A: LISTEN
+                continue
+            addr_hex, _, port_hex = parts[1].partition(":")
+            if int(port_hex, 16) != port or len(addr_hex) != width:
+                continue
+            raw = bytes.fromhex(addr_hex)
+            # the kernel prints each 32-bit word in host (little-endian) order
+            packed = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+            found.add(str(ipaddress.ip_address(packed)))
+    return found
+
+
+def _this_host_address() -> str:
+    """An address other machines may reach this one at (the route to a private network; no packet sent)."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("10.255.255.255", 1))
+            return str(s.getsockname()[0])
+    except OSError:
+        return socket.gethostname()
+
+
+def serve_notice(url: str, grpc_port: int, web_port: int, hosts: set[str] | None = None) -> str:
+    """What ``serve`` prints: the page to open here, where the data server really listens (``hosts``: its
+    addresses; default read from the system), and how to reach it from another machine."""
+    if hosts is None:
+        hosts = listening_hosts(grpc_port) or set()
+    forward = (f"ssh -L {web_port}:127.0.0.1:{web_port} -L {grpc_port}:127.0.0.1:{grpc_port} "
+               "USER@THIS-MACHINE")  # fmt: skip
+    lines = [f"Rerun web viewer: {url}"]
+    if hosts & {"0.0.0.0", "::"}:
+        ip = _this_host_address()
+        remote = web_viewer_url(web_port, f"rerun+http://{ip}:{grpc_port}/proxy").replace("127.0.0.1", ip, 1)
+        lines.append(f"  the data (port {grpc_port}) is offered on every network interface: from another "
+                     f"machine open {remote}")  # fmt: skip
+    elif hosts:
+        where = ", ".join(sorted(hosts))
+        lines.append(f"  the data (port {grpc_port}) is served on {where} only: from another machine forward "
+                     f"both ports ({forward}) and open the URL above; --rerun serve=0.0.0.0 offers it to the "
+                     "network")  # fmt: skip
+    else:
+        lines.append(f"  ports {web_port} (page) and {grpc_port} (data); from another machine forward both "
+                     f"({forward}) and open the URL above")  # fmt: skip
+    return "\n".join(lines)
 
 
 def web_viewer_url(web_port: int, grpc_url: str) -> str:

@@ -1,6 +1,11 @@
 """State that survives restarts: calibration (L, d, eq. (2)) and theta (eq. (11)) per vehicle and compass.
 
-One JSON file per (system id, compass index) in the state directory, e.g. ``vehicle-1-compass-0.json``.
+One JSON file per (vehicle, compass index) in the state directory. A vehicle is its MAVLink system id and,
+when the link or log names it, its unique hardware id (:mod:`magcomp.core.identity`):
+``vehicle-1-<uid>-compass-0.json``; a state learned on one vehicle is never applied to another with the same
+system id. A vehicle whose log or link names no identity keeps ``vehicle-1-compass-0.json`` (the name every
+state had before identities, version 1; such files are read as they are and are never applied to a vehicle
+whose identity is known). Every load and every first write of a file in a run is one log line.
 Writes are atomic: the text goes to a temporary file in the same directory, which is flushed and
 fsync'ed, renamed over the old file (``os.replace``, atomic on POSIX) and the directory is fsync'ed, so
 a crash or ``kill -9`` at any instant leaves either the old or the new file, never a mixture. Each file
@@ -17,19 +22,22 @@ import logging
 import math
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.identity import normal_uid
 from magcomp.errors import InputError
 
 log = logging.getLogger("magcomp.state")
 
 FORMAT = "magcomp-state"
-VERSION = 1
+VERSION = 2
+#: versions read: 1 (before vehicle identities: the state of a system id)
+READ_VERSIONS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -49,10 +57,13 @@ class CompassState:
     calib_info: dict[str, float] | None = None
     #: the in-flight calibration (magcomp.core.inflight): form, motors, parameter mean and std
     inflight: dict[str, Any] | None = None
+    #: the vehicle's unique hardware id (lower-case hex), None when the log or link named none
+    vehicle_uid: str | None = None
 
     def to_payload(self) -> dict[str, Any]:
         return {
             "system_id": self.system_id,
+            "vehicle_uid": self.vehicle_uid,
             "mag_index": self.mag_index,
             "calib_l": None if self.calib_l is None else np.asarray(self.calib_l, float).tolist(),
             "calib_d": None if self.calib_d is None else np.asarray(self.calib_d, float).tolist(),
@@ -90,6 +101,9 @@ class CompassState:
             if mean.shape != sd.shape or mean.ndim != 1 or not (np.all(np.isfinite(mean)) and np.all(sd > 0)):
                 raise ValueError("inflight mean/sd must be finite vectors of one length, sd > 0")
             int(inflight["n_motors"])
+        uid = p.get("vehicle_uid")
+        if uid is not None and (not isinstance(uid, str) or normal_uid(uid) != uid):
+            raise ValueError("vehicle_uid must be lower-case hex or null")
         return cls(
             system_id=int(p["system_id"]),
             mag_index=int(p["mag_index"]),
@@ -99,7 +113,22 @@ class CompassState:
             t_s=t_s,
             calib_info=info,
             inflight=inflight,
+            vehicle_uid=uid,
         )
+
+
+def vehicle_name(system_id: int, uid: str | None) -> str:
+    """How the log lines name a vehicle."""
+    return f"vehicle {system_id}" + (f" (id {uid})" if uid else " (no identity)")
+
+
+def _mtime(path: Path) -> str:
+    import time
+
+    try:
+        return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(path.stat().st_mtime))
+    except OSError:
+        return "at an unknown time"
 
 
 def _digest(payload: dict[str, Any]) -> str:
@@ -140,6 +169,7 @@ class StateStore:
         if not os.access(self.directory, os.W_OK):
             raise InputError(f"state directory {self.directory}: not writable")
         self.warnings: list[str] = []
+        self._written: set[Path] = set()  # files written in this run (the first write is logged)
         self._remove_stale_temps()
 
     def _remove_stale_temps(self) -> None:
@@ -148,19 +178,40 @@ class StateStore:
             with contextlib.suppress(OSError):
                 tmp.unlink()
 
-    def path_for(self, system_id: int, mag_index: int) -> Path:
-        return self.directory / f"vehicle-{int(system_id)}-compass-{int(mag_index)}.json"
+    def path_for(self, system_id: int, mag_index: int, uid: str | None = None) -> Path:
+        if uid is None:
+            return self.directory / f"vehicle-{int(system_id)}-compass-{int(mag_index)}.json"
+        if normal_uid(uid) != uid:
+            raise ValueError(f"vehicle id {uid!r} is not lower-case hex")
+        return self.directory / f"vehicle-{int(system_id)}-{uid}-compass-{int(mag_index)}.json"
 
     def save(self, state: CompassState) -> Path:
         payload = state.to_payload()
         doc = {"format": FORMAT, "version": VERSION, "sha256": _digest(payload), "state": payload}
-        path = self.path_for(state.system_id, state.mag_index)
+        path = self.path_for(state.system_id, state.mag_index, state.vehicle_uid)
+        if path not in self._written:
+            self._written.add(path)
+            what = "overwriting the state saved " + _mtime(path) if path.exists() else "new file"
+            log.info("state: compass %d of %s -> %s (%s)", state.mag_index,
+                     vehicle_name(state.system_id, state.vehicle_uid), path, what)  # fmt: skip
         write_atomic(path, json.dumps(doc, indent=1) + "\n")
         return path
 
-    def load(self, system_id: int, mag_index: int) -> CompassState | None:
-        """The stored state, or None when absent or damaged (damage: a warning, then a fresh start)."""
-        path = self.path_for(system_id, mag_index)
+    def load(self, system_id: int, mag_index: int, uid: str | None = None) -> CompassState | None:
+        """The stored state of compass ``mag_index`` of vehicle (``system_id``, ``uid``), or None when absent
+        or damaged (damage: a warning, then a fresh start). ``uid`` None: a vehicle that named no identity."""
+        path = self.path_for(system_id, mag_index, uid)
+        state = self._read(path, system_id, mag_index, uid)
+        who = vehicle_name(system_id, uid)
+        if state is not None:
+            log.info("state: compass %d of %s <- %s (saved %s)", mag_index, who, path, _mtime(path))
+        elif uid is not None and self.path_for(system_id, mag_index).exists():
+            log.info("state: compass %d of %s starts fresh: %s names no vehicle identity (an older magcomp, "
+                     "or a log without one) and is not applied to an identified vehicle", mag_index, who,
+                     self.path_for(system_id, mag_index))  # fmt: skip
+        return state
+
+    def _read(self, path: Path, system_id: int, mag_index: int, uid: str | None) -> CompassState | None:
         try:
             raw = path.read_bytes()
         except FileNotFoundError:
@@ -171,7 +222,7 @@ class StateStore:
             doc = json.loads(raw.decode("utf-8"))
             if not isinstance(doc, dict) or doc.get("format") != FORMAT:
                 return self._damaged(path, "not a magcomp state file")
-            if doc.get("version") != VERSION:
+            if doc.get("version") not in READ_VERSIONS:
                 return self._damaged(path, f"unsupported version {doc.get('version')!r}")
             payload = doc["state"]
             if _digest(payload) != doc.get("sha256"):
@@ -179,9 +230,41 @@ class StateStore:
             state = CompassState.from_payload(payload)
         except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
             return self._damaged(path, f"unreadable ({exc.__class__.__name__}: {exc})")
-        if state.system_id != system_id or state.mag_index != mag_index:
+        if state.system_id != system_id or state.mag_index != mag_index or state.vehicle_uid != uid:
             return self._damaged(path, "holds another vehicle or compass")
         return state
+
+    def list_states(self) -> list[tuple[Path, CompassState]]:
+        """Every readable state in the directory (a damaged file: a warning, left out)."""
+        out = []
+        for path in sorted(self.directory.glob("vehicle-*-compass-*.json")):
+            try:
+                doc = json.loads(path.read_text(encoding="utf-8"))
+                payload = doc["state"]
+                if doc.get("format") != FORMAT or _digest(payload) != doc.get("sha256"):
+                    raise ValueError("not a magcomp state file or checksum mismatch")
+                out.append((path, CompassState.from_payload(payload)))
+            except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+                self._damaged(path, f"unreadable ({exc.__class__.__name__}: {exc})")
+        return out
+
+    def adopt(self, system_id: int, uid: str, force: bool = False) -> list[str]:
+        """The states of ``system_id`` without identity become vehicle (``system_id``, ``uid``)'s: saved under
+        its name, the old files removed (they are no longer anyone else's). A compass for which the vehicle
+        has its own state already is skipped unless ``force``. Returns one line per compass."""
+        lines = []
+        for path, st in self.list_states():
+            if st.system_id != system_id or st.vehicle_uid is not None:
+                continue
+            target = self.path_for(system_id, st.mag_index, uid)
+            if target.exists() and not force:
+                lines.append(f"compass {st.mag_index}: kept {target.name} (the vehicle's own state; --force "
+                             f"replaces it with {path.name})")  # fmt: skip
+                continue
+            self.save(replace(st, vehicle_uid=uid))
+            path.unlink()
+            lines.append(f"compass {st.mag_index}: {path.name} -> {target.name}")
+        return lines or [f"no state of system {system_id} without identity in {self.directory}"]
 
     def _damaged(self, path: Path, why: str) -> CompassState | None:
         msg = f"state file {path} is damaged ({why}); starting fresh for this compass"

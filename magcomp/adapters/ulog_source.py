@@ -53,10 +53,12 @@ from magcomp.adapters.throttle import (
     px4_motor_channels,
     px4_pwm_range,
 )
+from magcomp.core.identity import normal_uid
 from magcomp.core.px4 import px4_calibrated_mag
 from magcomp.core.types import (
     AttitudeSample,
     HeartbeatSample,
+    IdentitySample,
     LogData,
     ParamSample,
     PositionSample,
@@ -99,6 +101,7 @@ class UlogTables:
     param_changes: list[tuple[float, str, float]]
     t0_s: float
     vehicle_type: int = -1
+    uid: str | None = None  # info sys_uuid, lower-case hex
     mag: dict[int, tuple[F64, F64]] = field(default_factory=dict)  # index -> (t, field mgauss (n, 3))
     mag_topic: str = ""
     imu: tuple[F64, F64, F64] | None = None  # t, gyro rad/s, accel m/s^2
@@ -162,6 +165,7 @@ def read_ulog_tables(
         if len(d.data.get("timestamp", ())):
             topics.setdefault(d.name, {})[int(d.multi_id)] = d.data
     tables = UlogTables(str(p), params, changes, float(ulog.start_timestamp) * 1e-6)
+    tables.uid = normal_uid(str(ulog.msg_info_dict.get("sys_uuid", "")))
     for name, inst in topics.items():
         for multi, data in inst.items():
             tables.counts[f"ulog_{name}" + (f"_{multi}" if multi else "")] = len(data["timestamp"])
@@ -455,6 +459,8 @@ class UlogSource:
         tb = self.tables
         t0 = tb.t0_s
         yield "vehicle_status", HeartbeatSample(t0, tb.vehicle_type, MAV_AUTOPILOT_PX4, 1)
+        if tb.uid is not None:
+            yield "info", IdentitySample(t0, tb.uid, 1)
         for name in sorted(tb.params):
             yield "parameters", ParamSample(t0, name, tb.params[name])
         for t, name, value in sorted(tb.param_changes, key=lambda c: c[0]):

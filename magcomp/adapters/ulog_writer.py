@@ -209,6 +209,7 @@ def write_sim_ulog(
     w.topic("vehicle_status", [("uint8_t", "vehicle_type"), ("uint8_t", "arming_state")])
     w.info("sys_name", "PX4")
     w.info("ver_hw", "MAGCOMP_SIM")
+    w.info("sys_uuid", result.config.uid)
     for j in range(n_mag):
         w.param(f"CAL_MAG{j}_ID", MAG_DEVICE_IDS[j], is_int=True)
     raw_frame = _sensor_frames(w, n_mag) if sensor_frame else None

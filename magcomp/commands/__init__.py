@@ -11,4 +11,6 @@ COMMANDS: dict[str, str] = {
     "fit": "Offline least squares of theta on the stationary throttle sweep of a log (Table II).",
     "diagnose": "Compare the model with a measured log, name what it misses, extend it, measure the gain.",
     "demo": "Simulator as a fake flight controller + the daemon, no hardware needed.",
+    "state": "List the saved states per vehicle and compass; adopt a system id's states for one vehicle.",
+    "dialect": "Install the MAGCOMP_HEADING dialect for MAVProxy, mavlogdump.py and pymavlink programs.",
 }

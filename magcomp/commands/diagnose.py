@@ -453,10 +453,10 @@ def execute(args: argparse.Namespace) -> int:
         cfg = handover_config(args.config, args.throttle_source)
         for line in save_learned_state(args.log, cfg, StateStore(args.save_state)):
             print(line, flush=True)
-    from magcomp.service.console import Busy
+    from magcomp.service.console import Busy, reading_progress
 
-    with Busy(f"diagnose: reading {Path(args.log).name}"):
-        log = load_log(args.log, throttle_source=args.throttle_source)
+    with reading_progress(f"diagnose: reading {Path(args.log).name}", args.log) as on_progress:
+        log = load_log(args.log, throttle_source=args.throttle_source, on_progress=on_progress)
     with Busy("diagnose: fitting the models"):
         d = diagnose(
             log,

@@ -210,7 +210,7 @@ def execute(args: argparse.Namespace) -> int:
     if not path.exists():
         raise InputError(f"{path}: no such file")
     check_output_path(args.json, "--json", (args.log, args.config))
-    from magcomp.service.console import Busy
+    from magcomp.service.console import Busy, reading_progress
 
     if args.save_state:
         from magcomp.adapters.state_store import StateStore
@@ -222,8 +222,9 @@ def execute(args: argparse.Namespace) -> int:
     # --start/--end: only the window is kept while reading (plus MAX_THROTTLE_GAP_S and one sample each side,
     # so that the throttle interpolated at the window's edges is the one the whole log gives)
     window = Window.around(args.start, args.end, MAX_THROTTLE_GAP_S)
-    with Busy(f"fit: reading {path.name}"):
-        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window)
+    with reading_progress(f"fit: reading {path.name}", path) as on_progress:
+        log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window,
+                       on_progress=on_progress)  # fmt: skip
     try:
         with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
             rep = fit_log(

@@ -65,7 +65,7 @@ def execute(args: argparse.Namespace) -> int:
     import signal
 
     from magcomp.adapters.config import load_config
-    from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
+    from magcomp.adapters.rerun_viz import discard_viz, open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
     from magcomp.errors import InputError
     from magcomp.service.console import (
@@ -101,9 +101,17 @@ def execute(args: argparse.Namespace) -> int:
     viewer = _ViewerBlocks(viz, primary_compass(cfg.input.compasses)) if viz is not None else None
     try:
         report = _run(args, cfg, store, viewer, lambda: bool(stop_signals))
+    except BaseException:
+        if viz is not None:
+            discard_viz(viz)  # the log could not be read: no recording of nothing left behind
+        raise
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+    no_mag = not report.summary["counts"].get("mag")
+    if viz is not None and no_mag and not report.interrupted:
+        discard_viz(viz)
+        viz = None
     if viz is not None and not report.interrupted:
         serve_until_interrupt(viz, lambda m: print(m, flush=True))
     if viz is not None:
@@ -112,7 +120,7 @@ def execute(args: argparse.Namespace) -> int:
         if stop_signals and stop_signals[0] == signal.SIGTERM:
             return 128 + signal.SIGTERM  # asked to stop: partial results written, the usual exit code
         raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
-    if not report.summary["counts"].get("mag"):
+    if no_mag:
         if args.emit and report.emitted == 0:
             Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
         raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
@@ -136,7 +144,12 @@ def _run(args: argparse.Namespace, cfg: Config, store: Any, viewer: _ViewerBlock
         t_first[1] = t_s
         bar.goto(t_first[2] + t_s - t_first[0])
 
-    with Progress(f"replay {Path(args.log).name}", unit="s of log") as bar:
+    from magcomp.adapters.log_span import estimate_span_s
+
+    span = estimate_span_s(args.log)
+    passes = 1 if args.causal or store is not None else 2
+    total = span * passes if span is not None else None
+    with Progress(f"replay {Path(args.log).name}", total=total, unit="s of log") as bar:
         report = replay_log(args.log, cfg, store=store, emit=args.emit, keep_clouds=viewer is not None,
                             on_estimate=viewer.add if viewer is not None else None,
                             on_text=lambda t, m: texts.append((t, m)),

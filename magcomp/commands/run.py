@@ -35,6 +35,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_rerun_argument(parser)
 
 
+def feed_hint(master: str) -> str | None:
+    """For a master that listens (udpin:, tcpin:), one line on how to send it a vehicle's MAVLink; None for
+    a master that connects out (it needs no feeding)."""
+    text = master.strip()
+    for prefix, proto, sim in (("udpin:", "udp", "udpout"), ("tcpin:", "tcp", "tcpout")):
+        if text.startswith(prefix):
+            host, _, port = text[len(prefix) :].rpartition(":")
+            here = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+            return (
+                f"waiting for MAVLink on {proto} port {port}. Send it a vehicle's stream: MAVProxy "
+                f"`mavproxy.py --master /dev/ttyACM0 --out {proto}:{here}:{port}`, ArduPilot SITL "
+                f"`sim_vehicle.py --out {proto}:{here}:{port}`, a ground station's MAVLink forwarding to "
+                f"{here}:{port}; or, without hardware, `magcomp simulate --link {sim}:{here}:{port}`"
+            )
+    return None
+
+
 def execute(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -42,7 +59,7 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz
     from magcomp.adapters.state_store import StateStore
-    from magcomp.core.types import HeadingEstimate
+    from magcomp.core.types import HeadingEstimate, PowerSample
     from magcomp.errors import InputError
     from magcomp.service.console import (
         check_output_path,
@@ -68,12 +85,20 @@ def execute(args: argparse.Namespace) -> int:
     if viz.notice:
         print(viz.notice, flush=True)
     primary = primary_compass(cfg.input.compasses)
+    hint = feed_hint(args.master)
+    if hint is not None:
+        print(hint, flush=True)
 
     def show(est: HeadingEstimate) -> None:
         if est.mag_index == primary:
             viz.log_estimate(est)
 
-    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text)
+    def power(s: PowerSample) -> None:
+        if s.battery_index == 0:  # beside the throttle, which comes with the estimates
+            viz.log_power(s.t_s, float("nan"), s.current_a, s.voltage_v)
+
+    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text,
+                    on_power=power)  # fmt: skip
 
     def on_signal(signum: int, frame: object) -> None:
         daemon.request_stop()  # a flag only: a second signal during the first cannot deadlock

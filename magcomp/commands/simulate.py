@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from magcomp.core.identity import SIM_UID
 from magcomp.errors import InputError
 
 _SCENARIOS = (
@@ -52,6 +53,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="airframe (default fixedwing; flight_* aliases set it)",
     )
     parser.add_argument("--compasses", type=int, default=2, help="number of compasses 1..3 (default 2)")
+    parser.add_argument(
+        "--uid",
+        default=SIM_UID,
+        metavar="HEX",
+        help=f"the simulated board's unique id, 1-12 bytes of hex (default {SIM_UID}): state is kept per id",
+    )
     parser.add_argument("--lat", type=float, default=None, help="latitude deg (default: Gainesville, FL)")
     parser.add_argument("--lon", type=float, default=None, help="longitude deg")
     parser.add_argument("--alt", type=float, default=None, help="altitude m above the ellipsoid")
@@ -132,6 +139,7 @@ def _config(args: argparse.Namespace) -> object:
         location=Location(**loc_kwargs),
         rates=rates,
         n_compasses=args.compasses,
+        uid=args.uid,
         **kwargs,  # type: ignore[arg-type]
     )
     return apply_settings(config, args.settings) if args.settings else config

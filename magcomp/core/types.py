@@ -105,6 +105,16 @@ class HeartbeatSample:
 
 
 @dataclass(frozen=True, slots=True)
+class IdentitySample:
+    """The vehicle's unique hardware id (AUTOPILOT_VERSION uid2/uid, a DataFlash log's board-id MSG, a ULog's
+    sys_uuid) as lower-case hex: the key of its saved state together with the system id."""
+
+    t_s: float
+    uid: str
+    system_id: int = 1
+
+
+@dataclass(frozen=True, slots=True)
 class ParamSample:
     """One parameter value (PARAM_VALUE or DataFlash PARM)."""
 
@@ -153,6 +163,7 @@ Sample = (
     | PowerSample
     | TemperatureSample
     | HeartbeatSample
+    | IdentitySample
     | ParamSample
     | PositionSample
     | TimeSample

@@ -278,7 +278,7 @@ def diagnose(
     follow = _yaw_follow_note(log, prim)
     if follow:
         notes.append(follow)
-    return Diagnosis(log.source, prim, comps, notes)
+    return Diagnosis(log.source, prim, comps, notes, autopilot=int(log.autopilot))
 
 
 def _yaw_follow_note(log: LogData, compass: int) -> str | None:

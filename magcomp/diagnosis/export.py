@@ -294,15 +294,19 @@ def autopilot_export(index: int, data: CompassData, fit: ModelFit, log: LogData 
     if terms.per_amp_mgauss is not None:
         params["px4_current"] = px4_params(terms, index, cal)
     lo, hi = terms.throttle_range
+    ap = log.autopilot if log is not None else -1
+    who = {3: "ArduPilot compensates", 12: "PX4 compensates"}.get(ap, "Both autopilots compensate")
+    both = "COMPASS_MOTCT=2, CAL_MAG_COMP_TYP=2"
+    current_params = {3: "COMPASS_MOTCT=2", 12: "CAL_MAG_COMP_TYP=2"}.get(ap, both)
     note = (
-        "Both autopilots compensate linearly (k * throttle or k * current); eq. (11) is quadratic in "
+        f"{who} linearly (k * throttle or k * current); eq. (11) is quadratic in "
         f"throttle. Over this log's throttle range {lo:.2f}-{hi:.2f} the best slope through the origin is "
         f"{_fmt(terms.per_throttle_mgauss)} mgauss per unit throttle, leaving up to "
         f"{thr_only.max_error_mgauss:.1f} mgauss of error."
     )
     if terms.per_amp_mgauss is not None:
         note += (
-            f" Against battery current (COMPASS_MOTCT=2, CAL_MAG_COMP_TYP=2): {_fmt(terms.per_amp_mgauss)} "
+            f" Against battery current ({current_params}): {_fmt(terms.per_amp_mgauss)} "
             f"mgauss/A, leaving up to {terms.max_error_amp_mgauss:.1f} mgauss. The parameters given use the "
             f"{'current' if use_current else 'throttle'}, the smaller error here (eqs. (5a), (8) make "
             "current ~ throttle^2, but a real current sensor also lags and carries other loads)."

@@ -54,4 +54,4 @@ def heading_errors(
         e = np.angle(np.exp(1j * (e - np.angle(np.mean(np.exp(1j * e))))))
         rms[name] = round(math.degrees(float(np.sqrt(np.mean(e**2)))), 3)
         mx[name] = round(math.degrees(float(np.max(np.abs(e)))), 3)
-    return HeadingErrors(reference, rms, mx)
+    return HeadingErrors(reference, rms, mx, reference_yaw_rad=ref)

@@ -71,15 +71,18 @@ def _plot_bias(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple
     bias_b = cols_b @ c.baseline.coefs
     bias_e = c.bias_mgauss(c.extended)
     order = np.argsort(thr)
+    pick = thin_indices(len(thr))  # a 2 h log: a readable cloud, not a solid bar
+    centres, medians = binned_median(thr, meas)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for i, ax in enumerate(axes):
-        ax.plot(thr, meas[:, i], ".", ms=1.5, color="0.6", label="measured")
+        ax.plot(thr[pick], meas[pick, i], ".", ms=1.5, color="0.6", label="measured")
+        ax.plot(centres, medians[:, i], "o-", ms=3, lw=1, color="k", label="measured, median per bin")
         ax.plot(thr[order], bias_b[order, i], color="tab:red", lw=1, label="theta throttle^2 (eq. 11)")
-        ax.plot(thr[order], bias_e[order, i], ".", ms=1, color="tab:green", label="extended")
+        ax.plot(thr[pick], bias_e[pick, i], ".", ms=1, color="tab:green", label="extended")
         ax.set_xlabel("throttle 0..1")
         ax.set_title(f"{'XYZ'[i]} bias, mgauss")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, markerscale=6)
+    axes[0].legend(fontsize=7, markerscale=2)
     fig.tight_layout()
     name = f"{stem}_compass{c.index}_bias.png"
     fig.savefig(out_dir / name, dpi=90)
@@ -87,8 +90,36 @@ def _plot_bias(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple
     return (
         name,
         "Bias against throttle: the measured field minus the fitted Earth field and hard iron "
-        "(grey), the paper's model (red), the extended model (green).",
+        "(grey; black: its median per throttle bin), the paper's model (red), the extended model (green).",
     )
+
+
+#: points drawn per scatter series: more make a solid bar at the figure's size
+MAX_POINTS = 4000
+
+
+def thin_indices(n: int, cap: int = MAX_POINTS) -> NDArray[np.int64]:
+    """At most ``cap`` indices spread evenly over ``0..n-1`` (all of them when ``n <= cap``)."""
+    if n <= cap:
+        return np.arange(n, dtype=np.int64)
+    return np.unique(np.linspace(0, n - 1, cap).round().astype(np.int64))
+
+
+def binned_median(x: F64, y: F64, bins: int = 20) -> tuple[F64, F64]:
+    """Median of ``y`` (n, k) in ``bins`` equal-width bins of ``x`` holding at least 10 samples."""
+    finite = np.isfinite(x) & np.all(np.isfinite(y), axis=1)
+    x, y = x[finite], y[finite]
+    if x.size == 0:
+        return np.zeros(0), np.zeros((0, y.shape[1]))
+    edges = np.linspace(float(x.min()), float(x.max()) + 1e-12, bins + 1)
+    which = np.digitize(x, edges) - 1
+    cs, ms = [], []
+    for b in range(bins):
+        m = which == b
+        if np.count_nonzero(m) >= 10:
+            cs.append(0.5 * (edges[b] + edges[b + 1]))
+            ms.append(np.median(y[m], axis=0))
+    return np.asarray(cs), np.asarray(ms).reshape(len(ms), y.shape[1])
 
 
 def _plot_motors_off_step(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str] | None:
@@ -123,18 +154,25 @@ def _plot_motors_off_step(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: st
 
 
 def _plot_heading(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str] | None:
-    """Heading change of the compass under each model, when there is a reference."""
+    """Heading change of the compass under each model and of the reference heading (the truth, or the compass
+    far from the wires), wrapped to +-180 deg, when there is a reference."""
     t = c.data.t_s - c.data.t_s[0]
     if c.heading is None:
         return None
     fig, ax = plt.subplots(figsize=(10, 3.5))
+    ref = c.heading.reference_yaw_rad
+    if ref is not None and len(ref) == len(t):
+        ax.plot(t, heading_change_deg(ref), ".", ms=0.6, color="k", zorder=5,
+                label=f"reference: {c.heading.reference}")  # fmt: skip
     for label, fit, remove, color in (
         ("uncompensated", c.baseline, False, "tab:red"),
         ("paper", c.baseline, True, "tab:orange"),
         ("extended", c.extended, True, "tab:green"),
     ):
-        yaw = np.degrees(np.unwrap(compass_yaw_rad(c.data, fit, remove)))
-        ax.plot(t, yaw - yaw[0], lw=0.8, color=color, label=label)
+        change = heading_change_deg(compass_yaw_rad(c.data, fit, remove))
+        ax.plot(t, change, ".", ms=1.0, color=color, label=label)
+    ax.set_ylim(-180.0, 180.0)
+    ax.set_yticks(np.arange(-180.0, 181.0, 90.0))
     ax.set_ylabel("compass heading change, deg")
     ax.set_xlabel("time, s")
     ax.legend(fontsize=8)
@@ -144,6 +182,22 @@ def _plot_heading(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tu
     fig.savefig(out_dir / name, dpi=90)
     plt.close(fig)
     return name, f"Heading from the compass (reference: {c.heading.reference})."
+
+
+def heading_change_deg(yaw_rad: F64) -> F64:
+    """Heading change since the first sample, wrapped to [-180, 180) deg: a long log with many turns stays on
+    one readable axis instead of climbing by 360 deg a turn (plotted as points: no lines across the wrap)."""
+    yaw = np.degrees(np.asarray(yaw_rad, dtype=float))
+    if yaw.size == 0:
+        return yaw
+    return np.asarray((yaw - yaw[0] + 180.0) % 360.0 - 180.0)
+
+
+def _text(v: Any, unit: str = "") -> str:
+    """A value in the report's prose: ``unknown`` for a missing one (never "None")."""
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "unknown"
+    return f"{v}{unit}"
 
 
 def _vec(v: Any) -> str:
@@ -185,8 +239,8 @@ def markdown(
     g = j["gain"]
     if j.get("observable", True):
         lines += [
-            f"Primary compass {d.primary}: residual {j['residual_rms_baseline']} -> "
-            f"{j['residual_rms_extended']} mgauss per axis (ratio {g['residual_rms_ratio']})."
+            f"Primary compass {d.primary}: residual {_text(j['residual_rms_baseline'])} -> "
+            f"{_text(j['residual_rms_extended'])} mgauss per axis (ratio {_text(g['residual_rms_ratio'])})."
         ]
     else:
         lines += [f"Primary compass {d.primary} is not observable in this log: {j['unobservable_why']}."]
@@ -194,33 +248,38 @@ def markdown(
         h = g["heading_error_rms_deg"]
         lines.append(
             f"Heading error against {g['heading_reference']} (rms, deg; tilt under 45 deg): "
-            f"uncompensated {h['uncompensated']}, paper {h['paper']}, extended {h['extended']}."
+            f"uncompensated {_text(h['uncompensated'])}, paper {_text(h['paper'])}, "
+            f"extended {_text(h['extended'])}."
         )
     lines.append("")
     for note in d.notes:
         lines.append(f"- note: {note}")
     for c in d.compasses:
-        lines += _compass_section(c, (figures or {}).get(c.index, []), rel_dir)
+        lines += _compass_section(c, (figures or {}).get(c.index, []), rel_dir, d.autopilot)
     return "\n".join(lines) + "\n"
 
 
-def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: str) -> list[str]:
+def _compass_section(
+    c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: str, autopilot: int = -1
+) -> list[str]:
     cj = c.to_json()
     out = ["", f"## Compass {c.index}", ""]
     out.append(f"Rotation used by the model: {c.data.attitude_note}.")
     out.append(
-        f"Earth field through the calibration: {cj['field_strength_mgauss']} mgauss, inclination "
-        f"{cj['inclination_deg']} deg; heading drift of the gyro {cj['heading_drift_deg_per_min']} deg/min."
+        f"Earth field through the calibration: {_text(cj['field_strength_mgauss'], ' mgauss')}, inclination "
+        f"{_text(cj['inclination_deg'], ' deg')}; heading drift of the gyro "
+        f"{_text(cj['heading_drift_deg_per_min'], ' deg/min')}."
     )
     gate = cj["gate"]
     if gate:
+        g = {k: _text(v) for k, v in gate.items()}
         out.append(
-            f"Validity gate ({gate['earth_reference']}): fitted field {gate['fitted_strength_mgauss']} "
-            f"mgauss vs WMM {gate['wmm_strength_mgauss']}, inclination {gate['fitted_inclination_deg']} vs "
-            f"{gate['wmm_inclination_deg']} deg, calibration condition {gate['calibration_condition']}, "
-            f"heading span {gate['yaw_span_deg']} deg, tilt span {gate['tilt_span_deg']} deg, throttle span "
-            f"{gate['throttle_span']}, residual {gate['residual_rms_mgauss']} mgauss (white-noise floor "
-            f"{gate['noise_floor_mgauss']}), compass {gate['magnetometer_hz']} Hz, gyro {gate['gyro_hz']} Hz."
+            f"Validity gate ({g['earth_reference']}): fitted field {g['fitted_strength_mgauss']} "
+            f"mgauss vs WMM {g['wmm_strength_mgauss']}, inclination {g['fitted_inclination_deg']} vs "
+            f"{g['wmm_inclination_deg']} deg, calibration condition {g['calibration_condition']}, "
+            f"heading span {g['yaw_span_deg']} deg, tilt span {g['tilt_span_deg']} deg, throttle span "
+            f"{g['throttle_span']}, residual {g['residual_rms_mgauss']} mgauss (white-noise floor "
+            f"{g['noise_floor_mgauss']}), compass {g['magnetometer_hz']} Hz, gyro {g['gyro_hz']} Hz."
         )
         if gate.get("theta_consistency_why"):  # theta's interval is a lower bound (diagnosis.consistency)
             out.append(f"**theta caveat:** {gate['theta_consistency_why']}.")
@@ -234,7 +293,7 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
         return out
     out += _findings_lines(c, cj)
     out += _residual_lines(c)
-    out += _autopilot_lines(cj, figs, rel_dir)
+    out += _autopilot_lines(cj, figs, rel_dir, autopilot)
     return out
 
 
@@ -301,14 +360,33 @@ def _residual_lines(c: CompassDiagnosis) -> list[str]:
     return out
 
 
-def _autopilot_lines(cj: dict[str, Any], figs: list[tuple[str, str]], rel_dir: str) -> list[str]:
-    """The compensation in autopilot terms, then the figures."""
+#: MAV_AUTOPILOT values and the parameter families (keys of the export's ``autopilot``) of each
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
+
+
+def _own_params(key: str, autopilot: int) -> bool:
+    """Whether the parameter family ``key`` (ardupilot, px4, px4_throttle, ...) belongs to the log's
+    autopilot (both when the log does not say which)."""
+    if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return key.startswith("ardupilot")
+    if autopilot == MAV_AUTOPILOT_PX4:
+        return key.startswith("px4")
+    return True
+
+
+def _autopilot_lines(
+    cj: dict[str, Any], figs: list[tuple[str, str]], rel_dir: str, autopilot: int = -1
+) -> list[str]:
+    """The compensation in the log's autopilot's terms (both autopilots' when unknown), then the figures."""
     out: list[str] = []
     out.append("### Compensation in autopilot terms")
     out.append("")
     out.append(cj["linearisation"])
     out.append("")
     for k, v in cj["autopilot"].items():
+        if not _own_params(k, autopilot):
+            continue
         out.append(f"- {k}: " + ", ".join(f"`{p}={val}`" for p, val in v.items()))
     out.append("")
     for name, caption in figs:

@@ -40,6 +40,8 @@ class HeadingErrors:
     reference: str
     rms_deg: dict[str, float]
     max_deg: dict[str, float]
+    #: the reference heading at the compass's sample times (rad; the report's heading plot), if kept
+    reference_yaw_rad: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,8 @@ class Diagnosis:
     primary: int
     compasses: list[CompassDiagnosis]
     notes: list[str]
+    #: MAV_AUTOPILOT of the log (3 ArduPilot, 12 PX4, -1 unknown): whose parameters the report prints
+    autopilot: int = -1
 
     def compass(self, index: int) -> CompassDiagnosis:
         for c in self.compasses:

@@ -63,6 +63,9 @@ class CompassCorrector:
         self.out_t = -math.inf
         self.last_saved_t: float | None = None
         self.dirty = False
+        #: the state this compass started from came from the store (a vehicle's identity that arrives
+        #: later decides whether it may stay: Pipeline._on_identity)
+        self.loaded = stored is not None
 
     def _calibration_adopted(self) -> None:
         """A new calibration: the observer's filters restart once the samples queued before it are through."""
@@ -104,7 +107,9 @@ class CompassCorrector:
         :class:`~magcomp.service.calibrate.CalibrationCloud`)."""
         return self.calib.cloud()
 
-    def to_state(self, system_id: int, t_s: float, current_theta: bool = True) -> CompassState:
+    def to_state(
+        self, system_id: int, t_s: float, current_theta: bool = True, vehicle_uid: str | None = None
+    ) -> CompassState:
         """The state to save; ``current_theta`` False: an observer stepping in another process is not
         waited for (its theta as of the last read: service/persist.py ``theta_at_close``)."""
         cal = self.calibration
@@ -138,4 +143,5 @@ class CompassCorrector:
             t_s=t_s,
             calib_info=info,
             inflight=inflight,
+            vehicle_uid=vehicle_uid,
         )

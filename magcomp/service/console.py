@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -256,13 +258,17 @@ def _quiet_tqdm() -> Any:
 class Progress:
     """A tqdm bar on stderr when :func:`progress_enabled`, else nothing (never in logs or JSON).
 
-    ``total`` None: no known end (shows the count and the rate). Use as a context manager; ``update(n)``
-    adds ``n``, ``goto(x)`` moves to ``x``."""
+    ``total`` None: no known end (shows the count and the rate); else the count of the total and the time
+    left (ETA). Use as a context manager; ``update(n)`` adds ``n``, ``goto(x)`` moves to ``x`` (an estimated
+    total that was short is not passed: the bar stays at its end)."""
 
     def __init__(self, desc: str, total: float | None = None, unit: str = "it") -> None:
         self._bar: Any = None
+        self._total = total
         if progress_enabled():
-            fmt = None if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
+            known = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} " + unit
+            known += " [{elapsed}<{remaining}]"
+            fmt = known if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
             self._bar = _quiet_tqdm()(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
                                       dynamic_ncols=True, mininterval=0.25, bar_format=fmt)  # fmt: skip
 
@@ -271,6 +277,8 @@ class Progress:
             self._bar.update(n)
 
     def goto(self, x: float) -> None:
+        if self._total:
+            x = min(x, self._total)
         if self._bar is not None and x > self._bar.n:
             self._bar.update(x - self._bar.n)
 
@@ -284,6 +292,25 @@ class Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def reading_progress(desc: str, path: str | Path) -> Iterator[Callable[[float], None]]:
+    """A :class:`Progress` for reading a log: yields the ``on_progress(t_s)`` to hand the reader; the total
+    is the log's span when its two ends say (magcomp.adapters.log_span), so the bar shows the time left."""
+    from magcomp.adapters.log_span import estimate_span_s
+
+    first: list[float] = []
+    with Progress(desc, total=estimate_span_s(path), unit="s of log") as bar:
+
+        def on_progress(t_s: float) -> None:
+            if not math.isfinite(t_s):
+                return
+            if not first:
+                first.append(t_s)
+            bar.goto(t_s - first[0])
+
+        yield on_progress
 
 
 class Busy:

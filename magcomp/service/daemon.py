@@ -31,10 +31,10 @@ import numpy as np
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
-from magcomp.core.types import HeadingEstimate
+from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.errors import InputError
 from magcomp.service.pipeline import Pipeline
-from magcomp.service.publish import HeadingEncoder, LinkSink
+from magcomp.service.publish import HeadingEncoder, LinkSink, NamedValues
 from magcomp.service.replay import source_throttle
 from magcomp.service.workers import Workers
 
@@ -246,7 +246,9 @@ class Daemon:
         store: StateStore | None = None,
         on_estimate: Callable[[HeadingEstimate], None] | None = None,
         on_text: Callable[[float, str], None] | None = None,
+        on_power: Callable[[PowerSample], None] | None = None,
     ) -> None:
+        """``on_power``: each battery sample of the first vehicle (the viewer's current and voltage)."""
         check_link_url(master, "--master")
         for url in outs:
             check_link_url(url, "--out")
@@ -256,6 +258,7 @@ class Daemon:
         self.last_error: str | None = None
         self.store = store
         self.on_estimate = on_estimate
+        self.on_power = on_power
         self.workers = Workers.threads()
         self.pipeline = Pipeline(cfg, store=store, on_text=on_text, workers=self.workers)
         self._on_text = on_text
@@ -265,6 +268,8 @@ class Daemon:
         self.pipelines: dict[tuple[int, int], Pipeline] = {}
         self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
         self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
+        #: NAMED_VALUE_FLOAT per encoder (vehicle), decimated (``[output] named_values_hz``)
+        self._named: dict[HeadingEncoder, NamedValues] = {}
         self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
         self.published = 0
         self.connects = 0
@@ -343,8 +348,19 @@ class Daemon:
             enc.set_system(key[0])
             self.pipelines[key] = p
             self._encoders[key] = enc
+            self._request_identity(key, enc)
             return p, enc
         return p, self._encoders[key]
+
+    def _request_identity(self, key: tuple[int, int], enc: HeadingEncoder) -> None:
+        """Ask a new sender for AUTOPILOT_VERSION (its unique id keys its state: Pipeline._on_identity). An
+        autopilot that does not answer keeps the state of its system id."""
+        with self._lock:
+            sink = self._master_sink
+            if sink is None:
+                return
+            for packet in enc.identity_requests(key[0], key[1]):
+                sink.write_packet(0.0, packet)
 
     def _publish(self, est: HeadingEstimate, t_arrival: float, enc: HeadingEncoder | None = None) -> None:
         with self._lock:
@@ -354,6 +370,13 @@ class Daemon:
                     enc.set_system(self.pipeline.system_id)
                     self._sysid_set = True
             self._write_all(est.t_s, enc.encode(est))
+            named = self._named.get(enc)
+            if named is None:
+                named = self._named[enc] = NamedValues(enc, self.cfg.output.named_values_hz)
+            t_boot = est.t_boot_s if est.t_boot_s == est.t_boot_s else est.t_s  # NaN: the same clock
+            for packet in named.packets(est.t_s, t_boot, est.mag_index, est.heading_deg, est.theta_mgauss,
+                                        est.flags):  # fmt: skip
+                self._write_all(est.t_s, packet)
         self.latency_s.append(time.perf_counter() - t_arrival)
         self.published += 1
         if self.on_estimate is not None:
@@ -582,6 +605,7 @@ class Daemon:
         """Samples from the source through the pipeline to the sinks until the source ends or fails."""
         key: tuple[int, int] | None = None
         pipeline, enc = self.pipeline, self.encoder
+        on_power = self.on_power
         for sender, sample in source.vehicle_samples():
             if self._stop_requested:  # (a flag read per sample; the rest of _should_stop while quiet)
                 self.stop()
@@ -594,6 +618,8 @@ class Daemon:
             if sender != key:
                 key = sender
                 pipeline, enc = self._vehicle(sender)
+            if on_power is not None and type(sample) is PowerSample and pipeline is self.pipeline:
+                on_power(sample)
             est = pipeline.process(sample)
             if est is not None:
                 self._publish(est, t_arrival, enc)

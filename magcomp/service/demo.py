@@ -142,7 +142,8 @@ def save_true_states(result: Any, store: StateStore) -> None:
         j = int(c.index)
         l_true, d_true = result.true_calibration(j)
         theta = np.asarray(c.theta_mgauss, dtype=float)
-        store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float), theta, 0.0))
+        store.save(CompassState(1, j, np.asarray(l_true, float), np.asarray(d_true, float), theta, 0.0,
+                                vehicle_uid=result.config.uid))  # fmt: skip
 
 
 def oracle_replay(result: Any, path: Any, store_dir: Any, cfg: Config | None = None) -> ReplayReport:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from magcomp.adapters.config import Config
-from magcomp.adapters.state_store import StateStore
+from magcomp.adapters.state_store import StateStore, vehicle_name
 from magcomp.errors import InputError
 
 #: below this standard deviation of throttle^2 theta is not observable (InflightStage.why_not's threshold)
@@ -49,7 +49,9 @@ def save_learned_state(log_path: str | Path, cfg: Config, store: StateStore) -> 
         return [f"state: nothing saved to {store.directory}: no magnetometer samples in the log"]
     lines = []
     for idx, c in sorted(comps.items()):
-        state = next((s for (_, j), s in sorted(mem.states.items()) if j == idx), None)
+        # the vehicle as the log named it at the end (a state saved before its id arrived is not it)
+        key = (int(summary.get("system_id") or 1), summary.get("vehicle_uid"), idx)
+        state = mem.states.get(key) or next((s for (*_, j), s in mem.states.items() if j == idx), None)
         if c.get("status") != "corrected" or state is None:
             lines.append(f"compass {idx}: nothing saved: {c.get('why') or 'not corrected'}")
             continue
@@ -80,8 +82,8 @@ def save_learned_state(log_path: str | Path, cfg: Config, store: StateStore) -> 
             if not c.get("theta_converged"):
                 what += " (not converged)"
         lines.append(
-            f"compass {idx}: saved {path} (vehicle {state.system_id}): theta {_vec(c.get('theta_mgauss'))} "
-            f"mgauss; {what}"
+            f"compass {idx}: saved {path} ({vehicle_name(state.system_id, state.vehicle_uid)}): "
+            f"theta {_vec(c.get('theta_mgauss'))} mgauss; {what}"
         )
     return lines
 

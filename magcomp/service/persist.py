@@ -27,7 +27,7 @@ class StateSink(Protocol):
 
     def save(self, state: CompassState) -> object: ...
 
-    def load(self, system_id: int, mag_index: int) -> CompassState | None: ...
+    def load(self, system_id: int, mag_index: int, uid: str | None = None) -> CompassState | None: ...
 
 
 class PersistStage:
@@ -39,7 +39,7 @@ class PersistStage:
         store: StateSink | None,
         writer: Executor,
         interval_s: float,
-        system_id: Callable[[], int],
+        vehicle: Callable[[], tuple[int, str | None]],
         warnings: list[str],
         theta_at_close: bool = False,
     ) -> None:
@@ -50,7 +50,7 @@ class PersistStage:
         self._theta_at_close = theta_at_close
         self._writer = writer
         self._interval_s = interval_s
-        self._system_id = system_id
+        self._vehicle = vehicle
         self._warnings = warnings
         self._pending: list[Future[None]] = []
 
@@ -65,7 +65,8 @@ class PersistStage:
         c.dirty = False
         if self.store is None:
             return
-        state = c.to_state(self._system_id(), t_s, current_theta=final or not self._theta_at_close)
+        sysid, uid = self._vehicle()
+        state = c.to_state(sysid, t_s, current_theta=final or not self._theta_at_close, vehicle_uid=uid)
         self._pending = [f for f in self._pending if not f.done()]
         self._pending.append(self._writer.submit(self._write, state))
 

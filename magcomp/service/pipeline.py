@@ -44,6 +44,7 @@ from magcomp.core.types import (
     ClockResetSample,
     HeadingEstimate,
     HeartbeatSample,
+    IdentitySample,
     ImuSample,
     MagSample,
     ParamSample,
@@ -130,6 +131,8 @@ class Pipeline:
         self.cfg = cfg
         self.store = store
         self.system_id = system_id
+        #: the vehicle's unique hardware id (IdentitySample), None until (unless) the input names it
+        self.vehicle_uid: str | None = None
         self._on_text = on_text
         self._workers = workers if workers is not None else Workers.inline()
         self._learn_only = learn_only
@@ -156,7 +159,7 @@ class Pipeline:
         self.align = AlignStage(cfg, self.counts, self._text)
         self.throttle = self.align.throttle
         self.attitude = AttitudeStage(cfg, self.counts)
-        self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._sysid,
+        self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._vehicle,
                                     self.warnings, theta_at_close=observers is not None)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
                                         self.persist.save, self._text, inflight_proc)  # fmt: skip
@@ -169,6 +172,10 @@ class Pipeline:
 
     def _sysid(self) -> int:
         return self.system_id if self.system_id is not None else 1
+
+    def _vehicle(self) -> tuple[int, str | None]:
+        """The key of this vehicle's state: (system id, unique id or None)."""
+        return self._sysid(), self.vehicle_uid
 
     def _text(self, t_s: float, msg: str, warning: bool = False) -> None:
         if self._learn_only and self._recorder is None:  # the first of two per-sample passes: the second
@@ -209,6 +216,7 @@ class Pipeline:
             (MagSample, self._on_mag), (ImuSample, self._on_imu), (ThrottleSample, self._on_throttle),
             (AttitudeSample, self._on_attitude), (ClockResetSample, self._on_reboot),
             (HeartbeatSample, self._on_heartbeat), (ParamSample, self._on_param),
+            (IdentitySample, self._on_identity),
             (PositionSample, self._on_fix), (TimeSample, self._on_time),
         )  # fmt: skip
         return next((h for k, h in kinds if issubclass(cls, k)), _ignored)
@@ -232,6 +240,30 @@ class Pipeline:
     def _on_heartbeat(self, sample: HeartbeatSample) -> bool:
         if self.system_id is None:
             self.system_id = int(sample.system_id)
+        return False
+
+    def _on_identity(self, sample: IdentitySample) -> bool:
+        """The vehicle names its hardware id: its state is keyed by it from now on. A compass that started
+        from a state stored under another key (the system id alone: the identity came after its first
+        sample) starts again from this vehicle's own state, or fresh: a state learned on one vehicle is
+        never applied to another with the same system id."""
+        uid = sample.uid
+        if uid == self.vehicle_uid:
+            return False
+        old, self.vehicle_uid = self.vehicle_uid, uid
+        sysid = self._sysid()
+        self._text(sample.t_s, f"vehicle {sysid}: unique id {uid}" + (f" (was {old})" if old else ""))
+        replaceable = self._observers is None and self._inflight_proc is None and self._recorder is None
+        for idx, c in list(self.correctors.items()):
+            if not c.loaded:
+                continue
+            if replaceable:
+                del self.correctors[idx]  # made again at the next sample, from this vehicle's state
+                self._text(sample.t_s, f"compass {idx}: the state loaded before vehicle {sysid} named its id "
+                           "is dropped; starting from this vehicle's own state")  # fmt: skip
+            else:
+                self._text(sample.t_s, f"compass {idx}: started from the state of vehicle {sysid} without "
+                           f"identity before the log named id {uid}", warning=True)  # fmt: skip
         return False
 
     def _on_param(self, sample: ParamSample) -> bool:
@@ -321,7 +353,7 @@ class Pipeline:
         sysid = self._sysid()
         self.system_id = sysid
         store = self.store
-        stored = store.load(sysid, idx) if store is not None else None
+        stored = store.load(sysid, idx, self.vehicle_uid) if store is not None else None
         if store is not None:
             for w in store.warnings:
                 if w not in self.warnings:
@@ -442,6 +474,7 @@ class Pipeline:
         return json_safe(
             {
                 "system_id": self.system_id,
+                "vehicle_uid": self.vehicle_uid,
                 "counts": dict(self.counts),
                 "warnings": list(self.warnings),
                 "earth_field": {

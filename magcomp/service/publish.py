@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import struct
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
@@ -15,7 +16,13 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.types import HeadingEstimate
+from magcomp.core.types import (
+    FLAG_CALIBRATED,
+    FLAG_INPUTS_STALE,
+    FLAG_NO_THROTTLE,
+    FLAG_THETA_CONVERGED,
+    HeadingEstimate,
+)
 from magcomp.errors import InputError
 
 log = logging.getLogger("magcomp.publish")
@@ -90,6 +97,11 @@ class HeadingEncoder:
         fast = getattr(self._mod, "mcrf4xx", None)
         slow = self._mod.x25crc
         self._crc: Any = (lambda b: fast(b, 0xFFFF)) if fast is not None else (lambda b: slow(b).crc)
+
+    @property
+    def module(self) -> Any:
+        """The generated dialect module (message classes and enums)."""
+        return self._mod
 
     def set_system(self, system_id: int) -> None:
         if not self._fixed_system:
@@ -170,6 +182,26 @@ class HeadingEncoder:
         mav.seq = (mav.seq + n) & 0xFF
         return Frames(data, (end + 2).astype(np.int64))
 
+    def named_value(self, t_boot_s: float, name: str, value: float) -> bytes:
+        """One NAMED_VALUE_FLOAT (``name`` at most 10 characters) on this encoder's link sequence."""
+        m = self._mod
+        t_ms = round(t_boot_s * 1000.0) & 0xFFFFFFFF if math.isfinite(t_boot_s) else 0
+        msg = m.MAVLink_named_value_float_message(t_ms, name.encode("ascii"), float(value))
+        out = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) & 0xFF
+        return out
+
+    def identity_requests(self, target_system: int, target_component: int) -> list[bytes]:
+        """Asking a vehicle for AUTOPILOT_VERSION (its unique id keys its saved state), as a ground station
+        does at connect: MAV_CMD_REQUEST_MESSAGE and the older MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES."""
+        m = self._mod
+        out = []
+        for cmd, p1 in ((m.MAV_CMD_REQUEST_MESSAGE, 148.0), (m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1.0)):
+            msg = m.MAVLink_command_long_message(target_system, target_component, cmd, 0, p1, *(0,) * 6)
+            out.append(bytes(msg.pack(self.mav)))
+            self.mav.seq = (self.mav.seq + 1) & 0xFF
+        return out
+
     def heartbeat(self) -> bytes:
         """A HEARTBEAT of an onboard companion (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID)."""
         m = self._mod
@@ -178,6 +210,65 @@ class HeadingEncoder:
         out = bytes(msg.pack(self.mav))
         self.mav.seq = (self.mav.seq + 1) & 0xFF
         return out
+
+
+#: NAMED_VALUE_FLOAT names (the compass index appended; at most 10 characters): corrected heading (deg),
+#: |theta| (mgauss per unit throttle squared), status (:func:`pilot_status`). Documented in docs/pilots.md.
+NV_HEADING = "MC_HDG"
+NV_THETA = "MC_THETA"
+NV_STATUS = "MC_STAT"
+#: MC_STATn values
+STATUS_UNCORRECTED = 0.0  # no calibration yet, or no throttle: the heading is not compensated
+STATUS_LEARNING = 1.0  # compensated, theta still converging
+STATUS_CONVERGED = 2.0  # compensated, theta converged
+STATUS_STALE = 3.0  # attitude, gyro or throttle inputs are late: the output may be stale
+
+
+def pilot_status(flags: int) -> float:
+    """The one number a pilot reads (MC_STATn) from MAGCOMP_HEADING's flags."""
+    if flags & FLAG_INPUTS_STALE:
+        return STATUS_STALE
+    if not flags & FLAG_CALIBRATED or flags & FLAG_NO_THROTTLE:
+        return STATUS_UNCORRECTED
+    return STATUS_CONVERGED if flags & FLAG_THETA_CONVERGED else STATUS_LEARNING
+
+
+def named_value_names(mag_index: int) -> tuple[str, str, str]:
+    """The three NAMED_VALUE_FLOAT names of compass ``mag_index``."""
+    return f"{NV_HEADING}{mag_index}", f"{NV_THETA}{mag_index}", f"{NV_STATUS}{mag_index}"
+
+
+class NamedValues:
+    """NAMED_VALUE_FLOAT for ground stations without the dialect (Mission Planner shows MAV_MC_HDG0 ...,
+    MAVProxy and Cockpit their names): per compass at most ``rate_hz`` on message time, packed with
+    ``encoder``'s link sequence. ``rate_hz`` 0: none."""
+
+    def __init__(self, encoder: HeadingEncoder, rate_hz: float) -> None:
+        self._encoder = encoder
+        self._period = 1.0 / rate_hz if rate_hz > 0 else math.inf
+        self._last: dict[int, float] = {}
+
+    def packets(
+        self,
+        t_s: float,
+        t_boot_s: float,
+        mag_index: int,
+        heading_deg: float,
+        theta: tuple[float, float, float] | NDArray[np.float64],
+        flags: int,
+    ) -> list[bytes]:
+        """The frames due for this estimate (none most of the time)."""
+        if self._period == math.inf:
+            return []
+        last = self._last.get(mag_index)
+        if last is not None and last <= t_s < last + self._period:  # (a clock that ran back: due now)
+            return []
+        self._last[mag_index] = t_s
+        norm = math.sqrt(float(theta[0]) ** 2 + float(theta[1]) ** 2 + float(theta[2]) ** 2)
+        values = (float(heading_deg) % 360.0, norm, pilot_status(int(flags)))
+        enc = self._encoder
+        return [enc.named_value(t_boot_s, name, v) for name, v in zip(named_value_names(mag_index), values,
+                                                                       strict=True)]  # fmt: skip
 
 
 class TlogWriter:

@@ -81,16 +81,16 @@ class MemoryStore:
     """A state store in memory (the first pass of a two-pass replay hands its states to the second)."""
 
     def __init__(self) -> None:
-        self.states: dict[tuple[int, int], CompassState] = {}
+        self.states: dict[tuple[int, str | None, int], CompassState] = {}
         self.warnings: list[str] = []
         #: the pipeline's summary at the end of the pass (set by :func:`learn_pass`)
         self.summary: dict[str, Any] | None = None
 
     def save(self, state: CompassState) -> None:
-        self.states[(state.system_id, state.mag_index)] = state
+        self.states[(state.system_id, state.vehicle_uid, state.mag_index)] = state
 
-    def load(self, system_id: int, mag_index: int) -> CompassState | None:
-        return self.states.get((system_id, mag_index))
+    def load(self, system_id: int, mag_index: int, uid: str | None = None) -> CompassState | None:
+        return self.states.get((system_id, uid, mag_index))
 
 
 def learn_pass(

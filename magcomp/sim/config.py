@@ -93,6 +93,7 @@ from typing import Any
 
 import numpy as np
 
+from magcomp.core.identity import SIM_UID, normal_uid
 from magcomp.errors import InputError
 
 #: name -> (value that means "off", lowest allowed, highest allowed, one-line meaning of VALUE)
@@ -335,8 +336,15 @@ class SimConfig:
     theta_mgauss: tuple[float, float, float] = (-61.0, 26.4, -1.2)
     earth_field_ned_mgauss: tuple[float, float, float] | None = None
     variation: Variation = field(default_factory=Variation)
+    #: the simulated board's unique id (hex; AUTOPILOT_VERSION, the DataFlash boot MSG, ULog sys_uuid):
+    #: its saved state is its own, never a real vehicle's with the same system id
+    uid: str = SIM_UID
 
     def __post_init__(self) -> None:
+        uid = normal_uid(self.uid)
+        if uid is None or len(uid) > 24:
+            raise InputError(f"uid={self.uid!r}: must be 1 to 12 bytes of hex, not all zeros")
+        object.__setattr__(self, "uid", uid)
         if self.scenario in SCENARIO_ALIASES:
             base, vehicle = SCENARIO_ALIASES[self.scenario]
             object.__setattr__(self, "scenario", base)

@@ -19,6 +19,7 @@ import pytest
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
+from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port, run_demo
 
@@ -105,7 +106,8 @@ def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
     # a 10 s spin: theta is rough but learned (accuracy is measured in benchmarks/accuracy.py)
     assert np.linalg.norm(np.array(last0.theta) - truth) < 0.5 * np.linalg.norm(truth)  # type: ignore[attr-defined]
     # state was written for both compasses of vehicle 1
-    assert StateStore(tmp_path).load(1, 0) is not None and StateStore(tmp_path).load(1, 1) is not None
+    store = StateStore(tmp_path)
+    assert store.load(1, 0, SIM_UID) is not None and store.load(1, 1, SIM_UID) is not None
 
 
 @pytest.mark.slow
@@ -139,7 +141,8 @@ def test_magcomp_run_process_stops_on_sigterm_and_saves_state(tmp_path: Path) ->
         result = simulate(SimConfig(scenario="tumble", duration_s=15.0, seed=2))
         stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
         # the calibration learned on the stream is saved at once (in the background)
-        wait_for(lambda: StateStore(state).load(1, 0) is not None or proc.poll() is not None, 60.0, "state")
+        wait_for(lambda: StateStore(state).load(1, 0, SIM_UID) is not None or proc.poll() is not None, 60.0,
+                 "state")
     finally:
         proc.send_signal(signal.SIGTERM)
         code = finish(proc)
@@ -147,4 +150,4 @@ def test_magcomp_run_process_stops_on_sigterm_and_saves_state(tmp_path: Path) ->
     assert "listening on udpin:" in err.join()
     assert "compass 0:" in out.join()
     assert (tmp_path / "sum.json").exists()
-    assert StateStore(state).load(1, 0) is not None
+    assert StateStore(state).load(1, 0, SIM_UID) is not None

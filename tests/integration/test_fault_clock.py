@@ -13,6 +13,7 @@ import pytest
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
+from magcomp.core.identity import SIM_UID
 from magcomp.service.replay import replay_log
 from tests.conftest import split_tlog_records
 from tests.faultgen import record_time_s, retime
@@ -65,7 +66,7 @@ def test_reboot_in_the_calibration_window_never_mixes_two_boots(
         truth = np.asarray(result.compasses[0].theta_mgauss)
         assert np.linalg.norm(theta - truth) < 0.25 * np.linalg.norm(truth)
     else:  # too little of the hand rotation left on either side of the reboot: nothing stored
-        stored = StateStore(tmp_path / "state").load(1, 0)
+        stored = StateStore(tmp_path / "state").load(1, 0, SIM_UID)
         assert stored is None or stored.calib_l is None
     # MAGCOMP_HEADING.time_boot_ms is the autopilot's clock: after the reboot it restarts too
     times = heading_times_ms(tmp_path / "out.tlog")

@@ -13,6 +13,7 @@ import pytest
 
 from magcomp.adapters.state_store import StateStore
 from magcomp.cli import main
+from magcomp.core.identity import SIM_UID
 from magcomp.core.types import FLAG_CALIBRATED, HeadingEstimate
 from magcomp.service.replay import replay_log
 from tests.configs import ESTIMATOR_ONLY
@@ -70,7 +71,7 @@ def test_save_state_then_replay_starts_corrected(
     assert len(saved) == 2, out  # one line per compass, each saying what was saved
     assert all("learned in flight" in ln and "theta (" in ln for ln in saved)
     for j in (0, 1):
-        doc = json.loads((state_dir / f"vehicle-1-compass-{j}.json").read_text())
+        doc = json.loads((state_dir / f"vehicle-1-{SIM_UID}-compass-{j}.json").read_text())
         assert doc["state"]["inflight"]["form"] in ("absolute", "relative")
     if command == "fit":  # an ordinary flight has no bench sweep: said in one line, not an error
         assert "note: no offline fit" in out

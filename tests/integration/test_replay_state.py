@@ -13,6 +13,7 @@ import pytest
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
+from magcomp.core.identity import SIM_UID
 from magcomp.core.types import FLAG_CALIBRATED
 from magcomp.service.demo import heading_errors
 from magcomp.service.replay import replay_log
@@ -41,7 +42,10 @@ def logs(
     recs = split_tlog(whole.read_bytes())
     tail = d / "tail.tlog"
     stamps_s = [int.from_bytes(r[:8], "big") * 1e-6 for r in recs]
-    tail.write_bytes(b"".join(r for t, r in zip(stamps_s, recs, strict=True) if t - t_unix0 >= pan_start))
+    # (and the AUTOPILOT_VERSION naming the board, as the autopilot answers a ground station at connect)
+    ident = [r[15] | r[16] << 8 | r[17] << 16 == 148 for r in recs]
+    tail.write_bytes(b"".join(r for t, r, i in zip(stamps_s, recs, ident, strict=True)
+                              if t - t_unix0 >= pan_start or i))  # fmt: skip
     return whole, tail, result
 
 
@@ -51,7 +55,7 @@ def test_state_survives_restart_and_corrects_from_the_first_sample(
     whole, tail, result = logs
     first = replay_log(whole, cfg(), store=StateStore(tmp_path))
     assert {c["calibration"]["source"] for c in first.summary["compasses"]} == {"learned"}
-    stored = StateStore(tmp_path).load(1, 0)
+    stored = StateStore(tmp_path).load(1, 0, SIM_UID)
     assert stored is not None and stored.calib_l is not None
     np.testing.assert_allclose(stored.theta_mgauss, first.summary["compasses"][0]["theta_mgauss"])
 
@@ -72,8 +76,9 @@ def test_state_survives_restart_and_corrects_from_the_first_sample(
 def test_damaged_state_warns_and_starts_fresh(logs: tuple[Path, Path, object], tmp_path: Path) -> None:
     _, tail, _ = logs
     store = StateStore(tmp_path)
-    store.path_for(1, 0).write_text('{"format": "magcomp-state", "version": 1, "sha256": "00", "state": {}}')
+    bad = '{"format": "magcomp-state", "version": 1, "sha256": "00", "state": {}}'
+    store.path_for(1, 0, SIM_UID).write_text(bad)
     rep = replay_log(tail, cfg(), store=store, keep_estimates=True)
-    assert any("damaged" in w and "vehicle-1-compass-0" in w for w in rep.summary["warnings"])
+    assert any("damaged" in w and f"vehicle-1-{SIM_UID}-compass-0" in w for w in rep.summary["warnings"])
     assert rep.n_estimates > 0
-    assert StateStore(tmp_path).load(1, 0) is not None  # rewritten, readable again
+    assert StateStore(tmp_path).load(1, 0, SIM_UID) is not None  # rewritten, readable again

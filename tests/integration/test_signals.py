@@ -16,6 +16,7 @@ import pytest
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
+from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from tests.waiting import LineReader, finish, wait_for
@@ -62,7 +63,8 @@ def test_run_two_signals_in_quick_succession_still_saves_state_and_summary(tmp_p
         wait_for(lambda: err.has("listening on") or proc.poll() is not None, 60.0, "listening")
         result = simulate(SimConfig(scenario="tumble", duration_s=15.0, seed=2, n_compasses=1))
         stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        wait_for(lambda: StateStore(state).load(1, 0) is not None or proc.poll() is not None, 60.0, "state")
+        wait_for(lambda: StateStore(state).load(1, 0, SIM_UID) is not None or proc.poll() is not None, 60.0,
+                 "state")
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.send_signal(signal.SIGINT)
@@ -73,7 +75,7 @@ def test_run_two_signals_in_quick_succession_still_saves_state_and_summary(tmp_p
     doc = json.loads(summary.read_text())
     assert doc["counts"]["mag"] > 0 and doc["connects"] == 1
     assert "compass 0:" in out.join()
-    assert StateStore(state).load(1, 0) is not None
+    assert StateStore(state).load(1, 0, SIM_UID) is not None
 
 
 @pytest.mark.slow

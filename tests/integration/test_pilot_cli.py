@@ -1,0 +1,163 @@
+"""What a new user meets on the command line: a failed replay leaves no recording, `run` on a listening link
+says how to feed it (and that command works), `--rerun serve` says where it really listens."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from magcomp.adapters.rerun_viz import listening_hosts, serve_notice
+from magcomp.cli import main
+from magcomp.commands.run import feed_hint
+from tests.waiting import LineReader, finish, wait_for
+
+REPO = Path(__file__).parents[2]
+
+
+def test_replay_of_a_missing_log_leaves_no_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("rerun")
+    rrd = tmp_path / "x.rrd"
+    assert main(["replay", str(tmp_path / "missing.tlog"), "--rerun", f"save={rrd}"]) != 0
+    assert "no such file" in capsys.readouterr().err
+    assert not rrd.exists()
+
+
+def test_replay_of_a_log_without_compass_leaves_no_recording(tmp_path: Path) -> None:
+    pytest.importorskip("rerun")
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.sim import SimConfig, simulate
+    from tests.conftest import split_tlog_records
+
+    full = tmp_path / "f.tlog"
+    write_tlog(simulate(SimConfig(scenario="tumble", duration_s=5.0, seed=1)), full)
+    heartbeats = [r for r in split_tlog_records(full.read_bytes()) if r[15:18] == b"\0\0\0"]  # HEARTBEAT
+    assert heartbeats
+    log = tmp_path / "hb.tlog"
+    log.write_bytes(b"".join(heartbeats))
+    rrd = tmp_path / "y.rrd"
+    assert main(["replay", str(log), "--rerun", f"save={rrd}"]) != 0
+    assert not rrd.exists()
+
+
+def test_feed_hint_only_for_listening_links() -> None:
+    hint = feed_hint("udpin:0.0.0.0:14550")
+    assert hint is not None and "magcomp simulate --link udpout:127.0.0.1:14550" in hint
+    assert "--out udp:127.0.0.1:14550" in hint
+    tcp = feed_hint("tcpin:0.0.0.0:5760")
+    assert tcp is not None and "tcpout:127.0.0.1:5760" in tcp
+    assert feed_hint("udpout:10.0.0.2:14550") is None and feed_hint("/dev/ttyACM0:115200") is None
+
+
+@pytest.mark.slow
+def test_run_says_how_to_feed_it_and_that_command_works(tmp_path: Path) -> None:
+    from magcomp.service.demo import free_udp_port
+
+    port = free_udp_port()
+    summary = tmp_path / "sum.json"
+    rrd = tmp_path / "run.rrd"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "0"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
+         str(tmp_path / "state"), "--json", str(summary), "--rerun", f"save={rrd}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=REPO, text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
+    try:
+        wait_for(lambda: out.has("magcomp simulate --link") or proc.poll() is not None, 60.0, "the hint")
+        hint = next(ln for ln in out.lines if "magcomp simulate --link" in ln)
+        command = hint.rsplit("`magcomp ", 1)[1].split("`", 1)[0].split()  # the command the user would run
+        wait_for(lambda: err.has("listening on udpin:") or proc.poll() is not None, 60.0, "listening")
+        assert main([*command, "--scenario", "tumble", "--duration", "8", "--speed", "20"]) == 0
+        wait_for(lambda: out.has("compass 0") or err.has("state: compass 0") or proc.poll() is not None,
+                 60.0, "data")  # fmt: skip
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        code = finish(proc)
+    assert code == 0, err.join()
+    assert json.loads(summary.read_text())["published"] > 0
+    # run's view: theta, the headings, the bias, and the battery's current and voltage are in the recording
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(str(rrd)).stream():
+        batch = chunk.to_record_batch()
+        if "Scalars:scalars" in batch.schema.names:  # data rows, not the static series styles
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + batch.num_rows
+    for path in ("/theta/x", "/heading/corrected", "/bias/estimate", "/power/current", "/power/voltage"):
+        assert rows.get(path, 0) > 0, (path, rows)
+
+
+def test_listening_hosts_reads_the_real_bind_address() -> None:
+    if listening_hosts(1) is None:
+        pytest.skip("no /proc/net on this system")
+    for host in ("127.0.0.1", "0.0.0.0"):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind((host, 0))
+            s.listen()
+            assert listening_hosts(s.getsockname()[1]) == {host}
+
+
+def test_serve_notice_says_where_it_listens() -> None:
+    url = "http://127.0.0.1:9090/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A9876%2Fproxy"
+    everywhere = serve_notice(url, 9876, 9090, {"0.0.0.0"})
+    assert url in everywhere and "every network interface" in everywhere
+    local = serve_notice(url, 9876, 9090, {"127.0.0.1"})
+    assert "127.0.0.1 only" in local and "ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876" in local
+    assert "serve=0.0.0.0" in local
+
+
+def test_serve_address_is_parsed() -> None:
+    from magcomp.adapters.rerun_viz import parse_mode
+    from magcomp.errors import MagcompError
+
+    assert parse_mode("serve").target == "127.0.0.1"
+    assert parse_mode("serve=0.0.0.0").target == "0.0.0.0"
+    with pytest.raises(MagcompError, match="serve=ADDRESS"):
+        parse_mode("serve=everywhere")
+
+
+SERVE = """
+import sys
+from magcomp.adapters.rerun_viz import open_viz
+viz = open_viz(sys.argv[3], live=False, grpc_port=int(sys.argv[1]), web_port=int(sys.argv[2]))
+print(viz.notice.replace("\\n", " | "), flush=True)
+sys.stdin.read()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["serve", "serve=0.0.0.0"])
+def test_rerun_serve_listens_on_loopback_by_default_and_says_where(mode: str) -> None:
+    pytest.importorskip("rerun")
+    from magcomp.adapters.rerun_viz import free_port
+
+    gport, wport = free_port(), free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "0"}
+    cmd = [sys.executable, "-c", SERVE, str(gport), str(wport), mode]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        notice = proc.stdout.readline()
+        data_hosts = listening_hosts(gport)
+    finally:
+        proc.communicate(timeout=60)  # closes stdin: the child ends, its pipes are read and closed
+    assert notice.startswith("Rerun web viewer: http://127.0.0.1:"), notice
+    if data_hosts is None:
+        pytest.skip("no /proc/net on this system")
+    if mode == "serve":
+        assert data_hosts == {"127.0.0.1"}  # the recording is not offered to the network by default
+        assert "127.0.0.1 only" in notice and "ssh -L" in notice
+    else:
+        assert data_hosts == {"0.0.0.0"}
+        assert "every network interface" in notice
