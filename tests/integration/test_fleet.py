@@ -1,0 +1,364 @@
+"""`magcomp fleet` on a small simulated fleet: two vehicles with different theta, one whose theta changes
+at its third flight, a corrupt file; the Parquet rows, the change found at the right flight, incremental
+re-runs, a kill -9 halfway, and the same rows on a local Dask cluster and on a separate scheduler."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+import pytest
+
+from magcomp.cli import main
+from magcomp.fleet import store
+from tests.waiting import LineReader, wait_for
+
+THETA_A = (-61.0, 26.0, -1.0)
+THETA_B1 = (40.0, -50.0, 20.0)
+THETA_B2 = (140.0, -10.0, 80.0)
+#: (folder, file, seed, year, theta)
+FLIGHTS = [
+    ("vehA", "flight01.tlog", 1, "2026.1", THETA_A),
+    ("vehA", "flight02.tlog", 2, "2026.2", THETA_A),
+    ("vehA", "flight03.tlog", 3, "2026.3", THETA_A),
+    ("vehB", "flight01.tlog", 11, "2026.1", THETA_B1),
+    ("vehB", "flight02.tlog", 12, "2026.2", THETA_B1),
+    ("vehB", "flight03.tlog", 13, "2026.3", THETA_B2),
+    ("vehB", "flight04.tlog", 14, "2026.4", THETA_B2),
+]
+VEHICLES_TOML = '[vehicles]\nalpha = ["*/vehA/*"]\nbravo = ["*/vehB/*"]\n'
+#: columns that differ between two analyses of the same log (when, where, how long)
+RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "peak_rss_mb", "path"}
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("fleet")
+    for folder, name, seed, year, theta in FLIGHTS:
+        (root / folder).mkdir(exist_ok=True)
+        rc = main(
+            [
+                "simulate",
+                "--scenario",
+                "ordinary",
+                "--duration",
+                "60",
+                "--compasses",
+                "1",
+                "--seed",
+                str(seed),
+                "--year",
+                year,
+                "--set",
+                "theta_mgauss=" + ",".join(map(str, theta)),
+                "--out",
+                str(root / folder / name),
+            ]
+        )
+        assert rc == 0
+    (root / "vehB" / "broken.tlog").write_bytes(bytes((i * 7919) % 251 for i in range(40_000)))
+    (root / "vehicles.toml").write_text(VEHICLES_TOML)
+    return root
+
+
+@pytest.fixture(scope="module")
+def analysed(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The whole fleet, in this process, uninterrupted: the reference the other runs are compared with."""
+    out = tmp_path_factory.mktemp("out")
+    assert (
+        main(
+            [
+                "fleet",
+                str(fleet),
+                "--out",
+                str(out),
+                "--workers",
+                "0",
+                "--vehicles",
+                str(fleet / "vehicles.toml"),
+            ]
+        )
+        == 0
+    )
+    return out
+
+
+def _rows(out: Path) -> list[dict[str, Any]]:
+    return sorted(store.read_rows(out).to_pylist(), key=lambda r: (r["path"], r["compass"] or 0))
+
+
+def _comparable(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{k: v for k, v in r.items() if k not in RUN_COLUMNS} for r in rows]
+
+
+def test_every_log_is_a_row_and_the_corrupt_one_a_failure(analysed: Path, fleet: Path) -> None:
+    rows = _rows(analysed)
+    assert len({r["sha256"] for r in rows}) == len(FLIGHTS) + 1
+    broken = [r for r in rows if r["file_name"] == "broken.tlog"]
+    assert len(broken) == 1 and broken[0]["status"] == "failed"
+    assert broken[0]["error"] and "\n" not in broken[0]["error"] and "Traceback" not in broken[0]["error"]
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) == len(FLIGHTS) and all(r["applied"] for r in ok)
+    assert {r["vehicle"] for r in rows} == {"alpha", "bravo"}
+    for r in ok:
+        assert r["autopilot"] == "ArduPilot" and r["format"] == "tlog"
+        assert r["date_source"] == "gps-system-time" and r["date_utc"].year == 2026
+        assert 55.0 < r["duration_s"] <= 60.5
+        assert 0.0 <= r["throttle_min"] < r["throttle_max"] <= 1.0 and r["yaw_span_deg"] > 90.0
+        norm = math.hypot(r["theta_x_mgauss"], r["theta_y_mgauss"], r["theta_z_mgauss"])
+        assert r["interference_pct"] == pytest.approx(100.0 * norm / r["earth_field_mgauss"])
+        assert r["theta_sigma_x_mgauss"] > 0 and r["heading_sigma_deg"] > 0
+    # the two vehicles' theta told apart: each flight's theta nearer its own truth than the other's
+    for r in ok:
+        truth = (
+            THETA_A if r["vehicle"] == "alpha" else (THETA_B1 if r["file_name"] < "flight03" else THETA_B2)
+        )
+        est = (r["theta_x_mgauss"], r["theta_y_mgauss"], r["theta_z_mgauss"])
+        assert math.dist(est, truth) < 30.0, (r["file_name"], r["vehicle"], est)
+    # the dataset reads as one table with pyarrow's dataset reader too
+    import pyarrow.dataset as ds
+
+    assert ds.dataset(analysed / "logs", format="parquet").to_table().num_rows == len(rows)
+
+
+def test_the_change_is_found_at_its_flight_and_only_there(analysed: Path) -> None:
+    doc = json.loads((analysed / "vehicles.json").read_text())
+    by_name = {v["vehicle"]: v for v in doc["vehicles"]}
+    assert [v["vehicle"] for v in doc["vehicles"]] == ["bravo", "alpha"]  # the changed one first
+    bravo = by_name["bravo"]["compasses"][0]
+    assert [(c["file_name"], c["confirmed"], c["at_flight"]) for c in bravo["changes"]] == [
+        ("flight03.tlog", True, 2)
+    ]
+    assert math.dist(bravo["changes"][0]["before_mgauss"], THETA_B1) < 25.0
+    assert math.dist(bravo["changes"][0]["after_mgauss"], THETA_B2) < 25.0
+    assert by_name["alpha"]["compasses"][0]["changes"] == []
+    assert by_name["bravo"]["failed"] == 1 and by_name["alpha"]["failed"] == 0
+
+
+def test_a_rerun_skips_what_is_done_and_analyses_only_the_new(
+    fleet: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for name in ("flight01.tlog", "flight02.tlog"):
+        shutil.copy(fleet / "vehA" / name, logs / name)
+    out = tmp_path / "out"
+    assert main(["fleet", str(logs), "--out", str(out), "--workers", "0"]) == 0
+    first = {p.name: p.stat().st_mtime_ns for p in (out / "logs").glob("*.parquet")}
+    assert len(first) == 2
+    capsys.readouterr()
+    shutil.copy(fleet / "vehA" / "flight03.tlog", logs / "flight03.tlog")
+    shutil.copy(logs / "flight01.tlog", logs / "same-bytes-other-name.tlog")  # the content is the key
+    assert main(["fleet", str(logs), "--out", str(out), "--workers", "0"]) == 0
+    text = capsys.readouterr().out
+    assert "4 logs found, 2 done before (skipped), 1 duplicate file(s); analysing 1" in text
+    second = {p.name: p.stat().st_mtime_ns for p in (out / "logs").glob("*.parquet")}
+    assert len(second) == 3 and all(second[k] == v for k, v in first.items())
+    # another magcomp version's part: kept unless asked
+    sha = next(iter(first)).removesuffix(".parquet")
+    old = [{**r, "magcomp_version": "0.0.1"} for r in store.read_rows(out, [sha]).to_pylist()]
+    store.write_part(out, sha, old, "0.0.1")
+    assert main(["fleet", str(logs), "--out", str(out), "--workers", "0"]) == 0
+    assert "analysing 0" in capsys.readouterr().out
+    assert main(["fleet", str(logs), "--out", str(out), "--workers", "0", "--rerun-outdated"]) == 0
+    assert "analysing 1" in capsys.readouterr().out
+    assert store.done(out)[sha] != "0.0.1"
+    assert main(["fleet", str(logs), "--out", str(out), "--workers", "0", "--rerun-all"]) == 0
+    assert "analysing 3" in capsys.readouterr().out
+
+
+def test_kill_9_halfway_then_resume_gives_the_uninterrupted_table(
+    fleet: Path, analysed: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    argv = [
+        sys.executable,
+        "-m",
+        "magcomp",
+        "fleet",
+        str(fleet),
+        "--out",
+        str(out),
+        "--workers",
+        "0",
+        "--vehicles",
+        str(fleet / "vehicles.toml"),
+    ]
+    env = {**os.environ, "CI": "1"}
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    try:
+        wait_for(
+            lambda: any((out / "logs").glob("*.parquet")) or proc.poll() is not None, 120, "a first part"
+        )
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    (out / "logs" / ".deadbeef.123.tmp").write_bytes(b"PAR1 half")  # what a kill during a write leaves
+    before = {p.name: p.stat().st_mtime_ns for p in (out / "logs").glob("*.parquet")}
+    assert before, "the run was killed before its first part"
+    res = subprocess.run(argv, capture_output=True, text=True, env=env, check=True, timeout=300)
+    n = len(FLIGHTS) + 1
+    assert f"{n} logs found, {len(before)} done before (skipped); analysing {n - len(before)}" in res.stdout
+    after = {p.name: p.stat().st_mtime_ns for p in (out / "logs").glob("*.parquet")}
+    assert all(after[k] == v for k, v in before.items())  # no finished log analysed twice
+    assert not list((out / "logs").glob(".*"))  # the leftover removed
+    assert _comparable(_rows(out)) == _comparable(_rows(analysed))
+
+
+def test_local_dask_cluster_gives_the_same_rows(fleet: Path, analysed: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    logs = [str(fleet / "vehB" / n) for n in ("flight01.tlog", "flight02.tlog", "broken.tlog")]
+    assert (
+        main(
+            [
+                "fleet",
+                *logs,
+                "--out",
+                str(out),
+                "--workers",
+                "2",
+                "--memory-limit",
+                "2GiB",
+                "--vehicles",
+                str(fleet / "vehicles.toml"),
+            ]
+        )
+        == 0
+    )
+    mine = _comparable(_rows(out))
+    ref = [r for r in _comparable(_rows(analysed)) if r["sha256"] in {m["sha256"] for m in mine}]
+    assert len(mine) == 3 and mine == ref
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_separate_scheduler_and_worker_processes_on_loopback(
+    fleet: Path, analysed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    dask_cli = [str(Path(sys.executable).parent / "dask")]
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        sched = subprocess.Popen(
+            [*dask_cli, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        procs.append(sched)
+        assert sched.stderr is not None
+        sched_lines = LineReader(sched.stderr)
+        wait_for(lambda: sched_lines.has("Scheduler at") or sched.poll() is not None, 120, "the scheduler")
+        worker = subprocess.Popen(
+            [
+                *dask_cli,
+                "worker",
+                addr,
+                "--nthreads",
+                "1",
+                "--nworkers",
+                "1",
+                "--memory-limit",
+                "2GiB",
+                "--no-dashboard",
+            ],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        procs.append(worker)
+        assert worker.stderr is not None
+        worker_lines = LineReader(worker.stderr)
+        wait_for(lambda: worker_lines.has("Registered to") or worker.poll() is not None, 120, "the worker")
+        out = tmp_path / "out"
+        logs = [str(fleet / "vehA" / "flight01.tlog"), str(fleet / "vehB" / "broken.tlog")]
+        assert (
+            main(
+                [
+                    "fleet",
+                    *logs,
+                    "--out",
+                    str(out),
+                    "--scheduler",
+                    addr,
+                    "--vehicles",
+                    str(fleet / "vehicles.toml"),
+                ]
+            )
+            == 0
+        )
+        assert f"analysing 2 on {addr}" in capsys.readouterr().out
+    finally:
+        for p in reversed(procs):
+            p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    mine = _comparable(_rows(out))
+    ref = [r for r in _comparable(_rows(analysed)) if r["sha256"] in {m["sha256"] for m in mine}]
+    assert len(mine) == 2 and mine == ref
+
+
+@pytest.mark.parametrize(
+    ("argv", "fragment"),
+    [
+        (["{tmp}/nowhere"], "no such file or folder"),
+        (["{tmp}/empty"], "no logs"),
+        (["{tmp}/empty", "--vehicles", "{tmp}/bad.toml"], "--vehicles"),
+        (["{tmp}/empty", "--vehicles", "{tmp}/none.toml"], "no such file"),
+        (["{tmp}/empty", "--scheduler", "127.0.0.1:8786"], "tcp://HOST:8786"),
+        (["{tmp}/empty", "--workers", "-1"], "--workers"),
+        (["{tmp}/empty", "--config", "{tmp}/none.toml"], "config"),
+        (["report"], "usage"),
+        (["report", "{tmp}/empty"], "no fleet results"),
+    ],
+)
+def test_bad_input_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], fragment: str
+) -> None:
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "bad.toml").write_text("[vehicles]\nx = 3\n")
+    args = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    rc = main(["fleet", *args, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc != 0
+    assert fragment in err
+    assert err.count("\n") == 1 and err.startswith("magcomp fleet: error:")
+
+
+def test_an_unreachable_scheduler_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fleet: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from magcomp.fleet import engine
+
+    monkeypatch.setattr(engine, "CONNECT_TIMEOUT_S", 1)
+    addr = f"tcp://127.0.0.1:{_free_port()}"
+    rc = main(
+        ["fleet", str(fleet / "vehA" / "flight01.tlog"), "--out", str(tmp_path / "o"), "--scheduler", addr]
+    )
+    err = capsys.readouterr().err
+    assert rc != 0 and "cannot connect" in err and err.count("\n") == 1
+
+
+def test_parts_are_written_whole(tmp_path: Path) -> None:
+    rows = [{"sha256": "ab", "path": "x", "status": "failed", "error": "bad", "wall_s": math.nan}]
+    p = store.write_part(tmp_path, "ab", rows, "9.9")
+    t = pq.read_table(p)
+    assert t.schema.equals(store.SCHEMA) and t.column("wall_s").to_pylist() == [None]
+    assert store.done(tmp_path) == {"ab": "9.9"}
+    assert not list((tmp_path / "logs").glob(".*"))
