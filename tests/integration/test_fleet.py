@@ -362,3 +362,39 @@ def test_parts_are_written_whole(tmp_path: Path) -> None:
     assert t.schema.equals(store.SCHEMA) and t.column("wall_s").to_pylist() == [None]
     assert store.done(tmp_path) == {"ab": "9.9"}
     assert not list((tmp_path / "logs").glob(".*"))
+
+
+def test_report_is_one_self_contained_page(analysed: Path, tmp_path: Path) -> None:
+    import base64
+    from html.parser import HTMLParser
+
+    page = tmp_path / "r" / "fleet.html"
+    assert main(["fleet", "report", str(analysed), "--html", str(page)]) == 0
+
+    class Page(HTMLParser):
+        def __init__(self) -> None:
+            super().__init__()
+            self.images: list[str] = []
+            self.links: list[str] = []
+            self.cells: list[str] = []
+
+        def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+            a = dict(attrs)
+            if tag == "img":
+                self.images.append(a.get("src") or "")
+            for key in ("href", "src"):
+                if a.get(key) and not str(a[key]).startswith(("#", "data:")):
+                    self.links.append(str(a[key]))
+
+        def handle_data(self, data: str) -> None:
+            self.cells.append(data)
+
+    p = Page()
+    p.feed(page.read_text(encoding="utf-8"))
+    assert p.links == []  # opens from disk: nothing fetched
+    assert len(p.images) == 2  # alpha and bravo have applied flights
+    for src in p.images:
+        assert base64.b64decode(src.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
+    text = " ".join(p.cells)
+    assert "theta changed" in text and "flight03.tlog" in text and "broken.tlog" in text
+    assert text.index("bravo") < text.index("alpha")  # the inspect list: the changed vehicle first
