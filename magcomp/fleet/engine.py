@@ -8,6 +8,7 @@ system) but not the output folder.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -56,13 +57,13 @@ def plan(logs: list[Path], out: Path, rerun: str = "none", config: str | None = 
     """Hash every log; skip those with a part already (``rerun``: ``none``; ``outdated``: also analyse those
     a different magcomp version did; ``all``: analyse everything again)."""
     done = store.done(out)
+    hashes = _HashCache(out)
     tasks: list[LogTask] = []
     seen: set[str] = set()
     skipped = duplicates = outdated = 0
     for p in logs:
         try:
-            sha = content_hash(p)
-            size = p.stat().st_size
+            sha, size = hashes.get(p)
         except OSError as exc:
             raise InputError(f"{p}: unreadable ({exc.strerror or type(exc).__name__})") from None
         if sha in seen:
@@ -79,7 +80,45 @@ def plan(logs: list[Path], out: Path, rerun: str = "none", config: str | None = 
                     outdated += 1
                 continue
         tasks.append(LogTask(path=str(p), sha256=sha, size_bytes=size, config=config))
+    hashes.save()
     return Plan(tasks, len(logs), skipped, duplicates, outdated)
+
+
+class _HashCache:
+    """The content hash of each file seen before, by (absolute path, size, modification time in ns): a
+    re-run does not read every log again to find it done. ``OUT/hashes.json``; any doubt: hash again."""
+
+    NAME = "hashes.json"
+
+    def __init__(self, out: Path) -> None:
+        self.path = out / self.NAME
+        self.known: dict[str, list[Any]] = {}
+        self.changed = False
+        try:
+            doc = json.loads(self.path.read_text(encoding="utf-8"))
+            if isinstance(doc, dict):
+                self.known = {k: v for k, v in doc.items() if isinstance(v, list) and len(v) == 3}
+        except (OSError, ValueError):
+            pass
+
+    def get(self, p: Path) -> tuple[str, int]:
+        key = str(p.resolve())
+        st = p.stat()
+        hit = self.known.get(key)
+        if hit is not None and hit[0] == st.st_size and hit[1] == st.st_mtime_ns and isinstance(hit[2], str):
+            return hit[2], st.st_size
+        sha = content_hash(p)
+        self.known[key] = [st.st_size, st.st_mtime_ns, sha]
+        self.changed = True
+        return sha, st.st_size
+
+    def save(self) -> None:
+        if not self.changed:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(f".{self.NAME}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(self.known), encoding="utf-8")
+        os.replace(tmp, self.path)
 
 
 def _apply_map(rows: list[dict[str, Any]], vmap: VehicleMap) -> list[dict[str, Any]]:

@@ -147,13 +147,13 @@ def write_part(out: Path, sha256: str, rows: list[dict[str, Any]], version: str)
 
 def clean_leftovers(out: Path) -> int:
     """Remove the temporary files a killed run left; how many."""
-    d = logs_dir(out)
     n = 0
-    if d.is_dir():
-        for p in d.glob(".*.tmp"):
-            with contextlib.suppress(OSError):
-                p.unlink()
-                n += 1
+    for d in (logs_dir(out), out):
+        if d.is_dir():
+            for p in d.glob(".*.tmp"):
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    n += 1
     return n
 
 

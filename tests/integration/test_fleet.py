@@ -174,6 +174,12 @@ def test_a_rerun_skips_what_is_done_and_analyses_only_the_new(
     assert store.done(out)[sha] != "0.0.1"
     assert main(["fleet", str(logs), "--out", str(out), "--workers", "0", "--rerun-all"]) == 0
     assert "analysing 3" in capsys.readouterr().out
+    # a log changed in place (same name): new content, a new key, analysed (the hash cache is not fooled)
+    assert (out / "hashes.json").exists()
+    with open(logs / "flight02.tlog", "ab") as f:
+        f.write(bytes(16))
+    assert main(["fleet", str(logs), "--out", str(out), "--workers", "0"]) == 0
+    assert "4 logs found, 2 done before (skipped), 1 duplicate file(s); analysing 1" in capsys.readouterr().out
 
 
 def test_kill_9_halfway_then_resume_gives_the_uninterrupted_table(
