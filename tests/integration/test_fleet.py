@@ -7,11 +7,13 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -179,7 +181,9 @@ def test_a_rerun_skips_what_is_done_and_analyses_only_the_new(
     with open(logs / "flight02.tlog", "ab") as f:
         f.write(bytes(16))
     assert main(["fleet", str(logs), "--out", str(out), "--workers", "0"]) == 0
-    assert "4 logs found, 2 done before (skipped), 1 duplicate file(s); analysing 1" in capsys.readouterr().out
+    assert (
+        "4 logs found, 2 done before (skipped), 1 duplicate file(s); analysing 1" in capsys.readouterr().out
+    )
 
 
 def test_kill_9_halfway_then_resume_gives_the_uninterrupted_table(
@@ -404,3 +408,34 @@ def test_report_is_one_self_contained_page(analysed: Path, tmp_path: Path) -> No
     text = " ".join(p.cells)
     assert "theta changed" in text and "flight03.tlog" in text and "broken.tlog" in text
     assert text.index("bravo") < text.index("alpha")  # the inspect list: the changed vehicle first
+
+
+@pytest.mark.browser
+def test_report_opens_from_disk_in_headless_chromium(analysed: Path, tmp_path: Path) -> None:
+    binary = next((b for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)), None)
+    if binary is None:
+        pytest.skip("Chromium is not installed (apt-get install chromium)")
+    page = tmp_path / "fleet.html"
+    assert main(["fleet", "report", str(analysed), "--html", str(page)]) == 0
+    # a copy with a probe: once loaded, the body carries each image's decoded width (-1: not loaded)
+    probe = tmp_path / "probe.html"
+    probe.write_text(
+        page.read_text(encoding="utf-8").replace(
+            "</body>",
+            "<script>window.addEventListener('load', () => document.body.setAttribute('data-images', "
+            "Array.from(document.images).map(i => i.complete ? i.naturalWidth : -1).join(',')));</script>"
+            "</body>",
+        ),
+        encoding="utf-8",
+    )
+    with tempfile.TemporaryDirectory(prefix="magcomp-chromium-") as profile:
+        res = subprocess.run(
+            [binary, "--headless", "--no-sandbox", "--disable-gpu", f"--user-data-dir={profile}",
+             "--virtual-time-budget=10000", "--dump-dom", probe.as_uri()],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    found = re.search(r'data-images="([^"]*)"', res.stdout)
+    assert found is not None, res.stderr[-2000:]
+    widths = [int(w) for w in found.group(1).split(",")]
+    assert len(widths) == 2 and all(w > 100 for w in widths)
+    assert "Vehicles to inspect" in res.stdout and "bravo" in res.stdout
