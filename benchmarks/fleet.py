@@ -68,7 +68,7 @@ def main() -> int:
         print(f"{len(logs)} logs, {size_mb:.1f} MB")
         walls: dict[int, float] = {}
         for w in args.workers:
-            startup = _startup_s(w)
+            startup = _startup_s(w) if w > 0 else 0.0  # 0: in this process, no cluster
             out = root / f"out{w}"
             p = engine.plan(logs, out)
             st = engine.run(p.tasks, out, workers=w, progress=False)
