@@ -111,12 +111,20 @@ def _unix_datetime(unix_s: float) -> datetime | None:
     return when if when.year <= 2100 else None
 
 
+def canonical_uid(words: list[str]) -> str:
+    """The board's 96-bit id from its three 32-bit words as printed at boot. ArduPilot versions print the
+    words in different byte orders (3.1: "2D001A00 17473235 ...", 3.2: "001A002D 35324717 ..." on the same
+    board): the smaller of the two spellings is the id, so that both name one vehicle."""
+    swapped = ["".join(reversed([w[i : i + 2] for i in range(0, 8, 2)])) for w in words]
+    return min("".join(words), "".join(swapped))
+
+
 def _text(ident: LogIdentity, text: str) -> None:
     """A boot message: the firmware line or the board's unique id line."""
     m = _BOARD_LINE.match(text)
     if m and not ident.board_uid:
         ident.board = m.group(1)
-        ident.board_uid = "".join(g.upper() for g in m.groups()[1:])
+        ident.board_uid = canonical_uid([g.upper() for g in m.groups()[1:]])
         return
     f = _FIRMWARE_LINE.search(text)
     if f and not ident.firmware:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from magcomp.fleet.identity import scan_identity
+from magcomp.fleet.identity import canonical_uid, scan_identity
 
 SHARED = Path(__file__).parents[2].parent / "shared" / "data" / "measured"
 
@@ -129,5 +129,14 @@ def test_measured_dataflash_logs_name_their_board() -> None:
     assert (a.board, a.firmware) == ("PX4v2", "APM:Copter V3.3-dev")
     assert a.board_uid == "004A002F3334511932383433" and a.date_utc is not None and a.date_utc.year == 2015
     b = scan_identity(text)
-    assert b.firmware == "ArduCopter V3.1" and b.board_uid == "260026000A47323433353231"
+    # printed "26002600 0A473234 33353231"
+    assert b.firmware == "ArduCopter V3.1" and b.board_uid == "002600263432470A31323533"
     assert b.date_utc is not None and b.date_utc.year == 2014
+
+
+def test_a_board_id_printed_in_either_byte_order_is_one_id() -> None:
+    # ArduCopter 3.1.5 and 3.2 on one board (squilter/gridlines' kresge logs)
+    a = canonical_uid(["2D001A00", "17473235", "32303436"])
+    b = canonical_uid(["001A002D", "35324717", "36343032"])
+    assert a == b == "001A002D3532471736343032"
+    assert canonical_uid(["001A002D", "35324717", "36343033"]) != a
