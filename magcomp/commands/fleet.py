@@ -75,6 +75,14 @@ def execute(args: argparse.Namespace) -> int:
         raise InputError("--html goes with `magcomp fleet report DIR`")
     if args.workers is not None and args.workers < 0:
         raise InputError(f"--workers {args.workers}: expected 0 or more")
+    if args.memory_limit != "auto":
+        from dask.utils import parse_bytes
+
+        try:
+            if parse_bytes(args.memory_limit) <= 0:
+                raise ValueError
+        except (ValueError, TypeError):
+            raise InputError(f"--memory-limit {args.memory_limit}: expected a size (2GiB) or auto") from None
     if args.scheduler is not None and args.workers is not None:
         raise InputError("--workers is for the local cluster; an existing cluster (--scheduler) has its own")
     if args.scheduler is not None and not args.scheduler.startswith(

@@ -333,6 +333,8 @@ def test_separate_scheduler_and_worker_processes_on_loopback(
         (["{tmp}/empty", "--vehicles", "{tmp}/none.toml"], "no such file"),
         (["{tmp}/empty", "--scheduler", "127.0.0.1:8786"], "tcp://HOST:8786"),
         (["{tmp}/empty", "--workers", "-1"], "--workers"),
+        (["{tmp}/empty", "--memory-limit", "lots"], "--memory-limit"),
+        (["{tmp}/empty", "--memory-limit", "0"], "--memory-limit"),
         (["{tmp}/empty", "--config", "{tmp}/none.toml"], "config"),
         (["report"], "usage"),
         (["report", "{tmp}/empty"], "no fleet results"),
