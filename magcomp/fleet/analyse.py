@@ -156,6 +156,8 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
         rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=exc_stats.add)
     finally:
         replay_mod.OBSERVER_PROCESS, replay_mod.INFLIGHT_PROCESS = saved
+    if rep.interrupted:  # ^C: the replay kept a partial result; it must not become this log's row
+        raise KeyboardInterrupt
     summary = rep.summary
     if not summary["counts"].get("mag"):
         raise InputError(f"{path.name}: no magnetometer messages in the log, nothing to correct")

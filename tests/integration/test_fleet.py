@@ -441,3 +441,22 @@ def test_report_opens_from_disk_in_headless_chromium(analysed: Path, tmp_path: P
     widths = [int(w) for w in found.group(1).split(",")]
     assert len(widths) == 2 and all(w > 100 for w in widths)
     assert "Vehicles to inspect" in res.stdout and "bravo" in res.stdout
+
+
+def test_an_interrupted_replay_is_not_written_as_done(
+    fleet: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from types import SimpleNamespace
+
+    from magcomp.fleet import engine
+    from magcomp.service import replay
+
+    def interrupted(*args: Any, **kw: Any) -> Any:  # what replay_log returns after a ^C in its first pass
+        return SimpleNamespace(interrupted=True, summary={"counts": {"mag": 10}, "compasses": []})
+
+    monkeypatch.setattr(replay, "replay_log", interrupted)
+    out = tmp_path / "out"
+    p = engine.plan([fleet / "vehA" / "flight01.tlog"], out)
+    with pytest.raises(KeyboardInterrupt):
+        engine.run(p.tasks, out, workers=0, progress=False)
+    assert store.done(out) == {}
