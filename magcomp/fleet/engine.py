@@ -214,7 +214,9 @@ def run(
         )
         for task, rows in results:
             rows = _apply_map(rows, vmap)
-            store.write_part(out, task.sha256, rows, __version__)
+            # the version that analysed it (a remote worker's may differ from this process's)
+            version = str(rows[0].get("magcomp_version") or __version__) if rows else __version__
+            store.write_part(out, task.sha256, rows, version)
             st.analysed += 1
             st.rows += len(rows)
             if rows and rows[0].get("status") == "ok":
@@ -249,7 +251,7 @@ def _dask(
     cluster: Any = None
     with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
         if scheduler is None:
-            n = workers if workers is not None else (os.cpu_count() or 1)
+            n = workers if workers is not None else len(os.sched_getaffinity(0))
             cluster = LocalCluster(
                 n_workers=n,
                 threads_per_worker=1,
