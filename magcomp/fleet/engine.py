@@ -8,6 +8,7 @@ system) but not the output folder.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -201,8 +202,39 @@ def run(
     in this process, one log after another (no Dask).
     """
     vmap = vmap or VehicleMap()
-    store.clean_leftovers(out)
     store.logs_dir(out).mkdir(parents=True, exist_ok=True)
+    with _exclusive(out):
+        return _run(tasks, out, scheduler, workers, memory_limit, vmap, progress, on_done)
+
+
+@contextlib.contextmanager
+def _exclusive(out: Path) -> Iterator[None]:
+    """One run at a time per output folder (a second one would delete the first's temporary files); the
+    lock goes with the process, kill -9 included."""
+    import fcntl
+
+    with open(out / ".lock", "a+b") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise InputError(f"{out}: another magcomp fleet is writing there") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _run(
+    tasks: list[LogTask],
+    out: Path,
+    scheduler: str | None,
+    workers: int | None,
+    memory_limit: str,
+    vmap: VehicleMap,
+    progress: bool,
+    on_done: Callable[[LogTask, list[dict[str, Any]]], None] | None,
+) -> RunStats:
+    store.clean_leftovers(out)
     st = RunStats()
     t0 = time.perf_counter()
     bar = _Progress(len(tasks), progress)

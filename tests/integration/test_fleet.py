@@ -460,3 +460,19 @@ def test_an_interrupted_replay_is_not_written_as_done(
     with pytest.raises(KeyboardInterrupt):
         engine.run(p.tasks, out, workers=0, progress=False)
     assert store.done(out) == {}
+
+
+def test_a_second_run_on_the_same_folder_is_refused(fleet: Path, tmp_path: Path) -> None:
+    import fcntl
+
+    from magcomp.errors import InputError
+    from magcomp.fleet import engine
+
+    out = tmp_path / "out"
+    (out / "logs").mkdir(parents=True)
+    p = engine.plan([fleet / "vehA" / "flight01.tlog"], out)
+    with open(out / ".lock", "a+b") as f:  # what a running fleet holds
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(InputError, match="another magcomp fleet"):
+            engine.run(p.tasks, out, workers=0, progress=False)
+    assert store.done(out) == {}
