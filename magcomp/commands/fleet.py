@@ -133,14 +133,14 @@ def _run(args: argparse.Namespace) -> int:
             f"{st.cpu_s / max(st.analysed, 1):.2f} s CPU per log"
         )
     vehicles = _vehicles(out, vmap)
-    print(f"results: {out / 'logs'} (Parquet), {out / 'vehicles.json'}")
+    print(f"results: {out / 'logs'} (Parquet, per log), {out / 'vehicles.parquet'}, {out / 'vehicles.json'}")
     _print_inspect(vehicles)
     return 0
 
 
 def _vehicles(out: Path, vmap: Any) -> list[Any]:
     from magcomp.fleet import store
-    from magcomp.fleet.vehicles import summarise
+    from magcomp.fleet.vehicles import flat_rows, summarise
 
     rows = store.read_rows(out).to_pylist()
     vehicles = summarise(rows, vmap)
@@ -148,6 +148,7 @@ def _vehicles(out: Path, vmap: Any) -> list[Any]:
     tmp = out / ".vehicles.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, out / "vehicles.json")
+    store.write_table(out / "vehicles.parquet", flat_rows(vehicles))
     return vehicles
 
 

@@ -188,3 +188,20 @@ def read_rows(out: Path, shas: Iterable[str] | None = None) -> pa.Table:
     if not tables:
         return SCHEMA.empty_table()
     return pa.concat_tables(tables)
+
+
+def write_table(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Plain rows (types inferred; NaN -> null) as one Parquet file, atomically."""
+    clean = [
+        {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()}
+        for r in rows
+    ]
+    table = pa.Table.from_pylist(clean) if clean else pa.table({})
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        pq.write_table(table, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise

@@ -235,3 +235,57 @@ def interval_text(theta: list[float] | None, sigma: list[float] | None) -> str:
     t = ", ".join(f"{a:.0f}" for a in theta)
     s = ", ".join(f"{K_INTERVAL * b:.0f}" for b in sigma)
     return f"({t}) +- ({s})"
+
+
+_COMPASS_KEYS = (
+    "compass", "flights_applied", "flights_not_applied", "theta_x_mgauss", "theta_y_mgauss", "theta_z_mgauss",
+    "theta_sigma_x_mgauss", "theta_sigma_y_mgauss", "theta_sigma_z_mgauss", "changes_confirmed",
+    "last_change_file", "last_change_date", "last_change_confirmed", "last_change_mgauss",
+)  # fmt: skip
+
+
+def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
+    """One row per vehicle and compass (a vehicle without an applied theta: one row, compass None), in the
+    inspect order: for ``OUT/vehicles.parquet``."""
+    out: list[dict[str, Any]] = []
+    for rank, v in enumerate(vehicles, 1):
+        base = {
+            "rank": rank,
+            "vehicle": v.vehicle,
+            "identity_source": v.identity_source,
+            "autopilot": v.autopilot,
+            "firmware": v.firmware,
+            "logs": v.logs,
+            "failed": v.failed,
+            "first_date": v.first_date,
+            "last_date": v.last_date,
+            "score": v.score,
+            "reasons": " | ".join(v.reasons),
+        }
+        hist: list[CompassHistory | None] = [*v.compasses] or [None]
+        for h in hist:
+            row = dict(base)
+            row.update(dict.fromkeys(_COMPASS_KEYS))
+            if h is not None:
+                confirmed = [c for c in h.changes if c.confirmed]
+                last = h.changes[-1] if h.changes else None
+                lvl = h.level or [math.nan] * 3
+                sig = h.level_sigma or [math.nan] * 3
+                row.update(
+                    compass=h.compass,
+                    flights_applied=len(h.flights),
+                    flights_not_applied=h.not_applied,
+                    theta_x_mgauss=lvl[0],
+                    theta_y_mgauss=lvl[1],
+                    theta_z_mgauss=lvl[2],
+                    theta_sigma_x_mgauss=sig[0],
+                    theta_sigma_y_mgauss=sig[1],
+                    theta_sigma_z_mgauss=sig[2],
+                    changes_confirmed=len(confirmed),
+                    last_change_file=h.flights[last.index].file_name if last else None,
+                    last_change_date=h.flights[last.index].date_utc if last else None,
+                    last_change_confirmed=last.confirmed if last else None,
+                    last_change_mgauss=last.size if last else None,
+                )
+            out.append(row)
+    return out

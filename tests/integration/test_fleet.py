@@ -144,6 +144,11 @@ def test_the_change_is_found_at_its_flight_and_only_there(analysed: Path) -> Non
     assert math.dist(bravo["changes"][0]["after_mgauss"], THETA_B2) < 25.0
     assert by_name["alpha"]["compasses"][0]["changes"] == []
     assert by_name["bravo"]["failed"] == 1 and by_name["alpha"]["failed"] == 0
+    flat = pq.read_table(analysed / "vehicles.parquet").to_pylist()
+    assert [(r["rank"], r["vehicle"], r["changes_confirmed"], r["last_change_file"]) for r in flat] == [
+        (1, "bravo", 1, "flight03.tlog"),
+        (2, "alpha", 0, None),
+    ]
 
 
 def test_a_rerun_skips_what_is_done_and_analyses_only_the_new(

@@ -4,6 +4,7 @@ the mapping file applied afterwards, the ranking."""
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 from magcomp.fleet.discover import VehicleMap
@@ -83,3 +84,20 @@ def test_logs_without_a_date_follow_the_dated_ones_by_path() -> None:
     ]
     (v,) = summarise(rows)
     assert [f.file_name for f in v.compasses[0].flights] == ["f00.tlog", "f01.tlog", "f02.tlog"]
+
+
+def test_flat_rows_have_one_schema_whatever_the_vehicle(tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    from magcomp.fleet.store import write_table
+    from magcomp.fleet.vehicles import flat_rows
+
+    rows = [{"sha256": "x", "path": "/x.tlog", "vehicle": "failed", "status": "failed", "compass": None}]
+    rows += [_row("v1", i, (0.0, 0.0, 0.0), day=1 + i) for i in range(3)]
+    vs = summarise(rows)
+    flat = flat_rows(vs)
+    assert [r["vehicle"] for r in flat] == [v.vehicle for v in vs]
+    assert all(set(r) == set(flat[0]) for r in flat)
+    write_table(tmp_path / "v.parquet", flat)
+    t = pq.read_table(tmp_path / "v.parquet")
+    assert t.num_rows == 2 and t.column("flights_applied").to_pylist().count(3) == 1
