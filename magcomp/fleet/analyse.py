@@ -214,6 +214,8 @@ def _compass_row(base: dict[str, Any], c: dict[str, Any], earth_norm: float) -> 
     if not applied and inflight.get("why_not_applied"):
         why = str(inflight["why_not_applied"])
     thr_max = _f(base.get("throttle_max"))
+    # not applied: theta was not determined (the replay reports it as zero), so no interference either
+    fraction = (norm / earth_norm if earth_norm > 0 else math.nan) if applied else math.nan
     row = {
         **base,
         "compass": int(c.get("index", -1)),
@@ -238,11 +240,9 @@ def _compass_row(base: dict[str, Any], c: dict[str, Any], earth_norm: float) -> 
         "yaw_span_deg": _f(inflight.get("yaw_span_deg")),
         "throttle2_std": _f(inflight.get("throttle2_std")),
         # ArduPilot's compassmot: |motor bias at full throttle| / |Earth field| * 100 (eq. (11): theta * 1^2)
-        "interference_pct": 100.0 * norm / earth_norm if earth_norm > 0 else math.nan,
-        "interference_pct_sigma": 100.0 * norm_sigma / earth_norm if earth_norm > 0 else math.nan,
+        "interference_pct": 100.0 * fraction,
+        "interference_pct_sigma": 100.0 * fraction * norm_sigma / norm if norm > 0 else math.nan,
         # ... and at the highest throttle this flight reached
-        "interference_flown_pct": (
-            100.0 * norm * thr_max**2 / earth_norm if earth_norm > 0 and math.isfinite(thr_max) else math.nan
-        ),
+        "interference_flown_pct": 100.0 * fraction * thr_max**2 if math.isfinite(thr_max) else math.nan,
     }
     return row

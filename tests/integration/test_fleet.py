@@ -481,3 +481,25 @@ def test_a_second_run_on_the_same_folder_is_refused(fleet: Path, tmp_path: Path)
         with pytest.raises(InputError, match="another magcomp fleet"):
             engine.run(p.tasks, out, workers=0, progress=False)
     assert store.done(out) == {}
+
+
+@pytest.mark.needs_shared
+def test_a_measured_log_without_theta_has_no_interference_figure(tmp_path: Path) -> None:
+    log = (
+        Path(__file__).parents[2].parent
+        / "shared"
+        / "data"
+        / "measured"
+        / "ardupilot_loganalyzer_nan_copter311.log"
+    )
+    if not log.exists():
+        pytest.skip("../shared/data/measured is absent")
+    out = tmp_path / "out"
+    assert main(["fleet", str(log), "--out", str(out), "--workers", "0"]) == 0
+    rows = _rows(out)
+    assert [r["compass"] for r in rows] == [0, 1]
+    for r in rows:
+        assert r["status"] == "ok" and r["applied"] is False and "not observable" in r["why"]
+        assert r["interference_pct"] is None and r["interference_flown_pct"] is None
+        assert r["firmware"] == "ArduCopter V3.1" and r["date_utc"].year == 2014
+        assert r["vehicle"] == "ardupilot:PX4v2-002600263432470A31323533"
