@@ -27,8 +27,6 @@ from magcomp.fleet.discover import VehicleMap
 
 #: the analyses a worker may lose (crash, memory limit) before its log is a failure row
 ALLOWED_FAILURES = 1
-#: seconds to reach an existing scheduler
-CONNECT_TIMEOUT_S = 30
 
 
 @dataclass
@@ -294,8 +292,8 @@ def _dask(
             )
             client = Client(cluster)
         else:
-            try:
-                client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+            try:  # waits up to Dask's distributed.comm.timeouts.connect (30 s unless configured)
+                client = Client(scheduler)
             except (OSError, TimeoutError, ValueError) as exc:
                 raise InputError(f"--scheduler {scheduler}: cannot connect ({type(exc).__name__})") from None
         try:
