@@ -19,6 +19,12 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+# pyarrow's jemalloc starts a background thread at import unless told not to; a process with that native
+# thread cannot fork the replay's observer and in-flight helpers (service/observer_process.py), so a library
+# user who reads fleet results and then replays a log would lose them. Set before pyarrow's first import
+# (no effect if something imported it already).
+os.environ.setdefault("JE_ARROW_MALLOC_CONF", "background_thread:false")
+
 import pyarrow as pa
 import pyarrow.parquet as pq
 

@@ -46,11 +46,16 @@ RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "peak_rss_mb", "path"}
 
 @pytest.fixture(autouse=True)
 def no_threads_left() -> Iterator[None]:
-    """No test here leaves a thread in the test process (later tests fork only from a single thread)."""
+    """No test here leaves a thread in the test process, Python's or a library's native one (pyarrow's
+    allocator, Dask's IO loop): later tests fork only from a single-threaded process."""
+    from magcomp.service.observer_process import _foreign_threads
+
     before = {t.ident for t in threading.enumerate()}
+    native = sorted(_foreign_threads())
     yield
     left = [t.name for t in threading.enumerate() if t.ident not in before and t.is_alive()]
     assert left == [], f"threads left running: {left}"
+    assert sorted(_foreign_threads()) == native, f"native threads: {native} -> {_foreign_threads()}"
 
 
 @pytest.fixture(scope="module")
