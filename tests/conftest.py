@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 import pytest
+
+# Before any test module imports pyarrow (magcomp fleet's results): its jemalloc would start a background
+# thread at import, and the replay's observer / in-flight helpers then rightly refuse to fork for the rest
+# of the session (magcomp/fleet/store.py sets the same for the product).
+os.environ.setdefault("JE_ARROW_MALLOC_CONF", "background_thread:false")
 
 
 def split_tlog_records(data: bytes) -> list[bytes]:

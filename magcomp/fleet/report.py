@@ -1,0 +1,180 @@
+"""`magcomp fleet report DIR`: one static HTML page (plots embedded as base64 PNG, no scripts, no network):
+the vehicles to inspect, each vehicle's theta over its flights with intervals and changes, every log's
+rows."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+import os
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from magcomp import __version__
+from magcomp.core.changes import K_INTERVAL
+from magcomp.fleet.vehicles import Vehicle, interval_text
+
+#: vehicles plotted (the most worth inspecting first); the rest are in the tables
+MAX_PLOTS = 30
+#: per-log rows shown (the dataset has them all)
+MAX_ROWS = 5000
+
+_CSS = """
+body { font-family: system-ui, sans-serif; margin: 1.5em; color: #222; }
+table { border-collapse: collapse; font-size: 0.85em; margin-bottom: 1.5em; }
+th, td { border: 1px solid #ccc; padding: 0.2em 0.5em; text-align: left; vertical-align: top; }
+th { background: #f0f0f0; }
+tr.failed td { background: #fde8e8; }
+tr.changed td { background: #fff4d6; }
+.num { text-align: right; font-variant-numeric: tabular-nums; }
+img { max-width: 100%; border: 1px solid #ddd; }
+"""
+
+
+def _e(v: Any) -> str:
+    return html.escape("" if v is None else str(v))
+
+
+def _num(v: Any, fmt: str = ".1f") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    return format(v, fmt)
+
+
+def _png(fig: Any) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _theta_plot(v: Vehicle) -> str | None:
+    """theta x, y, z per flight (applied ones) with +-k sigma, one column per compass; changes marked."""
+    hist = [h for h in v.compasses if h.flights]
+    if not hist:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    fig, axes = plt.subplots(3, len(hist), figsize=(4.2 * len(hist) + 1, 6), squeeze=False, sharex="col")
+    try:
+        for col, h in enumerate(hist):
+            xs = list(range(1, len(h.flights) + 1))
+            for row, axis in enumerate("xyz"):
+                ax = axes[row][col]
+                ys = [f.theta[row] for f in h.flights]
+                es = [K_INTERVAL * f.sigma[row] for f in h.flights]
+                ax.errorbar(xs, ys, yerr=es, fmt="o", ms=3, capsize=2)
+                for c in h.changes:
+                    ax.axvline(c.index + 0.5, color="tab:red" if c.confirmed else "tab:orange", ls="--")
+                ax.set_ylabel(f"theta {axis} (mgauss)")
+                if row == 0:
+                    ax.set_title(f"compass {h.compass}")
+            axes[2][col].set_xlabel("flight (applied, in order)")
+            axes[2][col].xaxis.set_major_locator(MaxNLocator(integer=True))
+        fig.suptitle(v.vehicle)
+        return _png(fig)
+    finally:
+        plt.close(fig)
+
+
+def write_report(path: Path, vehicles: list[Vehicle], rows: list[dict[str, Any]]) -> None:
+    """The page, written atomically."""
+    parts: list[str] = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        "<title>magcomp fleet report</title>",
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>magcomp fleet report</h1>",
+    ]
+    n_logs = len({r["sha256"] for r in rows})
+    n_failed = len({r["sha256"] for r in rows if r.get("status") != "ok"})
+    made = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+    parts.append(
+        f"<p>{len(vehicles)} vehicles, {n_logs} logs ({n_failed} failed). Made {made} by magcomp "
+        f"{_e(__version__)}. Intervals are &plusmn;{K_INTERVAL:g} standard deviations.</p>"
+    )
+    parts.append("<h2 id='inspect'>Vehicles to inspect</h2>")
+    parts.append(
+        "<table><tr><th>#</th><th>vehicle</th><th>logs</th><th>failed</th><th>last flight</th>"
+        "<th>theta now (mgauss)</th><th>score</th><th>why</th></tr>"
+    )
+    for i, v in enumerate(vehicles, 1):
+        changed = any(c.confirmed for h in v.compasses for c in h.changes)
+        thetas = "<br>".join(
+            f"compass {h.compass}: {_e(interval_text(h.level, h.level_sigma))}"
+            for h in v.compasses
+            if h.level is not None
+        )
+        last = v.last_date.strftime("%Y-%m-%d") if v.last_date else ""
+        parts.append(
+            f"<tr class='{'changed' if changed else ''}'><td class='num'>{i}</td>"
+            f"<td><a href='#v{i}'>{_e(v.vehicle)}</a><br><small>{_e(v.identity_source)}; {_e(v.autopilot)} "
+            f"{_e(v.firmware)}</small></td><td class='num'>{v.logs}</td><td class='num'>{v.failed}</td>"
+            f"<td>{_e(last)}</td><td>{thetas}</td><td class='num'>{v.score:.0f}</td>"
+            f"<td>{'<br>'.join(_e(r) for r in v.reasons)}</td></tr>"
+        )
+    parts.append("</table>")
+    parts.append("<h2>Theta per vehicle over time</h2>")
+    for i, v in enumerate(vehicles, 1):
+        parts.append(f"<h3 id='v{i}'>{i}. {_e(v.vehicle)}</h3>")
+        for h in v.compasses:
+            for c in h.changes:
+                f = h.flights[c.index]
+                state = "changed" if c.confirmed else "may have changed (not yet confirmed)"
+                parts.append(
+                    f"<p>compass {h.compass}: theta {state} at {_e(f.file_name)} "
+                    f"({_e(f.date_utc.date() if f.date_utc else '')}): "
+                    f"{_e(interval_text(c.before.mean.tolist(), c.before.std.tolist()))} &rarr; "
+                    f"{_e(interval_text(c.after.mean.tolist(), c.after.std.tolist()))} mgauss</p>"
+                )
+        img = _theta_plot(v) if i <= MAX_PLOTS else None
+        if img is not None:
+            parts.append(f"<img alt='theta of {_e(v.vehicle)} per flight' src='data:image/png;base64,{img}'>")
+        elif i > MAX_PLOTS:
+            parts.append("<p>(not plotted: see the dataset)</p>")
+        else:
+            parts.append("<p>No flight with theta applied.</p>")
+    parts.append("<h2>Logs</h2>")
+    parts.append(
+        "<table><tr><th>file</th><th>vehicle</th><th>date</th><th>status</th><th>compass</th>"
+        "<th>applied</th><th>theta (mgauss)</th><th>interference %</th><th>yaw span deg</th>"
+        "<th>throttle</th><th>why / error</th></tr>"
+    )
+    ordered = sorted(rows, key=lambda r: (str(r.get("vehicle")), str(r.get("date_utc")), str(r.get("path"))))
+    for r in ordered[:MAX_ROWS]:
+        ok = r.get("status") == "ok"
+        theta = ""
+        if ok and r.get("theta_x_mgauss") is not None:
+            theta = interval_text(
+                [r["theta_x_mgauss"], r["theta_y_mgauss"], r["theta_z_mgauss"]],
+                [
+                    r.get("theta_sigma_x_mgauss") or math.nan,
+                    r.get("theta_sigma_y_mgauss") or math.nan,
+                    r.get("theta_sigma_z_mgauss") or math.nan,
+                ],
+            )
+        d = r.get("date_utc")
+        thr = f"{_num(r.get('throttle_min'), '.2f')}-{_num(r.get('throttle_max'), '.2f')}" if ok else ""
+        parts.append(
+            f"<tr class='{'' if ok else 'failed'}'>"
+            f"<td title='{_e(r.get('path'))}'>{_e(r.get('file_name'))}</td>"
+            f"<td>{_e(r.get('vehicle'))}</td><td>{_e(d.strftime('%Y-%m-%d %H:%M') if d else '')}</td>"
+            f"<td>{_e(r.get('status'))}</td><td class='num'>{_e(r.get('compass'))}</td>"
+            f"<td>{'yes' if r.get('applied') else ('no' if ok else '')}</td><td>{_e(theta)}</td>"
+            f"<td class='num'>{_num(r.get('interference_pct'))}</td>"
+            f"<td class='num'>{_num(r.get('yaw_span_deg'), '.0f')}</td><td>{thr}</td>"
+            f"<td>{_e(r.get('why') if ok else r.get('error'))}</td></tr>"
+        )
+    parts.append("</table>")
+    if len(ordered) > MAX_ROWS:
+        parts.append(f"<p>{len(ordered) - MAX_ROWS} more rows in the dataset.</p>")
+    parts.append("</body></html>\n")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("".join(parts), encoding="utf-8")
+    os.replace(tmp, path)

@@ -1,0 +1,291 @@
+"""Per vehicle: each compass's theta flight after flight (with intervals), the persistent changes
+(:mod:`magcomp.core.changes`), and the ranked list of vehicles to inspect."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+
+from magcomp.core.changes import K_INTERVAL, Change, find_changes, level_after
+from magcomp.fleet.discover import VehicleMap
+
+_THETA = ("theta_x_mgauss", "theta_y_mgauss", "theta_z_mgauss")
+_SIGMA = ("theta_sigma_x_mgauss", "theta_sigma_y_mgauss", "theta_sigma_z_mgauss")
+
+
+@dataclass
+class Flight:
+    sha256: str
+    file_name: str
+    date_utc: datetime | None
+    theta: list[float]
+    sigma: list[float]
+    heading_sigma_deg: float
+    interference_pct: float
+
+
+@dataclass
+class CompassHistory:
+    compass: int
+    flights: list[Flight]  # applied flights, in flight order
+    not_applied: int
+    changes: list[Change]
+    level: list[float] | None  # since the last confirmed change
+    level_sigma: list[float] | None
+
+    def change_rows(self) -> list[dict[str, Any]]:
+        return [
+            {
+                "at_flight": c.index,
+                "file_name": self.flights[c.index].file_name,
+                "date_utc": _iso(self.flights[c.index].date_utc),
+                "confirmed": c.confirmed,
+                "size_mgauss": c.size,
+                "z": c.z,
+                "before_mgauss": c.before.mean.tolist(),
+                "before_sigma_mgauss": c.before.std.tolist(),
+                "after_mgauss": c.after.mean.tolist(),
+                "after_sigma_mgauss": c.after.std.tolist(),
+            }
+            for c in self.changes
+        ]
+
+
+@dataclass
+class Vehicle:
+    vehicle: str
+    identity_source: str
+    autopilot: str
+    firmware: str
+    logs: int
+    failed: int
+    first_date: datetime | None
+    last_date: datetime | None
+    compasses: list[CompassHistory] = field(default_factory=list)
+    onboard_comp_wrong: int = 0
+    score: float = 0.0
+    reasons: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "vehicle": self.vehicle,
+            "identity_source": self.identity_source,
+            "autopilot": self.autopilot,
+            "firmware": self.firmware,
+            "logs": self.logs,
+            "failed": self.failed,
+            "first_date": _iso(self.first_date),
+            "last_date": _iso(self.last_date),
+            "score": self.score,
+            "reasons": self.reasons,
+            "compasses": [
+                {
+                    "compass": h.compass,
+                    "flights_applied": len(h.flights),
+                    "flights_not_applied": h.not_applied,
+                    "theta_mgauss": h.level,
+                    "theta_sigma_mgauss": h.level_sigma,
+                    "changes": h.change_rows(),
+                }
+                for h in self.compasses
+            ],
+        }
+
+
+def _iso(d: datetime | None) -> str | None:
+    return d.isoformat() if d is not None else None
+
+
+def _f(v: Any) -> float:
+    return float(v) if v is not None else math.nan
+
+
+def summarise(rows: list[dict[str, Any]], vmap: VehicleMap | None = None) -> list[Vehicle]:
+    """The vehicles of the dataset's rows, ranked (most worth inspecting first). ``vmap`` re-maps the
+    vehicles (a mapping file given after the logs were analysed)."""
+    if vmap is not None:
+        for r in rows:
+            name = vmap.vehicle(
+                str(r.get("path") or ""), str(r.get("sha256") or ""), str(r.get("vehicle_detected") or "")
+            )
+            if name is not None:
+                r["vehicle"], r["identity_source"] = name, "mapping file"
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(str(r.get("vehicle") or r.get("vehicle_detected") or "unknown"), []).append(r)
+    out = [_vehicle(name, rs) for name, rs in groups.items()]
+    for v in out:
+        _rank(v)
+    out.sort(key=lambda v: (-v.score, v.vehicle))
+    return out
+
+
+def _order_key(r: dict[str, Any]) -> tuple[float, str]:
+    d = r.get("date_utc")
+    return (d.timestamp() if isinstance(d, datetime) else math.inf, str(r.get("path") or ""))
+
+
+def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
+    rows = sorted(rows, key=_order_key)
+    logs = {r["sha256"]: r for r in rows}
+    failed = sum(1 for r in logs.values() if r.get("status") != "ok")
+    dates = [r["date_utc"] for r in rows if isinstance(r.get("date_utc"), datetime)]
+    ok = [r for r in rows if r.get("status") == "ok"]
+    last = ok[-1] if ok else rows[-1]
+    v = Vehicle(
+        vehicle=name,
+        identity_source=str(last.get("identity_source") or ""),
+        autopilot=str(last.get("autopilot") or ""),
+        firmware=str(last.get("firmware") or ""),
+        logs=len(logs),
+        failed=failed,
+        first_date=min(dates) if dates else None,
+        last_date=max(dates) if dates else None,
+    )
+    v.onboard_comp_wrong = len(
+        {
+            r["sha256"]
+            for r in ok
+            if "motor compensation" in str(r.get("warnings") or "")
+            and "was wrong" in str(r.get("warnings") or "")
+        }
+    )
+    for compass in sorted({int(r["compass"]) for r in ok if r.get("compass") is not None}):
+        mine = [r for r in ok if r.get("compass") == compass]
+        flights = []
+        for r in mine:
+            theta = [_f(r.get(k)) for k in _THETA]
+            sigma = [_f(r.get(k)) for k in _SIGMA]
+            good = all(math.isfinite(t) for t in theta) and all(math.isfinite(s) and s > 0 for s in sigma)
+            if r.get("applied") and good:
+                flights.append(
+                    Flight(
+                        str(r["sha256"]),
+                        str(r.get("file_name") or ""),
+                        r.get("date_utc"),
+                        theta,
+                        sigma,
+                        _f(r.get("heading_sigma_deg")),
+                        _f(r.get("interference_pct")),
+                    )
+                )
+        x = np.array([f.theta for f in flights], dtype=float).reshape(-1, 3)
+        s = np.array([f.sigma for f in flights], dtype=float).reshape(-1, 3)
+        changes = find_changes(x, s) if len(flights) >= 2 else []
+        level = level_after(x, s, changes) if flights else None
+        v.compasses.append(
+            CompassHistory(
+                compass,
+                flights,
+                len(mine) - len(flights),
+                changes,
+                level.mean.tolist() if level is not None else None,
+                level.std.tolist() if level is not None else None,
+            )
+        )
+    return v
+
+
+def _rank(v: Vehicle) -> None:
+    """A score to sort by (a heuristic, its parts given as reasons): a confirmed change 100, one pending 30,
+    a wrong onboard compensation 50, the interference % of the latest theta, twice the worst heading
+    uncertainty (deg) of the latest flight, 20 x the share of logs that failed."""
+    score = 0.0
+    reasons: list[str] = []
+    for h in v.compasses:
+        for c in h.changes:
+            f = h.flights[c.index]
+            if c.confirmed:
+                score += 100.0
+                reasons.append(f"compass {h.compass}: theta changed by {c.size:.0f} mgauss at {f.file_name}")
+            else:
+                score += 30.0
+                reasons.append(
+                    f"compass {h.compass}: theta may have changed at {f.file_name} (not yet confirmed)"
+                )
+        if h.flights:
+            last = h.flights[-1]
+            if math.isfinite(last.interference_pct):
+                score += last.interference_pct
+                if last.interference_pct >= 30.0:
+                    reasons.append(
+                        f"compass {h.compass}: interference {last.interference_pct:.0f} % "
+                        "(ArduPilot wants < 30 %)"
+                    )
+            if math.isfinite(last.heading_sigma_deg):
+                score += 2.0 * last.heading_sigma_deg
+    if v.onboard_comp_wrong:
+        score += 50.0
+        reasons.append(f"the autopilot's own motor compensation was wrong in {v.onboard_comp_wrong} log(s)")
+    if v.logs:
+        score += 20.0 * v.failed / v.logs
+        if v.failed:
+            reasons.append(f"{v.failed} of {v.logs} logs failed")
+    v.score = score
+    v.reasons = reasons
+
+
+def interval_text(theta: list[float] | None, sigma: list[float] | None) -> str:
+    if theta is None or sigma is None:
+        return "-"
+    t = ", ".join(f"{a:.0f}" for a in theta)
+    s = ", ".join(f"{K_INTERVAL * b:.0f}" for b in sigma)
+    return f"({t}) +- ({s})"
+
+
+_COMPASS_KEYS = (
+    "compass", "flights_applied", "flights_not_applied", "theta_x_mgauss", "theta_y_mgauss", "theta_z_mgauss",
+    "theta_sigma_x_mgauss", "theta_sigma_y_mgauss", "theta_sigma_z_mgauss", "changes_confirmed",
+    "last_change_file", "last_change_date", "last_change_confirmed", "last_change_mgauss",
+)  # fmt: skip
+
+
+def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
+    """One row per vehicle and compass (a vehicle without an applied theta: one row, compass None), in the
+    inspect order: for ``OUT/vehicles.parquet``."""
+    out: list[dict[str, Any]] = []
+    for rank, v in enumerate(vehicles, 1):
+        base = {
+            "rank": rank,
+            "vehicle": v.vehicle,
+            "identity_source": v.identity_source,
+            "autopilot": v.autopilot,
+            "firmware": v.firmware,
+            "logs": v.logs,
+            "failed": v.failed,
+            "first_date": v.first_date,
+            "last_date": v.last_date,
+            "score": v.score,
+            "reasons": " | ".join(v.reasons),
+        }
+        hist: list[CompassHistory | None] = [*v.compasses] or [None]
+        for h in hist:
+            row = dict(base)
+            row.update(dict.fromkeys(_COMPASS_KEYS))
+            if h is not None:
+                confirmed = [c for c in h.changes if c.confirmed]
+                last = h.changes[-1] if h.changes else None
+                lvl = h.level or [math.nan] * 3
+                sig = h.level_sigma or [math.nan] * 3
+                row.update(
+                    compass=h.compass,
+                    flights_applied=len(h.flights),
+                    flights_not_applied=h.not_applied,
+                    theta_x_mgauss=lvl[0],
+                    theta_y_mgauss=lvl[1],
+                    theta_z_mgauss=lvl[2],
+                    theta_sigma_x_mgauss=sig[0],
+                    theta_sigma_y_mgauss=sig[1],
+                    theta_sigma_z_mgauss=sig[2],
+                    changes_confirmed=len(confirmed),
+                    last_change_file=h.flights[last.index].file_name if last else None,
+                    last_change_date=h.flights[last.index].date_utc if last else None,
+                    last_change_confirmed=last.confirmed if last else None,
+                    last_change_mgauss=last.size if last else None,
+                )
+            out.append(row)
+    return out
