@@ -194,13 +194,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             continue
         if cal is not None and cal["source"] == "autopilot" and status == "corrected":
             sig = cal.get("theta_sigma_mgauss") or [math.nan] * 3
-            chk = c.get("self_check")
-            gain = "" if not chk else f"; {_gain_text(chk)}"
-            lines.append(
-                f"compass {c['index']}: {c['estimates']} headings, corrected, the autopilot's calibration "
-                f"kept (the flight determines none of its own), theta = ({th[0]:.1f}, {th[1]:.1f}, "
-                f"{th[2]:.1f}) +- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss{gain}{_time_text(c)}"
-            )
+            kept = "the autopilot's calibration kept (the flight determines none of its own)"
+            lines.append(_corrected_line(c, kept, sig, ""))
             continue
         if cal is not None and cal["source"] == "in-flight":
             inf = c.get("inflight") or {}
@@ -211,19 +206,25 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                 f"calibrated in flight ({inf.get('form')} form, {cal['n']} samples, residual "
                 f"{cal['residual_rms_mgauss']:.1f} mgauss, heading +-{hs:.1f} deg{mount})"
             )
-            chk = c.get("self_check")
-            gain = "" if not chk else f"; {_gain_text(chk)}"
-            lines.append(
-                f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "
-                f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) "
-                f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss ({conv}){gain}{_time_text(c)}"
-            )
+            lines.append(_corrected_line(c, cal_txt, sig, f" ({conv})"))
             continue
         lines.append(
             f"compass {c['index']}: {c['estimates']} headings, {cal_txt}, "
             f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) mgauss ({conv})"
         )
     return lines
+
+
+def _corrected_line(c: dict[str, Any], cal_txt: str, sig: list[float], conv: str) -> str:
+    """A corrected compass's line: its calibration, theta with its sigma, the self-check's gain, the time."""
+    th = c["theta_mgauss"]
+    chk = c.get("self_check")
+    gain = "" if not chk else f"; {_gain_text(chk)}"
+    return (
+        f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "
+        f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) "
+        f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss{conv}{gain}{_time_text(c)}"
+    )
 
 
 def _gain_text(chk: dict[str, Any]) -> str:
