@@ -485,11 +485,15 @@ class WireMagSample(MagSample):
     field_xyz: Float3
 
     def __init__(
-        self, t_s: float, field_b_mgauss: Float3 | Vec3, mag_index: int = 0, onboard: Float3 | None = None
+        self,
+        t_s: float,
+        field_b_mgauss: Float3 | Vec3,
+        mag_index: int = 0,
+        onboard_mgauss: Float3 | None = None,
     ) -> None:
         _MAG_T.__set__(self, t_s)
         _MAG_INDEX.__set__(self, mag_index)
-        _MAG_ONBOARD.__set__(self, onboard)
+        _MAG_ONBOARD.__set__(self, onboard_mgauss)
         _set(self, "field_xyz", _floats(field_b_mgauss))
 
     @property  # type: ignore[override]

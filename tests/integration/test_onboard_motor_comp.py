@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.mavlink_source import open_source
 from magcomp.core.types import MagSample
 from magcomp.service.replay import replay_log
+from tests.configs import ESTIMATOR_ONLY
 
 PARAMS_AT_S = 1.0  # the ground station fetches the parameters 1 s into the log (motors still off)
 _MAG_INDEX = {"RAW_IMU": 0, "SCALED_IMU2": 1}
@@ -125,8 +125,8 @@ def test_onboard_compensation_is_undone_and_a_wrong_one_reported(
         after = a[j][:, 0] >= t0 + PARAMS_AT_S + 0.2
         diff = np.abs(b[j][after, 1:] - a[j][after, 1:])
         assert diff.max() <= 0.5 + 1e-3 * np.abs(wrong[j]).max()  # int16 rounding, float32 parameters
-    twin_rep = replay_log(twin_path, Config(), two_pass=True)
-    rep = replay_log(comp_path, Config(), two_pass=True)
+    twin_rep = replay_log(twin_path, ESTIMATOR_ONLY, two_pass=True)
+    rep = replay_log(comp_path, ESTIMATOR_ONLY, two_pass=True)
     assert rep.source_counts["motor_comp_removed"] > 0.9 * sum(len(v) for v in b.values())
     for ct, cc in zip(twin_rep.summary["compasses"], rep.summary["compasses"], strict=True):
         sd = np.asarray(ct["inflight"]["theta_sigma_mgauss"], dtype=float)
@@ -151,7 +151,7 @@ def test_a_right_onboard_compensation_is_not_reported(
     right = {0: -np.asarray(result.theta_logged_mgauss(0), dtype=float) * ratio}
     comp_path = tmp_path / "right.tlog"
     _compensate(twin_path, comp_path, right, split_tlog)
-    rep = replay_log(comp_path, Config(), two_pass=True)
+    rep = replay_log(comp_path, ESTIMATOR_ONLY, two_pass=True)
     onboard = rep.summary["onboard_motor_compensation"]["0"]
     np.testing.assert_allclose(onboard["theta_equivalent_mgauss"], result.theta_logged_mgauss(0), atol=1.0)
     assert onboard["differs"] is False
@@ -166,8 +166,8 @@ def test_nan_onboard_compensation_is_reported_and_loses_no_sample(
     _, twin_path = twin
     path = tmp_path / "nan.tlog"
     _compensate(twin_path, path, {0: np.full(3, np.nan)}, split_tlog, apply=False)
-    ref = replay_log(twin_path, Config(), two_pass=False)
-    rep = replay_log(path, Config(), two_pass=False)
+    ref = replay_log(twin_path, ESTIMATOR_ONLY, two_pass=False)
+    rep = replay_log(path, ESTIMATOR_ONLY, two_pass=False)
     assert rep.n_estimates == ref.n_estimates and rep.summary["counts"]["non_finite"] == 0
     assert rep.source_counts["motor_comp_invalid"] > 0 and "motor_comp_removed" not in rep.source_counts
     assert rep.summary["onboard_motor_compensation"]["0"]["invalid"] is True
