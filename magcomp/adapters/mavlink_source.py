@@ -1400,6 +1400,16 @@ def _is_ulog(target: str) -> bool:
         return False
 
 
+def _raise_dropped(reason: str) -> Callable[[], None]:
+    """A replacement for pymavlink's TCP ``handle_eof`` / ``handle_disconnect`` (which reconnect in place,
+    printing on stdout): the drop becomes an error of the reading (or writing) call."""
+
+    def dropped() -> None:
+        raise ConnectionResetError(reason)
+
+    return dropped
+
+
 class MavSource:
     """One source of typed samples. Use :func:`open_source`.
 
@@ -1435,6 +1445,10 @@ class MavSource:
         self._baud = baud
         self._kind = self._classify(target)
         self._reference_decode = False  # tests: decode tlog frames with pymavlink's MAVLink.decode
+        #: live links: polled while the link is quiet or carries only unwanted messages; True ends the
+        #: stream (the daemon's stop request, seen by the reading thread itself)
+        self.interrupt: Callable[[], bool] | None = None
+        self._own_reconnect = False  # a drop ends the source (TCP client links): see _open_live
         if self._kind == "live":
             self._open_live()
 
@@ -1490,12 +1504,22 @@ class MavSource:
         match = re.match(r"^(/dev/\S+?|COM\d+):(\d+)$", url)
         if match:
             url, baud = match.group(1), int(match.group(2))
+        tcp_client = url.startswith("tcp:")
         try:
+            # a TCP client link is not reconnected by pymavlink (its reconnect, run by whichever thread
+            # reads or writes first, races between the reader and the heartbeat writer and can leave the
+            # reader on a dead socket): a drop ends this source, the daemon opens a new one; one connect
+            # attempt (retries=0), no sleeping retries inside the open
             self.connection = mavutil.mavlink_connection(
-                url, baud=baud, dialect="magcomp", source_system=255, source_component=191, autoreconnect=True
-            )
+                url, baud=baud, dialect="magcomp", source_system=255, source_component=191,
+                autoreconnect=not tcp_client, retries=0,
+            )  # fmt: skip
         except Exception as exc:
             raise InputError(f"cannot open link {self.target}: {exc}") from None
+        if tcp_client:
+            self._own_reconnect = True
+            self.connection.handle_eof = _raise_dropped("connection closed by the other end")
+            self.connection.handle_disconnect = _raise_dropped("connection reset by the other end")
 
     def close(self) -> None:
         """Stop streaming and release the link (idempotent)."""
@@ -1562,9 +1586,15 @@ class MavSource:
     def _live_messages(self) -> Iterator[Any]:
         wanted = set(WANTED_MAVLINK)
         while not self._closed and self.connection is not None:
+            interrupt = self.interrupt
+            if interrupt is not None and interrupt():
+                return
             try:
                 m = self.connection.recv_match(blocking=True, timeout=self._live_timeout_s)
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, AttributeError) as exc:
+                # (AttributeError: pymavlink's link object after its socket was closed under it)
+                if self._own_reconnect:
+                    self.close()  # the socket is dead: the daemon reconnects with a new source
                 raise InputError(f"link {self.target} failed: {exc}") from None
             if m is None:
                 continue

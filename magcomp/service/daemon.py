@@ -7,7 +7,13 @@ carry over (and a rebooted autopilot's clock reset is absorbed by the pipeline).
 way out. A housekeeping thread sends a companion HEARTBEAT (``link.heartbeat_hz``), watches for
 silence and ends the run on :meth:`Daemon.stop`. Signal handlers call :meth:`Daemon.request_stop`, which
 only sets a flag (no lock, no I/O: a handler runs between two bytecodes of the main thread, possibly
-inside a lock that thread holds); the housekeeping thread turns the flag into :meth:`stop`.
+inside a lock that thread holds); the housekeeping thread turns the flag into :meth:`stop`, and so does
+the reading thread itself (between samples, while the link is quiet, while it reconnects), so a stop
+never depends on another thread being alive. A housekeeping round that fails is logged once and the
+thread goes on; a housekeeping thread that ends anyway is reported and started again. The master is
+opened in a helper thread (a connect that hangs cannot delay a stop), and a TCP master is reconnected
+by the daemon alone: pymavlink's in-place reconnect (run by whichever thread touched the socket first)
+is off, so the heartbeat writer can never race the reader onto a second socket.
 
 Latency: for every estimate the time from the moment its magnetometer sample left the source (i.e.
 was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recorded
@@ -16,9 +22,7 @@ was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recor
 
 from __future__ import annotations
 
-import contextlib
 import errno as errno_mod
-import io
 import logging
 import math
 import re
@@ -282,6 +286,9 @@ class Daemon:
         self._silent = False
         self._sysid_set = False
         self._loss_seen: dict[int, tuple[int, int]] = {}
+        self._hk_thread: threading.Thread | None = None
+        self._hk_errors: dict[str, int] = {}
+        self._hk_restarts = 0
         self._loss_warned_at = -math.inf
 
     # ------------------------------------------------------------------------------------------- control
@@ -361,6 +368,8 @@ class Daemon:
     # ------------------------------------------------------------------------------------- housekeeping
 
     def _housekeeping(self) -> None:
+        """The housekeeping thread's loop: an error in one round is logged (once per kind) and the loop
+        goes on; it never ends the thread, and the reading thread would see it if it did."""
         hb_period = 1.0 / self.cfg.link.heartbeat_hz if self.cfg.link.heartbeat_hz > 0 else 0.0
         next_hb = time.monotonic()
         next_loss = next_hb + LOSS_WINDOW_S
@@ -368,18 +377,59 @@ class Daemon:
             if self._stop_requested:
                 self.stop()
                 break
-            now = time.monotonic()
-            if now >= next_loss:
-                next_loss = now + LOSS_WINDOW_S
-                self._check_loss(now)
-            if hb_period and now >= next_hb:
-                next_hb = now + hb_period
-                with self._lock:
-                    self._write_all(0.0, self.encoder.heartbeat())
-            quiet_s = now - self._last_rx
-            if not self._silent and self._source is not None and quiet_s > self.cfg.link.silence_s:
-                self._silent = True
-                log.warning("no data from %s for %.0f s (still listening)", self.master, now - self._last_rx)
+            try:
+                next_hb, next_loss = self._housekeeping_round(hb_period, next_hb, next_loss)
+            except Exception as exc:  # a bug or a link object in a state we did not foresee
+                kind = type(exc).__name__
+                if kind not in self._hk_errors:
+                    log.error("housekeeping: %s: %s (heartbeats and link checks go on)", kind, exc)
+                self._hk_errors[kind] = self._hk_errors.get(kind, 0) + 1
+                next_hb = time.monotonic() + max(hb_period, 0.05)
+
+    def _housekeeping_round(self, hb_period: float, next_hb: float, next_loss: float) -> tuple[float, float]:
+        """One round of housekeeping: the loss check, the heartbeat, the silence warning."""
+        now = time.monotonic()
+        if now >= next_loss:
+            next_loss = now + LOSS_WINDOW_S
+            self._check_loss(now)
+        if hb_period and now >= next_hb:
+            next_hb = now + hb_period
+            with self._lock:
+                self._write_all(0.0, self.encoder.heartbeat())
+        quiet_s = now - self._last_rx
+        if not self._silent and self._source is not None and quiet_s > self.cfg.link.silence_s:
+            self._silent = True
+            log.warning("no data from %s for %.0f s (still listening)", self.master, now - self._last_rx)
+        return next_hb, next_loss
+
+    def _should_stop(self) -> bool:
+        """Polled by the reading thread (between samples, while the link is quiet, while it reconnects):
+        a stop request from a signal handler ends the run here even if the housekeeping thread is gone;
+        a housekeeping thread that died is reported on one line and started again."""
+        if self._stop_requested and not self._stop.is_set():
+            self.stop()
+        if self._stop.is_set():
+            return True
+        hk = self._hk_thread
+        if hk is not None and not hk.is_alive():
+            self._hk_restarts += 1
+            log.error("the housekeeping thread ended unexpectedly; restarted (%d)", self._hk_restarts)
+            self._start_housekeeping()
+        return False
+
+    def _start_housekeeping(self) -> None:
+        hk = threading.Thread(target=self._housekeeping, name="magcomp-housekeeping", daemon=True)
+        self._hk_thread = hk
+        hk.start()
+
+    def _sleep(self, seconds: float) -> None:
+        """Wait ``seconds`` in the reading thread, or less when the run is asked to stop."""
+        deadline = time.monotonic() + seconds
+        while not self._should_stop():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            self._stop.wait(min(left, 0.05))
 
     def _check_loss(self, now: float) -> None:
         """Warn when the link lost more than LOSS_WARN_FRACTION of its messages since the last check."""
@@ -409,28 +459,58 @@ class Daemon:
         for url in self.out_urls:
             preflight_link(url, "--out")
         self._open_outs()
-        hk = threading.Thread(target=self._housekeeping, name="magcomp-housekeeping", daemon=True)
-        hk.start()
+        self._start_housekeeping()
         try:
             self._connect_loop()
         finally:
             self._stop.set()
-            hk.join(timeout=2.0)
+            hk = self._hk_thread
+            self._hk_thread = None
+            if hk is not None:
+                hk.join(timeout=1.0)
             self._shutdown()
         return self.report()
 
-    def _connect_loop(self) -> None:
-        """Open the master, serve it until it fails, retry every ``link.reconnect_s``; until :meth:`stop`."""
+    def _open_master(self) -> Any:
+        """Open the master in a helper thread, so that a stop request is honoured however long the open
+        blocks (a TCP connect to a host that does not answer, a serial device that hangs); None when the
+        run was asked to stop first (a source the helper opens after that is closed by it)."""
         from magcomp.adapters.mavlink_source import open_source
 
-        first_failure = True
-        while not self._stop.is_set():
+        box: dict[str, Any] = {}
+        abandoned = threading.Event()
+
+        def opener() -> None:
             try:
-                # pymavlink prints its own retries ("... sleeping") on stdout: kept off the terminal
-                with contextlib.redirect_stdout(io.StringIO()):
-                    source = open_source(
-                        self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2
-                    )
+                src = open_source(self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2)
+            except BaseException as exc:
+                box["error"] = exc
+                return
+            box["source"] = src
+            if abandoned.is_set():
+                src.close()
+
+        t = threading.Thread(target=opener, name="magcomp-open", daemon=True)
+        t.start()
+        while t.is_alive():
+            if self._should_stop():
+                abandoned.set()
+                if "source" in box:  # opened just now: ours to close
+                    box["source"].close()
+                return None
+            t.join(timeout=0.05)
+        if "error" in box:
+            # (popped: the box would keep the error, its traceback and the socket it holds in a cycle
+            # with the helper's frame, left to the collector)
+            raise box.pop("error")
+        return box.pop("source")
+
+    def _connect_loop(self) -> None:
+        """Open the master, serve it until it fails, retry every ``link.reconnect_s``; until :meth:`stop`."""
+        first_failure = True
+        while not self._should_stop():
+            try:
+                source = self._open_master()
             except InputError as exc:
                 self.last_error = str(exc)
                 if self.connects == 0 and link_error_is_permanent(self.master, exc):
@@ -438,14 +518,17 @@ class Daemon:
                 if first_failure:
                     log.warning("%s; retrying every %.1f s", exc, self.cfg.link.reconnect_s)
                     first_failure = False
-                self._stop.wait(self.cfg.link.reconnect_s)
+                self._sleep(self.cfg.link.reconnect_s)
                 continue
+            if source is None:
+                return
             first_failure = True
             self._serve(source)
 
     def _serve(self, source: Any) -> None:
         """One connection of the master: samples through the pipelines until the link fails or we stop."""
         conn = source.connection
+        source.interrupt = self._should_stop
         self._source = source
         self.connects += 1
         self._last_rx = time.monotonic()
@@ -465,14 +548,14 @@ class Daemon:
                         raise
                     self.link_losses += 1
                     log.warning("link reset (%s); the link reconnected, resuming", exc)
-            if not self._stop.is_set():  # the source ended by itself: the link is gone
+            if not self._should_stop():  # the source ended by itself: the link is gone
                 raise InputError(f"link {self.master} closed")
         except InputError as exc:
-            if self._stop.is_set():
+            if self._should_stop():
                 return
             self.link_losses += 1
             log.warning("link lost (%s); reconnecting in %.1f s", exc, self.cfg.link.reconnect_s)
-            self._stop.wait(self.cfg.link.reconnect_s)
+            self._sleep(self.cfg.link.reconnect_s)
         finally:
             with self._lock:
                 self._master_sink = None
@@ -508,6 +591,9 @@ class Daemon:
         key: tuple[int, int] | None = None
         pipeline, enc = self.pipeline, self.encoder
         for sender, sample in source.vehicle_samples():
+            if self._stop_requested:  # (a flag read per sample; the rest of _should_stop while quiet)
+                self.stop()
+                return
             t_arrival = time.perf_counter()
             self._last_rx = time.monotonic()
             if self._silent:

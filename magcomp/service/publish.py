@@ -246,7 +246,7 @@ class LinkSink:
         try:
             self.connection.write(packet)
             self.packets += 1
-        except OSError as exc:
+        except Exception as exc:  # OSError, and pymavlink's link object in a state between two sockets
             self.errors += 1
             if self.errors == 1 or self.errors % 1000 == 0:
                 log.warning("output %s: write failed (%s); %d failures so far", self.name, exc, self.errors)
