@@ -235,7 +235,8 @@ class NullViz:
 # ----------------------------------------------------------------------------------------------------------
 
 MODE_HELP = (
-    "show the run in Rerun: spawn (native viewer), serve (web viewer on this machine; prints the URL), "
+    "show the run in Rerun: spawn (native viewer), serve[=ADDRESS] (web viewer on this machine, its data "
+    "served on 127.0.0.1 only unless an ADDRESS such as 0.0.0.0 is given; prints the URL), "
     "connect[=URL] (a running viewer, default "
     + DEFAULT_CONNECT_URL
     + "), save=PATH.rrd (a recording file), "
@@ -311,6 +312,17 @@ def parse_mode(mode: str, environ: Mapping[str, str] | None = None) -> VizMode:
                 "use --rerun serve or save=PATH.rrd"
             )
         return VizMode(kind)
+    if kind == "serve":  # serve=ADDRESS: the interface the recording is served on (default 127.0.0.1)
+        import ipaddress
+
+        try:
+            ipaddress.ip_address(target)
+        except ValueError:
+            raise MagcompError(
+                f"--rerun serve=ADDRESS: expected an IP address such as 0.0.0.0 (every interface), got "
+                f"{target!r}"
+            ) from None
+        return VizMode("serve", target)
     if kind == "connect":
         if sep and not target:
             raise MagcompError("--rerun connect=URL: the URL is empty")
@@ -381,6 +393,9 @@ def open_viz(
         web_port=web_port,
     )
 
+
+#: where ``--rerun serve`` serves the recording unless ``serve=ADDRESS`` says otherwise
+SERVE_BIND_IP = "127.0.0.1"
 
 SERVING_MESSAGE = "serving the viewer; press ^C to stop"
 
@@ -768,9 +783,13 @@ class RerunViz:
             elif mode.kind == "serve":
                 gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
                 wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
-                grpc_url = rec.serve_grpc(
-                    grpc_port=gport, default_blueprint=blueprint, server_memory_limit="512MiB"
-                )
+                # the recording's server listens on loopback unless told otherwise (rerun's own
+                # serve_grpc listens on every interface: anyone on the network would see the headings)
+                bind_ip = mode.target or SERVE_BIND_IP
+                rec.set_sinks(rr.GrpcServerSink(bind_ip=bind_ip, port=gport, server_memory_limit="512MiB"),
+                              default_blueprint=blueprint)  # fmt: skip
+                host = "127.0.0.1" if bind_ip in ("0.0.0.0", "::") else bind_ip
+                grpc_url = f"rerun+http://{host}:{gport}/proxy"
                 rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
                 self._url = web_viewer_url(wport, grpc_url)
                 self._notice = f"{prefix}Rerun web viewer: {self._url}"

@@ -97,6 +97,9 @@ def execute(args: argparse.Namespace) -> int:
         earth = earth_field_line(report.summary)
         if earth is not None:
             print(earth)
+        foreign = report.source_counts.get("foreign_datagrams", 0)
+        if foreign:
+            print(f"ignored {foreign} datagrams from addresses other than the flight controller's")
         lat = report.latency_ms
         if lat:
             print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
