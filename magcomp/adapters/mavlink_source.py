@@ -70,7 +70,7 @@ import struct
 import sys
 from array import array
 from collections import deque
-from collections.abc import Callable, Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -555,7 +555,8 @@ class _Converter:
             name = name.decode("ascii", "replace")
         name = name.rstrip("\x00")
         value = param_value(float(msg.param_value), int(msg.param_type), self.autopilot == MAV_AUTOPILOT_PX4)
-        self.onboard_comp.param(name, value)
+        if math.isfinite(value):  # (a non-finite one goes on, to be counted and dropped downstream)
+            self.onboard_comp.param(name, value)
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, value))]
 
     # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
@@ -688,11 +689,19 @@ class _Converter:
         return SimpleNamespace(**values)
 
     def dataflash(self, msg: Any) -> list[tuple[str, Record]]:
-        v = self._df_values(msg)
+        try:
+            v = self._df_values(msg)
+        except (ValueError, TypeError, OverflowError, IndexError):
+            # a field that is not a number of its type (a text log line with NUL bytes or cut short):
+            # the record is dropped and counted, the rest of the log is read
+            self.counts["unreadable_records"] += 1
+            return []
         mtype = v.mtype
         if mtype == "PARM":
-            self.onboard_comp.param(str(v.Name), float(v.Value))
-            return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), float(v.Value)))]
+            value = float(v.Value)
+            if math.isfinite(value):  # (a non-finite one goes on, to be counted and dropped downstream)
+                self.onboard_comp.param(str(v.Name), value)
+            return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), value))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))
         if mtype in ("GPS", "GPS2", "POS"):
@@ -1825,6 +1834,19 @@ class _SenderStream:
         return out
 
 
+def finite_params(params: Mapping[str, float], counts: dict[str, int]) -> dict[str, float]:
+    """``params`` without the non-finite values (a damaged PARAM_VALUE / PARM / ULog parameter), each
+    counted in ``non_finite_params``: the parameters decide compass forms, channels and rotations, and
+    ``int(nan)`` raised in each of those places."""
+    out = {}
+    for name, value in params.items():
+        if math.isfinite(value):
+            out[name] = value
+        else:
+            counts["non_finite_params"] = counts.get("non_finite_params", 0) + 1
+    return out
+
+
 def _throttle_sample(
     resolved: ResolvedThrottle | None, rec: PwmRecord | ThrottleRecord
 ) -> ThrottleSample | None:
@@ -2016,7 +2038,7 @@ def _collect(
     counts = source.counts
     data = LogData(
         source=source.target,
-        params=dict(source.params),
+        params=finite_params(source.params, counts),
         vehicle_type=source.vehicle_type,
         autopilot=source.autopilot,
     )

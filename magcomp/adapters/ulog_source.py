@@ -155,13 +155,20 @@ def read_ulog_tables(
     spec = parse_throttle_source(throttle_source)
     p = Path(path)
     ulog = _open_ulog(p)
-    params = {str(k): float(v) for k, v in ulog.initial_parameters.items()}
+    from magcomp.adapters.mavlink_source import finite_params
+
+    counts: Counter[str] = Counter()
+    params = finite_params({str(k): float(v) for k, v in ulog.initial_parameters.items()}, counts)
     changes = [(float(t) * 1e-6, str(k), float(v)) for t, k, v in ulog.changed_parameters]
+    n_changes = len(changes)
+    changes = [c for c in changes if np.isfinite(c[0]) and np.isfinite(c[2])]
+    counts["non_finite_params"] += n_changes - len(changes)
     topics: dict[str, dict[int, dict[str, Any]]] = {}
     for d in ulog.data_list:
         if len(d.data.get("timestamp", ())):
             topics.setdefault(d.name, {})[int(d.multi_id)] = d.data
     tables = UlogTables(str(p), params, changes, float(ulog.start_timestamp) * 1e-6)
+    tables.counts.update(+counts)
     for name, inst in topics.items():
         for multi, data in inst.items():
             tables.counts[f"ulog_{name}" + (f"_{multi}" if multi else "")] = len(data["timestamp"])

@@ -465,7 +465,13 @@ def execute(args: argparse.Namespace) -> int:
             events=log_events(args.log),
             earth=earth_reference(args, log),
         )
+    from magcomp.service.console import SKIP_KEYS, format_counts
+
+    skipped = {k: int(log.counts[k]) for k in SKIP_KEYS if log.counts.get(k)}
+    if skipped:  # what reading the log dropped or absorbed: counted, never silent
+        d.notes.append(f"skipped or absorbed while reading the log: {format_counts(skipped, SKIP_KEYS)}")
     j = d.to_json()
+    j["counts"] = skipped
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")
     for line in _summary(j):
         print(line)

@@ -153,6 +153,9 @@ SKIP_KEYS = (
     "gaps",
     "observer_resets",
     "dataflash_errors",
+    "unreadable_records",
+    "non_finite_params",
+    "foreign_datagrams",
 )
 
 
