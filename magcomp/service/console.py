@@ -154,6 +154,8 @@ SKIP_KEYS = (
     "observer_resets",
     "dataflash_errors",
     "unreadable_records",
+    "ulog_resyncs",
+    "ulog_dropped_bytes",
     "non_finite_params",
     "foreign_datagrams",
 )
