@@ -91,3 +91,20 @@ def test_nul_bytes_in_a_text_log_cost_only_the_damaged_lines(
         clean, bad = docs["clean"], docs["damaged"]
         assert bad["estimates"] >= 0.9 * clean["estimates"] > 100
         assert bad["source_counts"]["unreadable_records"] > 0  # the loss is counted, not silent
+
+
+def test_diagnose_of_a_dataflash_log_with_a_zero_tail_is_bounded(
+    bench_logs: dict[str, Path], tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """1 MiB of zero padding after a .bin: diagnose printed a "bad header" line per byte (two million,
+    from pymavlink's reader of the events, straight to the C streams); now it reads the repaired log and
+    says what it dropped on one line."""
+    padded = tmp_path / "padded.bin"
+    padded.write_bytes(bench_logs["clean"].read_bytes() + b"\0" * (1 << 20))
+    capfd.readouterr()
+    assert main(["diagnose", str(padded)]) == 0
+    out, err = capfd.readouterr()
+    lines = (out + err).splitlines()
+    assert len(lines) <= 100, f"{len(lines)} lines, e.g. {lines[-1]!r}"
+    assert "Traceback" not in err
+    assert any("skipped or absorbed while reading the log: garbage bytes" in line for line in lines)
