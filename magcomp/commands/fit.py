@@ -224,6 +224,11 @@ def execute(args: argparse.Namespace) -> int:
     window = Window.around(args.start, args.end, MAX_THROTTLE_GAP_S)
     with Busy(f"fit: reading {path.name}"):
         log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window)
+    from magcomp.adapters.config import load_config
+    from magcomp.service.align import gate_log_magnetometers
+
+    # the pipeline's magnetometer gates: a clipped (saturated) or corrupt (jump) sample is not a field
+    dropped = gate_log_magnetometers(log, load_config(args.config).input.saturation_mgauss)
     try:
         with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
             rep = fit_log(
@@ -241,9 +246,13 @@ def execute(args: argparse.Namespace) -> int:
         print(f"note: no offline fit (Table II): {exc}")
         return 0
     print(format_table(rep))
+    if any(dropped.values()):
+        said = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items() if v)
+        print(f"dropped before the fit: {said}")
     if args.json:
+        doc = {**report_json(rep), "dropped": dropped}
         try:
-            Path(args.json).write_text(json.dumps(report_json(rep), indent=2) + "\n")
+            Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
         except OSError as exc:
             raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
     return 0
