@@ -491,11 +491,11 @@ def execute(args: argparse.Namespace) -> int:
     with Busy(f"diagnose: reading {Path(args.log).name}"):
         log = load_log(args.log, throttle_source=args.throttle_source)
     from magcomp.adapters.config import load_config
-    from magcomp.service.align import gate_log_magnetometers
+    from magcomp.service.align import gate_log_inputs
 
     # the pipeline's magnetometer gates: a clipped (saturated) or corrupt (jump) sample is not a field
     saturation = load_config(args.config).input.saturation_mgauss
-    for key, n in gate_log_magnetometers(log, saturation).items():
+    for key, n in gate_log_inputs(log, saturation).items():
         log.counts[key] = log.counts.get(key, 0) + n
     with Busy("diagnose: fitting the models"):
         d = diagnose(

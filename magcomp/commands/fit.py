@@ -225,10 +225,10 @@ def execute(args: argparse.Namespace) -> int:
     with Busy(f"fit: reading {path.name}"):
         log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window)
     from magcomp.adapters.config import load_config
-    from magcomp.service.align import gate_log_magnetometers
+    from magcomp.service.align import gate_log_inputs
 
     # the pipeline's magnetometer gates: a clipped (saturated) or corrupt (jump) sample is not a field
-    dropped = gate_log_magnetometers(log, load_config(args.config).input.saturation_mgauss)
+    dropped = gate_log_inputs(log, load_config(args.config).input.saturation_mgauss)
     try:
         with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
             rep = fit_log(
