@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import mmap
 import os
+import re
 import struct
 import tempfile
 from dataclasses import dataclass, field
@@ -43,7 +44,7 @@ _U16 = struct.Struct("<H")
 class _Schema:
     """What the log declared: formats (name -> field list) and subscriptions (msg_id -> payload size)."""
 
-    formats: dict[str, list[tuple[str, int]]] = field(default_factory=dict)
+    formats: dict[str, list[tuple[str, int, str]]] = field(default_factory=dict)  # (type, count, name)
     sizes: dict[str, int | None] = field(default_factory=dict)
     subs: dict[int, int | None] = field(default_factory=dict)
 
@@ -68,29 +69,40 @@ class _Schema:
                 if not rest.endswith("]") or not rest[:-1].isdigit():
                     return False
                 count = int(rest[:-1])
-            fields.append((type_str, count))
+            fields.append((type_str, count, fname))
         self.formats[name] = fields
         self.sizes.clear()
         return True
 
     def size_of(self, name: str, depth: int = 0) -> int | None:
-        """The packed size of format ``name`` (None when it uses a type the log never declared)."""
+        """The packed size of format ``name`` nested in another one (None when it uses a type the log
+        never declared)."""
         if name in _BASIC:
             return _BASIC[name]
         if name in self.sizes:
             return self.sizes[name]
         fields = self.formats.get(name)
-        total: int | None = 0
-        if fields is None or depth > 16:
-            total = None
-        else:
-            for type_str, count in fields:
-                one = self.size_of(type_str, depth + 1)
-                if one is None or total is None:
-                    total = None
-                    break
-                total += one * count
+        total = None if fields is None or depth > 16 else self._sum(fields, depth)
         self.sizes[name] = total
+        return total
+
+    def logged_size(self, name: str) -> int | None:
+        """The payload size of a logged message of format ``name``: its fields without the trailing
+        padding, which PX4 does not write (the ULog specification)."""
+        fields = list(self.formats.get(name, ()))
+        if not fields and name not in self.formats:
+            return None
+        while fields and fields[-1][2].startswith("_padding"):
+            fields.pop()
+        return self._sum(fields, 0)
+
+    def _sum(self, fields: list[tuple[str, int, str]], depth: int) -> int | None:
+        total = 0
+        for type_str, count, _ in fields:
+            one = self.size_of(type_str, depth + 1)
+            if one is None:
+                return None
+            total += one * count
         return total
 
 
@@ -124,7 +136,7 @@ def _message_ok(data: mmap.mmap | bytes, q: int, end: int, schema: _Schema, comm
         if text not in schema.formats:
             return 0
         if commit:
-            schema.subs[_U16.unpack_from(data, p + 1)[0]] = schema.size_of(text)
+            schema.subs[_U16.unpack_from(data, p + 1)[0]] = schema.logged_size(text)
         return n
     if mtype == 0x52 or mtype == 0x4F:  # 'R' remove (msg_id), 'O' dropout (duration)
         return n if size == 2 else 0
@@ -156,6 +168,24 @@ def _chain_ok(data: mmap.mmap | bytes, q: int, end: int, schema: _Schema) -> boo
             return False
         q += n
     return True
+
+
+#: the message types of the data section, as a pattern: a resync looks only where one stands two bytes
+#: after the candidate start (found at C speed: a long run of zeros or garbage is skipped, not walked)
+_DATA_TYPES = re.compile(rb"[ACDILMOPQRS]")
+
+
+def _resync(data: mmap.mmap | bytes, r: int, end: int, schema: _Schema) -> int:
+    """The first position from ``r`` where :data:`CHAIN` messages in a row check out (``end`` if none)."""
+    while r < end:
+        found = _DATA_TYPES.search(data, r + 2)
+        if found is None:
+            return end
+        r = found.start() - 2
+        if _message_ok(data, r, end, schema, commit=False) and _chain_ok(data, r, end, schema):
+            return r
+        r += 1
+    return end
 
 
 @dataclass
@@ -199,10 +229,7 @@ def ulog_intact_copy(path: str | os.PathLike[str]) -> UlogRepair | None:
                     q += n
                     continue
                 spans.append((start, q))
-                r = q + 1
-                while r < end and not (_message_ok(data, r, end, schema, commit=False)
-                                       and _chain_ok(data, r, end, schema)):  # fmt: skip
-                    r += 1
+                r = _resync(data, q + 1, end, schema)
                 if end - r < 3:  # a short tail that is no message: a log cut mid-write, not damage
                     r = end
                 dropped += r - q

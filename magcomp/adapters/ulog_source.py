@@ -113,33 +113,20 @@ class UlogTables:
 
 
 def _open_ulog(path: Path, counts: Counter[str] | None = None) -> Any:
-    """The ULog at ``path`` read by pyulog; a damaged one (pyulog's own verdict, or pyulog failing) is
-    read again from its intact messages (:mod:`magcomp.adapters.ulog_repair`), what was dropped counted
-    in ``counts`` (``ulog_resyncs``, ``ulog_dropped_bytes``)."""
+    """The ULog at ``path`` read by pyulog. The file is first walked message by message
+    (:mod:`magcomp.adapters.ulog_repair`, a few per cent of pyulog's own time): a damaged one is read from
+    a copy of its intact messages, what was dropped counted in ``counts`` (``ulog_resyncs``,
+    ``ulog_dropped_bytes``). pyulog alone would lose what follows the damage, and walks a long tail of
+    zeros one Python step per byte."""
     from magcomp.adapters.ulog_repair import ulog_intact_copy
 
-    try:
-        ulog = _parse_ulog(path)
-        failure: InputError | None = None
-    except InputError as exc:
-        if "cannot read" in str(exc) or "empty file" in str(exc):
-            raise
-        ulog, failure = None, exc
-    if ulog is not None and not getattr(ulog, "file_corruption", False):
-        return ulog
     repair = ulog_intact_copy(path)
     if repair is None:
-        if ulog is None:
-            assert failure is not None
-            raise failure
-        return ulog
+        return _parse_ulog(path)
     try:
         repaired = _parse_ulog(repair.path, shown=path)
-    except InputError:
-        if ulog is None:
-            assert failure is not None
-            raise failure from None
-        return ulog
+    except InputError:  # the copy is no better: pyulog's own reading of the file stands
+        return _parse_ulog(path)
     finally:
         with contextlib.suppress(OSError):
             repair.path.unlink()
