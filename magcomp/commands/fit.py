@@ -250,9 +250,8 @@ def execute(args: argparse.Namespace) -> int:
         said = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items() if v)
         print(f"dropped before the fit: {said}")
     if args.json:
+        from magcomp.adapters.files import write_file
+
         doc = {**report_json(rep), "dropped": dropped}
-        try:
-            Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
-        except OSError as exc:
-            raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
+        write_file(args.json, (json.dumps(doc, indent=2) + "\n").encode())
     return 0

@@ -18,6 +18,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.adapters.files import current_umask
 from magcomp.core.types import HeadingEstimate
 from magcomp.errors import InputError
 
@@ -211,7 +212,7 @@ class TlogWriter:
                 target = self.path.resolve() if st is not None else self.path  # (through a symlink)
                 fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
                 self._target, self._tmp = target, Path(name)
-                mode = stat.S_IMODE(st.st_mode) if st is not None else 0o666 & ~_umask()
+                mode = stat.S_IMODE(st.st_mode) if st is not None else 0o666 & ~current_umask()
                 with contextlib.suppress(OSError):
                     os.fchmod(fd, mode)
                 self._f = os.fdopen(fd, "wb")
@@ -279,13 +280,6 @@ class TlogWriter:
             self._discard_tmp()
             raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
         self._tmp = None
-
-
-def _umask() -> int:
-    """The process's umask (read by setting it and setting it back)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 
 class LinkSink:
