@@ -1432,7 +1432,13 @@ class UdpPeerLock:
     ``relock_s`` may be replaced by the next sender of vehicle data (logged). ``udpout``: only the
     destination's replies are read. Installed by replacing the connection's ``recv``."""
 
-    def __init__(self, conn: Any, counts: dict[str, int], relock_s: float = PEER_RELOCK_S) -> None:
+    def __init__(
+        self,
+        conn: Any,
+        counts: dict[str, int],
+        relock_s: float = PEER_RELOCK_S,
+        signing_key: bytes | None = None,
+    ) -> None:
         import socket
 
         self.conn = conn
@@ -1444,6 +1450,10 @@ class UdpPeerLock:
         self._foreign: set[tuple[Any, ...]] = set()
         self._probe = _mavlink_module().MAVLink(None)
         self._probe.robust_parsing = True
+        if signing_key is not None:  # a signed link locks onto signed vehicle data only
+            from magcomp.adapters.signing import require_signed
+
+            require_signed(self._probe, signing_key)
         self._wanted = frozenset(WANTED_MAVLINK)
         self._socket_error = socket.error
         self._relockable = bool(conn.udp_server or conn.broadcast)  # (udpbcast: the first replier)
@@ -1550,8 +1560,10 @@ class MavSource:
         baud: int = 57600,
         live_timeout_s: float = 0.5,
         pipeline_only: bool = False,
+        signing_key: bytes | None = None,
     ) -> None:
         self.target = target
+        self._signing_key = signing_key
         self.spec = parse_throttle_source(throttle_source)
         self.mag_index = mag_index
         self.counts: dict[str, int] = _Counts()
@@ -1637,8 +1649,12 @@ class MavSource:
             )  # fmt: skip
         except Exception as exc:
             raise InputError(f"cannot open link {self.target}: {exc}") from None
+        if self._signing_key is not None:  # only signed frames are read from this link
+            from magcomp.adapters.signing import require_signed
+
+            require_signed(self.connection.mav, self._signing_key)
         if isinstance(self.connection, mavutil.mavudp):
-            self.peer_lock = UdpPeerLock(self.connection, self.counts)
+            self.peer_lock = UdpPeerLock(self.connection, self.counts, signing_key=self._signing_key)
         if tcp_client:
             self._own_reconnect = True
             self.connection.handle_eof = _raise_dropped("connection closed by the other end")
@@ -1723,7 +1739,11 @@ class MavSource:
                 continue
             mtype = m.get_type()
             if mtype == "BAD_DATA":
-                self.counts["bad_crc" if "CRC" in str(getattr(m, "reason", "")) else "garbage_bytes"] += 1
+                reason = str(getattr(m, "reason", ""))
+                if "signature" in reason:
+                    self.counts["bad_signature"] += 1  # unsigned or signed with another key
+                else:
+                    self.counts["bad_crc" if "CRC" in reason else "garbage_bytes"] += 1
                 continue
             if mtype in wanted:
                 self.counts["messages"] += 1
@@ -1880,6 +1900,7 @@ def open_source(
     baud: int = 57600,
     live_timeout_s: float = 0.5,
     pipeline_only: bool = False,
+    signing_key: bytes | None = None,
 ) -> MavSource | UlogSource:
     """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log, PX4 .ulg) or a live link URL.
 
@@ -1903,6 +1924,7 @@ def open_source(
         baud=baud,
         live_timeout_s=live_timeout_s,
         pipeline_only=pipeline_only,
+        signing_key=signing_key,
     )
     return source
 

@@ -27,6 +27,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)",
     )
+    parser.add_argument(
+        "--signing-key",
+        metavar="FILE",
+        help="MAVLink 2 signing: sign what is sent and read only frames signed with this key (32 bytes, "
+        "64 hex digits or a passphrase)",
+    )
     parser.add_argument("--json", metavar="SUMMARY.json", help="write a summary when the run ends")
     parser.add_argument(
         "--duration", type=float, metavar="S", help="stop after S seconds (default: run until ^C)"
@@ -73,7 +79,13 @@ def execute(args: argparse.Namespace) -> int:
         if est.mag_index == primary:
             viz.log_estimate(est)
 
-    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text)
+    key = None
+    if args.signing_key:
+        from magcomp.adapters.signing import read_signing_key
+
+        key = read_signing_key(args.signing_key)
+    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text,
+                    signing_key=key)  # fmt: skip
 
     def on_signal(signum: int, frame: object) -> None:
         daemon.request_stop()  # a flag only: a second signal during the first cannot deadlock

@@ -157,6 +157,7 @@ SKIP_KEYS = (
     "ulog_dropped_bytes",
     "non_finite_params",
     "foreign_datagrams",
+    "bad_signature",
 )
 
 

@@ -252,8 +252,11 @@ class Daemon:
         store: StateStore | None = None,
         on_estimate: Callable[[HeadingEstimate], None] | None = None,
         on_text: Callable[[float, str], None] | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
         check_link_url(master, "--master")
+        #: MAVLink 2 signing: what is sent is signed with it, and only frames signed with it are read
+        self.signing_key = signing_key
         for url in outs:
             check_link_url(url, "--out")
         self.master = master
@@ -270,7 +273,7 @@ class Daemon:
         # their headings go out as that vehicle; the first sender gets ``self.pipeline``
         self.pipelines: dict[tuple[int, int], Pipeline] = {}
         self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
-        self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
+        self.encoder = self._new_encoder()
         self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
         self.published = 0
         self.connects = 0
@@ -290,6 +293,14 @@ class Daemon:
         self._hk_errors: dict[str, int] = {}
         self._hk_restarts = 0
         self._loss_warned_at = -math.inf
+
+    def _new_encoder(self) -> HeadingEncoder:
+        enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
+        if self.signing_key is not None:
+            from magcomp.adapters.signing import sign_outgoing
+
+            sign_outgoing(enc.mav, self.signing_key)
+        return enc
 
     # ------------------------------------------------------------------------------------------- control
 
@@ -344,7 +355,7 @@ class Daemon:
             else:
                 p = Pipeline(self.cfg, store=self.store, system_id=key[0], on_text=self._on_text,
                              workers=self.workers)  # fmt: skip
-                enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
+                enc = self._new_encoder()
                 log.info("another vehicle on the link: system %d component %d", *key)
             enc.set_system(key[0])
             self.pipelines[key] = p
@@ -482,7 +493,8 @@ class Daemon:
 
         def opener() -> None:
             try:
-                src = open_source(self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2)
+                src = open_source(self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2,
+                                  signing_key=self.signing_key)  # fmt: skip
             except BaseException as exc:
                 box["error"] = exc
                 return

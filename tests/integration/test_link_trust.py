@@ -135,3 +135,110 @@ def test_rerun_serve_listens_on_loopback_unless_told_otherwise(mode: str, expect
         assert viz.url is not None and "127.0.0.1" in viz.url
     finally:
         viz.close()
+
+
+def _signed(packets: list[bytes], key: bytes) -> list[bytes]:
+    """The packets re-packed by pymavlink with MAVLink 2 signing (same sender, sequence and fields)."""
+    from magcomp.adapters.dialect import ensure_dialect
+    from magcomp.adapters.signing import signing_timestamp
+
+    mod = ensure_dialect()
+    parser = mod.MAVLink(None)
+    signers: dict[tuple[int, int], object] = {}
+    out = []
+    for pkt in packets:
+        msg = parser.decode(bytearray(pkt))
+        key_id = (msg.get_srcSystem(), msg.get_srcComponent())
+        signer = signers.get(key_id)
+        if signer is None:
+            signer = mod.MAVLink(None, srcSystem=key_id[0], srcComponent=key_id[1])
+            signer.signing.secret_key, signer.signing.sign_outgoing = key, True  # type: ignore[attr-defined]
+            signer.signing.link_id, signer.signing.timestamp = 1, signing_timestamp()  # type: ignore[attr-defined]
+            signers[key_id] = signer
+        signer.seq = msg.get_seq()  # type: ignore[attr-defined]
+        out.append(bytes(msg.pack(signer)))
+    return out
+
+
+@pytest.mark.slow
+def test_a_signed_link_interoperates_with_pymavlink_signing_and_refuses_unsigned_frames(
+    tmp_path: Path, split_tlog: Callable[[bytes], list[bytes]]
+) -> None:
+    from magcomp.adapters.dialect import ensure_dialect
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.adapters.signing import read_signing_key, require_signed
+    from magcomp.sim import SimConfig, simulate
+
+    key_file = tmp_path / "key"
+    key_file.write_text("correct horse battery staple\n")  # a passphrase: its SHA-256 is the key
+    key = read_signing_key(key_file)
+    path = tmp_path / "flight.tlog"
+    write_tlog(simulate(SimConfig(scenario="paper", duration_s=30.0, seed=3, n_compasses=1)), path)
+    clean = replay_log(path, _cfg(), keep_estimates=True).estimates
+    plain = [r[8:] for r in split_tlog(path.read_bytes())]
+    signed = _signed(plain, key)
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.05)
+    got: list[bytes] = []
+    stop = threading.Event()
+
+    def receive() -> None:
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                got.append(rx.recv(65536))
+
+    rx_thread = threading.Thread(target=receive)
+    rx_thread.start()
+    port = free_udp_port()
+    ests: list[HeadingEstimate] = []
+    daemon = Daemon(f"udpin:127.0.0.1:{port}", _cfg(), outs=[f"udpout:127.0.0.1:{rx.getsockname()[1]}"],
+                    on_estimate=ests.append, signing_key=key)  # fmt: skip
+    worker = threading.Thread(target=daemon.run)
+    worker.start()
+    try:
+        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for i in range(0, len(signed), 20):
+            for s_pkt, p_pkt in zip(signed[i : i + 20], plain[i : i + 20], strict=True):
+                tx.sendto(s_pkt, ("127.0.0.1", port))
+                tx.sendto(p_pkt, ("127.0.0.1", port))  # the same frame unsigned, from the same socket
+            threading.Event().wait(0.003)  # pacing the sender, not waiting for the daemon
+        tx.close()
+        wait_for(lambda: len(ests) >= len(clean), 60.0, "every heading")
+        wait_for(lambda: len(got) > 0, 30.0, "a heading on the --out link")
+    finally:
+        daemon.stop()
+        worker.join(timeout=30)
+        stop.set()
+        rx_thread.join()
+        rx.close()
+    # the signed frames gave exactly the clean run; every unsigned copy was refused
+    assert [_key(e) for e in ests] == [_key(e) for e in clean]
+    assert daemon.report().source_counts.get("bad_signature", 0) >= 0.9 * len(plain)
+    # what magcomp sent is signed: pymavlink's own check accepts it with the key, refuses it without
+    mod = ensure_dialect()
+    good, wrong = mod.MAVLink(None), mod.MAVLink(None)
+    good.robust_parsing = wrong.robust_parsing = True
+    require_signed(good, key)
+    require_signed(wrong, bytes(32))
+    headings = [m for d in got for m in good.parse_buffer(d) or [] if m.get_type() == "MAGCOMP_HEADING"]
+    assert len(headings) > 0 and good.signing.goodsig_count > 0 and good.signing.badsig_count == 0
+    refused = [m for d in got for m in wrong.parse_buffer(d) or [] if m.get_type() == "MAGCOMP_HEADING"]
+    assert refused == [] and wrong.signing.badsig_count > 0
+
+
+def test_signing_key_files(tmp_path: Path) -> None:
+    import hashlib
+
+    from magcomp.adapters.signing import read_signing_key
+    from magcomp.errors import InputError
+
+    raw, hexed, phrase = tmp_path / "raw", tmp_path / "hex", tmp_path / "phrase"
+    raw.write_bytes(bytes(range(32)))
+    hexed.write_text(bytes(range(32)).hex() + "\n")
+    phrase.write_text("my key\n")
+    assert read_signing_key(raw) == read_signing_key(hexed) == bytes(range(32))
+    assert read_signing_key(phrase) == hashlib.sha256(b"my key").digest()
+    with pytest.raises(InputError, match="cannot read"):
+        read_signing_key(tmp_path / "missing")
