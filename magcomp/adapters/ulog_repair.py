@@ -222,20 +222,25 @@ def ulog_intact_copy(path: str | os.PathLike[str]) -> UlogRepair | None:
             definitions_end = q
             spans: list[tuple[int, int]] = [(0, definitions_end)]
             resyncs = dropped = 0
-            start = q
+            start = last = q
             while q < end:
                 n = _message_ok(data, q, end, schema, commit=True)
                 if n:
+                    last = q
                     q += n
                     continue
-                spans.append((start, q))
                 r = _resync(data, q + 1, end, schema)
                 if end - r < 3:  # a short tail that is no message: a log cut mid-write, not damage
                     r = end
+                elif last > start:
+                    # damage that starts inside a message leaves its header (and size) intact and its
+                    # payload's tail garbage: the message just before the damage goes too
+                    q = last
+                spans.append((start, q))
                 dropped += r - q
                 if r < end:
                     resyncs += 1
-                q = start = r
+                q = start = last = r
             spans.append((start, q))
             if dropped == 0 or (resyncs == 0 and dropped < 3):
                 return None
