@@ -2,9 +2,21 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
+from collections.abc import Callable, Iterator
 
 import pytest
+
+
+@pytest.fixture(autouse=True)
+def restore_magcomp_logging() -> Iterator[None]:
+    """The commands, run in-process, point the 'magcomp' logger at the (captured) stderr of their test;
+    give every later test its own back (else it logs into a closed stream: "--- Logging error ---")."""
+    logger = logging.getLogger("magcomp")
+    handlers, level = logger.handlers[:], logger.level
+    yield
+    logger.handlers[:] = handlers
+    logger.setLevel(level)
 
 
 def split_tlog_records(data: bytes) -> list[bytes]:

@@ -555,8 +555,7 @@ class _Converter:
             name = name.decode("ascii", "replace")
         name = name.rstrip("\x00")
         value = param_value(float(msg.param_value), int(msg.param_type), self.autopilot == MAV_AUTOPILOT_PX4)
-        if math.isfinite(value):  # (a non-finite one goes on, to be counted and dropped downstream)
-            self.onboard_comp.param(name, value)
+        self.onboard_comp.param(name, value)  # (a NaN COMPASS_MOT* is reported there as invalid)
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, value))]
 
     # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
@@ -699,8 +698,7 @@ class _Converter:
         mtype = v.mtype
         if mtype == "PARM":
             value = float(v.Value)
-            if math.isfinite(value):  # (a non-finite one goes on, to be counted and dropped downstream)
-                self.onboard_comp.param(str(v.Name), value)
+            self.onboard_comp.param(str(v.Name), value)  # (a NaN COMPASS_MOT* is reported there as invalid)
             return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), value))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))

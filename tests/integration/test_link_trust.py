@@ -122,19 +122,45 @@ def _listening_addresses(port: int) -> set[str]:
     return out
 
 
+#: the child that serves: Rerun's servers leave native threads behind in the process that opened them (a
+#: later fork, the observers' child process, would copy them mid-lock), so they live in a child process
+_SERVE_CHILD = """
+import sys
+from magcomp.adapters.rerun_viz import open_viz
+viz = open_viz(sys.argv[1], live=False, recording_name="trust", grpc_port=int(sys.argv[2]),
+               web_port=int(sys.argv[3]))
+print(viz.url, flush=True)
+sys.stdin.read()
+viz.close()
+"""
+
+
 @pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="needs Linux's /proc/net/tcp")
 @pytest.mark.parametrize(("mode", "expected"), [("serve", {"0100007F"}), ("serve=0.0.0.0", {"00000000"})])
 def test_rerun_serve_listens_on_loopback_unless_told_otherwise(mode: str, expected: set[str]) -> None:
-    from magcomp.adapters.rerun_viz import free_port, open_viz
+    import subprocess
+    import sys
 
-    gport = free_port()
-    viz = open_viz(mode, live=False, recording_name="trust", grpc_port=gport, web_port=free_port())
+    from magcomp.adapters.rerun_viz import free_port
+
+    gport, wport = free_port(), free_port()
+    repo = Path(__file__).parents[2]
+    proc = subprocess.Popen([sys.executable, "-c", _SERVE_CHILD, mode, str(gport), str(wport)], cwd=repo,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert proc.stdin is not None and proc.stdout is not None
     try:
+        url = proc.stdout.readline()
+        assert "127.0.0.1" in url, url
         wait_for(lambda: bool(_listening_addresses(gport)), 30.0, "the recording's server to listen")
         assert _listening_addresses(gport) == expected
-        assert viz.url is not None and "127.0.0.1" in viz.url
     finally:
-        viz.close()
+        proc.stdin.close()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
 
 
 def _signed(packets: list[bytes], key: bytes) -> list[bytes]:
