@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import pytest
 
@@ -11,6 +12,17 @@ import pytest
 # thread at import, and the replay's observer / in-flight helpers then rightly refuse to fork for the rest
 # of the session (magcomp/fleet/store.py sets the same for the product).
 os.environ.setdefault("JE_ARROW_MALLOC_CONF", "background_thread:false")
+
+
+@pytest.fixture(autouse=True)
+def restore_magcomp_logging() -> Iterator[None]:
+    """The commands, run in-process, point the 'magcomp' logger at the (captured) stderr of their test;
+    give every later test its own back (else it logs into a closed stream: "--- Logging error ---")."""
+    logger = logging.getLogger("magcomp")
+    handlers, level = logger.handlers[:], logger.level
+    yield
+    logger.handlers[:] = handlers
+    logger.setLevel(level)
 
 
 def split_tlog_records(data: bytes) -> list[bytes]:

@@ -84,6 +84,27 @@ def rewrite(records: list[bytes], mtype: str, **fields: Any) -> list[bytes]:
     return out
 
 
+def rewrite_some(
+    records: list[bytes], mtype: str, which: Callable[[int], bool], **fields: Any
+) -> list[bytes]:
+    """Records with the ``fields`` of the k-th ``mtype`` message set when ``which(k)`` (re-encoded, same
+    sender, sequence and CRC rules as :func:`rewrite`)."""
+    mod, mav = _mav()
+    out, k = [], 0
+    for rec in records:
+        msg = mav.decode(bytearray(rec[8:]))
+        if msg.get_type() == mtype:
+            if which(k):
+                for name, value in fields.items():
+                    setattr(msg, name, value)
+                sender = mod.MAVLink(None, srcSystem=msg.get_srcSystem(), srcComponent=msg.get_srcComponent())
+                sender.seq = msg.get_seq()
+                rec = rec[:8] + bytes(msg.pack(sender))
+            k += 1
+        out.append(rec)
+    return out
+
+
 def _df_fmt(mtype: int, length: int, name: str, fmt: str, columns: str) -> bytes:
     import struct
 

@@ -67,7 +67,8 @@ class OnboardMotorComp:
 
     @property
     def motct(self) -> int:
-        return int(self.params.get("COMPASS_MOTCT", 0.0))
+        value = self.params.get("COMPASS_MOTCT", 0.0)
+        return int(value) if math.isfinite(value) else 0  # (a damaged COMPASS_MOTCT: none applied)
 
     def mot(self, index: int) -> tuple[float, float, float] | None:
         p = _prefix(index)

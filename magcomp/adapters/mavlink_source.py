@@ -61,6 +61,7 @@ not as sample objects: ~8 bytes per value instead of ~150-350 bytes per row.
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import logging
 import math
@@ -73,7 +74,7 @@ import struct
 import sys
 from array import array
 from collections import deque
-from collections.abc import Callable, Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -137,6 +138,8 @@ MAV_TYPE_GCS = 6
 MAGIC_V1 = 0xFE
 MAGIC_V2 = 0xFD
 LIVE_PREFIXES = ("udp:", "udpin:", "udpout:", "udpbcast:", "tcp:", "tcpin:", "serial:")
+
+log = logging.getLogger("magcomp.source")
 
 WANTED_MAVLINK = (
     "HEARTBEAT",
@@ -729,7 +732,7 @@ class _Converter:
             name = name.decode("ascii", "replace")
         name = name.rstrip("\x00")
         value = param_value(float(msg.param_value), int(msg.param_type), self.autopilot == MAV_AUTOPILOT_PX4)
-        self.onboard_comp.param(name, value)
+        self.onboard_comp.param(name, value)  # (a NaN COMPASS_MOT* is reported there as invalid)
         return [("PARAM_VALUE", ParamSample(self.clock.last_t_s, name, value))]
 
     # --- PX4 (MAV_AUTOPILOT_PX4): HIGHRES_IMU, ATTITUDE_QUATERNION, ACTUATOR_OUTPUT_STATUS ---------------
@@ -862,11 +865,18 @@ class _Converter:
         return SimpleNamespace(**values)
 
     def dataflash(self, msg: Any) -> list[tuple[str, Record]]:
-        v = self._df_values(msg)
+        try:
+            v = self._df_values(msg)
+        except (ValueError, TypeError, OverflowError, IndexError):
+            # a field that is not a number of its type (a text log line with NUL bytes or cut short):
+            # the record is dropped and counted, the rest of the log is read
+            self.counts["unreadable_records"] += 1
+            return []
         mtype = v.mtype
         if mtype == "PARM":
-            self.onboard_comp.param(str(v.Name), float(v.Value))
-            return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), float(v.Value)))]
+            value = float(v.Value)
+            self.onboard_comp.param(str(v.Name), value)  # (a NaN COMPASS_MOT* is reported there as invalid)
+            return [("PARM", ParamSample(self.clock.last_t_s, str(v.Name), value))]
         if mtype == "MSG":
             return self._df_msg(str(v.Message))
         if mtype in ("GPS", "GPS2", "POS"):
@@ -1595,6 +1605,123 @@ def _is_ulog(target: str) -> bool:
         return False
 
 
+#: a locked UDP peer silent this long may be replaced by another sender of vehicle data (a flight
+#: controller that restarted on a new port); until then, datagrams from anyone else are dropped
+PEER_RELOCK_S = 5.0
+#: foreign senders named in a warning; the rest are counted only
+FOREIGN_NAMED = 5
+_MAV_TYPE_GCS = 6
+
+
+class UdpPeerLock:
+    """The trust boundary of a UDP link (``udpin:``, ``udp:``, ``udpout:``): the link follows one peer.
+
+    ``udpin``: the first address whose datagram carries vehicle data (a sensor, attitude, output or
+    parameter message, or a HEARTBEAT that is not a ground station's) becomes the flight controller;
+    datagrams from any other address are dropped before the MAVLink parser sees them (counted as
+    ``foreign_datagrams``, the first senders named in a warning), and what the link sends goes to that
+    address only (pymavlink would send to every address that ever sent a datagram). A peer silent for
+    ``relock_s`` may be replaced by the next sender of vehicle data (logged). ``udpout``: only the
+    destination's replies are read. Installed by replacing the connection's ``recv``."""
+
+    def __init__(
+        self,
+        conn: Any,
+        counts: dict[str, int],
+        relock_s: float = PEER_RELOCK_S,
+        signing_key: bytes | None = None,
+    ) -> None:
+        import socket
+
+        self.conn = conn
+        self.counts = counts
+        self.relock_s = relock_s
+        self.peer: tuple[Any, ...] | None = None
+        self.vehicle: tuple[int, int] | None = None
+        self._last_from_peer = -math.inf
+        self._foreign: set[tuple[Any, ...]] = set()
+        self._probe = _mavlink_module().MAVLink(None)
+        self._probe.robust_parsing = True
+        if signing_key is not None:  # a signed link locks onto signed vehicle data only
+            from magcomp.adapters.signing import require_signed
+
+            require_signed(self._probe, signing_key)
+        self._wanted = frozenset(WANTED_MAVLINK)
+        self._socket_error = socket.error
+        self._relockable = bool(conn.udp_server or conn.broadcast)  # (udpbcast: the first replier)
+        if not self._relockable:  # udpout: the destination is the peer, by construction
+            with contextlib.suppress(OSError):
+                host, port = conn.destination_addr
+                self.peer = (socket.gethostbyname(host), int(port))
+        conn.clients.clear()
+        conn.recv = self.recv
+
+    def recv(self, n: int | None = None) -> bytes:
+        import time
+
+        conn = self.conn
+        try:
+            data, addr = conn.port.recvfrom(65535)
+        except self._socket_error as exc:
+            if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                return b""
+            raise
+        now = time.monotonic()
+        if addr == self.peer:
+            self._last_from_peer = now
+            return bytes(data)
+        if self.peer is not None and (not self._relockable or now - self._last_from_peer < self.relock_s):
+            self._refuse(addr)
+            return b""
+        vehicle = self._vehicle_in(data)
+        if vehicle is None:
+            self._refuse(addr)
+            return b""
+        if self.peer is not None:
+            log.warning("the flight controller at %s:%s was silent for %.0f s; now following %s:%s "
+                        "(system %d component %d)", *self.peer[:2], now - self._last_from_peer, *addr[:2],
+                        *vehicle)  # fmt: skip
+        else:
+            log.info("following the flight controller at %s:%s (system %d component %d); vehicle data "
+                     "from other addresses is ignored", *addr[:2], *vehicle)  # fmt: skip
+        self.peer, self.vehicle, self._last_from_peer = addr, vehicle, now
+        self._foreign.discard(addr)
+        conn.clients.clear()
+        conn.clients.add(addr)
+        conn.clients_last_alive[addr] = time.time()
+        if conn.broadcast:
+            conn.last_address = addr
+        return bytes(data)
+
+    def _vehicle_in(self, data: bytes) -> tuple[int, int] | None:
+        """(system, component) of the first vehicle message in a datagram, None when it has none."""
+        try:
+            msgs = self._probe.parse_buffer(bytearray(data)) or []
+        except Exception:  # whatever the parser makes of hostile bytes: not vehicle data
+            return None
+        finally:
+            self._probe.buf = bytearray()  # each datagram on its own: nothing carried to the next
+            self._probe.buf_index = 0
+        for m in msgs:
+            mtype = m.get_type()
+            if mtype not in self._wanted:
+                continue
+            if mtype == "HEARTBEAT" and getattr(m, "type", None) == _MAV_TYPE_GCS:
+                continue
+            return int(m.get_srcSystem()), int(m.get_srcComponent())
+        return None
+
+    def _refuse(self, addr: tuple[Any, ...]) -> None:
+        self.counts["foreign_datagrams"] += 1
+        if addr in self._foreign or len(self._foreign) >= FOREIGN_NAMED:
+            return
+        self._foreign.add(addr)
+        follows = f"{self.peer[0]}:{self.peer[1]}" if self.peer is not None else "no flight controller yet"
+        more = " (further senders are counted only)" if len(self._foreign) == FOREIGN_NAMED else ""
+        log.warning("ignoring datagrams from %s:%s, not the flight controller (following %s)%s",
+                    *addr[:2], follows, more)  # fmt: skip
+
+
 def _raise_dropped(reason: str) -> Callable[[], None]:
     """A replacement for pymavlink's TCP ``handle_eof`` / ``handle_disconnect`` (which reconnect in place,
     printing on stdout): the drop becomes an error of the reading (or writing) call."""
@@ -1625,8 +1752,10 @@ class MavSource:
         baud: int = 57600,
         live_timeout_s: float = 0.5,
         pipeline_only: bool = False,
+        signing_key: bytes | None = None,
     ) -> None:
         self.target = target
+        self._signing_key = signing_key
         self.spec = parse_throttle_source(throttle_source)
         self.mag_index = mag_index
         self.counts: dict[str, int] = _Counts()
@@ -1644,6 +1773,7 @@ class MavSource:
         #: stream (the daemon's stop request, seen by the reading thread itself)
         self.interrupt: Callable[[], bool] | None = None
         self._own_reconnect = False  # a drop ends the source (TCP client links): see _open_live
+        self.peer_lock: UdpPeerLock | None = None  # UDP links: the one peer followed
         if self._kind == "live":
             self._open_live()
 
@@ -1716,6 +1846,12 @@ class MavSource:
             )  # fmt: skip
         except Exception as exc:
             raise InputError(f"cannot open link {self.target}: {exc}") from None
+        if self._signing_key is not None:  # only signed frames are read from this link
+            from magcomp.adapters.signing import require_signed
+
+            require_signed(self.connection.mav, self._signing_key)
+        if isinstance(self.connection, mavutil.mavudp):
+            self.peer_lock = UdpPeerLock(self.connection, self.counts, signing_key=self._signing_key)
         if tcp_client:
             self._own_reconnect = True
             self.connection.handle_eof = _raise_dropped("connection closed by the other end")
@@ -1801,7 +1937,11 @@ class MavSource:
                 continue
             mtype = m.get_type()
             if mtype == "BAD_DATA":
-                self.counts["bad_crc" if "CRC" in str(getattr(m, "reason", "")) else "garbage_bytes"] += 1
+                reason = str(getattr(m, "reason", ""))
+                if "signature" in reason:
+                    self.counts["bad_signature"] += 1  # unsigned or signed with another key
+                else:
+                    self.counts["bad_crc" if "CRC" in reason else "garbage_bytes"] += 1
                 continue
             if mtype in wanted:
                 self.counts["messages"] += 1
@@ -1920,6 +2060,19 @@ def sender_stream(spec: str | ThrottleSpec, counts: dict[str, int] | None = None
     return _SenderStream(parse_throttle_source(spec), conv, {})
 
 
+def finite_params(params: Mapping[str, float], counts: dict[str, int]) -> dict[str, float]:
+    """``params`` without the non-finite values (a damaged PARAM_VALUE / PARM / ULog parameter), each
+    counted in ``non_finite_params``: the parameters decide compass forms, channels and rotations, and
+    ``int(nan)`` raised in each of those places."""
+    out = {}
+    for name, value in params.items():
+        if math.isfinite(value):
+            out[name] = value
+        else:
+            counts["non_finite_params"] = counts.get("non_finite_params", 0) + 1
+    return out
+
+
 def _throttle_sample(
     resolved: ResolvedThrottle | None, rec: PwmRecord | ThrottleRecord
 ) -> ThrottleSample | None:
@@ -1953,6 +2106,7 @@ def open_source(
     baud: int = 57600,
     live_timeout_s: float = 0.5,
     pipeline_only: bool = False,
+    signing_key: bytes | None = None,
 ) -> MavSource | UlogSource:
     """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log, PX4 .ulg) or a live link URL.
 
@@ -1976,6 +2130,7 @@ def open_source(
         baud=baud,
         live_timeout_s=live_timeout_s,
         pipeline_only=pipeline_only,
+        signing_key=signing_key,
     )
     return source
 
@@ -2128,7 +2283,7 @@ def _collect(
     counts = source.counts
     data = LogData(
         source=source.target,
-        params=dict(source.params),
+        params=finite_params(source.params, counts),
         vehicle_type=source.vehicle_type,
         autopilot=source.autopilot,
     )

@@ -35,6 +35,7 @@ Memory: pyulog parses a whole file into per-topic numpy arrays; only the topics 
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import os
 from collections import Counter
@@ -114,25 +115,77 @@ class UlogTables:
     counts: Counter[str] = field(default_factory=Counter)
 
 
-def _open_ulog(path: Path) -> Any:
+def _open_ulog(path: Path, counts: Counter[str] | None = None) -> Any:
+    """The ULog at ``path`` read by pyulog. The file is first walked message by message
+    (:mod:`magcomp.adapters.ulog_repair`, a few per cent of pyulog's own time): a damaged one is read from
+    a copy of its intact messages, what was dropped counted in ``counts`` (``ulog_resyncs``,
+    ``ulog_dropped_bytes``). pyulog alone would lose what follows the damage, and walks a long tail of
+    zeros one Python step per byte."""
+    from magcomp.adapters.ulog_repair import ulog_intact_copy
+
+    repair = ulog_intact_copy(path)
+    if repair is None:
+        return _parse_ulog(path)
+    try:
+        repaired = _parse_ulog(repair.path, shown=path)
+    except InputError:  # the copy is no better: pyulog's own reading of the file stands
+        return _parse_ulog(path)
+    finally:
+        with contextlib.suppress(OSError):
+            repair.path.unlink()
+    if counts is not None:
+        counts["ulog_resyncs"] += repair.resyncs
+        counts["ulog_dropped_bytes"] += repair.dropped_bytes
+    return repaired
+
+
+def _parse_ulog(path: Path, shown: Path | None = None) -> Any:
     try:
         from pyulog import ULog
     except ImportError:  # pragma: no cover - a core dependency
         raise InputError("reading .ulg needs pyulog (pip install pyulog)") from None
     from magcomp.adapters.mavlink_source import _quiet
 
+    shown = shown or path
     try:
         if path.stat().st_size == 0:
-            raise InputError(f"{path}: empty file")
+            raise InputError(f"{shown}: empty file")
         with _quiet(), path.open("rb") as f:  # our handle: closed even when pyulog raises
             return ULog(f, message_name_filter_list=list(TOPICS))
     except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        raise InputError(f"{shown}: cannot read ({exc.strerror or exc})") from None
     except InputError:
         raise
     except Exception as exc:  # pyulog raises anything from struct.error to IndexError on a damaged file
         why = (str(exc).splitlines() or [""])[0][:100]
-        raise InputError(f"{path}: not a readable ULog file ({type(exc).__name__}: {why})") from None
+        raise InputError(f"{shown}: not a readable ULog file ({type(exc).__name__}: {why})") from None
+
+
+#: a timestamp further than this (s, and this many median steps) from the median of its neighbours is
+#: a glitch
+GLITCH_S = 1.0
+GLITCH_STEPS = 100.0
+GLITCH_HALF_WINDOW = 3
+
+
+def lone_time_glitches(t: F64) -> NDArray[np.bool_]:
+    """The samples of one topic (timestamps in file order) whose timestamp is a glitch: further than
+    GLITCH_S and GLITCH_STEPS median steps from the median of the GLITCH_HALF_WINDOW samples either side
+    (a flipped bit sends one far forward or back; up to GLITCH_HALF_WINDOW - 1 of them in a row are
+    caught). A real clock event, a jump that the following samples confirm, is not: the neighbours'
+    median follows it."""
+    n = t.size
+    k = GLITCH_HALF_WINDOW
+    if n < 2 * k + 1:
+        return np.zeros(n, dtype=bool)
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    med = np.median(sliding_window_view(np.pad(t, k, mode="reflect"), 2 * k + 1), axis=1)
+    steps = np.diff(t)
+    ok = steps[(steps > 0) & np.isfinite(steps)]
+    step = float(np.median(ok)) if ok.size else 0.0
+    limit = max(GLITCH_S, GLITCH_STEPS * step)
+    return np.asarray(~(np.abs(t - med) <= limit))
 
 
 def _cols(data: Mapping[str, Any], name: str, n: int) -> F64 | None:
@@ -157,15 +210,30 @@ def read_ulog_tables(
     """Read the ULog at ``path`` into :class:`UlogTables` (InputError for an unreadable file)."""
     spec = parse_throttle_source(throttle_source)
     p = Path(path)
-    ulog = _open_ulog(p)
-    params = {str(k): float(v) for k, v in ulog.initial_parameters.items()}
+    counts: Counter[str] = Counter()
+    ulog = _open_ulog(p, counts)
+    from magcomp.adapters.mavlink_source import finite_params
+
+    params = finite_params({str(k): float(v) for k, v in ulog.initial_parameters.items()}, counts)
     changes = [(float(t) * 1e-6, str(k), float(v)) for t, k, v in ulog.changed_parameters]
+    n_changes = len(changes)
+    changes = [c for c in changes if np.isfinite(c[0]) and np.isfinite(c[2])]
+    counts["non_finite_params"] += n_changes - len(changes)
     topics: dict[str, dict[int, dict[str, Any]]] = {}
     for d in ulog.data_list:
         if len(d.data.get("timestamp", ())):
-            topics.setdefault(d.name, {})[int(d.multi_id)] = d.data
+            data = d.data
+            bad = np.zeros(len(data["timestamp"]), dtype=bool)
+            for key in ("timestamp", "timestamp_sample"):  # (the topic's time is either)
+                if key in data:
+                    bad |= lone_time_glitches(np.asarray(data[key], dtype=np.float64) * 1e-6)
+            if bad.any():  # a flipped bit in a timestamp: the sample is dropped, not sorted to the end
+                counts["time_jumps"] += int(bad.sum())
+                data = {k: np.asarray(v)[~bad] for k, v in data.items()}
+            topics.setdefault(d.name, {})[int(d.multi_id)] = data
     tables = UlogTables(str(p), params, changes, float(ulog.start_timestamp) * 1e-6)
     tables.uid = normal_uid(str(ulog.msg_info_dict.get("sys_uuid", "")))
+    tables.counts.update(+counts)
     for name, inst in topics.items():
         for multi, data in inst.items():
             tables.counts[f"ulog_{name}" + (f"_{multi}" if multi else "")] = len(data["timestamp"])

@@ -9,9 +9,11 @@ Markdown report with PNG plots (``--report``); prints a short summary. A simulat
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -95,27 +97,26 @@ def gps_from_file(path: str) -> tuple[float, float, float, float] | None:
     Used only while the log readers do not fill ``LogData.position`` themselves. GPS week/ms gives the date
     of a DataFlash fix; a tlog's date comes from SYSTEM_TIME.
     """
-    import contextlib
-    import datetime as dt
-    import io
+    if Path(path).suffix.lower() not in (".bin", ".log", ".tlog"):
+        return None
+    with _raw_log(path) as m:
+        if m is None:  # a position is a nicety; the diagnosis runs without it
+            return None
+        return _read_fix(m)
 
-    from pymavlink import mavutil
+
+def _read_fix(m: Any) -> tuple[float, float, float, float] | None:
+    """The first 3D fix and the date of an open reader (see :func:`gps_from_file`)."""
+    import datetime as dt
 
     from magcomp.geomag import decimal_year
 
-    if Path(path).suffix.lower() not in (".bin", ".log", ".tlog"):
-        return None
     gps_epoch = dt.datetime(1980, 1, 6)
-    try:
-        with contextlib.redirect_stdout(io.StringIO()):
-            m = mavutil.mavlink_connection(path)
-    except Exception:  # a position is a nicety; the diagnosis runs without it
-        return None
     fix: tuple[float, float, float] | None = None
     year = float("nan")
     try:
         while fix is None or not math.isfinite(year):
-            msg = m.recv_match(type=["GPS", "GPS_RAW_INT", "SYSTEM_TIME"])
+            msg = quiet_recv(m, ["GPS", "GPS_RAW_INT", "SYSTEM_TIME"])
             if msg is None:
                 break
             d = msg.to_dict()
@@ -133,8 +134,6 @@ def gps_from_file(path: str) -> tuple[float, float, float, float] | None:
                 year = decimal_year(dt.datetime.fromtimestamp(d["time_unix_usec"] * 1e-6, dt.UTC))
     except Exception:  # a reader hiccup: use what was read
         pass
-    finally:
-        m.close()
     if fix is None or not all(math.isfinite(v) for v in fix) or (fix[0] == 0.0 and fix[1] == 0.0):
         return None
     return fix[0], fix[1], fix[2], year
@@ -191,22 +190,67 @@ def log_events(path: str) -> list[tuple[float, str]]:
     suffix = Path(path).suffix.lower()
     if suffix not in (".bin", ".log", ".tlog"):
         return []
-    import contextlib
-    import io
+    rows: list[tuple[float | None, float, str]] = []  # (boot time or None, reader timestamp, text)
+    with _raw_log(path) as m:
+        if m is None:  # events are a nicety; a reader hiccup must not stop the diagnosis
+            return []
+        _read_events(m, rows)
+    # messages without their own boot time (old MSG/EV) get it from the reader's clock offset
+    offsets = [stamp - boot for boot, stamp, _ in rows if boot is not None]
+    off = sorted(offsets)[len(offsets) // 2] if offsets else None
+    out = []
+    for boot, stamp, text in rows:
+        if boot is None and off is None:
+            continue
+        out.append((boot if boot is not None else stamp - (off or 0.0), text))
+    return out
 
+
+@contextlib.contextmanager
+def _raw_log(path: str) -> Iterator[Any]:
+    """pymavlink's own reader of ``path`` (None when it cannot open it), for the events and the GPS
+    fallback. A damaged .bin is read through the same repair as the samples (its intact messages only);
+    the reader, which writes a "bad header" line per byte it cannot frame straight to the C streams (two
+    million lines for 1 MiB of zero padding), is silenced; its messages are read through
+    :func:`quiet_recv`."""
     from pymavlink import mavutil
 
-    rows: list[tuple[float | None, float, str]] = []  # (boot time or None, reader timestamp, text)
+    from magcomp.adapters.mavlink_source import _Counts, _dataflash_repaired, _quiet, _quiet_c_streams
+
+    repaired = _dataflash_repaired(Path(path), _Counts()) if Path(path).suffix.lower() == ".bin" else None
     try:
-        with contextlib.redirect_stdout(io.StringIO()):
-            m = mavutil.mavlink_connection(path)
-    except Exception:  # events are a nicety; a reader hiccup must not stop the diagnosis
-        return []
+        try:
+            with _quiet(), _quiet_c_streams():
+                m = mavutil.mavlink_connection(str(repaired or path))
+        except Exception:
+            m = None
+        try:
+            yield m
+        finally:
+            if m is not None:
+                with contextlib.suppress(Exception):
+                    m.close()
+    finally:
+        if repaired is not None:
+            with contextlib.suppress(OSError):
+                repaired.unlink()
+
+
+def quiet_recv(m: Any, types: list[str]) -> Any:
+    """``m.recv_match(type=types)`` with pymavlink's prints kept off the terminal."""
+    from magcomp.adapters.mavlink_source import _quiet
+
+    with _quiet():
+        return m.recv_match(type=types)
+
+
+def _read_events(m: Any, rows: list[tuple[float | None, float, str]]) -> None:
+    """The events of an open reader into ``rows`` (what was read before a reader hiccup is kept)."""
     try:
         t_first_param: float | None = None
         types = ["MSG", "EV", "MODE", "ERR", "PARM", "ARM", "STATUSTEXT"]
         while True:
-            msg = m.recv_match(type=types)
+            msg = quiet_recv(m, types)
             if msg is None:
                 break
             d = msg.to_dict()
@@ -233,17 +277,6 @@ def log_events(path: str) -> list[tuple[float, str]]:
             rows.append((boot, stamp, text))
     except Exception:  # events are a nicety; a reader hiccup must not stop the diagnosis
         pass
-    finally:
-        m.close()
-    # messages without their own boot time (old MSG/EV) get it from the reader's clock offset
-    offsets = [stamp - boot for boot, stamp, _ in rows if boot is not None]
-    off = sorted(offsets)[len(offsets) // 2] if offsets else None
-    out = []
-    for boot, stamp, text in rows:
-        if boot is None and off is None:
-            continue
-        out.append((boot if boot is not None else stamp - (off or 0.0), text))
-    return out
 
 
 def _g3(v: float | None) -> str:
@@ -457,6 +490,13 @@ def execute(args: argparse.Namespace) -> int:
 
     with reading_progress(f"diagnose: reading {Path(args.log).name}", args.log) as on_progress:
         log = load_log(args.log, throttle_source=args.throttle_source, on_progress=on_progress)
+    from magcomp.adapters.config import load_config
+    from magcomp.service.align import gate_log_inputs
+
+    # the pipeline's magnetometer gates: a clipped (saturated) or corrupt (jump) sample is not a field
+    saturation = load_config(args.config).input.saturation_mgauss
+    for key, n in gate_log_inputs(log, saturation).items():
+        log.counts[key] = log.counts.get(key, 0) + n
     with Busy("diagnose: fitting the models"):
         d = diagnose(
             log,
@@ -465,7 +505,13 @@ def execute(args: argparse.Namespace) -> int:
             events=log_events(args.log),
             earth=earth_reference(args, log),
         )
+    from magcomp.service.console import SKIP_KEYS, format_counts
+
+    skipped = {k: int(log.counts[k]) for k in SKIP_KEYS if log.counts.get(k)}
+    if skipped:  # what reading the log dropped or absorbed: counted, never silent
+        d.notes.append(f"skipped or absorbed while reading the log: {format_counts(skipped, SKIP_KEYS)}")
     j = d.to_json()
+    j["counts"] = skipped
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")
     for line in _summary(j):
         print(line)

@@ -225,6 +225,11 @@ def execute(args: argparse.Namespace) -> int:
     with reading_progress(f"fit: reading {path.name}", path) as on_progress:
         log = load_log(path, throttle_source=args.throttle_source, mag_index=args.mag, window=window,
                        on_progress=on_progress)  # fmt: skip
+    from magcomp.adapters.config import load_config
+    from magcomp.service.align import gate_log_inputs
+
+    # the pipeline's magnetometer gates: a clipped (saturated) or corrupt (jump) sample is not a field
+    dropped = gate_log_inputs(log, load_config(args.config).input.saturation_mgauss)
     try:
         with Busy(f"fit: least squares and {args.monte_carlo} Monte-Carlo refits"):
             rep = fit_log(
@@ -242,9 +247,12 @@ def execute(args: argparse.Namespace) -> int:
         print(f"note: no offline fit (Table II): {exc}")
         return 0
     print(format_table(rep))
+    if any(dropped.values()):
+        said = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items() if v)
+        print(f"dropped before the fit: {said}")
     if args.json:
-        try:
-            Path(args.json).write_text(json.dumps(report_json(rep), indent=2) + "\n")
-        except OSError as exc:
-            raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
+        from magcomp.adapters.files import write_file
+
+        doc = {**report_json(rep), "dropped": dropped}
+        write_file(args.json, (json.dumps(doc, indent=2) + "\n").encode())
     return 0

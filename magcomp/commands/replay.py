@@ -120,9 +120,7 @@ def execute(args: argparse.Namespace) -> int:
         if stop_signals and stop_signals[0] == signal.SIGTERM:
             return 128 + signal.SIGTERM  # asked to stop: partial results written, the usual exit code
         raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
-    if no_mag:
-        if args.emit and report.emitted == 0:
-            Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
+    if no_mag:  # (the tlog writer leaves an --emit path as it was when nothing was written)
         raise InputError(f"{args.log}: no magnetometer messages in the log, nothing to correct")
     return 0
 
@@ -189,8 +187,7 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
             print(f"interrupted: the summary covers the log up to {report.t_last_s:.1f} s", flush=True)
         else:  # stopped in the first pass (it reads the whole log before any heading) or before any sample
             print("interrupted before the first heading: nothing to report", flush=True)
-    if args.emit and report.interrupted and report.emitted == 0:
-        Path(args.emit).unlink(missing_ok=True)  # no empty --emit file left behind
+    if args.emit and report.emitted == 0:  # (the tlog writer leaves the path as it was)
         print(f"nothing written to {args.emit}")
     elif args.emit:
         print(f"wrote {report.emitted} MAGCOMP_HEADING to {args.emit}")

@@ -27,6 +27,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)",
     )
+    parser.add_argument(
+        "--signing-key",
+        metavar="FILE",
+        help="MAVLink 2 signing: sign what is sent and read only frames signed with this key (32 bytes, "
+        "64 hex digits or a passphrase)",
+    )
     parser.add_argument("--json", metavar="SUMMARY.json", help="write a summary when the run ends")
     parser.add_argument(
         "--duration", type=float, metavar="S", help="stop after S seconds (default: run until ^C)"
@@ -97,8 +103,13 @@ def execute(args: argparse.Namespace) -> int:
         if s.battery_index == 0:  # beside the throttle, which comes with the estimates
             viz.log_power(s.t_s, float("nan"), s.current_a, s.voltage_v)
 
+    key = None
+    if args.signing_key:
+        from magcomp.adapters.signing import read_signing_key
+
+        key = read_signing_key(args.signing_key)
     daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text,
-                    on_power=power)  # fmt: skip
+                    on_power=power, signing_key=key)  # fmt: skip
 
     def on_signal(signum: int, frame: object) -> None:
         daemon.request_stop()  # a flag only: a second signal during the first cannot deadlock
@@ -122,6 +133,9 @@ def execute(args: argparse.Namespace) -> int:
         earth = earth_field_line(report.summary)
         if earth is not None:
             print(earth)
+        foreign = report.source_counts.get("foreign_datagrams", 0)
+        if foreign:
+            print(f"ignored {foreign} datagrams from addresses other than the flight controller's")
         lat = report.latency_ms
         if lat:
             print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")

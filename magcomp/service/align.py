@@ -14,8 +14,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from magcomp.adapters.config import Config
-from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_NO_THROTTLE, MagSample, ThrottleSample
+from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_NO_THROTTLE, LogData, MagSample, Series, ThrottleSample
 from magcomp.service.record import Float3, MagRecord
 
 #: a magnetometer interval above this many times the compass's usual interval (and above [observer]
@@ -29,6 +31,35 @@ NO_THROTTLE_WARN_S = 2.0
 #: included): the largest step in the 8 simulated scenarios is 88 mgauss, on log171 before its crash
 #: 230 mgauss. Such a sample (a corrupt value) and the one after it are dropped (counts["mag_jumps"]).
 MAG_JUMP_MGAUSS = 500.0
+
+def gate_log_inputs(log: LogData, saturation_mgauss: float) -> dict[str, int]:
+    """The magnetometer and attitude columns of a whole log (``fit``, ``diagnose``) through the gates the
+    pipeline applies to a replay (:meth:`AlignStage.admit` / :meth:`AlignStage.begin`,
+    :meth:`~magcomp.service.attitude.AttitudeStage.on_attitude`): saturated, non-finite and jump
+    magnetometer samples and impossible attitudes dropped in place; returns what was dropped
+    (``saturated``, ``mag_jumps``, ``implausible``)."""
+    from magcomp.core.plausible import mag_outliers
+    from magcomp.service.attitude import PITCH_MAX_RAD, ROLL_MAX_RAD
+
+    out = {"saturated": 0, "mag_jumps": 0, "implausible": 0}
+    for index, series in list(log.mag.items()):
+        if len(series) == 0:
+            continue
+        saturated, jump = mag_outliers(series.values, saturation_mgauss, MAG_JUMP_MGAUSS)
+        bad = saturated | jump
+        if bad.any():
+            out["saturated"] += int(saturated.sum())
+            out["mag_jumps"] += int(jump.sum())
+            log.mag[index] = Series(series.t_s[~bad], series.values[~bad])
+    att = log.attitude_rad
+    if len(att) and att.values.ndim == 2 and att.values.shape[1] >= 2:
+        with np.errstate(invalid="ignore"):
+            ok = (np.abs(att.values[:, 0]) <= ROLL_MAX_RAD) & (np.abs(att.values[:, 1]) <= PITCH_MAX_RAD)
+        if not ok.all():
+            out["implausible"] += int((~ok).sum())
+            log.attitude_rad = Series(att.t_s[ok], att.values[ok])
+    return out
+
 
 #: verdicts of :func:`check_time`
 TIME_OK, TIME_SKIP, TIME_RESET = 0, 1, 2

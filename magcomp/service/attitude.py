@@ -82,6 +82,14 @@ class GyroYaw(NamedTuple):
     att_lead_rad: float = 0.0
 
 
+#: Euler angles no attitude has (roll and yaw in [-pi, pi] or yaw in [0, 2 pi], pitch in [-pi/2, pi/2]),
+#: with a margin for rounding: an attitude sample beyond them is damaged (counts["implausible"])
+ANGLE_MARGIN_RAD = 1e-3
+ROLL_MAX_RAD = math.pi + ANGLE_MARGIN_RAD
+PITCH_MAX_RAD = math.pi / 2 + ANGLE_MARGIN_RAD
+YAW_MAX_RAD = 2 * math.pi + ANGLE_MARGIN_RAD
+
+
 class AttitudeStage:
     """The attitude state shared by every compass of one vehicle."""
 
@@ -151,6 +159,11 @@ class AttitudeStage:
         if not (math.isfinite(s.roll_rad) and math.isfinite(s.pitch_rad) and math.isfinite(s.t_s)):
             self.counts["non_finite"] += 1
             return
+        if abs(s.roll_rad) > ROLL_MAX_RAD or abs(s.pitch_rad) > PITCH_MAX_RAD:
+            # no Euler attitude has these angles: a damaged record (a flipped bit, a garbage message),
+            # which tilt-compensated into every heading until the next one (up to 12 deg off, unflagged)
+            self.counts["implausible"] += 1
+            return
         if check_time(self.att_t, s.t_s, self._reset_s, self.counts, allow_equal=True) == TIME_SKIP:
             return
         if self.att_t is not None and 0.0 < s.t_s - self.att_t < 10.0:
@@ -159,7 +172,7 @@ class AttitudeStage:
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
         self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
-        self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) else self.yaw
+        self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) and abs(s.yaw_rad) <= YAW_MAX_RAD else self.yaw
         self._view = None
 
     def on_imu(self, t: float, gx: float, gy: float, gz: float, ax: float, ay: float, az: float) -> bool:

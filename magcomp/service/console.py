@@ -89,11 +89,10 @@ def check_distinct_outputs(**paths: str | Path | None) -> None:
 
 
 def write_json(path: str | Path, doc: dict[str, Any]) -> None:
-    p = Path(path)
-    try:
-        p.write_text(json.dumps(json_safe(doc), indent=2, default=_plain, allow_nan=False) + "\n")
-    except OSError as exc:
-        raise InputError(f"cannot write {p}: {exc.strerror}") from None
+    from magcomp.adapters.files import write_file
+
+    text = json.dumps(json_safe(doc), indent=2, default=_plain, allow_nan=False) + "\n"
+    write_file(Path(path), text.encode())  # (a temporary file renamed: never half a summary)
 
 
 def json_safe(obj: Any) -> Any:
@@ -155,6 +154,12 @@ SKIP_KEYS = (
     "gaps",
     "observer_resets",
     "dataflash_errors",
+    "unreadable_records",
+    "ulog_resyncs",
+    "ulog_dropped_bytes",
+    "non_finite_params",
+    "foreign_datagrams",
+    "bad_signature",
 )
 
 

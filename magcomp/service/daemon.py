@@ -7,7 +7,13 @@ carry over (and a rebooted autopilot's clock reset is absorbed by the pipeline).
 way out. A housekeeping thread sends a companion HEARTBEAT (``link.heartbeat_hz``), watches for
 silence and ends the run on :meth:`Daemon.stop`. Signal handlers call :meth:`Daemon.request_stop`, which
 only sets a flag (no lock, no I/O: a handler runs between two bytecodes of the main thread, possibly
-inside a lock that thread holds); the housekeeping thread turns the flag into :meth:`stop`.
+inside a lock that thread holds); the housekeeping thread turns the flag into :meth:`stop`, and so does
+the reading thread itself (between samples, while the link is quiet, while it reconnects), so a stop
+never depends on another thread being alive. A housekeeping round that fails is logged once and the
+thread goes on; a housekeeping thread that ends anyway is reported and started again. The master is
+opened in a helper thread (a connect that hangs cannot delay a stop), and a TCP master is reconnected
+by the daemon alone: pymavlink's in-place reconnect (run by whichever thread touched the socket first)
+is off, so the heartbeat writer can never race the reader onto a second socket.
 
 Latency: for every estimate the time from the moment its magnetometer sample left the source (i.e.
 was parsed) to the moment its MAGCOMP_HEADING was written to every sink is recorded
@@ -247,9 +253,12 @@ class Daemon:
         on_estimate: Callable[[HeadingEstimate], None] | None = None,
         on_text: Callable[[float, str], None] | None = None,
         on_power: Callable[[PowerSample], None] | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
         """``on_power``: each battery sample of the first vehicle (the viewer's current and voltage)."""
         check_link_url(master, "--master")
+        #: MAVLink 2 signing: what is sent is signed with it, and only frames signed with it are read
+        self.signing_key = signing_key
         for url in outs:
             check_link_url(url, "--out")
         self.master = master
@@ -267,7 +276,7 @@ class Daemon:
         # their headings go out as that vehicle; the first sender gets ``self.pipeline``
         self.pipelines: dict[tuple[int, int], Pipeline] = {}
         self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
-        self.encoder = HeadingEncoder(cfg.output.source_system, cfg.output.source_component)
+        self.encoder = self._new_encoder()
         #: NAMED_VALUE_FLOAT per encoder (vehicle), decimated (``[output] named_values_hz``)
         self._named: dict[HeadingEncoder, NamedValues] = {}
         self.latency_s: deque[float] = deque(maxlen=LATENCY_RING)
@@ -289,6 +298,14 @@ class Daemon:
         self._hk_errors: dict[str, int] = {}
         self._hk_restarts = 0
         self._loss_warned_at = -math.inf
+
+    def _new_encoder(self) -> HeadingEncoder:
+        enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
+        if self.signing_key is not None:
+            from magcomp.adapters.signing import sign_outgoing
+
+            sign_outgoing(enc.mav, self.signing_key)
+        return enc
 
     # ------------------------------------------------------------------------------------------- control
 
@@ -343,7 +360,7 @@ class Daemon:
             else:
                 p = Pipeline(self.cfg, store=self.store, system_id=key[0], on_text=self._on_text,
                              workers=self.workers)  # fmt: skip
-                enc = HeadingEncoder(self.cfg.output.source_system, self.cfg.output.source_component)
+                enc = self._new_encoder()
                 log.info("another vehicle on the link: system %d component %d", *key)
             enc.set_system(key[0])
             self.pipelines[key] = p
@@ -499,7 +516,8 @@ class Daemon:
 
         def opener() -> None:
             try:
-                src = open_source(self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2)
+                src = open_source(self.master, throttle_source=source_throttle(self.cfg), live_timeout_s=0.2,
+                                  signing_key=self.signing_key)  # fmt: skip
             except BaseException as exc:
                 box["error"] = exc
                 return
@@ -517,8 +535,10 @@ class Daemon:
                 return None
             t.join(timeout=0.05)
         if "error" in box:
-            raise box["error"]
-        return box["source"]
+            # (popped: the box would keep the error, its traceback and the socket it holds in a cycle
+            # with the helper's frame, left to the collector)
+            raise box.pop("error")
+        return box.pop("source")
 
     def _connect_loop(self) -> None:
         """Open the master, serve it until it fails, retry every ``link.reconnect_s``; until :meth:`stop`."""

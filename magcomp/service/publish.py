@@ -9,13 +9,17 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
+import stat
 import struct
+import tempfile
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.adapters.files import current_umask
 from magcomp.core.types import (
     FLAG_CALIBRATED,
     FLAG_INPUTS_STALE,
@@ -276,15 +280,38 @@ class TlogWriter:
 
     The timestamp is the estimate's message time (the input's clock), not wall-clock time, so the
     same replay always writes the same file.
+
+    A regular file (or a path that does not exist yet) is written beside it under a temporary name and
+    renamed over it by :meth:`close`: a reader never sees half a file, and a write that fails, or a
+    replay that ends with nothing to write (:meth:`close` with ``commit=False``, or no packet at all),
+    leaves the path exactly as it was. Only the temporary file, ours, is ever removed. Anything else
+    (a device such as ``/dev/null``, a FIFO) is written in place and never removed.
     """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.packets = 0
+        self._tmp: Path | None = None
         try:
-            self._f = self.path.open("wb")
+            st: os.stat_result | None = os.stat(self.path)
+        except FileNotFoundError:
+            st = None
         except OSError as exc:
             raise InputError(f"cannot write {self.path}: {exc.strerror}") from None
-        self.packets = 0
+        try:
+            if st is None or stat.S_ISREG(st.st_mode):
+                target = self.path.resolve() if st is not None else self.path  # (through a symlink)
+                fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+                self._target, self._tmp = target, Path(name)
+                mode = stat.S_IMODE(st.st_mode) if st is not None else 0o666 & ~current_umask()
+                with contextlib.suppress(OSError):
+                    os.fchmod(fd, mode)
+                self._f = os.fdopen(fd, "wb")
+            else:
+                self._target = self.path
+                self._f = self.path.open("wb")
+        except OSError as exc:
+            raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
 
     def write_packet(self, t_s: float, packet: bytes) -> None:
         try:
@@ -312,16 +339,38 @@ class TlogWriter:
         self.packets += n
 
     def _abandon(self) -> None:
-        """Close after a failed write without flushing again (the flush would fail the same way)."""
-        with contextlib.suppress(OSError):
+        """After a failed write: close without flushing again (the flush would fail the same way) and
+        remove the temporary file; the path itself stays as it was."""
+        with contextlib.suppress(OSError, ValueError):
             self._f.close()
+        self._discard_tmp()
 
-    def close(self) -> None:
+    def _discard_tmp(self) -> None:
+        tmp, self._tmp = self._tmp, None
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+    def close(self, commit: bool = True) -> None:
+        """Finish the file (idempotent). ``commit``: rename the temporary file over the path, when it
+        holds at least one packet; otherwise it is removed and the path left as it was."""
         if not self._f.closed:
             try:
                 self._f.close()
             except OSError as exc:
+                self._discard_tmp()
                 raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+        if self._tmp is None:
+            return
+        if not commit or self.packets == 0:
+            self._discard_tmp()
+            return
+        try:
+            os.replace(self._tmp, self._target)
+        except OSError as exc:
+            self._discard_tmp()
+            raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+        self._tmp = None
 
 
 class LinkSink:

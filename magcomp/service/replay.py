@@ -244,13 +244,13 @@ class _Outputs:
             writer.write_packet(est.t_s, self.encoder.encode(est))
 
     def close(self, failed: bool = False) -> None:
-        """Close the tlog; after a failure one with nothing in it is removed (no empty --emit file)."""
+        """Close the tlog (idempotent). A tlog with no heading in it is not written (the ``--emit`` path
+        is left as it was: nothing magcomp did not create is ever removed); after a failure, what was
+        written so far is kept."""
         writer = self.writer
         if writer is None:
             return
         writer.close()
-        if failed and writer.packets == 0:
-            Path(writer.path).unlink(missing_ok=True)
 
     @property
     def emitted(self) -> int:

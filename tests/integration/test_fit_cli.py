@@ -20,7 +20,7 @@ U_N = np.array([240.9, -27.1, 386.2])  # Earth field NED, mgauss
 NOISE_MG = 3.0
 G = 9.80665
 BOOT_OFFSET_US = 1_000_000
-KEYS = {"theta", "theta_std", "sigma", "r2", "snr_db", "benchmark_r2", "n", "t_start_s", "t_end_s"}
+KEYS = {"theta", "theta_std", "sigma", "r2", "snr_db", "benchmark_r2", "n", "t_start_s", "t_end_s", "dropped"}
 
 
 def _scenario(rng: np.random.Generator, sweep: bool) -> dict[str, np.ndarray]:
