@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import t as student_t
+from scipy.special import stdtrit
 
 F64 = NDArray[np.float64]
 
@@ -79,7 +79,7 @@ def t_critical(n_windows: int) -> float:
     Student's t with n - 1 degrees of freedom (inf below 2 windows)."""
     if n_windows < 2:
         return math.inf
-    return float(student_t.ppf(P_APPLY, n_windows - 1))
+    return float(stdtrit(n_windows - 1, P_APPLY))  # (scipy.special: scipy.stats would load scipy.optimize)
 
 
 def att_tolerance_deg(att_deg: float, n_windows: int) -> float:
