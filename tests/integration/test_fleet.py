@@ -85,6 +85,9 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
         assert rc == 0
     (root / "vehB" / "broken.tlog").write_bytes(bytes((i * 7919) % 251 for i in range(40_000)))
     (root / "vehicles.toml").write_text(VEHICLES_TOML)
+    # the simulator's autopilot pulls its yaw to the compass at 0.5 /s: against it the self-check refuses
+    # corrections that are right (tests/configs.py); these tests are about the fleet's rows, not that check
+    (root / "estimator_only.toml").write_text("[output]\nself_check = false\n")
     return root
 
 
@@ -102,7 +105,7 @@ def analysed(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
                 "--workers",
                 "0",
                 "--vehicles",
-                str(fleet / "vehicles.toml"),
+                str(fleet / "vehicles.toml"), "--config", str(fleet / "estimator_only.toml"),
             ]
         )
         == 0
@@ -222,7 +225,7 @@ def test_kill_9_halfway_then_resume_gives_the_uninterrupted_table(
         "--workers",
         "0",
         "--vehicles",
-        str(fleet / "vehicles.toml"),
+        str(fleet / "vehicles.toml"), "--config", str(fleet / "estimator_only.toml"),
     ]
     env = {**os.environ, "CI": "1"}
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
@@ -270,7 +273,7 @@ def test_local_dask_cluster_gives_the_same_rows(fleet: Path, analysed: Path, tmp
         "--memory-limit",
         "2GiB",
         "--vehicles",
-        str(fleet / "vehicles.toml"),
+        str(fleet / "vehicles.toml"), "--config", str(fleet / "estimator_only.toml"),
     )
     assert res.returncode == 0, res.stderr
     assert "analysing 3 on a local Dask cluster" in res.stdout and "on 2 worker(s)" in res.stdout
@@ -325,8 +328,9 @@ def test_separate_scheduler_and_worker_processes_on_loopback(
         out = tmp_path / "out"
         logs = [str(fleet / "vehA" / "flight01.tlog"), str(fleet / "vehB" / "broken.tlog")]
         res = _fleet_cli(
-            *logs, "--out", str(out), "--scheduler", addr, "--vehicles", str(fleet / "vehicles.toml")
-        )
+            *logs, "--out", str(out), "--scheduler", addr, "--vehicles", str(fleet / "vehicles.toml"),
+            "--config", str(fleet / "estimator_only.toml"),
+        )  # fmt: skip
         assert res.returncode == 0, res.stderr
         assert f"analysing 2 on {addr}" in res.stdout
     finally:
