@@ -247,6 +247,8 @@ def evidence_json(c: Comparison, data: CompassData) -> dict[str, Any]:
         "cv_rms_without": r4(c.cv_rms_reference),
         "cv_rms_with": r4(c.cv_rms_extended),
         "cv_gain_pct": r4(100.0 * c.cv_gain),
+        "cv_t": r4(c.cv_t) if math.isfinite(c.cv_t) else None,
+        "cv_t_critical": r4(c.cv_t_critical) if math.isfinite(c.cv_t_critical) else None,
         "delta_bic": r4(c.delta_bic),
         "rms_without": r4(c.reference.rms_mgauss),
         "rms_with": r4(c.fit.rms_mgauss),

@@ -259,7 +259,8 @@ def _findings_lines(c: CompassDiagnosis, cj: dict[str, Any]) -> list[str]:
             ev = f.evidence
             out.append(
                 f"{k}. **{f.label}** {f.params}: {f.cause} Held-out residual "
-                f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss ({ev['cv_gain_pct']} %), "
+                f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss "
+                f"({ev['cv_gain_pct']} %{_cv_t_text(ev)}), "
                 f"delta BIC {ev['delta_bic']}; residual after: {f.residual_rms_after:.2f} mgauss."
             )
         out.append("")
@@ -332,3 +333,11 @@ def write_report(d: Diagnosis, path: Path, img_dir: Path | None = None) -> list[
     path.write_text(markdown(d, figs, rel), encoding="utf-8")
     written = [path] + [img_dir / f for fl in figs.values() for f, _ in fl]
     return written
+
+
+def _cv_t_text(ev: dict[str, Any]) -> str:
+    """The held-out test as ", Diebold-Mariano 4.1 >= 1.96", or "" when the evidence has none."""
+    t, crit = ev.get("cv_t"), ev.get("cv_t_critical")
+    if t is None or crit is None:
+        return ""
+    return f", Diebold-Mariano {t:.1f} >= {crit:.2f}"

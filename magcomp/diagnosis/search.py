@@ -29,7 +29,16 @@ from magcomp.diagnosis.rivals import (
     temperature_beats_time,
     time_shapes,
 )
-from magcomp.diagnosis.selection import Comparison, SelectionParams, compare, cv_rms, effective_delta_bic
+from magcomp.diagnosis.selection import (
+    Comparison,
+    CVScore,
+    Folds,
+    SelectionParams,
+    compare,
+    cv_score,
+    effective_delta_bic,
+    folds_for,
+)
 from magcomp.diagnosis.structure import search as structure_search
 from magcomp.diagnosis.suspects import find_step, relate, step_at
 
@@ -54,7 +63,8 @@ class _Search:
     rejected: dict[str, dict[str, Any]] = field(default_factory=dict)
     singles: list[Comparison] = field(default_factory=list)
     temp_vs_time: dict[str, dict[str, float]] = field(default_factory=dict)
-    cv_base: float | None = None
+    cv_base: CVScore | None = None
+    folds: Folds | None = None
     candidates: dict[str, list[str]] = field(default_factory=dict)
     candidate_params: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -63,7 +73,7 @@ class Combined(NamedTuple):
     """The greedy combination: the final fit, its held-out rms and each kept effect with its comparison."""
 
     fit: ModelFit
-    cv_rms: float
+    cv: CVScore | None
     kept: list[tuple[str, Comparison]]
 
 
@@ -139,9 +149,11 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
     if why is not None:
         s.rejected[name] = {"delta_bic": r4(dbic), "rms_with": r4(f.rms_mgauss), "why": why}
         return
+    if s.folds is None:
+        s.folds = folds_for(data, base, p)
     if s.cv_base is None:
-        s.cv_base = cv_rms(data, base, p)
-    c = compare(data, base, f, s.cv_base, p)
+        s.cv_base = cv_score(data, base, p, s.folds)
+    c = compare(data, base, f, s.cv_base, p, s.folds)
     if c.significant and name == "temperature_drift":
         wins, shape, vs_time = temperature_beats_time(data, base, f, RIVAL_DELTA_BIC, p.max_nfev)
         if not wins:
@@ -161,10 +173,17 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
     if c.significant:
         s.singles.append(c)
     else:
+        held_out_ok = c.cv_gain > 0.0 and c.cv_t >= c.cv_t_critical
         s.rejected[name] = {
             "delta_bic": r4(dbic),
+            "effective_delta_bic": r4(c.delta_bic),
             "cv_gain_pct": r4(100 * c.cv_gain),
-            "why": "held-out" if c.cv_gain < p.min_cv_gain else f"effective BIC {c.delta_bic:.0f}",
+            "cv_t": r4(c.cv_t) if math.isfinite(c.cv_t) else None,
+            "why": (
+                f"effective BIC {c.delta_bic:.0f}"
+                if held_out_ok
+                else f"held-out (Diebold-Mariano {c.cv_t:.1f} < {c.cv_t_critical:.2f})"
+            ),
         }
 
 
@@ -207,20 +226,22 @@ def group_rivals(data: CompassData, s: _Search) -> None:
 
 def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -> Combined:
     """Greedy combination: each single, best first, joins when it still wins against what is kept."""
-    current, cv_current = base, (s.cv_base if s.cv_base is not None else 0.0)
+    current, cv_current = base, s.cv_base
     kept: list[tuple[str, Comparison]] = []
     for c in s.singles:
         name = c.fit.effects[0]
         if not kept:
-            current, cv_current = c.fit, c.cv_rms_extended
+            current, cv_current = c.fit, c.cv_extended
             kept.append((name, c))
             continue
         param = EFFECTS[name].param
         init = {name: float(getattr(c.fit.ext, param))} if param is not None else None
         trial = fit_model(data, (*current.effects, name), start=current, init=init, max_nfev=p.max_nfev)
-        ct = compare(data, current, trial, cv_current, p)
+        if cv_current is None:
+            cv_current = cv_score(data, current, p, s.folds)
+        ct = compare(data, current, trial, cv_current, p, s.folds)
         if ct.significant:
-            current, cv_current = trial, ct.cv_rms_extended
+            current, cv_current = trial, ct.cv_extended
             kept.append((name, ct))
         else:
             s.rejected[name] = {
@@ -244,11 +265,13 @@ def open_step(
     sig0 = signals_at(data, log)
     # a step on its own (against the paper's model) that fits better than every named cause on its own:
     # the named ones were soaking it up
-    st = step_candidate(data, base, p, s.cv_base or cv_rms(data, base, p), sig0, events)
+    folds = s.folds or folds_for(data, base, p)
+    st = step_candidate(data, base, p, s.cv_base or cv_score(data, base, p, folds), sig0, events, folds)
     best_named = min((c.fit.bic for c in s.singles), default=math.inf)
     if st is None or st.fit.bic >= best_named:
         # or a step in what the named causes leave
-        st = step_candidate(data, comb.fit, p, comb.cv_rms or cv_rms(data, comb.fit, p), sig0, events)
+        cv_comb = comb.cv or cv_score(data, comb.fit, p, folds)
+        st = step_candidate(data, comb.fit, p, cv_comb, sig0, events, folds)
     return st
 
 
@@ -338,9 +361,10 @@ def step_candidate(
     data: CompassData,
     base: ModelFit,
     p: SelectionParams,
-    cv_base: float,
+    cv_base: CVScore,
     sig: Signals,
     events: Events | None,
+    folds: Folds | None = None,
 ) -> StepCandidate | None:
     """The best single step of the field (change point of the baseline residual's mean, least squares), as a
     model column; kept when it passes the extensions' own tests (held-out gain, BIC with one more
@@ -361,7 +385,7 @@ def step_candidate(
     drive = replace(d, extra=col, extra_names=("step",))
     data_s = replace(data, drive=drive)
     fs = fit_model(data_s, base.effects, start=base, max_nfev=p.max_nfev)
-    cmp = compare(data_s, base, fs, cv_base, p)
+    cmp = compare(data_s, base, fs, cv_base, p, folds)
     extra_penalty = math.log(3 * n)
     in_sample = 1.0 - fs.rms_mgauss / base.rms_mgauss
     if not (
