@@ -85,6 +85,23 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
     return out
 
 
+#: the model's heading-drift bound (rad/s), :func:`magcomp.diagnosis.model._bounds`
+MAX_DRIFT_RAD_S = 0.05
+
+
+def nuisances_at_bound(cd: CompassDiagnosis) -> list[str]:
+    """One sentence per nuisance parameter that ended on its bound (attitude's, then heading drift)."""
+    out = list(cd.data.nuisance_flags)
+    drift = cd.extended.drift_rad_s
+    if cd.data.attitude_source != "stationary" and abs(drift) >= MAX_DRIFT_RAD_S * (1.0 - 1e-3):
+        out.append(
+            f"the heading drift sits on its +-{1e3 * MAX_DRIFT_RAD_S:.0f} mrad/s bound "
+            f"({math.degrees(drift) * 60.0:+.0f} deg/min): the fit wants a faster drift than a gyro bias, so "
+            "the heading model is wrong over this log and theta and the findings absorb part of that"
+        )
+    return out
+
+
 def _result_json(cd: CompassDiagnosis) -> dict[str, Any]:
     return {
         "index": cd.index,
@@ -104,6 +121,7 @@ def _result_json(cd: CompassDiagnosis) -> dict[str, Any]:
         "field_strength_mgauss": r4(cd.extended.field_strength_mgauss),
         "inclination_deg": r4(math.degrees(cd.extended.inc_rad)),
         "heading_drift_deg_per_min": r4(math.degrees(cd.extended.drift_rad_s) * 60.0),
+        "nuisances_at_bound": nuisances_at_bound(cd),
         "suspects": [
             {
                 "signal": s.signal,

@@ -210,14 +210,15 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
     out.append(f"Rotation used by the model: {c.data.attitude_note}.")
     out.append(
         f"Earth field through the calibration: {cj['field_strength_mgauss']} mgauss, inclination "
-        f"{cj['inclination_deg']} deg; heading drift of the gyro {cj['heading_drift_deg_per_min']} deg/min."
+        f"{cj['inclination_deg']} deg; {_drift_text(c, cj)}."
     )
+    for flag in cj.get("nuisances_at_bound", []):
+        out.append(f"**Nuisance on its bound:** {flag}.")
     gate = cj["gate"]
     if gate:
         out.append(
             f"Validity gate ({gate['earth_reference']}): fitted field {gate['fitted_strength_mgauss']} "
-            f"mgauss vs WMM {gate['wmm_strength_mgauss']}, inclination {gate['fitted_inclination_deg']} vs "
-            f"{gate['wmm_inclination_deg']} deg, calibration condition {gate['calibration_condition']}, "
+            f"mgauss {_wmm_text(gate)}, calibration condition {gate['calibration_condition']}, "
             f"heading span {gate['yaw_span_deg']} deg, tilt span {gate['tilt_span_deg']} deg, throttle span "
             f"{gate['throttle_span']}, residual {gate['residual_rms_mgauss']} mgauss (white-noise floor "
             f"{gate['noise_floor_mgauss']}), compass {gate['magnetometer_hz']} Hz, gyro {gate['gyro_hz']} Hz."
@@ -341,3 +342,26 @@ def _cv_t_text(ev: dict[str, Any]) -> str:
     if t is None or crit is None:
         return ""
     return f", Diebold-Mariano {t:.1f} >= {crit:.2f}"
+
+
+def _drift_text(c: CompassDiagnosis, cj: dict[str, Any]) -> str:
+    """The heading drift clause, never "None": not fitted without rotation, withheld if not observable."""
+    drift = cj.get("heading_drift_deg_per_min")
+    if c.data.attitude_source == "stationary":
+        return "no heading drift fitted (the vehicle does not rotate, so no gyro is integrated)"
+    if drift is None:
+        return "heading drift of the gyro not reported (the fit failed the validity gate)"
+    return f"heading drift of the gyro {drift} deg/min"
+
+
+def _wmm_text(gate: dict[str, Any]) -> str:
+    """The WMM comparison, or what the fit was checked against when the log has no position."""
+    if gate.get("wmm_strength_mgauss") is None:
+        return (
+            f"(no WMM: the log has no position, so only Earth's surface range is checked), inclination "
+            f"{gate['fitted_inclination_deg']} deg"
+        )
+    return (
+        f"vs WMM {gate['wmm_strength_mgauss']}, inclination {gate['fitted_inclination_deg']} vs "
+        f"{gate['wmm_inclination_deg']} deg"
+    )
