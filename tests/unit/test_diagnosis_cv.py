@@ -34,7 +34,7 @@ def hover_with_one_climb(seed: int, exponent: float = TRUE_EXPONENT, noise: floa
     """A stationary compass (no rotation), 20 Hz for 120 s, throttle hovering then one climb."""
     rng = np.random.default_rng(seed)
     dt, n = 0.05, 2400
-    t = dt * np.arange(n)
+    t = dt * np.arange(n, dtype=np.float64)
     thr = 0.5 + 0.04 * np.sin(2 * np.pi * t / 9.0) + 0.02 * np.sin(2 * np.pi * t / 2.3)
     climb = (t >= 100.0) & (t < 116.0)
     thr[climb] += 0.42 * np.sin(np.pi * (t[climb] - 100.0) / 16.0)
