@@ -38,6 +38,7 @@ from magcomp.diagnosis.selection import (
     cv_score,
     effective_delta_bic,
     folds_for,
+    repeat_in_halves,
 )
 from magcomp.diagnosis.structure import search as structure_search
 from magcomp.diagnosis.suspects import find_step, relate, step_at
@@ -252,6 +253,49 @@ def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -
     return Combined(current, cv_current, kept)
 
 
+def keep_repeatable(
+    data: CompassData, base: ModelFit, comb: Combined, p: SelectionParams, s: _Search
+) -> tuple[Combined, list[dict[str, Any]]]:
+    """Each kept cause must hold on each half of the log (:func:`repeat_in_halves`); one that does not is no
+    finding: it is removed from the model and reported as unexplained structure that does not repeat."""
+    if not comb.kept:
+        return comb, []
+    current = comb.fit
+    kept = list(comb.kept)
+    demoted: list[dict[str, Any]] = []
+    for name, c in list(comb.kept):
+        others = tuple(e for e in current.effects if e != name)
+        reduced = base if not others else fit_model(data, others, start=current, max_nfev=p.max_nfev)
+        rep = repeat_in_halves(data, reduced, current, p)
+        if rep.repeats:
+            continue
+        explained = reduced.residual_mgauss - current.residual_mgauss
+        halves = f"Diebold-Mariano {rep.t_first:.1f} and {rep.t_second:.1f}, below -{rep.critical:.2f}"
+        s.rejected[name] = {
+            "delta_bic": r4(c.delta_bic),
+            "cv_gain_pct": r4(100 * c.cv_gain),
+            "halves_t": [r4(rep.t_first), r4(rep.t_second)],
+            "why": f"does not repeat: fitted on one half of the log it predicts the other worse ({halves})",
+        }
+        demoted.append(
+            {
+                "kind": f"unexplained, not repeatable (looked like {name})",
+                "size_mgauss": [round(float(v), 2) for v in np.sqrt(np.mean(explained**2, axis=0))],
+                "rms_reduction_pct": round(100.0 * (1.0 - current.rms_mgauss / reduced.rms_mgauss), 2),
+                "effect": name,
+                "params": params_json(current, name, data),
+                "halves_t": [r4(rep.t_first), r4(rep.t_second)],
+                "note": f"{name} fits the whole log but not each half ({halves}): a structure of one stretch "
+                "of the log, not a constant cause; not named as a finding",
+            }
+        )
+        kept = [(k, ck) for k, ck in kept if k != name]
+        current = reduced
+    if not demoted:
+        return comb, []
+    return Combined(current, None, kept), demoted
+
+
 def open_step(
     data: CompassData,
     base: ModelFit,
@@ -350,11 +394,12 @@ def diagnose_compass(
     s = screen_effects(bl.data, bl.fit, p)
     group_rivals(bl.data, s)
     comb = combine(bl.data, bl.fit, p, s)
+    comb, demoted = keep_repeatable(bl.data, bl.fit, comb, p, s)
     if open_search:
         st = open_step(bl.data, bl.fit, comb, p, s, log, events)
         if st is not None:
             return diagnose_compass(st.data, source, p, log, events, open_search=False, opened=[st.info])
-    return _result(bl, comb, s, source, log, events, opened)
+    return _result(bl, comb, s, source, log, events, [*(opened or []), *demoted])
 
 
 def step_candidate(

@@ -238,6 +238,45 @@ def cv_t_critical(alpha: float) -> float:
     return float(norm.ppf(1.0 - alpha))
 
 
+def halves_folds(n: int) -> Folds:
+    """Two folds: each half of the log held out, the other half the training set (no buffer: the halves
+    share only the samples at their boundary)."""
+    first = np.arange(n) < n // 2
+    return Folds((first, ~first), (~first, first), 1, 0)
+
+
+@dataclass(frozen=True)
+class Repeat:
+    """Does an extension hold on each half of the log? t_first / t_second: Diebold-Mariano statistic of the
+    extension fitted on the *other* half predicting this half (positive: it predicts better than the model
+    without it); repeats: neither is significantly negative at ``cv_alpha``."""
+
+    repeats: bool
+    t_first: float
+    t_second: float
+    critical: float
+
+
+def repeat_in_halves(data: CompassData, reduced: ModelFit, full: ModelFit, p: SelectionParams) -> Repeat:
+    """The model with the extension (``full``) and without it (``reduced``), each fitted on one half of the
+    log and scored on the other, both ways.
+
+    A constant physical cause fitted on one half predicts the other half at least as well as the model
+    without it (its parameter is the same in both); a cause that is a chance description of one stretch
+    of the log (a per-motor split whose vectors differ between the halves, a "lag" that is one manoeuvre)
+    makes the other half's prediction worse. The rule demotes only on evidence: a half predicted
+    *significantly* worse (statistic below minus the one-sided critical value), so a weak but real cause
+    whose signal sits mostly in one half is not demoted by chance more often than ``cv_alpha``."""
+    folds = halves_folds(data.n)
+    a = cv_score(data, reduced, p, folds)
+    b = cv_score(data, full, p, folds)
+    ts = []
+    for half in folds.held:
+        ts.append(cv_t(CVScore(a.rms, a.sq, a.scored & half), CVScore(b.rms, b.sq, b.scored & half)))
+    crit = cv_t_critical(p.cv_alpha)
+    return Repeat(bool(min(ts) > -crit), ts[0], ts[1], crit)
+
+
 def _acf(x: F64, max_lag: int) -> F64:
     """Autocorrelation (lags 0..max_lag) of each column of x (n, k), by FFT; shape (max_lag + 1, k)."""
     n = x.shape[0]
