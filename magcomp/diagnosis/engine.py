@@ -52,6 +52,7 @@ from magcomp.diagnosis.inputs import (
 )
 from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction
 from magcomp.diagnosis.model import CompassData
+from magcomp.diagnosis.partial import theta_with_prior
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
 from magcomp.diagnosis.selection import SelectionParams
@@ -121,6 +122,18 @@ def with_gate(
         earth=earth,
         p=gp,
     )
+    if not result.observable and not result.theta_why and c.data.attitude_source != "stationary":
+        # only the calibration is refused: theta against the autopilot's calibration as prior (partial.py)
+        gp = gp or gate_mod.GateParams()
+        pt = theta_with_prior(
+            c.data,
+            c.baseline.drift_rad_s,
+            c.baseline.dec_rad,
+            earth.strength_mgauss,
+            None if earth.inclination_deg is None else math.radians(earth.inclination_deg),
+            gp.max_scale_error,
+        )
+        return replace(c, gate=result, prior_theta=pt)
     if result.observable:  # non-blocking: when theta's interval is a lower bound (consistency module)
         result = replace(result, checks={**result.checks, **consistency_checks(c.data, c.extended)})
         if result.checks.get("theta_identifiable") is False and c.autopilot:

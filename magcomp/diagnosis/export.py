@@ -82,7 +82,29 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
             out[k] = {}
         out["linearisation"] = ""
         out["heading_drift_deg_per_min"] = None
+    out["theta_given_prior"] = prior_theta_json(cd)
     return out
+
+
+def prior_theta_json(cd: CompassDiagnosis) -> dict[str, Any] | None:
+    """theta with the autopilot's calibration as prior, when the gate refused the calibration only."""
+    pt = cd.prior_theta
+    if pt is None:
+        return None
+    why = "" if cd.gate is None else cd.gate.why
+    return {
+        "theta": r4(pt.theta_mgauss),
+        "theta_ci95_halfwidth": r4(pt.halfwidth_mgauss),
+        "identifiable": pt.identifiable,
+        "residual_rms_mgauss": r4(pt.residual_rms_mgauss),
+        "prior": pt.prior,
+        "calibration": f"not observable in this log ({why}); theta does not need it: the throttle varies",
+        "note": (
+            "theta is determined by the field's change with throttle at a near-constant attitude"
+            if pt.identifiable
+            else "theta's interval is wider than |theta|: the log does not determine it"
+        ),
+    }
 
 
 #: the model's heading-drift bound (rad/s), :func:`magcomp.diagnosis.model._bounds`

@@ -227,10 +227,20 @@ def _compass_section(c: CompassDiagnosis, figs: list[tuple[str, str]], rel_dir: 
             out.append(f"**theta caveat:** {gate['theta_consistency_why']}.")
     out.append("")
     if not c.observable:
-        out.append(
-            f"**Not observable:** {cj['unobservable_why']}. No theta, finding or autopilot parameter is "
-            "given for this compass: a fit that fails these checks is not a result."
-        )
+        pt = cj.get("theta_given_prior")
+        if pt:
+            out.append(
+                f"**Calibration not observable:** {cj['unobservable_why']}. No finding or autopilot "
+                "parameter is given from the free fit. **theta is**: the throttle varies at a near-constant "
+                f"attitude, so with the {pt['prior']}, theta = {_vec(pt['theta'])} +- "
+                f"{_vec(pt['theta_ci95_halfwidth'])} "
+                f"mgauss (95 %, compass frame; residual {pt['residual_rms_mgauss']} mgauss): {pt['note']}."
+            )
+        else:
+            out.append(
+                f"**Not observable:** {cj['unobservable_why']}. No theta, finding or autopilot parameter is "
+                "given for this compass: a fit that fails these checks is not a result."
+            )
         out.append("")
         return out
     out += _findings_lines(c, cj)
