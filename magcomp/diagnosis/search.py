@@ -266,16 +266,21 @@ def keep_repeatable(
     for name, c in list(comb.kept):
         others = tuple(e for e in current.effects if e != name)
         reduced = base if not others else fit_model(data, others, start=current, max_nfev=p.max_nfev)
-        rep = repeat_in_halves(data, reduced, current, p)
+        rep = repeat_in_halves(data, reduced, current, name, p)
         if rep.repeats:
             continue
         explained = reduced.residual_mgauss - current.residual_mgauss
-        halves = f"Diebold-Mariano {rep.t_first:.1f} and {rep.t_second:.1f}, below -{rep.critical:.2f}"
+        param = EFFECTS[name].param
+        each = "" if rep.halves is None else f"{param} {rep.halves[0]:.3g} vs {rep.halves[1]:.3g}; "
+        halves = (
+            f"{each}one value for both halves costs chi-square {rep.statistic:.1f} on {rep.dof} dof "
+            f"> {rep.critical:.1f}"
+        )
         s.rejected[name] = {
             "delta_bic": r4(c.delta_bic),
             "cv_gain_pct": r4(100 * c.cv_gain),
-            "halves_t": [r4(rep.t_first), r4(rep.t_second)],
-            "why": f"does not repeat: fitted on one half of the log it predicts the other worse ({halves})",
+            "halves_chi2": r4(rep.statistic),
+            "why": f"does not repeat: the two halves of the log want different values ({halves})",
         }
         demoted.append(
             {
@@ -284,7 +289,7 @@ def keep_repeatable(
                 "rms_reduction_pct": round(100.0 * (1.0 - current.rms_mgauss / reduced.rms_mgauss), 2),
                 "effect": name,
                 "params": params_json(current, name, data),
-                "halves_t": [r4(rep.t_first), r4(rep.t_second)],
+                "halves_chi2": r4(rep.statistic),
                 "note": f"{name} fits the whole log but not each half ({halves}): a structure of one stretch "
                 "of the log, not a constant cause; not named as a finding",
             }
