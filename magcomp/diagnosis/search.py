@@ -274,7 +274,7 @@ def keep_repeatable(
         each = "" if rep.halves is None else f"{param} {rep.halves[0]:.3g} vs {rep.halves[1]:.3g}; "
         halves = (
             f"{each}one value for both halves costs chi-square {rep.statistic:.1f} on {rep.dof} dof "
-            f"> {rep.critical:.1f}"
+            f"> {rep.critical:.1f}, {100 * rep.share:.0f} % of what it explains"
         )
         s.rejected[name] = {
             "delta_bic": r4(c.delta_bic),
