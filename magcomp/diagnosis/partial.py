@@ -10,10 +10,11 @@ calibration A held near the one the autopilot flies with, a *prior*, not a fit:
     v = A h_b(inc, dec) + c + theta D + noise,   A ~ N(A0, sigma_A^2) element-wise (maximum a posteriori)
 
 A0 = F I: a compass the autopilot has calibrated reads the Earth field F (WMM strength at the log's place,
-else the measured field's median magnitude) along the body axes. sigma_A = s F / 1.96 with s the gate's scale
-tolerance (``GateParams.max_scale_error``, 0.35: ArduPilot's own arming range), so the prior admits any
-calibration the gate would accept and no more. The hard iron c is free (the field at a constant attitude fixes
-it with theta). inc and dec are fitted with A held at the prior (the WMM inclination when known is the start).
+else the measured field's median magnitude clipped to Earth's surface range) along the body axes. sigma_A = s
+F / 1.96 with s the gate's scale tolerance (``GateParams.max_scale_error``, 0.35: ArduPilot's own arming
+range), so the prior admits any calibration the gate would accept and no more. The hard iron c is free (the
+field at a constant attitude fixes it with theta). inc and dec are fitted with A held at the prior (the WMM
+inclination when known is the start).
 
 theta's 95 % interval is the posterior one, sigma^2 (X'X + P)^-1 with the residual's variance, inflated by
 Bartlett's factor of the residual against the theta column (the effective sample size of
@@ -34,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 from magcomp.diagnosis.effects import ExtensionParams, drive_columns
 from magcomp.diagnosis.model import CompassData, earth_dir_body
 from magcomp.diagnosis.selection import bartlett_factor
@@ -90,9 +92,8 @@ def theta_with_prior(
     v = data.field_mgauss
     f = field_strength_mgauss
     if f is None or not math.isfinite(f) or f <= 0.0:
-        f = float(np.median(np.linalg.norm(v - np.median(v, axis=0), axis=1))) or float(
-            np.median(np.linalg.norm(v, axis=1))
-        )
+        # no position: the calibrated compass reads the Earth field, so its magnitude, within Earth's range
+        f = float(np.clip(np.median(np.linalg.norm(v, axis=1)), EARTH_MIN_MGAUSS, EARTH_MAX_MGAUSS))
     a0 = f * np.eye(3)
     sigma_a = max_scale_error * f / Z95
 

@@ -72,3 +72,16 @@ def test_constant_throttle_still_refuses_theta() -> None:
     assert not c["observable"]
     assert "throttle spans only" in c["unobservable_why"]
     assert c["theta_given_prior"] is None
+
+
+def test_hover_without_a_position_takes_the_field_from_the_compass() -> None:
+    """No WMM: the prior's field strength is the compass's own magnitude (not its spread about the median, 28
+    mgauss on a real hover before), within the prior's own +-35 % (this compass keeps 76 mgauss of hard iron
+    and theta throttle^2 in its magnitude)."""
+    c = diagnose(hover_log(4)).to_json()["compasses"][0]
+    pt = c["theta_given_prior"]
+    assert pt is not None, c["unobservable_why"]
+    strength = float(pt["prior"].split("A = ")[1].split(" mgauss")[0])
+    assert abs(strength - float(np.linalg.norm(M_NED))) < 0.35 * float(np.linalg.norm(M_NED))
+    theta, hw = np.array(pt["theta"]), np.array(pt["theta_ci95_halfwidth"])
+    assert np.all(np.abs(theta - THETA) <= hw), (theta, hw)
