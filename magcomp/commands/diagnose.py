@@ -299,6 +299,12 @@ def _summary(j: dict[str, Any]) -> list[str]:
     for c in j["compasses"]:
         if not c["observable"]:
             lines.append(f"compass {c['index']}: not observable: {c['unobservable_why']}")
+            pt = c.get("theta_given_prior")
+            if pt:  # the calibration is refused, theta is not (diagnosis.partial)
+                theta = _vec1(pt["theta"], pt["theta_ci95_halfwidth"])
+                lines.append(
+                    f"  theta {theta} mgauss with the autopilot's calibration as prior; {pt['note']}"
+                )
             continue
         names = (
             ", ".join(

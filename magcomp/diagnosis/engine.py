@@ -52,6 +52,7 @@ from magcomp.diagnosis.inputs import (
 )
 from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction
 from magcomp.diagnosis.model import CompassData
+from magcomp.diagnosis.partial import theta_with_prior
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
 from magcomp.diagnosis.selection import SelectionParams
@@ -121,8 +122,28 @@ def with_gate(
         earth=earth,
         p=gp,
     )
+    if not result.observable and not result.theta_why and c.data.attitude_source != "stationary":
+        # only the calibration is refused: theta against the autopilot's calibration as prior (partial.py)
+        gp = gp or gate_mod.GateParams()
+        pt = theta_with_prior(
+            c.data,
+            c.baseline.drift_rad_s,
+            c.baseline.dec_rad,
+            earth.strength_mgauss,
+            None if earth.inclination_deg is None else math.radians(earth.inclination_deg),
+            gp.max_scale_error,
+        )
+        return replace(c, gate=result, prior_theta=pt)
     if result.observable:  # non-blocking: when theta's interval is a lower bound (consistency module)
         result = replace(result, checks={**result.checks, **consistency_checks(c.data, c.extended)})
+        if result.checks.get("theta_identifiable") is False and c.autopilot:
+            # no compensation parameters for a theta the log cannot pin down (COMPASS_MOT*, CAL_MAGn_*COMP)
+            why = str(result.checks.get("theta_consistency_why", "theta is not identifiable in this log"))
+            note = (
+                "No autopilot compensation parameters: " + why + ". Writing them would set the autopilot's "
+                "compensation from a theta the log does not determine."
+            )
+            return replace(c, gate=result, autopilot={}, linear_note=note)
     return replace(c, gate=result)
 
 
@@ -304,4 +325,18 @@ def _yaw_follow_note(log: LogData, compass: int) -> str | None:
         f"the autopilot's yaw follows compass {compass}'s heading at {fit.gain_per_s:.3f} +- "
         f"{fit.gain_sigma_per_s:.3f} /s with the motors running ({fit.n_windows} windows of 2 s; the yaw "
         f"minus the gyro's integral against the compass's heading)"
+        + yaw_follow_comment(fit.gain_per_s, fit.gain_sigma_per_s)
     )
+
+
+def yaw_follow_comment(gain: float, sigma: float) -> str:
+    """What a measured follow rate means when it is not a plain pull toward the compass (2 sigma, ~95 %)."""
+    if gain < -2.0 * sigma:
+        return (
+            ": negative, so the yaw moves *away* from this compass's heading: the autopilot does not "
+            "fuse this compass (it uses another compass, GPS yaw or none), or its yaw error is driven by "
+            "something the compass does not see; not a filter gain"
+        )
+    if abs(gain) <= 2.0 * sigma:
+        return ": not distinguishable from zero, the autopilot's yaw does not measurably follow this compass"
+    return ""

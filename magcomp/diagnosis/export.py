@@ -82,6 +82,45 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
             out[k] = {}
         out["linearisation"] = ""
         out["heading_drift_deg_per_min"] = None
+    out["theta_given_prior"] = prior_theta_json(cd)
+    return out
+
+
+def prior_theta_json(cd: CompassDiagnosis) -> dict[str, Any] | None:
+    """theta with the autopilot's calibration as prior, when the gate refused the calibration only."""
+    pt = cd.prior_theta
+    if pt is None:
+        return None
+    why = "" if cd.gate is None else cd.gate.why
+    return {
+        "theta": r4(pt.theta_mgauss),
+        "theta_ci95_halfwidth": r4(pt.halfwidth_mgauss),
+        "identifiable": pt.identifiable,
+        "residual_rms_mgauss": r4(pt.residual_rms_mgauss),
+        "prior": pt.prior,
+        "calibration": f"not observable in this log ({why}); theta does not need it: the throttle varies",
+        "note": (
+            "theta is determined by the field's change with throttle at a near-constant attitude"
+            if pt.identifiable
+            else "theta's interval is wider than |theta|: the log does not determine it"
+        ),
+    }
+
+
+#: the model's heading-drift bound (rad/s), :func:`magcomp.diagnosis.model._bounds`
+MAX_DRIFT_RAD_S = 0.05
+
+
+def nuisances_at_bound(cd: CompassDiagnosis) -> list[str]:
+    """One sentence per nuisance parameter that ended on its bound (attitude's, then heading drift)."""
+    out = list(cd.data.nuisance_flags)
+    drift = cd.extended.drift_rad_s
+    if cd.data.attitude_source != "stationary" and abs(drift) >= MAX_DRIFT_RAD_S * (1.0 - 1e-3):
+        out.append(
+            f"the heading drift sits on its +-{1e3 * MAX_DRIFT_RAD_S:.0f} mrad/s bound "
+            f"({math.degrees(drift) * 60.0:+.0f} deg/min): the fit wants a faster drift than a gyro bias, so "
+            "the heading model is wrong over this log and theta and the findings absorb part of that"
+        )
     return out
 
 
@@ -104,6 +143,7 @@ def _result_json(cd: CompassDiagnosis) -> dict[str, Any]:
         "field_strength_mgauss": r4(cd.extended.field_strength_mgauss),
         "inclination_deg": r4(math.degrees(cd.extended.inc_rad)),
         "heading_drift_deg_per_min": r4(math.degrees(cd.extended.drift_rad_s) * 60.0),
+        "nuisances_at_bound": nuisances_at_bound(cd),
         "suspects": [
             {
                 "signal": s.signal,
@@ -247,6 +287,8 @@ def evidence_json(c: Comparison, data: CompassData) -> dict[str, Any]:
         "cv_rms_without": r4(c.cv_rms_reference),
         "cv_rms_with": r4(c.cv_rms_extended),
         "cv_gain_pct": r4(100.0 * c.cv_gain),
+        "cv_t": r4(c.cv_t) if math.isfinite(c.cv_t) else None,
+        "cv_t_critical": r4(c.cv_t_critical) if math.isfinite(c.cv_t_critical) else None,
         "delta_bic": r4(c.delta_bic),
         "rms_without": r4(c.reference.rms_mgauss),
         "rms_with": r4(c.fit.rms_mgauss),

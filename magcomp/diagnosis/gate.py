@@ -102,9 +102,15 @@ NO_POSITION = EarthReference(None, "no GPS position in the log: checked against 
 
 @dataclass(frozen=True)
 class GateResult:
+    """observable: every check passed; why: the failed checks; theta_why: the failed checks that concern theta
+    itself (a throttle that does not vary, a model that leaves too much), empty when only the calibration is
+    refused: then theta is still estimated with the autopilot's calibration as prior
+    (:mod:`magcomp.diagnosis.partial`)."""
+
     observable: bool
     why: str
     checks: dict[str, Any] = field(default_factory=dict)
+    theta_why: str = ""
 
 
 def yaw_span_deg(r_nb: F64) -> float:
@@ -234,23 +240,27 @@ def check(
         },
     }
     reasons: list[str] = []
+    theta_reasons: list[str] = []
     if thr_span < p.min_throttle_span:
-        reasons.append(
+        theta_reasons.append(
             f"the throttle spans only {thr_span:.2f} (< {p.min_throttle_span}): theta * throttle^2 cannot be "
             "told from the hard iron"
         )
+    reasons += theta_reasons
     ref = earth.strength_mgauss
     if not stationary:
         reasons += _rotation_reasons(strength, cond, inc, checks, earth, p)
     scale = ref if ref is not None else (strength if not stationary else EARTH_MIN_MGAUSS)
     if residual_rms_mgauss > p.max_residual_fraction * scale:
-        reasons.append(
+        r = (
             f"the forward model leaves {residual_rms_mgauss:.0f} mgauss rms "
             f"(> {100 * p.max_residual_fraction:.0f} % of the {scale:.0f} mgauss field, i.e. > "
             f"{math.degrees(p.max_residual_fraction):.1f} deg of heading): the model does not describe "
             "this compass"
         )
-    return GateResult(not reasons, "; ".join(reasons), checks)
+        reasons.append(r)
+        theta_reasons.append(r)
+    return GateResult(not reasons, "; ".join(reasons), checks, "; ".join(theta_reasons))
 
 
 def _r(x: float | None) -> float | None:

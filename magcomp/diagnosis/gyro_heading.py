@@ -93,4 +93,15 @@ def with_gyro_bias_heading(data: CompassData) -> CompassData:
         + ", ".join(f"{1e3 * x:.2f}" for x in b)
         + " mrad/s, fitted with the paper's model)"
     )
-    return replace(rotated(b), attitude_note=note)
+    at_bound = [f"{'xyz'[i]}" for i in range(3) if abs(float(b[i])) >= MAX_BIAS_RAD_S * (1.0 - 1e-3)]
+    flags = data.nuisance_flags
+    if at_bound:
+        flags = (
+            *flags,
+            f"the gyro bias fitted to the heading sits on its +-{1e3 * MAX_BIAS_RAD_S:.0f} mrad/s bound "
+            f"(body {', '.join(at_bound)}): the heading wants more correction than a gyro bias can be, so "
+            "something else (a heading error of the attitude source, a magnetic disturbance) is being "
+            "absorbed and the rotation, and what is fitted through it, is less certain than the intervals "
+            "say",
+        )
+    return replace(rotated(b), attitude_note=note, nuisance_flags=flags)

@@ -205,6 +205,7 @@ def subset(data: CompassData, keep: NDArray[np.bool_]) -> CompassData:
         drive,
         data.attitude_source,
         data.attitude_note,
+        data.nuisance_flags,
     )
 
 

@@ -55,6 +55,9 @@ class CompassData:
     drive: DriveInputs
     attitude_source: str
     attitude_note: str
+    #: nuisance parameters of the attitude that ended on their bounds, one sentence each (e.g. a gyro bias at
+    #: its +-50 mrad/s limit): the data wanted more than the nuisance can physically be
+    nuisance_flags: tuple[str, ...] = ()
 
     @property
     def n(self) -> int:

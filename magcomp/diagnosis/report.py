@@ -267,16 +267,16 @@ def _compass_section(
     out.append(f"Rotation used by the model: {c.data.attitude_note}.")
     out.append(
         f"Earth field through the calibration: {_text(cj['field_strength_mgauss'], ' mgauss')}, inclination "
-        f"{_text(cj['inclination_deg'], ' deg')}; heading drift of the gyro "
-        f"{_text(cj['heading_drift_deg_per_min'], ' deg/min')}."
+        f"{_text(cj['inclination_deg'], ' deg')}; {_drift_text(c, cj)}."
     )
+    for flag in cj.get("nuisances_at_bound", []):
+        out.append(f"**Nuisance on its bound:** {flag}.")
     gate = cj["gate"]
     if gate:
         g = {k: _text(v) for k, v in gate.items()}
         out.append(
             f"Validity gate ({g['earth_reference']}): fitted field {g['fitted_strength_mgauss']} "
-            f"mgauss vs WMM {g['wmm_strength_mgauss']}, inclination {g['fitted_inclination_deg']} vs "
-            f"{g['wmm_inclination_deg']} deg, calibration condition {g['calibration_condition']}, "
+            f"mgauss {_wmm_text(gate)}, calibration condition {g['calibration_condition']}, "
             f"heading span {g['yaw_span_deg']} deg, tilt span {g['tilt_span_deg']} deg, throttle span "
             f"{g['throttle_span']}, residual {g['residual_rms_mgauss']} mgauss (white-noise floor "
             f"{g['noise_floor_mgauss']}), compass {g['magnetometer_hz']} Hz, gyro {g['gyro_hz']} Hz."
@@ -285,10 +285,20 @@ def _compass_section(
             out.append(f"**theta caveat:** {gate['theta_consistency_why']}.")
     out.append("")
     if not c.observable:
-        out.append(
-            f"**Not observable:** {cj['unobservable_why']}. No theta, finding or autopilot parameter is "
-            "given for this compass: a fit that fails these checks is not a result."
-        )
+        pt = cj.get("theta_given_prior")
+        if pt:
+            out.append(
+                f"**Calibration not observable:** {cj['unobservable_why']}. No finding or autopilot "
+                "parameter is given from the free fit. **theta is**: the throttle varies at a near-constant "
+                f"attitude, so with the {pt['prior']}, theta = {_vec(pt['theta'])} +- "
+                f"{_vec(pt['theta_ci95_halfwidth'])} "
+                f"mgauss (95 %, compass frame; residual {pt['residual_rms_mgauss']} mgauss): {pt['note']}."
+            )
+        else:
+            out.append(
+                f"**Not observable:** {cj['unobservable_why']}. No theta, finding or autopilot parameter is "
+                "given for this compass: a fit that fails these checks is not a result."
+            )
         out.append("")
         return out
     out += _findings_lines(c, cj)
@@ -318,7 +328,8 @@ def _findings_lines(c: CompassDiagnosis, cj: dict[str, Any]) -> list[str]:
             ev = f.evidence
             out.append(
                 f"{k}. **{f.label}** {f.params}: {f.cause} Held-out residual "
-                f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss ({ev['cv_gain_pct']} %), "
+                f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss "
+                f"({ev['cv_gain_pct']} %{_cv_t_text(ev)}), "
                 f"delta BIC {ev['delta_bic']}; residual after: {f.residual_rms_after:.2f} mgauss."
             )
         out.append("")
@@ -410,3 +421,34 @@ def write_report(d: Diagnosis, path: Path, img_dir: Path | None = None) -> list[
     path.write_text(markdown(d, figs, rel), encoding="utf-8")
     written = [path] + [img_dir / f for fl in figs.values() for f, _ in fl]
     return written
+
+
+def _cv_t_text(ev: dict[str, Any]) -> str:
+    """The held-out test as ", Diebold-Mariano 4.1 >= 1.96", or "" when the evidence has none."""
+    t, crit = ev.get("cv_t"), ev.get("cv_t_critical")
+    if t is None or crit is None:
+        return ""
+    return f", Diebold-Mariano {t:.1f} >= {crit:.2f}"
+
+
+def _drift_text(c: CompassDiagnosis, cj: dict[str, Any]) -> str:
+    """The heading drift clause, never "None": not fitted without rotation, withheld if not observable."""
+    drift = cj.get("heading_drift_deg_per_min")
+    if c.data.attitude_source == "stationary":
+        return "no heading drift fitted (the vehicle does not rotate, so no gyro is integrated)"
+    if drift is None:
+        return "heading drift of the gyro not reported (the fit failed the validity gate)"
+    return f"heading drift of the gyro {drift} deg/min"
+
+
+def _wmm_text(gate: dict[str, Any]) -> str:
+    """The WMM comparison, or what the fit was checked against when the log has no position."""
+    if gate.get("wmm_strength_mgauss") is None:
+        return (
+            f"(no WMM: the log has no position, so only Earth's surface range is checked), inclination "
+            f"{gate['fitted_inclination_deg']} deg"
+        )
+    return (
+        f"vs WMM {gate['wmm_strength_mgauss']}, inclination {gate['fitted_inclination_deg']} vs "
+        f"{gate['wmm_inclination_deg']} deg"
+    )

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from magcomp.diagnosis import export
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.model import CompassData, ModelFit
+from magcomp.diagnosis.partial import PriorTheta
 from magcomp.diagnosis.suspects import SignalRelation, StepEvent
 
 F64 = NDArray[np.float64]
@@ -63,6 +64,8 @@ class CompassDiagnosis:
     field_step: dict[str, Any] | None = None
     gate: gate_mod.GateResult | None = None
     structure: list[dict[str, Any]] = field(default_factory=list)
+    #: theta with the autopilot's calibration as prior, when the gate refuses the calibration only
+    prior_theta: PriorTheta | None = None
 
     @property
     def observable(self) -> bool:

@@ -1,0 +1,87 @@
+"""Partial observability (issue 26): a hover at near-constant attitude with varying throttle. The calibration
+is refused (heading span and tilt span too small) but theta is given, with the autopilot's calibration as
+prior, and its interval brackets the simulated theta; a throttle that does not vary still refuses theta."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magcomp.core.rotations import dcm_from_euler
+from magcomp.core.types import LogData, Series
+from magcomp.diagnosis.engine import diagnose
+from magcomp.diagnosis.gate import EarthReference
+from magcomp.diagnosis.report import markdown
+
+THETA = np.array([-61.0, 26.4, -12.0])
+M_NED = np.array([230.0, -20.0, 410.0])
+
+
+def hover_log(seed: int, throttle_varies: bool = True, duration_s: float = 120.0) -> LogData:
+    """50 Hz hover: yaw wanders over ~40 deg, roll/pitch within +-3 deg, throttle 0.35-0.75 (or constant);
+    the compass is calibrated to within a few % (as the autopilot flies it) and carries theta throttle^2."""
+    rng = np.random.default_rng(seed)
+    dt = 0.02
+    n = int(duration_s / dt)
+    t = 5.0 + dt * np.arange(n, dtype=np.float64)
+    u = t - t[0]
+    yaw = np.radians(30.0 + 20.0 * np.sin(2 * np.pi * u / 70.0))
+    roll = np.radians(3.0 * np.sin(2 * np.pi * u / 11.0))
+    pitch = np.radians(3.0 * np.sin(2 * np.pi * u / 7.0 + 1.0))
+    r = np.stack([dcm_from_euler(a, b, c) for a, b, c in zip(roll, pitch, yaw, strict=True)])
+    rates = np.gradient(np.column_stack([roll, pitch, yaw]), dt, axis=0)  # small angles: body ~ Euler rates
+    thr = 0.55 + (0.2 * np.sin(2 * np.pi * u / 9.0) if throttle_varies else 0.0 * u)
+    kmat = np.array([[1.03, 0.02, -0.01], [0.01, 0.98, 0.02], [-0.02, 0.01, 1.01]])
+    b = np.array([40.0, -25.0, 60.0])
+    h_b = np.einsum("nji,j->ni", r, M_NED)
+    field = h_b @ kmat.T + b + np.outer(thr**2, THETA) + rng.normal(0.0, 2.0, (n, 3))
+    att = np.column_stack([roll, pitch, yaw])
+    accel = np.einsum("nji,j->ni", r, np.array([0.0, 0.0, -9.81]))
+    return LogData(
+        source="synthetic hover",
+        mag={0: Series(t, field)},
+        imu_t_s=t,
+        gyro_rad_s=rates + rng.normal(0.0, 0.002, rates.shape),
+        accel_m_s2=accel,
+        attitude_rad=Series(t[::2], att[::2]),
+        throttle_01=Series(t[::2], thr[::2]),
+    )
+
+
+EARTH = EarthReference(M_NED, "simulated place")
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_hover_gives_theta_with_the_calibration_refused(seed: int) -> None:
+    d = diagnose(hover_log(seed), earth=EARTH)
+    c = d.to_json()["compasses"][0]
+    assert not c["observable"]
+    assert "heading covers only" in c["unobservable_why"]
+    pt = c["theta_given_prior"]
+    assert pt is not None, c["unobservable_why"]
+    assert pt["identifiable"]
+    theta, hw = np.array(pt["theta"]), np.array(pt["theta_ci95_halfwidth"])
+    assert np.all(np.abs(theta - THETA) <= hw), (theta, hw)
+    assert float(np.linalg.norm(hw)) < 0.25 * float(np.linalg.norm(THETA))
+    text = markdown(d)
+    assert "theta is" in text and "None" not in text
+
+
+def test_constant_throttle_still_refuses_theta() -> None:
+    c = diagnose(hover_log(3, throttle_varies=False), earth=EARTH).to_json()["compasses"][0]
+    assert not c["observable"]
+    assert "throttle spans only" in c["unobservable_why"]
+    assert c["theta_given_prior"] is None
+
+
+def test_hover_without_a_position_takes_the_field_from_the_compass() -> None:
+    """No WMM: the prior's field strength is the compass's own magnitude (not its spread about the median, 28
+    mgauss on a real hover before), within the prior's own +-35 % (this compass keeps 76 mgauss of hard iron
+    and theta throttle^2 in its magnitude)."""
+    c = diagnose(hover_log(4)).to_json()["compasses"][0]
+    pt = c["theta_given_prior"]
+    assert pt is not None, c["unobservable_why"]
+    strength = float(pt["prior"].split("A = ")[1].split(" mgauss")[0])
+    assert abs(strength - float(np.linalg.norm(M_NED))) < 0.35 * float(np.linalg.norm(M_NED))
+    theta, hw = np.array(pt["theta"]), np.array(pt["theta_ci95_halfwidth"])
+    assert np.all(np.abs(theta - THETA) <= hw), (theta, hw)
