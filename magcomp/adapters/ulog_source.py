@@ -192,11 +192,13 @@ def _cols(data: Mapping[str, Any], name: str, n: int) -> F64 | None:
     keys = [f"{name}[{i}]" for i in range(n)]
     if not all(k in data for k in keys):
         return None
-    return np.column_stack([np.asarray(data[k], dtype=np.float64) for k in keys])
+    with np.errstate(invalid="ignore", over="ignore"):  # a damaged value becomes NaN / inf, counted later
+        return np.column_stack([np.asarray(data[k], dtype=np.float64) for k in keys])
 
 
 def _t(data: Mapping[str, Any]) -> F64:
-    return np.asarray(data["timestamp"], dtype=np.float64) * 1e-6
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.asarray(data["timestamp"], dtype=np.float64) * 1e-6
 
 
 def _sorted(t: F64, *cols: Any) -> tuple[Any, ...]:
