@@ -210,6 +210,7 @@ def _compass_row(base: dict[str, Any], c: dict[str, Any], earth_norm: float) -> 
         else math.nan
     )
     applied = c.get("status") == "corrected"
+    check = c.get("self_check") or {}
     why = str(c.get("why") or "")
     if not applied and inflight.get("why_not_applied"):
         why = str(inflight["why_not_applied"])
@@ -232,6 +233,13 @@ def _compass_row(base: dict[str, Any], c: dict[str, Any], earth_norm: float) -> 
         "theta_norm_sigma_mgauss": norm_sigma,
         "theta_converged": bool(c.get("theta_converged")),
         "heading_sigma_deg": _f(inflight.get("heading_sigma_deg")),
+        # the self-check against the gyro and the autopilot's yaw (docs/real-flights.md): the autopilot's own
+        # heading and the correction, rms deg, and the gain in standard errors
+        "selfcheck_autopilot_gyro_deg": _f(check.get("baseline_gyro_deg")),
+        "selfcheck_corrected_gyro_deg": _f(check.get("candidate_gyro_deg")),
+        "selfcheck_autopilot_att_deg": _f(check.get("baseline_att_deg")),
+        "selfcheck_corrected_att_deg": _f(check.get("candidate_att_deg")),
+        "selfcheck_gain_sigma": _f(check.get("z")),
         "calibration_source": str(cal.get("source") or ""),
         "calibration_residual_mgauss": _f(cal.get("residual_rms_mgauss")),
         "offset_x_mgauss": _f(d[0]),
