@@ -499,6 +499,8 @@ class Pipeline:
             why = f"theta against the autopilot's calibration (none determined by the flight: {st.why})"
             return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
+            if st.status == "uncorrected" and self.cfg.output.self_check and self.throttle.t is not None:
+                return Status("uncorrected", f"publishing the autopilot's own heading ({st.why})")
             return st
         if on:
             return Status("corrected", f"{st.why}; {chk.describe()}")
