@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
+import threading
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -23,6 +25,31 @@ def restore_magcomp_logging() -> Iterator[None]:
     yield
     logger.handlers[:] = handlers
     logger.setLevel(level)
+
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@pytest.fixture(autouse=True)
+def restore_signal_state(request: pytest.FixtureRequest) -> Iterator[None]:
+    """The main thread's signal mask and the SIGINT / SIGTERM handlers as they were before the test: a
+    subprocess inherits a blocked or ignored signal across exec, so one test that leaves SIGINT blocked
+    makes every later test that stops a child with a signal fail. What a test changed is restored and
+    named in the test's output (where it is seen)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    handlers = {s: signal.getsignal(s) for s in _SIGNALS}
+    yield
+    now_mask = signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    if now_mask != mask:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        print(f"{request.node.nodeid} left the signal mask {sorted(now_mask)}; restored")
+    for s, h in handlers.items():
+        if signal.getsignal(s) is not h and h is not None:
+            signal.signal(s, h)
+            print(f"{request.node.nodeid} left the {s.name} handler changed; restored")
 
 
 def split_tlog_records(data: bytes) -> list[bytes]:
