@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.rotations import dcms_from_quats, quats_from_euler
+
 F64 = NDArray[np.float64]
 
 #: below this standard deviation of throttle^2 the bias hardly changes (a 0.05 swing around hover at 0.5 is
@@ -43,21 +45,8 @@ class HoverTheta:
 
 
 def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:
-    """R_nb^T per sample, (n, 3, 3): NED to body FRD (ZYX Euler)."""
-    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
-    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
-    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
-    r = np.empty((roll_rad.shape[0], 3, 3))
-    r[:, 0, 0] = cp * cy
-    r[:, 0, 1] = cp * sy
-    r[:, 0, 2] = -sp
-    r[:, 1, 0] = sr * sp * cy - cr * sy
-    r[:, 1, 1] = sr * sp * sy + cr * cy
-    r[:, 1, 2] = sr * cp
-    r[:, 2, 0] = cr * sp * cy + sr * sy
-    r[:, 2, 1] = cr * sp * sy - sr * cy
-    r[:, 2, 2] = cr * cp
-    return r
+    """R_nb^T per sample, (n, 3, 3): NED to body FRD (ZYX Euler), from :mod:`magcomp.core.rotations`."""
+    return np.asarray(dcms_from_quats(quats_from_euler(roll_rad, pitch_rad, yaw_rad)).transpose(0, 2, 1))
 
 
 def fit_hover_theta(

@@ -13,19 +13,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from magcomp.core.selfcheck import offset_removed_rms_deg
 from magcomp.core.types import HeadingEstimate
 
 #: throttle above which the vehicle counts as flying (motors clearly above idle)
 FLYING_THROTTLE_01 = 0.05
-
-
-def rms_offset_removed_deg(err_rad: np.ndarray) -> float:
-    """rms (deg) of wrapped angle differences after removing their circular mean; NaN when empty."""
-    if err_rad.size == 0:
-        return float("nan")
-    e = np.angle(np.exp(1j * err_rad))
-    e = np.angle(np.exp(1j * (e - np.angle(np.mean(np.exp(1j * e))))))
-    return math.degrees(float(np.sqrt(np.mean(e**2))))
 
 
 def heading_agreement(
@@ -54,9 +46,9 @@ def heading_agreement(
         dh = np.radians([e.heading_deg for e in es]) - np.interp(t, t_ref, h_ref)
         dr = np.radians([e.heading_raw_deg for e in es]) - np.interp(t, t_ref, r_ref)
         out[idx] = {
-            "corrected_all_deg": rms_offset_removed_deg(dh[keep]),
-            "uncorrected_all_deg": rms_offset_removed_deg(dr[keep]),
-            "corrected_flying_deg": rms_offset_removed_deg(dh[fly]),
-            "uncorrected_flying_deg": rms_offset_removed_deg(dr[fly]),
+            "corrected_all_deg": offset_removed_rms_deg(dh[keep]),
+            "uncorrected_all_deg": offset_removed_rms_deg(dr[keep]),
+            "corrected_flying_deg": offset_removed_rms_deg(dh[fly]),
+            "uncorrected_flying_deg": offset_removed_rms_deg(dr[fly]),
         }
     return out
