@@ -33,7 +33,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from magcomp.adapters.config import Config
-from magcomp.service import inflight_process
 from magcomp.service.replay import replay_log
 
 
@@ -214,8 +213,7 @@ def _whole_process(
           "and they take less)")  # fmt: skip
     kmed = statistics.median(cpu_kids)
     print(f"{'  its child processes':<24} {'':<36}CPU min {min(cpu_kids):6.2f} s  median {kmed:6.2f} s "
-          f"(the first pass's observers and in-flight stages, up to {inflight_process.CHILDREN} children, "
-          "beside the main process)")  # fmt: skip
+          "(none: the replay runs in one process)")  # fmt: skip
     med, cmed = statistics.median(rep), statistics.median(cpu[True])
     print(
         f"replay --emit process / parse-only (in process): wall median {med / statistics.median(base):.2f}, "

@@ -7,8 +7,8 @@ The second pass then applies the *final* state of every compass (calibration of 
 the in-flight calibration; :class:`FinalCompass`) to all samples at once: eq. (2), eq. (11) and eq. (24)
 on numpy arrays through the same core functions the per-sample path calls with floats. Only the heading
 filter, the output decimation and the time accounting step sample by sample (the same stage code as the
-live pipeline), and every MAGCOMP_HEADING of a block is packed at once
-(:meth:`~magcomp.service.publish.HeadingEncoder.encode_frames`).
+live pipeline), and every MAGCOMP_HEADING is packed by the live path's own framer
+(:meth:`~magcomp.service.publish.HeadingEncoder.encode_values`).
 
 What changes against the per-sample second pass it replaces: there, the learning went on from the final
 state (theta and the in-flight estimate moved again over the log); here the final state is held fixed, so
@@ -38,7 +38,7 @@ from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import HoverTheta, fit_hover_theta
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.service.heading import yaw_rate
-from magcomp.service.publish import HeadingEncoder, HeadingValues, TlogWriter
+from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
 if TYPE_CHECKING:
@@ -431,39 +431,26 @@ def _block(
         return
     sel = np.asarray(idx, dtype=np.int64)
     pub = rows[sel]
-    values = HeadingValues(
-        t_boot_s=pub[:, T] - pub[:, BOOT_OFFSET],
-        heading_deg=np.asarray(head),
-        heading_raw_deg=np.asarray(head_raw),
-        theta=cor.theta[sel],
-        bias=cor.bias[sel],
-        throttle_01=pub[:, THR],
-        mag_index=pub[:, MAG].astype(np.int64),
-        flags=cor.flags[sel],
-    )
-    if writer is not None:
-        writer.write_frames(pub[:, T], encoder.encode_frames(values))
+    t_s = pub[:, T].tolist()
+    t_boot = (pub[:, T] - pub[:, BOOT_OFFSET]).tolist()
+    theta = [(a, b, c) for a, b, c in cor.theta[sel].tolist()]
+    bias = [(a, b, c) for a, b, c in cor.bias[sel].tolist()]
+    thr = pub[:, THR].tolist()
+    mag = pub[:, MAG].astype(np.int64).tolist()
+    flags = cor.flags[sel].tolist()
+    if writer is not None:  # the live path's framer, one MAGCOMP_HEADING at a time
+        encode, write = encoder.encode_values, writer.write_packet
+        for j, t in enumerate(t_s):
+            write(t, encode(t_boot[j], head[j], head_raw[j], theta[j], bias[j], thr[j], mag[j], flags[j]))
     if on_estimate is not None:
-        for e in estimates(pub, values, cor.field_corrected[sel]):
-            on_estimate(e)
-
-
-def estimates(pub: F64, v: HeadingValues, field_corrected: F64) -> Iterator[HeadingEstimate]:
-    """The :class:`HeadingEstimate` of each published row (for consumers that keep or show them)."""
-    nan = float("nan")
-    for j in range(pub.shape[0]):
-        yield HeadingEstimate(
-            t_s=float(pub[j, T]),
-            mag_index=int(v.mag_index[j]),
-            heading_deg=float(v.heading_deg[j]),
-            heading_raw_deg=float(v.heading_raw_deg[j]),
-            theta_mgauss=np.array(v.theta[j], dtype=float),
-            bias_mgauss=np.array(v.bias[j], dtype=float),
-            throttle_01=float(v.throttle_01[j]),
-            flags=int(v.flags[j]),
-            field_raw_mgauss=np.array(pub[j, RAW_X:RAW_Z + 1], dtype=float),
-            field_cal_mgauss=np.array(field_corrected[j], dtype=float),
-            residual_norm_mgauss=nan,
-            excitation=nan,
-            t_boot_s=float(v.t_boot_s[j]),
-        )
+        nan = float("nan")
+        raw = pub[:, RAW_X:RAW_Z + 1]
+        fc = cor.field_corrected[sel]
+        for j, t in enumerate(t_s):
+            on_estimate(HeadingEstimate(
+                t_s=t, mag_index=mag[j], heading_deg=head[j], heading_raw_deg=head_raw[j],
+                theta_mgauss=np.array(theta[j], dtype=float), bias_mgauss=np.array(bias[j], dtype=float),
+                throttle_01=thr[j], flags=flags[j], field_raw_mgauss=np.array(raw[j], dtype=float),
+                field_cal_mgauss=np.array(fc[j], dtype=float), residual_norm_mgauss=nan, excitation=nan,
+                t_boot_s=t_boot[j],
+            ))  # fmt: skip
