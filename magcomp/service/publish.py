@@ -56,6 +56,8 @@ class HeadingEncoder:
         self._msg_cls = self._mod.MAVLink_magcomp_heading_message
         self._payload: struct.Struct = self._msg_cls.unpacker
         self._crc_extra = bytes((self._msg_cls.crc_extra,))
+        self._header = _V2_HEADER
+        self._id_lo, self._id_hi = self._msg_cls.id & 0xFFFF, self._msg_cls.id >> 16
         # CRC-16/MCRF4XX as the dialect computes it: fastcrc's when installed, else pymavlink's own
         fast = getattr(self._mod, "mcrf4xx", None)
         slow = self._mod.x25crc
@@ -99,22 +101,22 @@ class HeadingEncoder:
     ) -> bytes:
         """:meth:`encode` from plain values. The frame is packed here (the bytes pymavlink's message
         object would pack, tested against it) at a third of the cost; signed links go through pymavlink."""
-        fields = (round(t_boot_s * 1000.0) & 0xFFFFFFFF, heading_deg, heading_raw_deg, theta, bias,
-                  throttle_01, mag_index & 0xFF, flags & 0xFF)  # fmt: skip
+        t_ms = round(t_boot_s * 1000.0) & 0xFFFFFFFF
         mav = self.mav
+        seq = mav.seq
         if mav.signing.sign_outgoing:
-            out = bytes(self._msg_cls(*fields).pack(mav))
-            mav.seq = (mav.seq + 1) & 0xFF  # as pymavlink's send() counts (pack() alone does not)
+            out = bytes(self._msg_cls(t_ms, heading_deg, heading_raw_deg, theta, bias, throttle_01,
+                                      mag_index & 0xFF, flags & 0xFF).pack(mav))  # fmt: skip
+            mav.seq = (seq + 1) & 0xFF  # as pymavlink's send() counts (pack() alone does not)
             return out
-        payload = self._payload.pack(fields[0], heading_deg, heading_raw_deg, *theta, *bias, throttle_01,
-                                     fields[6], fields[7])  # fmt: skip
-        payload = payload.rstrip(b"\0") or payload[:1]  # MAVLink 2 drops trailing zero bytes (not the first)
-        msg_id = self._msg_cls.id
-        frame = _V2_HEADER.pack(0xFD, len(payload), 0, 0, mav.seq, mav.srcSystem, mav.srcComponent,
-                                msg_id & 0xFFFF, msg_id >> 16) + payload  # fmt: skip
-        crc = self._crc(frame[1:] + self._crc_extra)
-        mav.seq = (mav.seq + 1) & 0xFF  # the link's packet counter: a ground station counts losses by it
-        return frame + _CRC.pack(crc)
+        mav.seq = (seq + 1) & 0xFF  # the link's packet counter: a ground station counts losses by it
+        payload = self._payload.pack(t_ms, heading_deg, heading_raw_deg, *theta, *bias, throttle_01,
+                                     mag_index & 0xFF, flags & 0xFF)  # fmt: skip
+        if not payload[-1]:  # MAVLink 2 drops trailing zero bytes (not the first)
+            payload = payload.rstrip(b"\0") or payload[:1]
+        frame = self._header.pack(0xFD, len(payload), 0, 0, seq, mav.srcSystem, mav.srcComponent,
+                                  self._id_lo, self._id_hi) + payload  # fmt: skip
+        return frame + _CRC.pack(self._crc(frame[1:] + self._crc_extra))
 
     def named_value(self, t_boot_s: float, name: str, value: float) -> bytes:
         """One NAMED_VALUE_FLOAT (``name`` at most 10 characters) on this encoder's link sequence."""
