@@ -73,14 +73,14 @@ class BlockObservers:
             self.run()
 
     def run(self) -> None:
-        """Every queued call, in order."""
-        for obs, args in self._calls:
+        """Every queued call, in order (taken off the queue first: a ^C inside never runs one twice)."""
+        calls, self._calls = self._calls, []
+        for obs, args in calls:
             est = obs.local
             if args is None:
                 est.reset_filters()
             else:
                 obs.last_info = est.step(*args)
-        self._calls.clear()
 
 
 class DeferredTheta:
