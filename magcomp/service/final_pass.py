@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from magcomp.core import selfcheck
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.hover_theta import HoverTheta, fit_hover_theta
+from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_CONVERGED, HeadingEstimate
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.heading import yaw_rate
@@ -129,6 +129,11 @@ class FinalCompass:
     theta: Float3
     converged: bool
     accounts: str | None
+    #: the coefficients apply to the field as the autopilot had it (its onboard motor compensation kept:
+    #: theta against the autopilot's calibration), not to the field as measured
+    autopilot_field: bool = False
+    #: subtracted from the corrected heading (deg): its constant part anchored to the autopilot's own
+    heading_offset_deg: float = 0.0
 
 
 def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
@@ -186,6 +191,7 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     raw = rows[:, RAW_X:RAW_Z + 1]
     field_cal = raw + rows[:, ONB_X:ONB_Z + 1]  # uncorrected: the field as the autopilot had it
     theta = np.zeros((n, 3))
+    offset_deg = np.zeros(n)
     calibrated = np.zeros(n, dtype=bool)
     flags = rows[:, FLAGS].astype(np.int64)
     # sorted(set()) rather than np.unique: that one imports numpy.ma on first use (15 ms of a replay)
@@ -199,16 +205,18 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
         else:  # the observer's reset marker, as the per-sample path sets it (service/theta.py)
             flags[m & (rows[:, OBS_RESET] != 0.0)] |= FLAG_OBSERVER_RESET
         calibrated |= m
-        r = raw[m]
+        r = raw[m] + rows[m, ONB_X:ONB_Z + 1] if f.autopilot_field else raw[m]
         field_cal[m] = np.column_stack(apply_eq2(f.coeffs, r[:, 0], r[:, 1], r[:, 2]))  # eq. (2)
         theta[m] = f.theta
+        offset_deg[m] = f.heading_offset_deg
         flags[m] |= FLAG_CALIBRATED | FLAG_THETA_CONVERGED if f.converged else FLAG_CALIBRATED
     thr = rows[:, THR]
     bias = theta * np.where(have, thr * thr, 0.0)[:, None]  # eq. (11), with the latest throttle
     fc = field_cal - bias
     trig = (rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH], rows[:, SIN_PITCH])
     psi_raw = heading_from_trig_deg(field_cal[:, 0], field_cal[:, 1], field_cal[:, 2], *trig)  # eq. (24)
-    psi = np.where(have, heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig), psi_raw)
+    psi_fc = heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig)
+    psi = np.where(have, (psi_fc - offset_deg) % 360.0, psi_raw)
 
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
@@ -249,10 +257,6 @@ def self_check(cols: F64) -> selfcheck.SelfCheck:
     return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None)
 
 
-#: eq. (2) as the identity: the autopilot's calibration of the field as logged (L = I, d = 0)
-IDENTITY_COEFFS = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-
-
 def _hover_rows(rows: F64, idx: int) -> F64:
     """(t, field as logged xyz, roll, pitch, autopilot yaw, throttle, and the self-check's gyro yaw, epoch,
     IMU dt) of compass ``idx``'s samples with the motors running and the tilt below 60 deg."""
@@ -270,20 +274,26 @@ def _hover_rows(rows: F64, idx: int) -> F64:
 
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
-    the self-check of the heading it gives; None where theta cannot be fitted."""
+    the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
+    offsets (the simpler form first: a second form is tried only where the first does not pass), anchored to
+    the autopilot's mean heading. None where theta cannot be fitted."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
-    fit = fit_hover_theta(cols[:, 1:4], roll, pitch, yaw, thr)
-    if fit is None:
-        return None
-    d2 = thr * thr
-    th = fit.theta_mgauss
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
-    base = heading_from_trig_deg(mx, my, mz, *trig)
-    cand = heading_from_trig_deg(mx - th[0] * d2, my - th[1] * d2, mz - th[2] * d2, *trig)  # eq. (11), (24)
-    check_cols = np.column_stack((t, np.radians(base), np.radians(cand), yaw, gyaw, epoch, imu_dt))
-    return fit, self_check(check_cols)
+    base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
+    got: tuple[HoverTheta, selfcheck.SelfCheck] | None = None
+    for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
+        fit = fit_hover_theta(cols[:, 1:4], roll, pitch, yaw, thr, sd)
+        if fit is None:
+            return got
+        u = fit.corrected_mgauss(cols[:, 1:4], thr)
+        cand = np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))  # eq. (11), (24)
+        chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
+        got = anchored(fit, base, cand), chk
+        if chk.applies:
+            break
+    return got
 
 
 def self_check_finals(
@@ -323,10 +333,11 @@ def self_check_finals(
         if got is None or not got[1].applies:
             continue
         fit, chk = got
-        th = fit.theta_mgauss.tolist()
+        coeffs, th3 = fit.coeffs()
         f = finals[i]
-        out[i] = FinalCompass(IDENTITY_COEFFS, True, (th[0], th[1], th[2]), False,
-                              None if f.accounts is None else "corrected")  # fmt: skip
+        acc = None if f.accounts is None else "corrected"
+        out[i] = FinalCompass(coeffs, True, th3, False, acc, autopilot_field=True,
+                              heading_offset_deg=math.degrees(fit.anchor_rad))  # fmt: skip
         checks[i] = chk
         hovers[i] = fit
     return out, checks, hovers

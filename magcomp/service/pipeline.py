@@ -495,8 +495,10 @@ class Pipeline:
         the self-check against the gyro where one was made."""
         st = self._learned_status(c)
         chk, on = self._check(c)
-        if c.mag_index in self.hover_thetas and chk is not None and on:
-            why = f"theta against the autopilot's calibration (none determined by the flight: {st.why})"
+        hov = self.hover_thetas.get(c.mag_index)
+        if hov is not None and chk is not None and on:
+            what = "theta" if not hov.offset_mgauss.any() else "theta and a change of its offsets"
+            why = f"{what} against the autopilot's calibration (none determined by the flight: {st.why})"
             return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
             if st.status == "uncorrected" and self.cfg.output.self_check and self.throttle.t is not None:
