@@ -90,6 +90,93 @@ def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:
     return np.asarray(dcms_from_quats(quats_from_euler(roll_rad, pitch_rad, yaw_rad)).transpose(0, 2, 1))
 
 
+class HoverNormal:
+    """The normal equations of the module's model, unknowns x = (e_n, theta, d) (9), accumulated one block
+    of samples at a time: the batch fit (:func:`fit_hover_theta`) adds a whole log at once, the live path
+    (service/heading.py) blocks of samples as they come; both solve with :meth:`fit`. A sample's rows are
+    ``A_i = [R_nb^T, throttle^2 I, I]`` (3 x 9), so ``sum A_i^T A_i`` needs only the sums of R_nb, of
+    throttle^2 R_nb, of throttle^2 and throttle^4 and the count (R_nb R_nb^T = I)."""
+
+    __slots__ = ("_ata", "_aty", "_d2", "_d4", "_yty", "n")
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._ata = np.zeros((9, 9))
+        self._aty = np.zeros(9)
+        self._yty = 0.0
+        self._d2 = 0.0
+        self._d4 = 0.0
+
+    def add(self, field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_rad: F64, throttle_01: F64) -> None:
+        """A block of samples ((n, 3) field as the autopilot had it, attitude and throttle (n,)); samples
+        with a non-finite value are left out."""
+        m = np.asarray(field_b_mgauss, dtype=float).reshape(-1, 3)
+        d2 = np.asarray(throttle_01, dtype=float) ** 2
+        roll, pitch, yaw = (np.asarray(v, dtype=float) for v in (roll_rad, pitch_rad, yaw_rad))
+        ok = np.isfinite(m).all(axis=1) & np.isfinite(d2) & np.isfinite(roll) & np.isfinite(pitch)
+        ok &= np.isfinite(yaw)
+        if not ok.any():
+            return
+        m, d2 = m[ok], d2[ok]
+        r_nb = body_from_nav(roll[ok], pitch[ok], yaw[ok]).transpose(0, 2, 1)  # (n, 3, 3)
+        k = int(ok.sum())
+        s_r = r_nb.sum(axis=0)
+        s_dr = np.einsum("n,nij->ij", d2, r_nb)
+        s_d2, s_d4 = float(d2.sum()), float(d2 @ d2)
+        eye = np.eye(3)
+        n_ = self._ata
+        n_[0:3, 0:3] += k * eye
+        n_[0:3, 3:6] += s_dr
+        n_[0:3, 6:9] += s_r
+        n_[3:6, 0:3] += s_dr.T
+        n_[6:9, 0:3] += s_r.T
+        n_[3:6, 3:6] += s_d4 * eye
+        n_[3:6, 6:9] += s_d2 * eye
+        n_[6:9, 3:6] += s_d2 * eye
+        n_[6:9, 6:9] += k * eye
+        self._aty[0:3] += np.einsum("nij,nj->i", r_nb, m)
+        self._aty[3:6] += d2 @ m
+        self._aty[6:9] += m.sum(axis=0)
+        self._yty += float(np.einsum("ni,ni->", m, m))
+        self._d2 += s_d2
+        self._d4 += s_d4
+        self.n += k
+
+    def throttle2_std(self) -> float:
+        """Standard deviation of throttle^2 over the samples added."""
+        if self.n == 0:
+            return 0.0
+        mean = self._d2 / self.n
+        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
+
+    def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
+        """The least-squares theta (see :func:`fit_hover_theta`); None where throttle^2 hardly varies (see
+        MIN_THROTTLE2_STD) or there are fewer samples than twice the unknowns."""
+        n = self.n
+        if n < 12 or self.throttle2_std() < MIN_THROTTLE2_STD:
+            return None
+        a6, b6 = self._ata[:6, :6], self._aty[:6]
+        x6, s2, cov6 = _solve(a6, b6, self._yty, 3 * n - 6)
+        if offset_sd_mgauss is None:
+            return HoverTheta(x6[3:].copy(), np.sqrt(np.maximum(np.diag(cov6)[3:], 0.0)), math.sqrt(s2), n)
+        prior = np.zeros((9, 9))
+        prior[6:, 6:] = np.eye(3) * (s2 / offset_sd_mgauss**2)  # weighed by the theta-only residual's scale
+        x9, s29, cov9 = _solve(self._ata + prior, self._aty, self._yty, 3 * n - 9, self._ata)
+        sd9 = np.sqrt(np.maximum(np.diag(cov9)[3:6], 0.0))
+        return HoverTheta(x9[3:6].copy(), sd9, math.sqrt(s29), n, x9[6:9].copy())
+
+
+def _solve(ata: F64, aty: F64, yty: float, dof: int, data_ata: F64 | None = None) -> tuple[F64, float, F64]:
+    """(x, residual variance, covariance) of the normal equations ``ata x = aty``; the residual over the
+    data rows only (``data_ata``: their part of ``ata`` where a prior was added)."""
+    inv = np.linalg.pinv(ata)
+    x = inv @ aty
+    d = ata if data_ata is None else data_ata
+    sse = max(yty - 2.0 * float(x @ aty) + float(x @ d @ x), 0.0)
+    s2 = sse / max(dof, 1)
+    return x, s2, s2 * inv
+
+
 def fit_hover_theta(
     field_b_mgauss: F64,
     roll_rad: F64,
@@ -98,36 +185,10 @@ def fit_hover_theta(
     throttle_01: F64,
     offset_sd_mgauss: float | None = None,
 ) -> HoverTheta | None:
-    """The least-squares theta of the module's model; None where throttle^2 hardly varies (see
-    MIN_THROTTLE2_STD) or there are fewer samples than twice the unknowns. With ``offset_sd_mgauss`` the
-    second form: a change of the hard-iron offsets too, under that prior (three pseudo-rows weighed by the
-    residual's scale of the theta-only fit)."""
-    m = np.asarray(field_b_mgauss, dtype=float)
-    d2 = np.asarray(throttle_01, dtype=float) ** 2
-    ok = np.isfinite(m).all(axis=1) & np.isfinite(d2) & np.isfinite(roll_rad) & np.isfinite(pitch_rad)
-    ok &= np.isfinite(yaw_rad)
-    n = int(ok.sum())
-    if n < 12 or float(np.std(d2[ok])) < MIN_THROTTLE2_STD:
-        return None
-    r = body_from_nav(roll_rad[ok], pitch_rad[ok], yaw_rad[ok])  # (n, 3, 3)
-    a = np.zeros((3 * n, 6))
-    a[:, :3] = r.reshape(3 * n, 3)  # rows of R^T: body axis k of sample i is row 3 i + k
-    eye = np.tile(np.eye(3), (n, 1))
-    a[:, 3:] = eye * np.repeat(d2[ok], 3)[:, None]
-    y = m[ok].reshape(3 * n)
-    x, *_ = np.linalg.lstsq(a, y, rcond=None)
-    res = y - a @ x
-    dof = max(3 * n - 6, 1)
-    s2 = float(res @ res) / dof
-    cov = s2 * np.linalg.pinv(a.T @ a)
-    if offset_sd_mgauss is None:
-        return HoverTheta(x[3:].copy(), np.sqrt(np.maximum(np.diag(cov)[3:], 0.0)), math.sqrt(s2), n)
-    w = math.sqrt(s2) / offset_sd_mgauss  # a prior row's weight relative to a data row's
-    a9 = np.vstack((np.hstack((a, eye)), np.hstack((np.zeros((3, 6)), w * np.eye(3)))))
-    y9 = np.concatenate((y, np.zeros(3)))
-    x9, *_ = np.linalg.lstsq(a9, y9, rcond=None)
-    res9 = (y9 - a9 @ x9)[: 3 * n]
-    s29 = float(res9 @ res9) / max(3 * n - 9, 1)
-    cov9 = s29 * np.linalg.pinv(a9.T @ a9)
-    sd9 = np.sqrt(np.maximum(np.diag(cov9)[3:6], 0.0))
-    return HoverTheta(x9[3:6].copy(), sd9, math.sqrt(s29), n, x9[6:9].copy())
+    """The least-squares theta of the module's model over a whole log (:class:`HoverNormal` with every
+    sample); None where throttle^2 hardly varies (see MIN_THROTTLE2_STD) or there are fewer samples than
+    twice the unknowns. With ``offset_sd_mgauss`` the second form: a change of the hard-iron offsets too,
+    under that prior (weighed by the residual's scale of the theta-only fit)."""
+    acc = HoverNormal()
+    acc.add(field_b_mgauss, roll_rad, pitch_rad, yaw_rad, throttle_01)
+    return acc.fit(offset_sd_mgauss)
