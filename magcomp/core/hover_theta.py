@@ -174,7 +174,7 @@ def _solve(ata: F64, aty: F64, yty: float, dof: int, data_ata: F64 | None = None
     d = ata if data_ata is None else data_ata
     sse = max(yty - 2.0 * float(x @ aty) + float(x @ d @ x), 0.0)
     s2 = sse / max(dof, 1)
-    return x, s2, s2 * inv
+    return x, s2, np.asarray(s2 * inv, dtype=float)
 
 
 def fit_hover_theta(

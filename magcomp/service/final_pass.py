@@ -291,8 +291,6 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
         cand = np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))  # eq. (11), (24)
         chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
         got = anchored(fit, base, cand), chk
-        import os, sys
-        if os.environ.get("HDEBUG"): print("HOVER", sd, fit.theta_mgauss.round(0), fit.offset_mgauss.round(0), chk, file=sys.stderr)
         if chk.applies:
             break
     return got
