@@ -297,7 +297,7 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
 
 
 def self_check_finals(
-    samples: SampleLog, finals: dict[int, FinalCompass]
+    samples: SampleLog, finals: dict[int, FinalCompass], hover_on: bool = True
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck], dict[int, HoverTheta]]:
     """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
     flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is
@@ -305,9 +305,9 @@ def self_check_finals(
     its final state becomes "uncorrected" and the second pass publishes the autopilot's own field through
     the same heading filter. Every compass left uncorrected then gets theta against the autopilot's own
     calibration (core/hover_theta.py: a hover determines theta, not a calibration), published where that
-    passes the same check."""
+    passes the same check (``hover_on``: theta may be learned in flight, ``[inflight] enabled``)."""
     judged = [i for i, f in finals.items() if f.coeffs is not None and f.inflight]
-    hover = [i for i, f in finals.items() if f.coeffs is None or f.inflight]
+    hover = [i for i, f in finals.items() if hover_on and (f.coeffs is None or f.inflight)]
     parts: dict[int, list[F64]] = {i: [] for i in judged}
     hparts: dict[int, list[F64]] = {i: [] for i in hover}
     for rows in samples.chunks():

@@ -130,6 +130,7 @@ class HeadingTrack:
         "gyro_epoch",
         "gyro_yaw",
         "hover",
+        "hover_on",
         "own",
         "own_deg",
         "raw",
@@ -137,9 +138,11 @@ class HeadingTrack:
         "self_check",
     )  # fmt: skip
 
-    def __init__(self, tau_s: float, self_check: bool = True) -> None:
+    def __init__(self, tau_s: float, self_check: bool = True, hover: bool = True) -> None:
         #: judge in-flight corrections before publishing them (``[output] self_check``)
         self.self_check = self_check
+        #: learn theta against the autopilot's calibration live (``[inflight] enabled``)
+        self.hover_on = hover
         self.corrected = est_core.HeadingFilter(tau_s)
         self.raw = est_core.HeadingFilter(tau_s)
         #: the autopilot's own field (as logged) through the same filter: what is published while the
@@ -269,7 +272,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         rec.heading_deg = own
     judged = rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS
     hover = track.hover
-    if rec.have_throttle and (rec.inflight is not None or not rec.calibrated):  # no hand-rotation calibration
+    if track.hover_on and rec.have_throttle and (rec.inflight is not None or not rec.calibrated):
         if hover is None:
             hover = track.hover = HoverShadow(track.own.tau_s)
         rate, dt = track.last_rate
