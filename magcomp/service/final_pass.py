@@ -276,21 +276,29 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
     the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
     offsets (the simpler form first: a second form is tried only where the first does not pass), anchored to
-    the autopilot's mean heading. None where theta cannot be fitted."""
+    the autopilot's mean heading. The check judges each sample with the fit of the other half of the log
+    (alternate 10 s windows, two folds): the fit takes its attitude from the autopilot's yaw, so judged on its
+    own samples against that yaw (the reference where the gyro is slow) it would pass by construction. None
+    where theta cannot be fitted."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
+    field = cols[:, 1:4]
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
     base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
+    fold = selfcheck.window_ids(t) % 2 == 1
     got: tuple[HoverTheta, selfcheck.SelfCheck] | None = None
     for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
-        fit = fit_hover_theta(cols[:, 1:4], roll, pitch, yaw, thr, sd)
-        if fit is None:
+        fit = fit_hover_theta(field, roll, pitch, yaw, thr, sd)
+        halves = [fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd) for m in (~fold, fold)]
+        if fit is None or halves[0] is None or halves[1] is None:
             return got
-        u = fit.corrected_mgauss(cols[:, 1:4], thr)
-        cand = np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))  # eq. (11), (24)
+        held = np.where(fold[:, None], halves[0].corrected_mgauss(field, thr),
+                        halves[1].corrected_mgauss(field, thr))  # fmt: skip
+        cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # eq. (11), (24)
         chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
-        got = anchored(fit, base, cand), chk
+        u = fit.corrected_mgauss(field, thr)
+        got = anchored(fit, base, np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))), chk
         if chk.applies:
             break
     return got
