@@ -3,7 +3,10 @@ checksum), a repaired temporary copy holding only those, and pymavlink's reader 
 
 Binary ``.bin`` logs are first checked by :func:`dataflash_intact_spans`; a damaged one is read through a
 copy of its believed messages (``counts["garbage_bytes"]``, ``dataflash_resyncs``,
-``dataflash_dropped_bytes``). Text ``.log`` files are read as they are.
+``dataflash_dropped_bytes``). Text ``.log`` files are read as they are. pymavlink's reader stops indexing
+at the first unknown message type, dropping the rest of a damaged log, and prints about every bad byte: it
+gets the believed messages only. Messages of a type whose FMT was lost are skipped, not taken for damage
+(else one lost FMT quarantined the whole log).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import contextlib
 import mmap
 import os
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -105,19 +108,42 @@ def _df_framed_next(data: Any, q: int, lengths: dict[int, int], n: int) -> bool:
     return bool(mlen) and (end == n or (end + 2 <= n and data[end] == 0xA3 and data[end + 1] == 0x95))
 
 
+def _whole_after_lost(data: Any, find: Callable[[bytes, int], int], p: int, lost: set[int],
+                      lengths: dict[int, int]) -> int:  # fmt: skip
+    """Where a whole message of a known type starts after the message at ``p`` and any more messages of
+    types whose FMT was lost (at most 8 of them); -1 when none does."""
+    n = len(data)
+    q, hops = find(_DF_HEAD, p + 1), 0
+    while q >= 0 and q + 3 <= n and data[q + 2] in lost and hops < 8:
+        q, hops = find(_DF_HEAD, q + 1), hops + 1  # more messages of types whose FMT was lost
+    return q if _df_framed_next(data, q, lengths, n) else -1
+
+
+def _spans_before_damage(
+    data: Any, p: int, start: int, recent: deque[int], margin_bytes: int
+) -> list[tuple[int, int]]:
+    """The intact span from ``start`` closed short of the margin before damage at ``p`` (the believed
+    messages within it popped from ``recent``), and the FMT messages within the margin, kept all the same."""
+    cut = p
+    formats: list[int] = []
+    while recent and recent[-1] > p - margin_bytes and recent[-1] >= start:
+        cut = recent.pop()
+        if data[cut + 2] == _DF_FMT_TYPE:
+            formats.append(cut)
+    out = [(start, cut)] if cut > start else []
+    out.extend((f, f + _DF_FMT_LEN) for f in reversed(formats))
+    return out
+
+
 def dataflash_intact_spans(
     data: bytes | memoryview | mmap.mmap, margin_bytes: int = DAMAGE_MARGIN_BYTES
 ) -> IntactSpans:
     """The byte ranges of a binary DataFlash log that hold whole messages, and how many bytes lie between
     them (damage). A message is believed when its type is known (from the FMT messages before it), the next
-    message header (or the end of the file) follows it exactly, and it lies more than ``margin_bytes`` from
-    any damage (FMT messages excepted: the formats are kept so that later messages stay readable, also those
-    within the margin before it); anything else is skipped up to the next header. An FMT whose definition
-    does not hold together (format characters, length, columns: a byte hit inside it) is not believed, and
-    messages of a type whose FMT was seen but not believed are skipped, not taken for damage, when a whole
-    message of a known type follows them (else one lost FMT quarantined the whole log). pymavlink's reader
-    stops indexing at the first unknown message type, dropping the rest of a damaged log, and prints about
-    every bad byte: it gets the believed messages only."""
+    header (or the end of the file) follows it exactly, and it lies more than ``margin_bytes`` from any
+    damage (FMT messages excepted, also within the margin: later messages stay readable); anything else is
+    skipped up to the next header. An FMT that does not hold together (a byte hit inside it) is not
+    believed; messages of its type are skipped, not taken for damage, when a whole message follows them."""
     n = len(data)
     lengths: dict[int, int] = {_DF_FMT_TYPE: _DF_FMT_LEN}
     lost: set[int] = set()  # types whose FMT was seen but not believed
@@ -159,11 +185,8 @@ def dataflash_intact_spans(
             continue
         if mlen and end > n:  # a message cut by the end of the file
             break
-        q = find(_DF_HEAD, p + 1) if mtype in lost else -1
-        hops = 0
-        while q >= 0 and q + 3 <= n and data[q + 2] in lost and hops < 8:
-            q, hops = find(_DF_HEAD, q + 1), hops + 1  # more messages of types whose FMT was lost
-        if mtype in lost and _df_framed_next(data, q, lengths, n):
+        q = _whole_after_lost(data, find, p, lost, lengths) if mtype in lost else -1
+        if q >= 0:
             # types whose FMT was seen but not believed, before a whole message: those messages only are
             # skipped, not damage (counting each of them as damage quarantined the whole log); any other
             # unknown type is damage (a hit type byte)
@@ -178,15 +201,10 @@ def dataflash_intact_spans(
             lost.add(data[p + 3])  # an FMT not believed (its framing hit): its type's messages have no format
         q = find(_DF_HEAD, p + 1)
         q = n if q < 0 else q
-        cut = p
-        formats: list[int] = []  # FMT messages within the margin before the damage: kept all the same
-        while q < n and recent and recent[-1] > p - margin_bytes and recent[-1] >= start:
-            cut = recent.pop()
-            if data[cut + 2] == _DF_FMT_TYPE:
-                formats.append(cut)
-        if cut > start:
-            spans.append((start, cut))
-        spans.extend((f, f + _DF_FMT_LEN) for f in reversed(formats))
+        if q < n:
+            spans += _spans_before_damage(data, p, start, recent, margin_bytes)
+        elif p > start:  # no header after it: the span is closed at the damage, nothing of it distrusted
+            spans.append((start, p))
         recent.clear()
         skipped += q - p
         resyncs += q < n

@@ -8,6 +8,12 @@ char[N] as str); other ids are skipped unread. Same messages, values and counts 
 (tests/unit/test_sources_fastpath.py). Signatures of signed frames are not checked. A file is read
 ``READ_CHUNK_BYTES`` at a time: memory does not grow with the log's length (a frame cut by a chunk's end is
 completed from the next chunk; same messages and counts as reading it whole).
+
+Only the ids in the decoders are decoded, CRC-checked (X.25 with the message's crc_extra) and unpacked with a
+precompiled Struct (MAVLink 2 payloads cut by zero-truncation padded with zeros); other ids are skipped
+unread, their framing checked by the next frame's magic byte (a doubtful frame is resynchronised byte by
+byte). Wanted frames that fail their CRC are ``bad_crc``; bytes that start no frame ``garbage_bytes``; a
+frame cut by the end of the input ``truncated``.
 """
 
 from __future__ import annotations
@@ -146,21 +152,12 @@ def iter_mavlink_frames(
     rx_into: Any = None,
 ) -> Generator[tuple[Callable[[Any], Any], Any], None, int]:
     """Walk tlog framing (``ts_len`` = 8) or a raw MAVLink stream (0); yield (handler, message) for the ids
-    in ``decoders`` only, CRC-checked (X.25 with the message's crc_extra) and unpacked with a precompiled
-    Struct (MAVLink 2 payloads cut by zero-truncation are padded with zeros). Other ids are skipped unread.
-
-    ``data`` is the whole input (``final``) or one chunk of it: then the walk stops where a frame (and the
-    byte after it, which checks its framing) might not be whole yet, and returns the offset to resume from,
-    with the next chunk appended; the messages and counts are the same as for the whole input at once.
-    ``reference_mav`` (tests): decode the same frames with pymavlink's ``MAVLink.decode`` instead.
-    ``rx_into``: an object whose ``rx_s`` and ``rx_src`` are set to each yielded message's tlog receive
-    stamp (s) and sender's system id before it is yielded (for :class:`StreamOffsets`); raw streams
-    (``ts_len`` 0) have no receive stamp.
-    """
+    in ``decoders`` (see the module docstring). ``data``: the whole input (``final``) or a chunk of it, the
+    walk then stopping where a frame might not be whole yet and returning the offset to resume from.
+    ``reference_mav`` (tests): pymavlink's ``MAVLink.decode`` instead. ``rx_into``: gets ``rx_s`` and
+    ``rx_src`` (the tlog receive stamp in s, the sender's system id) before each message is yielded."""
     mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
-    view = memoryview(data)
-    n = len(data)
-    p = 0
+    view, n, p = memoryview(data), len(data), 0
     magics = (MAGIC_V1, MAGIC_V2)
     get = decoders.get
     # a chunk: stop while a whole frame, its timestamp and the next frame's magic may still be missing
@@ -184,10 +181,7 @@ def iter_mavlink_frames(
             end = crc_at + 2
             msgid = data[h + 5]
         else:
-            q = _next_magic(data, h + 1)
-            # no magic in the rest of a chunk: skip up to where the next chunk's first timestamp may begin
-            q = (n if final else n - ts_len) if q < 0 else q - ts_len
-            q = max(q, p + 1)
+            q = _resync(data, h, p, n, ts_len, final)
             counts["garbage_bytes"] += q - p
             p = q
             continue
@@ -199,10 +193,7 @@ def iter_mavlink_frames(
         if dec is not None:
             st, size, extra, build, handler = dec
             if mav_error is not None:
-                try:
-                    msg = reference_mav.decode(bytearray(data[h:end]))
-                except mav_error:
-                    msg = None
+                msg = _reference_decode(reference_mav, mav_error, data[h:end])
             elif ignore_crc or crc16(extra, crc16(view[h + 1 : crc_at], 0xFFFF)) == (
                 data[crc_at] | (data[crc_at + 1] << 8)
             ):
@@ -214,12 +205,7 @@ def iter_mavlink_frames(
             else:
                 msg = None
             if msg is None:
-                if next_ok:
-                    counts["bad_crc"] += 1
-                    p = end
-                else:
-                    counts["garbage_bytes"] += 1
-                    p += 1
+                p = _after_bad_frame(counts, p, end, next_ok)
                 continue
             counts["messages"] += 1
             if rx_into is not None and ts_len == 8:
@@ -232,6 +218,33 @@ def iter_mavlink_frames(
             continue
         p = end
     return p
+
+
+def _resync(data: bytes, h: int, p: int, n: int, ts_len: int, final: bool) -> int:
+    """Where the walk goes on after a byte at ``h`` that starts no frame: the next magic byte (less the
+    timestamp before it); no magic in the rest of a chunk: up to where the next chunk's first timestamp may
+    begin."""
+    q = _next_magic(data, h + 1)
+    q = (n if final else n - ts_len) if q < 0 else q - ts_len
+    return max(q, p + 1)
+
+
+def _after_bad_frame(counts: dict[str, int], p: int, end: int, next_ok: bool) -> int:
+    """A frame of a wanted id that fails its CRC: a bad frame skipped whole when the next frame follows it,
+    else a garbage byte (the framing itself is doubtful) and the walk goes on byte by byte."""
+    if next_ok:
+        counts["bad_crc"] += 1
+        return end
+    counts["garbage_bytes"] += 1
+    return p + 1
+
+
+def _reference_decode(mav: Any, mav_error: Any, frame: bytes) -> Any:
+    """pymavlink's own decode of one frame (tests); None where it refuses it."""
+    try:
+        return mav.decode(bytearray(frame))
+    except mav_error:
+        return None
 
 
 def iter_mavlink_file(
