@@ -66,31 +66,28 @@ _STRUCT = {
     "n": "4s", "N": "16s", "Z": "64s", "c": "h", "C": "H", "e": "i", "E": "I", "L": "i", "M": "B",
 }  # fmt: skip
 
-# name -> (format characters, field names); ArduPilot 4.x
+# CTUN of Copter and of Plane: (format characters, field names); ArduPilot 4.x
 _COPTER_CTUN = ("Qffffffefffhh", "TimeUS,ThI,ABst,ThO,ThH,DAlt,Alt,BAlt,DSAlt,SAlt,TAlt,DCRt,CRt")
 _PLANE_CTUN = ("QccccffffBffi", "TimeUS,NavRoll,Roll,NavPitch,Pitch,ThO,RdO,ThD,As,AsT,SAs,E2T,GU")
-FORMATS: dict[str, tuple[str, str]] = {
-    "PARM": ("QNff", "TimeUS,Name,Value,Default"),
-    "MSG": ("QZ", "TimeUS,Message"),
-    "IMU": ("QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz"),
-    "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),
-    "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),
-    "RCOU": ("QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14"),
-    "BAT": ("QBfffffcf", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res"),
-    "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
-}
-
-# units and multipliers of the fields (FMTU), ArduPilot 4.x; the ids' meanings in _UNITS / _MULTS
-FIELD_UNITS: dict[str, tuple[str, str]] = {
-    "PARM": ("s---", "F---"),
-    "MSG": ("s-", "F-"),
-    "IMU": ("s#EEEooo--O--zz", "F-000000-----00"),
-    "MAG": ("s#GGGGGGGGG-s", "F-CCCCCCCCC-F"),
-    "ATT": ("sddddhhdh-", "FBBBBBBBB-"),
-    "RCOU": ("sYYYYYYYYYYYYYY", "F--------------"),
-    "BAT": ("s#vvAaXOw", "F-000C0?0"),
-    "GPS": ("s#-s-S-DUmnhnh-", "F--C-0BGGB000--"),
-}
+#: name -> (format characters, field names, units, multipliers) of the messages written; ArduPilot 4.x. The
+#: units and multipliers are the FMTU's (``#`` the instance field), their ids' meanings in _UNITS / _MULTS
+MESSAGES: dict[str, tuple[str, str, str, str]] = {
+    "PARM": ("QNff", "TimeUS,Name,Value,Default", "s---", "F---"),
+    "MSG": ("QZ", "TimeUS,Message", "s-", "F-"),
+    "IMU": ("QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+            "s#EEEooo--O--zz", "F-000000-----00"),
+    "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S",
+            "s#GGGGGGGGG-s", "F-CCCCCCCCC-F"),
+    "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF",
+            "sddddhhdh-", "FBBBBBBBB-"),
+    "RCOU": ("QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14",
+             "sYYYYYYYYYYYYYY", "F--------------"),
+    "BAT": ("QBfffffcf", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res", "s#vvAaXOw", "F-000C0?0"),
+    "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
+            "s#-s-S-DUmnhnh-", "F--C-0BGGB000--"),
+}  # fmt: skip
+#: name -> (format characters, field names)
+FORMATS: dict[str, tuple[str, str]] = {name: (m[0], m[1]) for name, m in MESSAGES.items()}
 _UNITS = {
     "-": "", "#": "instance", "s": "s", "E": "rad/s", "o": "m/s/s", "O": "degC", "z": "Hz", "G": "Gauss",
     "d": "deg", "h": "degheading", "Y": "us", "v": "V", "A": "A", "a": "Ah", "X": "Wh", "w": "Ohm",
@@ -219,10 +216,9 @@ def write_sim_dataflash(
             raise ValueError(f"motor_comp: {n_mag} finite rows of COMPASS_MOT*_X/Y/Z expected")
     start_unix = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
     w = DataflashWriter(units=units, lazy_formats=lazy_formats)
-    formats = dict(FORMATS)
-    formats["CTUN"] = _COPTER_CTUN if result.config.vehicle == "multirotor" else _PLANE_CTUN
-    for mname, (fmt, cols) in formats.items():
-        w.define(mname, fmt, cols, *FIELD_UNITS.get(mname, ("", "")))
+    for mname, (fmt, cols, field_units, mults) in MESSAGES.items():
+        w.define(mname, fmt, cols, field_units, mults)
+    w.define("CTUN", *(_COPTER_CTUN if result.config.vehicle == "multirotor" else _PLANE_CTUN))
     params = sim_parameters(result, mot)
     events = _df_start_events(result, params)
     events += _df_imu_events(result)

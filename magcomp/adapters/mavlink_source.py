@@ -64,7 +64,7 @@ import os
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
 from magcomp.adapters import mavlink_frames
 from magcomp.adapters.columns import Window
@@ -130,6 +130,7 @@ __all__ = [
     "Counts",
     "MavSource",
     "SenderStream",
+    "SourceOptions",
     "StreamOffsets",
     "WireImuSample",
     "WireMagSample",
@@ -479,42 +480,39 @@ def throttle_sample(
     return ThrottleSample(rec.t_s, out[0], resolved.label, out[1] if resolved.kind == "motors" else ())
 
 
+class SourceOptions(TypedDict, total=False):
+    """The keyword options of :func:`open_source`, as :class:`MavSource` takes them (defaults there)."""
+
+    throttle_source: str | ThrottleSpec
+    mag_index: int | None
+    undo_motor_comp: bool
+    baud: int
+    live_timeout_s: float
+    pipeline_only: bool
+    signing_key: bytes | None
+
+
 def open_source(
-    url_or_path: str | os.PathLike[str],
-    *,
-    throttle_source: str | ThrottleSpec = "auto",
-    mag_index: int | None = None,
-    undo_motor_comp: bool = True,
-    baud: int = 57600,
-    live_timeout_s: float = 0.5,
-    pipeline_only: bool = False,
-    signing_key: bytes | None = None,
+    url_or_path: str | os.PathLike[str], **options: Unpack[SourceOptions]
 ) -> MavSource | UlogSource:
     """Open a log file (.tlog, raw MAVLink, DataFlash .bin/.log, PX4 .ulg) or a live link URL.
 
     Links: ``udpin:0.0.0.0:14550``, ``udpout:host:port``, ``tcp:host:port``, ``tcpin:0.0.0.0:5760``,
     ``/dev/ttyACM0:115200`` or ``serial:/dev/ttyUSB0:57600``. Raises InputError for a missing, empty or
     unrecognisable file. ``mag_index`` restricts MagSamples to one compass. A ``.ulg`` gives a
-    :class:`~magcomp.adapters.ulog_source.UlogSource` (same interface, no link).
-    ``pipeline_only``: leave out what :class:`~magcomp.service.pipeline.Pipeline` ignores (temperature and
-    power samples, IMUs other than IMU 0; MAVLink and DataFlash), counted in ``skipped_samples``.
+    :class:`~magcomp.adapters.ulog_source.UlogSource` (same interface, no link; ``throttle_source`` and
+    ``mag_index`` only). ``pipeline_only``: leave out what :class:`~magcomp.service.pipeline.Pipeline`
+    ignores (temperature and power samples, IMUs other than IMU 0; MAVLink and DataFlash), counted in
+    ``skipped_samples``.
     """
     target = os.fspath(url_or_path)
     if is_ulog(target):
         from magcomp.adapters.ulog_source import UlogSource
 
-        return UlogSource(target, throttle_source=throttle_source, mag_index=mag_index)
-    source = MavSource(
-        target,
-        throttle_source=throttle_source,
-        mag_index=mag_index,
-        undo_motor_comp=undo_motor_comp,
-        baud=baud,
-        live_timeout_s=live_timeout_s,
-        pipeline_only=pipeline_only,
-        signing_key=signing_key,
-    )
-    return source
+        return UlogSource(
+            target, throttle_source=options.get("throttle_source", "auto"), mag_index=options.get("mag_index")
+        )
+    return MavSource(target, **options)
 
 
 # --- whole-log loading ---

@@ -197,6 +197,18 @@ def _cols(data: Mapping[str, Any], name: str, n: int) -> F64 | None:
         return np.column_stack([np.asarray(data[k], dtype=np.float64) for k in keys])
 
 
+def _topic_cols(
+    topics: dict[str, dict[int, dict[str, Any]]], topic: str, name: str, n: int
+) -> tuple[dict[str, Any], F64] | None:
+    """The first instance of ``topic`` and its array field ``name[0..n-1]`` as columns; None when the log
+    has neither."""
+    data = topics.get(topic, {}).get(0)
+    if data is None:
+        return None
+    cols = _cols(data, name, n)
+    return None if cols is None else (data, cols)
+
+
 def _t(data: Mapping[str, Any]) -> F64:
     with np.errstate(invalid="ignore", over="ignore"):
         return np.asarray(data["timestamp"], dtype=np.float64) * 1e-6
@@ -312,12 +324,10 @@ def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
                 # PX4 already subtracted its own power compensation from this topic (not undone here)
                 tables.counts["px4_mag_comp_applied"] = 1
             return
-    sc = topics.get("sensor_combined", {}).get(0)
-    if sc is None:
+    combined = _topic_cols(topics, "sensor_combined", "magnetometer_ga", 3)
+    if combined is None:
         return
-    xyz = _cols(sc, "magnetometer_ga", 3)
-    if xyz is None:
-        return
+    sc, xyz = combined
     rel = np.asarray(sc.get("magnetometer_timestamp_relative", np.zeros(len(xyz))), dtype=np.int64)
     t = (np.asarray(sc["timestamp"], dtype=np.float64) + rel) * 1e-6
     keep = rel != RELATIVE_TIMESTAMP_INVALID
@@ -355,12 +365,10 @@ def _read_imu(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
 
 
 def _read_attitude(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) -> None:
-    att = topics.get("vehicle_attitude", {}).get(0)
-    if att is None:
+    found = _topic_cols(topics, "vehicle_attitude", "q", 4)
+    if found is None:
         return
-    q = _cols(att, "q", 4)
-    if q is None:
-        return
+    att, q = found
     from magcomp.core.rotations import euler_from_quats
 
     norm = np.linalg.norm(q, axis=1)

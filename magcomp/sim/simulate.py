@@ -196,7 +196,8 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     step = round(rates.truth_hz / rates.imu_hz)
     idx = np.arange(0, motion.t_s.shape[0], step)
     field_total_b = field_b + bias + drift
-    sensed = _measure(config, compasses, motion, power, field_total_b, r_nb, idx, rng_noise, rng_cnoise)
+    run = _Run(config, compasses, motion, power, idx)
+    sensed = _measure(run, field_total_b, r_nb, rng_noise, rng_cnoise)
     ap_cal = None
     if config.ap_calibration:
         ap_cal = tuple(
@@ -204,8 +205,8 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
             for c in compasses
         )
     decl = declination_rad(m_n)
-    attitude = _autopilot_attitude(config, compasses, motion, sensed, ap_cal, decl, idx, rng_att)
-    samples = _samples(config, motion, power, sensed, ap_cal, attitude, idx, rng_noise)
+    attitude = _autopilot_attitude(run, sensed, ap_cal, decl, rng_att)
+    samples = _samples(run, sensed, ap_cal, attitude, rng_noise)
     return SimResult(
         config=config,
         t_s=config.t0_s + motion.t_s,
@@ -239,6 +240,16 @@ def _bias_and_drift(
     return bias, drift
 
 
+class _Run(NamedTuple):
+    """What the steps of :func:`simulate` share: the run, its truth and the loop rows ``idx``."""
+
+    config: SimConfig
+    compasses: Sequence[CompassTruth]
+    motion: Motion
+    power: PowertrainTruth
+    idx: NDArray[np.int64]
+
+
 class _Sensed(NamedTuple):
     """What the compasses and IMUs measure at the loop rows (compass j with IMU j)."""
 
@@ -249,19 +260,12 @@ class _Sensed(NamedTuple):
 
 
 def _measure(
-    config: SimConfig,
-    compasses: Sequence[CompassTruth],
-    motion: Motion,
-    power: PowertrainTruth,
-    field_total_b: F64,
-    r_nb: F64,
-    idx: NDArray[np.int64],
-    rng_noise: np.random.Generator,
-    rng_cnoise: np.random.Generator,
+    run: _Run, field_total_b: F64, r_nb: F64, rng_noise: np.random.Generator, rng_cnoise: np.random.Generator
 ) -> _Sensed:
     """The sensors at the loop rows ``idx``: gyro, accelerometer and compass of each compass's IMU (the
     field: the Earth's plus each compass's motor bias and drift, ``field_total_b`` (J, n, 3)), and the IMU
     temperatures."""
+    config, compasses, motion, power, idx = run
     var = config.variation
     rates = config.rates
     step = round(rates.truth_hz / rates.imu_hz)
@@ -289,18 +293,16 @@ def _measure(
 
 
 def _autopilot_attitude(
-    config: SimConfig,
-    compasses: Sequence[CompassTruth],
-    motion: Motion,
+    run: _Run,
     sensed: _Sensed,
     ap_cal: tuple[AutopilotCalibration, ...] | None,
     decl: float,
-    idx: NDArray[np.int64],
     rng_att: np.random.Generator,
 ) -> F64:
     """The simulated autopilot's attitude (roll, pitch, yaw rad) at the loop rows: its filter steered by
     the primary compass as it sees it (its own calibration, or the motor-off calibration), with the
     attitude knobs' biases and noise."""
+    config, compasses, motion, _, idx = run
     var = config.variation
     step_dt = round(config.rates.truth_hz / config.rates.imu_hz) / config.rates.truth_hz
     mag = sensed.mag
@@ -332,16 +334,14 @@ def _autopilot_attitude(
 
 
 def _samples(
-    config: SimConfig,
-    motion: Motion,
-    power: PowertrainTruth,
+    run: _Run,
     sensed: _Sensed,
     ap_cal: tuple[AutopilotCalibration, ...] | None,
     attitude: F64,
-    idx: NDArray[np.int64],
     rng_noise: np.random.Generator,
 ) -> SimSamples:
     """What the autopilot reports at the loop rows, quantised as it sends it."""
+    config, _, motion, power, idx = run
     mag = sensed.mag
     mag_sensor = None
     if ap_cal is not None:
