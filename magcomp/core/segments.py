@@ -26,6 +26,7 @@ these tests when attitude and rates stay small; pass explicit bounds for such lo
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -39,7 +40,7 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class SegmentParams:
-    """Thresholds of :func:`find_stationary_sweep` (rad/s, rad, s, throttle 0..1)."""
+    """Thresholds of :func:`find_stationary_segments` (rad/s, rad, s, throttle 0..1)."""
 
     max_rate_rad_s: float = 0.05
     smooth_s: float = 1.0
@@ -183,20 +184,10 @@ class TimeWindow(NamedTuple):
     t_end_s: float
 
 
-def find_stationary_sweep(
-    imu_t_s: ArrayLike,
-    rate_b_rad_s: ArrayLike,
-    throttle_t_s: ArrayLike,
-    throttle_01: ArrayLike,
-    p: SegmentParams | None = None,
-    attitude_t_s: ArrayLike | None = None,
-    attitude_rad: ArrayLike | None = None,
-) -> TimeWindow | None:
-    """The best stationary throttle sweep, or None when there is none."""
-    segs = find_stationary_segments(
-        imu_t_s, rate_b_rad_s, throttle_t_s, throttle_01, p, attitude_t_s, attitude_rad
-    )
-    return TimeWindow(segs[0].t_start_s, segs[0].t_end_s) if segs else None
+def best_window(segments: Sequence[Segment]) -> TimeWindow | None:
+    """The best of :func:`find_stationary_segments`' windows (its first) as a time window; None when it
+    found none."""
+    return TimeWindow(segments[0].t_start_s, segments[0].t_end_s) if segments else None
 
 
 def attitude_rates(attitude_t_s: F64, attitude_rad: F64) -> F64:
@@ -211,7 +202,7 @@ def attitude_rates(attitude_t_s: F64, attitude_rad: F64) -> F64:
 
 
 def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> TimeWindow | None:
-    """:func:`find_stationary_sweep` on a :class:`LogData`: gyro when present, else attitude rates.
+    """:func:`find_stationary_segments` on a :class:`LogData`: gyro when present, else attitude rates.
 
     Returns None when no window qualifies or the log has neither gyro nor attitude.
     """
@@ -223,7 +214,7 @@ def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> TimeWindo
     else:
         return None
     has_att = att_t.shape[0] > 0 and att.ndim == 2 and att.shape[1] == 3
-    return find_stationary_sweep(
+    segments = find_stationary_segments(
         rate_t,
         rate,
         log.throttle_01.t_s,
@@ -232,3 +223,4 @@ def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> TimeWindo
         att_t if has_att else None,
         att if has_att else None,
     )
+    return best_window(segments)
