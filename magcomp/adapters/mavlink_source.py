@@ -155,7 +155,7 @@ _mavlink_module = mavlink_module
 _sniff_mavlink_stream = sniff_mavlink_stream
 
 
-class MavSource:
+class MavSource(contextlib.AbstractContextManager["MavSource"]):
     """One source of typed samples. Use :func:`open_source`.
 
     ``samples()`` streams :data:`~magcomp.core.types.Sample` objects in arrival order (throttle already
@@ -287,9 +287,6 @@ class MavSource:
             with contextlib.suppress(Exception):
                 self.connection.close()
             self.connection = None
-
-    def __enter__(self) -> MavSource:
-        return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
