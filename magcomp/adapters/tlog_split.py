@@ -87,6 +87,8 @@ def several_vehicles(path: str | Path) -> list[Sender]:
     the order they first send it; [] when it has one or none, or is no MAVLink log. A log of one vehicle
     costs one search of its bytes; the frames are walked only when the search finds several senders."""
     src = Path(path)
+    if not src.is_file():
+        return []  # a link, a pipe, a device: read once, by the replay itself
     try:
         with src.open("rb") as f:
             if sniff_mavlink_stream(f.read(64)) is None:
