@@ -6,6 +6,8 @@ import argparse
 import math
 from typing import Any
 
+from magcomp.commands import options
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from magcomp.adapters.rerun_viz import add_rerun_argument
@@ -15,10 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float, default=10.0, metavar="X",
                         help="play the simulated flight at X times real time (default 10)")  # fmt: skip
     parser.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration for the daemon")
-    parser.add_argument("--state-dir", metavar="DIR", help="keep state here (default: a fresh temporary one)")
-    parser.add_argument("--json", metavar="SUMMARY.json", help="write the summary")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    options.add_config(parser, "TOML configuration for the daemon")
+    options.add_state_dir(parser, "keep state here (default: a fresh temporary one)")
+    options.add_json(parser, "write the summary")
+    options.add_verbose(parser)
     add_rerun_argument(parser)
 
 

@@ -7,6 +7,8 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from magcomp.commands import options
+
 if TYPE_CHECKING:
     from magcomp.adapters.config import Config
     from magcomp.service.replay import ReplayReport
@@ -23,12 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "log", metavar="LOG", help=".tlog, raw MAVLink, ArduPilot DataFlash .bin/.log, or PX4 .ulg"
     )
     parser.add_argument("--emit", metavar="OUT.tlog", help="write every published MAGCOMP_HEADING to a tlog")
-    parser.add_argument("--json", metavar="SUMMARY.json", help="write a JSON summary: counts, theta")
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
-    parser.add_argument(
-        "--state-dir",
-        metavar="DIR",
-        help="load and save calibration and theta here (default: none; a replay starts fresh)",
+    options.add_json(parser, "write a JSON summary: counts, theta")
+    options.add_config(parser)
+    options.add_state_dir(
+        parser, "load and save calibration and theta here (default: none; a replay starts fresh)"
     )
     parser.add_argument(
         "--causal",
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="one pass, exactly what the live daemon would have published (default without --state-dir: "
         "learn from the whole log first, then replay from the state it ends with)",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    options.add_verbose(parser)
     add_rerun_argument(parser)
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any
 
+from magcomp.commands import options
+
 if TYPE_CHECKING:
     from magcomp.adapters.rerun_viz import Viz
     from magcomp.adapters.state_store import StateStore
@@ -27,11 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", action="append", default=[], metavar="URL", help="also publish on this link (repeatable)"
     )
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
-    parser.add_argument(
-        "--state-dir",
-        metavar="DIR",
-        help="calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)",
+    options.add_config(parser)
+    options.add_state_dir(
+        parser, "calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)"
     )
     parser.add_argument(
         "--signing-key",
@@ -39,11 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="MAVLink 2 signing: sign what is sent and read only frames signed with this key (32 bytes, "
         "64 hex digits or a passphrase)",
     )
-    parser.add_argument("--json", metavar="SUMMARY.json", help="write a summary when the run ends")
+    options.add_json(parser, "write a summary when the run ends")
     parser.add_argument(
         "--duration", type=float, metavar="S", help="stop after S seconds (default: run until ^C)"
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    options.add_verbose(parser)
     add_rerun_argument(parser)
 
 
