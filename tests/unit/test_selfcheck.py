@@ -233,10 +233,11 @@ def test_hover_correction_applies_to_the_field_as_the_autopilot_had_it() -> None
     rows[:, fp.THR] = 0.5
     rows[:, fp.HAVE_THR] = 1.0
     rows[:, fp.COS_ROLL] = rows[:, fp.COS_PITCH] = 1.0
-    coeffs = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    from magcomp.core.correction import IDENTITY_COEFFS, Correction
+
+    cor = Correction(IDENTITY_COEFFS, (0.0, 0.0, 0.0), source="hover", needs_throttle=True)
     own = float(heading_from_trig_deg(200.0, 40.0, 400.0, 1.0, 0.0, 1.0, 0.0))
     for kept, offset, want in ((True, 0.0, own), (True, 3.0, own - 3.0), (False, 0.0, 0.0)):
-        f = fp.FinalCompass(coeffs, True, (0.0, 0.0, 0.0), False, "corrected", autopilot_field=kept,
-                            heading_offset_deg=offset)  # fmt: skip
+        f = fp.FinalCompass(cor, "corrected", autopilot_field=kept, heading_offset_deg=offset)
         psi = fp.correct(rows, {0: f}).psi_deg
         assert np.allclose(sc.wrap_rad(np.radians(psi - want)), 0.0, atol=1e-9), (kept, offset)
