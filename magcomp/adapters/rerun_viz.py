@@ -559,6 +559,7 @@ class EstimateColumns:
     field_cal_mgauss: NDArray[np.float64]
     residual_norm_mgauss: NDArray[np.float64]
     excitation: NDArray[np.float64]
+    theta_sigma_mgauss: NDArray[np.float64]
 
     @classmethod
     def from_estimates(cls, estimates: Sequence[HeadingEstimate]) -> EstimateColumns:
@@ -578,7 +579,26 @@ class EstimateColumns:
                 (e.residual_norm_mgauss for e in estimates), dtype=float, count=n
             ),
             excitation=np.fromiter((e.excitation for e in estimates), dtype=float, count=n),
+            theta_sigma_mgauss=np.array([e.theta_sigma_mgauss for e in estimates], dtype=float).reshape(n, 3),
         )
+
+
+THETA_BAND_LIMIT_MGAUSS = 1e5
+"""Band edges are clamped to +-this: an axis not yet excited has a huge sigma, drawn off the plot."""
+
+
+def theta_band(
+    theta_mgauss: NDArray[np.float64], sigma_mgauss: NDArray[np.float64]
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The +-1 sigma band of theta-hat per axis: ``(rows, edges)`` with ``rows`` (n, 3) True where the band is
+    drawn (finite theta and sigma >= 0) and ``edges`` (n, 3, 2) = (theta - sigma, theta + sigma), clamped to
+    +-:data:`THETA_BAND_LIMIT_MGAUSS`."""
+    th = np.asarray(theta_mgauss, dtype=float).reshape(-1, 3)
+    sd = np.asarray(sigma_mgauss, dtype=float).reshape(-1, 3)
+    rows = np.isfinite(th) & np.isfinite(sd) & (sd >= 0.0)
+    sd = np.where(rows, sd, 0.0)
+    edges = np.clip(np.stack([th - sd, th + sd], axis=-1), -THETA_BAND_LIMIT_MGAUSS, THETA_BAND_LIMIT_MGAUSS)
+    return rows, edges
 
 
 def flag_changes(flags: NDArray[np.int64]) -> NDArray[np.intp]:
@@ -650,24 +670,49 @@ def bias_fit_canvas(
 # ----------------------------------------------------------------------------------------------------------
 
 
-def theta_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
-    """The theta plot's y range: every value and 0 (where theta-hat starts), 10 % margin below and 60 % of
-    the span above, so that the legend in the top corner sits over empty plot."""
-    finite = [float(v) for v in values_mgauss if math.isfinite(float(v))] + [0.0]
+def labelled_axis_range(values: Sequence[float], above: float, below: float = 0.1) -> tuple[float, float]:
+    """A y range holding every finite value and 0, with ``below`` x the span as margin under the data and
+    ``above`` x the span over it (room for a legend in the top corner), rounded out to multiples of the
+    largest power of ten p at or below its span. The plot labels its ticks at multiples of a power of ten
+    that are far enough apart on screen; the span is then at most 12 p, so the ticks at multiples of p are
+    at least 1/12 of the plot's height apart and labelled, and both ends are such ticks: at least two
+    labels (a range of -70..78 showed a single "0")."""
+    finite = [float(v) for v in values if math.isfinite(float(v))] + [0.0]
     lo, hi = min(finite), max(finite)
     span = max(hi - lo, 10.0)
-    return (lo - 0.1 * span, hi + 0.6 * span)
+    lo, hi = lo - below * span, hi + above * span
+    p = 10.0 ** math.floor(math.log10(hi - lo))
+    return (math.floor(lo / p) * p, math.ceil(hi / p) * p)
+
+
+def theta_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
+    """The theta plot's y range (:func:`labelled_axis_range`): 60 % of the span above the data, where the
+    legend (theta, its band, the reference lines) sits."""
+    return labelled_axis_range(values_mgauss, above=0.6)
+
+
+def bias_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
+    """The bias-over-time plot's y range (:func:`labelled_axis_range`): 40 % above for its 3-line legend."""
+    return labelled_axis_range(values_mgauss, above=0.4)
 
 
 HEADING_AXIS_RANGE = (-10.0, 480.0)
 """Heading plot's y range (deg): 0..360 with room for the legend above."""
 
 
-def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) -> Any:
+def build_blueprint(
+    live: bool,
+    theta_range: tuple[float, float] | None = None,
+    bias_fit: bool = False,
+    bias_range: tuple[float, float] | None = None,
+) -> Any:
     """The view layout (a ``rerun.blueprint.Blueprint``): headings and theta on the left; clouds, bias fit,
     power, observer and status on the right. Every time-series plot shows the whole run on its x axis (not
     Rerun's default window around the time cursor), so theta's transient in the spin segment stays in view.
-    ``theta_range``: the theta plot's y range (mgauss), see :func:`theta_axis_range`; None = automatic."""
+    ``theta_range``: the theta plot's y range (mgauss), see :func:`theta_axis_range`; None = automatic.
+    ``bias_fit``: a Fig. 7 fit was logged: its tab is the one shown, else the bias over time (a live run
+    has no fit until it ends, and an empty tab reads "No data available"). ``bias_range``: the bias plot's
+    y range, see :func:`bias_axis_range`; None = automatic."""
     import rerun as rr
     import rerun.blueprint as rrb
 
@@ -708,7 +753,7 @@ def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) 
         contents=["/mag/calibrated_cloud", "/mag/flight/calibrated", "/mag/origin/**"],
         time_ranges=everything,
     )
-    bias_fit = rrb.Spatial2DView(
+    fit_view = rrb.Spatial2DView(
         name="Bias vs throttle² (Fig. 7)",
         origin="/bias/fit",
         visual_bounds=rrb.VisualBounds2D(
@@ -716,7 +761,10 @@ def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) 
             y_range=[-1.3 * BIAS_CANVAS_Y, 1.3 * BIAS_CANVAS_Y],
         ),
     )
-    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop")
+    bias_extra: dict[str, Any] = {}
+    if bias_range is not None:
+        bias_extra["axis_y"] = rrb.ScalarAxis(range=bias_range)
+    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop", **bias_extra)
     power = rrb.Vertical(
         plot("Throttle 0..1", "/power/throttle", "LeftTop", axis_y=rrb.ScalarAxis(range=(-0.05, 1.8))),
         plot("Current, A", "/power/current", "LeftTop"),
@@ -733,7 +781,7 @@ def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) 
         rrb.Vertical(heading, heading_error, theta, row_shares=[3, 2, 3]),
         rrb.Vertical(
             rrb.Horizontal(raw_cloud, cal_cloud),
-            rrb.Tabs(bias_fit, bias_t, active_tab=0),
+            rrb.Tabs(fit_view, bias_t, active_tab=0 if bias_fit else 1),
             rrb.Tabs(power, observer, status, active_tab=0),
             row_shares=[3, 2, 3],
         ),
@@ -825,6 +873,10 @@ class RerunViz:
         self._theta_lo = math.inf
         self._theta_hi = -math.inf
         self._theta_range: tuple[float, float] | None = None
+        self._bias_fit_shown = False
+        self._bias_lo = math.inf
+        self._bias_hi = -math.inf
+        self._bias_range: tuple[float, float] | None = None
         self._origin_radius = 0.0
         self._cloud_pick = StreamDecimator(CLOUD_MAX_POINTS)
         self._cloud_raw: list[NDArray[np.float64]] = []
@@ -862,6 +914,13 @@ class RerunViz:
         )
         for k, ax in enumerate(AXES):
             self._series_style(f"theta/{ax}", COLOR_AXES[k], f"theta_{ax}", 2.0)
+            # the +-1 sigma band: two thin lines in a light shade of the axis colour, one legend entry
+            light = band_color(COLOR_AXES[k])
+            self._rec.log(
+                f"theta/band/{ax}",
+                self._rr.SeriesLines(colors=[light, light], names=[f"theta_{ax} ±1σ"] * 2, widths=[1.0, 1.0]),
+                static=True,
+            )
             faded = [int(0.55 * c) for c in COLOR_AXES[k]]
             self._series_style(f"theta/offline/{ax}", faded, f"offline LS theta_{ax}", 5.0)
             self._series_style(f"theta/truth/{ax}", COLOR_TRUTH_LINE, "true theta (x, y, z)", 1.0)
@@ -950,6 +1009,7 @@ class RerunViz:
         t = cols.t_s
         for k, ax in enumerate(AXES):
             self._send_scalars(f"theta/{ax}", t, cols.theta_mgauss[:, k], drop_nan=False)
+        self._send_theta_band(t, cols.theta_mgauss, cols.theta_sigma_mgauss)
         n = t.shape[0]
         self._rec.send_columns(
             "bias/estimate",
@@ -1000,26 +1060,52 @@ class RerunViz:
         if theta.size:
             self._theta_lo = min(self._theta_lo, float(theta.min()))
             self._theta_hi = max(self._theta_hi, float(theta.max()))
+        bias = cols.bias_mgauss[np.isfinite(cols.bias_mgauss)]
+        if bias.size:
+            self._bias_lo = min(self._bias_lo, float(bias.min()))
+            self._bias_hi = max(self._bias_hi, float(bias.max()))
         if self._theta_refs and (
             not live or t[-1] - self._ref_sent_t >= LIVE_CLOUD_PERIOD_S or t[-1] < self._ref_sent_t
         ):
             self._send_reference_lines()
-        self._update_theta_axis()
+        self._update_axes()
 
-    def _update_theta_axis(self) -> None:
-        """Send the blueprint again with a wider theta y range when theta-hat or a reference line left it."""
-        values = [self._theta_lo, self._theta_hi]
+    def _send_theta_band(
+        self, t_s: NDArray[np.float64], theta_mgauss: NDArray[np.float64], sigma_mgauss: NDArray[np.float64]
+    ) -> None:
+        """theta-hat +- its 1-sigma per axis (entity ``theta/band/{x,y,z}``, two scalars a row: lower, upper),
+        where the estimate carries a sigma; live: thinned to LIVE_SLOW_HZ of message time."""
+        keep = self._slow_rows("band", t_s)
+        rows, edges = theta_band(theta_mgauss[keep], sigma_mgauss[keep])
+        t_keep = t_s[keep]
+        for k, ax in enumerate(AXES):
+            ok = rows[:, k]
+            n = int(ok.sum())
+            if n == 0:
+                continue
+            self._rec.send_columns(
+                f"theta/band/{ax}",
+                indexes=[self._time_col(t_keep[ok])],
+                columns=self._rr.Scalars.columns(scalars=edges[ok, k].reshape(-1)).partition(np.full(n, 2)),
+            )
+
+    def _update_axes(self) -> None:
+        """Send the blueprint again with a wider theta (bias) y range when theta-hat or a reference line
+        (the bias) left it."""
+        theta_values = [self._theta_lo, self._theta_hi]
         for ref in self._theta_refs.values():
-            values.extend(float(v) for v in ref)
-        if not any(math.isfinite(v) for v in values):
+            theta_values.extend(float(v) for v in ref)
+        theta_range = _grown(self._theta_range, theta_values, theta_axis_range)
+        bias_range = _grown(self._bias_range, [self._bias_lo, self._bias_hi], bias_axis_range)
+        if theta_range == self._theta_range and bias_range == self._bias_range:
             return
-        current = self._theta_range
-        lo = min(v for v in [*values, 0.0] if math.isfinite(v))
-        hi = max(v for v in [*values, 0.0] if math.isfinite(v))
-        if current is not None and current[0] <= lo and hi <= current[1]:
-            return
-        self._theta_range = theta_axis_range(values)
-        self._rec.send_blueprint(build_blueprint(self.live, self._theta_range))
+        self._theta_range, self._bias_range = theta_range, bias_range
+        self._send_blueprint()
+
+    def _send_blueprint(self) -> None:
+        self._rec.send_blueprint(
+            build_blueprint(self.live, self._theta_range, self._bias_fit_shown, self._bias_range)
+        )
 
     def _send_heading_errors(self) -> None:
         """Errors against the truth (Fig. 9) for every heading row the truth now covers; rows outside the
@@ -1107,7 +1193,7 @@ class RerunViz:
             self._theta_refs[name] = arr
         self._flush_live()
         self._send_reference_lines()
-        self._update_theta_axis()
+        self._update_axes()
 
     def _send_reference_lines(self) -> None:
         if not self._theta_refs:
@@ -1164,6 +1250,9 @@ class RerunViz:
         both = thin_rows(np.column_stack([thr2[keep], bias[keep]]), BIAS_FIT_MAX_POINTS)
         line = None if theta_line is None else np.asarray(theta_line, dtype=float).reshape(3)
         canvas = bias_fit_canvas(both[:, 0], both[:, 1:], line)
+        if not self._bias_fit_shown:  # the Fig. 7 tab now has data: show it
+            self._bias_fit_shown = True
+            self._send_blueprint()
         for k, ax in enumerate(AXES):
             rec.log(
                 f"bias/fit/points/{ax}",
@@ -1250,6 +1339,26 @@ class RerunViz:
             self._rec.flush(timeout_sec=10.0)
         finally:
             self._rec.disconnect()
+
+
+def _grown(
+    current: tuple[float, float] | None,
+    values: Sequence[float],
+    make: Callable[[Sequence[float]], tuple[float, float]],
+) -> tuple[float, float] | None:
+    """``current`` while it holds every finite value (and 0), else ``make(values)``; None before any."""
+    finite = [v for v in values if math.isfinite(v)]
+    if not finite:
+        return current
+    lo, hi = min([*finite, 0.0]), max([*finite, 0.0])
+    if current is not None and current[0] <= lo and hi <= current[1]:
+        return current
+    return make(finite)
+
+
+def band_color(rgb: Sequence[int]) -> list[int]:
+    """A light shade of ``rgb`` (60 % of the way to white) for the theta band's lines."""
+    return [round(c + 0.6 * (255 - c)) for c in rgb]
 
 
 def _cloud_radius(pts: NDArray[np.float64]) -> float:
