@@ -817,6 +817,7 @@ class RerunViz:
         self._url: str | None = None
         self._notice: str | None = None
         self._closed = False
+        self._page: PageServer | None = None
         rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())  # distinct runs stay distinct
         self._rec: rr_types.RecordingStream = rec
         if not live:
@@ -845,10 +846,15 @@ class RerunViz:
                 server = rr.GrpcServerSink(bind_ip=mode.target or SERVE_LOCAL, port=gport,
                                            server_memory_limit="512MiB")  # fmt: skip
                 rec.set_sinks(server, default_blueprint=blueprint)
-                grpc_url = str(server.uri)
-                rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
+                bind = mode.target or SERVE_LOCAL
+                grpc_url = local_grpc_url(bind, gport, str(server.uri))
+                self._page, why_not = start_page_server(bind, wport, grpc_url)
+                if self._page is None:  # the page from this process: rerun 0.41 binds it to every interface
+                    rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
                 self._url = web_viewer_url(wport, grpc_url)
                 self._notice = prefix + serve_notice(self._url, gport, wport)
+                if why_not:
+                    self._notice += f"\n  the page (port {wport}) is served on every interface: {why_not}"
             else:  # pragma: no cover - parse_mode only returns the four kinds
                 raise MagcompError(f"--rerun: unknown mode {mode.kind!r}")
         except MagcompError:
@@ -1339,6 +1345,8 @@ class RerunViz:
             self._rec.flush(timeout_sec=10.0)
         finally:
             self._rec.disconnect()
+            if self._page is not None:
+                self._page.stop()
 
 
 def _grown(
@@ -1405,27 +1413,123 @@ def _this_host_address() -> str:
 
 
 def serve_notice(url: str, grpc_port: int, web_port: int, hosts: set[str] | None = None) -> str:
-    """What ``serve`` prints: the page to open here, where the data server really listens (``hosts``: its
-    addresses; default read from the system), and how to reach it from another machine."""
+    """What ``serve`` prints: the page to open here, where the page and data servers really listen
+    (``hosts``: their addresses; default read from the system), and how to reach them from another
+    machine (a port forward of both ports for a headless machine)."""
     if hosts is None:
-        hosts = listening_hosts(grpc_port) or set()
+        hosts = (listening_hosts(grpc_port) or set()) | (listening_hosts(web_port) or set())
     forward = (f"ssh -L {web_port}:127.0.0.1:{web_port} -L {grpc_port}:127.0.0.1:{grpc_port} "
                "USER@THIS-MACHINE")  # fmt: skip
     lines = [f"Rerun web viewer: {url}"]
     if hosts & {"0.0.0.0", "::"}:
         ip = _this_host_address()
         remote = web_viewer_url(web_port, f"rerun+http://{ip}:{grpc_port}/proxy").replace("127.0.0.1", ip, 1)
-        lines.append(f"  the data (port {grpc_port}) is offered on every network interface: from another "
-                     f"machine open {remote}")  # fmt: skip
+        lines.append(f"  the page (port {web_port}) and the data (port {grpc_port}) are offered on every "
+                     f"network interface: from another machine open {remote}")  # fmt: skip
     elif hosts:
         where = ", ".join(sorted(hosts))
-        lines.append(f"  the data (port {grpc_port}) is served on {where} only: from another machine forward "
-                     f"both ports ({forward}) and open the URL above; --rerun serve=0.0.0.0 offers it to the "
-                     "network")  # fmt: skip
+        lines.append(f"  the page (port {web_port}) and the data (port {grpc_port}) are served on {where} "
+                     f"only: from another machine forward both ports ({forward}) and open the URL above; "
+                     "--rerun serve=0.0.0.0 offers them to the network")  # fmt: skip
     else:
         lines.append(f"  ports {web_port} (page) and {grpc_port} (data); from another machine forward both "
                      f"({forward}) and open the URL above")  # fmt: skip
     return "\n".join(lines)
+
+
+class PageServer:
+    """The web viewer's page (HTML, JS, Wasm; no data) served by Rerun's own binary on one address.
+
+    rerun 0.41's ``serve_web_viewer`` has no bind address (it listens on every interface); its command line
+    does: ``rerun --serve-web --bind ADDRESS --web-viewer-port PORT URL`` serves only the page, pointed at
+    the gRPC ``URL`` (this process's recording). The child shares this process's group (a ^C at the
+    terminal stops both) and, on Linux, gets SIGTERM when this process dies."""
+
+    def __init__(self, proc: Any) -> None:
+        self.proc = proc
+
+    def stop(self) -> None:
+        import subprocess
+
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5.0)
+
+
+def rerun_binary() -> Path | None:
+    """The Rerun viewer binary shipped in rerun-sdk's wheel (``rerun_cli/rerun``), None where absent."""
+    try:
+        import rerun_cli
+    except ImportError:
+        return None
+    name = "rerun.exe" if sys.platform.startswith("win") else "rerun"
+    path = Path(rerun_cli.__file__).resolve().parent / name
+    return path if path.is_file() and os.access(path, os.X_OK) else None
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _listening(host: str, port: int) -> bool:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    target = "127.0.0.1" if host == "0.0.0.0" else "::1" if host == "::" else host
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.settimeout(0.5)
+        return s.connect_ex((target, port)) == 0
+
+
+def start_page_server(
+    bind: str, web_port: int, grpc_url: str, timeout_s: float = 20.0
+) -> tuple[PageServer | None, str]:
+    """Serve the web viewer's page on ``bind``:``web_port`` with Rerun's binary (:class:`PageServer`);
+    ``(None, why)`` when the binary is absent or did not start listening within ``timeout_s``."""
+    import subprocess
+
+    binary = rerun_binary()
+    if binary is None:
+        return None, "Rerun's viewer binary (rerun_cli) is not installed"
+    env = dict(os.environ, RERUN_ANALYTICS=os.environ.get("RERUN_ANALYTICS", "0"))
+    try:
+        proc = subprocess.Popen(
+            [str(binary), "--serve-web", "--bind", bind, "--web-viewer-port", str(web_port), grpc_url],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        )  # fmt: skip
+    except OSError as exc:
+        return None, f"Rerun's viewer binary did not start ({exc})"
+    deadline = time.monotonic() + timeout_s
+    while not _listening(bind, web_port):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            PageServer(proc).stop()
+            return None, f"Rerun's viewer binary did not serve port {web_port} within {timeout_s:.0f} s"
+        time.sleep(0.1)
+    return PageServer(proc), ""
+
+
+def local_grpc_url(bind: str, port: int, server_uri: str) -> str:
+    """The gRPC URL to open on this machine: ``server_uri`` (what Rerun reports), but with an address
+    that a browser here can reach where the server listens on every interface (0.0.0.0 / ::)."""
+    import ipaddress
+
+    try:
+        ip = ipaddress.ip_address(bind)
+    except ValueError:
+        return server_uri
+    if ip.is_unspecified:
+        return f"rerun+http://127.0.0.1:{port}/proxy"
+    host = f"[{ip}]" if ip.version == 6 else str(ip)
+    return f"rerun+http://{host}:{port}/proxy"
 
 
 def web_viewer_url(web_port: int, grpc_url: str) -> str:
