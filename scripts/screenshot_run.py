@@ -6,9 +6,10 @@ Starts `magcomp run --master udpin:127.0.0.1:PORT --rerun serve` (its own proces
 directory), opens the printed URL in Chromium driven over the DevTools protocol, then plays the paper's
 simulated flight (`magcomp simulate --link udpout:...`) into it. Once the simulator has finished, it waits
 until the heading plot is drawn and the picture stops changing, saves a 1600x1000 PNG (quantised to 256
-colours to keep it small), prints where the theta band, bias, current and voltage were seen, and stops
-both processes with ^C. The `run` process is live the whole time: the picture is what a pilot sees at the
-end of the flight. Needs chromium, websocket-client and pillow; the Chromium/CDP helpers are those of
+colours to keep it small), and stops both processes with ^C. The `run` process is live the whole time and
+the page has followed it, so the picture is what a pilot sees at the end of the flight, taken within
+--wait seconds of its end (the longer the wait, the larger the "latency" in the viewer's top bar: the age
+of the newest data). Needs chromium, websocket-client and pillow; the Chromium/CDP helpers are those of
 tests/integration/test_rerun_browser.py.
 """
 
@@ -124,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=150.0, help="simulated seconds (paper scenario)")
     parser.add_argument("--speed", type=float, default=5.0, help="simulator speed, x real time")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--wait", type=float, default=240.0, help="longest wait for the view to settle (s)")
+    parser.add_argument("--wait", type=float, default=30.0,
+                        help="longest wait after the flight for the view to settle (s)")  # fmt: skip
     args = parser.parse_args(argv)
     from PIL import Image
 

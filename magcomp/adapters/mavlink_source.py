@@ -85,6 +85,7 @@ import numpy as np
 from magcomp.adapters.ardupilot_motcomp import OnboardMotorComp
 from magcomp.adapters.columns import PwmRows, Rows, Window
 from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_unix
+from magcomp.adapters.log_span import chunked_find
 from magcomp.adapters.throttle import (
     FIXED_WING_TYPES,
     MULTIROTOR_TYPES,
@@ -1428,7 +1429,7 @@ def dataflash_intact_spans(
     lost: set[int] = set()  # types whose FMT was seen but not believed
     spans: list[tuple[int, int]] = []
     skipped = 0
-    find = bytes(data).find if isinstance(data, memoryview) else data.find
+    find = chunked_find(bytes(data) if isinstance(data, memoryview) else data)  # ^C between 16 MiB chunks
     p = find(_DF_HEAD)
     if p < 0:
         return IntactSpans([], n, 0, 0)

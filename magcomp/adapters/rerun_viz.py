@@ -675,14 +675,17 @@ def labelled_axis_range(values: Sequence[float], above: float, below: float = 0.
     ``above`` x the span over it (room for a legend in the top corner), rounded out to multiples of the
     largest power of ten p at or below its span. The plot labels its ticks at multiples of a power of ten
     that are far enough apart on screen; the span is then at most 12 p, so the ticks at multiples of p are
-    at least 1/12 of the plot's height apart and labelled, and both ends are such ticks: at least two
-    labels (a range of -70..78 showed a single "0")."""
+    at least 1/13 of the plot's height apart and labelled, and both rounded ends are such ticks: at least
+    two labels (a range of -70..78 showed a single "0"). 4 % of the span is added beyond each rounded end
+    so that the end labels are not cut by the plot's edge."""
     finite = [float(v) for v in values if math.isfinite(float(v))] + [0.0]
     lo, hi = min(finite), max(finite)
     span = max(hi - lo, 10.0)
     lo, hi = lo - below * span, hi + above * span
     p = 10.0 ** math.floor(math.log10(hi - lo))
-    return (math.floor(lo / p) * p, math.ceil(hi / p) * p)
+    lo, hi = math.floor(lo / p) * p, math.ceil(hi / p) * p
+    edge = 0.04 * (hi - lo)  # the end ticks' labels drawn whole, not cut by the plot's edge
+    return (lo - edge, hi + edge)
 
 
 def theta_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
