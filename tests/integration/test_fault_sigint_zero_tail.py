@@ -87,3 +87,17 @@ def test_the_dataflash_repair_search_stops_on_the_flag_between_chunks(tmp_path: 
             dataflash_intact_spans(data)
         assert time.monotonic() - t0 < 3.0 and len(asked) == 3
         assert dataflash_intact_spans(data[: 1 << 20]).resyncs == 0  # outside the context: no flag read
+
+
+def test_find_in_chunks_finds_what_find_finds_across_chunk_edges(monkeypatch: pytest.MonkeyPatch) -> None:
+    import numpy as np
+
+    from magcomp.adapters import log_span
+
+    monkeypatch.setattr(log_span, "FIND_CHUNK_BYTES", 7)  # headers straddle the chunk edges
+    rng = np.random.default_rng(4)
+    data = bytes(rng.choice([0, 0xA3, 0x95, 0x80], size=2000).astype(np.uint8))
+    for needle in (b"\xa3\x95", b"\xa3\x95\x80", b"\x80"):
+        for start in range(0, 2001, 13):
+            assert log_span.find_in_chunks(data, needle, start) == data.find(needle, start), (needle, start)
+    assert log_span.find_in_chunks(data, b"\x01\x02", 0) == -1
