@@ -17,12 +17,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -31,19 +29,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from scripts.screenshot_demo import STABLE_FRACTION, URL_PREFIX  # noqa: E402 - needs REPO on sys.path
-from tests.integration.test_rerun_browser import (  # noqa: E402
-    MIN_LINE_PIXELS,
-    WINDOW,
-    _Cdp,
-    _chromium,
-    _chromium_page,
-    _kill_group,
-    _screenshot,
-    _wait_http,
-    count_colour,
-    heading_region,
-)
+from scripts.screenshot_demo import ServingProcess, open_page, settle  # noqa: E402 - needs REPO on sys.path
+from tests.integration.test_rerun_browser import _chromium, _chromium_page, _wait_http  # noqa: E402
 
 
 def _free_udp_port() -> int:
@@ -52,80 +39,13 @@ def _free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
-class RunProcess:
-    """`magcomp run --rerun serve` in its own session; stdout lines collected by a reader thread."""
-
-    def __init__(self, port: int, state_dir: str) -> None:
-        env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONPATH=str(REPO))
-        cmd = [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}",
-               "--state-dir", state_dir, "--rerun", "serve"]  # fmt: skip
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     cwd=REPO, env=env, start_new_session=True)  # fmt: skip
-        self.lines: list[str] = []
-        self.url = ""
-        self._url_ready = threading.Event()
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for raw in self.proc.stdout:
-            line = raw.rstrip("\n")
-            self.lines.append(line)
-            if line.startswith(URL_PREFIX):
-                self.url = line[len(URL_PREFIX) :].strip()
-                self._url_ready.set()
-        self._url_ready.set()
-
-    def wait_url(self, timeout_s: float) -> str:
-        if not self._url_ready.wait(timeout_s) or not self.url:
-            raise RuntimeError(f"run printed no viewer URL; output: {self.lines[-10:]}")
-        return self.url
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            try:  # ^C: run saves its state, prints its summary and closes the viewer
-                os.killpg(self.proc.pid, signal.SIGINT)
-                self.proc.wait(timeout=15)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                pass
-        _kill_group(self.proc)
-
-
-def open_page(cdp: _Cdp, url: str) -> None:
-    cdp.call("Page.enable")
-    cdp.call("Emulation.setDeviceMetricsOverride", width=WINDOW[0], height=WINDOW[1], deviceScaleFactor=1,
-             mobile=False)  # fmt: skip
-    cdp.call("Page.navigate", url=url)
-
-
-def settle(cdp: _Cdp, wait_s: float) -> tuple[np.ndarray, dict[str, int]]:
-    """Screenshots 4 s apart until the raw heading is drawn and the picture stops changing (or ``wait_s``)."""
-    from magcomp.adapters.rerun_viz import COLOR_CORRECTED, COLOR_RAW
-
-    start = time.monotonic()
-    previous: np.ndarray | None = None
-    while True:
-        img = _screenshot(cdp)
-        region = heading_region(img)
-        counts = {"raw": count_colour(region, COLOR_RAW), "corrected": count_colour(region, COLOR_CORRECTED)}
-        if previous is not None:
-            changed = float(np.any(img != previous, axis=2).mean())
-            counts["changed_permille"] = int(1000 * changed)
-            if counts["raw"] >= MIN_LINE_PIXELS and changed < STABLE_FRACTION:
-                return img, counts
-        if time.monotonic() - start > wait_s:
-            return img, counts
-        previous = img
-        time.sleep(4.0)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", nargs="?", default=str(REPO / "docs" / "img" / "run-web.png"))
     parser.add_argument("--duration", type=float, default=150.0, help="simulated seconds (paper scenario)")
-    parser.add_argument("--speed", type=float, default=5.0, help="simulator speed, x real time")
+    parser.add_argument("--speed", type=float, default=1.0, help="simulator speed, x real time")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--wait", type=float, default=30.0,
+    parser.add_argument("--wait", type=float, default=150.0,
                         help="longest wait after the flight for the view to settle (s)")  # fmt: skip
     args = parser.parse_args(argv)
     from PIL import Image
@@ -136,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     port = _free_udp_port()
     with tempfile.TemporaryDirectory(prefix="magcomp-run-shot-") as state:
-        run = RunProcess(port, state)
+        run = ServingProcess(["run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir", state, "--rerun",
+                              "serve"])  # fmt: skip
         try:
             url = run.wait_url(60.0)
             _wait_http(url.split("?", 1)[0], 30.0)
