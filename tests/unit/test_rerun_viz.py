@@ -379,6 +379,36 @@ def test_labelled_axis_range_holds_the_data_and_two_labelled_ticks(seed: int) ->
     assert labelled_axis_range([-75.0, 26.0], above=0.6) == pytest.approx((-108.0, 108.0))
 
 
+def test_live_power_samples_one_at_a_time_do_not_split_the_estimate_blocks(tmp_path: Path) -> None:
+    """`run` logs each battery sample as it comes: the power rows are buffered like the estimates, so each
+    entity gets a few chunks (one per 0.5 s of message time), not one per sample, which the web viewer took
+    in at a fraction of real time."""
+    from rerun.chunk import RrdReader
+
+    estimates, _ = synthetic_estimates(300, seed=14)  # 6 s at 50 Hz
+    path = tmp_path / "live.rrd"
+    viz = open_viz(f"save={path}", live=True)
+    for est in estimates:
+        viz.log_estimate(est)
+        viz.log_power(est.t_s, float("nan"), 20.0 * est.throttle_01**2, 12.0)
+    viz.close()
+    chunks: dict[str, int] = defaultdict(int)
+    for chunk in RrdReader(str(path)).stream():
+        chunks[chunk.entity_path] += 1
+    span = estimates[-1].t_s - estimates[0].t_s
+    most = int(span / 0.5) + 3  # a block per 0.5 s (+ the static style row and the last, partial block)
+    for entity in ("/theta/x", "/heading/corrected", "/bias/estimate", "/power/current", "/power/voltage"):
+        assert chunks[entity] <= most, (entity, chunks[entity], most)
+    data = read_rrd(path)
+    assert len(data["/theta/x"]["values"]) == len(estimates)  # every estimate still drawn
+    current = data["/power/current"]
+    assert 55 <= len(current["values"]) <= 61  # 10 Hz of message time over 6 s
+    t = np.array([e.t_s for e in estimates])
+    thr = np.interp(current["t_s"], t, [e.throttle_01 for e in estimates])
+    np.testing.assert_allclose(current["values"], 20.0 * thr**2, atol=1e-9)
+    assert "/power/throttle" not in data  # NaN throttle: not drawn
+
+
 def test_bad_shapes_raise_magcomp_error(tmp_path: Path) -> None:
     viz = open_viz(f"save={tmp_path / 'bad.rrd'}", live=False)
     try:
