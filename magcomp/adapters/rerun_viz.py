@@ -703,6 +703,25 @@ HEADING_AXIS_RANGE = (-10.0, 480.0)
 """Heading plot's y range (deg): 0..360 with room for the legend above."""
 
 
+def _cloud_views() -> tuple[Any, Any]:
+    """Fig. 5's two 3D views: the raw ellipsoid and the calibrated sphere, every row up to the cursor."""
+    import rerun.blueprint as rrb
+
+    everything = rrb.VisibleTimeRange(
+        TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+    )
+    raw, cal = (
+        rrb.Spatial3DView(
+            name=name, origin="/mag", contents=[cloud, flight, "/mag/origin/**"], time_ranges=everything
+        )
+        for name, cloud, flight in (
+            ("Raw field: ellipsoid (Fig. 5)", "/mag/raw_cloud", "/mag/flight/raw"),
+            ("Calibrated: sphere (Fig. 5)", "/mag/calibrated_cloud", "/mag/flight/calibrated"),
+        )
+    )
+    return raw, cal
+
+
 def build_blueprint(
     live: bool,
     theta_range: tuple[float, float] | None = None,
@@ -725,37 +744,20 @@ def build_blueprint(
         view_range=rr.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()),
     )
 
-    def plot(name: str, origin: str, corner: Any = "LeftTop", **extra: Any) -> Any:
+    def plot(name: str, origin: str, corner: Any = "LeftTop", y: tuple[float, float] | None = None) -> Any:
         return rrb.TimeSeriesView(
-            name=name, origin=origin, axis_x=whole_run, plot_legend=rrb.PlotLegend(corner=corner), **extra
+            name=name,
+            origin=origin,
+            axis_x=whole_run,
+            axis_y=None if y is None else rrb.ScalarAxis(range=y),
+            plot_legend=rrb.PlotLegend(corner=corner),
         )
 
     heading = plot(
-        "Heading raw / corrected / truth (Fig. 9), deg",
-        "/heading",
-        "RightTop",
-        axis_y=rrb.ScalarAxis(range=HEADING_AXIS_RANGE),
+        "Heading raw / corrected / truth (Fig. 9), deg", "/heading", "RightTop", HEADING_AXIS_RANGE
     )
     heading_error = plot("Heading error (Fig. 9), deg", "/heading_error", "RightBottom")
-    theta_extra: dict[str, Any] = {}
-    if theta_range is not None:
-        theta_extra["axis_y"] = rrb.ScalarAxis(range=theta_range)
-    theta = plot("theta-hat vs offline / truth (Fig. 8), mgauss", "/theta", "RightTop", **theta_extra)
-    everything = rrb.VisibleTimeRange(
-        TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
-    )
-    raw_cloud = rrb.Spatial3DView(
-        name="Raw field: ellipsoid (Fig. 5)",
-        origin="/mag",
-        contents=["/mag/raw_cloud", "/mag/flight/raw", "/mag/origin/**"],
-        time_ranges=everything,
-    )
-    cal_cloud = rrb.Spatial3DView(
-        name="Calibrated: sphere (Fig. 5)",
-        origin="/mag",
-        contents=["/mag/calibrated_cloud", "/mag/flight/calibrated", "/mag/origin/**"],
-        time_ranges=everything,
-    )
+    theta = plot("theta-hat vs offline / truth (Fig. 8), mgauss", "/theta", "RightTop", theta_range)
     fit_view = rrb.Spatial2DView(
         name="Bias vs throttle² (Fig. 7)",
         origin="/bias/fit",
@@ -764,12 +766,9 @@ def build_blueprint(
             y_range=[-1.3 * BIAS_CANVAS_Y, 1.3 * BIAS_CANVAS_Y],
         ),
     )
-    bias_extra: dict[str, Any] = {}
-    if bias_range is not None:
-        bias_extra["axis_y"] = rrb.ScalarAxis(range=bias_range)
-    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop", **bias_extra)
+    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop", bias_range)
     power = rrb.Vertical(
-        plot("Throttle 0..1", "/power/throttle", "LeftTop", axis_y=rrb.ScalarAxis(range=(-0.05, 1.8))),
+        plot("Throttle 0..1", "/power/throttle", "LeftTop", (-0.05, 1.8)),
         plot("Current, A", "/power/current", "LeftTop"),
         plot("Voltage, V", "/power/voltage", "LeftBottom"),
         name="Power",
@@ -783,7 +782,7 @@ def build_blueprint(
     layout = rrb.Horizontal(
         rrb.Vertical(heading, heading_error, theta, row_shares=[3, 2, 3]),
         rrb.Vertical(
-            rrb.Horizontal(raw_cloud, cal_cloud),
+            rrb.Horizontal(*_cloud_views()),
             rrb.Tabs(fit_view, bias_t, active_tab=0 if bias_fit else 1),
             rrb.Tabs(power, observer, status, active_tab=0),
             row_shares=[3, 2, 3],
@@ -844,20 +843,7 @@ class RerunViz:
                 self._url = f"rerun+http://127.0.0.1:{port}/proxy"
                 self._notice = f"{prefix}started the Rerun viewer (port {port})"
             elif mode.kind == "serve":
-                gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
-                wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
-                server = rr.GrpcServerSink(bind_ip=mode.target or SERVE_LOCAL, port=gport,
-                                           server_memory_limit="512MiB")  # fmt: skip
-                rec.set_sinks(server, default_blueprint=blueprint)
-                bind = mode.target or SERVE_LOCAL
-                grpc_url = local_grpc_url(bind, gport, str(server.uri))
-                self._page, why_not = start_page_server(bind, wport, grpc_url)
-                if self._page is None:  # the page from this process: rerun 0.41 binds it to every interface
-                    rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
-                self._url = web_viewer_url(wport, grpc_url)
-                self._notice = prefix + serve_notice(self._url, gport, wport)
-                if why_not:
-                    self._notice += f"\n  the page (port {wport}) is served on every interface: {why_not}"
+                self._serve(mode.target or SERVE_LOCAL, blueprint, prefix, grpc_port, web_port)
             else:  # pragma: no cover - parse_mode only returns the four kinds
                 raise MagcompError(f"--rerun: unknown mode {mode.kind!r}")
         except MagcompError:
@@ -892,6 +878,25 @@ class RerunViz:
         self._cloud_raw: list[NDArray[np.float64]] = []
         self._cloud_cal: list[NDArray[np.float64]] = []
         self._cloud_sent_t = -math.inf
+
+    def _serve(
+        self, bind: str, blueprint: Any, prefix: str, grpc_port: int | None, web_port: int | None
+    ) -> None:
+        """``serve``: the recording's gRPC server in this process and the page (Rerun's binary, else this
+        process), both on ``bind``; the URL to open and the notice."""
+        rr = self._rr
+        gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
+        wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
+        server = rr.GrpcServerSink(bind_ip=bind, port=gport, server_memory_limit="512MiB")
+        self._rec.set_sinks(server, default_blueprint=blueprint)
+        grpc_url = local_grpc_url(bind, gport, str(server.uri))
+        self._page, why_not = start_page_server(bind, wport, grpc_url)
+        if self._page is None:  # the page from this process: rerun 0.41 binds it to every interface
+            rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
+        self._url = web_viewer_url(wport, grpc_url)
+        self._notice = prefix + serve_notice(self._url, gport, wport)
+        if why_not:
+            self._notice += f"\n  the page (port {wport}) is served on every interface: {why_not}"
 
     # -- properties ----------------------------------------------------------------------------------------
     @property
