@@ -1,6 +1,6 @@
 """Every shell command in README.md's code blocks that needs no network, no hardware and no other program
 runs as written and exits 0 (issue 27). Skipped, with the reason: installs (`pip`, `venv`: CI runs them),
-the live daemon (`run --master`: waits for a flight controller), MAVProxy (not a dependency), `dialect
+the live daemon (`run --master`: waits for a flight controller), MAVProxy (needs a flight controller on --master), `dialect
 install` (writes into the installed pymavlink; the dialect tests cover it on a copy)."""
 
 from __future__ import annotations
