@@ -25,13 +25,13 @@ from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
-from magcomp.core.inflight import (
-    InflightMode,
+from magcomp.core.autopilot_params import (
     calibrated_by_autopilot,
     external_compass,
     relative_rotation_source,
     yaw_reference,
 )
+from magcomp.core.inflight import InflightMode
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
 from magcomp.service import estimators as est_core
 from magcomp.service.attitude import AttitudeStage

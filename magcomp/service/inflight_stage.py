@@ -258,10 +258,12 @@ class InflightStage:
                 np.asarray(warm["mean"], dtype=float),
                 np.asarray(warm["sd"], dtype=float),
             )
-            self.est = InflightEstimator(mode, self.n_motors, self.params, field_norm_mgauss, self._warm)
+            self.est = InflightEstimator(
+                mode, self.n_motors, self.params, field_norm_mgauss, self._warm, TILT_SOLVE_EVERY
+            )
             self._new_tilt_estimator()
-            if self.est.prior_mean.shape == self._warm[0].shape and np.array_equal(
-                self.est.prior_mean, self._warm[0]
+            if self.est.prior.mean.shape == self._warm[0].shape and np.array_equal(
+                self.est.prior.mean, self._warm[0]
             ):
                 self.warm_started = True
                 # applied from the first sample only if the run it comes from had found it good enough
@@ -278,8 +280,8 @@ class InflightStage:
             self.est_tilt = InflightEstimator(
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
-        self.est.theta_from = None  # from the first sample the tilt model applies to (a raw gyro's yaw)
-        self.est.theta_from_every = TILT_SOLVE_EVERY
+        # the published estimate takes the tilt model's theta from the first sample it applies to (a raw
+        # gyro's yaw: ``_window_row``)
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -294,10 +296,6 @@ class InflightStage:
         """The Earth field changed (a GPS fix after the configured fallback): absolute rows made against
         the old field are dropped."""
         self.field_norm_mgauss = field_norm_mgauss
-        if self.est is not None:
-            self.est.field_norm_mgauss = field_norm_mgauss
-        if self.est_tilt is not None:
-            self.est_tilt.field_norm_mgauss = field_norm_mgauss
         if self.mode == "absolute" and not self.warm_started:
             self.est = None
             self.solution = None
@@ -344,13 +342,13 @@ class InflightStage:
             self.n_motors = len(motors_01) if use else 0
         if self.est is None:
             self.est = InflightEstimator(
-                self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
+                self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm, TILT_SOLVE_EVERY
             )
             self._new_tilt_estimator()
         if field_ref_n_mgauss is not None:
-            self.est.field_ned_mgauss = np.asarray(field_ref_n_mgauss, dtype=float)
+            self.est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
             if self.est_tilt is not None:
-                self.est_tilt.field_ned_mgauss = self.est.field_ned_mgauss
+                self.est_tilt.set_earth_field(self.est.field_ned_mgauss)
         mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
@@ -409,9 +407,9 @@ class InflightStage:
             self._track_yaw(r_nb)
             rows, z = absolute_rows(r_nb.T @ field_ref_n_mgauss, y, x)
             # the reference's own yaw error (its compass's calibration): one value per window, prior 2 deg
-            self.est.nuisance_prior_sd = REFERENCE_YAW_PRIOR_RAD
             cols = reference_yaw_error_rows(r_nb, field_ref_n_mgauss)
-            self.est.add(rows, z, float(x[0]), cols, (self._epoch, math.floor(t_s / ROTATION_WINDOW_S)))
+            key = (self._epoch, math.floor(t_s / ROTATION_WINDOW_S))
+            self.est.add(rows, z, float(x[0]), cols, key, prior_sd=REFERENCE_YAW_PRIOR_RAD)
             self.n_rows += 1
             return
         if WINDOW_FIELD_ROWS:
@@ -476,7 +474,7 @@ class InflightStage:
         # has one: no cost) that the ordinary one's gate passed (the same glitches). Only those: its windows
         # carry one more nuisance column, and a window never mixes the two
         if self._gy_on and self.est_tilt is not None:
-            self.est.theta_from = self.est_tilt
+            self.est.condition_theta_on(self.est_tilt)
         if self._gy_on and self.est_tilt is not None and self.est.n_gated == gated:
             self._win_field_tilt, _ = self._add_window_row(
                 self.est_tilt, self._win_field_tilt, t_s, key, tau, r_nb, y, x, True, False, w
@@ -502,9 +500,7 @@ class InflightStage:
         the rows (``like``: this sample's rows for the other estimator, whose columns but the soft-iron
         ones they share)."""
         w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x), like)
-        est.vif_batch_windows = max(
-            1, round(VIF_BATCH_S / (GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S))
-        )
+        batch_windows = max(1, round(VIF_BATCH_S / (GYRO_WINDOW_S if self._gy_on else ROTATION_WINDOW_S)))
         # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
         # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's)
         e_w = est.window_nuisance(key)
@@ -524,9 +520,9 @@ class InflightStage:
                 nuis = nuis[:, :-1]
         else:
             nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
-        est.nuisance_prior_sd = _window_prior_sd(ap_yaw)
         gated = est.n_gated
-        est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt)
+        est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt,
+                prior_sd=_window_prior_sd(ap_yaw), batch_windows=batch_windows)  # fmt: skip
         if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
         return win_field, w

@@ -227,16 +227,20 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
     """The open window's nuisance estimate is cached against the estimator's revision (the stage asks twice
     per row): on a whole flight every answer, cached or not, equals the estimate computed afresh, bit for bit,
     and the cache does answer (about one call in two)."""
-    orig = InflightEstimator._open_nuisance
+    from magcomp.core.inflight.window import OpenWindow
+
+    orig = OpenWindow.nuisance
     calls, hits = [0], [0]
 
-    def checked(self: InflightEstimator, k: int, with_common: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    def checked(
+        self: OpenWindow, rev: int, with_common: bool, p: np.ndarray, c: float, s_ref: float
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         before = self._open_cache
-        got = orig(self, k, with_common)
+        got = orig(self, rev, with_common, p, c, s_ref)
         calls[0] += 1
         hits[0] += before is not None and got is before[1]
         self._open_cache, saved = None, self._open_cache
-        fresh = orig(self, k, with_common)
+        fresh = orig(self, rev, with_common, p, c, s_ref)
         self._open_cache = saved
         assert (got is None) == (fresh is None)
         if got is not None and fresh is not None:
@@ -244,7 +248,7 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
             assert np.array_equal(got[1], fresh[1])
         return got
 
-    monkeypatch.setattr(InflightEstimator, "_open_nuisance", checked)
+    monkeypatch.setattr(OpenWindow, "nuisance", checked)
     st, _ = _run(0, NOISE_MGAUSS)
     assert st.est is not None and st.est.n > 1000
     assert 0.3 * calls[0] < hits[0] < 0.6 * calls[0], (hits[0], calls[0])
@@ -252,7 +256,7 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
 
 def test_an_estimator_taken_through_pickle_keeps_summing_its_open_window() -> None:
     """The in-flight stage goes to its process and back pickled (service/inflight_process.py). Pickle copies
-    the open window's views (``_w_ee``, ``_w_pp``, ...) as arrays of their own: rows added to the unpickled
+    the open window's views (``OpenWindow.ee``, ...) as arrays of their own: rows added to the unpickled
     estimator's open window must give what the original gives (without ``__setstate__`` the views stopped
     following the window's sums)."""
     import pickle
@@ -262,7 +266,7 @@ def test_an_estimator_taken_through_pickle_keeps_summing_its_open_window() -> No
     st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)))
     for k in range(300):
         st.feed(DT_S * k + 0.05, y[k], float(thr[k]), (), None, H_NED, r[k])  # ends inside a 2 s window
-    assert st.est is not None and st.est._win is not None
+    assert st.est is not None and st.est.acc.window.key is not None
     st.est.solve()
     copy = pickle.loads(pickle.dumps(st))
     for s in (st, copy):
