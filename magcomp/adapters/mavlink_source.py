@@ -95,6 +95,7 @@ from magcomp.adapters.throttle import (
     resolve_throttle,
     throttle_from_pwm,
 )
+from magcomp.core.autopilot_params import motor_comp_known_off
 from magcomp.core.identity import uid_from_autopilot_version, uid_from_board_msg
 from magcomp.core.types import (
     AttitudeSample,
@@ -1019,10 +1020,7 @@ class _Converter:
         """True when the logged parameters say the autopilot adds no motor offset to compass ``index``:
         COMPASS_MOTCT = 0 and, for compass 0, no per-motor compensation (COMPASS_PMOT_EN). Unknown parameters
         (none logged yet): False."""
-        params = self.onboard_comp.params
-        if params.get("COMPASS_MOTCT", math.nan) != 0.0:  # NaN (not logged) != 0: not known to be off
-            return False
-        return not (index == 0 and params.get("COMPASS_PMOT_EN", 0.0))
+        return motor_comp_known_off(self.onboard_comp.params, index)
 
     def _df_imu(self, v: Any, stream: str, raw_s: float, index: int) -> list[tuple[str, Record]]:
         gyro = _vec(v.GyrX, v.GyrY, v.GyrZ)

@@ -1,8 +1,11 @@
 """What ArduPilot's and PX4's parameters mean to magcomp, in one place: which compass the autopilot takes
 its yaw from, whether that yaw comes from a compass at all, which compasses are external, which the
-autopilot calibrated. Pure functions of a parameter dictionary (name -> value as received); no I/O."""
+autopilot calibrated, what motor compensation it applies itself. Pure functions of a parameter dictionary
+(name -> value as received); no I/O."""
 
 from __future__ import annotations
+
+import math
 
 from magcomp.core.inflight.base import InflightMode
 
@@ -105,3 +108,51 @@ def relative_rotation_source(params: dict[str, float], mag_index: int) -> tuple[
     if external_compass(params, mag_index):
         return "attitude", "this compass is external (little disturbed): the autopilot's GPS-aided attitude"
     return "attitude", "the autopilot's attitude (GPS-aided tilt; its compass-driven yaw drift estimated)"
+
+
+# ----------------------------------------------------------------------------------------------------------
+# ArduPilot's own motor compensation (COMPASS_MOTCT, COMPASS_MOT*, COMPASS_PMOT_EN; AP_Compass)
+
+#: COMPASS_MOTCT values (ArduPilot AP_COMPASS_MOT_COMP_*): the offset per unit throttle, or per amp
+MOTCT_THROTTLE = 1
+MOTCT_CURRENT = 2
+
+
+def is_motor_comp_param(name: str) -> bool:
+    """A parameter of ArduPilot's motor compensation (COMPASS_MOTCT, COMPASS_MOT*, COMPASS_PMOT_EN)."""
+    return name.startswith("COMPASS_MOT") or name == "COMPASS_PMOT_EN"
+
+
+def motor_comp_prefix(mag_index: int) -> str:
+    """The COMPASS_MOT vector's name prefix of compass ``mag_index``: COMPASS_MOT_ for the first compass,
+    COMPASS_MOT2_, COMPASS_MOT3_ for the others (then X, Y, Z)."""
+    return "COMPASS_MOT_" if mag_index == 0 else f"COMPASS_MOT{mag_index + 1}_"
+
+
+def motor_comp_type(params: dict[str, float]) -> int:
+    """COMPASS_MOTCT: 0 none, MOTCT_THROTTLE or MOTCT_CURRENT (missing or damaged: 0, none applied)."""
+    value = params.get("COMPASS_MOTCT", 0.0)
+    return int(value) if math.isfinite(value) else 0
+
+
+def motor_comp_vector(params: dict[str, float], mag_index: int) -> tuple[float, float, float] | None:
+    """COMPASS_MOT*_X/Y/Z of compass ``mag_index`` (mgauss per unit throttle, or per amp); None while any
+    is unknown."""
+    p = motor_comp_prefix(mag_index)
+    try:
+        return params[p + "X"], params[p + "Y"], params[p + "Z"]
+    except KeyError:
+        return None
+
+
+def per_motor_comp(params: dict[str, float], mag_index: int) -> bool:
+    """ArduPilot's per-motor compensation (COMPASS_PMOT_EN, first compass only) is on for this compass."""
+    return mag_index == 0 and bool(params.get("COMPASS_PMOT_EN", 0.0))
+
+
+def motor_comp_known_off(params: dict[str, float], mag_index: int) -> bool:
+    """The parameters say the autopilot adds no motor offset to compass ``mag_index``: COMPASS_MOTCT = 0
+    and, for the first compass, no per-motor compensation. Unknown parameters (none logged yet): False."""
+    if params.get("COMPASS_MOTCT", math.nan) != 0.0:  # NaN (not logged) != 0: not known to be off
+        return False
+    return not per_motor_comp(params, mag_index)
