@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
+from magcomp.core.inflight.yawframe import GyroYaw
 from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, euler_yaw_rate_coefs, quat_step_body_rate
 from magcomp.core.selfcheck import MAX_GYRO_DT_S
@@ -65,21 +66,6 @@ class AttitudeView(NamedTuple):
     sin_roll: float
     cos_pitch: float
     sin_pitch: float
-
-
-class GyroYaw(NamedTuple):
-    """The raw gyro's yaw at a sample (:meth:`AttitudeStage.gyro_yaw_at`): ``yaw_rad`` integrated since the
-    chain's start, ``epoch`` counts its restarts (yaws of two epochs are not comparable)."""
-
-    epoch: int
-    yaw_rad: float
-    #: the vehicle's horizontal kinematic acceleration (north and east of the chain's yaw frame, m/s^2):
-    #: specific force rotated by the autopilot's roll and pitch and this yaw, plus gravity, low-passed over
-    #: ACCEL_LP_S (see :attr:`AttitudeStage.accel_h`)
-    accel_h_m_s2: tuple[float, float] = (0.0, 0.0)
-    #: the gyro's yaw change from the IMU sample to the autopilot's latest ATTITUDE (rad; the last yaw rate
-    #: times their time difference): the autopilot's yaw minus the gyro's is taken at one instant
-    att_lead_rad: float = 0.0
 
 
 #: Euler angles no attitude has (roll and yaw in [-pi, pi] or yaw in [0, 2 pi], pitch in [-pi/2, pi/2]),

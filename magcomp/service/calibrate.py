@@ -31,12 +31,12 @@ from magcomp.core.autopilot_params import (
     relative_rotation_source,
     yaw_reference,
 )
-from magcomp.core.inflight import InflightMode
+from magcomp.core.inflight import InflightMode, InflightOutput
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
 from magcomp.service import estimators as est_core
 from magcomp.service.attitude import AttitudeStage
 from magcomp.service.inflight_process import InflightProcess, InflightSink
-from magcomp.service.inflight_stage import InflightOutput, InflightStage
+from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.record import Float3, MagRecord
 
 if TYPE_CHECKING:

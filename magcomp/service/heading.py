@@ -12,11 +12,11 @@ from __future__ import annotations
 import math
 
 from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
-from magcomp.service.inflight_stage import InflightOutput
 from magcomp.service.record import MagRecord
 
 #: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)

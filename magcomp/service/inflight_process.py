@@ -36,8 +36,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.service.attitude import GyroYaw
-from magcomp.service.inflight_stage import InflightOutput, InflightStage
+from magcomp.core.inflight import GyroYaw, InflightOutput
+from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.observer_process import ObserverProcessError, _foreign_threads, _send, _sigint_held
 
 F64 = NDArray[np.float64]

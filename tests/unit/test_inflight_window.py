@@ -91,7 +91,7 @@ def _gyro_yaw_run(seed: int, stale_attitude: bool) -> None:
     plus a 0.43 deg/s bias drift, as the simulator's gyro), the attitude either of the field's own time or
     one interval older (matched to the field's time by the stage); theta's sigma must fall below 0.67x the
     autopilot yaw's (2 s windows) and the estimate stay within its covariance."""
-    from magcomp.service.attitude import GyroYaw
+    from magcomp.core.inflight import GyroYaw
 
     r, thr, yaw = _flight(3000, seed)
     y = _measure(r, thr, np.eye(3), D_TRUE, seed, noise=NOISE_MGAUSS)
@@ -167,7 +167,7 @@ def test_attitude_stage_integrates_the_raw_gyro_into_the_euler_yaw() -> None:
 
 def test_attitude_stage_tracks_the_horizontal_kinematic_acceleration(monkeypatch: pytest.MonkeyPatch) -> None:
     """A tilted vehicle accelerating at a = (1.5, -2.0, 0) m/s^2 (NED), the accelerometer reading
-    f = R^T (a - g e_3): the stage's horizontal acceleration (AP_YAW_TILT's ``a``, the gyro chain's frame,
+    f = R^T (a - g e_3): the stage's horizontal acceleration (the tilt model's ``a``, the gyro chain's frame,
     yaw 0 here) settles on a within 1 mm/s^2 after ten of its time constants."""
     from collections import Counter
 
@@ -200,9 +200,9 @@ def test_slow_link_windows_relinearised_at_their_field_bring_theta_closer(
     """2.5 Hz samples (a slow link: the attitude matched to the field's time), a realistic theta (x6) and an
     autopilot yaw that follows the disturbed compass (up to ~60 deg off): each window's yaw-rate column was
     written about the window's field as known from its first few samples; written again about the window's
-    final field (RELINEARISE_WINDOW) theta comes out closer to the truth, noise-free."""
+    final field (``FeedSwitches.relinearise_window``) theta comes out closer to the truth, noise-free."""
     import tests.unit.test_inflight as ti
-    from magcomp.service import inflight_stage
+    from magcomp.core.inflight.feed import FeedSwitches
 
     theta = 6.0 * THETA
     monkeypatch.setattr(ti, "THETA", theta)
@@ -212,8 +212,8 @@ def test_slow_link_windows_relinearised_at_their_field_bring_theta_closer(
     src = np.array([dcm_from_euler(0.0, 0.0, float(p)) @ rk for p, rk in zip(psi, r, strict=True)])
     err = []
     for relin in (False, True):
-        monkeypatch.setattr(inflight_stage, "RELINEARISE_WINDOW", relin)
-        st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)))
+        sw = FeedSwitches(relinearise_window=relin)
+        st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)), None, sw)
         for k in range(0, len(thr), 4):
             st.feed(DT_S * k, y[k], float(thr[k]), (), None, H_NED, src[k], r_t_s=DT_S * k)
         assert st.est is not None

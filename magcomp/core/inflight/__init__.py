@@ -43,6 +43,7 @@ window and its Schur complement), :mod:`.solve` (normal equations, prior, MAP so
 compass gets from the autopilot's parameters: :mod:`magcomp.core.autopilot_params`.
 """
 
+from magcomp.core.inflight.apply import InflightOutput
 from magcomp.core.inflight.base import (
     F64,
     GATE_CHI2_3DOF,
@@ -75,6 +76,7 @@ from magcomp.core.inflight.rows import (
     window_nuisance_cols,
 )
 from magcomp.core.inflight.uncertainty import ResidualBatches
+from magcomp.core.inflight.yawframe import GyroYaw
 
 __all__ = [
     "F64",
@@ -90,8 +92,10 @@ __all__ = [
     "VIF_BATCH_S",
     "VIF_MIN_BATCHES",
     "WARM_INFLATE",
+    "GyroYaw",
     "InflightEstimator",
     "InflightMode",
+    "InflightOutput",
     "InflightParams",
     "InflightSolution",
     "ResidualBatches",
