@@ -22,7 +22,15 @@ from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, euler_yaw_rate_coefs, quat_step_body_rate
 from magcomp.core.selfcheck import MAX_GYRO_DT_S
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_SATURATED, STANDARD_GRAVITY_M_S2, AttitudeSample
-from magcomp.service.align import TIME_OK, TIME_SKIP, Counts, check_time
+from magcomp.service.align import (
+    PITCH_MAX_RAD,
+    ROLL_MAX_RAD,
+    TIME_OK,
+    TIME_SKIP,
+    YAW_MAX_RAD,
+    Counts,
+    check_time,
+)
 from magcomp.service.estimators import mahony_params
 from magcomp.service.fastpath import FastMahony
 from magcomp.service.record import Float3, MagRecord
@@ -66,14 +74,6 @@ class AttitudeView(NamedTuple):
     sin_roll: float
     cos_pitch: float
     sin_pitch: float
-
-
-#: Euler angles no attitude has (roll and yaw in [-pi, pi] or yaw in [0, 2 pi], pitch in [-pi/2, pi/2]),
-#: with a margin for rounding: an attitude sample beyond them is damaged (counts["implausible"])
-ANGLE_MARGIN_RAD = 1e-3
-ROLL_MAX_RAD = math.pi + ANGLE_MARGIN_RAD
-PITCH_MAX_RAD = math.pi / 2 + ANGLE_MARGIN_RAD
-YAW_MAX_RAD = 2 * math.pi + ANGLE_MARGIN_RAD
 
 
 class AttitudeStage:

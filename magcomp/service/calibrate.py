@@ -18,7 +18,7 @@ import math
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,14 +34,11 @@ from magcomp.core.autopilot_params import (
 from magcomp.core.inflight import InflightMode, InflightOutput
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
 from magcomp.service import estimators as est_core
+from magcomp.service.align import CompassClock, ThrottleTrack
 from magcomp.service.attitude import AttitudeStage
-from magcomp.service.inflight_process import InflightProcess, InflightSink
+from magcomp.service.inflight_process import InflightProcess, InflightSink, RemoteInflight
 from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.record import Float3, MagRecord
-
-if TYPE_CHECKING:
-    from magcomp.service.align import ThrottleTrack
-    from magcomp.service.compass import CompassCorrector
 
 log = logging.getLogger("magcomp.pipeline")
 
@@ -275,7 +272,23 @@ class HandCalibration:
         return CalibrationCloud(raw, raw @ self.calib_l.T - self.calib_d)
 
 
-class CalibrateStage:
+class CompassHost(Protocol):
+    """What the calibrate stage reads and writes of one compass (``service.compass.CompassCorrector``)."""
+
+    mag_index: int
+    calib: HandCalibration
+    clock: CompassClock
+    inflight: InflightStage | None
+    inflight_remote: RemoteInflight | None
+    rel_source: RotationSource
+    stored_inflight: dict[str, Any] | None
+    dirty: bool
+
+
+H = TypeVar("H", bound=CompassHost)
+
+
+class CalibrateStage(Generic[H]):
     """Applies each compass's calibration to its samples (eq. (2)) and keeps learning it: the hand
     rotation's pairs while the motors are off, the in-flight calibration's samples while they run.
 
@@ -290,7 +303,7 @@ class CalibrateStage:
         throttle: ThrottleTrack,
         params: dict[str, float],
         earth_ned: F64,
-        save: Callable[[CompassCorrector, float], None],
+        save: Callable[[H, float], None],
         text: Callable[[float, str, bool], None],
         inflight_proc: InflightProcess | None = None,
     ) -> None:
@@ -311,7 +324,7 @@ class CalibrateStage:
         self.params_version = 0
         self._decided: dict[int, int] = {}
 
-    def run(self, rec: MagRecord, c: CompassCorrector) -> None:
+    def run(self, rec: MagRecord, c: H) -> None:
         """Fills ``rec.field_cal`` (eq. (2)), ``rec.calibrated`` and ``rec.inflight``."""
         cal = c.calib
         t = rec.t_s
@@ -339,7 +352,7 @@ class CalibrateStage:
         else:
             rec.field_cal = rec.raw
 
-    def _collect(self, rec: MagRecord, c: CompassCorrector) -> None:
+    def _collect(self, rec: MagRecord, c: H) -> None:
         """The hand rotation: pairs at zero throttle; the motors starting ends it (eqs. (1)-(3))."""
         cal = c.calib
         if rec.have_throttle and rec.throttle_01 > self._at_rest:
@@ -361,7 +374,7 @@ class CalibrateStage:
                       c.mag_index, cal.summary.n, rms)  # fmt: skip
         self._save(c, rec.t_s)
 
-    def refined(self, c: CompassCorrector, t: float) -> None:
+    def refined(self, c: H, t: float) -> None:
         """The refined fit was adopted at message time ``t``: saved and said."""
         s = c.calib.summary
         assert s is not None
@@ -371,7 +384,7 @@ class CalibrateStage:
 
     # ---------------------------------------------------------------------------------------- in flight
 
-    def _reference(self, c: CompassCorrector) -> tuple[InflightMode, str, bool | None]:
+    def _reference(self, c: H) -> tuple[InflightMode, str, bool | None]:
         """(form, why, calibrated by the autopilot) of compass ``c`` from the parameters known now."""
         icfg = self.cfg.inflight
         mode: InflightMode
@@ -382,7 +395,7 @@ class CalibrateStage:
             why = "set in the configuration ([inflight] reference)"
         return mode, why, calibrated_by_autopilot(self.params, c.mag_index)
 
-    def _stage(self, c: CompassCorrector, t: float, again: str = "") -> InflightStage:
+    def _stage(self, c: H, t: float, again: str = "") -> InflightStage:
         """The in-flight calibration of compass ``c``, created at its first sample with the throttle known
         (``again``: re-created, and why)."""
         mode, why, cal = self._reference(c)
@@ -394,7 +407,7 @@ class CalibrateStage:
                       "precedence", False)  # fmt: skip
         return st
 
-    def _redecide(self, c: CompassCorrector, t: float) -> None:
+    def _redecide(self, c: H, t: float) -> None:
         """Parameters arrived since compass ``c``'s stage was created (a tlog's parameters often come
         seconds after the first samples, issue 23 item 5): when they change its form, why, or whether
         the autopilot calibrated it, the stage starts again with them (what it learned was learned against
@@ -411,7 +424,7 @@ class CalibrateStage:
         c.rel_source = NO_ROTATION
 
 
-    def _inflight(self, rec: MagRecord, c: CompassCorrector) -> InflightOutput | None:
+    def _inflight(self, rec: MagRecord, c: H) -> InflightOutput | None:
         """Feed the in-flight calibration of compass ``c`` and return its correction when it is usable."""
         t = rec.t_s
         if c.inflight is not None and self._decided.get(c.mag_index) != self.params_version:
@@ -447,7 +460,7 @@ class CalibrateStage:
             c.dirty = True
         return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)
 
-    def _rotations(self, c: CompassCorrector, st: InflightSink, t: float) -> tuple[F64 | None, F64 | None]:
+    def _rotations(self, c: H, st: InflightSink, t: float) -> tuple[F64 | None, F64 | None]:
         """(absolute attitude, relative-form rotation) for this sample, each None when it cannot be used."""
         att = self.attitude
         att_fresh = att.autopilot_fresh(t)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,7 +28,6 @@ from magcomp.service.align import Counts, ThrottleTrack
 from magcomp.service.record import Float3, MagRecord
 
 if TYPE_CHECKING:
-    from magcomp.service.compass import CompassCorrector
     from magcomp.service.observer_process import RemoteTheta
 
 F64 = NDArray[np.float64]
@@ -109,6 +108,13 @@ class ThetaTracker:
 _ZERO3 = (0.0, 0.0, 0.0)
 
 
+class ThetaHost(Protocol):
+    """What the theta stage reads and writes of one compass (``service.compass.CompassCorrector``)."""
+
+    theta: ThetaTracker
+    dirty: bool
+
+
 class ThetaStage:
     """Fills ``rec.theta``, ``rec.bias`` (eq. (11)) and ``rec.field_corrected``."""
 
@@ -122,12 +128,12 @@ class ThetaStage:
         self._learn = cfg.observer.learn
         self._outputs = outputs
 
-    def drain(self, c: CompassCorrector, t_now: float) -> None:
+    def drain(self, c: ThetaHost, t_now: float) -> None:
         """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""
         if c.theta.drain(t_now, self.throttle, self._stale_s, self.counts):
             c.dirty = True
 
-    def run(self, rec: MagRecord, c: CompassCorrector) -> None:
+    def run(self, rec: MagRecord, c: ThetaHost) -> None:
         out = rec.inflight
         if not self._outputs:  # a learn-only pass: the observer fed, nothing read back
             if out is None and rec.calibrated:
@@ -152,7 +158,7 @@ class ThetaStage:
         rec.bias = (bx, by, bz)
         rec.field_corrected = (ux - bx, uy - by, uz - bz)
 
-    def _observe(self, rec: MagRecord, c: CompassCorrector) -> Sequence[float]:
+    def _observe(self, rec: MagRecord, c: ThetaHost) -> Sequence[float]:
         """Low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated at the
         sample's own time (queued until the throttle after it is known); theta-hat now."""
         tr = c.theta

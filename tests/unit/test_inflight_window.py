@@ -213,7 +213,8 @@ def test_slow_link_windows_relinearised_at_their_field_bring_theta_closer(
     err = []
     for relin in (False, True):
         sw = FeedSwitches(relinearise_window=relin)
-        st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)), None, sw)
+        norm = float(np.linalg.norm(H_NED))
+        st = InflightStage(0, InflightConfig(), "relative", "test", True, norm, None, sw)
         for k in range(0, len(thr), 4):
             st.feed(DT_S * k, y[k], float(thr[k]), (), None, H_NED, src[k], r_t_s=DT_S * k)
         assert st.est is not None
