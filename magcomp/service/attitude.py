@@ -62,7 +62,7 @@ ACCEL_MAX_M_S2 = 2000.0
 #: a second (the simulator's complementary filter: 1 / kp_tilt = 1 s); it also keeps the motors' vibration
 #: (tens of Hz) out
 ACCEL_LP_S = 1.0
-#: track that acceleration (for the tilt model: ``inflight_stage.TILT_CONDITION``, ``AP_YAW_TILT``)
+#: track that acceleration (for the tilt model: ``core.inflight.feed.FeedSwitches``)
 TRACK_ACCEL_H = True
 
 

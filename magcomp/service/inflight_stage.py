@@ -361,7 +361,7 @@ class InflightStage:
     @property
     def sigma_checked(self) -> bool:
         """The heading sigma has been checked on data the estimate's other half did not use (both halves of
-        ``InflightEstimator.split_heading_deg`` hold data): before that, a bias that leaves no residual
+        the estimator's split check hold data): before that, a bias that leaves no residual
         (a short flight's, docs/inflight.md "Short flights") cannot show in it. A run started from a stored
         state was checked by the run that stored it."""
         return self.warm_started or (self.est is not None and self.est.split_checked)

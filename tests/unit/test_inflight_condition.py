@@ -1,5 +1,5 @@
 """The published in-flight solution conditioned on another estimator's theta
-(``InflightEstimator.theta_from``, the tilt model's estimator of ``inflight_stage.TILT_CONDITION``): the
+(``InflightEstimator.condition_theta_on``, the tilt model's estimator of ``FeedSwitches.tilt_condition``): the
 Schur-complement update must equal the estimate re-solved with theta held at the other's value, and the
 published theta must be the other's."""
 

@@ -39,8 +39,12 @@ Units: mgauss, throttle 0..1; frames: body FRD, earth NED. No I/O.
 The parts: :mod:`.rows` (the measurement rows and nuisance columns), :mod:`.window` (the open nuisance
 window and its Schur complement), :mod:`.solve` (normal equations, prior, MAP solution, conditioning),
 :mod:`.uncertainty` (variance inflation, split check, heading sigma), :mod:`.gate` (the innovation gate),
-:mod:`.accumulate` (where the rows go) and :mod:`.estimator` (the recursive solver's facade). Which form a
-compass gets from the autopilot's parameters: :mod:`magcomp.core.autopilot_params`.
+:mod:`.accumulate` (where the rows go), :mod:`.estimator` (the recursive solver's facade), :mod:`.batch`
+(the batch solver of the same rows), :mod:`.feed` (what a sample becomes: absolute rows, window-field rows,
+the tilt model's estimator, relinearisation; the switches), :mod:`.yawframe` (the gyro's yaw frame and
+the tilt-from-yaw line fit), :mod:`.matching` (late attitude and throttle matched to a sample's time) and
+:mod:`.apply` (the apply decision and the correction value). Which form a compass gets from the
+autopilot's parameters: :mod:`magcomp.core.autopilot_params`.
 """
 
 from magcomp.core.inflight.apply import InflightOutput

@@ -30,22 +30,22 @@ WARM_INFLATE = 2.0
 #: manoeuvre's tilt error, 5-30 s), and at least this many batches come in before it is used
 VIF_BATCH_S = 30.0
 VIF_MIN_BATCHES = 4
-#: a solution conditioned on another estimator's theta (``InflightEstimator.theta_from``) counts the two
-#: thetas' difference as a model uncertainty of the one it takes (its covariance plus the difference's
-#: outer product)
+#: a solution conditioned on another estimator's theta (``InflightEstimator.condition_theta_on``) counts
+#: the two thetas' difference as a model uncertainty of the one it takes (its covariance plus the
+#: difference's outer product)
 THETA_MODEL_SPREAD = True
 #: ... and the heading the two models' whole calibrations (L, d, theta) give apart, rms over the heading grid
-#: of ``_heading_sd_deg``, as a model uncertainty of the published heading sigma (in quadrature; it is
-#: always reported as ``InflightSolution.heading_model_deg``)
+#: of ``uncertainty.heading_sd_deg``, as a model uncertainty of the published heading sigma (in quadrature;
+#: it is always reported as ``InflightSolution.heading_model_deg``)
 HEADING_MODEL_SPREAD = True
-#: the published heading sigma also counts the spread of the estimate over time (``InflightEstimator.
-#: split_heading_deg``): the closed nuisance windows are dealt alternately, VIF_BATCH_S at a time, to two
-#: halves, each solved on its own, and the heading their calibrations give apart (rms over the heading grid,
-#: halved: the sd of the whole-data estimate when the halves are independent) is added in quadrature. It sees
-#: what biases the parameters without leaving a residual (the autopilot's tilt error that the hard iron
-#: absorbs in turns, docs/inflight.md "Short flights"), which the variance inflation cannot. Both forms
-#: report it; only the relative form's apply decision uses it (``InflightStage.output``: on log171's
-#: absolute-form compasses it delayed the causal correction by 30 s)
+#: the published heading sigma also counts the spread of the estimate over time (``uncertainty.SplitHalves``):
+#: the closed nuisance windows are dealt alternately, VIF_BATCH_S at a time, to two halves, each solved on
+#: its own, and the heading their calibrations give apart (rms over the heading grid, halved: the sd of the
+#: whole-data estimate when the halves are independent) is added in quadrature. It sees what biases the
+#: parameters without leaving a residual (the autopilot's tilt error that the hard iron absorbs in turns,
+#: docs/inflight.md "Short flights"), which the variance inflation cannot. Both forms report it; only the
+#: relative form's apply decision uses it (``apply.apply_decision``: on log171's absolute-form compasses it
+#: delayed the causal correction by 30 s)
 SPLIT_CHECK = True
 
 

@@ -151,7 +151,7 @@ def window_nuisance_cols(
     ``tau``, the time from the window's middle: ``R^T (-(e_3 x h)) tau``, the column of
     :func:`reference_yaw_error_rows`); with ``tilt``, its tilt error about north and east (``R^T (e_N x h)``,
     ``R^T (e_E x h)``: the vertical carries it); with ``vh`` (the tilt that the autopilot's yaw error makes,
-    ``v x h``: ``InflightStage._ap_yaw_tilt``) its column ``R^T (v x h)`` last, added times ``tau`` to the
+    ``v x h``: ``yawframe.YawErrorLine``) its column ``R^T (v x h)`` last, added times ``tau`` to the
     yaw-rate column too (the window's yaw rate tilts it as well)."""
     h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
     e1, e2, e3 = _yaw_error_ned(h_w)
