@@ -149,13 +149,7 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
     )
     cfg = load_config(task.config)
     exc_stats = _Excitation()
-    # no nested processes inside a worker: the same numbers in this process (service/replay.py)
-    saved = replay_mod.OBSERVER_PROCESS, replay_mod.INFLIGHT_PROCESS
-    replay_mod.OBSERVER_PROCESS = replay_mod.INFLIGHT_PROCESS = False
-    try:
-        rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=exc_stats.add)
-    finally:
-        replay_mod.OBSERVER_PROCESS, replay_mod.INFLIGHT_PROCESS = saved
+    rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=exc_stats.add)
     if rep.interrupted:  # ^C: the replay kept a partial result; it must not become this log's row
         raise KeyboardInterrupt
     summary = rep.summary

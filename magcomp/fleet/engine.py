@@ -148,7 +148,8 @@ class _Progress:
     """A bar with the counts and an ETA on a terminal; otherwise a line now and then (and none in CI)."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        from magcomp.service.console import _quiet_tqdm, progress_enabled
+        from magcomp.service.console import progress_enabled
+        from magcomp.service.console import quiet_tqdm as _quiet_tqdm
 
         self.total = total
         self.bar: Any = None
