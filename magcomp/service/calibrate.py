@@ -36,7 +36,6 @@ from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_G
 from magcomp.service import estimators as est_core
 from magcomp.service.align import CompassClock, ThrottleTrack
 from magcomp.service.attitude import AttitudeStage
-from magcomp.service.inflight_process import InflightProcess, InflightSink, RemoteInflight
 from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.record import Float3, MagRecord
 
@@ -279,7 +278,6 @@ class CompassHost(Protocol):
     calib: HandCalibration
     clock: CompassClock
     inflight: InflightStage | None
-    inflight_remote: RemoteInflight | None
     rel_source: RotationSource
     stored_inflight: dict[str, Any] | None
     dirty: bool
@@ -305,12 +303,8 @@ class CalibrateStage(Generic[H]):
         earth_ned: F64,
         save: Callable[[H, float], None],
         text: Callable[[float, str, bool], None],
-        inflight_proc: InflightProcess | None = None,
     ) -> None:
-        """``inflight_proc``: the in-flight stages run in that process (a two-pass replay's first pass,
-        learn-only: nothing reads their answers back; service/inflight_process.py)."""
         self.cfg = cfg
-        self._remote = inflight_proc
         self.attitude = attitude
         self.throttle = throttle
         self.params = params
@@ -343,7 +337,7 @@ class CalibrateStage(Generic[H]):
                 # eq. (2) with the in-flight L and d (its theta and bias come with it: service/theta.py)
                 rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
                 return
-            if c.inflight is not None and c.inflight_remote is None:
+            if c.inflight is not None:
                 rec.shadow = c.inflight.candidate()
         if k is not None:
             rec.flags |= FLAG_CALIBRATED
@@ -417,10 +411,7 @@ class CalibrateStage(Generic[H]):
         old = c.inflight
         if old is None or self._reference(c) == (old.mode, old.why, old.calibrated_by_autopilot):
             return
-        remote = c.inflight_remote
-        st = c.inflight = self._stage(c, t, "the autopilot's parameters arrived: re-")
-        if self._remote is not None and remote is not None:
-            c.inflight_remote = self._remote.stage(c.mag_index, st, replacing=remote)
+        c.inflight = self._stage(c, t, "the autopilot's parameters arrived: re-")
         c.rel_source = NO_ROTATION
 
 
@@ -429,11 +420,9 @@ class CalibrateStage(Generic[H]):
         t = rec.t_s
         if c.inflight is not None and self._decided.get(c.mag_index) != self.params_version:
             self._redecide(c, t)
-        st: InflightSink | None = c.inflight_remote or c.inflight
+        st = c.inflight
         if st is None:
             st = c.inflight = self._stage(c, t)
-            if self._remote is not None:  # created here, then run in the child
-                st = c.inflight_remote = self._remote.stage(c.mag_index, st)
         if rec.reset:
             st.reset_pairs()
         thr = self.throttle.at(t)
@@ -460,7 +449,7 @@ class CalibrateStage(Generic[H]):
             c.dirty = True
         return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)
 
-    def _rotations(self, c: H, st: InflightSink, t: float) -> tuple[F64 | None, F64 | None]:
+    def _rotations(self, c: H, st: InflightStage, t: float) -> tuple[F64 | None, F64 | None]:
         """(absolute attitude, relative-form rotation) for this sample, each None when it cannot be used."""
         att = self.attitude
         att_fresh = att.autopilot_fresh(t)

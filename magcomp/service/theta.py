@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,9 +26,6 @@ from magcomp.core.types import FLAG_OBSERVER_RESET, FLAG_SATURATED, FLAG_THETA_C
 from magcomp.service import estimators as est_core
 from magcomp.service.align import Counts, ThrottleTrack
 from magcomp.service.record import Float3, MagRecord
-
-if TYPE_CHECKING:
-    from magcomp.service.observer_process import RemoteTheta
 
 F64 = NDArray[np.float64]
 
@@ -42,29 +39,13 @@ class Queued(NamedTuple):
 
 
 class ThetaTracker:
-    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue.
+    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue."""
 
-    ``remote`` (a two-pass replay's first pass): the observer steps in another process
-    (service/observer_process.py); ``est`` and ``last_info`` are then as of the last :meth:`sync`."""
-
-    def __init__(self, cfg: Config, theta0_mgauss: F64, remote: RemoteTheta | None = None) -> None:
-        self.remote = remote
-        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss) if remote is None else remote.local
+    def __init__(self, cfg: Config, theta0_mgauss: F64) -> None:
+        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss)
         self.queue: deque[Queued] = deque()
         self.last_t: float | None = None
         self.last_info: est_core.ThetaStepInfo | None = None
-
-    def sync(self) -> None:
-        """Bring ``est`` and ``last_info`` up to date with every step fed so far (a remote observer)."""
-        if self.remote is not None:
-            self.remote.sync()
-            self.last_info = self.remote.last_info
-
-    def local(self) -> None:
-        """The remote observer's final state taken over (``est`` steps here again from now on)."""
-        if self.remote is not None:
-            self.sync()
-            self.remote = None
 
     def queue_reset(self, t_s: float) -> None:
         """Reset the observer's filters (theta kept) once the samples queued before now are through."""
@@ -76,7 +57,7 @@ class ThetaTracker:
         True when the observer stepped."""
         q = self.queue
         t_thr = throttle.t
-        est = self.est if self.remote is None else self.remote
+        est = self.est
         stepped = False
         while q:
             t, omega, u = q[0]
@@ -100,7 +81,7 @@ class ThetaTracker:
             last = self.last_t
             self.last_t = t
             assert omega is not None
-            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)  # remote: None
+            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)
             stepped = True
         return stepped
 
@@ -169,9 +150,8 @@ class ThetaStage:
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
             tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
         self.drain(c, rec.t_s)
-        if not self._outputs:  # a learn-only pass: theta-hat is read at its end (a remote observer's
-            return _ZERO3  # state is not waited for at every sample)
-        tr.sync()
+        if not self._outputs:  # a learn-only pass: theta-hat is read at its end
+            return _ZERO3
         info = tr.last_info
         rec.info = info
         if info is not None:
