@@ -256,7 +256,7 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
 
 
 def test_an_estimator_taken_through_pickle_keeps_summing_its_open_window() -> None:
-    """The in-flight stage goes to its process and back pickled (service/inflight_process.py). Pickle copies
+    """An in-flight stage copied through pickle (e.g. to another process and back). Pickle copies
     the open window's views (``OpenWindow.ee``, ...) as arrays of their own: rows added to the unpickled
     estimator's open window must give what the original gives (without ``__setstate__`` the views stopped
     following the window's sums)."""

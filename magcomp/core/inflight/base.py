@@ -54,8 +54,8 @@ _LAPACK: ModuleType | None = None
 
 def lapack() -> ModuleType:
     """scipy's LAPACK wrappers (Cholesky solves), imported at the first solve: importing scipy.linalg costs
-    ~0.19 s of CPU, and the main process of a two-pass replay never solves (its first pass's in-flight
-    stages run in forked children, which import it themselves, beside the parse)."""
+    ~0.19 s of CPU, which a run whose compasses never learn in flight need not pay (the live daemon
+    imports it before its sample loop: cli.py)."""
     global _LAPACK
     if _LAPACK is None:
         from scipy.linalg import lapack as scipy_lapack

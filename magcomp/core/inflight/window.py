@@ -56,8 +56,8 @@ class OpenWindow:
         self.srows, self.sn, self.scom, self.sz = sa[:, :n], sa[:, e], sa[:, c], sa[:, z]
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        """Unpickled (the in-flight stage sent to its process and taken back, service/inflight_process.py):
-        the window's views made again. Pickle copies a view as an array of its own, so the views would no
+        """Unpickled (an in-flight stage copied through pickle, e.g. to another process): the window's
+        views made again. Pickle copies a view as an array of its own, so the views would no
         longer follow the window's sums: a row added after the round trip would go into ``gram`` while
         ``ee`` and the others kept their old values."""
         self.__dict__.update(state)
