@@ -45,7 +45,8 @@ class CompassCorrector:
         self.stored_inflight = stored.inflight if (stored is not None and mode != "learn") else None
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
         self.theta = ThetaTracker(cfg, theta0)
-        self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check)
+        hover = cfg.inflight.enabled and cfg.observer.learn  # theta against the autopilot's calibration
+        self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check, hover)
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
         self.rel_source: RotationSource = NO_ROTATION

@@ -200,6 +200,13 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         if cal is not None and cal["source"] == "autopilot" and status == "corrected":
             sig = cal.get("theta_sigma_mgauss") or [math.nan] * 3
             kept = "the autopilot's calibration kept (the flight determines none of its own)"
+            off = cal.get("offset_change_mgauss") or [0.0, 0.0, 0.0]
+            if any(off):
+                kept = (
+                    f"the autopilot's calibration with its offsets changed by ({off[0]:.0f}, {off[1]:.0f}, "
+                    f"{off[2]:.0f}) mgauss, mean heading kept the autopilot's (the flight determines no "
+                    f"calibration of its own)"
+                )
             lines.append(_corrected_line(c, kept, sig, ""))
             continue
         if cal is not None and cal["source"] == "in-flight":

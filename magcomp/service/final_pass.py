@@ -33,9 +33,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core import selfcheck
-from magcomp.core.correction import IDENTITY_COEFFS, Applied, Correction, headings_deg
+from magcomp.core.correction import Applied, Correction, headings_deg
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.hover_theta import HoverTheta, fit_hover_theta
+from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.service.heading import yaw_rate
 from magcomp.service.publish import HeadingEncoder, TlogWriter
@@ -123,6 +123,11 @@ class FinalCompass:
 
     correction: Correction
     accounts: str | None
+    #: the coefficients apply to the field as the autopilot had it (its onboard motor compensation kept:
+    #: theta against the autopilot's calibration), not to the field as measured
+    autopilot_field: bool = False
+    #: subtracted from the corrected heading (deg): its constant part anchored to the autopilot's own
+    heading_offset_deg: float = 0.0
 
 
 _NONE = Correction()
@@ -192,6 +197,7 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     field_cal = rows[:, RAW_X:RAW_Z + 1] + rows[:, ONB_X:ONB_Z + 1]  # uncorrected: as the autopilot had it
     bias = np.zeros((n, 3))
     theta = np.zeros((n, 3))
+    offset_deg = np.zeros(n)
     calibrated = np.zeros(n, dtype=bool)
     flags = rows[:, FLAGS].astype(np.int64)
     # sorted(set()) rather than np.unique: that one imports numpy.ma on first use (15 ms of a replay)
@@ -207,16 +213,22 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
             flags[m & (rows[:, OBS_RESET] != 0.0)] |= FLAG_OBSERVER_RESET
         calibrated |= m
         r = rows[m]
-        got = cor.apply(r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z], thr[m])  # eqs. (2), (11)
+        if f.autopilot_field:  # the field as the autopilot had it, its onboard motor compensation kept
+            vx, vy, vz = (r[:, RAW_X + k] + r[:, ONB_X + k] for k in range(3))
+        else:
+            vx, vy, vz = r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z]
+        got = cor.apply(vx, vy, vz, thr[m])  # eqs. (2), (11)
         field_cal[m] = np.column_stack(got.field_cal)
         bias[m] = np.column_stack(got.bias)
         theta[m] = cor.theta_mgauss
+        offset_deg[m] = f.heading_offset_deg
         flags[m] |= cor.flags
     fc = field_cal - bias
     applied = Applied(_columns(field_cal), _columns(bias), _columns(fc))
     psi, psi_raw = headings_deg(applied, rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
                                 rows[:, SIN_PITCH])  # eq. (24)
-    return Corrected(np.where(have, psi, psi_raw), psi_raw, theta, bias, fc, flags, calibrated & have)
+    psi = np.where(have, (psi - offset_deg) % 360.0, psi_raw)  # the anchor of theta against the autopilot's
+    return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
 #: the throttle above which the motors count as running (0..1): as the corrected heading differs from the
@@ -271,29 +283,46 @@ def _hover_rows(rows: F64, idx: int) -> F64:
 
 
 def hover_correction(fit: HoverTheta) -> Correction:
-    """Theta against the autopilot's calibration (eq. (2) the identity), applied where the throttle is
-    known."""
-    th = fit.theta_mgauss.tolist()
-    return Correction(IDENTITY_COEFFS, (th[0], th[1], th[2]), source="hover", needs_throttle=True)
+    """Theta against the autopilot's calibration (eq. (2) the identity, or its offsets changed), applied where
+    the throttle is known."""
+    coeffs, th = fit.coeffs()  # L = I, d the change of the autopilot's offsets (zero in the theta-only form)
+    return Correction(coeffs, th, source="hover", needs_throttle=True)
 
 
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
-    the self-check of the heading it gives; None where theta cannot be fitted."""
+    the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
+    offsets (the simpler form first: a second form is tried only where the first does not pass), anchored to
+    the autopilot's mean heading. The check judges each sample with the fit of the other half of the log
+    (alternate 10 s windows, two folds): the fit takes its attitude from the autopilot's yaw, so judged on its
+    own samples against that yaw (the reference where the gyro is slow) it would pass by construction. None
+    where theta cannot be fitted."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
-    fit = fit_hover_theta(cols[:, 1:4], roll, pitch, yaw, thr)
-    if fit is None:
-        return None
-    cand, base = headings_deg(hover_correction(fit).apply(mx, my, mz, thr), np.cos(roll), np.sin(roll),
-                              np.cos(pitch), np.sin(pitch))  # eqs. (2) (the identity), (11), (24)
-    check_cols = np.column_stack((t, np.radians(base), np.radians(cand), yaw, gyaw, epoch, imu_dt))
-    return fit, self_check(check_cols)
+    field = cols[:, 1:4]
+    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
+    base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
+    fold = selfcheck.window_ids(t) % 2 == 1
+    got: tuple[HoverTheta, selfcheck.SelfCheck] | None = None
+    for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
+        fit = fit_hover_theta(field, roll, pitch, yaw, thr, sd)
+        halves = [fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd) for m in (~fold, fold)]
+        if fit is None or halves[0] is None or halves[1] is None:
+            return got
+        held = np.where(fold[:, None], halves[0].corrected_mgauss(field, thr),
+                        halves[1].corrected_mgauss(field, thr))  # fmt: skip
+        cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # eq. (11), (24)
+        chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
+        u = fit.corrected_mgauss(field, thr)
+        got = anchored(fit, base, np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))), chk
+        if chk.applies:
+            break
+    return got
 
 
 def self_check_finals(
-    samples: SampleLog, finals: dict[int, FinalCompass]
+    samples: SampleLog, finals: dict[int, FinalCompass], hover_on: bool = True
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck], dict[int, HoverTheta]]:
     """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
     flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is
@@ -301,9 +330,9 @@ def self_check_finals(
     its final state becomes "uncorrected" and the second pass publishes the autopilot's own field through
     the same heading filter. Every compass left uncorrected then gets theta against the autopilot's own
     calibration (core/hover_theta.py: a hover determines theta, not a calibration), published where that
-    passes the same check."""
+    passes the same check (``hover_on``: theta may be learned in flight, ``[inflight] enabled``)."""
     judged = [i for i, f in finals.items() if f.correction.source == "in flight"]
-    hover = [i for i, f in finals.items() if not f.correction.calibrated or i in judged]
+    hover = [i for i, f in finals.items() if hover_on and (not f.correction.calibrated or i in judged)]
     parts: dict[int, list[F64]] = {i: [] for i in judged}
     hparts: dict[int, list[F64]] = {i: [] for i in hover}
     for rows in samples.chunks():
@@ -329,7 +358,9 @@ def self_check_finals(
             continue
         fit, chk = got
         f = finals[i]
-        out[i] = FinalCompass(hover_correction(fit), None if f.accounts is None else "corrected")
+        acc = None if f.accounts is None else "corrected"
+        out[i] = FinalCompass(hover_correction(fit), acc, autopilot_field=True,
+                              heading_offset_deg=math.degrees(fit.anchor_rad))  # fmt: skip
         checks[i] = chk
         hovers[i] = fit
     return out, checks, hovers

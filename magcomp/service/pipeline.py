@@ -444,7 +444,7 @@ class Pipeline:
         """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
         calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
         no NaN)."""
-        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self.hover_thetas.get(i))
+        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self._hover(c))
                      for i, c in sorted(self.correctors.items())]
         lat, lon, alt, year = self._location
         return json_safe(
@@ -471,8 +471,10 @@ class Pipeline:
         the self-check against the gyro where one was made."""
         st = self._learned_status(c)
         chk, on = self._check(c)
-        if c.mag_index in self.hover_thetas and chk is not None and on:
-            why = f"theta against the autopilot's calibration (none determined by the flight: {st.why})"
+        hov = self._hover(c)
+        if hov is not None and chk is not None and on:
+            what = "theta" if not hov.offset_mgauss.any() else "theta and a change of its offsets"
+            why = f"{what} against the autopilot's calibration (none determined by the flight: {st.why})"
             return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
             if st.status == "uncorrected" and self.cfg.output.self_check and self.throttle.t is not None:
@@ -483,12 +485,30 @@ class Pipeline:
         return Status("uncorrected", f"publishing the autopilot's own heading (the correction learned in "
                                      f"flight: {chk.reason})")  # fmt: skip
 
+    def _hover(self, c: CompassCorrector) -> HoverTheta | None:
+        """The theta against the autopilot's calibration a compass publishes: the two-pass replay's, else the
+        live one's (service/heading.py HoverShadow) where its self-check is on and nothing else applies."""
+        if c.mag_index in self.self_checks or c.mag_index in self.hover_thetas:  # the two-pass replay's
+            return self.hover_thetas.get(c.mag_index)
+        live, run, st = c.heading.hover, c.heading.check, c.inflight
+        if live is None or c.calibration is not None:
+            return None
+        if st is not None and st.applied and run is not None and run.on:
+            return None  # the in-flight correction is published
+        return live.fit
+
     def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
         """A compass's self-check and whether its correction is published: the two-pass replay's over the
-        whole log, else the live one's latest verdict (service/heading.py)."""
+        whole log, else the live one's latest verdict (service/heading.py): the in-flight correction's, or
+        the live hover theta's where that is published."""
         chk = self.self_checks.get(c.mag_index)
         if chk is not None:
             return chk, chk.applies
+        live = c.heading.hover
+        if live is not None and live.on_form is not None and self._hover(c) is not None:
+            v = live.checks[live.on_form].verdict
+            if v is not None:
+                return v, True
         run = c.heading.check
         if run is not None and run.verdict is not None:
             return run.verdict, run.on

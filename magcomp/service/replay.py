@@ -321,7 +321,8 @@ def replay_log(
                 first = None
             finals = final_compasses(first.pipeline) if first is not None else None
             if first is not None and finals is not None and cfg.output.self_check:  # never worse than its own
-                finals, checks, hovers = self_check_finals(first.samples, finals)
+                hover_on = cfg.inflight.enabled and cfg.observer.learn  # theta is learned in flight
+                finals, checks, hovers = self_check_finals(first.samples, finals, hover_on)
                 first.pipeline.self_checks.update(checks)
                 first.pipeline.hover_thetas.update(hovers)
         if first is not None and finals is not None:
