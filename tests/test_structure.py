@@ -40,10 +40,6 @@ KNOWN_LONG_FUNCTIONS: set[str] = {
 }
 #: private names imported across modules allowed for now, as "importer -> module.name"
 KNOWN_PRIVATE_IMPORTS: set[str] = {
-    # owner "replay" (the forked RPC layers it removes)
-    "magcomp.service.inflight_process -> magcomp.service.observer_process._foreign_threads",
-    "magcomp.service.inflight_process -> magcomp.service.observer_process._send",
-    "magcomp.service.inflight_process -> magcomp.service.observer_process._sigint_held",
     # owner "fleetdiag"
     "magcomp.commands.diagnose -> magcomp.diagnosis.report._earth_part",
 }

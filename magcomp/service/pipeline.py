@@ -22,8 +22,7 @@ backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`P
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
 theta stage feeds the observers without reading theta back into the records; the states every stage
 reaches are the same as in a full run. With a ``recorder`` it also records what the second pass needs
-(:mod:`magcomp.service.final_pass`). Its observers step a block at a time
-(:mod:`magcomp.service.observer_process`: the same calls in the same order, run before any state is saved).
+(:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
@@ -60,7 +59,6 @@ from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
-from magcomp.service.observer_process import BlockObservers
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
 from magcomp.service.record import Float3, MagRecord
@@ -130,8 +128,6 @@ class Pipeline:
         self._workers = workers if workers is not None else Workers.inline()
         self._learn_only = learn_only
         self._recorder = recorder
-        #: learn-only: nothing reads theta back until a state is saved, so the observers' calls run in blocks
-        self._observers = BlockObservers() if learn_only else None
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
@@ -351,8 +347,7 @@ class Pipeline:
             for w in store.warnings:
                 if w not in self.warnings:
                     self.warnings.append(w)
-        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits,
-                             self._observers)  # fmt: skip
+        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits)
         self.correctors[idx] = c
         return c
 
@@ -443,8 +438,6 @@ class Pipeline:
                 self.theta.drain(c, math.inf)
             if c.last_t is not None:
                 self.persist.save(c, c.last_t, final=True)
-        for c in self.correctors.values():  # every queued observer call run; the estimators step here again
-            c.theta.local()
         self.persist.wait()
 
     def summary(self) -> dict[str, object]:
