@@ -356,7 +356,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.core.types import FLAG_CALIBRATED, HeadingEstimate
     from magcomp.diagnosis.engine import compass_yaw_rad
-    from magcomp.diagnosis.report import _earth_part
+    from magcomp.diagnosis.report import earth_part
 
     c = d.compass(d.primary)
     data = c.data
@@ -386,7 +386,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     ]
     viz.log_estimates(ests)
     viz.log_reference_theta(c.baseline.theta_mgauss, None)
-    meas_bias = data.field_mgauss - _earth_part(c, c.extended)
+    meas_bias = data.field_mgauss - earth_part(c, c.extended)
     viz.log_bias_fit(thr**2, meas_bias, theta)
     if reference is not None:
         viz.log_truth_heading(reference[0], np.degrees(reference[1]) % 360.0)

@@ -58,7 +58,6 @@ from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 F64 = NDArray[np.float64]
 
 
-
 @dataclass(frozen=True)
 class GateParams:
     max_scale_error: float = 0.35

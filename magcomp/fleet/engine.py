@@ -148,7 +148,9 @@ class _Progress:
     """A bar with the counts and an ETA on a terminal; otherwise a line now and then (and none in CI)."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        from magcomp.service.console import _quiet_tqdm, progress_enabled
+        from tqdm import tqdm
+
+        from magcomp.service.console import progress_enabled
 
         self.total = total
         self.bar: Any = None
@@ -156,7 +158,10 @@ class _Progress:
         self.t0 = time.monotonic()
         self.last_line = self.t0
         if enabled and progress_enabled():
-            self.bar = _quiet_tqdm()(
+            # no tqdm monitor thread (as service/console.py's bars): the fleet's own process stays as plain as
+            # a replay's
+            bar_cls = type("FleetTqdm", (tqdm,), {"monitor_interval": 0})
+            self.bar = bar_cls(
                 total=total, desc="fleet", unit="log", file=sys.stderr, dynamic_ncols=True, mininterval=0.5
             )
 
