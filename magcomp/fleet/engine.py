@@ -52,9 +52,12 @@ class RunStats:
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
 
 
-def plan(logs: list[Path], out: Path, rerun: str = "none", config: str | None = None) -> Plan:
+def plan(
+    logs: list[Path], out: Path, rerun: str = "none", config: str | None = None, diagnose: bool = True
+) -> Plan:
     """Hash every log; skip those with a part already (``rerun``: ``none``; ``outdated``: also analyse those
-    a different magcomp version did; ``all``: analyse everything again)."""
+    a different magcomp version did; ``all``: analyse everything again). ``diagnose``: the rows carry
+    ``magcomp diagnose``'s results too."""
     done = store.done(out)
     hashes = _HashCache(out)
     tasks: list[LogTask] = []
@@ -78,7 +81,7 @@ def plan(logs: list[Path], out: Path, rerun: str = "none", config: str | None = 
                 if version != __version__:
                     outdated += 1
                 continue
-        tasks.append(LogTask(path=str(p), sha256=sha, size_bytes=size, config=config))
+        tasks.append(LogTask(path=str(p), sha256=sha, size_bytes=size, config=config, diagnose=diagnose))
     hashes.save()
     return Plan(tasks, len(logs), skipped, duplicates, outdated)
 

@@ -69,6 +69,8 @@ class Vehicle:
     onboard_comp_wrong: int = 0
     score: float = 0.0
     reasons: list[str] = field(default_factory=list)
+    #: the compensation parameters to set (:func:`vehicle_params`), None when no flight gave any
+    params: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -82,6 +84,7 @@ class Vehicle:
             "last_date": _iso(self.last_date),
             "score": self.score,
             "reasons": self.reasons,
+            "params": self.params,
             "compasses": [
                 {
                     "compass": h.compass,
@@ -146,6 +149,7 @@ def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
         first_date=min(dates) if dates else None,
         last_date=max(dates) if dates else None,
     )
+    v.params = vehicle_params(ok)
     v.onboard_comp_wrong = len(
         {
             r["sha256"]
@@ -188,6 +192,41 @@ def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
             )
         )
     return v
+
+
+def vehicle_params(ok_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The compensation parameters ``magcomp diagnose`` would write for the vehicle's latest flight (rows in
+    flight order) that has any: {"flight", "sha256", "autopilot", "values", "notes"}; the primary compass is
+    the lowest index, as diagnose's default. A flight whose theta is not identifiable has none (diagnose
+    writes none for it), so an older flight's may be the latest."""
+    import json
+
+    from magcomp.adapters.param_files import MAV_AUTOPILOT_PX4, compensation_params
+
+    by_log: dict[str, list[dict[str, Any]]] = {}
+    for r in ok_rows:
+        by_log.setdefault(str(r["sha256"]), []).append(r)
+    for sha in reversed(list(by_log)):  # dicts keep the flight order of ok_rows
+        rows = [r for r in by_log[sha] if r.get("compass") is not None]
+        sugg = [
+            (int(r["compass"]), json.loads(r["diagnose_params_json"]))
+            for r in rows
+            if r.get("diagnose_params_json")
+        ]
+        if not sugg:
+            continue
+        px4 = str(rows[0].get("autopilot") or "") == "PX4"
+        primary = min(int(r["compass"]) for r in rows)
+        values, notes = compensation_params(sugg, primary, MAV_AUTOPILOT_PX4 if px4 else 3)
+        if values:
+            return {
+                "flight": str(rows[0].get("file_name") or ""),
+                "sha256": sha,
+                "autopilot": "PX4" if px4 else "ArduPilot",
+                "values": values,
+                "notes": notes,
+            }
+    return None
 
 
 def _rank(v: Vehicle) -> None:
@@ -261,6 +300,10 @@ def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
             "last_date": v.last_date,
             "score": v.score,
             "reasons": " | ".join(v.reasons),
+            "params_from": v.params["flight"] if v.params else None,
+            "params": ", ".join(f"{k}={val:g}" for k, val in v.params["values"].items())
+            if v.params
+            else None,
         }
         hist: list[CompassHistory | None] = [*v.compasses] or [None]
         for h in hist:
