@@ -206,10 +206,14 @@ def _diagnosis(task: LogTask) -> LogDiagnosis | str | None:
     """The log's diagnosis (fleet/diagnosed.py), its one-line failure, or None when not asked for."""
     if not task.diagnose:
         return None
+    cpu0 = _cpu_s()
     try:
-        return diagnose_columns(task.path, task.config)
+        diag = diagnose_columns(task.path, task.config)
     except Exception as exc:  # the replay's row stands without it
         return _one_line(exc)
+    for cols in diag.columns.values():
+        cols["diagnose_cpu_s"] = _cpu_s() - cpu0  # of the whole diagnosis (every compass), in cpu_s too
+    return diag
 
 
 def _f(value: Any) -> float:
