@@ -148,17 +148,7 @@ def theta_with_prior(
         f"calibration held at the autopilot's (A = {f:.0f} mgauss x identity, each element within "
         f"+-{100 * max_scale_error:.0f} % at 95 %), hard iron fitted"
     )
-    bound, structured, sd_d = structured_shift_bound(res, d)
-    why = []
-    if float(np.linalg.norm(hw)) >= tn:
-        why.append(
-            f"theta's 95 % interval ({float(np.linalg.norm(hw)):.0f} mgauss) is wider than |theta| {tn:.0f}"
-        )
-    if model_error_decides and bound >= tn:
-        why.append(
-            f"{structured:.1f} mgauss of structured residual over a drive (throttle^2) sd of {sd_d:.3f} "
-            f"could move theta by up to {bound:.0f} mgauss, more than |theta| {tn:.0f}"
-        )
+    bound, why = _not_identifiable(tn, hw, res, d, model_error_decides)
     return PriorTheta(
         theta,
         hw,
@@ -169,3 +159,21 @@ def theta_with_prior(
         bound,
         "; ".join(why),
     )
+
+
+def _not_identifiable(
+    theta_norm: float, hw: F64, residual: F64, drive: F64, model_error_decides: bool
+) -> tuple[float, list[str]]:
+    """(the model-error bound, mgauss; why theta is not identifiable, empty when it is): see
+    :func:`theta_with_prior`."""
+    bound, structured, sd_d = structured_shift_bound(residual, drive)
+    why = []
+    width = float(np.linalg.norm(hw))
+    if width >= theta_norm:
+        why.append(f"theta's 95 % interval ({width:.0f} mgauss) is wider than |theta| {theta_norm:.0f}")
+    if model_error_decides and bound >= theta_norm:
+        why.append(
+            f"{structured:.1f} mgauss of structured residual over a drive (throttle^2) sd of {sd_d:.3f} "
+            f"could move theta by up to {bound:.0f} mgauss, more than |theta| {theta_norm:.0f}"
+        )
+    return bound, why
