@@ -34,6 +34,7 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--workers", type=int, default=0, help="0: in this process (default)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--config", help="TOML configuration for the replays (e.g. [output] self_check = false)")
     args = ap.parse_args()
 
     from magcomp.cli import main as cli
@@ -81,7 +82,7 @@ def main() -> int:
         print(f"simulated {args.vehicles} x {args.flights} flights in {time.perf_counter() - t0:.0f} s")
         out = root / "out"
         logs = find_logs([str(root)], exclude=out)
-        p = engine.plan(logs, out)
+        p = engine.plan(logs, out, config=args.config)
         vmap = VehicleMap([(n, [f"*/{n}/*"]) for n in truth])
         st = engine.run(p.tasks, out, workers=args.workers, vmap=vmap, progress=False)
         print(
