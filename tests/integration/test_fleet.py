@@ -41,7 +41,7 @@ FLIGHTS = [
 ]
 VEHICLES_TOML = '[vehicles]\nalpha = ["*/vehA/*"]\nbravo = ["*/vehB/*"]\n'
 #: columns that differ between two analyses of the same log (when, where, how long)
-RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "peak_rss_mb", "path"}
+RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "peak_rss_mb", "path"}
 
 
 @pytest.fixture(autouse=True)
