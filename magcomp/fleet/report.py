@@ -113,7 +113,7 @@ def _inspect_section(vehicles: list[Vehicle]) -> list[str]:
     parts = [
         "<h2 id='inspect'>Vehicles to inspect</h2>",
         "<table><tr><th>#</th><th>vehicle</th><th>logs</th><th>failed</th><th>last flight</th>"
-        "<th>theta now (mgauss)</th><th>score</th><th>why</th></tr>",
+        "<th>theta now (mgauss)</th><th>score</th><th>why</th><th>parameters to set</th></tr>",
     ]
     for i, v in enumerate(vehicles, 1):
         changed = any(c.confirmed for h in v.compasses for c in h.changes)
@@ -128,10 +128,20 @@ def _inspect_section(vehicles: list[Vehicle]) -> list[str]:
             f"<td><a href='#v{i}'>{_e(v.vehicle)}</a><br><small>{_e(v.identity_source)}; {_e(v.autopilot)} "
             f"{_e(v.firmware)}</small></td><td class='num'>{v.logs}</td><td class='num'>{v.failed}</td>"
             f"<td>{_e(last)}</td><td>{thetas}</td><td class='num'>{v.score:.0f}</td>"
-            f"<td>{'<br>'.join(_e(r) for r in v.reasons)}</td></tr>"
+            f"<td>{'<br>'.join(_e(r) for r in v.reasons)}</td><td>{_params_cell(v)}</td></tr>"
         )
     parts.append("</table>")
     return parts
+
+
+def _params_cell(v: Vehicle) -> str:
+    """The compensation parameters diagnose suggests for the vehicle (fleet.vehicles.vehicle_params)."""
+    if not v.params:
+        return ""
+    values = "<br>".join(f"{_e(k)} = {val:g}" for k, val in v.params["values"].items())
+    files = ", ".join(_e(Path(f).name) for f in v.params.get("files", []))
+    src = f"<small>from {_e(v.params['flight'])}" + (f"; params/{files}" if files else "") + "</small>"
+    return f"{values}<br>{src}"
 
 
 def _theta_section(vehicles: list[Vehicle]) -> list[str]:
@@ -165,7 +175,7 @@ def _logs_section(rows: list[dict[str, Any]]) -> list[str]:
         "<h2>Logs</h2>",
         "<table><tr><th>file</th><th>vehicle</th><th>date</th><th>status</th><th>compass</th>"
         "<th>applied</th><th>theta (mgauss)</th><th>interference %</th><th>yaw span deg</th>"
-        "<th>throttle</th><th>why / error</th></tr>",
+        "<th>throttle</th><th>why / error</th><th>diagnose</th></tr>",
     ]
     ordered = sorted(rows, key=lambda r: (str(r.get("vehicle")), str(r.get("date_utc")), str(r.get("path"))))
     parts += [_log_row(r) for r in ordered[:MAX_ROWS]]
@@ -197,5 +207,21 @@ def _log_row(r: dict[str, Any]) -> str:
         f"<td>{'yes' if r.get('applied') else ('no' if ok else '')}</td><td>{_e(theta)}</td>"
         f"<td class='num'>{_num(r.get('interference_pct'))}</td>"
         f"<td class='num'>{_num(r.get('yaw_span_deg'), '.0f')}</td><td>{thr}</td>"
-        f"<td>{_e(r.get('why') if ok else r.get('error'))}</td></tr>"
+        f"<td>{_e(r.get('why') if ok else r.get('error'))}</td><td>{_diagnose_cell(r)}</td></tr>"
     )
+
+
+def _diagnose_cell(r: dict[str, Any]) -> str:
+    """diagnose's theta (95 %) and findings for the row, or why it has none."""
+    if r.get("diagnose_status") == "failed":
+        return f"failed: {_e(r.get('diagnose_error'))}"
+    if r.get("diagnose_status") != "ok":
+        return ""
+    out = _e(r.get("diagnose_findings"))
+    if r.get("diagnose_theta_x_mgauss") is not None:
+        theta = ", ".join(f"{float(r[f'diagnose_theta_{a}_mgauss']):.0f}" for a in "xyz")
+        hw = ", ".join(f"{float(r.get(f'diagnose_theta_ci95_{a}_mgauss') or math.nan):.0f}" for a in "xyz")
+        ident = "" if r.get("diagnose_theta_identifiable") else " (not identifiable)"
+        frm = _e(r.get("diagnose_theta_from"))
+        out += f"<br><small>theta ({theta}) &plusmn; ({hw}) 95 %, {frm}{ident}</small>"
+    return out
