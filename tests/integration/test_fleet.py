@@ -480,6 +480,9 @@ def test_report_is_one_self_contained_page(analysed: Path, tmp_path: Path) -> No
     text = " ".join(p.cells)
     assert "theta changed" in text and "flight03.tlog" in text and "broken.tlog" in text
     assert text.index("bravo") < text.index("alpha")  # the inspect list: the changed vehicle first
+    # what to set, from diagnose: bravo's parameters and the file holding them; diagnose's theta per log row
+    assert "COMPASS_MOT_X = " in text and "bravo.param" in text
+    assert "95 %, free fit" in text
 
 
 @pytest.mark.browser
