@@ -1,19 +1,22 @@
-"""Replay speed: the whole pipeline over a long tlog vs pymavlink merely parsing the same file.
+"""Replay speed (issue 24's acceptance): whole-process CPU of ``magcomp replay LOG --emit OUT`` against
+pymavlink's parse-only process on the same file, side by side in one run.
 
-Baseline: ``mavutil.mavlink_connection(path)`` + ``recv_msg()`` until None (every message decoded,
-nothing else done). Measured: ``magcomp.service.replay.replay_log`` (source -> alignment -> Mahony ->
-calibration -> observer -> heading; two compasses), and the source alone. Wall times, min and median of
-``--repeat`` runs, from one process on this machine.
+For each scenario (default: a simulated 10 min ordinary flight, calibration and theta learned in flight, and
+the paper log, a hand rotation then flight), three processes on the same tlog, interleaved ``--repeat``
+times so that load from other processes hits all alike:
 
-    .venv/bin/python benchmarks/replay_speed.py [--duration 600] [--repeat 3] [--emit]
-    .venv/bin/python benchmarks/replay_speed.py --process [--causal]   # whole `magcomp replay --emit`
+* pymavlink parse-only: ``mavutil.mavlink_connection(path)`` + ``recv_msg()`` until None (every message
+  decoded, nothing else done);
+* ``magcomp replay LOG --emit OUT`` (two passes, the default: interpreter start, imports, both passes, every
+  MAGCOMP_HEADING written);
+* ``magcomp replay LOG --emit OUT --causal`` (one pass, what the live daemon would have published).
 
-``--process``: the acceptance measure of issue 13: ``magcomp replay LOG --emit OUT`` run as its own
-process (interpreter start, imports, both passes unless ``--causal``, every MAGCOMP_HEADING written),
-against pymavlink's parse-only loop both in this process and as a process of its own. Its CPU time counts
-the first pass's child processes (the observers, service/observer_process.py; the in-flight stages,
-service/inflight_process.py); the main process's own CPU time and its children's are printed beside it
-(the wall time tends to the largest of them when the cores are free).
+CPU is user + system time of the process and of any process it started (RUSAGE_CHILDREN around it); the
+replay reports its own CPU and its children's apart, and the table shows the children's (0: one process,
+no forks). Printed: CPU medians, the ratios to the parse-only process and the targets (two passes <= 1.5x on
+the ordinary flight and <= 1.0x on the paper log, ``--causal`` <= 2.0x), and wall medians.
+
+    .venv/bin/python benchmarks/replay_speed.py [--duration 600] [--repeat 3] [--scenario ordinary paper]
 """
 
 from __future__ import annotations
@@ -28,94 +31,11 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-# as the magcomp command line does before numpy is loaded (magcomp/cli.py); pymavlink does not use BLAS
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-from magcomp.adapters.config import Config
-from magcomp.service import inflight_process
-from magcomp.service.replay import replay_log
-
-
-def timed(fn: object, repeat: int) -> list[float]:
-    out = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()  # type: ignore[operator]
-        out.append(time.perf_counter() - t0)
-    return out
-
-
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=600.0, help="simulated seconds")
-    ap.add_argument("--scenario", default="paper", help="paper (hand rotation) or ordinary (in flight)")
-    ap.add_argument("--two-pass", action="store_true", help="time the CLI's default two-pass replay")
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--emit", action="store_true", help="also write every MAGCOMP_HEADING to a tlog")
-    ap.add_argument(
-        "--process",
-        action="store_true",
-        help="time the whole `magcomp replay --emit` process (two passes unless --causal)",
-    )
-    ap.add_argument("--causal", action="store_true", help="with --process: one pass (`replay --causal`)")
-    args = ap.parse_args()
-
-    from magcomp.adapters.dialect import ensure_dialect
-    from magcomp.adapters.mavlink_emit import write_tlog
-    from magcomp.adapters.mavlink_source import open_source
-    from magcomp.sim import SimConfig, simulate
-
-    ensure_dialect()
-    from pymavlink import mavutil
-
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "long.tlog"
-        sim_cfg = SimConfig(scenario=args.scenario, duration_s=args.duration, seed=0)
-        n_msgs = write_tlog(simulate(sim_cfg), path)
-        size_mb = path.stat().st_size / 1e6
-
-        def parse_only() -> None:
-            conn = mavutil.mavlink_connection(str(path), dialect="magcomp")
-            while conn.recv_msg() is not None:
-                pass
-            conn.close()
-
-        def source_only() -> None:
-            with open_source(path) as src:
-                for _ in src.samples():
-                    pass
-
-        if args.process:
-            return _whole_process(path, n_msgs, size_mb, parse_only, args)
-        emit = str(Path(tmp) / "out.tlog") if args.emit else None
-        report: list[object] = []
-
-        def replay() -> None:
-            report.append(replay_log(path, Config(), emit=emit, two_pass=args.two_pass))
-
-        # interleaved, so that load from other processes hits all three alike
-        base: list[float] = []
-        src: list[float] = []
-        rep: list[float] = []
-        for _ in range(args.repeat):
-            base += timed(parse_only, 1)
-            src += timed(source_only, 1)
-            rep += timed(replay, 1)
-    n_est = report[-1].n_estimates  # type: ignore[attr-defined]
-    how = "two passes" if args.two_pass else "one pass"
-    print(f"tlog: {args.scenario}, {args.duration:g} s simulated, {n_msgs} messages, {size_mb:.1f} MB; "
-          f"{n_est} headings; replay {how}")  # fmt: skip
-    for name, ts in (("mavutil parse only", base), ("magcomp source only", src), ("magcomp replay", rep)):
-        med = statistics.median(ts)
-        print(f"{name:<22} min {min(ts):6.2f} s  median {med:6.2f} s  "
-              f"{n_msgs / med / 1e3:6.1f} k msgs/s  {args.duration / med:7.0f}x real time")  # fmt: skip
-    ratio = statistics.median(rep) / statistics.median(base)
-    src_ratio = statistics.median(src) / statistics.median(base)
-    print(f"replay / parse-only wall time: median {ratio:.2f}, best {min(rep) / min(base):.2f} "
-          f"(target <= 1.0); source alone: {src_ratio:.2f}")  # fmt: skip
-    return 0
-
+#: issue 24's targets: (two passes, --causal) CPU / the parse-only process's, per scenario
+TARGETS = {"ordinary": (1.5, 2.0), "paper": (1.0, 2.0)}
 
 _REPLAY_SCRIPT = """
 import resource, sys
@@ -139,92 +59,80 @@ while conn.recv_msg() is not None:
 """
 
 
-def _whole_process(
-    path: Path, n_msgs: int, size_mb: float, parse_only: object, args: argparse.Namespace
-) -> int:
-    """``magcomp replay LOG --emit OUT [--causal]`` as a process vs pymavlink's parse-only loop."""
-    root = Path(__file__).resolve().parents[1]
-    # PYTHONDONTWRITEBYTECODE (set in some sandboxes) would recompile the generated 1 MB dialect module
-    # in every process (0.6 s); an ordinary install caches its bytecode, so the benchmark does too
+def _env() -> dict[str, str]:
+    # PYTHONDONTWRITEBYTECODE (set in some sandboxes) would recompile the generated 1 MB dialect module in
+    # every process (0.6 s); an ordinary install caches its bytecode, so the benchmark does too. One BLAS
+    # thread, as the magcomp command line sets before numpy loads (magcomp/cli.py).
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
-    env = {
-        **env,
-        "PYTHONPATH": os.pathsep.join(filter(None, (str(root), os.environ.get("PYTHONPATH")))),
-    }
-    out = path.with_name("out.tlog")
-    self_cpu = path.with_name("self_cpu.txt")
-    # `magcomp replay` (magcomp/cli.py main), then the CPU time of that process alone (without the observer
-    # process of the first pass, service/observer_process.py): the critical path when a second core is free
-    cmd = [sys.executable, "-c", _REPLAY_SCRIPT, str(self_cpu), "replay", str(path), "--emit", str(out)]
-    if args.causal:
-        cmd.append("--causal")
-    parse_cmd = [sys.executable, "-c", _PARSE_SCRIPT, str(path)]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return env
 
-    def run(c: list[str]) -> float:
-        """Wall time of the process; its CPU time (user + system, all threads and child processes) added
-        to ``cpu``."""
-        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        t0 = time.perf_counter()
-        subprocess.run(c, check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        wall = time.perf_counter() - t0
-        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu[c is cmd].append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
-        if c is cmd:
-            own, kids = self_cpu.read_text().split()
-            cpu_main.append(float(own))
-            cpu_kids.append(float(kids))
-        return wall
 
-    def parse_in_process() -> float:
-        c0, t0 = time.process_time(), time.perf_counter()
-        parse_only()  # type: ignore[operator]
-        cpu_base.append(time.process_time() - c0)
-        return time.perf_counter() - t0
+def _run(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
+    """(CPU of the process and its children, wall) of one run."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime, wall
 
-    cpu: dict[bool, list[float]] = {False: [], True: []}  # parse process, replay process
-    cpu_main: list[float] = []  # the replay process alone
-    cpu_kids: list[float] = []  # its child processes together (observers, in-flight stages)
-    cpu_base: list[float] = []
-    run(parse_cmd)  # once untimed: bytecode written, files in the page cache
-    cpu[False].clear()
-    base: list[float] = []
-    base_proc: list[float] = []
-    rep: list[float] = []
-    for _ in range(args.repeat):  # interleaved, so that load from other processes hits all alike
-        base.append(parse_in_process())
-        base_proc.append(run(parse_cmd))
-        rep.append(run(cmd))
-    how = "one pass (--causal)" if args.causal else "two passes (default)"
-    print(
-        f"tlog: {args.scenario}, {args.duration:g} s simulated, {n_msgs} messages, {size_mb:.1f} MB; "
-        f"magcomp replay --emit, {how}, whole process"
-    )
-    rows = (
-        ("mavutil parse only", base, cpu_base),
-        ("mavutil parse, process", base_proc, cpu[False]),
-        ("magcomp replay --emit", rep, cpu[True]),
-    )
-    for name, ts, cs in rows:
-        print(f"{name:<24} wall min {min(ts):6.2f} s  median {statistics.median(ts):6.2f} s; "
-              f"CPU min {min(cs):6.2f} s  median {statistics.median(cs):6.2f} s")  # fmt: skip
-    mmed = statistics.median(cpu_main)
-    print(f"{'  its main process alone':<24} {'':<36}CPU min {min(cpu_main):6.2f} s  median {mmed:6.2f} s "
-          f"(/ parse-only process {mmed / statistics.median(cpu[False]):.2f}, / in process "
-          f"{mmed / statistics.median(cpu_base):.2f}: the critical path when a core is free for each child "
-          "and they take less)")  # fmt: skip
-    kmed = statistics.median(cpu_kids)
-    print(f"{'  its child processes':<24} {'':<36}CPU min {min(cpu_kids):6.2f} s  median {kmed:6.2f} s "
-          f"(the first pass's observers and in-flight stages, up to {inflight_process.CHILDREN} children, "
-          "beside the main process)")  # fmt: skip
-    med, cmed = statistics.median(rep), statistics.median(cpu[True])
-    print(
-        f"replay --emit process / parse-only (in process): wall median {med / statistics.median(base):.2f}, "
-        f"best {min(rep) / min(base):.2f}; CPU median {cmed / statistics.median(cpu_base):.2f}, best "
-        f"{min(cpu[True]) / min(cpu_base):.2f}\n"
-        f"replay --emit process / parse-only process: wall median {med / statistics.median(base_proc):.2f}, "
-        f"best {min(rep) / min(base_proc):.2f}; CPU median {cmed / statistics.median(cpu[False]):.2f}, "
-        f"best {min(cpu[True]) / min(cpu[False]):.2f} (target <= 1.0)"
-    )
+
+def measure(scenario: str, duration_s: float, repeat: int, tmp: Path) -> dict[str, object]:
+    """The three processes on one simulated tlog, interleaved; CPU and wall per kind, the replays' own
+    children's CPU."""
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.sim import SimConfig, simulate
+
+    path = tmp / f"{scenario}.tlog"
+    n_msgs = write_tlog(simulate(SimConfig(scenario=scenario, duration_s=duration_s, seed=0)), path)
+    env = _env()
+    parse = [sys.executable, "-c", _PARSE_SCRIPT, str(path)]
+    kinds = {"parse": parse}
+    for kind, extra in (("two-pass", []), ("causal", ["--causal"])):
+        kinds[kind] = [sys.executable, "-c", _REPLAY_SCRIPT, str(tmp / f"{kind}.cpu"), "replay", str(path),
+                       "--emit", str(tmp / f"{kind}.tlog"), *extra]  # fmt: skip
+    _run(parse, env)  # once untimed: bytecode written, the file in the page cache
+    cpu: dict[str, list[float]] = {k: [] for k in kinds}
+    wall: dict[str, list[float]] = {k: [] for k in kinds}
+    kids: dict[str, list[float]] = {k: [] for k in kinds if k != "parse"}
+    for _ in range(repeat):
+        for kind, cmd in kinds.items():
+            c, w = _run(cmd, env)
+            cpu[kind].append(c)
+            wall[kind].append(w)
+            if kind in kids:
+                kids[kind].append(float((tmp / f"{kind}.cpu").read_text().split()[1]))
+    return {"messages": n_msgs, "cpu": cpu, "wall": wall, "kids": kids}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=600.0, help="simulated seconds")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--scenario", nargs="+", default=["ordinary", "paper"], choices=sorted(TARGETS))
+    args = ap.parse_args()
+    med = statistics.median
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scenario in args.scenario:
+            rows.append((scenario, measure(scenario, args.duration, args.repeat, Path(tmp))))
+    print(f"magcomp replay --emit, whole process, {args.duration:g} s simulated; CPU = user + system of the "
+          f"process and its children, median of {args.repeat} (wall median in brackets)")  # fmt: skip
+    print(f"{'scenario':<9} {'messages':>8}  {'parse-only':>15}  {'replay (two passes)':>26}  "
+          f"{'replay --causal':>26}  {'forks':>5}")  # fmt: skip
+    for scenario, m in rows:
+        cpu, wall, kids = m["cpu"], m["wall"], m["kids"]
+        assert isinstance(cpu, dict) and isinstance(wall, dict) and isinstance(kids, dict)
+        base = med(cpu["parse"])
+        cells = [f"{base:5.2f} s [{med(wall['parse']):5.2f}]"]
+        for kind, target in zip(("two-pass", "causal"), TARGETS[scenario], strict=True):
+            c = med(cpu[kind])
+            cells.append(f"{c:5.2f} s {c / base:4.2f}x (<= {target:.1f}) [{med(wall[kind]):5.2f}]")
+        forked = max(max(v) for v in kids.values())
+        print(f"{scenario:<9} {m['messages']:>8}  {cells[0]:>15}  {cells[1]:>26}  {cells[2]:>26}  "
+              f"{'none' if forked == 0.0 else f'{forked:.2f} s':>5}")  # fmt: skip
     return 0
 
 

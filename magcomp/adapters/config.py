@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
@@ -31,6 +32,57 @@ class ConfigError(InputError):
     """A configuration file or value that cannot be used."""
 
 
+# ----------------------------------------------------------------------------------------- rules
+# Each checked key's default carries its rule (``_ruled``): the check a configured value must pass and the
+# rule's text in the error. Types are checked separately, from the defaults.
+
+
+def _ruled(default: Any, check: Callable[[Any], bool], rule: str) -> Any:
+    """A field with ``default`` whose configured values must pass ``check`` ("... must {rule}")."""
+    return field(default=default, metadata={"rule": (check, rule)})
+
+
+def _one_of(default: str, choices: tuple[str, ...]) -> Any:
+    """A field whose configured value must be one of ``choices``."""
+    return _ruled(default, lambda v: v in choices, f"be one of {', '.join(choices)}")
+
+
+def _positive(v: float) -> bool:
+    return v > 0.0
+
+
+def _non_negative(v: float) -> bool:
+    return v >= 0.0
+
+
+def _up_to(default: float, high: float, unit: str = "") -> Any:
+    """A field whose configured values must lie in (0, ``high``] (``unit`` in the rule's text)."""
+    return _ruled(default, lambda v: 0.0 < v <= high, f"be in (0, {high:g}]" + (f" {unit}" if unit else ""))
+
+
+def _positive_field(default: float) -> Any:
+    return _ruled(default, _positive, "be > 0")
+
+
+def _non_negative_field(default: float) -> Any:
+    return _ruled(default, _non_negative, "be >= 0")
+
+
+def _throttle_source_ok(v: str) -> bool:
+    return v in ("auto", "motors", "vfr_hud", "ctun", "none") or (
+        v.split(":")[0] in ("servo", "rc") and v.split(":")[-1].isdigit() and ":" in v
+    )
+
+
+def _compass_indices_ok(v: tuple[int, ...]) -> bool:
+    return all(0 <= i <= 7 for i in v)
+
+
+#: the calibration buffer holds this many 3-vectors at most (24 MB); more is a typo, not a wish
+MAX_CALIBRATION_SAMPLES = 1_000_000
+_SAMPLES_RULE = f"be in [20, {MAX_CALIBRATION_SAMPLES}]"
+
+
 @dataclass(frozen=True)
 class InputConfig:
     """Which inputs to use and which samples to refuse.
@@ -41,24 +93,26 @@ class InputConfig:
     ``autopilot`` (roll and pitch from ATTITUDE).
     """
 
-    throttle_source: str = "auto"
-    compasses: tuple[int, ...] = ()
-    attitude: str = "auto"
-    saturation_mgauss: float = 8000.0
+    throttle_source: str = _ruled(
+        "auto", _throttle_source_ok, "be auto, motors, vfr_hud, ctun, none, servo:N or rc:N"
+    )
+    compasses: tuple[int, ...] = _ruled((), _compass_indices_ok, "hold compass indices 0..7")
+    attitude: str = _one_of("auto", ATTITUDE_SOURCES)
+    saturation_mgauss: float = _positive_field(8000.0)
     # below the largest rate RAW_IMU / SCALED_IMU* can carry (int16 mrad/s: 32.767 rad/s), so a value
     # clipped at the message's integer limit reads as saturated; also below the 2000 deg/s (34.9 rad/s)
     # range of the usual MEMS gyros, where DataFlash IMU values clip
-    gyro_saturation_rad_s: float = 32.7
-    stale_s: float = 0.5
-    time_reset_s: float = 1.0
+    gyro_saturation_rad_s: float = _positive_field(32.7)
+    stale_s: float = _positive_field(0.5)
+    time_reset_s: float = _positive_field(1.0)
 
 
 @dataclass(frozen=True)
 class FilterConfig:
     """The 5 Hz low-pass of sec. II-D."""
 
-    corner_hz: float = 5.0
-    order: int = 2
+    corner_hz: float = _positive_field(5.0)
+    order: int = _ruled(2, lambda v: v in (1, 2), "be 1 or 2")
 
 
 @dataclass(frozen=True)
@@ -74,24 +128,25 @@ class ObserverConfig:
     instant of the step is unknown, and interpolating across it would feed eq. (16) a wrong delta_dot).
     """
 
-    form: ObserverForm = "default"
+    form: ObserverForm = _one_of("default", OBSERVER_FORMS)  # noqa: RUF009 (a field, as every _ruled)
     learn: bool = True
-    k1: float = 2.0  # = ObserverParams.k1_1_s (tests/unit/test_config.py holds the defaults equal)
-    k2: float = 4.0  # = ObserverParams.k2
-    forget_s: float = 30.0
-    theta_max_mgauss: float = 2000.0
-    dt_min_s: float = 0.001
-    dt_max_s: float = 0.2
-    max_throttle_jump_01: float = 0.15
+    # k1, k2 = ObserverParams.k1_1_s, ObserverParams.k2 (tests/unit/test_config.py holds the defaults equal)
+    k1: float = _positive_field(2.0)
+    k2: float = _positive_field(4.0)
+    forget_s: float = _positive_field(30.0)
+    theta_max_mgauss: float = _positive_field(2000.0)
+    dt_min_s: float = _positive_field(0.001)
+    dt_max_s: float = _up_to(0.2, 5.0, "s")
+    max_throttle_jump_01: float = _up_to(0.15, 1.0)
 
 
 @dataclass(frozen=True)
 class MahonyConfig:
     """Complementary attitude filter of ref. [23] (gains in rad/s per unit error)."""
 
-    kp: float = 1.0
-    ki: float = 0.1
-    accel_gate_m_s2: float = 2.0
+    kp: float = _non_negative_field(1.0)
+    ki: float = _non_negative_field(0.1)
+    accel_gate_m_s2: float = _positive_field(2.0)
 
 
 @dataclass(frozen=True)
@@ -102,11 +157,11 @@ class CalibrationConfig:
     ``stored`` (only a stored one; uncalibrated otherwise), ``none`` (identity: L = I, d = 0).
     """
 
-    mode: str = "auto"
-    max_throttle_01: float = 0.05
-    min_samples: int = 500
-    max_samples: int = 10000
-    check_every: int = 250
+    mode: str = _one_of("auto", CALIBRATION_MODES)
+    max_throttle_01: float = _ruled(0.05, lambda v: 0.0 <= v <= 1.0, "be in [0, 1]")
+    min_samples: int = _ruled(500, lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE)
+    max_samples: int = _ruled(10000, lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE)
+    check_every: int = _ruled(250, lambda v: v >= 1, "be >= 1")
 
 
 @dataclass(frozen=True)
@@ -128,28 +183,30 @@ class InflightConfig:
     """
 
     enabled: bool = True
-    reference: str = "auto"
-    rotation: str = "auto"
-    per_motor: str = "off"
-    max_rate_hz: float = 100.0
-    absolute_settle_s: float = 0.0
-    sigma_a_calibrated: float = 0.05
-    sigma_a_uncalibrated: float = 0.3
-    sigma_d_calibrated_mgauss: float = 50.0
-    sigma_d_uncalibrated_mgauss: float = 300.0
-    sigma_theta_mgauss: float = 600.0
-    heading_ok_deg: float = 2.0
-    heading_converged_deg: float = 1.0
+    reference: str = _one_of("auto", INFLIGHT_REFERENCES)
+    rotation: str = _ruled("auto", lambda v: v in ("auto", "gyro", "attitude"), "be auto, gyro or attitude")
+    per_motor: str = _ruled("off", lambda v: v in ("auto", "off"), "be auto or off")
+    max_rate_hz: float = _up_to(100.0, 1000.0, "Hz")
+    absolute_settle_s: float = _non_negative_field(0.0)
+    sigma_a_calibrated: float = _up_to(0.05, 1.0)
+    sigma_a_uncalibrated: float = _up_to(0.3, 1.0)
+    sigma_d_calibrated_mgauss: float = _positive_field(50.0)
+    sigma_d_uncalibrated_mgauss: float = _positive_field(300.0)
+    sigma_theta_mgauss: float = _positive_field(600.0)
+    heading_ok_deg: float = _up_to(2.0, 90.0, "deg")
+    heading_converged_deg: float = _up_to(1.0, 90.0, "deg")
 
 
 @dataclass(frozen=True)
 class LocationConfig:
     """Where the vehicle flies, for the WMM Earth field the calibration is scaled to."""
 
-    lat_deg: float = 29.65
-    lon_deg: float = -82.35
-    alt_m: float = 30.0
-    decimal_year: float = 2025.5
+    lat_deg: float = _ruled(29.65, lambda v: -90.0 <= v <= 90.0, "be in [-90, 90]")
+    lon_deg: float = _ruled(-82.35, lambda v: -180.0 <= v <= 360.0, "be in [-180, 360]")
+    alt_m: float = _ruled(30.0, lambda v: -1000.0 <= v <= 100000.0, "be in [-1000, 100000] m")
+    decimal_year: float = _ruled(
+        2025.5, lambda v: 2010.0 <= v < 2030.0, "be in [2010, 2030) (WMM 2010-2025 validity)"
+    )
 
 
 @dataclass(frozen=True)
@@ -163,30 +220,30 @@ class OutputConfig:
     MC_STAT0 ...; docs/pilots.md) at most this often per compass, message time, on live links (0 = none).
     """
 
-    rate_hz: float = 0.0
-    heading_tau_s: float = 1.0
+    rate_hz: float = _ruled(0.0, _non_negative, "be >= 0 (0 = every magnetometer sample)")
+    heading_tau_s: float = _ruled(1.0, lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)")
     #: publish a correction only where the self-check against the gyro and the autopilot's yaw finds it
     #: better than the autopilot's own heading (docs/real-flights.md); false: as soon as it is learned
     self_check: bool = True
-    named_values_hz: float = 2.0
-    source_system: int = 0
-    source_component: int = 191
+    named_values_hz: float = _ruled(2.0, lambda v: 0.0 <= v <= 50.0, "be in [0, 50] Hz (0 = none)")
+    source_system: int = _ruled(0, lambda v: 0 <= v <= 255, "be in 0..255 (0 = the vehicle's own id)")
+    source_component: int = _ruled(191, lambda v: 1 <= v <= 255, "be in 1..255")
 
 
 @dataclass(frozen=True)
 class StateConfig:
     """How often theta is written to the state directory (message time)."""
 
-    save_interval_s: float = 10.0
+    save_interval_s: float = _positive_field(10.0)
 
 
 @dataclass(frozen=True)
 class LinkConfig:
     """Live link behaviour."""
 
-    reconnect_s: float = 1.0
-    silence_s: float = 5.0
-    heartbeat_hz: float = 1.0
+    reconnect_s: float = _up_to(1.0, 3600.0, "s")
+    silence_s: float = _positive_field(5.0)
+    heartbeat_hz: float = _ruled(1.0, lambda v: 0.0 <= v <= 50.0, "be in [0, 50] Hz (0 = no heartbeat)")
 
 
 @dataclass(frozen=True)
@@ -204,85 +261,6 @@ class Config:
 
 
 # ----------------------------------------------------------------------------------------- validation
-
-
-def _positive(v: float) -> bool:
-    return v > 0.0
-
-
-def _non_negative(v: float) -> bool:
-    return v >= 0.0
-
-
-#: the calibration buffer holds this many 3-vectors at most (24 MB); more is a typo, not a wish
-MAX_CALIBRATION_SAMPLES = 1_000_000
-_SAMPLES_RULE = f"be in [20, {MAX_CALIBRATION_SAMPLES}]"
-
-# (section, key) -> (predicate, rule text). Types are checked separately from the dataclass defaults.
-_RULES: dict[tuple[str, str], tuple[Any, str]] = {
-    ("input", "attitude"): (lambda v: v in ATTITUDE_SOURCES, f"be one of {', '.join(ATTITUDE_SOURCES)}"),
-    ("input", "throttle_source"): (
-        lambda v: (
-            v in ("auto", "motors", "vfr_hud", "ctun", "none")
-            or (v.split(":")[0] in ("servo", "rc") and v.split(":")[-1].isdigit() and ":" in v)
-        ),
-        "be auto, motors, vfr_hud, ctun, none, servo:N or rc:N",
-    ),
-    ("input", "compasses"): (lambda v: all(0 <= i <= 7 for i in v), "hold compass indices 0..7"),
-    ("input", "saturation_mgauss"): (_positive, "be > 0"),
-    ("input", "gyro_saturation_rad_s"): (_positive, "be > 0"),
-    ("input", "stale_s"): (_positive, "be > 0"),
-    ("input", "time_reset_s"): (_positive, "be > 0"),
-    ("filter", "corner_hz"): (_positive, "be > 0"),
-    ("filter", "order"): (lambda v: v in (1, 2), "be 1 or 2"),
-    ("observer", "form"): (lambda v: v in OBSERVER_FORMS, f"be one of {', '.join(OBSERVER_FORMS)}"),
-    ("observer", "k1"): (_positive, "be > 0"),
-    ("observer", "k2"): (_positive, "be > 0"),
-    ("observer", "forget_s"): (_positive, "be > 0"),
-    ("observer", "theta_max_mgauss"): (_positive, "be > 0"),
-    ("observer", "dt_min_s"): (_positive, "be > 0"),
-    ("observer", "dt_max_s"): (lambda v: 0.0 < v <= 5.0, "be in (0, 5] s"),
-    ("observer", "max_throttle_jump_01"): (lambda v: 0.0 < v <= 1.0, "be in (0, 1]"),
-    ("mahony", "kp"): (_non_negative, "be >= 0"),
-    ("mahony", "ki"): (_non_negative, "be >= 0"),
-    ("mahony", "accel_gate_m_s2"): (_positive, "be > 0"),
-    ("calibration", "mode"): (lambda v: v in CALIBRATION_MODES, f"be one of {', '.join(CALIBRATION_MODES)}"),
-    ("calibration", "max_throttle_01"): (lambda v: 0.0 <= v <= 1.0, "be in [0, 1]"),
-    ("calibration", "min_samples"): (lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE),
-    ("calibration", "max_samples"): (lambda v: 20 <= v <= MAX_CALIBRATION_SAMPLES, _SAMPLES_RULE),
-    ("calibration", "check_every"): (lambda v: v >= 1, "be >= 1"),
-    ("inflight", "reference"): (
-        lambda v: v in INFLIGHT_REFERENCES,
-        f"be one of {', '.join(INFLIGHT_REFERENCES)}",
-    ),
-    ("inflight", "per_motor"): (lambda v: v in ("auto", "off"), "be auto or off"),
-    ("inflight", "rotation"): (lambda v: v in ("auto", "gyro", "attitude"), "be auto, gyro or attitude"),
-    ("inflight", "max_rate_hz"): (lambda v: 0.0 < v <= 1000.0, "be in (0, 1000] Hz"),
-    ("inflight", "absolute_settle_s"): (_non_negative, "be >= 0"),
-    ("inflight", "sigma_a_calibrated"): (lambda v: 0.0 < v <= 1.0, "be in (0, 1]"),
-    ("inflight", "sigma_a_uncalibrated"): (lambda v: 0.0 < v <= 1.0, "be in (0, 1]"),
-    ("inflight", "sigma_d_calibrated_mgauss"): (_positive, "be > 0"),
-    ("inflight", "sigma_d_uncalibrated_mgauss"): (_positive, "be > 0"),
-    ("inflight", "sigma_theta_mgauss"): (_positive, "be > 0"),
-    ("inflight", "heading_ok_deg"): (lambda v: 0.0 < v <= 90.0, "be in (0, 90] deg"),
-    ("inflight", "heading_converged_deg"): (lambda v: 0.0 < v <= 90.0, "be in (0, 90] deg"),
-    ("location", "lat_deg"): (lambda v: -90.0 <= v <= 90.0, "be in [-90, 90]"),
-    ("location", "lon_deg"): (lambda v: -180.0 <= v <= 360.0, "be in [-180, 360]"),
-    ("location", "alt_m"): (lambda v: -1000.0 <= v <= 100000.0, "be in [-1000, 100000] m"),
-    ("location", "decimal_year"): (
-        lambda v: 2010.0 <= v < 2030.0,
-        "be in [2010, 2030) (WMM 2010-2025 validity)",
-    ),
-    ("output", "rate_hz"): (_non_negative, "be >= 0 (0 = every magnetometer sample)"),
-    ("output", "named_values_hz"): (lambda v: 0.0 <= v <= 50.0, "be in [0, 50] Hz (0 = none)"),
-    ("output", "heading_tau_s"): (lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)"),
-    ("output", "source_system"): (lambda v: 0 <= v <= 255, "be in 0..255 (0 = the vehicle's own id)"),
-    ("output", "source_component"): (lambda v: 1 <= v <= 255, "be in 1..255"),
-    ("state", "save_interval_s"): (_positive, "be > 0"),
-    ("link", "reconnect_s"): (lambda v: 0.0 < v <= 3600.0, "be in (0, 3600] s"),
-    ("link", "silence_s"): (_positive, "be > 0"),
-    ("link", "heartbeat_hz"): (lambda v: 0.0 <= v <= 50.0, "be in [0, 50] Hz (0 = no heartbeat)"),
-}
 
 
 def _coerce(origin: str, section: str, key: str, default: Any, value: Any) -> Any:
@@ -330,14 +308,14 @@ def config_from_dict(data: dict[str, Any], origin: str = "<dict>", base: Config 
         if not isinstance(raw, dict):
             raise ConfigError(f"config {origin}: [{name}] must be a table, got {raw!r}")
         current = getattr(cfg, name)
-        keys = [f.name for f in fields(current)]
+        specs = {f.name: f for f in fields(current)}
         changes: dict[str, Any] = {}
         for key, value in raw.items():
-            if key not in keys:
-                known = ", ".join(keys)
+            if key not in specs:
+                known = ", ".join(specs)
                 raise ConfigError(f"config {origin}: unknown key '{key}' in [{name}] (known: {known})")
             v = _coerce(origin, name, key, getattr(current, key), value)
-            rule = _RULES.get((name, key))
+            rule = specs[key].metadata.get("rule")
             if rule is not None and not rule[0](v):
                 raise ConfigError(f"config {origin}: [{name}] {key} must {rule[1]}, got {value!r}")
             changes[key] = v

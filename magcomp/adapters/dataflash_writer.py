@@ -36,10 +36,22 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.adapters.files import write_file
+from magcomp.adapters.sim_log_rows import (
+    F64,
+    compass_params,
+    default_start_unix_s,
+    elevons_pwm,
+    pwm_us,
+    quantised_imu,
+    rate_indices,
+    raw_imu_rows,
+    servo_params,
+    true_yaw_deg,
+)
 from magcomp.core.identity import board_msg
-from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 if TYPE_CHECKING:
     from magcomp.sim.simulate import SimResult
@@ -54,31 +66,28 @@ _STRUCT = {
     "n": "4s", "N": "16s", "Z": "64s", "c": "h", "C": "H", "e": "i", "E": "I", "L": "i", "M": "B",
 }  # fmt: skip
 
-# name -> (format characters, field names); ArduPilot 4.x
+# CTUN of Copter and of Plane: (format characters, field names); ArduPilot 4.x
 _COPTER_CTUN = ("Qffffffefffhh", "TimeUS,ThI,ABst,ThO,ThH,DAlt,Alt,BAlt,DSAlt,SAlt,TAlt,DCRt,CRt")
 _PLANE_CTUN = ("QccccffffBffi", "TimeUS,NavRoll,Roll,NavPitch,Pitch,ThO,RdO,ThD,As,AsT,SAs,E2T,GU")
-FORMATS: dict[str, tuple[str, str]] = {
-    "PARM": ("QNff", "TimeUS,Name,Value,Default"),
-    "MSG": ("QZ", "TimeUS,Message"),
-    "IMU": ("QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz"),
-    "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),
-    "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),
-    "RCOU": ("QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14"),
-    "BAT": ("QBfffffcf", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res"),
-    "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
-}
-
-# units and multipliers of the fields (FMTU), ArduPilot 4.x; the ids' meanings in _UNITS / _MULTS
-FIELD_UNITS: dict[str, tuple[str, str]] = {
-    "PARM": ("s---", "F---"),
-    "MSG": ("s-", "F-"),
-    "IMU": ("s#EEEooo--O--zz", "F-000000-----00"),
-    "MAG": ("s#GGGGGGGGG-s", "F-CCCCCCCCC-F"),
-    "ATT": ("sddddhhdh-", "FBBBBBBBB-"),
-    "RCOU": ("sYYYYYYYYYYYYYY", "F--------------"),
-    "BAT": ("s#vvAaXOw", "F-000C0?0"),
-    "GPS": ("s#-s-S-DUmnhnh-", "F--C-0BGGB000--"),
-}
+#: name -> (format characters, field names, units, multipliers) of the messages written; ArduPilot 4.x. The
+#: units and multipliers are the FMTU's (``#`` the instance field), their ids' meanings in _UNITS / _MULTS
+MESSAGES: dict[str, tuple[str, str, str, str]] = {
+    "PARM": ("QNff", "TimeUS,Name,Value,Default", "s---", "F---"),
+    "MSG": ("QZ", "TimeUS,Message", "s-", "F-"),
+    "IMU": ("QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+            "s#EEEooo--O--zz", "F-000000-----00"),
+    "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S",
+            "s#GGGGGGGGG-s", "F-CCCCCCCCC-F"),
+    "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF",
+            "sddddhhdh-", "FBBBBBBBB-"),
+    "RCOU": ("QHHHHHHHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8,C9,C10,C11,C12,C13,C14",
+             "sYYYYYYYYYYYYYY", "F--------------"),
+    "BAT": ("QBfffffcf", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res", "s#vvAaXOw", "F-000C0?0"),
+    "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
+            "s#-s-S-DUmnhnh-", "F--C-0BGGB000--"),
+}  # fmt: skip
+#: name -> (format characters, field names)
+FORMATS: dict[str, tuple[str, str]] = {name: (m[0], m[1]) for name, m in MESSAGES.items()}
 _UNITS = {
     "-": "", "#": "instance", "s": "s", "E": "rad/s", "o": "m/s/s", "O": "degC", "z": "Hz", "G": "Gauss",
     "d": "deg", "h": "degheading", "Y": "us", "v": "V", "A": "A", "a": "Ah", "X": "Wh", "w": "Ohm",
@@ -161,12 +170,10 @@ def sim_parameters(result: SimResult, motor_comp: np.ndarray | None = None) -> l
     """The parameters the simulated autopilot logs: the tlog twin's PARAM_VALUEs (SERVOn_*, COMPASS_*) plus
     COMPASS_USEn, MOT_PWM_MIN/MAX (multirotor), AHRS_EKF_TYPE, EK3_SRC1_YAW and, with ``motor_comp``,
     COMPASS_MOTCT = 1 and COMPASS_MOT*_X/Y/Z."""
-    from magcomp.adapters.mavlink_emit import _compass_params, _servo_params
-
     cfg = result.config
-    params = dict(_servo_params(cfg.vehicle))
+    params = dict(servo_params(cfg.vehicle))
     if not cfg.legacy:
-        params.update(_compass_params(result))
+        params.update(compass_params(result))
         use = 1.0 if cfg.variation.yaw_source == "compass" else 0.0
         for j in range(1, len(result.compasses)):
             params[f"COMPASS_USE{j + 1}"] = use
@@ -183,6 +190,9 @@ def sim_parameters(result: SimResult, motor_comp: np.ndarray | None = None) -> l
     return sorted(params.items())
 
 
+DfEvent = tuple[int, int, str, list[Any]]
+
+
 def write_sim_dataflash(
     result: SimResult,
     path: str | os.PathLike[str],
@@ -197,60 +207,88 @@ def write_sim_dataflash(
     or None (COMPASS_MOTCT = 0). ``units`` (UNIT, MULT, FMTU messages) and ``lazy_formats`` (each FMT just
     before its first message) as ArduPilot 4.x writes them (:class:`DataflashWriter`); off: all FMT first,
     no units, as older logs."""
-    from magcomp.adapters.mavlink_emit import _pwm, _rate_indices, _raw_imu_rows, default_start_unix_s
-
-    cfg = result.config
     s = result.samples
-    rates = cfg.rates
-    n = s.t_s.size
     n_mag = s.mag_mgauss.shape[0]
-    multirotor = cfg.vehicle == "multirotor"
     mot = None
     if motor_comp is not None:
         mot = np.asarray(motor_comp, dtype=np.float64).reshape(-1, 3)
         if mot.shape[0] != n_mag or not np.isfinite(mot).all():
             raise ValueError(f"motor_comp: {n_mag} finite rows of COMPASS_MOT*_X/Y/Z expected")
     start_unix = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
-    t_us = np.round(s.t_s * 1e6).astype(np.int64)
-
     w = DataflashWriter(units=units, lazy_formats=lazy_formats)
-    formats = dict(FORMATS)
-    formats["CTUN"] = _COPTER_CTUN if multirotor else _PLANE_CTUN
-    for mname, (fmt, cols) in formats.items():
-        w.define(mname, fmt, cols, *FIELD_UNITS.get(mname, ("", "")))
-
-    # the tlog twin's quantisation: gyro 1 mrad/s, accel 1 mG, compass 1 mgauss, PWM 1 us
-    g = STANDARD_GRAVITY_M_S2
-    gyro = np.round(s.gyro_rad_s * 1000.0) / 1000.0
-    acc = np.round(s.accel_m_s2 / g * 1000.0) * g / 1000.0
-    mag = np.round(s.mag_mgauss).astype(np.int64)
-    n_imu = gyro.shape[0]
-    pwm_motor = _pwm(s.motors_01)
-    pwm_thr = _pwm(s.throttle_01)
-    thr_01 = (pwm_thr - 1000) / 1000.0  # the throttle the compass was given, at the PWM's resolution
+    for mname, (fmt, cols, field_units, mults) in MESSAGES.items():
+        w.define(mname, fmt, cols, field_units, mults)
+    w.define("CTUN", *(_COPTER_CTUN if result.config.vehicle == "multirotor" else _PLANE_CTUN))
     params = sim_parameters(result, mot)
-    ofs = {j: np.zeros(3) for j in range(n_mag)}
+    events = _df_start_events(result, params)
+    events += _df_imu_events(result)
+    events += _df_mag_events(result, params, mot)
+    events += _df_att_events(result)
+    events += _df_output_events(result)
+    events += _df_bat_events(result)
+    if result.config.gps and s.gps_lat_deg is not None and s.gps_lon_deg is not None:
+        events += _df_gps_events(result, start_unix)
+    events.sort(key=lambda e: (e[0], e[1]))
+    for _, _, name, values in events:
+        w.add(name, values)
+    return w.write(path)
+
+
+def _t_us(result: SimResult) -> NDArray[np.int64]:
+    return np.round(result.samples.t_s * 1e6).astype(np.int64)
+
+
+def _throttle_given_01(result: SimResult) -> F64:
+    """The throttle the compass was given, at the PWM's resolution (the tlog twin's 1 us)."""
+    return (pwm_us(result.samples.throttle_01) - 1000) / 1000.0  # type: ignore[no-any-return]
+
+
+def _df_start_events(result: SimResult, params: list[tuple[str, float]]) -> list[DfEvent]:
+    """The firmware and board MSG lines and every PARM, at the first sample's time."""
+    t0 = int(_t_us(result)[0])
+    vehicle = "ArduCopter" if result.config.vehicle == "multirotor" else "ArduPlane"
+    events: list[DfEvent] = [
+        (t0, -2, "MSG", [t0, f"{vehicle} {FIRMWARE_VERSION}".encode()]),
+        (t0, -2, "MSG", [t0, board_msg(result.config.uid).encode()]),  # the board's unique id
+    ]
+    for pname, value in params:
+        events.append((t0, -1, "PARM", [t0, pname.encode(), float(value), float(value)]))
+    return events
+
+
+def _df_imu_events(result: SimResult) -> list[DfEvent]:
+    s = result.samples
+    imu_hz = int(result.config.rates.imu_hz)
+    t_us = _t_us(result)
+    gyro, acc = quantised_imu(result)
+    events: list[DfEvent] = []
+    for i in range(s.t_s.size):
+        ti = int(t_us[i])
+        for k in range(gyro.shape[0]):
+            temp = round(float(s.imu_temp_degc[k, i]) * 100.0) / 100.0
+            events.append((ti, 1, "IMU", [ti, k, *gyro[k, i], *acc[k, i], 0, 0, temp, 1, 1, imu_hz, imu_hz]))
+    return events
+
+
+def _df_mag_events(result: SimResult, params: list[tuple[str, float]], mot: F64 | None) -> list[DfEvent]:
+    """MAG per compass: the field plus the autopilot's motor compensation ``MOX.. = mot * throttle`` (the
+    throttle last sent with the outputs), and the logged COMPASS_OFS offsets."""
+    s = result.samples
+    rates = result.config.rates
+    n = s.t_s.size
+    n_mag = s.mag_mgauss.shape[0]
+    t_us = _t_us(result)
+    mag = np.round(s.mag_mgauss).astype(np.int64)
+    thr_01 = _throttle_given_01(result)
     pdict = dict(params)
+    ofs = {}
     for j in range(n_mag):
         sfx = "" if j == 0 else str(j + 1)
         ofs[j] = np.array([pdict.get(f"COMPASS_OFS{sfx}_{a}", 0.0) for a in "XYZ"])
-
-    events: list[tuple[int, int, str, list[Any]]] = []
-    t0 = int(t_us[0])
-    vehicle = "ArduCopter" if multirotor else "ArduPlane"
-    events.append((t0, -2, "MSG", [t0, f"{vehicle} {FIRMWARE_VERSION}".encode()]))
-    events.append((t0, -2, "MSG", [t0, board_msg(result.config.uid).encode()]))  # the board's unique id
-    for pname, value in params:
-        events.append((t0, -1, "PARM", [t0, pname.encode(), float(value), float(value)]))
-    for i in range(n):
-        ti = int(t_us[i])
-        for k in range(n_imu):
-            temp = round(float(s.imu_temp_degc[k, i]) * 100.0) / 100.0
-            events.append((ti, 1, "IMU", [ti, k, *gyro[k, i], *acc[k, i], 0, 0, temp, 1, 1, int(rates.imu_hz),
-                                          int(rates.imu_hz)]))  # fmt: skip
-    mag_rows = _raw_imu_rows(result) if rates.mag_hz is None else _rate_indices(n, rates.imu_hz, rates.mag_hz)
+    mag_rows = raw_imu_rows(result) if rates.mag_hz is None else rate_indices(n, rates.imu_hz, rates.mag_hz)
     last_thr = 0.0
-    thr_rows = set(_rate_indices(n, rates.imu_hz, rates.servo_hz).tolist())
+    thr_rows = set(rate_indices(n, rates.imu_hz, rates.servo_hz).tolist())
+    events: list[DfEvent] = []
     for i in mag_rows:
         ti = int(t_us[i])
         if i in thr_rows or last_thr == 0.0:
@@ -261,18 +299,33 @@ def write_sim_dataflash(
             ofs_j = [round(float(v)) for v in ofs[j]]
             values = [ti, j, *(int(v) for v in field), *ofs_j, *(int(v) for v in mo), 1, ti & 0xFFFFFFFF]
             events.append((ti, 2 + j, "MAG", values))
-    att_deg = np.degrees(s.attitude_rad)
-    for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
+    return events
+
+
+def _df_att_events(result: SimResult) -> list[DfEvent]:
+    t_us = _t_us(result)
+    att_deg = np.degrees(result.samples.attitude_rad)
+    events: list[DfEvent] = []
+    for i in rate_indices(t_us.size, result.config.rates.imu_hz, result.config.rates.attitude_hz):
         ti = int(t_us[i])
         r, p, y = (float(v) for v in att_deg[i])
         r_c, p_c, y_c = round(r * 100.0), round(p * 100.0), round(y * 100.0) % 36000
         events.append((ti, 6, "ATT", [ti, r_c, r_c, p_c, p_c, y_c, y_c, 2, 5, 3]))
-    rates_b = s.gyro_rad_s[0] - result.compasses[0].gyro_bias_rad_s
-    pitch_cmd = np.clip(0.3 * rates_b[:, 1], -0.4, 0.4)
-    roll_cmd = np.clip(0.3 * rates_b[:, 0], -0.4, 0.4)
-    elevon_l = np.round(1500 + 500 * (pitch_cmd + roll_cmd)).astype(np.int64)
-    elevon_r = np.round(1500 + 500 * (pitch_cmd - roll_cmd)).astype(np.int64)
-    for i in _rate_indices(n, rates.imu_hz, rates.servo_hz):
+    return events
+
+
+def _df_output_events(result: SimResult) -> list[DfEvent]:
+    """RCOU (motors 1-4, or elevons 1/2 and throttle 3) and CTUN (Copter: ThO 0..1; Plane: percent)."""
+    s = result.samples
+    multirotor = result.config.vehicle == "multirotor"
+    t_us = _t_us(result)
+    att_deg = np.degrees(s.attitude_rad)
+    pwm_motor = pwm_us(s.motors_01)
+    pwm_thr = pwm_us(s.throttle_01)
+    thr_01 = _throttle_given_01(result)
+    elevon_l, elevon_r = elevons_pwm(result)
+    events: list[DfEvent] = []
+    for i in rate_indices(t_us.size, result.config.rates.imu_hz, result.config.rates.servo_hz):
         ti = int(t_us[i])
         ch = [0] * 14
         if multirotor:
@@ -291,34 +344,44 @@ def write_sim_dataflash(
             asp = float(s.airspeed_m_s[i])
             ctun = [ti, r_c, r_c, p_c, p_c, tho, 0.0, tho, asp, 1, asp, 1.0, 0]
         events.append((ti, 8, "CTUN", ctun))
+    return events
+
+
+def _df_bat_events(result: SimResult) -> list[DfEvent]:
+    s = result.samples
+    rates = result.config.rates
+    t_us = _t_us(result)
     dt = 1.0 / rates.imu_hz
     consumed_mah = np.cumsum(s.current_a) * dt / 3.6
     energy_wh = np.cumsum(s.current_a * s.voltage_v) * dt / 3600.0
-    for i in _rate_indices(n, rates.imu_hz, rates.power_hz):
+    events: list[DfEvent] = []
+    for i in rate_indices(t_us.size, rates.imu_hz, rates.power_hz):
         ti = int(t_us[i])
         volt = round(float(s.voltage_v[i]) * 1000.0) / 1000.0
         curr = round(float(s.current_a[i]) * 100.0) / 100.0
         bat = [ti, 0, volt, volt + 0.02 * curr, curr, float(consumed_mah[i]), float(energy_wh[i]), 2500, 0.02]
         events.append((ti, 9, "BAT", bat))
-    if cfg.gps and s.gps_lat_deg is not None and s.gps_lon_deg is not None:
-        assert s.gps_alt_msl_m is not None and s.gps_vel_n_m_s is not None
-        yaw_true = np.degrees(s.attitude_rad[:, 2])
-        if cfg.variation.yaw_source == "truth":
-            from magcomp.core.rotations import euler_from_quats
+    return events
 
-            yaw_true = np.degrees(euler_from_quats(result.motion.q_nb[s.truth_index])[:, 2])
-        for i in _rate_indices(n, rates.imu_hz, min(rates.gps_hz, rates.imu_hz)):
-            ti = int(t_us[i])
-            week, ms = gps_week_ms(start_unix + float(s.t_s[i]))
-            v = s.gps_vel_n_m_s[i]
-            ground = math.hypot(float(v[0]), float(v[1]))
-            cog = math.degrees(math.atan2(float(v[1]), float(v[0]))) % 360.0 if ground > 0.5 else 0.0
-            gps_yaw = float(yaw_true[i]) % 360.0 if cfg.variation.yaw_source == "truth" else 0.0
-            lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
-            alt_cm = round(float(s.gps_alt_msl_m[i]) * 100.0)
-            gps = [ti, 0, 3, ms, week, 14, 80, lat, lon, alt_cm, ground, cog, float(v[2]), gps_yaw, 1]
-            events.append((ti, 10, "GPS", gps))
-    events.sort(key=lambda e: (e[0], e[1]))
-    for _, _, name, values in events:
-        w.add(name, values)
-    return w.write(path)
+
+def _df_gps_events(result: SimResult, start_unix: float) -> list[DfEvent]:
+    """GPS at gps_hz: GPS week and ms of week, a 3D fix, course over ground and (yaw_source = truth) yaw."""
+    s = result.samples
+    rates = result.config.rates
+    assert s.gps_lat_deg is not None and s.gps_lon_deg is not None
+    assert s.gps_alt_msl_m is not None and s.gps_vel_n_m_s is not None
+    t_us = _t_us(result)
+    yaw_true = true_yaw_deg(result)
+    events: list[DfEvent] = []
+    for i in rate_indices(t_us.size, rates.imu_hz, min(rates.gps_hz, rates.imu_hz)):
+        ti = int(t_us[i])
+        week, ms = gps_week_ms(start_unix + float(s.t_s[i]))
+        v = s.gps_vel_n_m_s[i]
+        ground = math.hypot(float(v[0]), float(v[1]))
+        cog = math.degrees(math.atan2(float(v[1]), float(v[0]))) % 360.0 if ground > 0.5 else 0.0
+        gps_yaw = float(yaw_true[i]) % 360.0 if result.config.variation.yaw_source == "truth" else 0.0
+        lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
+        alt_cm = round(float(s.gps_alt_msl_m[i]) * 100.0)
+        gps = [ti, 0, 3, ms, week, 14, 80, lat, lon, alt_cm, ground, cog, float(v[2]), gps_yaw, 1]
+        events.append((ti, 10, "GPS", gps))
+    return events

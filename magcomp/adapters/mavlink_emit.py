@@ -18,7 +18,6 @@ header is the UNIX time in microseconds = ``start_unix_s + t_s`` (stack-notes §
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import math
 import os
@@ -32,12 +31,30 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.files import write_file
+from magcomp.adapters.sim_log_rows import (
+    BATTERY_CAPACITY_MAH,
+    body_rates,
+    compass_params,
+    default_start_unix_s,
+    elevons_pwm,
+    pwm_us,
+    px4_motor_outputs,
+    px4_outputs,
+    quantised_imu,
+    rate_indices,
+    raw_imu_rows,
+    servo_params,
+    true_yaw_deg,
+)
 from magcomp.core.identity import uid2_bytes, uid64
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 from magcomp.errors import InputError
 from magcomp.sim.simulate import SimResult
 
 F64 = NDArray[np.float64]
+#: names kept importable from here (they moved to :mod:`magcomp.adapters.sim_log_rows`)
+__all__ = ["default_start_unix_s", "rate_indices"]
+_rate_indices = rate_indices
 
 MAV_TYPE_FIXED_WING = 1
 MAV_TYPE_QUADROTOR = 2
@@ -51,12 +68,6 @@ MAV_BATTERY_CHARGE_STATE_OK = 1
 SENSORS_PRESENT = 1 | 2 | 4 | 8 | (1 << 25)  # gyro, accel, mag, baro, battery
 UINT16_UNUSED = 65535
 INT16_UNKNOWN = 32767
-BATTERY_CAPACITY_MAH = 2200
-
-# ArduPilot SERVOn_FUNCTION values
-FN_DISABLED, FN_THROTTLE, FN_ELEVON_LEFT, FN_ELEVON_RIGHT = 0, 70, 77, 78
-FN_MOTOR1 = 33
-
 
 @dataclass(frozen=True)
 class LinkReport:
@@ -68,64 +79,6 @@ class LinkReport:
     first_received: list[dict[str, Any]] = field(default_factory=list)
     wall_s: float = 0.0
     completed: bool = True
-
-
-def default_start_unix_s(result: SimResult) -> float:
-    """UNIX time of boot: the config's decimal year (at whole seconds), deterministic."""
-    year_f = result.config.location.decimal_year
-    year = int(year_f)
-    start = _dt.datetime(year, 1, 1, tzinfo=_dt.UTC)
-    length = (_dt.datetime(year + 1, 1, 1, tzinfo=_dt.UTC) - start).total_seconds()
-    return float(math.floor(start.timestamp() + (year_f - year) * length))
-
-
-def _rate_indices(n: int, imu_hz: float, rate_hz: float) -> NDArray[np.int64]:
-    """Rows of the imu_hz samples that a stream at rate_hz uses (nearest sample to each tick)."""
-    ticks = np.arange(0.0, n / imu_hz, 1.0 / rate_hz)
-    return np.unique(np.minimum(np.round(ticks * imu_hz).astype(np.int64), n - 1))
-
-
-def _servo_params(vehicle: str) -> list[tuple[str, float]]:
-    if vehicle == "multirotor":
-        functions = [FN_MOTOR1, FN_MOTOR1 + 1, FN_MOTOR1 + 2, FN_MOTOR1 + 3] + [FN_DISABLED] * 4
-    else:
-        functions = [FN_ELEVON_LEFT, FN_ELEVON_RIGHT, FN_THROTTLE] + [FN_DISABLED] * 5
-    out: list[tuple[str, float]] = []
-    for i, fn in enumerate(functions, start=1):
-        out += [(f"SERVO{i}_FUNCTION", float(fn)), (f"SERVO{i}_MIN", 1000.0), (f"SERVO{i}_MAX", 2000.0)]
-    out.append(("BATT_CAPACITY", float(BATTERY_CAPACITY_MAH)))
-    if vehicle == "multirotor":
-        out += [("FRAME_CLASS", 1.0), ("FRAME_TYPE", 1.0)]  # quad, X
-    return out
-
-
-def _pwm(x01: F64) -> NDArray[np.int64]:
-    return np.round(1000.0 + 1000.0 * np.clip(x01, 0.0, 1.0)).astype(np.int64)
-
-
-def _compass_params(result: SimResult) -> list[tuple[str, float]]:
-    """ArduPilot's compass parameters for the autopilot's own calibration (logged = A (raw + OFS), A the
-    symmetric matrix of DIA/ODI), the primary compass, which compasses are external, and COMPASS_MOTCT = 0
-    (no onboard motor compensation)."""
-    out: list[tuple[str, float]] = []
-    var = result.config.variation
-    if result.ap_calibration is not None:
-        for j, cal in enumerate(result.ap_calibration):
-            k = "" if j == 0 else str(j + 1)
-            ofs, a = cal.offsets_mgauss, cal.a_matrix
-            out += [(f"COMPASS_OFS{k}_{ax}", float(ofs[i])) for i, ax in enumerate("XYZ")]
-            out += [(f"COMPASS_DIA{k}_{ax}", float(a[i, i])) for i, ax in enumerate("XYZ")]
-            out += [(f"COMPASS_ODI{k}_X", float(a[0, 1])), (f"COMPASS_ODI{k}_Y", float(a[0, 2]))]
-            out += [(f"COMPASS_ODI{k}_Z", float(a[1, 2]))]
-    for j in range(len(result.compasses)):
-        name = "COMPASS_EXTERNAL" if j == 0 else f"COMPASS_EXTERN{j + 1}"
-        out.append((name, 1.0 if (j == 0 and var.external_compass0) else 0.0))
-    out += [
-        ("COMPASS_PRIMARY", float(var.primary_compass)),
-        ("COMPASS_USE", 1.0 if var.yaw_source == "compass" else 0.0),
-        ("COMPASS_MOTCT", 0.0),
-    ]
-    return out
 
 
 def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, int, Any]]:
@@ -140,13 +93,9 @@ def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, i
     n = s.t_s.size
     t = s.t_s
     alt0 = cfg.location.alt_m
-    yaw_true_deg = np.degrees(s.attitude_rad[:, 2])
-    if cfg.variation.yaw_source == "truth":
-        from magcomp.core.rotations import euler_from_quats
-
-        yaw_true_deg = np.degrees(euler_from_quats(result.motion.q_nb[s.truth_index])[:, 2])
+    yaw_true_deg = true_yaw_deg(result)
     events: list[tuple[float, int, Any]] = []
-    for i in _rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.gps_hz, cfg.rates.imu_hz)):
+    for i in rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.gps_hz, cfg.rates.imu_hz)):
         lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
         alt_mm = round(float(s.gps_alt_msl_m[i]) * 1000.0)
         v = s.gps_vel_n_m_s[i]
@@ -198,10 +147,13 @@ def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, i
                 ),
             )
         )
-    for i in _rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.system_time_hz, cfg.rates.imu_hz)):
+    for i in rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.system_time_hz, cfg.rates.imu_hz)):
         unix_us = round((start_unix_s + float(t[i])) * 1e6)
         events.append((float(t[i]), 12, apm.MAVLink_system_time_message(unix_us, round(float(t[i]) * 1e3))))
     return events
+
+
+Event = tuple[float, int, Any]
 
 
 def _autopilot_version(apm: Any, uid: str) -> Any:
@@ -211,202 +163,150 @@ def _autopilot_version(apm: Any, uid: str) -> Any:
                                                  uid2_bytes(uid))  # fmt: skip
 
 
-def build_messages(result: SimResult, start_unix_s: float | None = None) -> list[tuple[float, int, Any]]:
+def _param_events(apm: Any, result: SimResult, params: list[tuple[str, float]]) -> list[Event]:
+    """PARAM_VALUE of every parameter, then AUTOPILOT_VERSION, at the first sample's time."""
+    t_first = float(result.samples.t_s[0])
+    events: list[Event] = []
+    for i, (name, value) in enumerate(params):
+        msg = apm.MAVLink_param_value_message(name.encode(), value, MAV_PARAM_TYPE_REAL32, len(params), i)
+        events.append((t_first, -1, msg))
+    events.append((t_first, -1, _autopilot_version(apm, result.config.uid)))
+    return events
+
+
+def _heartbeat_events(apm: Any, result: SimResult, autopilot: int) -> list[Event]:
+    cfg = result.config
+    t = result.samples.t_s
+    vtype = MAV_TYPE_QUADROTOR if cfg.vehicle == "multirotor" else MAV_TYPE_FIXED_WING
+    flags = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MAV_MODE_FLAG_SAFETY_ARMED
+    return [
+        (float(t[i]), 0, apm.MAVLink_heartbeat_message(vtype, autopilot, flags, 0, MAV_STATE_ACTIVE, 3))
+        for i in rate_indices(t.size, cfg.rates.imu_hz, cfg.rates.heartbeat_hz)
+    ]
+
+
+def _boot_us_ms(t: F64) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Boot times (s) as the messages' time_usec and time_boot_ms."""
+    return np.round(t * 1e6).astype(np.int64), np.round(t * 1e3).astype(np.int64)
+
+
+def _ints(*vectors: Any) -> list[int]:
+    """The values of integer vectors, in order, as Python ints (a message's fields)."""
+    return [int(v) for vec in vectors for v in vec]
+
+
+def _ardupilot_imu_events(apm: Any, result: SimResult) -> list[Event]:
+    """RAW_IMU (compass 0; time_usec) and SCALED_IMU2/3 (compasses 1, 2; time_boot_ms): accel mG, gyro
+    mrad/s, mag mgauss, temperature cdegC."""
+    s = result.samples
+    t = s.t_s
+    acc_mg = np.round(s.accel_m_s2 / STANDARD_GRAVITY_M_S2 * 1000.0).astype(np.int64)
+    gyro_mrad = np.round(s.gyro_rad_s * 1000.0).astype(np.int64)
+    mag = np.round(s.mag_mgauss).astype(np.int64)
+    temp_cdeg = np.round(s.imu_temp_degc * 100.0).astype(np.int64)
+    t_us, t_ms = _boot_us_ms(t)
+    events: list[Event] = []
+    for i in raw_imu_rows(result):
+        fields = _ints(acc_mg[0, i], gyro_mrad[0, i], mag[0, i])
+        msg = apm.MAVLink_raw_imu_message(int(t_us[i]), *fields, 0, int(temp_cdeg[0, i]))
+        events.append((float(t[i]), 1, msg))
+        for j in range(1, mag.shape[0]):
+            cls = apm.MAVLink_scaled_imu2_message if j == 1 else apm.MAVLink_scaled_imu3_message
+            fields = _ints(acc_mg[j, i], gyro_mrad[j, i], mag[j, i])
+            events.append((float(t[i]), 1 + j, cls(int(t_ms[i]), *fields, int(temp_cdeg[j, i]))))
+    return events
+
+
+def _attitude_events(apm: Any, result: SimResult) -> list[Event]:
+    s = result.samples
+    t, att, rates_b = s.t_s, s.attitude_rad, body_rates(result)
+    t_ms = _boot_us_ms(t)[1]
+    events: list[Event] = []
+    for i in rate_indices(t.size, result.config.rates.imu_hz, result.config.rates.attitude_hz):
+        values = (float(v) for v in (*att[i], *rates_b[i]))
+        events.append((float(t[i]), 4, apm.MAVLink_attitude_message(int(t_ms[i]), *values)))
+    return events
+
+
+def _output_events(apm: Any, result: SimResult) -> list[Event]:
+    """SERVO_OUTPUT_RAW (quad: motors 1-4; fixed wing: elevons 1/2 mixing pitch and roll demands from the
+    body rates around 1500, throttle 3) and RC_CHANNELS (throttle stick on channel 3)."""
+    cfg = result.config
+    s = result.samples
+    t, rates = s.t_s, cfg.rates
+    multirotor = cfg.vehicle == "multirotor"
+    motors_pwm = pwm_us(s.motors_01)
+    thr_pwm = pwm_us(s.throttle_01)
+    elevon_l, elevon_r = elevons_pwm(result)
+    t_us, t_ms = _boot_us_ms(t)
+    events: list[Event] = []
+    for i in rate_indices(t.size, rates.imu_hz, rates.servo_hz):
+        ch = [0] * 16
+        if multirotor:
+            ch[0:4] = [int(v) for v in motors_pwm[i, :4]]
+        else:
+            ch[0], ch[1], ch[2] = int(elevon_l[i]), int(elevon_r[i]), int(thr_pwm[i])
+        t_u32 = int(t_us[i]) & 0xFFFFFFFF
+        events.append((float(t[i]), 5, apm.MAVLink_servo_output_raw_message(t_u32, 0, *ch)))
+    for i in rate_indices(t.size, rates.imu_hz, rates.rc_hz):
+        rc = [1500, 1500, int(thr_pwm[i]), 1500, 1000, 1000, 1000, 1000] + [UINT16_UNUSED] * 10
+        events.append((float(t[i]), 6, apm.MAVLink_rc_channels_message(int(t_ms[i]), 8, *rc, 255)))
+    return events
+
+
+def _vfr_hud_events(apm: Any, result: SimResult) -> list[Event]:
+    s = result.samples
+    t = s.t_s
+    events: list[Event] = []
+    for i in rate_indices(t.size, result.config.rates.imu_hz, result.config.rates.vfr_hud_hz):
+        heading = round(math.degrees(float(s.attitude_rad[i, 2]))) % 360
+        msg = apm.MAVLink_vfr_hud_message(float(s.airspeed_m_s[i]), float(s.groundspeed_m_s[i]), heading,
+                                          round(100.0 * float(s.throttle_01[i])), float(s.alt_m[i]),
+                                          float(s.climb_m_s[i]))  # fmt: skip
+        events.append((float(t[i]), 7, msg))
+    return events
+
+
+def _power_events(apm: Any, result: SimResult) -> list[Event]:
+    """SYS_STATUS and BATTERY_STATUS (voltage mV, current cA, remaining % from the consumed charge)."""
+    s = result.samples
+    t, rates = s.t_s, result.config.rates
+    dt = 1.0 / rates.imu_hz
+    consumed_mah = np.cumsum(s.current_a) * dt / 3.6
+    energy_hj = np.cumsum(s.current_a * s.voltage_v) * dt / 100.0
+    events: list[Event] = []
+    for i in rate_indices(t.size, rates.imu_hz, rates.power_hz):
+        mv = round(float(s.voltage_v[i]) * 1000.0)
+        ca = round(float(s.current_a[i]) * 100.0)
+        remaining = int(np.clip(round(100.0 * (1.0 - consumed_mah[i] / BATTERY_CAPACITY_MAH) * 0.95), 0, 100))
+        present = SENSORS_PRESENT
+        sys_status = apm.MAVLink_sys_status_message(present, present, present, 300, mv, ca, remaining,
+                                                    0, 0, 0, 0, 0, 0)  # fmt: skip
+        battery = apm.MAVLink_battery_status_message(0, 0, MAV_BATTERY_TYPE_LIPO, INT16_UNKNOWN,
+                                                     [mv] + [UINT16_UNUSED] * 9, ca, int(consumed_mah[i]),
+                                                     int(energy_hj[i]), remaining, 0,
+                                                     MAV_BATTERY_CHARGE_STATE_OK)  # fmt: skip
+        events += [(float(t[i]), 8, sys_status), (float(t[i]), 9, battery)]
+    return events
+
+
+def build_messages(result: SimResult, start_unix_s: float | None = None) -> list[Event]:
     """All messages as (boot time s, priority, unpacked MAVLink message object), in send order.
 
     start_unix_s: UTC of boot for SYSTEM_TIME (default :func:`default_start_unix_s`, the config's date)."""
     from pymavlink.dialects.v20 import ardupilotmega as apm
 
     cfg = result.config
-    s = result.samples
-    rates = cfg.rates
-    n = s.t_s.size
-    t = s.t_s
-    multirotor = cfg.vehicle == "multirotor"
-    events: list[tuple[float, int, Any]] = []
-    t_first = float(t[0])
-
-    params = _servo_params(cfg.vehicle)
+    params = servo_params(cfg.vehicle)
     if not cfg.legacy:
-        params += _compass_params(result)
-    for i, (name, value) in enumerate(params):
-        events.append(
-            (
-                t_first,
-                -1,
-                apm.MAVLink_param_value_message(name.encode(), value, MAV_PARAM_TYPE_REAL32, len(params), i),
-            )
-        )
-    events.append((t_first, -1, _autopilot_version(apm, cfg.uid)))
-    for i in _rate_indices(n, rates.imu_hz, rates.heartbeat_hz):
-        events.append(
-            (
-                float(t[i]),
-                0,
-                apm.MAVLink_heartbeat_message(
-                    MAV_TYPE_QUADROTOR if multirotor else MAV_TYPE_FIXED_WING,
-                    MAV_AUTOPILOT_ARDUPILOTMEGA,
-                    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MAV_MODE_FLAG_SAFETY_ARMED,
-                    0,
-                    MAV_STATE_ACTIVE,
-                    3,
-                ),
-            )
-        )
-
-    acc_mg = np.round(s.accel_m_s2 / STANDARD_GRAVITY_M_S2 * 1000.0).astype(np.int64)
-    gyro_mrad = np.round(s.gyro_rad_s * 1000.0).astype(np.int64)
-    mag = np.round(s.mag_mgauss).astype(np.int64)
-    temp_cdeg = np.round(s.imu_temp_degc * 100.0).astype(np.int64)
-    t_us = np.round(t * 1e6).astype(np.int64)
-    t_ms = np.round(t * 1e3).astype(np.int64)
-    for i in _raw_imu_rows(result):
-        a, w, m = acc_mg[0, i], gyro_mrad[0, i], mag[0, i]
-        events.append(
-            (
-                float(t[i]),
-                1,
-                apm.MAVLink_raw_imu_message(
-                    int(t_us[i]),
-                    int(a[0]),
-                    int(a[1]),
-                    int(a[2]),
-                    int(w[0]),
-                    int(w[1]),
-                    int(w[2]),
-                    int(m[0]),
-                    int(m[1]),
-                    int(m[2]),
-                    0,
-                    int(temp_cdeg[0, i]),
-                ),
-            )
-        )
-        for j in range(1, mag.shape[0]):
-            cls = apm.MAVLink_scaled_imu2_message if j == 1 else apm.MAVLink_scaled_imu3_message
-            a, w, m = acc_mg[j, i], gyro_mrad[j, i], mag[j, i]
-            events.append(
-                (
-                    float(t[i]),
-                    1 + j,
-                    cls(
-                        int(t_ms[i]),
-                        int(a[0]),
-                        int(a[1]),
-                        int(a[2]),
-                        int(w[0]),
-                        int(w[1]),
-                        int(w[2]),
-                        int(m[0]),
-                        int(m[1]),
-                        int(m[2]),
-                        int(temp_cdeg[j, i]),
-                    ),
-                )
-            )
-
-    att = s.attitude_rad
-    rates_b = s.gyro_rad_s[0] - result.compasses[0].gyro_bias_rad_s
-    for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
-        events.append(
-            (
-                float(t[i]),
-                4,
-                apm.MAVLink_attitude_message(
-                    int(t_ms[i]),
-                    float(att[i, 0]),
-                    float(att[i, 1]),
-                    float(att[i, 2]),
-                    float(rates_b[i, 0]),
-                    float(rates_b[i, 1]),
-                    float(rates_b[i, 2]),
-                ),
-            )
-        )
-
-    motors_pwm = _pwm(s.motors_01)
-    thr_pwm = _pwm(s.throttle_01)
-    # fixed wing: elevons mix pitch and roll demands (from body rates), around 1500
-    pitch_cmd = np.clip(0.3 * rates_b[:, 1], -0.4, 0.4)
-    roll_cmd = np.clip(0.3 * rates_b[:, 0], -0.4, 0.4)
-    elevon_l = np.round(1500 + 500 * (pitch_cmd + roll_cmd)).astype(np.int64)
-    elevon_r = np.round(1500 + 500 * (pitch_cmd - roll_cmd)).astype(np.int64)
-    for i in _rate_indices(n, rates.imu_hz, rates.servo_hz):
-        ch = [0] * 16
-        if multirotor:
-            ch[0:4] = [int(v) for v in motors_pwm[i, :4]]
-        else:
-            ch[0], ch[1], ch[2] = int(elevon_l[i]), int(elevon_r[i]), int(thr_pwm[i])
-        events.append(
-            (float(t[i]), 5, apm.MAVLink_servo_output_raw_message(int(t_us[i]) & 0xFFFFFFFF, 0, *ch))
-        )
-    for i in _rate_indices(n, rates.imu_hz, rates.rc_hz):
-        rc = [1500, 1500, int(thr_pwm[i]), 1500, 1000, 1000, 1000, 1000] + [UINT16_UNUSED] * 10
-        events.append((float(t[i]), 6, apm.MAVLink_rc_channels_message(int(t_ms[i]), 8, *rc, 255)))
-    for i in _rate_indices(n, rates.imu_hz, rates.vfr_hud_hz):
-        heading = round(math.degrees(float(att[i, 2]))) % 360
-        events.append(
-            (
-                float(t[i]),
-                7,
-                apm.MAVLink_vfr_hud_message(
-                    float(s.airspeed_m_s[i]),
-                    float(s.groundspeed_m_s[i]),
-                    heading,
-                    round(100.0 * float(s.throttle_01[i])),
-                    float(s.alt_m[i]),
-                    float(s.climb_m_s[i]),
-                ),
-            )
-        )
-    # battery: consumed charge from the reported current
-    dt = 1.0 / rates.imu_hz
-    consumed_mah = np.cumsum(s.current_a) * dt / 3.6
-    energy_hj = np.cumsum(s.current_a * s.voltage_v) * dt / 100.0
-    for i in _rate_indices(n, rates.imu_hz, rates.power_hz):
-        mv = round(float(s.voltage_v[i]) * 1000.0)
-        ca = round(float(s.current_a[i]) * 100.0)
-        remaining = int(np.clip(round(100.0 * (1.0 - consumed_mah[i] / BATTERY_CAPACITY_MAH) * 0.95), 0, 100))
-        events.append(
-            (
-                float(t[i]),
-                8,
-                apm.MAVLink_sys_status_message(
-                    SENSORS_PRESENT,
-                    SENSORS_PRESENT,
-                    SENSORS_PRESENT,
-                    300,
-                    mv,
-                    ca,
-                    remaining,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                ),
-            )
-        )
-        events.append(
-            (
-                float(t[i]),
-                9,
-                apm.MAVLink_battery_status_message(
-                    0,
-                    0,
-                    MAV_BATTERY_TYPE_LIPO,
-                    INT16_UNKNOWN,
-                    [mv] + [UINT16_UNUSED] * 9,
-                    ca,
-                    int(consumed_mah[i]),
-                    int(energy_hj[i]),
-                    remaining,
-                    0,
-                    MAV_BATTERY_CHARGE_STATE_OK,
-                ),
-            )
-        )
+        params += compass_params(result)
+    events = _param_events(apm, result, params)
+    events += _heartbeat_events(apm, result, MAV_AUTOPILOT_ARDUPILOTMEGA)
+    events += _ardupilot_imu_events(apm, result)
+    events += _attitude_events(apm, result)
+    events += _output_events(apm, result)
+    events += _vfr_hud_events(apm, result)
+    events += _power_events(apm, result)
     if cfg.gps:
         events += _gps_messages(
             result, default_start_unix_s(result) if start_unix_s is None else start_unix_s
@@ -415,14 +315,7 @@ def build_messages(result: SimResult, start_unix_s: float | None = None) -> list
     return _apply_link_loss(events, result)
 
 
-def _raw_imu_rows(result: SimResult) -> range | NDArray[np.int64]:
-    """Loop rows that carry a RAW_IMU / HIGHRES_IMU / SCALED_IMU message (every row unless raw_imu_hz)."""
-    rates = result.config.rates
-    n = result.samples.t_s.size
-    return range(n) if rates.raw_imu_hz is None else _rate_indices(n, rates.imu_hz, rates.raw_imu_hz)
-
-
-def _apply_link_loss(events: list[tuple[float, int, Any]], result: SimResult) -> list[tuple[float, int, Any]]:
+def _apply_link_loss(events: list[Event], result: SimResult) -> list[Event]:
     """A lossy telemetry link (``link_loss``): each message lost independently (seeded), parameters kept."""
     cfg = result.config
     loss = cfg.variation.link_loss
@@ -438,24 +331,9 @@ HIGHRES_ALL_IMU = 0x3F | 0x1000  # accel, gyro, temperature
 HIGHRES_MAG = 0x1C0
 
 
-def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
-    """The same vehicle as a PX4 autopilot sends it (MAV_AUTOPILOT_PX4): PARAM_VALUE PWM_MAIN_FUNCn/MINn/
-    MAXn and CAL_MAGn_ID; HIGHRES_IMU (imu_hz: accel m/s^2, gyro rad/s, compass 0 in gauss, fields_updated);
-    SCALED_IMU2/3 (compasses 1, 2 in mgauss); ATTITUDE_QUATERNION; ACTUATOR_OUTPUT_STATUS (PWM us);
-    BATTERY_STATUS; GPS_RAW_INT and SYSTEM_TIME (power_hz). Same quantisation as the ArduPilot stream."""
-    from pymavlink.dialects.v20 import ardupilotmega as apm
-
-    from magcomp.core.rotations import quats_from_euler
-
-    cfg = result.config
-    s = result.samples
-    rates = cfg.rates
-    n = s.t_s.size
-    t = s.t_s
-    multirotor = cfg.vehicle == "multirotor"
-    events: list[tuple[float, int, Any]] = []
-    t_first = float(t[0])
-    motor_channels = (1, 2, 3, 4) if multirotor else (3,)
+def _px4_params(vehicle: str) -> list[tuple[str, float]]:
+    """PWM_MAIN_FUNCn/MINn/MAXn: motors 1-4 (quad) or the throttle on output 3."""
+    motor_channels = px4_motor_outputs(vehicle)
     params: list[tuple[str, float]] = []
     for ch in range(1, 9):
         fn = PX4_FN_MOTOR1 + motor_channels.index(ch) if ch in motor_channels else 0
@@ -464,27 +342,20 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
             (f"PWM_MAIN_MIN{ch}", 1000.0),
             (f"PWM_MAIN_MAX{ch}", 2000.0),
         ]
-    for i, (name, value) in enumerate(params):
-        msg = apm.MAVLink_param_value_message(name.encode(), value, MAV_PARAM_TYPE_REAL32, len(params), i)
-        events.append((t_first, -1, msg))
-    events.append((t_first, -1, _autopilot_version(apm, cfg.uid)))
-    for i in _rate_indices(n, rates.imu_hz, rates.heartbeat_hz):
-        hb = apm.MAVLink_heartbeat_message(
-            MAV_TYPE_QUADROTOR if multirotor else MAV_TYPE_FIXED_WING,
-            MAV_AUTOPILOT_PX4,
-            MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MAV_MODE_FLAG_SAFETY_ARMED,
-            0,
-            MAV_STATE_ACTIVE,
-            3,
-        )
-        events.append((float(t[i]), 0, hb))
+    return params
+
+
+def _px4_imu_events(apm: Any, result: SimResult) -> list[Event]:
+    """HIGHRES_IMU (accel m/s^2 and gyro rad/s quantised as ArduPilot's, compass 0 in gauss) and SCALED_IMU2/3
+    (compasses 1, 2 in mgauss)."""
+    s = result.samples
+    t = s.t_s
     g = STANDARD_GRAVITY_M_S2
-    acc = np.round(s.accel_m_s2 / g * 1000.0) * g / 1000.0
-    gyro = np.round(s.gyro_rad_s * 1000.0) / 1000.0
+    gyro, acc = quantised_imu(result)
     mag = np.round(s.mag_mgauss).astype(np.int64)
-    t_us = np.round(t * 1e6).astype(np.int64)
-    t_ms = np.round(t * 1e3).astype(np.int64)
-    for i in _raw_imu_rows(result):
+    t_us, t_ms = _boot_us_ms(t)
+    events: list[Event] = []
+    for i in raw_imu_rows(result):
         a, w, m = acc[0, i], gyro[0, i], mag[0, i]
         events.append((float(t[i]), 1, apm.MAVLink_highres_imu_message(
             int(t_us[i]), *(float(v) for v in a), *(float(v) for v in w), *(float(v) * 1e-3 for v in m),
@@ -493,28 +364,42 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
             cls = apm.MAVLink_scaled_imu2_message if j == 1 else apm.MAVLink_scaled_imu3_message
             aj = np.round(s.accel_m_s2[j, i] / g * 1000.0).astype(np.int64)
             wj = np.round(s.gyro_rad_s[j, i] * 1000.0).astype(np.int64)
-            events.append((float(t[i]), 1 + j, cls(int(t_ms[i]), *(int(v) for v in aj), *(int(v) for v in wj),
-                                                   *(int(v) for v in mag[j, i]), 0)))  # fmt: skip
+            events.append((float(t[i]), 1 + j, cls(int(t_ms[i]), *_ints(aj, wj, mag[j, i]), 0)))
+    return events
+
+
+def _px4_attitude_output_events(apm: Any, result: SimResult) -> list[Event]:
+    """ATTITUDE_QUATERNION and ACTUATOR_OUTPUT_STATUS (PWM us; unused outputs 900)."""
+    from magcomp.core.rotations import quats_from_euler
+
+    cfg = result.config
+    s = result.samples
+    t, rates = s.t_s, cfg.rates
     att = s.attitude_rad
     q = quats_from_euler(att[:, 0], att[:, 1], att[:, 2])
-    rates_b = s.gyro_rad_s[0] - result.compasses[0].gyro_bias_rad_s
-    for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
+    rates_b = body_rates(result)
+    t_us, t_ms = _boot_us_ms(t)
+    events: list[Event] = []
+    for i in rate_indices(t.size, rates.imu_hz, rates.attitude_hz):
         qi, wi = (float(v) for v in q[i]), (float(v) for v in rates_b[i])
-        events.append(
-            (float(t[i]), 4, apm.MAVLink_attitude_quaternion_message(int(t_ms[i]), *qi, *wi, [0.0] * 4))
-        )
-    motors_pwm = _pwm(s.motors_01)
-    thr_pwm = _pwm(s.throttle_01)
-    for i in _rate_indices(n, rates.imu_hz, rates.servo_hz):
-        out = [900.0] * 32
-        if multirotor:
-            out[0:4] = [float(v) for v in motors_pwm[i, :4]]
-        else:
-            out[2] = float(thr_pwm[i])
+        msg = apm.MAVLink_attitude_quaternion_message(int(t_ms[i]), *qi, *wi, [0.0] * 4)
+        events.append((float(t[i]), 4, msg))
+    for i in rate_indices(t.size, rates.imu_hz, rates.servo_hz):
+        out = px4_outputs(result, int(i), 32)
         events.append((float(t[i]), 5, apm.MAVLink_actuator_output_status_message(int(t_us[i]), 0xFF, out)))
-    loc = cfg.location
+    return events
+
+
+def _px4_power_gps_events(apm: Any, result: SimResult) -> list[Event]:
+    """BATTERY_STATUS, GPS_RAW_INT (the flown track with ``gps`` on, else the home location) and SYSTEM_TIME
+    at power_hz."""
+    cfg = result.config
+    s = result.samples
+    t, rates, loc = s.t_s, cfg.rates, cfg.location
     start_unix = default_start_unix_s(result)
-    for i in _rate_indices(n, rates.imu_hz, rates.power_hz):
+    t_us, t_ms = _boot_us_ms(t)
+    events: list[Event] = []
+    for i in rate_indices(t.size, rates.imu_hz, rates.power_hz):
         mv = round(float(s.voltage_v[i]) * 1000.0)
         ca = round(float(s.current_a[i]) * 100.0)
         events.append((float(t[i]), 8, apm.MAVLink_battery_status_message(
@@ -532,6 +417,21 @@ def build_px4_messages(result: SimResult) -> list[tuple[float, int, Any]]:
         events.append((float(t[i]), 9, gps))
         unix_us = round((start_unix + float(t[i])) * 1e6)
         events.append((float(t[i]), 10, apm.MAVLink_system_time_message(unix_us, int(t_ms[i]) & 0xFFFFFFFF)))
+    return events
+
+
+def build_px4_messages(result: SimResult) -> list[Event]:
+    """The same vehicle as a PX4 autopilot sends it (MAV_AUTOPILOT_PX4): PARAM_VALUE PWM_MAIN_FUNCn/MINn/
+    MAXn and CAL_MAGn_ID; HIGHRES_IMU (imu_hz: accel m/s^2, gyro rad/s, compass 0 in gauss, fields_updated);
+    SCALED_IMU2/3 (compasses 1, 2 in mgauss); ATTITUDE_QUATERNION; ACTUATOR_OUTPUT_STATUS (PWM us);
+    BATTERY_STATUS; GPS_RAW_INT and SYSTEM_TIME (power_hz). Same quantisation as the ArduPilot stream."""
+    from pymavlink.dialects.v20 import ardupilotmega as apm
+
+    events = _param_events(apm, result, _px4_params(result.config.vehicle))
+    events += _heartbeat_events(apm, result, MAV_AUTOPILOT_PX4)
+    events += _px4_imu_events(apm, result)
+    events += _px4_attitude_output_events(apm, result)
+    events += _px4_power_gps_events(apm, result)
     events.sort(key=lambda e: (e[0], e[1]))
     return _apply_link_loss(events, result)
 

@@ -21,7 +21,7 @@ range is the pilot's stick range, not the ESC range).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 from magcomp.errors import InputError
@@ -86,10 +86,18 @@ def parse_throttle_source(text: str | ThrottleSpec) -> ThrottleSpec:
 
 def motor_channels(params: Mapping[str, float]) -> tuple[int, ...]:
     """Channels whose SERVOn_FUNCTION is a motor (33-40), ordered by motor number; () when unknown."""
+    return _motors_by_function(params, "SERVO{}_FUNCTION", 32, MOTOR_FUNCTIONS)
+
+
+def _motors_by_function(
+    params: Mapping[str, float], name: str, n_outputs: int, motor_functions: Collection[int]
+) -> tuple[int, ...]:
+    """Outputs 1..``n_outputs`` whose function parameter (``name`` with the output number) is one of
+    ``motor_functions``, ordered by function (motor number)."""
     found: list[tuple[float, int]] = []
-    for n in range(1, 33):
-        fn = params.get(f"SERVO{n}_FUNCTION")
-        if fn is not None and int(fn) in MOTOR_FUNCTIONS:
+    for n in range(1, n_outputs + 1):
+        fn = params.get(name.format(n))
+        if fn is not None and int(fn) in motor_functions:
             found.append((fn, n))
     return tuple(n for _, n in sorted(found))
 
@@ -197,12 +205,7 @@ PX4_MOTOR_FUNCTIONS = range(101, 113)  # PWM_MAIN_FUNCn / PWM_AUX_FUNCn Motor1..
 def px4_motor_channels(params: Mapping[str, float]) -> tuple[int, ...]:
     """Main outputs whose PWM_MAIN_FUNCn is a motor (101-112), ordered by motor number; () when unknown
     (PX4 before 1.13 has no output functions: its mixers put the motors of a multirotor on outputs 1..n)."""
-    found: list[tuple[float, int]] = []
-    for n in range(1, 17):
-        fn = params.get(f"PWM_MAIN_FUNC{n}")
-        if fn is not None and int(fn) in PX4_MOTOR_FUNCTIONS:
-            found.append((fn, n))
-    return tuple(n for _, n in sorted(found))
+    return _motors_by_function(params, "PWM_MAIN_FUNC{}", 16, PX4_MOTOR_FUNCTIONS)
 
 
 def px4_pwm_range(params: Mapping[str, float], channel: int) -> tuple[float, float]:

@@ -48,12 +48,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.gnss_time import decimal_year_from_unix
+from magcomp.adapters.param_values import finite_params
+from magcomp.adapters.quiet import quiet
 from magcomp.adapters.throttle import (
     ThrottleSpec,
     parse_throttle_source,
     px4_motor_channels,
     px4_pwm_range,
 )
+from magcomp.adapters.wire_samples import WireImuSample, WireMagSample
 from magcomp.core.identity import normal_uid
 from magcomp.core.px4 import px4_calibrated_mag
 from magcomp.core.types import (
@@ -144,13 +147,11 @@ def _parse_ulog(path: Path, shown: Path | None = None) -> Any:
         from pyulog import ULog
     except ImportError:  # pragma: no cover - a core dependency
         raise InputError("reading .ulg needs pyulog (pip install pyulog)") from None
-    from magcomp.adapters.mavlink_source import _quiet
-
     shown = shown or path
     try:
         if path.stat().st_size == 0:
             raise InputError(f"{shown}: empty file")
-        with _quiet(), path.open("rb") as f:  # our handle: closed even when pyulog raises
+        with quiet(), path.open("rb") as f:  # our handle: closed even when pyulog raises
             return ULog(f, message_name_filter_list=list(TOPICS))
     except OSError as exc:
         raise InputError(f"{shown}: cannot read ({exc.strerror or exc})") from None
@@ -196,6 +197,18 @@ def _cols(data: Mapping[str, Any], name: str, n: int) -> F64 | None:
         return np.column_stack([np.asarray(data[k], dtype=np.float64) for k in keys])
 
 
+def _topic_cols(
+    topics: dict[str, dict[int, dict[str, Any]]], topic: str, name: str, n: int
+) -> tuple[dict[str, Any], F64] | None:
+    """The first instance of ``topic`` and its array field ``name[0..n-1]`` as columns; None when the log
+    has neither."""
+    data = topics.get(topic, {}).get(0)
+    if data is None:
+        return None
+    cols = _cols(data, name, n)
+    return None if cols is None else (data, cols)
+
+
 def _t(data: Mapping[str, Any]) -> F64:
     with np.errstate(invalid="ignore", over="ignore"):
         return np.asarray(data["timestamp"], dtype=np.float64) * 1e-6
@@ -214,8 +227,6 @@ def read_ulog_tables(
     p = Path(path)
     counts: Counter[str] = Counter()
     ulog = _open_ulog(p, counts)
-    from magcomp.adapters.mavlink_source import finite_params
-
     params = finite_params({str(k): float(v) for k, v in ulog.initial_parameters.items()}, counts)
     changes = [(float(t) * 1e-6, str(k), float(v)) for t, k, v in ulog.changed_parameters]
     n_changes = len(changes)
@@ -313,12 +324,10 @@ def _read_mag(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
                 # PX4 already subtracted its own power compensation from this topic (not undone here)
                 tables.counts["px4_mag_comp_applied"] = 1
             return
-    sc = topics.get("sensor_combined", {}).get(0)
-    if sc is None:
+    combined = _topic_cols(topics, "sensor_combined", "magnetometer_ga", 3)
+    if combined is None:
         return
-    xyz = _cols(sc, "magnetometer_ga", 3)
-    if xyz is None:
-        return
+    sc, xyz = combined
     rel = np.asarray(sc.get("magnetometer_timestamp_relative", np.zeros(len(xyz))), dtype=np.int64)
     t = (np.asarray(sc["timestamp"], dtype=np.float64) + rel) * 1e-6
     keep = rel != RELATIVE_TIMESTAMP_INVALID
@@ -356,12 +365,10 @@ def _read_imu(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) 
 
 
 def _read_attitude(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any]]]) -> None:
-    att = topics.get("vehicle_attitude", {}).get(0)
-    if att is None:
+    found = _topic_cols(topics, "vehicle_attitude", "q", 4)
+    if found is None:
         return
-    q = _cols(att, "q", 4)
-    if q is None:
-        return
+    att, q = found
     from magcomp.core.rotations import euler_from_quats
 
     norm = np.linalg.norm(q, axis=1)
@@ -559,8 +566,6 @@ class UlogSource:
 
 
 def _imu_stream(t: F64, gyro: F64, acc: F64) -> Iterator[tuple[str, Sample]]:
-    from magcomp.adapters.mavlink_source import WireImuSample
-
     for ti, gi, ai in zip(t.tolist(), gyro.tolist(), acc.tolist(), strict=True):
         yield "imu", WireImuSample(ti, (gi[0], gi[1], gi[2]), (ai[0], ai[1], ai[2]), 0)
 
@@ -590,8 +595,6 @@ def _position_stream(
 
 
 def _mag_stream(topic: str, t: F64, xyz: F64, index: int) -> Iterator[tuple[str, Sample]]:
-    from magcomp.adapters.mavlink_source import WireMagSample
-
     for ti, xi in zip(t.tolist(), xyz.tolist(), strict=True):
         yield topic, WireMagSample(ti, (xi[0], xi[1], xi[2]), index)
 

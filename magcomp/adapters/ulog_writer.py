@@ -25,8 +25,16 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.adapters.files import write_file
+from magcomp.adapters.sim_log_rows import (
+    default_start_unix_s,
+    px4_motor_outputs,
+    px4_outputs,
+    quantised_imu,
+    rate_indices,
+)
 
 if TYPE_CHECKING:
     from magcomp.sim.simulate import SimResult
@@ -154,6 +162,9 @@ def _sensor_frames(w: UlogWriter, n_mag: int) -> list[tuple[Any, Any]]:
     return out
 
 
+UlogEvent = tuple[int, int, str, int, list[Any]]
+
+
 def write_sim_ulog(
     result: SimResult,
     path: str | os.PathLike[str],
@@ -171,22 +182,40 @@ def write_sim_ulog(
     (SENS_BOARD_ROT 2, CAL_MAG0_ROT -1), the others external and rolled 180 deg (CAL_MAGn_ROT 8), each with
     its CAL_MAGn_OFF offsets added (``vehicle_magnetometer`` stays in the body frame, calibrated).
     """
-    from magcomp.adapters.mavlink_emit import _pwm, _rate_indices, default_start_unix_s
-    from magcomp.core.rotations import quats_from_euler
-
     if mag_topic not in ("sensor_mag", "vehicle_magnetometer", "both"):
         raise ValueError(f"mag_topic {mag_topic!r}: sensor_mag, vehicle_magnetometer or both")
-    cfg = result.config
-    s = result.samples
-    rates = cfg.rates
-    n = s.t_s.size
-    t_us = np.round(s.t_s * 1e6).astype(np.int64)
+    t_us = np.round(result.samples.t_s * 1e6).astype(np.int64)
     start_unix = default_start_unix_s(result) if start_unix_s is None else float(start_unix_s)
-    multirotor = cfg.vehicle == "multirotor"
-    n_mag = s.mag_mgauss.shape[0]
-
+    n_mag = result.samples.mag_mgauss.shape[0]
     w = UlogWriter(start_us=int(t_us[0]))
     mag_topics = ("sensor_mag", "vehicle_magnetometer") if mag_topic == "both" else (mag_topic,)
+    _define_topics(w, mag_topics)
+    w.info("sys_name", "PX4")
+    w.info("ver_hw", "MAGCOMP_SIM")
+    w.info("sys_uuid", result.config.uid)
+    for j in range(n_mag):
+        w.param(f"CAL_MAG{j}_ID", MAG_DEVICE_IDS[j], is_int=True)
+    raw_frame = _sensor_frames(w, n_mag) if sensor_frame else None
+    motor_channels = px4_motor_outputs(result.config.vehicle)
+    for ch in range(1, 9):
+        w.param(f"PWM_MAIN_FUNC{ch}", PX4_FN_MOTOR1 + motor_channels.index(ch) if ch in motor_channels else 0,
+                is_int=True)  # fmt: skip
+        w.param(f"PWM_MAIN_MIN{ch}", 1000, is_int=True)
+        w.param(f"PWM_MAIN_MAX{ch}", 2000, is_int=True)
+    w.param("CA_ROTOR_COUNT", len(motor_channels), is_int=True)
+    # every message with its time and a tie order like the tlog twin's (compass 0 with the IMU first)
+    vtype = 1 if result.config.vehicle == "multirotor" else 2
+    events: list[UlogEvent] = [(int(t_us[0]), -1, "vehicle_status", 0, [int(t_us[0]), vtype, 2])]
+    events += _sensor_events(result, t_us, mag_topics, raw_frame)
+    events += _attitude_output_events(result, t_us)
+    events += _power_gps_events(result, t_us, start_unix)
+    events.sort(key=lambda e: (e[0], e[1]))
+    for _, _, name, multi, values in events:
+        w.data(name, multi, values)
+    return w.write(path)
+
+
+def _define_topics(w: UlogWriter, mag_topics: tuple[str, ...]) -> None:
     if "sensor_mag" in mag_topics:
         w.topic("sensor_mag", [("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"), ("float", "x"),
                                ("float", "y"), ("float", "z"), ("float", "temperature"),
@@ -207,36 +236,21 @@ def write_sim_ulog(
     w.topic("vehicle_gps_position", [("uint64_t", "time_utc_usec"), ("int32_t", "lat"), ("int32_t", "lon"),
                                      ("int32_t", "alt"), ("uint8_t", "fix_type")])  # fmt: skip
     w.topic("vehicle_status", [("uint8_t", "vehicle_type"), ("uint8_t", "arming_state")])
-    w.info("sys_name", "PX4")
-    w.info("ver_hw", "MAGCOMP_SIM")
-    w.info("sys_uuid", result.config.uid)
-    for j in range(n_mag):
-        w.param(f"CAL_MAG{j}_ID", MAG_DEVICE_IDS[j], is_int=True)
-    raw_frame = _sensor_frames(w, n_mag) if sensor_frame else None
-    motor_channels = (1, 2, 3, 4) if multirotor else (3,)
-    for ch in range(1, 9):
-        w.param(f"PWM_MAIN_FUNC{ch}", PX4_FN_MOTOR1 + motor_channels.index(ch) if ch in motor_channels else 0,
-                is_int=True)  # fmt: skip
-        w.param(f"PWM_MAIN_MIN{ch}", 1000, is_int=True)
-        w.param(f"PWM_MAIN_MAX{ch}", 2000, is_int=True)
-    w.param("CA_ROTOR_COUNT", len(motor_channels), is_int=True)
 
-    # the tlog twin's quantisation: gyro 1 mrad/s, accel 1 mG, mag 1 mgauss, PWM 1 us
-    g = 9.80665
-    gyro = np.round(s.gyro_rad_s[0] * 1000.0) / 1000.0
-    acc = np.round(s.accel_m_s2[0] / g * 1000.0) * g / 1000.0
+
+def _sensor_events(
+    result: SimResult, t_us: NDArray[np.int64], mag_topics: tuple[str, ...], raw_frame: Any
+) -> list[UlogEvent]:
+    """sensor_combined (IMU 0) and the compasses at the loop rate, at the tlog twin's quantisation (gyro
+    1 mrad/s, accel 1 mG, mag 1 mgauss)."""
+    s = result.samples
+    gyro, acc = (v[0] for v in quantised_imu(result))
     mag_ga = np.round(s.mag_mgauss) / 1000.0
-    att = s.attitude_rad
-    q = quats_from_euler(att[:, 0], att[:, 1], att[:, 2])
-    pwm_motor = _pwm(s.motors_01)
-    pwm_thr = _pwm(s.throttle_01)
-    # every message with its time and a tie order like the tlog twin's (compass 0 with the IMU first)
-    events: list[tuple[int, int, str, int, list[Any]]] = []
-    events.append((int(t_us[0]), -1, "vehicle_status", 0, [int(t_us[0]), 1 if multirotor else 2, 2]))
-    for i in range(n):
+    events: list[UlogEvent] = []
+    for i in range(s.t_s.size):
         ti = int(t_us[i])
         events.append((ti, 1, "sensor_combined", 0, [ti, *gyro[i], 0, 0, *acc[i], 0]))
-        for j in range(n_mag):
+        for j in range(mag_ga.shape[0]):
             m = mag_ga[j, i]
             if "sensor_mag" in mag_topics:
                 r = m if raw_frame is None else raw_frame[j][0] @ m + raw_frame[j][1]
@@ -245,18 +259,31 @@ def write_sim_ulog(
             if "vehicle_magnetometer" in mag_topics:
                 values = [ti, ti, MAG_DEVICE_IDS[j], m[0], m[1], m[2], 0]
                 events.append((ti, 1 + j, "vehicle_magnetometer", j, values))
-    for i in _rate_indices(n, rates.imu_hz, rates.attitude_hz):
+    return events
+
+
+def _attitude_output_events(result: SimResult, t_us: NDArray[np.int64]) -> list[UlogEvent]:
+    from magcomp.core.rotations import quats_from_euler
+
+    rates = result.config.rates
+    att = result.samples.attitude_rad
+    q = quats_from_euler(att[:, 0], att[:, 1], att[:, 2])
+    events: list[UlogEvent] = []
+    for i in rate_indices(t_us.size, rates.imu_hz, rates.attitude_hz):
         ti = int(t_us[i])
         events.append((ti, 4, "vehicle_attitude", 0, [ti, ti, *q[i]]))
-    for i in _rate_indices(n, rates.imu_hz, rates.servo_hz):
-        out = [900.0] * 16
-        if multirotor:
-            out[0:4] = [float(v) for v in pwm_motor[i, :4]]
-        else:
-            out[2] = float(pwm_thr[i])
+    for i in rate_indices(t_us.size, rates.imu_hz, rates.servo_hz):
+        out = px4_outputs(result, int(i), 16)
         events.append((int(t_us[i]), 5, "actuator_outputs", 0, [int(t_us[i]), 8, *out]))
-    loc = cfg.location
-    for i in _rate_indices(n, rates.imu_hz, rates.power_hz):
+    return events
+
+
+def _power_gps_events(result: SimResult, t_us: NDArray[np.int64], start_unix: float) -> list[UlogEvent]:
+    """battery_status and vehicle_gps_position (the home location, a 3D fix) at power_hz."""
+    s = result.samples
+    rates, loc = result.config.rates, result.config.location
+    events: list[UlogEvent] = []
+    for i in rate_indices(t_us.size, rates.imu_hz, rates.power_hz):
         ti = int(t_us[i])
         volt = round(float(s.voltage_v[i]) * 1000.0) / 1000.0
         curr = round(float(s.current_a[i]) * 100.0) / 100.0
@@ -271,7 +298,4 @@ def write_sim_ulog(
             3,
         ]
         events.append((ti, 9, "vehicle_gps_position", 0, gps))
-    events.sort(key=lambda e: (e[0], e[1]))
-    for _, _, name, multi, values in events:
-        w.data(name, multi, values)
-    return w.write(path)
+    return events

@@ -216,7 +216,10 @@ def _raw_log(path: str) -> Iterator[Any]:
     :func:`quiet_recv`."""
     from pymavlink import mavutil
 
-    from magcomp.adapters.mavlink_source import _Counts, _dataflash_repaired, _quiet, _quiet_c_streams
+    from magcomp.adapters.mavlink_source import Counts as _Counts
+    from magcomp.adapters.mavlink_source import dataflash_repaired as _dataflash_repaired
+    from magcomp.adapters.mavlink_source import quiet as _quiet
+    from magcomp.adapters.mavlink_source import quiet_c_streams as _quiet_c_streams
 
     repaired = _dataflash_repaired(Path(path), _Counts()) if Path(path).suffix.lower() == ".bin" else None
     try:
@@ -239,7 +242,7 @@ def _raw_log(path: str) -> Iterator[Any]:
 
 def quiet_recv(m: Any, types: list[str]) -> Any:
     """``m.recv_match(type=types)`` with pymavlink's prints kept off the terminal."""
-    from magcomp.adapters.mavlink_source import _quiet
+    from magcomp.adapters.mavlink_source import quiet as _quiet
 
     with _quiet():
         return m.recv_match(type=types)

@@ -7,6 +7,8 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from magcomp.commands import options
+
 if TYPE_CHECKING:
     from magcomp.adapters.config import Config
     from magcomp.service.replay import ReplayReport
@@ -23,12 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "log", metavar="LOG", help=".tlog, raw MAVLink, ArduPilot DataFlash .bin/.log, or PX4 .ulg"
     )
     parser.add_argument("--emit", metavar="OUT.tlog", help="write every published MAGCOMP_HEADING to a tlog")
-    parser.add_argument("--json", metavar="SUMMARY.json", help="write a JSON summary: counts, theta")
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
-    parser.add_argument(
-        "--state-dir",
-        metavar="DIR",
-        help="load and save calibration and theta here (default: none; a replay starts fresh)",
+    options.add_json(parser, "write a JSON summary: counts, theta")
+    options.add_config(parser)
+    options.add_state_dir(
+        parser, "load and save calibration and theta here (default: none; a replay starts fresh)"
     )
     parser.add_argument(
         "--causal",
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="one pass, exactly what the live daemon would have published (default without --state-dir: "
         "learn from the whole log first, then replay from the state it ends with)",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    options.add_verbose(parser)
     add_rerun_argument(parser)
 
 
@@ -67,6 +67,7 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import discard_viz, open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
+    from magcomp.adapters.tlog_split import several_vehicles
     from magcomp.errors import InputError
     from magcomp.service.console import (
         check_distinct_outputs,
@@ -100,7 +101,11 @@ def execute(args: argparse.Namespace) -> int:
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     viewer = _ViewerBlocks(viz, primary_compass(cfg.input.compasses)) if viz is not None else None
     try:
-        report = _run(args, cfg, store, viewer, lambda: bool(stop_signals))
+        vehicles = several_vehicles(args.log)
+        if vehicles:
+            reports = _run_vehicles(args, cfg, store, viewer, lambda: bool(stop_signals), vehicles)
+        else:
+            reports = [_run(args, cfg, store, viewer, lambda: bool(stop_signals))]
     except BaseException:
         if viz is not None:
             discard_viz(viz)  # the log could not be read: no recording of nothing left behind
@@ -108,15 +113,16 @@ def execute(args: argparse.Namespace) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-    no_mag = not report.summary["counts"].get("mag")
-    if viz is not None and no_mag and not report.interrupted:
+    no_mag = not any(r.summary["counts"].get("mag") for r in reports)
+    interrupted = any(r.interrupted for r in reports)
+    if viz is not None and no_mag and not interrupted:
         discard_viz(viz)
         viz = None
-    if viz is not None and not report.interrupted:
+    if viz is not None and not interrupted:
         serve_until_interrupt(viz, lambda m: print(m, flush=True))
     if viz is not None:
         viz.close()
-    if report.interrupted:
+    if interrupted:
         if stop_signals and stop_signals[0] == signal.SIGTERM:
             return 128 + signal.SIGTERM  # asked to stop: partial results written, the usual exit code
         raise KeyboardInterrupt  # the CLI's one line and exit code 130, after the partial results
@@ -126,8 +132,9 @@ def execute(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, cfg: Config, store: Any, viewer: _ViewerBlocks | None,
-         should_stop: Any) -> ReplayReport:  # fmt: skip
-    """The replay with a progress bar, then the summary (printed, --json, the viewer's extras)."""
+         should_stop: Any, shown: tuple[str, str | None] | None = None) -> ReplayReport:  # fmt: skip
+    """The replay with a progress bar, then the summary (printed, --json, the viewer's extras). ``shown``:
+    the log and --emit names printed (default: args.log and args.emit)."""
     from magcomp.service.console import Progress
     from magcomp.service.replay import replay_log
 
@@ -155,11 +162,13 @@ def _run(args: argparse.Namespace, cfg: Config, store: Any, viewer: _ViewerBlock
                             two_pass=not args.causal and store is None)  # fmt: skip
     if viewer is not None:
         viewer.flush()
-    return _finish(args, report, cfg, viewer.viz if viewer is not None else None, texts)
+    log_name, emit_name = shown if shown is not None else (args.log, args.emit)
+    return _finish(args, report, cfg, viewer.viz if viewer is not None else None, texts, log_name, emit_name)
 
 
 def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: Any,
-            texts: list[tuple[float, str]]) -> ReplayReport:  # fmt: skip
+            texts: list[tuple[float, str]], log_name: str, emit_name: str | None,
+            ) -> ReplayReport:  # fmt: skip
     """Print the summary and write --json; hand the estimates to the viewer."""
     from magcomp.service.console import (
         SKIP_KEYS,
@@ -173,7 +182,7 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
     counts = report.counts
     passes = report.summary.get("passes", 1)
     how = "two passes: learned from the whole log, then replayed" if passes == 2 else "one pass, causal"
-    print(f"{args.log}: {report.n_estimates} headings in {report.wall_s:.2f} s ({how})")
+    print(f"{log_name}: {report.n_estimates} headings in {report.wall_s:.2f} s ({how})")
     for line in summary_lines(report.summary):
         print(line)
     earth = earth_field_line(report.summary)
@@ -187,10 +196,10 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
             print(f"interrupted: the summary covers the log up to {report.t_last_s:.1f} s", flush=True)
         else:  # stopped in the first pass (it reads the whole log before any heading) or before any sample
             print("interrupted before the first heading: nothing to report", flush=True)
-    if args.emit and report.emitted == 0:  # (the tlog writer leaves the path as it was)
-        print(f"nothing written to {args.emit}")
-    elif args.emit:
-        print(f"wrote {report.emitted} MAGCOMP_HEADING to {args.emit}")
+    if emit_name and report.emitted == 0:  # (the tlog writer leaves the path as it was)
+        print(f"nothing written to {emit_name}")
+    elif emit_name:
+        print(f"wrote {report.emitted} MAGCOMP_HEADING to {emit_name}")
     if args.json:
         write_json(args.json, report.to_json())
     if viz is not None:
@@ -200,3 +209,44 @@ def _finish(args: argparse.Namespace, report: ReplayReport, cfg: Config, viz: An
         for t, m in texts:
             viz.log_text(t, m)
     return report
+
+
+def _run_vehicles(args: argparse.Namespace, cfg: Config, store: Any, viewer: _ViewerBlocks | None,
+                  should_stop: Any, vehicles: list[tuple[int, int]]) -> list[ReplayReport]:  # fmt: skip
+    """A log of several vehicles: each sender's frames replayed on their own, as ``run`` follows each one
+    live (:mod:`magcomp.adapters.tlog_split`), with the state of each in the state directory. --emit gets
+    every vehicle's MAGCOMP_HEADING merged in time order, --json one summary per vehicle, the viewer the
+    first vehicle's estimates."""
+    import tempfile
+
+    from magcomp.adapters.tlog_split import merge_tlogs, split_by_vehicle
+    from magcomp.service.console import write_json
+
+    names = ", ".join(f"system {s} component {c}" for s, c in vehicles)
+    print(f"{args.log}: {len(vehicles)} vehicles ({names}), each replayed on its own", flush=True)
+    reports: list[ReplayReport] = []
+    emits: list[Path] = []
+    docs: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="magcomp-vehicles-") as tmp:
+        for (system, component), part in split_by_vehicle(args.log, tmp, vehicles).items():
+            one = argparse.Namespace(**vars(args))
+            one.log, one.json = str(part), None
+            one.emit = str(Path(tmp) / f"emit.sys{system}.comp{component}.tlog") if args.emit else None
+            label = f"{args.log} (system {system} component {component})"
+            report = _run(one, cfg, store, viewer if not reports else None, should_stop, (label, None))
+            reports.append(report)
+            docs.append({**report.to_json(), "log": args.log, "system_id": system, "component_id": component})
+            if one.emit is not None and Path(one.emit).exists():
+                emits.append(Path(one.emit))
+            if report.interrupted:
+                break
+        if args.emit:
+            n = sum(r.emitted for r in reports)
+            if merge_tlogs(emits, Path(args.emit)):
+                print(f"wrote {n} MAGCOMP_HEADING of {len(reports)} vehicles to {args.emit}")
+            else:
+                print(f"nothing written to {args.emit}")
+    if args.json:
+        write_json(args.json, {"log": args.log, "vehicles": docs})
+    return reports
+

@@ -3,6 +3,14 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING, Any
+
+from magcomp.commands import options
+
+if TYPE_CHECKING:
+    from magcomp.adapters.rerun_viz import Viz
+    from magcomp.adapters.state_store import StateStore
+    from magcomp.service.daemon import Daemon, DaemonReport
 
 MAX_DURATION_S = 1e8  # about three years; longer overflows the platform's timer
 
@@ -21,11 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", action="append", default=[], metavar="URL", help="also publish on this link (repeatable)"
     )
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
-    parser.add_argument(
-        "--state-dir",
-        metavar="DIR",
-        help="calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)",
+    options.add_config(parser)
+    options.add_state_dir(
+        parser, "calibration and theta per vehicle and compass (default: $XDG_STATE_HOME/magcomp)"
     )
     parser.add_argument(
         "--signing-key",
@@ -33,11 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="MAVLink 2 signing: sign what is sent and read only frames signed with this key (32 bytes, "
         "64 hex digits or a passphrase)",
     )
-    parser.add_argument("--json", metavar="SUMMARY.json", help="write a summary when the run ends")
+    options.add_json(parser, "write a summary when the run ends")
     parser.add_argument(
         "--duration", type=float, metavar="S", help="stop after S seconds (default: run until ^C)"
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug log lines")
+    options.add_verbose(parser)
     add_rerun_argument(parser)
 
 
@@ -65,18 +71,9 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.adapters.config import load_config
     from magcomp.adapters.rerun_viz import open_viz
     from magcomp.adapters.state_store import StateStore
-    from magcomp.core.types import HeadingEstimate, PowerSample
     from magcomp.errors import InputError
-    from magcomp.service.console import (
-        check_output_path,
-        default_state_dir,
-        earth_field_line,
-        primary_compass,
-        setup_logging,
-        summary_lines,
-        write_json,
-    )
-    from magcomp.service.daemon import Daemon, check_link_url
+    from magcomp.service.console import check_output_path, default_state_dir, setup_logging, write_json
+    from magcomp.service.daemon import check_link_url
 
     if args.duration is not None and not 0 < args.duration <= MAX_DURATION_S:
         raise InputError(f"--duration must be in (0, {MAX_DURATION_S:.0f}] s, got {args.duration:g}")
@@ -90,26 +87,10 @@ def execute(args: argparse.Namespace) -> int:
     viz = open_viz(args.rerun, live=True, recording_name="magcomp run")
     if viz.notice:
         print(viz.notice, flush=True)
-    primary = primary_compass(cfg.input.compasses)
     hint = feed_hint(args.master)
     if hint is not None:
         print(hint, flush=True)
-
-    def show(est: HeadingEstimate) -> None:
-        if est.mag_index == primary:
-            viz.log_estimate(est)
-
-    def power(s: PowerSample) -> None:
-        if s.battery_index == 0:  # beside the throttle, which comes with the estimates
-            viz.log_power(s.t_s, float("nan"), s.current_a, s.voltage_v)
-
-    key = None
-    if args.signing_key:
-        from magcomp.adapters.signing import read_signing_key
-
-        key = read_signing_key(args.signing_key)
-    daemon = Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text,
-                    on_power=power, signing_key=key)  # fmt: skip
+    daemon = _daemon(args, cfg, store, viz)
 
     def on_signal(signum: int, frame: object) -> None:
         daemon.request_stop()  # a flag only: a second signal during the first cannot deadlock
@@ -128,17 +109,7 @@ def execute(args: argparse.Namespace) -> int:
             if timer is not None:
                 timer.cancel()
             viz.close()
-        for line in summary_lines(report.summary):
-            print(line)
-        earth = earth_field_line(report.summary)
-        if earth is not None:
-            print(earth)
-        foreign = report.source_counts.get("foreign_datagrams", 0)
-        if foreign:
-            print(f"ignored {foreign} datagrams from addresses other than the flight controller's")
-        lat = report.latency_ms
-        if lat:
-            print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
+        _print_report(report)
         if args.json:
             write_json(args.json, report.to_json())
     finally:
@@ -147,3 +118,45 @@ def execute(args: argparse.Namespace) -> int:
     if report.connects == 0:
         raise InputError(f"never connected to {args.master}: {daemon.last_error or 'no link'}")
     return 0
+
+
+def _daemon(args: argparse.Namespace, cfg: Any, store: StateStore, viz: Viz) -> Daemon:
+    """The daemon of ``run``: the primary compass's estimates and battery 0's power to the viewer."""
+    from magcomp.core.types import HeadingEstimate, PowerSample
+    from magcomp.service.console import primary_compass
+    from magcomp.service.daemon import Daemon
+
+    primary = primary_compass(cfg.input.compasses)
+
+    def show(est: HeadingEstimate) -> None:
+        if est.mag_index == primary:
+            viz.log_estimate(est)
+
+    def power(s: PowerSample) -> None:
+        if s.battery_index == 0:  # beside the throttle, which comes with the estimates
+            viz.log_power(s.t_s, float("nan"), s.current_a, s.voltage_v)
+
+    key = None
+    if args.signing_key:
+        from magcomp.adapters.signing import read_signing_key
+
+        key = read_signing_key(args.signing_key)
+    return Daemon(args.master, cfg, outs=args.out, store=store, on_estimate=show, on_text=viz.log_text,
+                  on_power=power, signing_key=key)  # fmt: skip
+
+
+def _print_report(report: DaemonReport) -> None:
+    """The end of a run on the console: the summary, the Earth field, foreign datagrams and latency."""
+    from magcomp.service.console import earth_field_line, summary_lines
+
+    for line in summary_lines(report.summary):
+        print(line)
+    earth = earth_field_line(report.summary)
+    if earth is not None:
+        print(earth)
+    foreign = report.source_counts.get("foreign_datagrams", 0)
+    if foreign:
+        print(f"ignored {foreign} datagrams from addresses other than the flight controller's")
+    lat = report.latency_ms
+    if lat:
+        print(f"latency sample -> MAGCOMP_HEADING: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")

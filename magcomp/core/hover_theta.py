@@ -8,7 +8,14 @@ item 3) and theta is fitted alone, by linear least squares, with the Earth field
 
     m_b(t) = R_nb(t)^T e_n + theta * throttle(t)^2 + noise          (eq. (11) with eq. (2) the identity)
 
-R_nb from the autopilot's roll, pitch and yaw; e_n (3) and theta (3) are the six unknowns. Departure from
+R_nb from the autopilot's roll, pitch and yaw; e_n (3) and theta (3) are the six unknowns. A second form
+adds a change d (3) of the autopilot's hard-iron offsets (``m_b - d``, eq. (2) with L = I), under a prior of
+OFFSET_PRIOR_SD_MGAUSS: where the autopilot's calibration is off (a battery or payload moved since, a
+calibration accepted at its fit limit), theta alone cannot take the heading error that turns with the yaw.
+Either form moves the heading's constant part by what the flight cannot tell from the Earth field (a hover
+hardly turns): :func:`anchored` gives the heading offset that keeps the mean heading the autopilot's own, as
+the live path anchors its constant part (service/heading.py; a rotation of the field about the body z axis
+would not do: with the vehicle tilted it mixes the vertical field into the heading). Departure from
 the paper's eqs. (12)-(15): no DPI calibration first, no observer; one batch solve. Where the autopilot's yaw
 is fused from this compass it carries part of the bias; the throttle moves faster (seconds) than the
 autopilot pulls its yaw to the compass (a minute or more, docs/real-flights.md), so the fit still sees
@@ -20,7 +27,7 @@ Pure numpy; fields in mgauss, angles in rad.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +36,12 @@ from magcomp.core.rotations import dcms_from_quats, quats_from_euler
 
 F64 = NDArray[np.float64]
 
+#: prior sd (mgauss, per axis) of a change of the autopilot's hard-iron offsets since its calibration:
+#: ArduPilot accepts a calibration whose sphere fit leaves up to COMPASS_CAL_FIT (16 mgauss by default) rms,
+#: so its offsets are uncertain by a few times that, and a battery or payload moved since adds tens of mgauss.
+#: 60 is 12 % of a 500 mgauss field; the development logs' result is the same for 40 and 100
+#: (docs/real-flights.md)
+OFFSET_PRIOR_SD_MGAUSS = 60.0
 #: below this standard deviation of throttle^2 the bias hardly changes (a 0.05 swing around hover at 0.5 is
 #: 0.05 of throttle^2): theta is not separable from the Earth field's constant part
 MIN_THROTTLE2_STD = 0.01
@@ -42,6 +55,34 @@ class HoverTheta:
     theta_sigma_mgauss: F64
     residual_rms_mgauss: float
     n: int
+    #: the change of the autopilot's hard-iron offsets (zeros in the theta-only form), mgauss
+    offset_mgauss: F64 = field(default_factory=lambda: np.zeros(3))
+    #: subtracted from the heading of the corrected field (rad): the mean heading stays the autopilot's own
+    #: (:func:`anchored`)
+    anchor_rad: float = 0.0
+
+    def corrected_mgauss(self, field_b_mgauss: F64, throttle_01: F64) -> F64:
+        """Eq. (11) with this fit: ``m_b - d - theta throttle^2``, (n, 3) mgauss."""
+        d2 = np.asarray(throttle_01, dtype=float) ** 2
+        u = np.asarray(field_b_mgauss, dtype=float) - self.offset_mgauss - d2[:, None] * self.theta_mgauss
+        return np.asarray(u)
+
+    def coeffs(self) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+        """(L and d of eq. (2) as 12 floats, theta) that give :meth:`corrected_mgauss` as
+        ``L m - d - theta t^2``: L = I, d the offsets' change."""
+        th = self.theta_mgauss.tolist()
+        identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+        return (*identity, *self.offset_mgauss.tolist()), (th[0], th[1], th[2])
+
+
+def anchored(fit: HoverTheta, baseline_heading_rad: F64, candidate_heading_rad: F64) -> HoverTheta:
+    """``fit`` with the anchor that removes the circular mean of ``candidate - baseline`` (the headings of
+    the same samples, the candidate without anchor): the flight cannot tell the heading's constant part."""
+    d = np.asarray(candidate_heading_rad, dtype=float) - np.asarray(baseline_heading_rad, dtype=float)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return fit
+    return replace(fit, anchor_rad=math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d)))))
 
 
 def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:
@@ -49,27 +90,105 @@ def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:
     return np.asarray(dcms_from_quats(quats_from_euler(roll_rad, pitch_rad, yaw_rad)).transpose(0, 2, 1))
 
 
+class HoverNormal:
+    """The normal equations of the module's model, unknowns x = (e_n, theta, d) (9), accumulated one block
+    of samples at a time: the batch fit (:func:`fit_hover_theta`) adds a whole log at once, the live path
+    (service/heading.py) blocks of samples as they come; both solve with :meth:`fit`. A sample's rows are
+    ``A_i = [R_nb^T, throttle^2 I, I]`` (3 x 9), so ``sum A_i^T A_i`` needs only the sums of R_nb, of
+    throttle^2 R_nb, of throttle^2 and throttle^4 and the count (R_nb R_nb^T = I)."""
+
+    __slots__ = ("_ata", "_aty", "_d2", "_d4", "_yty", "n")
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._ata = np.zeros((9, 9))
+        self._aty = np.zeros(9)
+        self._yty = 0.0
+        self._d2 = 0.0
+        self._d4 = 0.0
+
+    def add(self, field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_rad: F64, throttle_01: F64) -> None:
+        """A block of samples ((n, 3) field as the autopilot had it, attitude and throttle (n,)); samples
+        with a non-finite value are left out."""
+        m = np.asarray(field_b_mgauss, dtype=float).reshape(-1, 3)
+        d2 = np.asarray(throttle_01, dtype=float) ** 2
+        roll, pitch, yaw = (np.asarray(v, dtype=float) for v in (roll_rad, pitch_rad, yaw_rad))
+        ok = np.isfinite(m).all(axis=1) & np.isfinite(d2) & np.isfinite(roll) & np.isfinite(pitch)
+        ok &= np.isfinite(yaw)
+        if not ok.any():
+            return
+        m, d2 = m[ok], d2[ok]
+        r_nb = body_from_nav(roll[ok], pitch[ok], yaw[ok]).transpose(0, 2, 1)  # (n, 3, 3)
+        k = int(ok.sum())
+        s_r = r_nb.sum(axis=0)
+        s_dr = np.einsum("n,nij->ij", d2, r_nb)
+        s_d2, s_d4 = float(d2.sum()), float(d2 @ d2)
+        eye = np.eye(3)
+        n_ = self._ata
+        n_[0:3, 0:3] += k * eye
+        n_[0:3, 3:6] += s_dr
+        n_[0:3, 6:9] += s_r
+        n_[3:6, 0:3] += s_dr.T
+        n_[6:9, 0:3] += s_r.T
+        n_[3:6, 3:6] += s_d4 * eye
+        n_[3:6, 6:9] += s_d2 * eye
+        n_[6:9, 3:6] += s_d2 * eye
+        n_[6:9, 6:9] += k * eye
+        self._aty[0:3] += np.einsum("nij,nj->i", r_nb, m)
+        self._aty[3:6] += d2 @ m
+        self._aty[6:9] += m.sum(axis=0)
+        self._yty += float(np.einsum("ni,ni->", m, m))
+        self._d2 += s_d2
+        self._d4 += s_d4
+        self.n += k
+
+    def throttle2_std(self) -> float:
+        """Standard deviation of throttle^2 over the samples added."""
+        if self.n == 0:
+            return 0.0
+        mean = self._d2 / self.n
+        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
+
+    def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
+        """The least-squares theta (see :func:`fit_hover_theta`); None where throttle^2 hardly varies (see
+        MIN_THROTTLE2_STD) or there are fewer samples than twice the unknowns."""
+        n = self.n
+        if n < 12 or self.throttle2_std() < MIN_THROTTLE2_STD:
+            return None
+        a6, b6 = self._ata[:6, :6], self._aty[:6]
+        x6, s2, cov6 = _solve(a6, b6, self._yty, 3 * n - 6)
+        if offset_sd_mgauss is None:
+            return HoverTheta(x6[3:].copy(), np.sqrt(np.maximum(np.diag(cov6)[3:], 0.0)), math.sqrt(s2), n)
+        prior = np.zeros((9, 9))
+        prior[6:, 6:] = np.eye(3) * (s2 / offset_sd_mgauss**2)  # weighed by the theta-only residual's scale
+        x9, s29, cov9 = _solve(self._ata + prior, self._aty, self._yty, 3 * n - 9, self._ata)
+        sd9 = np.sqrt(np.maximum(np.diag(cov9)[3:6], 0.0))
+        return HoverTheta(x9[3:6].copy(), sd9, math.sqrt(s29), n, x9[6:9].copy())
+
+
+def _solve(ata: F64, aty: F64, yty: float, dof: int, data_ata: F64 | None = None) -> tuple[F64, float, F64]:
+    """(x, residual variance, covariance) of the normal equations ``ata x = aty``; the residual over the
+    data rows only (``data_ata``: their part of ``ata`` where a prior was added)."""
+    inv = np.linalg.pinv(ata)
+    x = inv @ aty
+    d = ata if data_ata is None else data_ata
+    sse = max(yty - 2.0 * float(x @ aty) + float(x @ d @ x), 0.0)
+    s2 = sse / max(dof, 1)
+    return x, s2, np.asarray(s2 * inv, dtype=float)
+
+
 def fit_hover_theta(
-    field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_rad: F64, throttle_01: F64
+    field_b_mgauss: F64,
+    roll_rad: F64,
+    pitch_rad: F64,
+    yaw_rad: F64,
+    throttle_01: F64,
+    offset_sd_mgauss: float | None = None,
 ) -> HoverTheta | None:
-    """The least-squares theta of the module's model; None where throttle^2 hardly varies (see
-    MIN_THROTTLE2_STD) or there are fewer samples than twice the unknowns."""
-    m = np.asarray(field_b_mgauss, dtype=float)
-    d2 = np.asarray(throttle_01, dtype=float) ** 2
-    ok = np.isfinite(m).all(axis=1) & np.isfinite(d2) & np.isfinite(roll_rad) & np.isfinite(pitch_rad)
-    ok &= np.isfinite(yaw_rad)
-    n = int(ok.sum())
-    if n < 12 or float(np.std(d2[ok])) < MIN_THROTTLE2_STD:
-        return None
-    r = body_from_nav(roll_rad[ok], pitch_rad[ok], yaw_rad[ok])  # (n, 3, 3)
-    a = np.zeros((3 * n, 6))
-    a[:, :3] = r.reshape(3 * n, 3)  # rows of R^T: body axis k of sample i is row 3 i + k
-    eye = np.tile(np.eye(3), (n, 1))
-    a[:, 3:] = eye * np.repeat(d2[ok], 3)[:, None]
-    y = m[ok].reshape(3 * n)
-    x, *_ = np.linalg.lstsq(a, y, rcond=None)
-    res = y - a @ x
-    dof = max(3 * n - 6, 1)
-    s2 = float(res @ res) / dof
-    cov = s2 * np.linalg.pinv(a.T @ a)
-    return HoverTheta(x[3:].copy(), np.sqrt(np.maximum(np.diag(cov)[3:], 0.0)), math.sqrt(s2), n)
+    """The least-squares theta of the module's model over a whole log (:class:`HoverNormal` with every
+    sample); None where throttle^2 hardly varies (see MIN_THROTTLE2_STD) or there are fewer samples than
+    twice the unknowns. With ``offset_sd_mgauss`` the second form: a change of the hard-iron offsets too,
+    under that prior (weighed by the residual's scale of the theta-only fit)."""
+    acc = HoverNormal()
+    acc.add(field_b_mgauss, roll_rad, pitch_rad, yaw_rad, throttle_01)
+    return acc.fit(offset_sd_mgauss)

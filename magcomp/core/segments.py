@@ -26,20 +26,21 @@ these tests when attitude and rates stay small; pass explicit bounds for such lo
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcomp.core.types import LogData
+from magcomp.core.types import LogData, Series
 
 F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
 class SegmentParams:
-    """Thresholds of :func:`find_stationary_sweep` (rad/s, rad, s, throttle 0..1)."""
+    """Thresholds of :func:`find_stationary_segments` (rad/s, rad, s, throttle 0..1)."""
 
     max_rate_rad_s: float = 0.05
     smooth_s: float = 1.0
@@ -127,31 +128,25 @@ def _split_by_attitude(
 
 
 def find_stationary_segments(
-    imu_t_s: ArrayLike,
-    rate_b_rad_s: ArrayLike,
-    throttle_t_s: ArrayLike,
-    throttle_01: ArrayLike,
+    rates_rad_s: Series,
+    throttle_01: Series,
     p: SegmentParams | None = None,
-    attitude_t_s: ArrayLike | None = None,
-    attitude_rad: ArrayLike | None = None,
+    attitude_rad: Series | None = None,
 ) -> list[Segment]:
     """All stationary windows with enough throttle variation, best (most theta information) first.
 
-    Parameters
-    ----------
-    imu_t_s, rate_b_rad_s : (n,), (n, 3) gyro (or attitude-rate) samples, s and rad/s, body FRD
-    throttle_t_s, throttle_01 : (m,), (m,) throttle samples on the same clock
-    attitude_t_s, attitude_rad : optional (k,), (k, 3) roll, pitch, yaw for the attitude-hold test
+    ``rates_rad_s``: (n, 3) gyro (or attitude-rate) samples, body FRD; ``throttle_01``: (m,) on the same
+    clock; ``attitude_rad``: optional (k, 3) roll, pitch, yaw for the attitude-hold test.
     """
     p = p or SegmentParams()
-    t = np.asarray(imu_t_s, dtype=float)
-    thr_t = np.asarray(throttle_t_s, dtype=float)
-    thr = np.asarray(throttle_01, dtype=float)
-    mask = stationary_mask(t, rate_b_rad_s, p)
+    t = np.asarray(rates_rad_s.t_s, dtype=float)
+    thr_t = np.asarray(throttle_01.t_s, dtype=float)
+    thr = np.asarray(throttle_01.values, dtype=float)
+    mask = stationary_mask(t, rates_rad_s.values, p)
     windows = _runs(t, mask, p.max_gap_s)
-    if attitude_t_s is not None and attitude_rad is not None:
-        att_t = np.asarray(attitude_t_s, dtype=float)
-        att = np.asarray(attitude_rad, dtype=float)
+    if attitude_rad is not None:
+        att_t = np.asarray(attitude_rad.t_s, dtype=float)
+        att = np.asarray(attitude_rad.values, dtype=float)
         tol, yaw_tol = p.max_attitude_change_rad, p.max_yaw_residual_rad
         windows = [
             piece
@@ -183,20 +178,10 @@ class TimeWindow(NamedTuple):
     t_end_s: float
 
 
-def find_stationary_sweep(
-    imu_t_s: ArrayLike,
-    rate_b_rad_s: ArrayLike,
-    throttle_t_s: ArrayLike,
-    throttle_01: ArrayLike,
-    p: SegmentParams | None = None,
-    attitude_t_s: ArrayLike | None = None,
-    attitude_rad: ArrayLike | None = None,
-) -> TimeWindow | None:
-    """The best stationary throttle sweep, or None when there is none."""
-    segs = find_stationary_segments(
-        imu_t_s, rate_b_rad_s, throttle_t_s, throttle_01, p, attitude_t_s, attitude_rad
-    )
-    return TimeWindow(segs[0].t_start_s, segs[0].t_end_s) if segs else None
+def best_window(segments: Sequence[Segment]) -> TimeWindow | None:
+    """The best of :func:`find_stationary_segments`' windows (its first) as a time window; None when it
+    found none."""
+    return TimeWindow(segments[0].t_start_s, segments[0].t_end_s) if segments else None
 
 
 def attitude_rates(attitude_t_s: F64, attitude_rad: F64) -> F64:
@@ -211,7 +196,7 @@ def attitude_rates(attitude_t_s: F64, attitude_rad: F64) -> F64:
 
 
 def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> TimeWindow | None:
-    """:func:`find_stationary_sweep` on a :class:`LogData`: gyro when present, else attitude rates.
+    """:func:`find_stationary_segments` on a :class:`LogData`: gyro when present, else attitude rates.
 
     Returns None when no window qualifies or the log has neither gyro nor attitude.
     """
@@ -223,12 +208,5 @@ def find_sweep_in_log(log: LogData, p: SegmentParams | None = None) -> TimeWindo
     else:
         return None
     has_att = att_t.shape[0] > 0 and att.ndim == 2 and att.shape[1] == 3
-    return find_stationary_sweep(
-        rate_t,
-        rate,
-        log.throttle_01.t_s,
-        log.throttle_01.values,
-        p,
-        att_t if has_att else None,
-        att if has_att else None,
-    )
+    attitude = Series(att_t, att) if has_att else None
+    return best_window(find_stationary_segments(Series(rate_t, rate), log.throttle_01, p, attitude))

@@ -73,6 +73,10 @@ MAX_GYRO_DT_S = 0.15
 MAX_GYRO_GAP_S = 0.5
 
 
+#: the largest relative increase of the rms against the autopilot's yaw still "no worse" (att_tolerance_deg)
+MAX_ATT_WORSE_FRACTION = 0.1
+
+
 @functools.lru_cache(maxsize=256)
 def t_critical(n_windows: int) -> float:
     """The gain (standard errors) that ``n_windows`` paired windows must reach: the P_APPLY quantile of
@@ -85,10 +89,13 @@ def t_critical(n_windows: int) -> float:
 def att_tolerance_deg(att_deg: float, n_windows: int) -> float:
     """How much larger an rms against the autopilot's yaw may come out and still be "no worse": its own
     sampling error over ``n_windows`` independent windows (an rms of n values scatters by 1/sqrt(2 n) of
-    itself), not below the compass's resolution (FLOOR_RAD2's 0.5 deg). Where the autopilot's yaw is fused
-    from the compass judged it holds part of the baseline's error, so a better candidate can come out
-    slightly further from it."""
-    return max(math.sqrt(FLOOR_RAD2) * 180.0 / math.pi, att_deg / math.sqrt(2.0 * max(n_windows, 1)))
+    itself), not below the compass's resolution (FLOOR_RAD2's 0.5 deg), and never above a tenth of it (with
+    few windows that sampling error is a third of the rms and more: a heading 30 % further from the
+    autopilot's yaw is worse, whatever the window count). Where the autopilot's yaw is fused from the compass
+    judged it holds part of the baseline's error, so a better candidate can come out slightly further from
+    it."""
+    floor = math.sqrt(FLOOR_RAD2) * 180.0 / math.pi
+    return max(floor, min(att_deg / math.sqrt(2.0 * max(n_windows, 1)), MAX_ATT_WORSE_FRACTION * att_deg))
 
 
 def wrap_rad(a: F64) -> F64:

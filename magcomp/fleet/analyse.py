@@ -161,13 +161,7 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
     # the excitation from the diagnosis's read of the log when there is one; else from the estimates
     exc_stats: _Excitation | LogDiagnosis = diag if isinstance(diag, LogDiagnosis) else _Excitation()
     on_estimate = exc_stats.add if isinstance(exc_stats, _Excitation) else None
-    # no nested processes inside a worker: the same numbers in this process (service/replay.py)
-    saved = replay_mod.OBSERVER_PROCESS, replay_mod.INFLIGHT_PROCESS
-    replay_mod.OBSERVER_PROCESS = replay_mod.INFLIGHT_PROCESS = False
-    try:
-        rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=on_estimate)
-    finally:
-        replay_mod.OBSERVER_PROCESS, replay_mod.INFLIGHT_PROCESS = saved
+    rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=on_estimate)
     if rep.interrupted:  # ^C: the replay kept a partial result; it must not become this log's row
         raise KeyboardInterrupt
     summary = rep.summary

@@ -151,9 +151,7 @@ class _Progress:
     """A bar with the counts and an ETA on a terminal; otherwise a line now and then (and none in CI)."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        from tqdm import tqdm
-
-        from magcomp.service.console import progress_enabled
+        from magcomp.service.console import progress_enabled, quiet_tqdm
 
         self.total = total
         self.bar: Any = None
@@ -161,10 +159,7 @@ class _Progress:
         self.t0 = time.monotonic()
         self.last_line = self.t0
         if enabled and progress_enabled():
-            # no tqdm monitor thread (as service/console.py's bars): the fleet's own process stays as plain as
-            # a replay's
-            bar_cls = type("FleetTqdm", (tqdm,), {"monitor_interval": 0})
-            self.bar = bar_cls(
+            self.bar = quiet_tqdm()(
                 total=total, desc="fleet", unit="log", file=sys.stderr, dynamic_ncols=True, mininterval=0.5
             )
 

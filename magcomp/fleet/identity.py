@@ -303,13 +303,10 @@ def _scan_dataflash_text(path: Path) -> LogIdentity:
 
 
 def _scan_tlog(path: Path) -> LogIdentity:
-    from magcomp.adapters.mavlink_source import (
-        _crc_function,
-        _mavlink_module,
-        _sniff_mavlink_stream,
-        frame_decoders,
-        iter_mavlink_file,
-    )
+    from magcomp.adapters.mavlink_frames import crc_function as _crc_function
+    from magcomp.adapters.mavlink_frames import frame_decoders, iter_mavlink_file
+    from magcomp.adapters.mavlink_frames import mavlink_module as _mavlink_module
+    from magcomp.adapters.mavlink_frames import sniff_mavlink_stream as _sniff_mavlink_stream
 
     ident = LogIdentity(format="tlog")
     mod = _mavlink_module()

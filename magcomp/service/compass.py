@@ -50,7 +50,8 @@ class CompassCorrector:
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
         remote = observers.estimator(mag_index, cfg, theta0) if observers is not None else None
         self.theta = ThetaTracker(cfg, theta0, remote)
-        self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check)
+        hover = cfg.inflight.enabled and cfg.observer.learn  # theta against the autopilot's calibration
+        self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check, hover)
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
         #: the stage running in another process (a two-pass replay's first pass, service/inflight_process.py):

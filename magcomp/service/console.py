@@ -200,6 +200,13 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
         if cal is not None and cal["source"] == "autopilot" and status == "corrected":
             sig = cal.get("theta_sigma_mgauss") or [math.nan] * 3
             kept = "the autopilot's calibration kept (the flight determines none of its own)"
+            off = cal.get("offset_change_mgauss") or [0.0, 0.0, 0.0]
+            if any(off):
+                kept = (
+                    f"the autopilot's calibration with its offsets changed by ({off[0]:.0f}, {off[1]:.0f}, "
+                    f"{off[2]:.0f}) mgauss, mean heading kept the autopilot's (the flight determines no "
+                    f"calibration of its own)"
+                )
             lines.append(_corrected_line(c, kept, sig, ""))
             continue
         if cal is not None and cal["source"] == "in-flight":
@@ -252,13 +259,16 @@ def progress_enabled() -> bool:
     return sys.stderr.isatty() and not os.environ.get("CI") and os.environ.get("TERM") != "dumb"
 
 
-def _quiet_tqdm() -> Any:
+def quiet_tqdm() -> Any:
     """tqdm without its monitor thread (it only retunes ``miniters`` of a stalled bar; ours refresh on
     ``mininterval``): a replay bar then leaves the process single-threaded, so the first pass can fork its
     observer process (service/observer_process.py)."""
     from tqdm import tqdm
 
     return type("QuietTqdm", (tqdm,), {"monitor_interval": 0})
+
+
+_quiet_tqdm = quiet_tqdm  # the old name (other branches import it)
 
 
 class Progress:
@@ -275,7 +285,7 @@ class Progress:
             known = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} " + unit
             known += " [{elapsed}<{remaining}]"
             fmt = known if total else "{desc}: {n:.0f} " + unit + " [{elapsed}, {rate_fmt}]"
-            self._bar = _quiet_tqdm()(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
+            self._bar = quiet_tqdm()(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
                                       dynamic_ncols=True, mininterval=0.25, bar_format=fmt)  # fmt: skip
 
     def update(self, n: float = 1) -> None:

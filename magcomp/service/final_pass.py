@@ -7,8 +7,8 @@ The second pass then applies the *final* state of every compass (calibration of 
 the in-flight calibration; :class:`FinalCompass`) to all samples at once: eq. (2), eq. (11) and eq. (24)
 on numpy arrays through the same core functions the per-sample path calls with floats. Only the heading
 filter, the output decimation and the time accounting step sample by sample (the same stage code as the
-live pipeline), and every MAGCOMP_HEADING of a block is packed at once
-(:meth:`~magcomp.service.publish.HeadingEncoder.encode_frames`).
+live pipeline), and every MAGCOMP_HEADING is packed by the live path's own framer
+(:meth:`~magcomp.service.publish.HeadingEncoder.encode_values`).
 
 What changes against the per-sample second pass it replaces: there, the learning went on from the final
 state (theta and the in-flight estimate moved again over the log); here the final state is held fixed, so
@@ -26,19 +26,19 @@ import math
 import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import IO, TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core import selfcheck
+from magcomp.core.correction import Applied, Correction, headings_deg
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.hover_theta import HoverTheta, fit_hover_theta
-from magcomp.core.types import FLAG_CALIBRATED, FLAG_OBSERVER_RESET, FLAG_THETA_CONVERGED, HeadingEstimate
-from magcomp.service.calibrate import apply_eq2
+from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
+from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.service.heading import yaw_rate
-from magcomp.service.publish import HeadingEncoder, HeadingValues, TlogWriter
+from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
 if TYPE_CHECKING:
@@ -117,18 +117,21 @@ class SampleLog:
 
 @dataclass(frozen=True)
 class FinalCompass:
-    """The state a compass ended the first pass with, as the second pass applies it.
+    """The state a compass ended the first pass with, as the second pass applies it: its ``correction``
+    (core/correction.py, held fixed over the log) and ``accounts``, the in-flight stage's state its samples
+    count toward (None: no in-flight stage)."""
 
-    ``coeffs``: L and d of eq. (2) as 12 floats (None: uncalibrated); ``inflight``: they are the in-flight
-    calibration's (applied only to samples with the throttle known, as the per-sample path does);
-    ``theta``: theta-hat of eq. (11), mgauss; ``converged``: FLAG_THETA_CONVERGED on its samples;
-    ``accounts``: the in-flight stage's state its samples count toward (None: no in-flight stage)."""
-
-    coeffs: tuple[float, ...] | None
-    inflight: bool
-    theta: Float3
-    converged: bool
+    correction: Correction
     accounts: str | None
+    #: the coefficients apply to the field as the autopilot had it (its onboard motor compensation kept:
+    #: theta against the autopilot's calibration), not to the field as measured
+    autopilot_field: bool = False
+    #: subtracted from the corrected heading (deg): its constant part anchored to the autopilot's own
+    heading_offset_deg: float = 0.0
+
+
+_NONE = Correction()
+_CAL_SOURCES = {"learned": "hand rotation", "stored": "stored", "identity": "identity"}
 
 
 def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
@@ -143,10 +146,13 @@ def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
         st = c.inflight
         if k is not None:
             th = c.theta.est.theta_values()
-            out[idx] = FinalCompass(k, False, (th[0], th[1], th[2]), c.theta.est.converged, None)
+            summary = c.calib.summary
+            source = _CAL_SOURCES.get(summary.source, "stored") if summary is not None else "stored"
+            cor = Correction(k, (th[0], th[1], th[2]), converged=c.theta.est.converged, source=source)
+            out[idx] = FinalCompass(cor, None)
             continue
         if not inflight_on or st is None:
-            out[idx] = FinalCompass(None, False, (0.0, 0.0, 0.0), False, None)
+            out[idx] = FinalCompass(_NONE, None)
             continue
         state = st.final_state()
         st.restart_accounts()
@@ -154,15 +160,14 @@ def final_compasses(pipeline: Pipeline) -> dict[int, FinalCompass] | None:
             st.warm_started = True
             st.first_applied_t = None  # applied from this pass's first sample on (as a warm start says)
         if state != "corrected" or st.est is None:
-            out[idx] = FinalCompass(None, False, (0.0, 0.0, 0.0), False, state)
+            out[idx] = FinalCompass(_NONE, state)
             continue
         if st.n_motors > 0:
             return None
         sol = st.solution = st.est.solve()  # the estimate with every row of the log in it
-        coeffs = (*np.ravel(sol.calib_l).tolist(), *np.ravel(sol.calib_d).tolist())
-        th = sol.theta_mgauss.tolist()
-        conv = bool(sol.heading_sigma_deg < st.params.heading_converged_deg)
-        out[idx] = FinalCompass(coeffs, True, (th[0], th[1], th[2]), conv, state)
+        cor = Correction.from_solution(sol.calib_l, sol.calib_d, sol.theta_mgauss, None,
+                                       sol.heading_sigma_deg, st.params.heading_converged_deg)  # fmt: skip
+        out[idx] = FinalCompass(cor, state)
     return out
 
 
@@ -178,38 +183,51 @@ class Corrected(NamedTuple):
     corrected: NDArray[np.bool_]
 
 
+def _columns(a: F64) -> tuple[F64, F64, F64]:
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
 def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
-    """Eq. (2), eq. (11) and eq. (24) over a chunk of the sample log with each compass's final state."""
+    """Each compass's final correction (core/correction.py: eqs. (2), (11)) over a chunk of the sample log,
+    and the heading of eq. (24)."""
     n = rows.shape[0]
     mag = rows[:, MAG].astype(np.int64)
     have = rows[:, HAVE_THR] != 0.0
-    raw = rows[:, RAW_X:RAW_Z + 1]
-    field_cal = raw + rows[:, ONB_X:ONB_Z + 1]  # uncorrected: the field as the autopilot had it
+    thr = np.where(have, rows[:, THR], 0.0)  # no throttle known: no bias
+    field_cal = rows[:, RAW_X:RAW_Z + 1] + rows[:, ONB_X:ONB_Z + 1]  # uncorrected: as the autopilot had it
+    bias = np.zeros((n, 3))
     theta = np.zeros((n, 3))
+    offset_deg = np.zeros(n)
     calibrated = np.zeros(n, dtype=bool)
     flags = rows[:, FLAGS].astype(np.int64)
     # sorted(set()) rather than np.unique: that one imports numpy.ma on first use (15 ms of a replay)
     for idx in sorted(set(mag.tolist())):
         f = finals.get(idx)
-        if f is None or f.coeffs is None:
+        if f is None or not f.correction.calibrated:
             continue
+        cor = f.correction
         m = mag == idx
-        if f.inflight:
+        if cor.needs_throttle:
             m &= have
         else:  # the observer's reset marker, as the per-sample path sets it (service/theta.py)
             flags[m & (rows[:, OBS_RESET] != 0.0)] |= FLAG_OBSERVER_RESET
         calibrated |= m
-        r = raw[m]
-        field_cal[m] = np.column_stack(apply_eq2(f.coeffs, r[:, 0], r[:, 1], r[:, 2]))  # eq. (2)
-        theta[m] = f.theta
-        flags[m] |= FLAG_CALIBRATED | FLAG_THETA_CONVERGED if f.converged else FLAG_CALIBRATED
-    thr = rows[:, THR]
-    bias = theta * np.where(have, thr * thr, 0.0)[:, None]  # eq. (11), with the latest throttle
+        r = rows[m]
+        if f.autopilot_field:  # the field as the autopilot had it, its onboard motor compensation kept
+            vx, vy, vz = (r[:, RAW_X + k] + r[:, ONB_X + k] for k in range(3))
+        else:
+            vx, vy, vz = r[:, RAW_X], r[:, RAW_Y], r[:, RAW_Z]
+        got = cor.apply(vx, vy, vz, thr[m])  # eqs. (2), (11)
+        field_cal[m] = np.column_stack(got.field_cal)
+        bias[m] = np.column_stack(got.bias)
+        theta[m] = cor.theta_mgauss
+        offset_deg[m] = f.heading_offset_deg
+        flags[m] |= cor.flags
     fc = field_cal - bias
-    trig = (rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH], rows[:, SIN_PITCH])
-    psi_raw = heading_from_trig_deg(field_cal[:, 0], field_cal[:, 1], field_cal[:, 2], *trig)  # eq. (24)
-    psi = np.where(have, heading_from_trig_deg(fc[:, 0], fc[:, 1], fc[:, 2], *trig), psi_raw)
-
+    applied = Applied(_columns(field_cal), _columns(bias), _columns(fc))
+    psi, psi_raw = headings_deg(applied, rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
+                                rows[:, SIN_PITCH])  # eq. (24)
+    psi = np.where(have, (psi - offset_deg) % 360.0, psi_raw)  # the anchor of theta against the autopilot's
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
@@ -249,10 +267,6 @@ def self_check(cols: F64) -> selfcheck.SelfCheck:
     return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None)
 
 
-#: eq. (2) as the identity: the autopilot's calibration of the field as logged (L = I, d = 0)
-IDENTITY_COEFFS = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-
-
 def _hover_rows(rows: F64, idx: int) -> F64:
     """(t, field as logged xyz, roll, pitch, autopilot yaw, throttle, and the self-check's gyro yaw, epoch,
     IMU dt) of compass ``idx``'s samples with the motors running and the tilt below 60 deg."""
@@ -268,26 +282,47 @@ def _hover_rows(rows: F64, idx: int) -> F64:
     return np.column_stack(cols)
 
 
+def hover_correction(fit: HoverTheta) -> Correction:
+    """Theta against the autopilot's calibration (eq. (2) the identity, or its offsets changed), applied where
+    the throttle is known."""
+    coeffs, th = fit.coeffs()  # L = I, d the change of the autopilot's offsets (zero in the theta-only form)
+    return Correction(coeffs, th, source="hover", needs_throttle=True)
+
+
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
-    the self-check of the heading it gives; None where theta cannot be fitted."""
+    the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
+    offsets (the simpler form first: a second form is tried only where the first does not pass), anchored to
+    the autopilot's mean heading. The check judges each sample with the fit of the other half of the log
+    (alternate 10 s windows, two folds): the fit takes its attitude from the autopilot's yaw, so judged on its
+    own samples against that yaw (the reference where the gyro is slow) it would pass by construction. None
+    where theta cannot be fitted."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
-    fit = fit_hover_theta(cols[:, 1:4], roll, pitch, yaw, thr)
-    if fit is None:
-        return None
-    d2 = thr * thr
-    th = fit.theta_mgauss
+    field = cols[:, 1:4]
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
-    base = heading_from_trig_deg(mx, my, mz, *trig)
-    cand = heading_from_trig_deg(mx - th[0] * d2, my - th[1] * d2, mz - th[2] * d2, *trig)  # eq. (11), (24)
-    check_cols = np.column_stack((t, np.radians(base), np.radians(cand), yaw, gyaw, epoch, imu_dt))
-    return fit, self_check(check_cols)
+    base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
+    fold = selfcheck.window_ids(t) % 2 == 1
+    got: tuple[HoverTheta, selfcheck.SelfCheck] | None = None
+    for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
+        fit = fit_hover_theta(field, roll, pitch, yaw, thr, sd)
+        halves = [fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd) for m in (~fold, fold)]
+        if fit is None or halves[0] is None or halves[1] is None:
+            return got
+        held = np.where(fold[:, None], halves[0].corrected_mgauss(field, thr),
+                        halves[1].corrected_mgauss(field, thr))  # fmt: skip
+        cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # eq. (11), (24)
+        chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
+        u = fit.corrected_mgauss(field, thr)
+        got = anchored(fit, base, np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))), chk
+        if chk.applies:
+            break
+    return got
 
 
 def self_check_finals(
-    samples: SampleLog, finals: dict[int, FinalCompass]
+    samples: SampleLog, finals: dict[int, FinalCompass], hover_on: bool = True
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck], dict[int, HoverTheta]]:
     """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
     flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is
@@ -295,9 +330,9 @@ def self_check_finals(
     its final state becomes "uncorrected" and the second pass publishes the autopilot's own field through
     the same heading filter. Every compass left uncorrected then gets theta against the autopilot's own
     calibration (core/hover_theta.py: a hover determines theta, not a calibration), published where that
-    passes the same check."""
-    judged = [i for i, f in finals.items() if f.coeffs is not None and f.inflight]
-    hover = [i for i, f in finals.items() if f.coeffs is None or f.inflight]
+    passes the same check (``hover_on``: theta may be learned in flight, ``[inflight] enabled``)."""
+    judged = [i for i, f in finals.items() if f.correction.source == "in flight"]
+    hover = [i for i, f in finals.items() if hover_on and (not f.correction.calibrated or i in judged)]
     parts: dict[int, list[F64]] = {i: [] for i in judged}
     hparts: dict[int, list[F64]] = {i: [] for i in hover}
     for rows in samples.chunks():
@@ -314,8 +349,7 @@ def self_check_finals(
         chk = checks[i] = self_check(cols)
         if not chk.applies:
             f = finals[i]
-            out[i] = replace(f, coeffs=None, inflight=False, theta=(0.0, 0.0, 0.0), converged=False,
-                             accounts=None if f.accounts is None else "uncorrected")  # fmt: skip
+            out[i] = FinalCompass(_NONE, None if f.accounts is None else "uncorrected")
     for i in hover:
         if i in checks and checks[i].applies:
             continue
@@ -323,10 +357,10 @@ def self_check_finals(
         if got is None or not got[1].applies:
             continue
         fit, chk = got
-        th = fit.theta_mgauss.tolist()
         f = finals[i]
-        out[i] = FinalCompass(IDENTITY_COEFFS, True, (th[0], th[1], th[2]), False,
-                              None if f.accounts is None else "corrected")  # fmt: skip
+        acc = None if f.accounts is None else "corrected"
+        out[i] = FinalCompass(hover_correction(fit), acc, autopilot_field=True,
+                              heading_offset_deg=math.degrees(fit.anchor_rad))  # fmt: skip
         checks[i] = chk
         hovers[i] = fit
     return out, checks, hovers
@@ -428,39 +462,26 @@ def _block(
         return
     sel = np.asarray(idx, dtype=np.int64)
     pub = rows[sel]
-    values = HeadingValues(
-        t_boot_s=pub[:, T] - pub[:, BOOT_OFFSET],
-        heading_deg=np.asarray(head),
-        heading_raw_deg=np.asarray(head_raw),
-        theta=cor.theta[sel],
-        bias=cor.bias[sel],
-        throttle_01=pub[:, THR],
-        mag_index=pub[:, MAG].astype(np.int64),
-        flags=cor.flags[sel],
-    )
-    if writer is not None:
-        writer.write_frames(pub[:, T], encoder.encode_frames(values))
+    t_s = pub[:, T].tolist()
+    t_boot = (pub[:, T] - pub[:, BOOT_OFFSET]).tolist()
+    theta = [(a, b, c) for a, b, c in cor.theta[sel].tolist()]
+    bias = [(a, b, c) for a, b, c in cor.bias[sel].tolist()]
+    thr = pub[:, THR].tolist()
+    mag = pub[:, MAG].astype(np.int64).tolist()
+    flags = cor.flags[sel].tolist()
+    if writer is not None:  # the live path's framer, one MAGCOMP_HEADING at a time
+        encode, write = encoder.encode_values, writer.write_packet
+        for j, t in enumerate(t_s):
+            write(t, encode(t_boot[j], head[j], head_raw[j], theta[j], bias[j], thr[j], mag[j], flags[j]))
     if on_estimate is not None:
-        for e in estimates(pub, values, cor.field_corrected[sel]):
-            on_estimate(e)
-
-
-def estimates(pub: F64, v: HeadingValues, field_corrected: F64) -> Iterator[HeadingEstimate]:
-    """The :class:`HeadingEstimate` of each published row (for consumers that keep or show them)."""
-    nan = float("nan")
-    for j in range(pub.shape[0]):
-        yield HeadingEstimate(
-            t_s=float(pub[j, T]),
-            mag_index=int(v.mag_index[j]),
-            heading_deg=float(v.heading_deg[j]),
-            heading_raw_deg=float(v.heading_raw_deg[j]),
-            theta_mgauss=np.array(v.theta[j], dtype=float),
-            bias_mgauss=np.array(v.bias[j], dtype=float),
-            throttle_01=float(v.throttle_01[j]),
-            flags=int(v.flags[j]),
-            field_raw_mgauss=np.array(pub[j, RAW_X:RAW_Z + 1], dtype=float),
-            field_cal_mgauss=np.array(field_corrected[j], dtype=float),
-            residual_norm_mgauss=nan,
-            excitation=nan,
-            t_boot_s=float(v.t_boot_s[j]),
-        )
+        nan = float("nan")
+        raw = pub[:, RAW_X:RAW_Z + 1]
+        fc = cor.field_corrected[sel]
+        for j, t in enumerate(t_s):
+            on_estimate(HeadingEstimate(
+                t_s=t, mag_index=mag[j], heading_deg=head[j], heading_raw_deg=head_raw[j],
+                theta_mgauss=np.array(theta[j], dtype=float), bias_mgauss=np.array(bias[j], dtype=float),
+                throttle_01=thr[j], flags=flags[j], field_raw_mgauss=np.array(raw[j], dtype=float),
+                field_cal_mgauss=np.array(fc[j], dtype=float), residual_norm_mgauss=nan, excitation=nan,
+                t_boot_s=t_boot[j],
+            ))  # fmt: skip

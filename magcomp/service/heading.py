@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.selfcheck import RunningSelfCheck
+from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta
+from magcomp.core.selfcheck import LIVE_WINDOW_S, RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.inflight_stage import InflightOutput
-from magcomp.service.record import MagRecord
+from magcomp.service.record import Float3, MagRecord
 
 #: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)
 MOTORS_RUNNING_01 = 0.05
@@ -25,6 +28,95 @@ MOTORS_RUNNING_01 = 0.05
 MAX_TILT_COS = 0.5
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
 MIN_COS_PITCH = 0.25
+
+
+#: the live hover fit's forms, simplest first (core/hover_theta.py): theta alone, then with a change of the
+#: autopilot's offsets; the first whose running self-check is on is published
+HOVER_FORMS: tuple[float | None, ...] = (None, OFFSET_PRIOR_SD_MGAUSS)
+
+
+class HoverShadow:
+    """Theta against the autopilot's calibration, live (core/hover_theta.py, the two-pass replay's
+    ``final_pass.hover_candidate``): the samples with the motors running go into the hover model's normal
+    equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
+    in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
+
+    __slots__ = ("_block", "_coefs", "_fit_t", "checks", "deg", "filter", "fits", "normal", "on_form")
+
+    def __init__(self, tau_s: float) -> None:
+        self.normal = HoverNormal()
+        self._fit_t = math.nan
+        self._block: list[tuple[float, float, float, float, float, float, float]] = []
+        self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
+        #: the fits' (theta, offset change) as floats for the per-sample path
+        self._coefs: list[tuple[float, ...] | None] = [None] * len(HOVER_FORMS)
+        self.checks = [RunningSelfCheck() for _ in HOVER_FORMS]
+        self.filter = est_core.HeadingFilter(tau_s)
+        self.deg = math.nan
+        #: the form published (None: none is on)
+        self.on_form: int | None = None
+
+    def refit(self) -> None:
+        """The buffered samples into the normal equations, every form solved again."""
+        if self._block:
+            a = np.asarray(self._block)
+            self._block = []
+            self.normal.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
+        self.fits = [self.normal.fit(sd) for sd in HOVER_FORMS]
+        self._coefs = [None if f is None else (*f.theta_mgauss.tolist(), *f.offset_mgauss.tolist())
+                       for f in self.fits]  # fmt: skip
+
+    def step(self, rec: MagRecord, own_field: Float3, psi_own: float, judged: bool, shadow: bool,
+             rate: float, dt: float) -> None:  # fmt: skip
+        """One sample: ``own_field`` the field as the autopilot had it, ``psi_own`` its heading; ``judged``:
+        the motors run and the tilt is within the check's bounds; ``shadow``: judge and filter the forms'
+        headings (False while the in-flight correction is published: the samples are only accumulated)."""
+        cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
+        ok = judged and rec.ap_yaw == rec.ap_yaw
+        if ok:
+            roll, pitch = math.atan2(sr, cr), math.atan2(sp, cp)
+            self._block.append((*own_field, roll, pitch, rec.ap_yaw, rec.throttle_01))
+        refit = False
+        if shadow:
+            d2 = rec.throttle_01 * rec.throttle_01
+            fx, fy, fz = own_field
+            ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
+            cands: list[float] = []
+            for coef, chk in zip(self._coefs, self.checks, strict=True):
+                if coef is None:
+                    cands.append(psi_own)
+                    continue
+                t0, t1, t2, o0, o1, o2 = coef
+                ux, uy, uz = fx - o0 - t0 * d2, fy - o1 - t1 * d2, fz - o2 - t2 * d2  # eq. (11)
+                cand = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
+                cands.append(cand)
+                if ok and ref == ref:
+                    refit |= chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
+            self.on_form = next((k for k, c in enumerate(self.checks) if c.on and self._coefs[k] is not None),
+                                None)  # fmt: skip
+            self.deg = self.filter.update(cands[self.on_form if self.on_form is not None else 0], rate, dt)
+        else:
+            self.filter.reset()
+        due = ok and len(self._block) >= MIN_HOVER_BLOCK and not rec.t_s - self._fit_t < LIVE_WINDOW_S
+        if refit or due:
+            self.refit()
+            self._fit_t = rec.t_s
+
+    @property
+    def fit(self) -> HoverTheta | None:
+        """The published form's fit (None: none is published)."""
+        return None if self.on_form is None else self.fits[self.on_form]
+
+    def published_deg(self) -> float:
+        """The published form's filtered heading with its constant part the autopilot's own (deg)."""
+        assert self.on_form is not None
+        return (self.deg + math.degrees(self.checks[self.on_form].offset_rad)) % 360.0
+
+
+#: the live hover model is solved again when a self-check window closes, or with this many new samples
+#: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
+#: has windows): more than twice its unknowns' count of 3-row samples
+MIN_HOVER_BLOCK = 50
 
 
 class HeadingTrack:
@@ -37,6 +129,8 @@ class HeadingTrack:
         "corrected_deg",
         "gyro_epoch",
         "gyro_yaw",
+        "hover",
+        "hover_on",
         "own",
         "own_deg",
         "raw",
@@ -44,9 +138,11 @@ class HeadingTrack:
         "self_check",
     )  # fmt: skip
 
-    def __init__(self, tau_s: float, self_check: bool = True) -> None:
+    def __init__(self, tau_s: float, self_check: bool = True, hover: bool = True) -> None:
         #: judge in-flight corrections before publishing them (``[output] self_check``)
         self.self_check = self_check
+        #: learn theta against the autopilot's calibration live (``[inflight] enabled``)
+        self.hover_on = hover
         self.corrected = est_core.HeadingFilter(tau_s)
         self.raw = est_core.HeadingFilter(tau_s)
         #: the autopilot's own field (as logged) through the same filter: what is published while the
@@ -54,6 +150,8 @@ class HeadingTrack:
         self.own = est_core.HeadingFilter(tau_s)
         self.own_deg = math.nan
         self.check: RunningSelfCheck | None = None
+        #: theta against the autopilot's calibration, live (created with the first throttle-known sample)
+        self.hover: HoverShadow | None = None
         self.corrected_deg = self.raw_deg = math.nan
         self._last_rate = (math.nan, 0.0)
         self.gyro_yaw = math.nan
@@ -63,6 +161,8 @@ class HeadingTrack:
         self.corrected.reset()
         self.raw.reset()
         self.own.reset()
+        if self.hover is not None:
+            self.hover.filter.reset()
 
     def step(
         self,
@@ -96,6 +196,11 @@ class HeadingTrack:
         raw = self.raw_deg = self.raw.update(psi_raw, rate, dt)
         self.corrected_deg = self.corrected.update(psi, rate, dt) if corrected else raw
         self._last_rate = (rate, dt)
+
+    @property
+    def last_rate(self) -> tuple[float, float]:
+        """The Euler yaw rate (rad/s) and interval (s) the last :meth:`step` propagated with."""
+        return self._last_rate
 
     def step_own(self, psi_own: float) -> float:
         """The autopilot's own heading through its filter, with the rate and interval of the last
@@ -165,20 +270,32 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     own = track.step_own(psi_own)  # every sample: the filter's state stays current
     if not rec.calibrated:  # nothing of magcomp's applies: the autopilot's own heading
         rec.heading_deg = own
+    judged = rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS
+    hover = track.hover
+    if track.hover_on and rec.have_throttle and (rec.inflight is not None or not rec.calibrated):
+        if hover is None:
+            hover = track.hover = HoverShadow(track.own.tau_s)
+        rate, dt = track.last_rate
+        run = track.check
+        published = rec.inflight is not None and run is not None and run.on  # the in-flight correction
+        hover.step(rec, (vx, vy, vz), psi_own, judged, not published, rate, dt)
     chk = track.check
     cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
-    if cand is None and chk is None:
-        return
     if cand is not None and rec.have_throttle:
         if chk is None:
             chk = track.check = RunningSelfCheck()
             chk.on = rec.inflight is not None and rec.inflight.warm_started  # judged on its own flight
-        if rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS:
+        if judged:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-    if rec.inflight is None or chk is None or not chk.on or not _within_baseline(rec.inflight, chk):
+    if rec.inflight is not None and chk is not None and chk.on and _within_baseline(rec.inflight, chk):
+        rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0  # see the doc
+        return
+    if rec.inflight is None and not rec.calibrated and hover is not None and hover.on_form is not None:
+        rec.heading_deg = hover.published_deg()  # theta against the autopilot's calibration
+        rec.flags = (rec.flags | FLAG_CALIBRATED) & ~FLAG_THETA_CONVERGED
+        return
+    if cand is not None or chk is not None:
         rec.heading_deg = own
         rec.flags &= ~(FLAG_CALIBRATED | FLAG_THETA_CONVERGED)
-    else:  # the constant part is the autopilot's own (see the doc)
-        rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0

@@ -22,9 +22,7 @@ backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`P
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
 theta stage feeds the observers without reading theta back into the records; the states every stage
 reaches are the same as in a full run. With a ``recorder`` it also records what the second pass needs
-(:mod:`magcomp.service.final_pass`); with ``observers`` the observers step in a process of their own
-(:mod:`magcomp.service.observer_process`), with ``inflight_proc`` the in-flight calibration
-(:mod:`magcomp.service.inflight_process`).
+(:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
@@ -61,8 +59,6 @@ from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
-from magcomp.service.inflight_process import InflightProcess
-from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
 from magcomp.service.record import Float3, MagRecord
@@ -108,11 +104,8 @@ class Pipeline:
     :meth:`close`). ``system_id``: the vehicle; None -> taken from the first HEARTBEAT, else 1.
     ``on_text``: status lines (calibration learned, resets, warnings) with their message time.
     ``workers``: the executors for refined fits and state writes, owned (and shut down) by the caller;
-    None: both run inline. ``learn_only``: no headings (see the module's doc). ``observers``: the observers
-    of eq. (20) step in that process (a two-pass replay's first pass, learn-only: nothing reads theta back
-    until :meth:`close`, which takes their final states over and ends the process;
-    service/observer_process.py). ``inflight_proc``: the in-flight stages run in that process (the same
-    pass; service/inflight_process.py).
+    None: both run inline. ``learn_only``: no headings (see the module's doc). ``recorder``: takes each
+    magnetometer record after the attitude stage (the two-pass replay's sample log).
     """
 
     def __init__(
@@ -125,8 +118,6 @@ class Pipeline:
         workers: Workers | None = None,
         learn_only: bool = False,
         recorder: SampleRecorder | None = None,
-        observers: ObserverProcess | None = None,
-        inflight_proc: InflightProcess | None = None,
     ) -> None:
         self.cfg = cfg
         self.store = store
@@ -137,8 +128,6 @@ class Pipeline:
         self._workers = workers if workers is not None else Workers.inline()
         self._learn_only = learn_only
         self._recorder = recorder
-        self._observers = observers
-        self._inflight_proc = inflight_proc
         self.counts: dict[str, int] = dict.fromkeys(COUNT_KEYS, 0)
         self.warnings: list[str] = []
         self.correctors: dict[int, CompassCorrector] = {}
@@ -148,7 +137,7 @@ class Pipeline:
         #: where it passed the self-check (the two-pass replay's; service/final_pass.py)
         self.hover_thetas: dict[int, HoverTheta] = {}
         self._earth_ned = est_core.earth_field(cfg)
-        self._earth_ned.flags.writeable = False  # shared by every stage (and sent once: inflight_process)
+        self._earth_ned.flags.writeable = False  # shared by every stage
         self._params: dict[str, float] = {}  # the autopilot's parameters (in-flight calibration)
         loc = cfg.location
         self._location = (loc.lat_deg, loc.lon_deg, loc.alt_m, loc.decimal_year)
@@ -160,9 +149,9 @@ class Pipeline:
         self.throttle = self.align.throttle
         self.attitude = AttitudeStage(cfg, self.counts)
         self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._vehicle,
-                                    self.warnings, theta_at_close=observers is not None)  # fmt: skip
+                                    self.warnings)  # fmt: skip
         self.calibrate = CalibrateStage(cfg, self.attitude, self.throttle, self._params, self._earth_ned,
-                                        self.persist.save, self._text, inflight_proc)  # fmt: skip
+                                        self.persist.save, self._text)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
         self.publish = PublishStage(cfg, self.counts)
         #: sample class -> its handler (:meth:`feed`)
@@ -253,7 +242,7 @@ class Pipeline:
         old, self.vehicle_uid = self.vehicle_uid, uid
         sysid = self._sysid()
         self._text(sample.t_s, f"vehicle {sysid}: unique id {uid}" + (f" (was {old})" if old else ""))
-        replaceable = self._observers is None and self._inflight_proc is None and self._recorder is None
+        replaceable = self._recorder is None
         for idx, c in list(self.correctors.items()):
             if not c.loaded:
                 continue
@@ -358,8 +347,7 @@ class Pipeline:
             for w in store.warnings:
                 if w not in self.warnings:
                     self.warnings.append(w)
-        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits,
-                             self._observers)  # fmt: skip
+        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits)
         self.correctors[idx] = c
         return c
 
@@ -434,7 +422,7 @@ class Pipeline:
         norm = float(np.linalg.norm(field))
         for c in self.correctors.values():
             c.calib.earth_ned = field
-            st = c.inflight_remote or c.inflight
+            st = c.inflight
             if st is not None:
                 st.restart(norm)
         self._text(t_s, f"{what}: {norm:.0f} mgauss, WMM")
@@ -443,13 +431,6 @@ class Pipeline:
 
     def close(self) -> None:
         """Feed what is still queued, save every compass's state and wait for the writes."""
-        if self._inflight_proc is not None:  # the in-flight stages back from their process, which ends
-            stages = self._inflight_proc.query()
-            for c in self.correctors.values():
-                if c.inflight_remote is not None:
-                    c.inflight, c.inflight_remote = stages[c.mag_index], None
-            self._inflight_proc.close()
-            self._inflight_proc = None
         for c in self.correctors.values():
             if c.calib.adopt_refined(c.clock.n_mag, force=True) and c.last_t is not None:
                 self.calibrate.refined(c, c.last_t)
@@ -457,18 +438,13 @@ class Pipeline:
                 self.theta.drain(c, math.inf)
             if c.last_t is not None:
                 self.persist.save(c, c.last_t, final=True)
-        if self._observers is not None:  # the observers' final states taken over; their process ends
-            for c in self.correctors.values():
-                c.theta.local()
-            self._observers.close()
-            self._observers = None
         self.persist.wait()
 
     def summary(self) -> dict[str, object]:
         """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
         calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
         no NaN)."""
-        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self.hover_thetas.get(i))
+        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self._hover(c))
                      for i, c in sorted(self.correctors.items())]
         lat, lon, alt, year = self._location
         return json_safe(
@@ -495,8 +471,10 @@ class Pipeline:
         the self-check against the gyro where one was made."""
         st = self._learned_status(c)
         chk, on = self._check(c)
-        if c.mag_index in self.hover_thetas and chk is not None and on:
-            why = f"theta against the autopilot's calibration (none determined by the flight: {st.why})"
+        hov = self._hover(c)
+        if hov is not None and chk is not None and on:
+            what = "theta" if not hov.offset_mgauss.any() else "theta and a change of its offsets"
+            why = f"{what} against the autopilot's calibration (none determined by the flight: {st.why})"
             return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
             if st.status == "uncorrected" and self.cfg.output.self_check and self.throttle.t is not None:
@@ -507,12 +485,30 @@ class Pipeline:
         return Status("uncorrected", f"publishing the autopilot's own heading (the correction learned in "
                                      f"flight: {chk.reason})")  # fmt: skip
 
+    def _hover(self, c: CompassCorrector) -> HoverTheta | None:
+        """The theta against the autopilot's calibration a compass publishes: the two-pass replay's, else the
+        live one's (service/heading.py HoverShadow) where its self-check is on and nothing else applies."""
+        if c.mag_index in self.self_checks or c.mag_index in self.hover_thetas:  # the two-pass replay's
+            return self.hover_thetas.get(c.mag_index)
+        live, run, st = c.heading.hover, c.heading.check, c.inflight
+        if live is None or c.calibration is not None:
+            return None
+        if st is not None and st.applied and run is not None and run.on:
+            return None  # the in-flight correction is published
+        return live.fit
+
     def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
         """A compass's self-check and whether its correction is published: the two-pass replay's over the
-        whole log, else the live one's latest verdict (service/heading.py)."""
+        whole log, else the live one's latest verdict (service/heading.py): the in-flight correction's, or
+        the live hover theta's where that is published."""
         chk = self.self_checks.get(c.mag_index)
         if chk is not None:
             return chk, chk.applies
+        live = c.heading.hover
+        if live is not None and live.on_form is not None and self._hover(c) is not None:
+            v = live.checks[live.on_form].verdict
+            if v is not None:
+                return v, True
         run = c.heading.check
         if run is not None and run.verdict is not None:
             return run.verdict, run.on

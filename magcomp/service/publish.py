@@ -14,7 +14,7 @@ import stat
 import struct
 import tempfile
 from pathlib import Path
-from typing import Any, NamedTuple, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,47 +38,6 @@ _V2_HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
 
 
-#: MAGCOMP_HEADING's payload as a numpy record (the dialect's field order, little-endian, packed): the
-#: layout of ``HeadingEncoder._payload`` (tested against it)
-_PAYLOAD_DTYPE = np.dtype([("time_boot_ms", "<u4"), ("heading", "<f4"), ("heading_raw", "<f4"),
-                           ("theta", "<f4", (3,)), ("bias", "<f4", (3,)), ("throttle", "<f4"),
-                           ("mag_index", "u1"), ("flags", "u1")])  # fmt: skip
-_HEADER_LEN = 10
-
-
-class HeadingValues(NamedTuple):
-    """Many MAGCOMP_HEADINGs as columns (n,), theta and bias (n, 3): what :meth:`HeadingEncoder.encode_values`
-    takes for one."""
-
-    t_boot_s: NDArray[np.float64]
-    heading_deg: NDArray[np.float64]
-    heading_raw_deg: NDArray[np.float64]
-    theta: NDArray[np.float64]
-    bias: NDArray[np.float64]
-    throttle_01: NDArray[np.float64]
-    mag_index: NDArray[np.int64]
-    flags: NDArray[np.int64]
-
-
-class Frames(NamedTuple):
-    """Many MAVLink frames: row i holds frame i in its first ``length[i]`` bytes (zero-padded)."""
-
-    data: NDArray[np.uint8]
-    length: NDArray[np.int64]
-
-
-def mcrf4xx_rows(buf: NDArray[np.uint8], length: NDArray[np.int64]) -> NDArray[np.uint16]:
-    """CRC-16/MCRF4XX (MAVLink's X.25 checksum, start 0xFFFF) of the first ``length[i]`` bytes of each row
-    of ``buf``: the same byte recursion as the dialect's checksum, run over every row at once."""
-    crc = np.full(buf.shape[0], 0xFFFF, dtype=np.uint32)
-    for j in range(int(length.max(initial=0))):
-        tmp = buf[:, j].astype(np.uint32) ^ (crc & 0xFF)
-        tmp = (tmp ^ (tmp << 4)) & 0xFF
-        nxt = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
-        crc = np.where(j < length, nxt, crc)
-    return crc.astype(np.uint16)
-
-
 class ByteSink(Protocol):
     def write_packet(self, t_s: float, packet: bytes) -> None: ...
 
@@ -97,6 +56,8 @@ class HeadingEncoder:
         self._msg_cls = self._mod.MAVLink_magcomp_heading_message
         self._payload: struct.Struct = self._msg_cls.unpacker
         self._crc_extra = bytes((self._msg_cls.crc_extra,))
+        self._header = _V2_HEADER
+        self._id_lo, self._id_hi = self._msg_cls.id & 0xFFFF, self._msg_cls.id >> 16
         # CRC-16/MCRF4XX as the dialect computes it: fastcrc's when installed, else pymavlink's own
         fast = getattr(self._mod, "mcrf4xx", None)
         slow = self._mod.x25crc
@@ -140,51 +101,22 @@ class HeadingEncoder:
     ) -> bytes:
         """:meth:`encode` from plain values. The frame is packed here (the bytes pymavlink's message
         object would pack, tested against it) at a third of the cost; signed links go through pymavlink."""
-        fields = (round(t_boot_s * 1000.0) & 0xFFFFFFFF, heading_deg, heading_raw_deg, theta, bias,
-                  throttle_01, mag_index & 0xFF, flags & 0xFF)  # fmt: skip
+        t_ms = round(t_boot_s * 1000.0) & 0xFFFFFFFF
         mav = self.mav
+        seq = mav.seq
         if mav.signing.sign_outgoing:
-            out = bytes(self._msg_cls(*fields).pack(mav))
-            mav.seq = (mav.seq + 1) & 0xFF  # as pymavlink's send() counts (pack() alone does not)
+            out = bytes(self._msg_cls(t_ms, heading_deg, heading_raw_deg, theta, bias, throttle_01,
+                                      mag_index & 0xFF, flags & 0xFF).pack(mav))  # fmt: skip
+            mav.seq = (seq + 1) & 0xFF  # as pymavlink's send() counts (pack() alone does not)
             return out
-        payload = self._payload.pack(fields[0], heading_deg, heading_raw_deg, *theta, *bias, throttle_01,
-                                     fields[6], fields[7])  # fmt: skip
-        payload = payload.rstrip(b"\0") or payload[:1]  # MAVLink 2 drops trailing zero bytes (not the first)
-        msg_id = self._msg_cls.id
-        frame = _V2_HEADER.pack(0xFD, len(payload), 0, 0, mav.seq, mav.srcSystem, mav.srcComponent,
-                                msg_id & 0xFFFF, msg_id >> 16) + payload  # fmt: skip
-        crc = self._crc(frame[1:] + self._crc_extra)
-        mav.seq = (mav.seq + 1) & 0xFF  # the link's packet counter: a ground station counts losses by it
-        return frame + _CRC.pack(crc)
-
-    def encode_frames(self, v: HeadingValues) -> Frames:
-        """:meth:`encode_values` for many headings at once (unsigned links): the same bytes, the sequence
-        counter advanced by one per frame (mod 256)."""
-        n = len(v.heading_deg)
-        pay = np.zeros(n, dtype=_PAYLOAD_DTYPE)
-        pay["time_boot_ms"] = (np.rint(np.asarray(v.t_boot_s) * 1000.0).astype(np.int64) & 0xFFFFFFFF)
-        pay["heading"], pay["heading_raw"] = v.heading_deg, v.heading_raw_deg
-        pay["theta"], pay["bias"], pay["throttle"] = v.theta, v.bias, v.throttle_01
-        pay["mag_index"], pay["flags"] = np.asarray(v.mag_index) & 0xFF, np.asarray(v.flags) & 0xFF
-        payload = pay.view(np.uint8).reshape(n, _PAYLOAD_DTYPE.itemsize)
-        nonzero = payload != 0  # MAVLink 2 drops trailing zero bytes (not the first)
-        plen = np.where(nonzero.any(axis=1), payload.shape[1] - np.argmax(nonzero[:, ::-1], axis=1), 1)
-        mav = self.mav
-        msg_id = self._msg_cls.id
-        data = np.zeros((n, _HEADER_LEN + payload.shape[1] + 3), dtype=np.uint8)  # + CRC, + CRC_EXTRA
-        data[:, :_HEADER_LEN] = (0xFD, 0, 0, 0, 0, mav.srcSystem, mav.srcComponent, msg_id & 0xFF,
-                                 (msg_id >> 8) & 0xFF, msg_id >> 16)  # fmt: skip
-        data[:, 1] = plen
-        data[:, 4] = (mav.seq + np.arange(n)) & 0xFF
-        data[:, _HEADER_LEN:_HEADER_LEN + payload.shape[1]] = payload
-        rows = np.arange(n)
-        end = _HEADER_LEN + plen
-        data[rows, end] = self._crc_extra[0]  # the checksum covers the frame after the magic, then CRC_EXTRA
-        crc = mcrf4xx_rows(data[:, 1:], end)
-        data[rows, end] = crc & 0xFF
-        data[rows, end + 1] = crc >> 8
-        mav.seq = (mav.seq + n) & 0xFF
-        return Frames(data, (end + 2).astype(np.int64))
+        mav.seq = (seq + 1) & 0xFF  # the link's packet counter: a ground station counts losses by it
+        payload = self._payload.pack(t_ms, heading_deg, heading_raw_deg, *theta, *bias, throttle_01,
+                                     mag_index & 0xFF, flags & 0xFF)  # fmt: skip
+        if not payload[-1]:  # MAVLink 2 drops trailing zero bytes (not the first)
+            payload = payload.rstrip(b"\0") or payload[:1]
+        frame = self._header.pack(0xFD, len(payload), 0, 0, seq, mav.srcSystem, mav.srcComponent,
+                                  self._id_lo, self._id_hi) + payload  # fmt: skip
+        return frame + _CRC.pack(self._crc(frame[1:] + self._crc_extra))
 
     def named_value(self, t_boot_s: float, name: str, value: float) -> bytes:
         """One NAMED_VALUE_FLOAT (``name`` at most 10 characters) on this encoder's link sequence."""
@@ -320,23 +252,6 @@ class TlogWriter:
             self._abandon()
             raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
         self.packets += 1
-
-    def write_frames(self, t_s: NDArray[np.float64], frames: Frames) -> None:
-        """:meth:`write_packet` for many frames at once (``t_s`` their message times)."""
-        n = len(frames.length)
-        if n == 0:
-            return
-        rec = np.zeros((n, 8 + frames.data.shape[1]), dtype=np.uint8)
-        stamp = np.maximum(0, np.rint(np.asarray(t_s) * 1e6)).astype(">u8")
-        rec[:, :8] = stamp.view(np.uint8).reshape(n, 8)
-        rec[:, 8:] = frames.data
-        keep = np.arange(rec.shape[1]) < (8 + frames.length)[:, None]
-        try:
-            self._f.write(rec[keep].tobytes())
-        except OSError as exc:
-            self._abandon()
-            raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
-        self.packets += n
 
     def _abandon(self) -> None:
         """After a failed write: close without flushing again (the flush would fail the same way) and

@@ -22,8 +22,6 @@ from magcomp.service.final_pass import (
     final_pass,
     self_check_finals,
 )
-from magcomp.service.inflight_process import start as start_inflight
-from magcomp.service.observer_process import start as start_observers
 from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
 from magcomp.service.publish import HeadingEncoder, TlogWriter
@@ -33,11 +31,6 @@ log = logging.getLogger("magcomp.replay")
 
 #: samples decoded per batch of the replay loop
 REPLAY_BATCH = 256
-#: the first pass of a two-pass replay steps its observers in a process of their own, where the platform
-#: forks (service/observer_process.py; the same numbers either way)
-OBSERVER_PROCESS = True
-#: ... and its in-flight calibration in another (service/inflight_process.py; the same numbers either way)
-INFLIGHT_PROCESS = True
 
 
 @dataclass
@@ -173,24 +166,17 @@ def _first_pass(
     on_progress: Callable[[float], None] | None,
     on_text: Callable[[float, str], None] | None,
 ) -> _FirstPass | None:
-    """:func:`learn_pass` that also records the sample log (service/final_pass.py)."""
+    """:func:`learn_pass` that also records the sample log (service/final_pass.py). One process: a fork
+    would buy wall time on an idle machine and cost CPU (the pipes, the copies), which is what a fleet of
+    logs pays (benchmarks/replay_speed.py)."""
     store = MemoryStore()
     samples = SampleLog()
-    # the observers step on the second core (service/observer_process.py); forked before any thread starts
-    observers = start_observers(cfg) if OBSERVER_PROCESS else None
-    inflight = start_inflight() if INFLIGHT_PROCESS else None
-    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True, recorder=samples, on_text=on_text,
-                        observers=observers, inflight_proc=inflight)  # fmt: skip
+    pipeline = Pipeline(cfg, store=store, workers=workers, learn_only=True, recorder=samples, on_text=on_text)
     try:
         facts = _learn(path, cfg, pipeline, should_stop, on_progress)
     except BaseException:
         samples.close()
         raise
-    finally:
-        if observers is not None:
-            observers.close()  # (pipeline.close() has taken their states; after an error: the child ends)
-        if inflight is not None:
-            inflight.close()  # (likewise the in-flight stages)
     if facts is None:
         samples.close()
         return None
@@ -335,7 +321,8 @@ def replay_log(
                 first = None
             finals = final_compasses(first.pipeline) if first is not None else None
             if first is not None and finals is not None and cfg.output.self_check:  # never worse than its own
-                finals, checks, hovers = self_check_finals(first.samples, finals)
+                hover_on = cfg.inflight.enabled and cfg.observer.learn  # theta is learned in flight
+                finals, checks, hovers = self_check_finals(first.samples, finals, hover_on)
                 first.pipeline.self_checks.update(checks)
                 first.pipeline.hover_thetas.update(hovers)
         if first is not None and finals is not None:

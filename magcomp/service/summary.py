@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
 from typing import NamedTuple
 
@@ -59,6 +60,8 @@ def compass_summary(
             "residual_rms_mgauss": hover.residual_rms_mgauss,
             "n": hover.n,
             "theta_sigma_mgauss": hover.theta_sigma_mgauss.tolist(),
+            "offset_change_mgauss": hover.offset_mgauss.tolist(),
+            "heading_anchor_deg": math.degrees(hover.anchor_rad),
         }
     return {
         "index": c.mag_index,

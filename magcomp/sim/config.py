@@ -534,52 +534,11 @@ def apply_settings(config: SimConfig, settings: Mapping[str, object] | list[str]
             number = _parse_value(key, text, "float")
             assert isinstance(number, float)
             loc_changes[key] = number
-        elif key == "vehicle":
-            run_changes[key] = text.strip()
-            fixed = SCENARIO_VEHICLE.get(config.scenario)
-            if fixed is not None and run_changes[key] != fixed:
-                raise InputError(
-                    f"scenario {config.scenario} is a {fixed} flight; choose the scenario instead"
-                )
-        elif key in ("seed", "n_compasses"):
-            run_changes[key] = _parse_value(key, text, "int")
-        elif key == "theta_mgauss":
-            parts = text.replace(";", ",").split(",")
-            values = [_parse_value(key, part, "float") for part in parts]
-            if len(values) != 3:
-                raise InputError(f"--set theta_mgauss={text}: expected three numbers X,Y,Z (mgauss)")
-            run_changes[key] = tuple(values)
-        elif key == "duration_s":
-            run_changes[key] = _parse_value(key, text, "float")
         else:
-            raise InputError(f"unknown setting {key!r} (choose from {', '.join(setting_keys())})")
+            run_changes[key] = _run_setting(config, key, text)
     if run_changes.get("seed", 0) < 0:
         raise InputError("--set seed: must be >= 0")
-    rates = config.rates
-    if rate_changes:
-        kw: dict[str, float | None] = {}
-        tele = rate_changes.pop("telemetry_hz", None)
-        if tele is not None:
-            kw.update(
-                raw_imu_hz=tele, attitude_hz=tele, servo_hz=tele, rc_hz=min(tele, 10.0),
-                vfr_hud_hz=min(tele, 10.0), power_hz=min(tele, 10.0), heartbeat_hz=min(tele, 1.0),
-                gps_hz=min(tele, 5.0),
-            )  # fmt: skip
-        loop = rate_changes.pop("loop_hz", None)
-        kw.update(rate_changes)
-        current = dataclasses.asdict(rates)
-        current.update(kw)
-        capped = ("attitude_hz", "servo_hz", "rc_hz", "vfr_hud_hz", "power_hz", "heartbeat_hz")
-        needed = max(float(current[k]) for k in (*capped, "raw_imu_hz", "mag_hz") if current[k] is not None)
-        loop_hz = (
-            float(loop) if loop is not None else max(rates.imu_hz, _loop_rate_for(rates.truth_hz, needed))
-        )
-        current["imu_hz"] = loop_hz
-        if loop is None and loop_hz != rates.imu_hz and rates.raw_imu_hz is None and "raw_imu_hz" not in kw:
-            current["raw_imu_hz"] = rates.imu_hz  # raising the loop leaves the RAW_IMU rate where it was
-        if loop is None and loop_hz != rates.imu_hz and rates.mag_hz is None and "mag_hz" not in kw:
-            current["mag_hz"] = rates.imu_hz
-        rates = Rates(**current)  # type: ignore[arg-type]
+    rates = _with_rates(config.rates, rate_changes) if rate_changes else config.rates
     location = dataclasses.replace(config.location, **loc_changes) if loc_changes else config.location
     variation = dataclasses.replace(config.variation, **var_changes) if var_changes else config.variation
     return dataclasses.replace(
@@ -589,6 +548,53 @@ def apply_settings(config: SimConfig, settings: Mapping[str, object] | list[str]
         variation=variation,
         **run_changes,  # type: ignore[arg-type]
     )
+
+
+def _run_setting(config: SimConfig, key: str, text: str) -> Any:
+    """The value of a setting of the run itself (vehicle, seed, n_compasses, theta_mgauss, duration_s)."""
+    if key == "vehicle":
+        vehicle = text.strip()
+        fixed = SCENARIO_VEHICLE.get(config.scenario)
+        if fixed is not None and vehicle != fixed:
+            raise InputError(f"scenario {config.scenario} is a {fixed} flight; choose the scenario instead")
+        return vehicle
+    if key in ("seed", "n_compasses"):
+        return _parse_value(key, text, "int")
+    if key == "theta_mgauss":
+        parts = text.replace(";", ",").split(",")
+        values = [_parse_value(key, part, "float") for part in parts]
+        if len(values) != 3:
+            raise InputError(f"--set theta_mgauss={text}: expected three numbers X,Y,Z (mgauss)")
+        return tuple(values)
+    if key == "duration_s":
+        return _parse_value(key, text, "float")
+    raise InputError(f"unknown setting {key!r} (choose from {', '.join(setting_keys())})")
+
+
+def _with_rates(rates: Rates, rate_changes: dict[str, float]) -> Rates:
+    """``rates`` with the rate settings applied (``telemetry_hz`` expanded, the loop raised where needed)."""
+    rate_changes = dict(rate_changes)
+    kw: dict[str, float | None] = {}
+    tele = rate_changes.pop("telemetry_hz", None)
+    if tele is not None:
+        kw.update(
+            raw_imu_hz=tele, attitude_hz=tele, servo_hz=tele, rc_hz=min(tele, 10.0),
+            vfr_hud_hz=min(tele, 10.0), power_hz=min(tele, 10.0), heartbeat_hz=min(tele, 1.0),
+            gps_hz=min(tele, 5.0),
+        )  # fmt: skip
+    loop = rate_changes.pop("loop_hz", None)
+    kw.update(rate_changes)
+    current = dataclasses.asdict(rates)
+    current.update(kw)
+    capped = ("attitude_hz", "servo_hz", "rc_hz", "vfr_hud_hz", "power_hz", "heartbeat_hz")
+    needed = max(float(current[k]) for k in (*capped, "raw_imu_hz", "mag_hz") if current[k] is not None)
+    loop_hz = float(loop) if loop is not None else max(rates.imu_hz, _loop_rate_for(rates.truth_hz, needed))
+    current["imu_hz"] = loop_hz
+    if loop is None and loop_hz != rates.imu_hz and rates.raw_imu_hz is None and "raw_imu_hz" not in kw:
+        current["raw_imu_hz"] = rates.imu_hz  # raising the loop leaves the RAW_IMU rate where it was
+    if loop is None and loop_hz != rates.imu_hz and rates.mag_hz is None and "mag_hz" not in kw:
+        current["mag_hz"] = rates.imu_hz
+    return Rates(**current)  # type: ignore[arg-type]
 
 
 def _split(text: str) -> tuple[str, str]:

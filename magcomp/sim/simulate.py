@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -170,12 +172,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     motion = build_motion(
         config.scenario, config.duration, config.vehicle, dt, rng_motion, config.variation.hover_throttle
     )
-    n = motion.t_s.shape[0]
-    t_s = config.t0_s + motion.t_s
     effects = dict(config.effects)
-    per_motor = effects.get("per_motor", 0.0) > 0.0
-    multirotor = config.vehicle == "multirotor"
-
     compasses = make_compasses(
         config.n_compasses,
         np.asarray(config.theta_mgauss, dtype=float) * var.theta_scale,
@@ -185,77 +182,144 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     )
     compasses = _vary_compasses(config, compasses)
     current_max = config.variation.current_max_a
-    pt_params = PowertrainParams(
-        current_max_a=(40.0 if multirotor else 20.0) if current_max is None else current_max
-    )
+    if current_max is None:
+        current_max = 40.0 if config.vehicle == "multirotor" else 20.0
+    pt_params = PowertrainParams(current_max_a=current_max)
+    per_motor = effects.get("per_motor", 0.0) > 0.0
     command = motion.motors_cmd_01 if per_motor else motion.throttle_cmd_01[:, None]
     power = simulate_powertrain(motion.t_s, command, dt, effects, pt_params)
-
-    # eq. (11): B_j = theta_j * load (load = throttle^2 with no effect); per motor: sum_i theta_ij load_i / k
-    k = power.load_01.shape[1]
-    bias = np.stack([power.load_01 @ c.theta_motor_mgauss / k for c in compasses])  # eq. (11)
-    drift_k = effects.get("temperature_drift", 0.0)
-    dtemp = power.temp_powertrain_degc - pt_params.ambient_degc
-    drift = np.stack([drift_k * dtemp[:, None] * c.drift_dir[None, :] for c in compasses])
+    bias, drift = _bias_and_drift(compasses, power, effects, pt_params)
 
     m_n = _earth_field(config)
     r_nb = dcms_from_quats(motion.q_nb)
     field_b = np.einsum("nji,j->ni", r_nb, m_n)  # u = R_nb^T m_n
-    g_n = np.array([0.0, 0.0, STANDARD_GRAVITY_M_S2])
-    f_b = np.einsum("nji,nj->ni", r_nb, motion.accel_n_m_s2 - g_n)
-
     step = round(rates.truth_hz / rates.imu_hz)
-    idx = np.arange(0, n, step)
-    gyro = np.stack([measure_gyro(c, motion.omega_b_rad_s[idx], rng_noise) for c in compasses])
-    accel = np.stack([measure_accel(c, f_b[idx], rng_noise) for c in compasses])
-    coloured = var.mag_ar1_sigma_mgauss > 0.0 or var.mag_rw_mgauss_per_sqrt_s > 0.0
-    mag = np.stack(
-        [
-            measure_mag(
-                c,
-                field_b[idx] + bias[j, idx] + drift[j, idx],
-                rng_noise,
-                coloured_noise(
-                    idx.size,
-                    step * dt,
-                    var.mag_ar1_sigma_mgauss,
-                    var.mag_ar1_tau_s,
-                    var.mag_rw_mgauss_per_sqrt_s,
-                    rng_cnoise,
-                )
-                if coloured
-                else None,
-            )
-            for j, c in enumerate(compasses)
-        ]
-    )
-    if rates.mag_hz is not None:  # the compass updates at mag_hz; the autopilot holds its last value
-        mag = mag[:, _hold_index(idx.size, rates.imu_hz, rates.mag_rate)]
-    imu_temp = np.stack([power.temp_imu_degc[idx] + 0.7 * j for j in range(len(compasses))])
-    imu_temp = np.round(imu_temp + rng_noise.normal(0.0, 0.05, imu_temp.shape), 2)
-
-    c0 = compasses[0]
+    idx = np.arange(0, motion.t_s.shape[0], step)
+    field_total_b = field_b + bias + drift
+    run = _Run(config, compasses, motion, power, idx)
+    sensed = _measure(run, field_total_b, r_nb, rng_noise, rng_cnoise)
     ap_cal = None
     if config.ap_calibration:
         ap_cal = tuple(
             autopilot_calibration(c, config.ap_cal_hard_iron_mgauss, config.ap_cal_soft_iron, rng_cal)
             for c in compasses
         )
+    decl = declination_rad(m_n)
+    attitude = _autopilot_attitude(run, sensed, ap_cal, decl, rng_att)
+    samples = _samples(run, sensed, ap_cal, attitude, rng_noise)
+    return SimResult(
+        config=config,
+        t_s=config.t0_s + motion.t_s,
+        motion=motion,
+        power=power,
+        compasses=compasses,
+        bias_mgauss=bias,
+        drift_mgauss=drift,
+        field_earth_b_mgauss=field_b,
+        earth_field_ned_mgauss=m_n,
+        declination_deg=math.degrees(decl),
+        samples=samples,
+        effect_params=_effect_params(effects, compasses, pt_params),
+        ap_calibration=ap_cal,
+    )
+
+
+def _bias_and_drift(
+    compasses: Sequence[CompassTruth],
+    power: PowertrainTruth,
+    effects: dict[str, float],
+    pt_params: PowertrainParams,
+) -> tuple[F64, F64]:
+    """Per compass and truth row: the motor bias of eq. (11) and the temperature drift (mgauss)."""
+    # eq. (11): B_j = theta_j * load (load = throttle^2 with no effect); per motor: sum_i theta_ij load_i / k
+    k = power.load_01.shape[1]
+    bias = np.stack([power.load_01 @ c.theta_motor_mgauss / k for c in compasses])  # eq. (11)
+    drift_k = effects.get("temperature_drift", 0.0)
+    dtemp = power.temp_powertrain_degc - pt_params.ambient_degc
+    drift = np.stack([drift_k * dtemp[:, None] * c.drift_dir[None, :] for c in compasses])
+    return bias, drift
+
+
+class _Run(NamedTuple):
+    """What the steps of :func:`simulate` share: the run, its truth and the loop rows ``idx``."""
+
+    config: SimConfig
+    compasses: Sequence[CompassTruth]
+    motion: Motion
+    power: PowertrainTruth
+    idx: NDArray[np.int64]
+
+
+class _Sensed(NamedTuple):
+    """What the compasses and IMUs measure at the loop rows (compass j with IMU j)."""
+
+    gyro: F64  # (J, n, 3) rad/s
+    accel: F64  # (J, n, 3) m/s^2
+    mag: F64  # (J, n, 3) mgauss, held between mag_hz updates
+    imu_temp: F64  # (J, n) degC
+
+
+def _measure(
+    run: _Run, field_total_b: F64, r_nb: F64, rng_noise: np.random.Generator, rng_cnoise: np.random.Generator
+) -> _Sensed:
+    """The sensors at the loop rows ``idx``: gyro, accelerometer and compass of each compass's IMU (the
+    field: the Earth's plus each compass's motor bias and drift, ``field_total_b`` (J, n, 3)), and the IMU
+    temperatures."""
+    config, compasses, motion, power, idx = run
+    var = config.variation
+    rates = config.rates
+    step = round(rates.truth_hz / rates.imu_hz)
+    dt = 1.0 / rates.truth_hz
+    g_n = np.array([0.0, 0.0, STANDARD_GRAVITY_M_S2])
+    f_b = np.einsum("nji,nj->ni", r_nb, motion.accel_n_m_s2 - g_n)
+    gyro = np.stack([measure_gyro(c, motion.omega_b_rad_s[idx], rng_noise) for c in compasses])
+    accel = np.stack([measure_accel(c, f_b[idx], rng_noise) for c in compasses])
+    coloured = var.mag_ar1_sigma_mgauss > 0.0 or var.mag_rw_mgauss_per_sqrt_s > 0.0
+
+    def extra(j: int) -> F64 | None:
+        if not coloured:
+            return None
+        return coloured_noise(idx.size, step * dt, var.mag_ar1_sigma_mgauss, var.mag_ar1_tau_s,
+                              var.mag_rw_mgauss_per_sqrt_s, rng_cnoise)  # fmt: skip
+
+    mag = np.stack(
+        [measure_mag(c, field_total_b[j, idx], rng_noise, extra(j)) for j, c in enumerate(compasses)]
+    )
+    if rates.mag_hz is not None:  # the compass updates at mag_hz; the autopilot holds its last value
+        mag = mag[:, _hold_index(idx.size, rates.imu_hz, rates.mag_rate)]
+    imu_temp = np.stack([power.temp_imu_degc[idx] + 0.7 * j for j in range(len(compasses))])
+    imu_temp = np.round(imu_temp + rng_noise.normal(0.0, 0.05, imu_temp.shape), 2)
+    return _Sensed(gyro, accel, mag, imu_temp)
+
+
+def _autopilot_attitude(
+    run: _Run,
+    sensed: _Sensed,
+    ap_cal: tuple[AutopilotCalibration, ...] | None,
+    decl: float,
+    rng_att: np.random.Generator,
+) -> F64:
+    """The simulated autopilot's attitude (roll, pitch, yaw rad) at the loop rows: its filter steered by
+    the primary compass as it sees it (its own calibration, or the motor-off calibration), with the
+    attitude knobs' biases and noise."""
+    config, compasses, motion, _, idx = run
+    var = config.variation
+    step_dt = round(config.rates.truth_hz / config.rates.imu_hz) / config.rates.truth_hz
+    mag = sensed.mag
     primary = var.primary_compass
     cp = compasses[primary]
     if ap_cal is not None:  # the autopilot steers by the field it logs: its own calibration, in float
         mag_ap = (mag[primary] - ap_cal[primary].b_ap_mgauss) @ ap_cal[primary].a_matrix.T
     else:
         mag_ap = np.linalg.solve(cp.k_matrix, (mag[primary] - cp.b_mgauss).T).T  # eq. (2), motor-off cal.
-    decl = declination_rad(m_n)
     yaw_ref = euler_from_quats(motion.q_nb[idx])[:, 2] if var.yaw_source == "truth" else None
     att_q = run_autopilot(
         motion.q_nb[0],
-        gyro[0] - c0.gyro_bias_rad_s,
-        accel[0],
+        sensed.gyro[0] - compasses[0].gyro_bias_rad_s,
+        sensed.accel[0],
         mag_ap,
         motion.accel_n_m_s2[idx],
-        step * dt,
+        step_dt,
         decl,
         AutopilotParams(kp_tilt=var.ap_kp_tilt, kp_yaw=var.ap_kp_yaw),
         yaw_ref_rad=yaw_ref,
@@ -266,6 +330,19 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         attitude = attitude + att_bias + rng_att.normal(0.0, math.radians(var.att_noise_deg), attitude.shape)
         attitude[:, 2] = (attitude[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
         attitude[:, 1] = np.clip(attitude[:, 1], -math.pi / 2.0, math.pi / 2.0)
+    return attitude  # type: ignore[no-any-return]
+
+
+def _samples(
+    run: _Run,
+    sensed: _Sensed,
+    ap_cal: tuple[AutopilotCalibration, ...] | None,
+    attitude: F64,
+    rng_noise: np.random.Generator,
+) -> SimSamples:
+    """What the autopilot reports at the loop rows, quantised as it sends it."""
+    config, _, motion, power, idx = run
+    mag = sensed.mag
     mag_sensor = None
     if ap_cal is not None:
         mag_sensor = mag
@@ -273,19 +350,18 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         mag = np.round(np.stack(logged))  # RAW_IMU carries whole mgauss
     gps: dict[str, F64] = {}
     if config.gps:
-        gps = _gps_track(config, motion.vel_n_m_s, motion.alt_m, dt, idx)
-
+        gps = _gps_track(config, motion.vel_n_m_s, motion.alt_m, 1.0 / config.rates.truth_hz, idx)
     voltage = np.round(power.voltage_v[idx] + rng_noise.normal(0.0, 0.01, idx.size), 3)
     noisy_current: F64 = power.current_a[idx] + rng_noise.normal(0.0, 0.05, idx.size)
     current = np.rint(np.maximum(noisy_current, 0.0) * 100.0) / 100.0  # 10 mA (cA in SYS_STATUS)
     vel = motion.vel_n_m_s[idx]
-    samples = SimSamples(
-        t_s=t_s[idx],
+    return SimSamples(
+        t_s=(config.t0_s + motion.t_s)[idx],
         truth_index=idx,
-        gyro_rad_s=gyro,
-        accel_m_s2=accel,
+        gyro_rad_s=sensed.gyro,
+        accel_m_s2=sensed.accel,
         mag_mgauss=mag,
-        imu_temp_degc=imu_temp,
+        imu_temp_degc=sensed.imu_temp,
         throttle_01=quantize(motion.throttle_cmd_01[idx], 1e-3),
         motors_01=quantize(motion.motors_cmd_01[idx], 1e-3),
         voltage_v=voltage,
@@ -301,29 +377,21 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
         gps_alt_msl_m=gps.get("alt_msl_m"),
         gps_vel_n_m_s=gps.get("vel_n_m_s"),
     )
+
+
+def _effect_params(
+    effects: dict[str, float], compasses: Sequence[CompassTruth], pt_params: PowertrainParams
+) -> dict[str, object]:
+    """The effects' parameters as the truth files record them."""
     effect_params: dict[str, object] = {name: float(v) for name, v in effects.items()}
-    if drift_k:
+    if effects.get("temperature_drift", 0.0):
         effect_params["temperature_drift_dir"] = [c.drift_dir.tolist() for c in compasses]
         effect_params["temperature_ambient_degc"] = pt_params.ambient_degc
-    if per_motor:
+    if effects.get("per_motor", 0.0) > 0.0:
         effect_params["per_motor_theta_mgauss"] = [c.theta_motor_mgauss.tolist() for c in compasses]
     if "voltage_sag" in effects:
         effect_params["voltage_sag_reference_v"] = pt_params.v_full_v
-    return SimResult(
-        config=config,
-        t_s=t_s,
-        motion=motion,
-        power=power,
-        compasses=compasses,
-        bias_mgauss=bias,
-        drift_mgauss=drift,
-        field_earth_b_mgauss=field_b,
-        earth_field_ned_mgauss=m_n,
-        declination_deg=math.degrees(decl),
-        samples=samples,
-        effect_params=effect_params,
-        ap_calibration=ap_cal,
-    )
+    return effect_params
 
 
 #: compass 0 as an external (GPS-mast) compass: this far from the power wires, theta falls as (r0 / r)^2

@@ -27,6 +27,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -438,6 +439,41 @@ CLIMB_THROTTLE_PER_M_S = 0.055  # extra collective per m/s of climb (induced + v
 DRAG_PER_M = 0.036  # horizontal drag acceleration = DRAG_PER_M * v^2: tilt 16 deg at 9 m/s, 20 at 10 m/s
 
 
+class _Plan(NamedTuple):
+    """A flight plan laid out on the rows of a run: each row's segment, speed, climb rate and yaw rate."""
+
+    names: tuple[str, ...]  # the plan's segment names, first appearance first
+    seg: NDArray[np.int64]  # index into ``names``
+    speed: F64  # m/s
+    climb: F64  # m/s
+    yaw_rate: F64  # rad/s
+    spans: list[tuple[tuple[Any, ...], int, int]]  # (plan row, first row, end row) of each non-empty segment
+
+
+def _lay_out(plan: Sequence[tuple[Any, ...]], duration_s: float, dt_s: float) -> _Plan:
+    """Rows of (name, nominal duration s, speed, full turns, climb, ...): durations scaled to ``duration_s``,
+    the number of full yaw turns kept (at least one per turning segment), speeds and climb rates kept."""
+    scale = duration_s / sum(row[1] for row in plan)
+    n = max(2, round(duration_s / dt_s))
+    names = tuple(dict.fromkeys(row[0] for row in plan))
+    durs = np.array([row[1] for row in plan]) * scale
+    edges = np.round(np.concatenate([[0.0], np.cumsum(durs)]) / dt_s).astype(np.int64)
+    edges[-1] = n
+    out = _Plan(names, np.zeros(n, dtype=np.int64), np.zeros(n), np.zeros(n), np.zeros(n), [])
+    for row, a, b in zip(plan, edges[:-1], edges[1:], strict=True):
+        if b <= a:
+            continue
+        name, _, speed, turns, vz = row[:5]
+        out.seg[a:b] = names.index(name)
+        out.speed[a:b] = speed
+        out.climb[a:b] = vz
+        if turns:
+            k = math.copysign(max(1.0, round(abs(turns) * scale)), turns)
+            out.yaw_rate[a:b] = 2.0 * math.pi * k / ((b - a) * dt_s)
+        out.spans.append((row, int(a), int(b)))
+    return out
+
+
 def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generator, hover: float) -> Motion:
     """Ordinary multirotor flight (see ORDINARY_PLAN): segment durations scale with ``duration_s`` (nominal
     301 s); the number of full yaw turns is kept (at least one per turning segment), speeds and climb rates
@@ -445,29 +481,14 @@ def _ordinary_multirotor(duration_s: float, dt_s: float, rng: np.random.Generato
     turn's centripetal acceleration; collective = hover * sqrt(|thrust| / g) + climb term + a small gusty
     component (+-0.02, seeded). Velocity is along the heading (circles turn the vehicle through 360 deg).
     Ends on the ground at the altitude it started from."""
-    scale = duration_s / ORDINARY_NOMINAL_S
-    n = max(2, round(duration_s / dt_s))
-    names = tuple(dict.fromkeys(row[0] for row in ORDINARY_PLAN))
-    durs = np.array([row[1] for row in ORDINARY_PLAN]) * scale
-    edges = np.round(np.concatenate([[0.0], np.cumsum(durs)]) / dt_s).astype(np.int64)
-    edges[-1] = n
-    u = np.zeros(n)
-    yaw_rate = np.zeros(n)
-    climb = np.zeros(n)
-    seg = np.zeros(n, dtype=np.int64)
+    plan = _lay_out(ORDINARY_PLAN, duration_s, dt_s)
+    names, seg, u, climb, yaw_rate = plan.names, plan.seg, plan.speed, plan.climb, plan.yaw_rate
+    n = seg.size
     ground = np.zeros(n, dtype=bool)
     off = np.zeros(n, dtype=bool)
-    for (name, _, speed, turns, vz), a, b in zip(ORDINARY_PLAN, edges[:-1], edges[1:], strict=True):
-        if b <= a:
-            continue
-        seg[a:b] = names.index(name)
-        u[a:b] = speed
-        climb[a:b] = vz
-        if turns:
-            k = math.copysign(max(1.0, round(abs(turns) * scale)), turns)
-            yaw_rate[a:b] = 2.0 * math.pi * k / ((b - a) * dt_s)
-        ground[a:b] = name.startswith("ground")
-        off[a:b] = name == "ground_off"
+    for row, a, b in plan.spans:
+        ground[a:b] = row[0].startswith("ground")
+        off[a:b] = row[0] == "ground_off"
     u = _smooth(u, dt_s, 6.0)
     # no climb within 1 s of the ground phases, so that the smoothed climb is zero where it meets them
     near_ground = np.convolve(ground.astype(float), np.ones(2 * round(1.0 / dt_s) + 1), mode="same") > 0
@@ -532,32 +553,14 @@ def _ordinary_fixedwing(duration_s: float, dt_s: float, rng: np.random.Generator
     turns kept, speeds and climb rates kept). Coordinated turns, roll = atan(V psi_dot / g); pitch =
     flight-path angle + incidence; throttle per phase plus a small seeded gust component; level on the
     ground. Ends on the ground, stopped, at the take-off altitude."""
-    nominal = sum(row[1] for row in ORDINARY_PLANE_PLAN)
-    scale = duration_s / nominal
-    n = max(2, round(duration_s / dt_s))
-    names = tuple(dict.fromkeys(row[0] for row in ORDINARY_PLANE_PLAN))
-    durs = np.array([row[1] for row in ORDINARY_PLANE_PLAN]) * scale
-    edges = np.round(np.concatenate([[0.0], np.cumsum(durs)]) / dt_s).astype(np.int64)
-    edges[-1] = n
-    v = np.zeros(n)
-    yaw_rate = np.zeros(n)
-    climb = np.zeros(n)
+    plan = _lay_out(ORDINARY_PLANE_PLAN, duration_s, dt_s)
+    names, seg, v, climb, yaw_rate = plan.names, plan.seg, plan.speed, plan.climb, plan.yaw_rate
+    n = seg.size
     thr = np.zeros(n)
-    seg = np.zeros(n, dtype=np.int64)
     ground = np.zeros(n, dtype=bool)
-    for (name, _, speed, turns, vz, throttle), a, b in zip(
-        ORDINARY_PLANE_PLAN, edges[:-1], edges[1:], strict=True
-    ):
-        if b <= a:
-            continue
-        seg[a:b] = names.index(name)
-        v[a:b] = speed
-        climb[a:b] = vz
-        thr[a:b] = throttle
-        if turns:
-            k = math.copysign(max(1.0, round(abs(turns) * scale)), turns)
-            yaw_rate[a:b] = 2.0 * math.pi * k / ((b - a) * dt_s)
-        ground[a:b] = name in ("ground_off", "takeoff_roll", "rollout")
+    for row, a, b in plan.spans:
+        thr[a:b] = row[5]
+        ground[a:b] = row[0] in ("ground_off", "takeoff_roll", "rollout")
     off = seg == names.index("ground_off")
     v = _smooth(v, dt_s, 4.0)
     v[off] = 0.0  # standing, motor off

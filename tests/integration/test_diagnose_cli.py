@@ -76,8 +76,7 @@ def test_cli_missing_file_is_a_one_line_error(tmp_path: Path, capsys: pytest.Cap
 def test_cli_rerun_save_writes_a_recording(skewed_log: Path) -> None:
     pytest.importorskip("magcomp.adapters.rerun_viz")
     rrd = skewed_log.parent / "diag.rrd"
-    # in a process of its own: the Rerun SDK's native threads outlive the recording, and in this process
-    # they would keep later tests' replays from forking their observer process (observer_process.start)
+    # in a process of its own: the Rerun SDK's native threads outlive the recording
     cmd = [sys.executable, "-m", "magcomp", "diagnose", str(skewed_log), "--rerun", f"save={rrd}"]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr

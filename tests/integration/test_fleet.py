@@ -44,12 +44,18 @@ VEHICLES_TOML = '[vehicles]\nalpha = ["*/vehA/*"]\nbravo = ["*/vehB/*"]\n'
 RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "peak_rss_mb", "path"}
 
 
+def _foreign_threads() -> list[str]:
+    """This process's native threads that do not carry its own name (a library's: pyarrow's allocator,
+    Dask's IO loop); a BLAS pool's keep the process's name."""
+    own = Path("/proc/self/comm").read_text().strip()
+    names = [(t / "comm").read_text().strip() for t in Path("/proc/self/task").iterdir()]
+    return [n for n in names if n != own]
+
+
 @pytest.fixture(autouse=True)
 def no_threads_left() -> Iterator[None]:
     """No test here leaves a thread in the test process, Python's or a library's native one (pyarrow's
-    allocator, Dask's IO loop): later tests fork only from a single-threaded process."""
-    from magcomp.service.observer_process import _foreign_threads
-
+    allocator, Dask's IO loop)."""
     before = {t.ident for t in threading.enumerate()}
     native = sorted(_foreign_threads())
     yield

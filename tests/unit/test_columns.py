@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import magcomp.adapters.mavlink_source as ms
+from magcomp.adapters import mavlink_frames
 from magcomp.adapters.columns import PwmRows, Rows, Window
 from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.throttle import resolve_throttle, throttle_from_pwm
@@ -126,9 +127,9 @@ def test_reading_in_chunks_gives_the_same_messages_and_counts_as_the_whole_file(
             got = [(type(s).__name__, float(s.t_s)) for s in src.samples()]
             return got, dict(src.counts)
 
-    monkeypatch.setattr(ms, "READ_CHUNK_BYTES", 1 << 30)  # the whole file at once
+    monkeypatch.setattr(mavlink_frames, "READ_CHUNK_BYTES", 1 << 30)  # the whole file at once
     whole, whole_counts = read()
-    monkeypatch.setattr(ms, "READ_CHUNK_BYTES", chunk)
+    monkeypatch.setattr(mavlink_frames, "READ_CHUNK_BYTES", chunk)
     chunked, chunked_counts = read()
     assert chunked_counts == whole_counts
     assert chunked == whole

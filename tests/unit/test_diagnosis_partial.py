@@ -97,9 +97,9 @@ def test_hover_without_a_position_takes_the_field_from_the_compass() -> None:
 
 
 def test_a_noisy_compass_refused_for_its_residual_still_gets_theta() -> None:
-    """The telemetry case of issue 26: the forward model leaves more than 5 % of the field (here white noise of
-    30 mgauss per axis), so the calibration is refused, but that residual does not follow the throttle: theta
-    is given, identifiable, its interval bracketing the truth (before: refused with no theta)."""
+    """The telemetry case of issue 26: the forward model leaves more than 5 % of the field (here white noise
+    of 30 mgauss per axis), so the calibration is refused, but that residual does not follow the throttle:
+    theta is given, identifiable, its interval bracketing the truth (before: refused with no theta)."""
     d = diagnose(hover_log(4, noise_mgauss=30.0), earth=EARTH)
     c = d.to_json()["compasses"][0]
     assert not c["observable"]
@@ -113,8 +113,8 @@ def test_a_noisy_compass_refused_for_its_residual_still_gets_theta() -> None:
 
 
 def test_a_structured_residual_beyond_the_gate_leaves_theta_given_but_not_identifiable() -> None:
-    """A slow 40 mgauss error no term models: theta is still printed with its interval, flagged not identifiable
-    with the model-error bound as the reason, and no autopilot parameter is suggested."""
+    """A slow 40 mgauss error no term models: theta is still printed with its interval, flagged not
+    identifiable with the model-error bound as the reason, and no autopilot parameter is suggested."""
     d = diagnose(hover_log(5, wander_mgauss=40.0), earth=EARTH)
     c = d.to_json()["compasses"][0]
     assert "forward model leaves" in c["unobservable_why"]

@@ -6,8 +6,8 @@ import numpy as np
 
 from magcomp.core.segments import (
     SegmentParams,
+    best_window,
     find_stationary_segments,
-    find_stationary_sweep,
     find_sweep_in_log,
     stationary_mask,
 )
@@ -42,19 +42,20 @@ def _bench_log(rng: np.random.Generator) -> dict[str, np.ndarray]:
 def test_finds_the_stationary_sweep_and_rejects_motion_holds_and_pans() -> None:
     d = _bench_log(np.random.default_rng(12))
     p = SegmentParams()
-    found = find_stationary_sweep(d["t"], d["gyro"], d["t"][::5], d["throttle"][::5], p, d["t"], d["att"])
+    rates, att = Series(d["t"], d["gyro"]), Series(d["t"], d["att"])
+    found = best_window(find_stationary_segments(rates, Series(d["t"][::5], d["throttle"][::5]), p, att))
     assert found is not None
     t0, t1 = found
     # inside the true sweep, trimmed by at most smoothing half-width + margin + 0.5 s
     assert 20.0 <= t0 < 21.5 and 58.5 < t1 <= 60.0, found
-    segs = find_stationary_segments(d["t"], d["gyro"], d["t"], d["throttle"], p, d["t"], d["att"])
+    segs = find_stationary_segments(rates, Series(d["t"], d["throttle"]), p, att)
     assert len(segs) == 1  # the 50 % hold has no span, the pan drifts 0.9 rad in yaw
 
 
 def test_without_attitude_the_slow_pan_is_not_rejected() -> None:
     """Control: the pan at 0.03 rad/s passes the rate test; only the attitude test removes it."""
     d = _bench_log(np.random.default_rng(12))
-    segs = find_stationary_segments(d["t"], d["gyro"], d["t"], d["throttle"], SegmentParams())
+    segs = find_stationary_segments(Series(d["t"], d["gyro"]), Series(d["t"], d["throttle"]), SegmentParams())
     starts = sorted(s.t_start_s for s in segs)
     assert len(segs) == 2 and starts[1] > 121.0
 
@@ -63,10 +64,12 @@ def test_no_sweep_returns_none() -> None:
     rng = np.random.default_rng(1)
     t = np.arange(0.0, 60.0, 0.01)
     gyro = 0.01 * rng.standard_normal((len(t), 3))
-    assert find_stationary_sweep(t, gyro, t, np.full(len(t), 0.4)) is None  # stationary, no throttle change
+    # stationary, no throttle change
+    assert best_window(find_stationary_segments(Series(t, gyro), Series(t, np.full(len(t), 0.4)))) is None
     moving = gyro + 0.5
     ramp = t / 60.0
-    assert find_stationary_sweep(t, moving, t, ramp) is None  # throttle changes, vehicle moving
+    # throttle changes, vehicle moving
+    assert best_window(find_stationary_segments(Series(t, moving), Series(t, ramp))) is None
 
 
 def test_stationary_mask_averages_vibration_but_not_rotation() -> None:

@@ -139,3 +139,105 @@ def test_hover_theta_is_recovered_against_the_autopilots_calibration() -> None:
     assert np.all(np.abs(err) < 3 * fit.theta_sigma_mgauss + 1e-9)
     assert np.linalg.norm(err) < 0.1 * np.linalg.norm(theta)
     assert fit_hover_theta(m, roll, pitch, yaw, np.full(n, 0.5)) is None
+
+
+def _hover_with_offset(seed: int, yaw_amp_deg: float = 50.0) -> tuple[np.ndarray, ...]:
+    """A hover over 2 x ``yaw_amp_deg`` of yaw whose compass carries a hard-iron change since the autopilot's
+    calibration (d) and the throttle's bias (theta); the field as the autopilot logged it."""
+    from magcomp.core.hover_theta import body_from_nav
+
+    rng = np.random.default_rng(seed)
+    n = 3000
+    t = np.arange(n) * 0.1
+    roll = np.radians(2.0) * np.sin(t / 3.0)
+    pitch = np.radians(2.0) * np.cos(t / 4.0)
+    yaw = np.radians(yaw_amp_deg) * np.sin(t / 40.0)
+    thr = 0.5 + 0.1 * np.sin(t / 2.3) * np.sin(t / 17.0)
+    e_n = np.array([200.0, 10.0, 450.0])
+    theta = np.array([-80.0, 140.0, 60.0])
+    d = np.array([45.0, -35.0, 20.0])
+    m = np.einsum("nij,j->ni", body_from_nav(roll, pitch, yaw), e_n) + d + theta * (thr**2)[:, None]
+    m += rng.normal(0, 2.0, m.shape)
+    return m, roll, pitch, yaw, thr, theta, d
+
+
+def test_hover_theta_with_a_hard_iron_change() -> None:
+    """The second form (core/hover_theta.py) takes a change of the autopilot's offsets: on a hover that
+    carries one, theta comes out within 15 % where the theta-only form is off by more than that, and the
+    heading error left against the true yaw (its constant removed) drops below 1 deg."""
+    from magcomp.core.heading import heading_from_trig_deg
+    from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, fit_hover_theta
+
+    m, roll, pitch, yaw, thr, theta, _ = _hover_with_offset(11)
+    only = fit_hover_theta(m, roll, pitch, yaw, thr)
+    both = fit_hover_theta(m, roll, pitch, yaw, thr, OFFSET_PRIOR_SD_MGAUSS)
+    assert only is not None and both is not None
+    assert np.linalg.norm(both.theta_mgauss - theta) < 0.15 * np.linalg.norm(theta)
+    assert np.linalg.norm(only.theta_mgauss - theta) > 0.15 * np.linalg.norm(theta)
+    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
+
+    def rms_about_mean_deg(fit: object) -> float:
+        u = fit.corrected_mgauss(m, thr)  # type: ignore[attr-defined]
+        err = np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig)) - yaw
+        return sc.offset_removed_rms_deg(err)
+
+    assert rms_about_mean_deg(both) < 1.0 < rms_about_mean_deg(only)
+
+
+def test_hover_correction_is_anchored_and_its_coefficients_reproduce_it() -> None:
+    """An offset change that moves the heading's constant part (150 mgauss across a 200 mgauss horizontal
+    field): anchored()'s offset brings the mean heading back to the autopilot's own (within 0.2 deg) and keeps
+    the changes about it, and coeffs() gives the same corrected field through eq. (2) and eq. (11) as
+    corrected_mgauss()."""
+    from dataclasses import replace
+
+    from magcomp.core.heading import heading_from_trig_deg
+    from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, anchored, fit_hover_theta
+
+    m, roll, pitch, yaw, thr, _, _ = _hover_with_offset(12, yaw_amp_deg=5.0)
+    fit = fit_hover_theta(m, roll, pitch, yaw, thr, OFFSET_PRIOR_SD_MGAUSS)
+    assert fit is not None
+    fit = replace(fit, offset_mgauss=fit.offset_mgauss + np.array([0.0, 150.0, 0.0]))
+    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
+
+    def heading(u: np.ndarray) -> np.ndarray:
+        return np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))
+
+    def mean_deg(a: np.ndarray) -> float:
+        return math.degrees(math.atan2(float(np.mean(np.sin(a))), float(np.mean(np.cos(a)))))
+
+    base = heading(m)
+    free = heading(fit.corrected_mgauss(m, thr))
+    assert abs(mean_deg(free - base)) > 20.0
+    fixed = anchored(fit, base, free)
+    after = heading(fixed.corrected_mgauss(m, thr)) - fixed.anchor_rad
+    assert abs(mean_deg(after - base)) < 0.2
+    assert sc.offset_removed_rms_deg(sc.wrap_rad(after - free)) < 1e-6  # the changes about the mean kept
+    coeffs, th = fixed.coeffs()
+    big_l = np.reshape(coeffs[:9], (3, 3))
+    via_eq2 = m @ big_l.T - np.asarray(coeffs[9:]) - np.outer(thr**2, th)
+    np.testing.assert_allclose(via_eq2, fixed.corrected_mgauss(m, thr), atol=1e-9)
+
+
+def test_hover_correction_applies_to_the_field_as_the_autopilot_had_it() -> None:
+    """The second pass applies theta against the autopilot's calibration to the field with the autopilot's
+    onboard motor compensation kept (service/final_pass.py ``autopilot_field``; applied to the field as
+    measured, a COMPASS_MOT of 40 mgauss turns the heading by ~10 deg) and subtracts the anchor offset."""
+    from magcomp.core.heading import heading_from_trig_deg
+    from magcomp.service import final_pass as fp
+
+    n = 50
+    rows = np.zeros((n, fp.N_COLS))
+    rows[:, fp.RAW_X:fp.RAW_Z + 1] = [200.0, 0.0, 400.0]
+    rows[:, fp.ONB_X:fp.ONB_Z + 1] = [0.0, 40.0, 0.0]  # what the autopilot's COMPASS_MOT added back
+    rows[:, fp.THR] = 0.5
+    rows[:, fp.HAVE_THR] = 1.0
+    rows[:, fp.COS_ROLL] = rows[:, fp.COS_PITCH] = 1.0
+    from magcomp.core.correction import IDENTITY_COEFFS, Correction
+
+    cor = Correction(IDENTITY_COEFFS, (0.0, 0.0, 0.0), source="hover", needs_throttle=True)
+    own = float(heading_from_trig_deg(200.0, 40.0, 400.0, 1.0, 0.0, 1.0, 0.0))
+    for kept, offset, want in ((True, 0.0, own), (True, 3.0, own - 3.0), (False, 0.0, 0.0)):
+        f = fp.FinalCompass(cor, "corrected", autopilot_field=kept, heading_offset_deg=offset)
+        psi = fp.correct(rows, {0: f}).psi_deg
+        assert np.allclose(sc.wrap_rad(np.radians(psi - want)), 0.0, atol=1e-9), (kept, offset)
