@@ -141,6 +141,8 @@ def main() -> int:
             f"theta applied on {applied}/{total} flights; +-2 sigma (all three axes) covers the truth on "
             f"{covered}/{applied} = {100 * covered / max(applied, 1):.0f} %"
         )
+        print("with diagnose's theta per flight (fleet.vehicles.summarise theta_from='diagnose'): "
+              + change_score(rows, truth, "diagnose"))  # fmt: skip
         applied_pairs = [(r, th) for r, th in pairs if r["applied"]]
         for line in coverage_lines(
             applied_pairs, "theta", "theta_sigma", "replay sigma", [(1.0, 68.3), (2.0, 95.4)]
@@ -151,6 +153,32 @@ def main() -> int:
         ):
             print(line)
     return 0
+
+
+def change_score(rows: list[dict[str, object]], truth: dict[str, dict[str, object]], theta_from: str) -> str:
+    """Changes found at the right flight / elsewhere / missed / flagged without one, with ``theta_from``."""
+    from magcomp.fleet.vehicles import summarise
+
+    vehicles = {v.vehicle: v for v in summarise([dict(r) for r in rows], theta_from=theta_from)}
+    hits = wrong = missed = false = used = 0
+    for name, t in truth.items():
+        h = vehicles[name].compasses[0] if vehicles[name].compasses else None
+        used += len(h.flights) if h else 0
+        found = [h.flights[c.index].file_name for c in h.changes if c.confirmed] if h else []
+        want = t["change_at"]
+        if want is None:
+            false += len(found)
+        elif f"flight{want:02d}.tlog" in found:
+            hits, false = hits + 1, false + len(found) - 1
+        elif found:
+            wrong, false = wrong + 1, false + len(found) - 1
+        else:
+            missed += 1
+    n_changed = sum(1 for t in truth.values() if t["change_at"] is not None)
+    return (
+        f"{used} flights used; changes at the right flight {hits}/{n_changed}, at another {wrong}, missed "
+        f"{missed}; flagged without one (or extra) {false}"
+    )
 
 
 def coverage_lines(
