@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-diagnose",
         action="store_true",
         help="the replay's rows only, without `magcomp diagnose`'s findings, theta and parameter files "
-        "(about 40 %% less CPU per log)",
+        "(40-50 %% less CPU per log, docs/fleet.md)",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="the replays' log lines")
 
