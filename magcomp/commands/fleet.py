@@ -65,6 +65,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the replay's rows only, without `magcomp diagnose`'s findings, theta and parameter files "
         "(40-50 %% less CPU per log, docs/fleet.md)",
     )
+    parser.add_argument(
+        "--theta-from",
+        choices=("auto", "diagnose", "replay"),
+        default="auto",
+        help="whose theta per flight the vehicles' history and changes follow: diagnose's (its 95 %% "
+        "interval) or the replay's correction; auto (default): diagnose's where the rows have it",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="the replays' log lines")
 
 
@@ -138,7 +145,7 @@ def _run(args: argparse.Namespace) -> int:
             f"in {st.wall_s:.1f} s on {st.workers} worker(s): {rate:.1f} logs/min, "
             f"{st.cpu_s / max(st.analysed, 1):.2f} s CPU per log"
         )
-    vehicles = _vehicles(out, vmap)
+    vehicles = _vehicles(out, vmap, args.theta_from)
     print(f"results: {out / 'logs'} (Parquet, per log), {out / 'vehicles.parquet'}, {out / 'vehicles.json'}")
     n_params = sum(1 for v in vehicles if v.params)
     if n_params:
@@ -147,14 +154,16 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _vehicles(out: Path, vmap: Any) -> list[Any]:
+def _vehicles(out: Path, vmap: Any, theta_from: str = "auto") -> list[Any]:
     from magcomp.fleet import store
     from magcomp.fleet.vehicles import flat_rows, summarise
 
     rows = store.read_rows(out).to_pylist()
-    vehicles = summarise(rows, vmap)
+    if theta_from == "auto":  # diagnose's interval covers the truth at its level, the replay's less (docs)
+        theta_from = "diagnose" if any(r.get("diagnose_status") == "ok" for r in rows) else "replay"
+    vehicles = summarise(rows, vmap, theta_from=theta_from)
     _write_params(out, vehicles)
-    doc = {"vehicles": [v.to_json() for v in vehicles]}
+    doc = {"theta_from": theta_from, "vehicles": [v.to_json() for v in vehicles]}
     tmp = out / ".vehicles.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, out / "vehicles.json")
@@ -214,7 +223,7 @@ def _report(out: Path, args: argparse.Namespace) -> int:
     from magcomp.fleet.report import write_report
 
     vmap = load_vehicle_map(args.vehicles)
-    vehicles = _vehicles(out, vmap)
+    vehicles = _vehicles(out, vmap, args.theta_from)
     rows = store.read_rows(out).to_pylist()
     html = Path(args.html) if args.html else out / "report.html"
     write_report(html, vehicles, rows)

@@ -180,7 +180,9 @@ def test_rows_carry_diagnose_and_vehicles_its_parameter_files(
     assert json.loads(r["diagnose_findings_json"]) == c["findings"]
     assert r["diagnose_findings"] == "no finding" or c["findings"]
     # bravo's latest flight gives parameters: the fleet's file holds diagnose's values
-    doc = {v["vehicle"]: v for v in json.loads((analysed / "vehicles.json").read_text())["vehicles"]}
+    whole = json.loads((analysed / "vehicles.json").read_text())
+    assert whole["theta_from"] == "diagnose"  # the vehicles follow diagnose's theta where the rows have it
+    doc = {v["vehicle"]: v for v in whole["vehicles"]}
     params = doc["bravo"]["params"]
     assert params is not None and params["flight"] == "flight04.tlog" and params["autopilot"] == "ArduPilot"
     from magcomp.adapters.param_files import read_param_file
@@ -198,6 +200,7 @@ def test_no_diagnose_leaves_the_diagnose_columns_empty(fleet: Path, tmp_path: Pa
     rows = _rows(out)
     assert len(rows) == 1 and rows[0]["status"] == "ok" and rows[0]["diagnose_status"] is None
     assert 55.0 < rows[0]["duration_s"] <= 60.5 and rows[0]["throttle_max"] > rows[0]["throttle_min"]
+    assert json.loads((out / "vehicles.json").read_text())["theta_from"] == "replay"
 
 
 def test_the_change_is_found_at_its_flight_and_only_there(analysed: Path) -> None:
