@@ -140,10 +140,13 @@ def magcomp_scores(
         if got is not None:
             out[idx] = got
     said = {int(c["index"]): f"{c['status']}: {c['why']}" for c in rep.summary.get("compasses", [])}
-    sigma = {  # the heading uncertainty printed for a corrected compass (deg, 1 sigma)
+    sigma = {  # the heading uncertainty printed for a compass corrected in flight (deg, 1 sigma); none is
+        # printed for theta against the autopilot's calibration (its summary still has the unapplied in-flight
+        # estimate's, which does not describe the published heading)
         int(c["index"]): float(c["inflight"]["heading_sigma_deg"])
         for c in rep.summary.get("compasses", [])
-        if c["status"] == "corrected" and (c.get("inflight") or {}).get("heading_sigma_deg") is not None
+        if c["status"] == "corrected" and (c.get("calibration") or {}).get("source") == "in-flight"
+        and (c.get("inflight") or {}).get("heading_sigma_deg") is not None
     }
     return out, said, sigma
 

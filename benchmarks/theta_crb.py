@@ -43,8 +43,9 @@ from numpy.typing import NDArray
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.core.inflight import absolute_rows, reference_yaw_error_rows
+from magcomp.core.inflight.feed import ROTATION_WINDOW_S
+from magcomp.core.inflight.yawframe import GYRO_WINDOW_S
 from magcomp.core.rotations import dcms_from_quats
-from magcomp.service.inflight_stage import GYRO_WINDOW_S, ROTATION_WINDOW_S
 
 F64 = NDArray[np.float64]
 MODELS = ("trusted", "window", "window_field", "gyro_window", "tilt")

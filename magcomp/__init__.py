@@ -10,3 +10,11 @@ file and Rerun shell in :mod:`magcomp.adapters` and :mod:`magcomp.service`.
 
 __version__ = "0.1.0"
 __all__ = ["__version__"]
+
+
+def init(mpstate: object) -> object:
+    """MAVProxy's entry point: ``module load magcomp`` imports the package named ``magcomp`` (after
+    ``MAVProxy.modules.mavproxy_magcomp``) and calls its ``init``; the module is :mod:`magcomp.mavproxy`."""
+    from magcomp.mavproxy import init as module_init
+
+    return module_init(mpstate)

@@ -46,16 +46,16 @@ STABLE_FRACTION = 0.002
 """The view is settled when fewer than this fraction of pixels change between two screenshots 4 s apart."""
 
 
-class DemoProcess:
-    """`magcomp demo --rerun serve` in its own session; stdout lines collected by a reader thread."""
+class ServingProcess:
+    """A magcomp command serving the web viewer (``cmd``: its arguments after ``magcomp``), in its own
+    session; stdout lines collected by a reader thread, the viewer URL taken from the first
+    ``Rerun web viewer:`` line, ``finished`` set at ``the viewer keeps serving`` (demo) or at the end."""
 
-    def __init__(self, duration_s: float, speed: float, seed: int) -> None:
+    def __init__(self, cmd: list[str]) -> None:
         env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONPATH=str(REPO))
-        cmd = [sys.executable, "-m", "magcomp", "demo", "--rerun", "serve",
-               "--duration", f"{duration_s:g}", "--speed", f"{speed:g}", "--seed", str(seed)]  # fmt: skip
         self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=REPO, env=env,
-            start_new_session=True,
+            [sys.executable, "-m", "magcomp", *cmd], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            text=True, cwd=REPO, env=env, start_new_session=True,
         )  # fmt: skip
         self.lines: list[str] = []
         self.url = ""
@@ -68,7 +68,7 @@ class DemoProcess:
         for raw in self.proc.stdout:
             line = raw.rstrip("\n")
             self.lines.append(line)
-            if line.startswith(URL_PREFIX):
+            if line.startswith(URL_PREFIX) and not self.url:
                 self.url = line[len(URL_PREFIX) :].strip()
                 self._url_ready.set()
             if line.startswith(DONE_PREFIX):
@@ -78,7 +78,7 @@ class DemoProcess:
 
     def wait_url(self, timeout_s: float) -> str:
         if not self._url_ready.wait(timeout_s) or not self.url:
-            raise RuntimeError(f"the demo printed no viewer URL; output: {self.lines[-10:]}")
+            raise RuntimeError(f"no viewer URL printed; output: {self.lines[-10:]}")
         return self.url
 
     def summary(self) -> list[str]:
@@ -88,9 +88,9 @@ class DemoProcess:
 
     def stop(self) -> None:
         if self.proc.poll() is None:
-            try:  # ^C: the demo closes the viewer itself
+            try:  # ^C: the command closes the viewer itself (run: saves its state, prints its summary)
                 os.killpg(self.proc.pid, signal.SIGINT)
-                self.proc.wait(timeout=10)
+                self.proc.wait(timeout=15)
             except (ProcessLookupError, subprocess.TimeoutExpired):
                 pass
         _kill_group(self.proc)
@@ -98,16 +98,19 @@ class DemoProcess:
             self.proc.stdout.close()
 
 
-def capture(cdp: _Cdp, url: str, wait_s: float) -> tuple[np.ndarray, dict[str, int]]:
-    """Open ``url``; screenshot until the heading lines are drawn and the view is still (or ``wait_s``)."""
-    from magcomp.adapters.rerun_viz import COLOR_CORRECTED, COLOR_RAW
-
+def open_page(cdp: _Cdp, url: str) -> None:
+    """Navigate the page to ``url`` at the picture's size."""
     cdp.call("Page.enable")
     cdp.call("Emulation.setDeviceMetricsOverride", width=WINDOW[0], height=WINDOW[1], deviceScaleFactor=1,
              mobile=False)  # fmt: skip
     cdp.call("Page.navigate", url=url)
+
+
+def settle(cdp: _Cdp, wait_s: float) -> tuple[np.ndarray, dict[str, int]]:
+    """Screenshots 4 s apart until the heading lines are drawn and the view is still (or ``wait_s``)."""
+    from magcomp.adapters.rerun_viz import COLOR_CORRECTED, COLOR_RAW
+
     start = time.monotonic()
-    time.sleep(12.0)  # the WASM viewer loads and compiles; nothing to see before
     previous: np.ndarray | None = None
     while True:
         img = _screenshot(cdp)
@@ -126,6 +129,14 @@ def capture(cdp: _Cdp, url: str, wait_s: float) -> tuple[np.ndarray, dict[str, i
         time.sleep(4.0)
 
 
+def capture(cdp: _Cdp, url: str, wait_s: float) -> tuple[np.ndarray, dict[str, int]]:
+    """Open ``url``; screenshot until the heading lines are drawn and the view is still (or ``wait_s``)."""
+    start = time.monotonic()
+    open_page(cdp, url)
+    time.sleep(12.0)  # the WASM viewer loads and compiles; nothing to see before
+    return settle(cdp, wait_s - (time.monotonic() - start))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", nargs="?", default=str(REPO / "docs" / "img" / "demo-web.png"))
@@ -140,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     if binary is None:
         print("no chromium binary (apt-get install chromium)", file=sys.stderr)
         return 2
-    demo = DemoProcess(args.duration, args.speed, args.seed)
+    demo = ServingProcess(["demo", "--rerun", "serve", "--duration", f"{args.duration:g}", "--speed",
+                           f"{args.speed:g}", "--seed", str(args.seed)])  # fmt: skip
     try:
         url = demo.wait_url(60.0)
         base = url.split("?", 1)[0]
@@ -151,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
             img, counts = capture(cdp, url, args.wait)
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(img.astype(np.uint8)).save(out)
+        picture = Image.fromarray(img.astype(np.uint8)).quantize(colors=256, dither=Image.Dither.NONE)
+        picture.save(out, optimize=True)  # 256 colours: a third of the size, the same to the eye
         print(f"{out}: {img.shape[1]}x{img.shape[0]}, {counts}")
         print("\n".join(demo.summary()))
     finally:

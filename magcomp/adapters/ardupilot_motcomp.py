@@ -35,17 +35,20 @@ from typing import Any
 
 import numpy as np
 
-#: COMPASS_MOTCT values (ArduPilot AP_COMPASS_MOT_COMP_*)
-MOTCT_THROTTLE = 1
-MOTCT_CURRENT = 2
+from magcomp.core.autopilot_params import (
+    MOTCT_CURRENT,
+    MOTCT_THROTTLE,
+    is_motor_comp_param,
+    motor_comp_prefix,
+    motor_comp_type,
+    motor_comp_vector,
+    per_motor_comp,
+)
+
 #: the onboard compensation differs from the learned theta when the chi-square of the difference (3 axes,
 #: each over the learned theta's 1-sigma) exceeds this: the 99th percentile of chi-square with 3 degrees of
 #: freedom, a 1 % false-alarm rate when the learned sigma is right
 CHI2_3DOF_99 = 11.345
-
-
-def _prefix(index: int) -> str:
-    return "COMPASS_MOT_" if index == 0 else f"COMPASS_MOT{index + 1}_"
 
 
 class OnboardMotorComp:
@@ -62,20 +65,15 @@ class OnboardMotorComp:
         self.invalid: set[int] = set()
 
     def param(self, name: str, value: float) -> None:
-        if name.startswith("COMPASS_MOT") or name == "COMPASS_PMOT_EN":
+        if is_motor_comp_param(name):
             self.params[name] = float(value)
 
     @property
     def motct(self) -> int:
-        value = self.params.get("COMPASS_MOTCT", 0.0)
-        return int(value) if math.isfinite(value) else 0  # (a damaged COMPASS_MOTCT: none applied)
+        return motor_comp_type(self.params)
 
     def mot(self, index: int) -> tuple[float, float, float] | None:
-        p = _prefix(index)
-        try:
-            return self.params[p + "X"], self.params[p + "Y"], self.params[p + "Z"]
-        except KeyError:
-            return None
+        return motor_comp_vector(self.params, index)
 
     def offset(self, index: int, counts: dict[str, int]) -> tuple[float, float, float] | None:
         """The offset the autopilot added to compass ``index``'s field now (mgauss), or None when it added
@@ -83,7 +81,7 @@ class OnboardMotorComp:
         ct = self.motct
         if ct not in (MOTCT_THROTTLE, MOTCT_CURRENT):
             return None
-        if index == 0 and self.params.get("COMPASS_PMOT_EN", 0.0):
+        if per_motor_comp(self.params, index):
             counts["motor_comp_per_motor"] += 1
             return None
         mot = self.mot(index)
@@ -146,7 +144,7 @@ def onboard_comp_warnings(report: dict[int, dict[str, Any]], summary: dict[str, 
     out = []
     for idx, bad in sorted(report.items()):
         if bad.get("invalid"):
-            pre = _prefix(idx).rstrip("_")
+            pre = motor_comp_prefix(idx).rstrip("_")
             out.append(
                 f"compass {idx}: {pre}_X/Y/Z is not a finite number with COMPASS_MOTCT={bad['motct']}: the "
                 "autopilot's own motor compensation cannot be undone (its compass output is suspect; re-run "
@@ -173,7 +171,7 @@ def onboard_comp_warnings(report: dict[int, dict[str, Any]], summary: dict[str, 
             ob = ", ".join(f"{v:.1f}" for v in onboard)
             le = ", ".join(f"{v:.1f}" for v in learned)
             sg = ", ".join(f"{v:.1f}" for v in sd)
-            pre = _prefix(int(c["index"])).rstrip("_")
+            pre = motor_comp_prefix(int(c["index"])).rstrip("_")
             out.append(
                 f"compass {c['index']}: the autopilot's own motor compensation ({pre}*, COMPASS_MOTCT="
                 f"{rep['motct']}) was wrong: as theta it is ({ob}) mgauss, the flight shows ({le}) +- "

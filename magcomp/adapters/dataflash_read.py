@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from magcomp.adapters.log_span import chunked_find
 from magcomp.adapters.mavlink_frames import READ_CHUNK_BYTES
 from magcomp.adapters.quiet import quiet, quiet_c_streams
 from magcomp.errors import InputError
@@ -149,7 +150,7 @@ def dataflash_intact_spans(
     lost: set[int] = set()  # types whose FMT was seen but not believed
     spans: list[tuple[int, int]] = []
     skipped = 0
-    find = bytes(data).find if isinstance(data, memoryview) else data.find
+    find = chunked_find(bytes(data) if isinstance(data, memoryview) else data)  # ^C between 16 MiB chunks
     p = find(_DF_HEAD)
     if p < 0:
         return IntactSpans([], n, 0, 0)

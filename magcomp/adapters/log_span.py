@@ -4,10 +4,13 @@ raw MAVLink stream, damage at either end): the bar then shows the count and the 
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import struct
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 EDGE_BYTES = 1 << 16
 #: spans above this are damage, not a flight (a wrong stamp would make a useless total)
@@ -16,6 +19,43 @@ _DF_HEAD = b"\xa3\x95"
 _DF_FMT = 0x80
 _FMT_LEN = 89  # A3 95 80, type, length, name[4], format[16], columns[64]
 _TABLES = (b"UNIT", b"MULT", b"FMTU")
+
+
+FIND_CHUNK_BYTES = 16 << 20
+_STOP: list[Callable[[], bool]] = []
+
+
+@contextlib.contextmanager
+def interruptible_scans(should_stop: Callable[[], bool]) -> Iterator[None]:
+    """While inside, the long searches of :func:`find_in_chunks` raise KeyboardInterrupt as soon as
+    ``should_stop()`` is True: for a command whose ^C handler only sets a flag (replay), so that a search
+    through gigabytes (a zero tail) before the first sample still stops at once."""
+    _STOP.append(should_stop)
+    try:
+        yield
+    finally:
+        _STOP.remove(should_stop)
+
+
+def find_in_chunks(data: Any, needle: bytes, start: int = 0) -> int:
+    """``data.find(needle, start)`` (bytes or mmap), searched 16 MiB at a time: a search through
+    gigabytes (the zero tail of a DataFlash log) returns to Python between chunks, where ^C
+    (KeyboardInterrupt) is raised, or a stop flag (:func:`interruptible_scans`) is read; a single call in C
+    holds it off until the whole file is read."""
+    end = len(data)
+    while True:
+        if _STOP and _STOP[-1]():
+            raise KeyboardInterrupt
+        stop = min(end, start + FIND_CHUNK_BYTES + len(needle) - 1)
+        q: int = data.find(needle, start, stop)
+        if q != -1 or stop >= end:
+            return q
+        start += FIND_CHUNK_BYTES
+
+
+def chunked_find(data: Any) -> Callable[..., int]:
+    """``data.find`` as :func:`find_in_chunks` (same arguments: needle, start)."""
+    return lambda needle, start=0: find_in_chunks(data, needle, start)
 
 
 def estimate_span_s(path: str | os.PathLike[str]) -> float | None:
@@ -74,7 +114,7 @@ def _dataflash_span(data: mmap.mmap) -> float | None:
     length and whether it starts with TimeUS; the first and the last such message give the span."""
     lengths: dict[int, int] = {_DF_FMT: _FMT_LEN}
     timed: set[int] = set()
-    p = data.find(b"\xa3\x95\x80")
+    p = find_in_chunks(data, b"\xa3\x95\x80")
     while p != -1 and p + _FMT_LEN <= len(data):
         t, n = data[p + 3], data[p + 4]
         fmt = data[p + 9 : p + 25].rstrip(b"\0")
@@ -85,7 +125,7 @@ def _dataflash_span(data: mmap.mmap) -> float | None:
             # the tables written once at the start (units, multipliers) may carry a zero TimeUS: not data
             if fmt[:1] == b"Q" and cols.split(b",")[0] == b"TimeUS" and name not in _TABLES:
                 timed.add(t)
-        p = data.find(b"\xa3\x95\x80", p + 1)
+        p = find_in_chunks(data, b"\xa3\x95\x80", p + 1)
     first = _df_walk(data, 0, min(len(data), EDGE_BYTES), lengths, timed, first_only=True)
     start = max(0, len(data) - EDGE_BYTES)
     q = data.find(_DF_HEAD, start)

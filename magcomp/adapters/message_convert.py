@@ -20,6 +20,7 @@ from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_
 from magcomp.adapters.param_values import param_value
 from magcomp.adapters.stream_clock import SourceClock
 from magcomp.adapters.wire_samples import Float3, WireImuSample, WireMagSample
+from magcomp.core.autopilot_params import motor_comp_known_off
 from magcomp.core.identity import uid_from_autopilot_version, uid_from_board_msg
 from magcomp.core.types import (
     AttitudeSample,
@@ -602,10 +603,7 @@ class MessageConverter:
         """True when the logged parameters say the autopilot adds no motor offset to compass ``index``:
         COMPASS_MOTCT = 0 and, for compass 0, no per-motor compensation (COMPASS_PMOT_EN). Unknown parameters
         (none logged yet): False."""
-        params = self.onboard_comp.params
-        if params.get("COMPASS_MOTCT", math.nan) != 0.0:  # NaN (not logged) != 0: not known to be off
-            return False
-        return not (index == 0 and params.get("COMPASS_PMOT_EN", 0.0))
+        return motor_comp_known_off(self.onboard_comp.params, index)
 
     def _df_imu(self, v: Any, stream: str, raw_s: float, index: int) -> list[tuple[str, Record]]:
         gyro = _vec(v.GyrX, v.GyrY, v.GyrZ)

@@ -559,6 +559,7 @@ class EstimateColumns:
     field_cal_mgauss: NDArray[np.float64]
     residual_norm_mgauss: NDArray[np.float64]
     excitation: NDArray[np.float64]
+    theta_sigma_mgauss: NDArray[np.float64]
 
     @classmethod
     def from_estimates(cls, estimates: Sequence[HeadingEstimate]) -> EstimateColumns:
@@ -578,7 +579,26 @@ class EstimateColumns:
                 (e.residual_norm_mgauss for e in estimates), dtype=float, count=n
             ),
             excitation=np.fromiter((e.excitation for e in estimates), dtype=float, count=n),
+            theta_sigma_mgauss=np.array([e.theta_sigma_mgauss for e in estimates], dtype=float).reshape(n, 3),
         )
+
+
+THETA_BAND_LIMIT_MGAUSS = 1e5
+"""Band edges are clamped to +-this: an axis not yet excited has a huge sigma, drawn off the plot."""
+
+
+def theta_band(
+    theta_mgauss: NDArray[np.float64], sigma_mgauss: NDArray[np.float64]
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The +-1 sigma band of theta-hat per axis: ``(rows, edges)`` with ``rows`` (n, 3) True where the band is
+    drawn (finite theta and sigma >= 0) and ``edges`` (n, 3, 2) = (theta - sigma, theta + sigma), clamped to
+    +-:data:`THETA_BAND_LIMIT_MGAUSS`."""
+    th = np.asarray(theta_mgauss, dtype=float).reshape(-1, 3)
+    sd = np.asarray(sigma_mgauss, dtype=float).reshape(-1, 3)
+    rows = np.isfinite(th) & np.isfinite(sd) & (sd >= 0.0)
+    sd = np.where(rows, sd, 0.0)
+    edges = np.clip(np.stack([th - sd, th + sd], axis=-1), -THETA_BAND_LIMIT_MGAUSS, THETA_BAND_LIMIT_MGAUSS)
+    return rows, edges
 
 
 def flag_changes(flags: NDArray[np.int64]) -> NDArray[np.intp]:
@@ -650,24 +670,71 @@ def bias_fit_canvas(
 # ----------------------------------------------------------------------------------------------------------
 
 
-def theta_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
-    """The theta plot's y range: every value and 0 (where theta-hat starts), 10 % margin below and 60 % of
-    the span above, so that the legend in the top corner sits over empty plot."""
-    finite = [float(v) for v in values_mgauss if math.isfinite(float(v))] + [0.0]
+def labelled_axis_range(values: Sequence[float], above: float, below: float = 0.1) -> tuple[float, float]:
+    """A y range holding every finite value and 0, with ``below`` x the span as margin under the data and
+    ``above`` x the span over it (room for a legend in the top corner), rounded out to multiples of the
+    largest power of ten p at or below its span. The plot labels its ticks at multiples of a power of ten
+    that are far enough apart on screen; the span is then at most 12 p, so the ticks at multiples of p are
+    at least 1/13 of the plot's height apart and labelled, and both rounded ends are such ticks: at least
+    two labels (a range of -70..78 showed a single "0"). 4 % of the span is added beyond each rounded end
+    so that the end labels are not cut by the plot's edge."""
+    finite = [float(v) for v in values if math.isfinite(float(v))] + [0.0]
     lo, hi = min(finite), max(finite)
     span = max(hi - lo, 10.0)
-    return (lo - 0.1 * span, hi + 0.6 * span)
+    lo, hi = lo - below * span, hi + above * span
+    p = 10.0 ** math.floor(math.log10(hi - lo))
+    lo, hi = math.floor(lo / p) * p, math.ceil(hi / p) * p
+    edge = 0.04 * (hi - lo)  # the end ticks' labels drawn whole, not cut by the plot's edge
+    return (lo - edge, hi + edge)
+
+
+def theta_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
+    """The theta plot's y range (:func:`labelled_axis_range`): 60 % of the span above the data, where the
+    legend (theta, its band, the reference lines) sits."""
+    return labelled_axis_range(values_mgauss, above=0.6)
+
+
+def bias_axis_range(values_mgauss: Sequence[float]) -> tuple[float, float]:
+    """The bias-over-time plot's y range (:func:`labelled_axis_range`): 40 % above for its 3-line legend."""
+    return labelled_axis_range(values_mgauss, above=0.4)
 
 
 HEADING_AXIS_RANGE = (-10.0, 480.0)
 """Heading plot's y range (deg): 0..360 with room for the legend above."""
 
 
-def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) -> Any:
+def _cloud_views() -> tuple[Any, Any]:
+    """Fig. 5's two 3D views: the raw ellipsoid and the calibrated sphere, every row up to the cursor."""
+    import rerun.blueprint as rrb
+
+    everything = rrb.VisibleTimeRange(
+        TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+    )
+    raw, cal = (
+        rrb.Spatial3DView(
+            name=name, origin="/mag", contents=[cloud, flight, "/mag/origin/**"], time_ranges=everything
+        )
+        for name, cloud, flight in (
+            ("Raw field: ellipsoid (Fig. 5)", "/mag/raw_cloud", "/mag/flight/raw"),
+            ("Calibrated: sphere (Fig. 5)", "/mag/calibrated_cloud", "/mag/flight/calibrated"),
+        )
+    )
+    return raw, cal
+
+
+def build_blueprint(
+    live: bool,
+    theta_range: tuple[float, float] | None = None,
+    bias_fit: bool = False,
+    bias_range: tuple[float, float] | None = None,
+) -> Any:
     """The view layout (a ``rerun.blueprint.Blueprint``): headings and theta on the left; clouds, bias fit,
     power, observer and status on the right. Every time-series plot shows the whole run on its x axis (not
     Rerun's default window around the time cursor), so theta's transient in the spin segment stays in view.
-    ``theta_range``: the theta plot's y range (mgauss), see :func:`theta_axis_range`; None = automatic."""
+    ``theta_range``: the theta plot's y range (mgauss), see :func:`theta_axis_range`; None = automatic.
+    ``bias_fit``: a Fig. 7 fit was logged: its tab is the one shown, else the bias over time (a live run
+    has no fit until it ends, and an empty tab reads "No data available"). ``bias_range``: the bias plot's
+    y range, see :func:`bias_axis_range`; None = automatic."""
     import rerun as rr
     import rerun.blueprint as rrb
 
@@ -677,38 +744,21 @@ def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) 
         view_range=rr.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()),
     )
 
-    def plot(name: str, origin: str, corner: Any = "LeftTop", **extra: Any) -> Any:
+    def plot(name: str, origin: str, corner: Any = "LeftTop", y: tuple[float, float] | None = None) -> Any:
         return rrb.TimeSeriesView(
-            name=name, origin=origin, axis_x=whole_run, plot_legend=rrb.PlotLegend(corner=corner), **extra
+            name=name,
+            origin=origin,
+            axis_x=whole_run,
+            axis_y=None if y is None else rrb.ScalarAxis(range=y),
+            plot_legend=rrb.PlotLegend(corner=corner),
         )
 
     heading = plot(
-        "Heading raw / corrected / truth (Fig. 9), deg",
-        "/heading",
-        "RightTop",
-        axis_y=rrb.ScalarAxis(range=HEADING_AXIS_RANGE),
+        "Heading raw / corrected / truth (Fig. 9), deg", "/heading", "RightTop", HEADING_AXIS_RANGE
     )
     heading_error = plot("Heading error (Fig. 9), deg", "/heading_error", "RightBottom")
-    theta_extra: dict[str, Any] = {}
-    if theta_range is not None:
-        theta_extra["axis_y"] = rrb.ScalarAxis(range=theta_range)
-    theta = plot("theta-hat vs offline / truth (Fig. 8), mgauss", "/theta", "RightTop", **theta_extra)
-    everything = rrb.VisibleTimeRange(
-        TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
-    )
-    raw_cloud = rrb.Spatial3DView(
-        name="Raw field: ellipsoid (Fig. 5)",
-        origin="/mag",
-        contents=["/mag/raw_cloud", "/mag/flight/raw", "/mag/origin/**"],
-        time_ranges=everything,
-    )
-    cal_cloud = rrb.Spatial3DView(
-        name="Calibrated: sphere (Fig. 5)",
-        origin="/mag",
-        contents=["/mag/calibrated_cloud", "/mag/flight/calibrated", "/mag/origin/**"],
-        time_ranges=everything,
-    )
-    bias_fit = rrb.Spatial2DView(
+    theta = plot("theta-hat vs offline / truth (Fig. 8), mgauss", "/theta", "RightTop", theta_range)
+    fit_view = rrb.Spatial2DView(
         name="Bias vs throttle² (Fig. 7)",
         origin="/bias/fit",
         visual_bounds=rrb.VisualBounds2D(
@@ -716,9 +766,9 @@ def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) 
             y_range=[-1.3 * BIAS_CANVAS_Y, 1.3 * BIAS_CANVAS_Y],
         ),
     )
-    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop")
+    bias_t = plot("Bias theta·throttle², mgauss", "/bias/estimate", "LeftTop", bias_range)
     power = rrb.Vertical(
-        plot("Throttle 0..1", "/power/throttle", "LeftTop", axis_y=rrb.ScalarAxis(range=(-0.05, 1.8))),
+        plot("Throttle 0..1", "/power/throttle", "LeftTop", (-0.05, 1.8)),
         plot("Current, A", "/power/current", "LeftTop"),
         plot("Voltage, V", "/power/voltage", "LeftBottom"),
         name="Power",
@@ -732,8 +782,8 @@ def build_blueprint(live: bool, theta_range: tuple[float, float] | None = None) 
     layout = rrb.Horizontal(
         rrb.Vertical(heading, heading_error, theta, row_shares=[3, 2, 3]),
         rrb.Vertical(
-            rrb.Horizontal(raw_cloud, cal_cloud),
-            rrb.Tabs(bias_fit, bias_t, active_tab=0),
+            rrb.Horizontal(*_cloud_views()),
+            rrb.Tabs(fit_view, bias_t, active_tab=0 if bias_fit else 1),
             rrb.Tabs(power, observer, status, active_tab=0),
             row_shares=[3, 2, 3],
         ),
@@ -769,6 +819,7 @@ class RerunViz:
         self._url: str | None = None
         self._notice: str | None = None
         self._closed = False
+        self._page: PageServer | None = None
         rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())  # distinct runs stay distinct
         self._rec: rr_types.RecordingStream = rec
         if not live:
@@ -792,15 +843,7 @@ class RerunViz:
                 self._url = f"rerun+http://127.0.0.1:{port}/proxy"
                 self._notice = f"{prefix}started the Rerun viewer (port {port})"
             elif mode.kind == "serve":
-                gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
-                wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
-                server = rr.GrpcServerSink(bind_ip=mode.target or SERVE_LOCAL, port=gport,
-                                           server_memory_limit="512MiB")  # fmt: skip
-                rec.set_sinks(server, default_blueprint=blueprint)
-                grpc_url = str(server.uri)
-                rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
-                self._url = web_viewer_url(wport, grpc_url)
-                self._notice = prefix + serve_notice(self._url, gport, wport)
+                self._serve(mode.target or SERVE_LOCAL, blueprint, prefix, grpc_port, web_port)
             else:  # pragma: no cover - parse_mode only returns the four kinds
                 raise MagcompError(f"--rerun: unknown mode {mode.kind!r}")
         except MagcompError:
@@ -825,11 +868,35 @@ class RerunViz:
         self._theta_lo = math.inf
         self._theta_hi = -math.inf
         self._theta_range: tuple[float, float] | None = None
+        self._bias_fit_shown = False
+        self._power_buffer: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        self._bias_lo = math.inf
+        self._bias_hi = -math.inf
+        self._bias_range: tuple[float, float] | None = None
         self._origin_radius = 0.0
         self._cloud_pick = StreamDecimator(CLOUD_MAX_POINTS)
         self._cloud_raw: list[NDArray[np.float64]] = []
         self._cloud_cal: list[NDArray[np.float64]] = []
         self._cloud_sent_t = -math.inf
+
+    def _serve(
+        self, bind: str, blueprint: Any, prefix: str, grpc_port: int | None, web_port: int | None
+    ) -> None:
+        """``serve``: the recording's gRPC server in this process and the page (Rerun's binary, else this
+        process), both on ``bind``; the URL to open and the notice."""
+        rr = self._rr
+        gport = grpc_port if grpc_port is not None else free_port(DEFAULT_GRPC_PORT)
+        wport = web_port if web_port is not None else free_port(DEFAULT_WEB_PORT)
+        server = rr.GrpcServerSink(bind_ip=bind, port=gport, server_memory_limit="512MiB")
+        self._rec.set_sinks(server, default_blueprint=blueprint)
+        grpc_url = local_grpc_url(bind, gport, str(server.uri))
+        self._page, why_not = start_page_server(bind, wport, grpc_url)
+        if self._page is None:  # the page from this process: rerun 0.41 binds it to every interface
+            rr.serve_web_viewer(web_port=wport, open_browser=False, connect_to=grpc_url)
+        self._url = web_viewer_url(wport, grpc_url)
+        self._notice = prefix + serve_notice(self._url, gport, wport)
+        if why_not:
+            self._notice += f"\n  the page (port {wport}) is served on every interface: {why_not}"
 
     # -- properties ----------------------------------------------------------------------------------------
     @property
@@ -862,6 +929,13 @@ class RerunViz:
         )
         for k, ax in enumerate(AXES):
             self._series_style(f"theta/{ax}", COLOR_AXES[k], f"theta_{ax}", 2.0)
+            # the +-1 sigma band: two thin lines in a light shade of the axis colour, one legend entry
+            light = band_color(COLOR_AXES[k])
+            self._rec.log(
+                f"theta/band/{ax}",
+                self._rr.SeriesLines(colors=[light, light], names=[f"theta_{ax} ±1σ"] * 2, widths=[1.0, 1.0]),
+                static=True,
+            )
             faded = [int(0.55 * c) for c in COLOR_AXES[k]]
             self._series_style(f"theta/offline/{ax}", faded, f"offline LS theta_{ax}", 5.0)
             self._series_style(f"theta/truth/{ax}", COLOR_TRUTH_LINE, "true theta (x, y, z)", 1.0)
@@ -950,6 +1024,7 @@ class RerunViz:
         t = cols.t_s
         for k, ax in enumerate(AXES):
             self._send_scalars(f"theta/{ax}", t, cols.theta_mgauss[:, k], drop_nan=False)
+        self._send_theta_band(t, cols.theta_mgauss, cols.theta_sigma_mgauss)
         n = t.shape[0]
         self._rec.send_columns(
             "bias/estimate",
@@ -1000,26 +1075,52 @@ class RerunViz:
         if theta.size:
             self._theta_lo = min(self._theta_lo, float(theta.min()))
             self._theta_hi = max(self._theta_hi, float(theta.max()))
+        bias = cols.bias_mgauss[np.isfinite(cols.bias_mgauss)]
+        if bias.size:
+            self._bias_lo = min(self._bias_lo, float(bias.min()))
+            self._bias_hi = max(self._bias_hi, float(bias.max()))
         if self._theta_refs and (
             not live or t[-1] - self._ref_sent_t >= LIVE_CLOUD_PERIOD_S or t[-1] < self._ref_sent_t
         ):
             self._send_reference_lines()
-        self._update_theta_axis()
+        self._update_axes()
 
-    def _update_theta_axis(self) -> None:
-        """Send the blueprint again with a wider theta y range when theta-hat or a reference line left it."""
-        values = [self._theta_lo, self._theta_hi]
+    def _send_theta_band(
+        self, t_s: NDArray[np.float64], theta_mgauss: NDArray[np.float64], sigma_mgauss: NDArray[np.float64]
+    ) -> None:
+        """theta-hat +- its 1-sigma per axis (entity ``theta/band/{x,y,z}``, two scalars a row: lower, upper),
+        where the estimate carries a sigma; live: thinned to LIVE_SLOW_HZ of message time."""
+        keep = self._slow_rows("band", t_s)
+        rows, edges = theta_band(theta_mgauss[keep], sigma_mgauss[keep])
+        t_keep = t_s[keep]
+        for k, ax in enumerate(AXES):
+            ok = rows[:, k]
+            n = int(ok.sum())
+            if n == 0:
+                continue
+            self._rec.send_columns(
+                f"theta/band/{ax}",
+                indexes=[self._time_col(t_keep[ok])],
+                columns=self._rr.Scalars.columns(scalars=edges[ok, k].reshape(-1)).partition(np.full(n, 2)),
+            )
+
+    def _update_axes(self) -> None:
+        """Send the blueprint again with a wider theta (bias) y range when theta-hat or a reference line
+        (the bias) left it."""
+        theta_values = [self._theta_lo, self._theta_hi]
         for ref in self._theta_refs.values():
-            values.extend(float(v) for v in ref)
-        if not any(math.isfinite(v) for v in values):
+            theta_values.extend(float(v) for v in ref)
+        theta_range = _grown(self._theta_range, theta_values, theta_axis_range)
+        bias_range = _grown(self._bias_range, [self._bias_lo, self._bias_hi], bias_axis_range)
+        if theta_range == self._theta_range and bias_range == self._bias_range:
             return
-        current = self._theta_range
-        lo = min(v for v in [*values, 0.0] if math.isfinite(v))
-        hi = max(v for v in [*values, 0.0] if math.isfinite(v))
-        if current is not None and current[0] <= lo and hi <= current[1]:
-            return
-        self._theta_range = theta_axis_range(values)
-        self._rec.send_blueprint(build_blueprint(self.live, self._theta_range))
+        self._theta_range, self._bias_range = theta_range, bias_range
+        self._send_blueprint()
+
+    def _send_blueprint(self) -> None:
+        self._rec.send_blueprint(
+            build_blueprint(self.live, self._theta_range, self._bias_fit_shown, self._bias_range)
+        )
 
     def _send_heading_errors(self) -> None:
         """Errors against the truth (Fig. 9) for every heading row the truth now covers; rows outside the
@@ -1107,7 +1208,7 @@ class RerunViz:
             self._theta_refs[name] = arr
         self._flush_live()
         self._send_reference_lines()
-        self._update_theta_axis()
+        self._update_axes()
 
     def _send_reference_lines(self) -> None:
         if not self._theta_refs:
@@ -1134,9 +1235,12 @@ class RerunViz:
     def log_power(
         self, t_s: ArrayLike, throttle_01: ArrayLike, current_a: ArrayLike, voltage_v: ArrayLike
     ) -> None:
-        self._flush_live()
+        """Live: buffered and sent every :data:`LIVE_FLUSH_PERIOD_S` of message time, apart from the
+        estimates (``run`` logs one battery sample at a time: sending each at once, and the estimates
+        buffered before it, made ~20 one-row chunks a second that the web viewer took in at a fraction of
+        real time)."""
         t = _as_1d(t_s)
-        slow = self._slow_rows("power", t)
+        columns = []
         for path, values in (
             ("power/throttle", throttle_01),
             ("power/current", current_a),
@@ -1147,7 +1251,30 @@ class RerunViz:
                 v = np.full(t.shape[0], v[0])
             if v.shape[0] != t.shape[0]:
                 raise MagcompError(f"log_power: {t.shape[0]} times but {v.shape[0]} values for {path}")
-            self._send_scalars(path, t[slow], v[slow], drop_nan=True)
+            columns.append(v)
+        slow = self._slow_rows("power", t)
+        if not self.live:
+            self._send_power(t[slow], np.stack(columns)[:, slow])
+            return
+        if not t[slow].size:
+            return
+        if self._power_buffer and t[slow][0] < self._power_buffer[-1][0][-1]:  # the clock went back
+            self._flush_power()
+        self._power_buffer.append((t[slow], np.stack(columns)[:, slow]))
+        if t[slow][-1] - self._power_buffer[0][0][0] >= LIVE_FLUSH_PERIOD_S:
+            self._flush_power()
+
+    def _flush_power(self) -> None:
+        if self._power_buffer:
+            t = np.concatenate([b[0] for b in self._power_buffer])
+            values = np.concatenate([b[1] for b in self._power_buffer], axis=1)
+            self._power_buffer.clear()
+            self._send_power(t, values)
+
+    def _send_power(self, t: NDArray[np.float64], values: NDArray[np.float64]) -> None:
+        """``values`` (3, n): throttle, current, voltage at ``t``."""
+        for path, v in zip(("power/throttle", "power/current", "power/voltage"), values, strict=True):
+            self._send_scalars(path, t, v, drop_nan=True)
 
     def log_bias_fit(
         self, throttle2: ArrayLike, bias_mgauss: ArrayLike, theta_line: ArrayLike | None
@@ -1164,6 +1291,9 @@ class RerunViz:
         both = thin_rows(np.column_stack([thr2[keep], bias[keep]]), BIAS_FIT_MAX_POINTS)
         line = None if theta_line is None else np.asarray(theta_line, dtype=float).reshape(3)
         canvas = bias_fit_canvas(both[:, 0], both[:, 1:], line)
+        if not self._bias_fit_shown:  # the Fig. 7 tab now has data: show it
+            self._bias_fit_shown = True
+            self._send_blueprint()
         for k, ax in enumerate(AXES):
             rec.log(
                 f"bias/fit/points/{ax}",
@@ -1242,6 +1372,7 @@ class RerunViz:
             return
         self._closed = True
         self._flush_live()
+        self._flush_power()
         if self._cloud_raw:
             self._flush_live_cloud(self._t_max)
         if self._theta_refs:
@@ -1250,6 +1381,28 @@ class RerunViz:
             self._rec.flush(timeout_sec=10.0)
         finally:
             self._rec.disconnect()
+            if self._page is not None:
+                self._page.stop()
+
+
+def _grown(
+    current: tuple[float, float] | None,
+    values: Sequence[float],
+    make: Callable[[Sequence[float]], tuple[float, float]],
+) -> tuple[float, float] | None:
+    """``current`` while it holds every finite value (and 0), else ``make(values)``; None before any."""
+    finite = [v for v in values if math.isfinite(v)]
+    if not finite:
+        return current
+    lo, hi = min([*finite, 0.0]), max([*finite, 0.0])
+    if current is not None and current[0] <= lo and hi <= current[1]:
+        return current
+    return make(finite)
+
+
+def band_color(rgb: Sequence[int]) -> list[int]:
+    """A light shade of ``rgb`` (60 % of the way to white) for the theta band's lines."""
+    return [round(c + 0.6 * (255 - c)) for c in rgb]
 
 
 def _cloud_radius(pts: NDArray[np.float64]) -> float:
@@ -1296,27 +1449,123 @@ def _this_host_address() -> str:
 
 
 def serve_notice(url: str, grpc_port: int, web_port: int, hosts: set[str] | None = None) -> str:
-    """What ``serve`` prints: the page to open here, where the data server really listens (``hosts``: its
-    addresses; default read from the system), and how to reach it from another machine."""
+    """What ``serve`` prints: the page to open here, where the page and data servers really listen
+    (``hosts``: their addresses; default read from the system), and how to reach them from another
+    machine (a port forward of both ports for a headless machine)."""
     if hosts is None:
-        hosts = listening_hosts(grpc_port) or set()
+        hosts = (listening_hosts(grpc_port) or set()) | (listening_hosts(web_port) or set())
     forward = (f"ssh -L {web_port}:127.0.0.1:{web_port} -L {grpc_port}:127.0.0.1:{grpc_port} "
                "USER@THIS-MACHINE")  # fmt: skip
     lines = [f"Rerun web viewer: {url}"]
     if hosts & {"0.0.0.0", "::"}:
         ip = _this_host_address()
         remote = web_viewer_url(web_port, f"rerun+http://{ip}:{grpc_port}/proxy").replace("127.0.0.1", ip, 1)
-        lines.append(f"  the data (port {grpc_port}) is offered on every network interface: from another "
-                     f"machine open {remote}")  # fmt: skip
+        lines.append(f"  the page (port {web_port}) and the data (port {grpc_port}) are offered on every "
+                     f"network interface: from another machine open {remote}")  # fmt: skip
     elif hosts:
         where = ", ".join(sorted(hosts))
-        lines.append(f"  the data (port {grpc_port}) is served on {where} only: from another machine forward "
-                     f"both ports ({forward}) and open the URL above; --rerun serve=0.0.0.0 offers it to the "
-                     "network")  # fmt: skip
+        lines.append(f"  the page (port {web_port}) and the data (port {grpc_port}) are served on {where} "
+                     f"only: from another machine forward both ports ({forward}) and open the URL above; "
+                     "--rerun serve=0.0.0.0 offers them to the network")  # fmt: skip
     else:
         lines.append(f"  ports {web_port} (page) and {grpc_port} (data); from another machine forward both "
                      f"({forward}) and open the URL above")  # fmt: skip
     return "\n".join(lines)
+
+
+class PageServer:
+    """The web viewer's page (HTML, JS, Wasm; no data) served by Rerun's own binary on one address.
+
+    rerun 0.41's ``serve_web_viewer`` has no bind address (it listens on every interface); its command line
+    does: ``rerun --serve-web --bind ADDRESS --web-viewer-port PORT URL`` serves only the page, pointed at
+    the gRPC ``URL`` (this process's recording). The child shares this process's group (a ^C at the
+    terminal stops both) and, on Linux, gets SIGTERM when this process dies."""
+
+    def __init__(self, proc: Any) -> None:
+        self.proc = proc
+
+    def stop(self) -> None:
+        import subprocess
+
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5.0)
+
+
+def rerun_binary() -> Path | None:
+    """The Rerun viewer binary shipped in rerun-sdk's wheel (``rerun_cli/rerun``), None where absent."""
+    try:
+        import rerun_cli
+    except ImportError:
+        return None
+    name = "rerun.exe" if sys.platform.startswith("win") else "rerun"
+    path = Path(rerun_cli.__file__).resolve().parent / name
+    return path if path.is_file() and os.access(path, os.X_OK) else None
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _listening(host: str, port: int) -> bool:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    target = "127.0.0.1" if host == "0.0.0.0" else "::1" if host == "::" else host
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.settimeout(0.5)
+        return s.connect_ex((target, port)) == 0
+
+
+def start_page_server(
+    bind: str, web_port: int, grpc_url: str, timeout_s: float = 20.0
+) -> tuple[PageServer | None, str]:
+    """Serve the web viewer's page on ``bind``:``web_port`` with Rerun's binary (:class:`PageServer`);
+    ``(None, why)`` when the binary is absent or did not start listening within ``timeout_s``."""
+    import subprocess
+
+    binary = rerun_binary()
+    if binary is None:
+        return None, "Rerun's viewer binary (rerun_cli) is not installed"
+    env = dict(os.environ, RERUN_ANALYTICS=os.environ.get("RERUN_ANALYTICS", "0"))
+    try:
+        proc = subprocess.Popen(
+            [str(binary), "--serve-web", "--bind", bind, "--web-viewer-port", str(web_port), grpc_url],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        )  # fmt: skip
+    except OSError as exc:
+        return None, f"Rerun's viewer binary did not start ({exc})"
+    deadline = time.monotonic() + timeout_s
+    while not _listening(bind, web_port):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            PageServer(proc).stop()
+            return None, f"Rerun's viewer binary did not serve port {web_port} within {timeout_s:.0f} s"
+        time.sleep(0.1)
+    return PageServer(proc), ""
+
+
+def local_grpc_url(bind: str, port: int, server_uri: str) -> str:
+    """The gRPC URL to open on this machine: ``server_uri`` (what Rerun reports), but with an address
+    that a browser here can reach where the server listens on every interface (0.0.0.0 / ::)."""
+    import ipaddress
+
+    try:
+        ip = ipaddress.ip_address(bind)
+    except ValueError:
+        return server_uri
+    if ip.is_unspecified:
+        return f"rerun+http://127.0.0.1:{port}/proxy"
+    host = f"[{ip}]" if ip.version == 6 else str(ip)
+    return f"rerun+http://{host}:{port}/proxy"
 
 
 def web_viewer_url(web_port: int, grpc_url: str) -> str:

@@ -65,6 +65,7 @@ def execute(args: argparse.Namespace) -> int:
     import signal
 
     from magcomp.adapters.config import load_config
+    from magcomp.adapters.log_span import interruptible_scans
     from magcomp.adapters.rerun_viz import discard_viz, open_viz, serve_until_interrupt
     from magcomp.adapters.state_store import StateStore
     from magcomp.adapters.tlog_split import several_vehicles
@@ -101,11 +102,12 @@ def execute(args: argparse.Namespace) -> int:
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     viewer = _ViewerBlocks(viz, primary_compass(cfg.input.compasses)) if viz is not None else None
     try:
-        vehicles = several_vehicles(args.log)
-        if vehicles:
-            reports = _run_vehicles(args, cfg, store, viewer, lambda: bool(stop_signals), vehicles)
-        else:
-            reports = [_run(args, cfg, store, viewer, lambda: bool(stop_signals))]
+        with interruptible_scans(lambda: bool(stop_signals)):  # a repair's search through GiB stops too
+            vehicles = several_vehicles(args.log)
+            if vehicles:
+                reports = _run_vehicles(args, cfg, store, viewer, lambda: bool(stop_signals), vehicles)
+            else:
+                reports = [_run(args, cfg, store, viewer, lambda: bool(stop_signals))]
     except BaseException:
         if viz is not None:
             discard_viz(viz)  # the log could not be read: no recording of nothing left behind

@@ -255,3 +255,6 @@ class HeadingEstimate:
     #: the sample's time on the autopilot's own boot clock (what MAGCOMP_HEADING.time_boot_ms carries);
     #: differs from ``t_s`` after a reboot (see ClockResetSample); NaN: the same as ``t_s``
     t_boot_s: float = float("nan")
+    #: 1-sigma of theta_mgauss per axis (mgauss), the observer's own estimate (the viewer's band); NaN where
+    #: not known (theta from the in-flight calibration, or no observer step yet)
+    theta_sigma_mgauss: tuple[float, float, float] = (float("nan"), float("nan"), float("nan"))

@@ -31,15 +31,21 @@ NO_THROTTLE_WARN_S = 2.0
 #: included): the largest step in the 8 simulated scenarios is 88 mgauss, on log171 before its crash
 #: 230 mgauss. Such a sample (a corrupt value) and the one after it are dropped (counts["mag_jumps"]).
 MAG_JUMP_MGAUSS = 500.0
+#: Euler angles no attitude has (roll and yaw in [-pi, pi] or yaw in [0, 2 pi], pitch in [-pi/2, pi/2]),
+#: with a margin for rounding: an attitude sample beyond them is damaged (counts["implausible"])
+ANGLE_MARGIN_RAD = 1e-3
+ROLL_MAX_RAD = math.pi + ANGLE_MARGIN_RAD
+PITCH_MAX_RAD = math.pi / 2 + ANGLE_MARGIN_RAD
+YAW_MAX_RAD = 2 * math.pi + ANGLE_MARGIN_RAD
+
 
 def gate_log_inputs(log: LogData, saturation_mgauss: float) -> dict[str, int]:
     """The magnetometer and attitude columns of a whole log (``fit``, ``diagnose``) through the gates the
     pipeline applies to a replay (:meth:`AlignStage.admit` / :meth:`AlignStage.begin`,
-    :meth:`~magcomp.service.attitude.AttitudeStage.on_attitude`): saturated, non-finite and jump
+    ``AttitudeStage.on_attitude``): saturated, non-finite and jump
     magnetometer samples and impossible attitudes dropped in place; returns what was dropped
     (``saturated``, ``mag_jumps``, ``implausible``)."""
     from magcomp.core.plausible import mag_outliers
-    from magcomp.service.attitude import PITCH_MAX_RAD, ROLL_MAX_RAD
 
     out = {"saturated": 0, "mag_jumps": 0, "implausible": 0}
     for index, series in list(log.mag.items()):

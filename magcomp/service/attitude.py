@@ -17,11 +17,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
+from magcomp.core.inflight.yawframe import GyroYaw
 from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, euler_yaw_rate_coefs, quat_step_body_rate
 from magcomp.core.selfcheck import MAX_GYRO_DT_S
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_SATURATED, STANDARD_GRAVITY_M_S2, AttitudeSample
-from magcomp.service.align import TIME_OK, TIME_SKIP, Counts, check_time
+from magcomp.service.align import (
+    PITCH_MAX_RAD,
+    ROLL_MAX_RAD,
+    TIME_OK,
+    TIME_SKIP,
+    YAW_MAX_RAD,
+    Counts,
+    check_time,
+)
 from magcomp.service.estimators import mahony_params
 from magcomp.service.fastpath import FastMahony
 from magcomp.service.record import Float3, MagRecord
@@ -53,7 +62,7 @@ ACCEL_MAX_M_S2 = 2000.0
 #: a second (the simulator's complementary filter: 1 / kp_tilt = 1 s); it also keeps the motors' vibration
 #: (tens of Hz) out
 ACCEL_LP_S = 1.0
-#: track that acceleration (for the tilt model: ``inflight_stage.TILT_CONDITION``, ``AP_YAW_TILT``)
+#: track that acceleration (for the tilt model: ``core.inflight.feed.FeedSwitches``)
 TRACK_ACCEL_H = True
 
 
@@ -65,29 +74,6 @@ class AttitudeView(NamedTuple):
     sin_roll: float
     cos_pitch: float
     sin_pitch: float
-
-
-class GyroYaw(NamedTuple):
-    """The raw gyro's yaw at a sample (:meth:`AttitudeStage.gyro_yaw_at`): ``yaw_rad`` integrated since the
-    chain's start, ``epoch`` counts its restarts (yaws of two epochs are not comparable)."""
-
-    epoch: int
-    yaw_rad: float
-    #: the vehicle's horizontal kinematic acceleration (north and east of the chain's yaw frame, m/s^2):
-    #: specific force rotated by the autopilot's roll and pitch and this yaw, plus gravity, low-passed over
-    #: ACCEL_LP_S (see :attr:`AttitudeStage.accel_h`)
-    accel_h_m_s2: tuple[float, float] = (0.0, 0.0)
-    #: the gyro's yaw change from the IMU sample to the autopilot's latest ATTITUDE (rad; the last yaw rate
-    #: times their time difference): the autopilot's yaw minus the gyro's is taken at one instant
-    att_lead_rad: float = 0.0
-
-
-#: Euler angles no attitude has (roll and yaw in [-pi, pi] or yaw in [0, 2 pi], pitch in [-pi/2, pi/2]),
-#: with a margin for rounding: an attitude sample beyond them is damaged (counts["implausible"])
-ANGLE_MARGIN_RAD = 1e-3
-ROLL_MAX_RAD = math.pi + ANGLE_MARGIN_RAD
-PITCH_MAX_RAD = math.pi / 2 + ANGLE_MARGIN_RAD
-YAW_MAX_RAD = 2 * math.pi + ANGLE_MARGIN_RAD
 
 
 class AttitudeStage:

@@ -18,30 +18,26 @@ import math
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
-from magcomp.core.inflight import (
-    InflightMode,
+from magcomp.core.autopilot_params import (
     calibrated_by_autopilot,
     external_compass,
     relative_rotation_source,
     yaw_reference,
 )
+from magcomp.core.inflight import InflightMode, InflightOutput
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
 from magcomp.service import estimators as est_core
+from magcomp.service.align import CompassClock, ThrottleTrack
 from magcomp.service.attitude import AttitudeStage
-from magcomp.service.inflight_process import InflightProcess, InflightSink
-from magcomp.service.inflight_stage import InflightOutput, InflightStage
+from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.record import Float3, MagRecord
-
-if TYPE_CHECKING:
-    from magcomp.service.align import ThrottleTrack
-    from magcomp.service.compass import CompassCorrector
 
 log = logging.getLogger("magcomp.pipeline")
 
@@ -275,7 +271,22 @@ class HandCalibration:
         return CalibrationCloud(raw, raw @ self.calib_l.T - self.calib_d)
 
 
-class CalibrateStage:
+class CompassHost(Protocol):
+    """What the calibrate stage reads and writes of one compass (``service.compass.CompassCorrector``)."""
+
+    mag_index: int
+    calib: HandCalibration
+    clock: CompassClock
+    inflight: InflightStage | None
+    rel_source: RotationSource
+    stored_inflight: dict[str, Any] | None
+    dirty: bool
+
+
+H = TypeVar("H", bound=CompassHost)
+
+
+class CalibrateStage(Generic[H]):
     """Applies each compass's calibration to its samples (eq. (2)) and keeps learning it: the hand
     rotation's pairs while the motors are off, the in-flight calibration's samples while they run.
 
@@ -290,14 +301,10 @@ class CalibrateStage:
         throttle: ThrottleTrack,
         params: dict[str, float],
         earth_ned: F64,
-        save: Callable[[CompassCorrector, float], None],
+        save: Callable[[H, float], None],
         text: Callable[[float, str, bool], None],
-        inflight_proc: InflightProcess | None = None,
     ) -> None:
-        """``inflight_proc``: the in-flight stages run in that process (a two-pass replay's first pass,
-        learn-only: nothing reads their answers back; service/inflight_process.py)."""
         self.cfg = cfg
-        self._remote = inflight_proc
         self.attitude = attitude
         self.throttle = throttle
         self.params = params
@@ -311,7 +318,7 @@ class CalibrateStage:
         self.params_version = 0
         self._decided: dict[int, int] = {}
 
-    def run(self, rec: MagRecord, c: CompassCorrector) -> None:
+    def run(self, rec: MagRecord, c: H) -> None:
         """Fills ``rec.field_cal`` (eq. (2)), ``rec.calibrated`` and ``rec.inflight``."""
         cal = c.calib
         t = rec.t_s
@@ -330,7 +337,7 @@ class CalibrateStage:
                 # eq. (2) with the in-flight L and d (its theta and bias come with it: service/theta.py)
                 rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
                 return
-            if c.inflight is not None and c.inflight_remote is None:
+            if c.inflight is not None:
                 rec.shadow = c.inflight.candidate()
         if k is not None:
             rec.flags |= FLAG_CALIBRATED
@@ -339,7 +346,7 @@ class CalibrateStage:
         else:
             rec.field_cal = rec.raw
 
-    def _collect(self, rec: MagRecord, c: CompassCorrector) -> None:
+    def _collect(self, rec: MagRecord, c: H) -> None:
         """The hand rotation: pairs at zero throttle; the motors starting ends it (eqs. (1)-(3))."""
         cal = c.calib
         if rec.have_throttle and rec.throttle_01 > self._at_rest:
@@ -361,7 +368,7 @@ class CalibrateStage:
                       c.mag_index, cal.summary.n, rms)  # fmt: skip
         self._save(c, rec.t_s)
 
-    def refined(self, c: CompassCorrector, t: float) -> None:
+    def refined(self, c: H, t: float) -> None:
         """The refined fit was adopted at message time ``t``: saved and said."""
         s = c.calib.summary
         assert s is not None
@@ -371,7 +378,7 @@ class CalibrateStage:
 
     # ---------------------------------------------------------------------------------------- in flight
 
-    def _reference(self, c: CompassCorrector) -> tuple[InflightMode, str, bool | None]:
+    def _reference(self, c: H) -> tuple[InflightMode, str, bool | None]:
         """(form, why, calibrated by the autopilot) of compass ``c`` from the parameters known now."""
         icfg = self.cfg.inflight
         mode: InflightMode
@@ -382,7 +389,7 @@ class CalibrateStage:
             why = "set in the configuration ([inflight] reference)"
         return mode, why, calibrated_by_autopilot(self.params, c.mag_index)
 
-    def _stage(self, c: CompassCorrector, t: float, again: str = "") -> InflightStage:
+    def _stage(self, c: H, t: float, again: str = "") -> InflightStage:
         """The in-flight calibration of compass ``c``, created at its first sample with the throttle known
         (``again``: re-created, and why)."""
         mode, why, cal = self._reference(c)
@@ -394,7 +401,7 @@ class CalibrateStage:
                       "precedence", False)  # fmt: skip
         return st
 
-    def _redecide(self, c: CompassCorrector, t: float) -> None:
+    def _redecide(self, c: H, t: float) -> None:
         """Parameters arrived since compass ``c``'s stage was created (a tlog's parameters often come
         seconds after the first samples, issue 23 item 5): when they change its form, why, or whether
         the autopilot calibrated it, the stage starts again with them (what it learned was learned against
@@ -404,23 +411,18 @@ class CalibrateStage:
         old = c.inflight
         if old is None or self._reference(c) == (old.mode, old.why, old.calibrated_by_autopilot):
             return
-        remote = c.inflight_remote
-        st = c.inflight = self._stage(c, t, "the autopilot's parameters arrived: re-")
-        if self._remote is not None and remote is not None:
-            c.inflight_remote = self._remote.stage(c.mag_index, st, replacing=remote)
+        c.inflight = self._stage(c, t, "the autopilot's parameters arrived: re-")
         c.rel_source = NO_ROTATION
 
 
-    def _inflight(self, rec: MagRecord, c: CompassCorrector) -> InflightOutput | None:
+    def _inflight(self, rec: MagRecord, c: H) -> InflightOutput | None:
         """Feed the in-flight calibration of compass ``c`` and return its correction when it is usable."""
         t = rec.t_s
         if c.inflight is not None and self._decided.get(c.mag_index) != self.params_version:
             self._redecide(c, t)
-        st: InflightSink | None = c.inflight_remote or c.inflight
+        st = c.inflight
         if st is None:
             st = c.inflight = self._stage(c, t)
-            if self._remote is not None:  # created here, then run in the child
-                st = c.inflight_remote = self._remote.stage(c.mag_index, st)
         if rec.reset:
             st.reset_pairs()
         thr = self.throttle.at(t)
@@ -447,7 +449,7 @@ class CalibrateStage:
             c.dirty = True
         return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)
 
-    def _rotations(self, c: CompassCorrector, st: InflightSink, t: float) -> tuple[F64 | None, F64 | None]:
+    def _rotations(self, c: H, st: InflightStage, t: float) -> tuple[F64 | None, F64 | None]:
         """(absolute attitude, relative-form rotation) for this sample, each None when it cannot be used."""
         att = self.attitude
         att_fresh = att.autopilot_fresh(t)

@@ -19,9 +19,7 @@ from magcomp.service.calibrate import (
 )
 from magcomp.service.estimators import ThetaEstimator
 from magcomp.service.heading import HeadingTrack
-from magcomp.service.inflight_process import RemoteInflight
 from magcomp.service.inflight_stage import InflightStage
-from magcomp.service.observer_process import ObserverProcess
 from magcomp.service.theta import ThetaTracker
 
 F64 = NDArray[np.float64]
@@ -38,9 +36,7 @@ class CompassCorrector:
         earth_ned_mgauss: F64,
         stored: CompassState | None,
         fits: Executor,
-        observers: ObserverProcess | None = None,
     ) -> None:
-        """``observers``: the observer steps in that process (a two-pass replay's first pass)."""
         self.mag_index = mag_index
         self.clock = CompassClock()
         mode = cfg.calibration.mode
@@ -48,16 +44,11 @@ class CompassCorrector:
         # an in-flight calibration from an earlier run (or an earlier pass over the same log)
         self.stored_inflight = stored.inflight if (stored is not None and mode != "learn") else None
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
-        remote = observers.estimator(mag_index, cfg, theta0) if observers is not None else None
-        self.theta = ThetaTracker(cfg, theta0, remote)
+        self.theta = ThetaTracker(cfg, theta0)
         hover = cfg.inflight.enabled and cfg.observer.learn  # theta against the autopilot's calibration
         self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check, hover)
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
-        #: the stage running in another process (a two-pass replay's first pass, service/inflight_process.py):
-        #: its calls go there; ``inflight`` is then the stage as created, until the pipeline's close takes
-        #: the child's back
-        self.inflight_remote: RemoteInflight | None = None
         self.rel_source: RotationSource = NO_ROTATION
         self.time_s = {"corrected": 0.0, "uncorrected": 0.0}
         self.n_out = 0
@@ -111,8 +102,8 @@ class CompassCorrector:
     def to_state(
         self, system_id: int, t_s: float, current_theta: bool = True, vehicle_uid: str | None = None
     ) -> CompassState:
-        """The state to save; ``current_theta`` False: an observer stepping in another process is not
-        waited for (its theta as of the last read: service/persist.py ``theta_at_close``)."""
+        """The state to save. ``current_theta``: kept for its callers (service/persist.py); every observer
+        steps in this process, so its theta is always current."""
         cal = self.calibration
         keep = cal is not None and cal.source != "identity"
         info = None
@@ -122,17 +113,9 @@ class CompassCorrector:
                 "coverage": cal.coverage,
                 "n": float(cal.n),
             }
-        if self.inflight_remote is not None:
-            # the save's side effects on the estimator (``InflightStage.state``), run in the child in order;
-            # the memory store of that pass keeps only the state saved at close, with the child's stage back
-            self.inflight_remote.state()
-            inflight = self.stored_inflight
-        else:
-            inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
-        if current_theta:
-            self.theta.sync()
+        inflight = self.inflight.state() if self.inflight is not None else self.stored_inflight
         theta = np.asarray(self.theta.est.theta_mgauss, dtype=float)
-        st = self.inflight if self.inflight_remote is None else None
+        st = self.inflight
         if cal is None and st is not None and st.solution is not None:
             theta = np.asarray(st.solution.theta_mgauss, dtype=float)
         return CompassState(

@@ -15,11 +15,11 @@ import numpy as np
 
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta
+from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import LIVE_WINDOW_S, RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
-from magcomp.service.inflight_stage import InflightOutput
 from magcomp.service.record import Float3, MagRecord
 
 #: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from magcomp.service.compass import CompassCorrector
 
 NAN = float("nan")
+_NAN3 = (NAN, NAN, NAN)
 
 
 class PublishStage:
@@ -69,4 +70,5 @@ def estimate(rec: MagRecord, boot_offset_s: float) -> HeadingEstimate:
         residual_norm_mgauss=NAN if info is None else info.residual_norm_mgauss,
         excitation=NAN if info is None else info.excitation,
         t_boot_s=rec.t_s - boot_offset_s,
+        theta_sigma_mgauss=_NAN3 if info is None or rec.inflight is not None else info.theta_std_mgauss,
     )

@@ -11,9 +11,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from magcomp.core.inflight import InflightOutput
 from magcomp.core.types import MagSample
 from magcomp.service.estimators import ThetaStepInfo
-from magcomp.service.inflight_stage import InflightOutput
 
 Float3 = tuple[float, float, float]
 ZERO3: Float3 = (0.0, 0.0, 0.0)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,10 +26,6 @@ from magcomp.core.types import FLAG_OBSERVER_RESET, FLAG_SATURATED, FLAG_THETA_C
 from magcomp.service import estimators as est_core
 from magcomp.service.align import Counts, ThrottleTrack
 from magcomp.service.record import Float3, MagRecord
-
-if TYPE_CHECKING:
-    from magcomp.service.compass import CompassCorrector
-    from magcomp.service.observer_process import RemoteTheta
 
 F64 = NDArray[np.float64]
 
@@ -43,29 +39,13 @@ class Queued(NamedTuple):
 
 
 class ThetaTracker:
-    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue.
+    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue."""
 
-    ``remote`` (a two-pass replay's first pass): the observer steps in another process
-    (service/observer_process.py); ``est`` and ``last_info`` are then as of the last :meth:`sync`."""
-
-    def __init__(self, cfg: Config, theta0_mgauss: F64, remote: RemoteTheta | None = None) -> None:
-        self.remote = remote
-        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss) if remote is None else remote.local
+    def __init__(self, cfg: Config, theta0_mgauss: F64) -> None:
+        self.est = est_core.ThetaEstimator(cfg, theta0_mgauss)
         self.queue: deque[Queued] = deque()
         self.last_t: float | None = None
         self.last_info: est_core.ThetaStepInfo | None = None
-
-    def sync(self) -> None:
-        """Bring ``est`` and ``last_info`` up to date with every step fed so far (a remote observer)."""
-        if self.remote is not None:
-            self.remote.sync()
-            self.last_info = self.remote.last_info
-
-    def local(self) -> None:
-        """The remote observer's final state taken over (``est`` steps here again from now on)."""
-        if self.remote is not None:
-            self.sync()
-            self.remote = None
 
     def queue_reset(self, t_s: float) -> None:
         """Reset the observer's filters (theta kept) once the samples queued before now are through."""
@@ -77,7 +57,7 @@ class ThetaTracker:
         True when the observer stepped."""
         q = self.queue
         t_thr = throttle.t
-        est = self.est if self.remote is None else self.remote
+        est = self.est
         stepped = False
         while q:
             t, omega, u = q[0]
@@ -101,12 +81,19 @@ class ThetaTracker:
             last = self.last_t
             self.last_t = t
             assert omega is not None
-            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)  # remote: None
+            self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)
             stepped = True
         return stepped
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
+
+
+class ThetaHost(Protocol):
+    """What the theta stage reads and writes of one compass (``service.compass.CompassCorrector``)."""
+
+    theta: ThetaTracker
+    dirty: bool
 
 
 class ThetaStage:
@@ -122,12 +109,12 @@ class ThetaStage:
         self._learn = cfg.observer.learn
         self._outputs = outputs
 
-    def drain(self, c: CompassCorrector, t_now: float) -> None:
+    def drain(self, c: ThetaHost, t_now: float) -> None:
         """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""
         if c.theta.drain(t_now, self.throttle, self._stale_s, self.counts):
             c.dirty = True
 
-    def run(self, rec: MagRecord, c: CompassCorrector) -> None:
+    def run(self, rec: MagRecord, c: ThetaHost) -> None:
         out = rec.inflight
         if not self._outputs:  # a learn-only pass: the observer fed, nothing read back
             if out is None and rec.calibrated:
@@ -152,7 +139,7 @@ class ThetaStage:
         rec.bias = (bx, by, bz)
         rec.field_corrected = (ux - bx, uy - by, uz - bz)
 
-    def _observe(self, rec: MagRecord, c: CompassCorrector) -> Sequence[float]:
+    def _observe(self, rec: MagRecord, c: ThetaHost) -> Sequence[float]:
         """Low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated at the
         sample's own time (queued until the throttle after it is known); theta-hat now."""
         tr = c.theta
@@ -163,9 +150,8 @@ class ThetaStage:
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
             tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
         self.drain(c, rec.t_s)
-        if not self._outputs:  # a learn-only pass: theta-hat is read at its end (a remote observer's
-            return _ZERO3  # state is not waited for at every sample)
-        tr.sync()
+        if not self._outputs:  # a learn-only pass: theta-hat is read at its end
+            return _ZERO3
         info = tr.last_info
         rec.info = info
         if info is not None:

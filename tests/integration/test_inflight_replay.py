@@ -177,7 +177,7 @@ def test_theta_from_the_tilt_model_within_ten_percent_at_ten_hertz(tmp_path: Pat
     """Internal primary, 10 Hz: the autopilot's yaw follows the disturbed compass, so in accelerated flight
     its tilt is off by -psi a / g, and theta took that for current (13 % off on these seeds). The published
     theta comes from the tilt model's own estimator, the calibration from the ordinary one conditioned on
-    that theta (``inflight_stage.TILT_CONDITION``; docs/inflight.md, seventh pass): theta within 10 % and
+    that theta (``FeedSwitches.tilt_condition``; docs/inflight.md, seventh pass): theta within 10 % and
     within three of its own sigmas, the heading corrected."""
     result, path = _flight(tmp_path, ["telemetry_hz=10"], seed=seed, duration_s=300.0)
     rep = replay_log(path, ESTIMATOR_ONLY, keep_estimates=True)

@@ -1,5 +1,5 @@
 """A damaged PARAM_VALUE (a NaN value) is dropped and counted, not read as an integer: the parameters decide
-each compass's in-flight form (core/inflight.py ``yaw_reference``), and ``int(nan)`` raised there."""
+each compass's in-flight form (core/autopilot_params.py ``yaw_reference``), and ``int(nan)`` raised there."""
 
 from __future__ import annotations
 

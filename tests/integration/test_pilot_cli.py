@@ -135,10 +135,61 @@ sys.stdin.read()
 """
 
 
+def _process_tree(pid: int) -> set[int]:
+    """``pid`` and every process below it (read from /proc/*/stat)."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    tree = {pid}
+    grew = True
+    while grew:
+        below = {p for p, pp in parents.items() if pp in tree} - tree
+        tree |= below
+        grew = bool(below)
+    return tree
+
+
+def _tcp_listening(pids: set[int]) -> set[tuple[str, int]]:
+    """(address, port) of every listening TCP socket (v4 and v6) that a process in ``pids`` holds."""
+    import ipaddress
+
+    inodes: set[str] = set()
+    for pid in pids:
+        for fd in Path(f"/proc/{pid}/fd").glob("*"):
+            try:
+                target = os.readlink(fd)
+            except OSError:
+                continue
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    found = set()
+    for name in ("tcp", "tcp6"):
+        for line in Path(f"/proc/net/{name}").read_text().splitlines()[1:]:
+            parts = line.split()
+            if parts[3] != "0A" or parts[9] not in inodes:  # 0A: LISTEN
+                continue
+            addr_hex, port_hex = parts[1].split(":")
+            raw = bytes.fromhex(addr_hex)
+            packed = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+            found.add((str(ipaddress.ip_address(packed)), int(port_hex, 16)))
+    return found
+
+
 @pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="needs Linux's /proc")
 @pytest.mark.parametrize("mode", ["serve", "serve=0.0.0.0"])
-def test_rerun_serve_listens_on_loopback_by_default_and_says_where(mode: str) -> None:
+def test_every_server_of_rerun_serve_is_on_loopback_unless_told_otherwise(mode: str) -> None:
+    """Every listening socket of the process and its children (the recording's gRPC server and the web
+    page's server) is on 127.0.0.1 by default, the printed URL names those two ports, and the page loads;
+    ``serve=0.0.0.0`` opts in to every interface."""
     pytest.importorskip("rerun")
+    import urllib.request
+    from urllib.parse import parse_qs, unquote, urlparse
+
     from magcomp.adapters.rerun_viz import free_port
 
     gport, wport = free_port(), free_port()
@@ -149,15 +200,24 @@ def test_rerun_serve_listens_on_loopback_by_default_and_says_where(mode: str) ->
     try:
         assert proc.stdout is not None
         notice = proc.stdout.readline()
-        data_hosts = listening_hosts(gport)
+        url = notice.split("Rerun web viewer: ", 1)[1].split(" | ", 1)[0].strip()
+        want = {gport, wport}
+        ports = lambda: {p for _, p in _tcp_listening(_process_tree(proc.pid))}  # noqa: E731
+        wait_for(lambda: want <= ports(), 30.0, "both servers")
+        sockets = _tcp_listening(_process_tree(proc.pid))
+        with urllib.request.urlopen(url, timeout=10.0) as page:
+            html = page.read().decode("utf-8", "replace").lower()
     finally:
         proc.communicate(timeout=60)  # closes stdin: the child ends, its pipes are read and closed
-    assert notice.startswith("Rerun web viewer: http://127.0.0.1:"), notice
-    if data_hosts is None:
-        pytest.skip("no /proc/net on this system")
+    page_url = urlparse(url)
+    data_url = urlparse(unquote(parse_qs(page_url.query)["url"][0]))
+    assert (page_url.hostname, page_url.port) == ("127.0.0.1", wport), url
+    assert (data_url.scheme, data_url.hostname, data_url.port) == ("rerun+http", "127.0.0.1", gport), url
+    assert "re_viewer_bg.wasm" in html
+    assert {p for _, p in sockets} == want, sockets  # no other server
     if mode == "serve":
-        assert data_hosts == {"127.0.0.1"}  # the recording is not offered to the network by default
-        assert "127.0.0.1 only" in notice and "ssh -L" in notice
+        assert {a for a, _ in sockets} == {"127.0.0.1"}, sockets  # nothing offered to the network
+        assert "127.0.0.1 only" in notice and f"ssh -L {wport}:127.0.0.1:{wport} -L {gport}" in notice
     else:
-        assert data_hosts == {"0.0.0.0"}
+        assert {a for a, _ in sockets} == {"0.0.0.0"}, sockets
         assert "every network interface" in notice

@@ -1,7 +1,7 @@
 """Every shell command in README.md's code blocks that needs no network, no hardware and no other program
 runs as written and exits 0 (issue 27). Skipped, with the reason: installs (`pip`, `venv`: CI runs them),
-the live daemon (`run --master`: waits for a flight controller), MAVProxy (not a dependency), `dialect
-install` (writes into the installed pymavlink; the dialect tests cover it on a copy)."""
+the live daemon (`run --master`: waits for a flight controller), MAVProxy (the same: its --master is a flight
+controller), `dialect install` (writes into the installed pymavlink; the dialect tests cover it on a copy)."""
 
 from __future__ import annotations
 

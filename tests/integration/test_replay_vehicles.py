@@ -61,7 +61,7 @@ def test_each_vehicle_of_a_two_vehicle_tlog_is_replayed_as_its_own_log(tmp_path:
         assert vehicle["compasses"] == ref["compasses"]  # calibration, theta, self-check: all the same
         n_emitted += vehicle["emitted"]
     # the two vehicles learned different compass errors (different seeds): not one mixed estimate
-    fits = [[c["calibration"]["d_mgauss"] for c in v["compasses"]] for v in doc["vehicles"]]
+    fits = [[c["theta_mgauss"] for c in v["compasses"]] for v in doc["vehicles"]]
     assert fits[0] != fits[1]
     assert emit.stat().st_size > 0 and n_emitted > 0
 

@@ -51,6 +51,7 @@ yaw_true = (40.0 * np.sin(t / 6.0) + 180.0) % 360.0
 est = []
 for i in range(n):
     th = theta_true * (1.0 - np.exp(-t[i] / 8.0))
+    sd = float(30.0 * np.exp(-t[i] / 8.0) + 1.0)  # the band narrows as theta converges
     raw = yaw_true[i] + 25.0 * thr[i] ** 2 * np.sin(np.radians(yaw_true[i]))
     cor = yaw_true[i] + rng.normal(0.0, 0.8)
     u = rng.normal(size=3); u /= np.linalg.norm(u)
@@ -58,7 +59,7 @@ for i in range(n):
         t_s=float(t[i]), mag_index=0, heading_deg=float(cor % 360.0), heading_raw_deg=float(raw % 360.0),
         theta_mgauss=th, bias_mgauss=th * thr[i] ** 2, throttle_01=float(thr[i]), flags=1,
         field_raw_mgauss=u * [420.0, 330.0, 260.0] + [120.0, -60.0, 40.0], field_cal_mgauss=u * 480.0,
-        residual_norm_mgauss=5.0, excitation=0.3))
+        residual_norm_mgauss=5.0, excitation=0.3, theta_sigma_mgauss=(sd, sd, sd)))
 viz = open_viz("serve", live=False, recording_name="browser-test",
                grpc_port=int(sys.argv[1]), web_port=int(sys.argv[2]))
 viz.log_estimates(est)

@@ -12,14 +12,13 @@ import numpy as np
 import pytest
 
 from magcomp.adapters.config import InflightConfig
+from magcomp.core.autopilot_params import calibrated_by_autopilot, yaw_reference
 from magcomp.core.inflight import (
     InflightEstimator,
     InflightParams,
     absolute_rows,
-    calibrated_by_autopilot,
     regressors,
     relative_rows,
-    yaw_reference,
 )
 from magcomp.core.rotations import dcm_from_euler, quat_integrate_body_rate, quat_step_body_rate
 from magcomp.service.inflight_stage import InflightStage
@@ -271,12 +270,11 @@ def test_absolute_form_does_not_inherit_the_reference_compass_yaw_error(seed: in
     results = {}
     for nuisance in (False, True):
         est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
-        est.nuisance_prior_sd = 0.035
         for k in range(len(thr)):
             rows, z = absolute_rows(ref[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
             if nuisance:
                 cols = reference_yaw_error_rows(ref[k], H_NED)
-                est.add(rows, z, float(thr[k] ** 2), cols, math.floor(k * dt / 2.0))
+                est.add(rows, z, float(thr[k] ** 2), cols, math.floor(k * dt / 2.0), prior_sd=0.035)
             else:
                 est.add(rows, z, float(thr[k] ** 2))
         sol = est.solve()
@@ -336,11 +334,10 @@ def test_variance_inflation_is_one_for_white_residuals_and_large_for_lasting_one
     ests: dict[str, InflightEstimator] = {}
     for name, y in (("white", y_white), ("slow", y_slow)):
         est = InflightEstimator("absolute", 0, InflightParams(sigma_a=0.1), float(np.linalg.norm(H_NED)))
-        est.nuisance_prior_sd = 0.035
         for k in range(len(thr)):
             rows, z = absolute_rows(r[k].T @ H_NED, y[k], regressors(float(thr[k]), None))
             cols = np.zeros((3, 1))  # windows without a nuisance of their own: batches only
-            est.add(rows, z, float(thr[k] ** 2), cols, math.floor(k * dt / 2.0))
+            est.add(rows, z, float(thr[k] ** 2), cols, math.floor(k * dt / 2.0), prior_sd=0.035)
             if k % 100 == 99:
                 est.solve()  # as the stage does: batches start once the estimate has settled
         out[name] = est.solve()

@@ -10,7 +10,8 @@ import numpy as np
 
 from magcomp.adapters.config import InflightConfig
 from magcomp.core.inflight import N_SOFT, N_SYM
-from magcomp.service.inflight_stage import MAX_APPLY_HEADING_SIGMA_DEG, InflightStage
+from magcomp.core.inflight.apply import MAX_APPLY_HEADING_SIGMA_DEG
+from magcomp.service.inflight_stage import InflightStage
 
 NORM = 500.0  # mgauss; at the default 60 deg of inclination the horizontal field is half of it
 FIELD = (100.0, 0.0, 400.0)
@@ -57,7 +58,7 @@ def test_stored_estimate_not_yet_applied_is_applied_once_certain_and_turned() ->
     assert "yaw span" in st.why_not()
     for k in range(100):  # a slow turn through 99 deg, no pairs added (no rotation source for them)
         yaw = math.radians(float(k))
-        st._track_yaw(np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0],
+        st._span.track(np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0],
                                 [0.0, 0.0, 1.0]]))  # fmt: skip
     out = st.output(2.0, FIELD, 0.0, ())
     assert out is not None and st.applied

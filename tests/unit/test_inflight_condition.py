@@ -1,5 +1,5 @@
 """The published in-flight solution conditioned on another estimator's theta
-(``InflightEstimator.theta_from``, the tilt model's estimator of ``inflight_stage.TILT_CONDITION``): the
+(``InflightEstimator.condition_theta_on``, the tilt model's estimator of ``FeedSwitches.tilt_condition``): the
 Schur-complement update must equal the estimate re-solved with theta held at the other's value, and the
 published theta must be the other's."""
 
@@ -32,7 +32,7 @@ def _fed(seed: int, theta_shift: float) -> tuple[InflightEstimator, InflightEsti
 def test_conditioned_solution_equals_the_estimate_resolved_with_theta_held(seed: int) -> None:
     ordinary, tilt = _fed(seed, 15.0)
     free, _ = ordinary.state(inflate=1.0)
-    ordinary.theta_from = tilt
+    ordinary.condition_theta_on(tilt)
     ordinary._dirty = True
     mean, _ = ordinary.state(inflate=1.0)
     tilt_mean, _ = tilt.state(inflate=1.0)
@@ -40,10 +40,10 @@ def test_conditioned_solution_equals_the_estimate_resolved_with_theta_held(seed:
     np.testing.assert_allclose(mean[th], tilt_mean[th], atol=1e-9)
     assert np.linalg.norm(free[th] - tilt_mean[th]) > 10.0  # the two thetas differ: the test can fail
     # brute force: the posterior's other parameters with theta held at the tilt estimator's value
-    s2 = ordinary.sigma_mgauss**2
+    s2 = ordinary.solve().residual_rms_mgauss**2
     assert s2 == pytest.approx(ordinary.p.noise_floor_mgauss**2)
-    lam = ordinary.info / s2 + ordinary.prior_info
-    b = ordinary.rhs / s2 + ordinary.prior_info @ ordinary.prior_mean
+    lam = ordinary.acc.eq.info / s2 + ordinary.prior.info
+    b = ordinary.acc.eq.rhs / s2 + ordinary.prior.info @ ordinary.prior.mean
     o = np.r_[0:11]
     want = np.linalg.solve(lam[np.ix_(o, o)], b[o] - lam[np.ix_(o, np.r_[11:14])] @ tilt_mean[th])
     np.testing.assert_allclose(mean[o], want, rtol=1e-6, atol=1e-6 * np.abs(want).max())

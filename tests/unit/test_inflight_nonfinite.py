@@ -1,6 +1,6 @@
 """A row with a NaN, an infinity or a square that overflows (a damaged record upstream) is left out of the
-in-flight normal equations (core/inflight.py ``_take``, ``add_norm``): the solution is the one without it,
-not NaN (LAPACK's Cholesky, ``lapack.dposv``, does not report a NaN matrix as a failure) and not a
+in-flight normal equations (``InflightEstimator.add``, ``add_norm``): the solution is the one without it, not
+NaN (LAPACK's Cholesky, ``lapack.dposv``, does not report a NaN matrix as a failure) and not a
 heading sigma of 0."""
 
 from __future__ import annotations

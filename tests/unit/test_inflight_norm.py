@@ -1,8 +1,8 @@
 """The relative form's optional field-norm rows (InflightEstimator.add_norm, issue 9): exact on noise-free
-data, and they add information on theta (its standard deviation falls 3-10x). Off in the stage
-(NORM_ROWS): with noise the estimate is not consistent with that covariance (theta errors of 2-3 sigma,
-the heading 0.2 -> 0.8-1.8 deg here) and on the simulated ordinary flight they cost heading accuracy
-(docs/inflight.md)."""
+data, and they add information on theta (its standard deviation falls 3-10x). Not used by the stage (its
+NORM_ROWS switch went with the pair rows): with noise the estimate is not consistent with that covariance
+(theta errors of 2-3 sigma, the heading 0.2 -> 0.8-1.8 deg here) and on the simulated ordinary flight they
+cost heading accuracy (docs/inflight.md)."""
 
 from __future__ import annotations
 

@@ -91,7 +91,7 @@ def _gyro_yaw_run(seed: int, stale_attitude: bool) -> None:
     plus a 0.43 deg/s bias drift, as the simulator's gyro), the attitude either of the field's own time or
     one interval older (matched to the field's time by the stage); theta's sigma must fall below 0.67x the
     autopilot yaw's (2 s windows) and the estimate stay within its covariance."""
-    from magcomp.service.attitude import GyroYaw
+    from magcomp.core.inflight import GyroYaw
 
     r, thr, yaw = _flight(3000, seed)
     y = _measure(r, thr, np.eye(3), D_TRUE, seed, noise=NOISE_MGAUSS)
@@ -167,7 +167,7 @@ def test_attitude_stage_integrates_the_raw_gyro_into_the_euler_yaw() -> None:
 
 def test_attitude_stage_tracks_the_horizontal_kinematic_acceleration(monkeypatch: pytest.MonkeyPatch) -> None:
     """A tilted vehicle accelerating at a = (1.5, -2.0, 0) m/s^2 (NED), the accelerometer reading
-    f = R^T (a - g e_3): the stage's horizontal acceleration (AP_YAW_TILT's ``a``, the gyro chain's frame,
+    f = R^T (a - g e_3): the stage's horizontal acceleration (the tilt model's ``a``, the gyro chain's frame,
     yaw 0 here) settles on a within 1 mm/s^2 after ten of its time constants."""
     from collections import Counter
 
@@ -200,9 +200,9 @@ def test_slow_link_windows_relinearised_at_their_field_bring_theta_closer(
     """2.5 Hz samples (a slow link: the attitude matched to the field's time), a realistic theta (x6) and an
     autopilot yaw that follows the disturbed compass (up to ~60 deg off): each window's yaw-rate column was
     written about the window's field as known from its first few samples; written again about the window's
-    final field (RELINEARISE_WINDOW) theta comes out closer to the truth, noise-free."""
+    final field (``FeedSwitches.relinearise_window``) theta comes out closer to the truth, noise-free."""
     import tests.unit.test_inflight as ti
-    from magcomp.service import inflight_stage
+    from magcomp.core.inflight.feed import FeedSwitches
 
     theta = 6.0 * THETA
     monkeypatch.setattr(ti, "THETA", theta)
@@ -212,8 +212,9 @@ def test_slow_link_windows_relinearised_at_their_field_bring_theta_closer(
     src = np.array([dcm_from_euler(0.0, 0.0, float(p)) @ rk for p, rk in zip(psi, r, strict=True)])
     err = []
     for relin in (False, True):
-        monkeypatch.setattr(inflight_stage, "RELINEARISE_WINDOW", relin)
-        st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)))
+        sw = FeedSwitches(relinearise_window=relin)
+        norm = float(np.linalg.norm(H_NED))
+        st = InflightStage(0, InflightConfig(), "relative", "test", True, norm, None, sw)
         for k in range(0, len(thr), 4):
             st.feed(DT_S * k, y[k], float(thr[k]), (), None, H_NED, src[k], r_t_s=DT_S * k)
         assert st.est is not None
@@ -227,16 +228,20 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
     """The open window's nuisance estimate is cached against the estimator's revision (the stage asks twice
     per row): on a whole flight every answer, cached or not, equals the estimate computed afresh, bit for bit,
     and the cache does answer (about one call in two)."""
-    orig = InflightEstimator._open_nuisance
+    from magcomp.core.inflight.window import OpenWindow
+
+    orig = OpenWindow.nuisance
     calls, hits = [0], [0]
 
-    def checked(self: InflightEstimator, k: int, with_common: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    def checked(
+        self: OpenWindow, rev: int, with_common: bool, p: np.ndarray, c: float, s_ref: float
+    ) -> tuple[np.ndarray, np.ndarray] | None:
         before = self._open_cache
-        got = orig(self, k, with_common)
+        got = orig(self, rev, with_common, p, c, s_ref)
         calls[0] += 1
         hits[0] += before is not None and got is before[1]
         self._open_cache, saved = None, self._open_cache
-        fresh = orig(self, k, with_common)
+        fresh = orig(self, rev, with_common, p, c, s_ref)
         self._open_cache = saved
         assert (got is None) == (fresh is None)
         if got is not None and fresh is not None:
@@ -244,15 +249,15 @@ def test_the_open_windows_cached_nuisance_is_what_a_fresh_computation_gives(
             assert np.array_equal(got[1], fresh[1])
         return got
 
-    monkeypatch.setattr(InflightEstimator, "_open_nuisance", checked)
+    monkeypatch.setattr(OpenWindow, "nuisance", checked)
     st, _ = _run(0, NOISE_MGAUSS)
     assert st.est is not None and st.est.n > 1000
     assert 0.3 * calls[0] < hits[0] < 0.6 * calls[0], (hits[0], calls[0])
 
 
 def test_an_estimator_taken_through_pickle_keeps_summing_its_open_window() -> None:
-    """The in-flight stage goes to its process and back pickled (service/inflight_process.py). Pickle copies
-    the open window's views (``_w_ee``, ``_w_pp``, ...) as arrays of their own: rows added to the unpickled
+    """An in-flight stage copied through pickle (e.g. to another process and back). Pickle copies
+    the open window's views (``OpenWindow.ee``, ...) as arrays of their own: rows added to the unpickled
     estimator's open window must give what the original gives (without ``__setstate__`` the views stopped
     following the window's sums)."""
     import pickle
@@ -262,7 +267,7 @@ def test_an_estimator_taken_through_pickle_keeps_summing_its_open_window() -> No
     st = InflightStage(0, InflightConfig(), "relative", "test", True, float(np.linalg.norm(H_NED)))
     for k in range(300):
         st.feed(DT_S * k + 0.05, y[k], float(thr[k]), (), None, H_NED, r[k])  # ends inside a 2 s window
-    assert st.est is not None and st.est._win is not None
+    assert st.est is not None and st.est.acc.window.key is not None
     st.est.solve()
     copy = pickle.loads(pickle.dumps(st))
     for s in (st, copy):

@@ -24,10 +24,12 @@ from magcomp.adapters.rerun_viz import (
     default_mode_for_demo,
     flag_changes,
     flags_text,
+    labelled_axis_range,
     nice_range,
     open_viz,
     parse_mode,
     serve_until_interrupt,
+    theta_band,
     wrap_deg,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, HeadingEstimate
@@ -47,6 +49,8 @@ def synthetic_estimates(n: int, seed: int, dt_s: float = 0.02) -> tuple[list[Hea
     out = []
     for i in range(n):
         theta = THETA_TRUE * (1.0 - np.exp(-(t[i] - t[0]) / 5.0)) + rng.normal(0.0, 0.5, 3)
+        # the observer's 1-sigma: unknown for the first samples, then shrinking as theta converges
+        sd = float("nan") if i < 5 else float(40.0 * np.exp(-i / 60.0) + 1.0)
         flags = FLAG_CALIBRATED | (FLAG_THETA_CONVERGED if i > n // 2 else 0)
         out.append(
             HeadingEstimate(
@@ -62,6 +66,7 @@ def synthetic_estimates(n: int, seed: int, dt_s: float = 0.02) -> tuple[list[Hea
                 field_cal_mgauss=rng.normal(size=3) * 150.0,
                 residual_norm_mgauss=float(abs(rng.normal(3.0, 1.0))),
                 excitation=float("nan") if i < 5 else 0.2,
+                theta_sigma_mgauss=(sd, sd, sd),
             )
         )
     return out, truth
@@ -314,6 +319,94 @@ def test_live_logging_matches_replay_row_for_row(tmp_path: Path) -> None:
     bias = np.array([e.bias_mgauss for e in estimates])
     np.testing.assert_allclose(live["/bias/estimate"]["values"], bias, atol=1e-12)  # 3 series, one entity
     assert live["/theta/offline/x"]["t_s"].max() >= t[-1] - 1.0  # the reference line follows the live run
+
+
+def test_the_theta_band_is_theta_plus_minus_sigma_where_sigma_is_known(tmp_path: Path) -> None:
+    estimates, truth = synthetic_estimates(300, seed=13)
+    path = tmp_path / "band.rrd"
+    _drive_replay(path, estimates, truth)
+    data = read_rrd(path)
+    known = [e for e in estimates if np.isfinite(e.theta_sigma_mgauss[0])]
+    assert 0 < len(known) < len(estimates)
+    for k, ax in enumerate(AXES):
+        band = data[f"/theta/band/{ax}"]
+        assert len(band["values"]) == len(known)  # no row where the estimate carries no sigma
+        np.testing.assert_allclose(band["t_s"], [e.t_s for e in known], atol=1e-9)
+        lo_hi = np.asarray(band["values"], dtype=float)
+        theta = np.array([e.theta_mgauss[k] for e in known])
+        sigma = np.array([e.theta_sigma_mgauss[k] for e in known])
+        np.testing.assert_allclose(lo_hi[:, 0], theta - sigma, atol=1e-9)
+        np.testing.assert_allclose(lo_hi[:, 1], theta + sigma, atol=1e-9)
+        width = lo_hi[:, 1] - lo_hi[:, 0]
+        assert width[-1] < 0.1 * width[0]  # the band narrows as theta converges
+
+
+def test_theta_band_leaves_out_unknown_sigma_and_clamps_huge_ones() -> None:
+    theta = np.array([[10.0, -5.0, 0.0], [np.nan, 1.0, 2.0]])
+    sigma = np.array([[2.0, np.nan, 1e9], [1.0, -1.0, 0.5]])
+    rows, edges = theta_band(theta, sigma)
+    assert rows.tolist() == [[True, False, True], [False, False, True]]
+    np.testing.assert_allclose(edges[0, 0], [8.0, 12.0])
+    np.testing.assert_allclose(edges[1, 2], [1.5, 2.5])
+    assert edges[0, 2, 1] == 1e5 and edges[0, 2, 0] == -1e5
+
+
+def _on_grid(x: float, p: float) -> bool:
+    return abs(x / p - round(x / p)) < 1e-9
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_labelled_axis_range_holds_the_data_and_two_labelled_ticks(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        values = rng.normal(0.0, 10.0 ** rng.uniform(0.5, 3.5), rng.integers(1, 6)).tolist()
+        lo, hi = labelled_axis_range(values, above=0.6)
+        data_lo, data_hi = min([*values, 0.0]), max([*values, 0.0])
+        span = max(data_hi - data_lo, 10.0)
+        assert lo <= data_lo - 0.1 * span + 1e-9 and hi >= data_hi + 0.6 * span - 1e-9
+        # a power of ten p (the ticks' grid) with both ends 4 % of the range beyond ticks on it, those ticks
+        # at most 12 steps apart: every tick is >= 1/13 of the plot's height from the next, so it is labelled
+        edge = 0.04 / 1.08 * (hi - lo)
+        t_lo, t_hi = lo + edge, hi - edge
+        top = 10.0 ** np.floor(np.log10(t_hi - t_lo))
+        grids = [
+            p
+            for p in (top, top / 10.0)
+            if (t_hi - t_lo) / p <= 12.0 + 1e-9 and _on_grid(t_lo, p) and _on_grid(t_hi, p)
+        ]
+        assert grids, (values, lo, hi)
+    # the run's theta plot that showed a lone "0" tick: theta from -75 to 26 mgauss
+    assert labelled_axis_range([-75.0, 26.0], above=0.6) == pytest.approx((-108.0, 108.0))
+
+
+def test_live_power_samples_one_at_a_time_do_not_split_the_estimate_blocks(tmp_path: Path) -> None:
+    """`run` logs each battery sample as it comes: the power rows are buffered like the estimates, so each
+    entity gets a few chunks (one per 0.5 s of message time), not one per sample, which the web viewer took
+    in at a fraction of real time."""
+    from rerun.chunk import RrdReader
+
+    estimates, _ = synthetic_estimates(300, seed=14)  # 6 s at 50 Hz
+    path = tmp_path / "live.rrd"
+    viz = open_viz(f"save={path}", live=True)
+    for est in estimates:
+        viz.log_estimate(est)
+        viz.log_power(est.t_s, float("nan"), 20.0 * est.throttle_01**2, 12.0)
+    viz.close()
+    chunks: dict[str, int] = defaultdict(int)
+    for chunk in RrdReader(str(path)).stream():
+        chunks[chunk.entity_path] += 1
+    span = estimates[-1].t_s - estimates[0].t_s
+    most = int(span / 0.5) + 3  # a block per 0.5 s (+ the static style row and the last, partial block)
+    for entity in ("/theta/x", "/heading/corrected", "/bias/estimate", "/power/current", "/power/voltage"):
+        assert chunks[entity] <= most, (entity, chunks[entity], most)
+    data = read_rrd(path)
+    assert len(data["/theta/x"]["values"]) == len(estimates)  # every estimate still drawn
+    current = data["/power/current"]
+    assert 55 <= len(current["values"]) <= 61  # 10 Hz of message time over 6 s
+    t = np.array([e.t_s for e in estimates])
+    thr = np.interp(current["t_s"], t, [e.throttle_01 for e in estimates])
+    np.testing.assert_allclose(current["values"], 20.0 * thr**2, atol=1e-9)
+    assert "/power/throttle" not in data  # NaN throttle: not drawn
 
 
 def test_bad_shapes_raise_magcomp_error(tmp_path: Path) -> None:

@@ -241,3 +241,40 @@ def test_hover_correction_applies_to_the_field_as_the_autopilot_had_it() -> None
         f = fp.FinalCompass(cor, "corrected", autopilot_field=kept, heading_offset_deg=offset)
         psi = fp.correct(rows, {0: f}).psi_deg
         assert np.allclose(sc.wrap_rad(np.radians(psi - want)), 0.0, atol=1e-9), (kept, offset)
+
+
+def test_live_hover_theta_switches_on_and_corrects() -> None:
+    """The live form (service/heading.py HoverShadow): fed sample by sample a hover whose compass carries
+    the throttle's bias, it publishes theta against the autopilot's calibration once its running self-check
+    is on, and its heading's error against the true yaw (constant removed) over the last two minutes is
+    under half the autopilot's own; with the throttle held constant it never switches on."""
+    from types import SimpleNamespace
+
+    from magcomp.core.heading import heading_from_trig_deg
+    from magcomp.service.heading import HoverShadow
+
+    for varied in (True, False):
+        m, roll, pitch, yaw, thr, _, _ = _hover_with_offset(21)
+        if not varied:
+            thr = np.full_like(thr, 0.5)
+        hover = HoverShadow(tau_s=1.0)
+        own_err: list[float] = []
+        pub_err: list[float] = []
+        for i in range(m.shape[0]):
+            cr, sr, cp, sp = math.cos(roll[i]), math.sin(roll[i]), math.cos(pitch[i]), math.sin(pitch[i])
+            rec = SimpleNamespace(cos_roll=cr, sin_roll=sr, cos_pitch=cp, sin_pitch=sp, throttle_01=thr[i],
+                                  ap_yaw=yaw[i], gyro_yaw=yaw[i] + 1e-4 * i, gyro_epoch=0.0,
+                                  imu_fast=True, t_s=i * 0.1)  # fmt: skip
+            field = (float(m[i, 0]), float(m[i, 1]), float(m[i, 2]))
+            psi_own = heading_from_trig_deg(*field, cr, sr, cp, sp)
+            hover.step(rec, field, psi_own, True, True, 0.0, 0.1)  # type: ignore[arg-type]
+            if i >= m.shape[0] - 1200 and hover.on_form is not None:
+                pub_err.append(math.radians(hover.published_deg()) - yaw[i])
+            own_err.append(math.radians(psi_own) - yaw[i])
+        if not varied:
+            assert hover.on_form is None and not pub_err
+            continue
+        assert hover.on_form is not None and len(pub_err) == 1200
+        own_rms = sc.offset_removed_rms_deg(sc.wrap_rad(np.asarray(own_err[-1200:])))
+        pub_rms = sc.offset_removed_rms_deg(sc.wrap_rad(np.asarray(pub_err)))
+        assert pub_rms < own_rms / 2.0, (pub_rms, own_rms)  # measured 1.5 against 3.9 deg
