@@ -175,9 +175,10 @@ CASES: dict[str, tuple[str, str, float, float, int, dict[str, object]]] = {
 }
 
 
-def run_case(effect: str, seed: int | None = None) -> dict[str, Any]:
+def run_case(effect: str, seed: int | None = None, value_override: float | None = None) -> dict[str, Any]:
     """Simulate the held-out log of ``effect``, diagnose it, check the top finding and its interval
-    (``seed``: another seed of the same held-out settings, for the coverage over seeds)."""
+    (``seed``: another seed of the same held-out settings, for the coverage over seeds; ``value_override``:
+    another size of the effect than the case's)."""
     import numpy as np
 
     from magcomp.adapters.mavlink_emit import write_tlog
@@ -189,6 +190,7 @@ def run_case(effect: str, seed: int | None = None) -> dict[str, Any]:
 
     scenario, vehicle, duration, value, case_seed, settings = CASES[effect]
     seed = case_seed if seed is None else seed
+    value = value if value_override is None else value_override
     cfg = SimConfig(
         scenario=scenario,
         duration_s=duration,
@@ -272,12 +274,24 @@ def main() -> int:
         help="coverage: each effect over this many other seeds (default 0: the case's own)",
     )
     ap.add_argument("--first-seed", type=int, default=5000, help="first seed of --seeds (default 5000)")
+    ap.add_argument(
+        "--value",
+        action="append",
+        default=[],
+        metavar="EFFECT=V",
+        help="another size of an effect than its case's (e.g. throttle_exponent=2.8); repeatable",
+    )
     args = ap.parse_args()
     from multiprocessing import Pool
 
-    jobs: list[tuple[str, int | None]] = [(e, None) for e in args.effects]
+    values = {k: float(v) for k, v in (a.split("=", 1) for a in args.value)}
+    jobs: list[tuple[str, int | None, float | None]] = [(e, None, values.get(e)) for e in args.effects]
     if args.seeds:
-        jobs = [(e, s) for e in args.effects for s in range(args.first_seed, args.first_seed + args.seeds)]
+        jobs = [
+            (e, s, values.get(e))
+            for e in args.effects
+            for s in range(args.first_seed, args.first_seed + args.seeds)
+        ]
     with Pool(args.workers) as pool:
         rows = pool.starmap(run_case, jobs, chunksize=1)
     for r in rows:

@@ -12,6 +12,11 @@ Without PATH: ``--sim N`` simulated ``ordinary`` flights of ``--sim-duration`` s
 
 from __future__ import annotations
 
+import os
+
+# as magcomp's CLI does, before numpy loads: OpenBLAS threads on small solves only spin on a busy machine
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import sys
 import tempfile
@@ -44,12 +49,30 @@ def _startup_s(workers: int) -> float:
         return time.perf_counter() - t0
 
 
+def cpu_split(out: Path) -> str:
+    """CPU per log split into diagnose and the rest (replay, identity scan, rows), from the rows."""
+    from magcomp.fleet import store
+
+    rows = store.read_rows(out).to_pylist()
+    per_log = {r["sha256"]: r for r in rows if r.get("status") == "ok"}
+    if not per_log:
+        return "no log analysed ok"
+    cpu = [float(r["cpu_s"] or 0.0) for r in per_log.values()]
+    diag = [float(r.get("diagnose_cpu_s") or 0.0) for r in per_log.values()]
+    n = len(per_log)
+    return (
+        f"CPU per log {sum(cpu) / n:.2f} s = diagnose {sum(diag) / n:.2f} s + replay, identity and rows "
+        f"{(sum(cpu) - sum(diag)) / n:.2f} s"
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="*", help="logs or folders (default: simulated flights)")
     ap.add_argument("--sim", type=int, default=4, help="simulated flights when no PATH (default 4)")
     ap.add_argument("--sim-duration", type=float, default=600.0, help="seconds each (default 600)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--no-diagnose", action="store_true", help="the replay's rows only (fleet --no-diagnose)")
     args = ap.parse_args()
 
     from magcomp.fleet import engine
@@ -70,7 +93,7 @@ def main() -> int:
         for w in args.workers:
             startup = _startup_s(w) if w > 0 else 0.0  # 0: in this process, no cluster
             out = root / f"out{w}"
-            p = engine.plan(logs, out)
+            p = engine.plan(logs, out, diagnose=not args.no_diagnose)
             st = engine.run(p.tasks, out, workers=w, progress=False)
             cpu_per_log = st.cpu_s / max(st.analysed, 1)
             walls[w] = st.wall_s - startup
@@ -79,6 +102,7 @@ def main() -> int:
                   f"(cluster start-up ~{startup:.1f} s of it): {60 * st.analysed / st.wall_s:.1f} logs/min; "
                   f"{cpu_per_log:.2f} s CPU per log = {3600 / cpu_per_log:.0f} logs per core-hour; "
                   f"peak RSS per worker {rss} MB")  # fmt: skip
+            print("  " + cpu_split(out))
         if len(walls) >= 2:
             a, b = sorted(walls)[:2]
             print(f"speed-up {a} -> {b} workers (start-up excluded): {walls[a] / walls[b]:.2f}x")

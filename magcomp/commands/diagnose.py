@@ -139,8 +139,9 @@ def _read_fix(m: Any) -> tuple[float, float, float, float] | None:
     return fix[0], fix[1], fix[2], year
 
 
-def earth_reference(args: argparse.Namespace, log: Any) -> Any:
-    """The WMM field at the log's position and date (see :mod:`magcomp.diagnosis.gate`)."""
+def earth_reference(path: str, log: Any, location: str | None = None, year_arg: float | None = None) -> Any:
+    """The WMM field at the log's position and date (see :mod:`magcomp.diagnosis.gate`); ``location`` and
+    ``year_arg``: ``--location`` and ``--year`` as given."""
     import numpy as np
 
     from magcomp.diagnosis.gate import NO_POSITION, EarthReference
@@ -153,24 +154,24 @@ def earth_reference(args: argparse.Namespace, log: Any) -> Any:
         lat, lon, alt = (float(v) for v in np.median(log.position.values, axis=0))
         pos, where = (lat, lon, alt, float(log.decimal_year)), "the log's GPS position"
     else:
-        g = gps_from_file(args.log)
+        g = gps_from_file(path)
         if g is not None:
             pos, where = g, "the log's first 3D GPS fix"
-    if args.location:
+    if location:
         try:
-            parts = [float(x) for x in str(args.location).split(",")]
+            parts = [float(x) for x in str(location).split(",")]
         except ValueError:
             parts = []
         if len(parts) not in (2, 3):
-            raise InputError(f"--location must be LAT,LON[,ALT], got {args.location!r}")
+            raise InputError(f"--location must be LAT,LON[,ALT], got {location!r}")
         alt = parts[2] if len(parts) == 3 else 0.0
         pos, where = (parts[0], parts[1], alt, float("nan")), "--location"
     if pos is None:
         return NO_POSITION
     lat, lon, alt, year = pos
     when = "the log's date"
-    if args.year is not None:
-        year, when = float(args.year), "--year"
+    if year_arg is not None:
+        year, when = float(year_arg), "--year"
     if not math.isfinite(year):
         year, when = 2025.5, "no date in the log, 2025.5 assumed"
     from magcomp.geomag import wmm_release
@@ -359,7 +360,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     from magcomp.adapters.rerun_viz import open_viz, serve_until_interrupt
     from magcomp.core.types import FLAG_CALIBRATED, HeadingEstimate
     from magcomp.diagnosis.engine import compass_yaw_rad
-    from magcomp.diagnosis.report import _earth_part
+    from magcomp.diagnosis.report import earth_part
 
     c = d.compass(d.primary)
     data = c.data
@@ -389,7 +390,7 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     ]
     viz.log_estimates(ests)
     viz.log_reference_theta(c.baseline.theta_mgauss, None)
-    meas_bias = data.field_mgauss - _earth_part(c, c.extended)
+    meas_bias = data.field_mgauss - earth_part(c, c.extended)
     viz.log_bias_fit(thr**2, meas_bias, theta)
     if reference is not None:
         viz.log_truth_heading(reference[0], np.degrees(reference[1]) % 360.0)
@@ -482,8 +483,44 @@ def _write_outputs(
             _show_in_rerun(args.rerun, d, reference)
 
 
-def execute(args: argparse.Namespace) -> int:
+def read_gated_log(
+    path: str, throttle_source: str = "auto", config: str | None = None, on_progress: Any = None
+) -> Any:
+    """The log as diagnose reads it (LogData), its magnetometer samples through the pipeline's gates: a
+    clipped (saturated) or corrupt (jump) sample is not a field."""
+    from magcomp.adapters.config import load_config
     from magcomp.adapters.mavlink_source import load_log
+    from magcomp.service.align import gate_log_inputs
+
+    log = load_log(path, throttle_source=throttle_source, on_progress=on_progress)
+    saturation = load_config(config).input.saturation_mgauss
+    for key, n in gate_log_inputs(log, saturation).items():
+        log.counts[key] = log.counts.get(key, 0) + n
+    return log
+
+
+def note_skipped(d: Any, log: Any) -> dict[str, int]:
+    """What reading the log dropped or absorbed, as a note of ``d`` (counted, never silent)."""
+    from magcomp.service.console import SKIP_KEYS, format_counts
+
+    skipped = {k: int(log.counts[k]) for k in SKIP_KEYS if log.counts.get(k)}
+    if skipped:
+        d.notes.append(f"skipped or absorbed while reading the log: {format_counts(skipped, SKIP_KEYS)}")
+    return skipped
+
+
+def diagnose_file(path: str, throttle_source: str = "auto", config: str | None = None) -> tuple[Any, Any]:
+    """(Diagnosis, LogData) of one log with no option set: what ``magcomp diagnose LOG`` computes (the fleet
+    calls this per log)."""
+    from magcomp.diagnosis.engine import diagnose
+
+    log = read_gated_log(path, throttle_source, config)
+    d = diagnose(log, events=log_events(path), earth=earth_reference(path, log))
+    note_skipped(d, log)
+    return d, log
+
+
+def execute(args: argparse.Namespace) -> int:
     from magcomp.diagnosis.engine import diagnose
 
     _check_args(args)
@@ -498,27 +535,16 @@ def execute(args: argparse.Namespace) -> int:
     from magcomp.service.console import Busy, reading_progress
 
     with reading_progress(f"diagnose: reading {Path(args.log).name}", args.log) as on_progress:
-        log = load_log(args.log, throttle_source=args.throttle_source, on_progress=on_progress)
-    from magcomp.adapters.config import load_config
-    from magcomp.service.align import gate_log_inputs
-
-    # the pipeline's magnetometer gates: a clipped (saturated) or corrupt (jump) sample is not a field
-    saturation = load_config(args.config).input.saturation_mgauss
-    for key, n in gate_log_inputs(log, saturation).items():
-        log.counts[key] = log.counts.get(key, 0) + n
+        log = read_gated_log(args.log, args.throttle_source, args.config, on_progress)
     with Busy("diagnose: fitting the models"):
         d = diagnose(
             log,
             primary=args.mag_index,
             heading_reference=reference,
             events=log_events(args.log),
-            earth=earth_reference(args, log),
+            earth=earth_reference(args.log, log, args.location, args.year),
         )
-    from magcomp.service.console import SKIP_KEYS, format_counts
-
-    skipped = {k: int(log.counts[k]) for k in SKIP_KEYS if log.counts.get(k)}
-    if skipped:  # what reading the log dropped or absorbed: counted, never silent
-        d.notes.append(f"skipped or absorbed while reading the log: {format_counts(skipped, SKIP_KEYS)}")
+    skipped = note_skipped(d, log)
     j = d.to_json()
     j["counts"] = skipped
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")

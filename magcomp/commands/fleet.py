@@ -59,6 +59,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--html", metavar="FILE.html", help="report: where to write it (default DIR/report.html)"
     )
+    parser.add_argument(
+        "--no-diagnose",
+        action="store_true",
+        help="the replay's rows only, without `magcomp diagnose`'s findings, theta and parameter files "
+        "(40-50 %% less CPU per log, docs/fleet.md)",
+    )
+    parser.add_argument(
+        "--theta-from",
+        choices=("auto", "diagnose", "replay"),
+        default="auto",
+        help="whose theta per flight the vehicles' history and changes follow: diagnose's (its 95 %% "
+        "interval) or the replay's correction; auto (default): diagnose's where the rows have it",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="the replays' log lines")
 
 
@@ -107,7 +120,7 @@ def _run(args: argparse.Namespace) -> int:
     if not logs:
         raise InputError(f"no logs (.tlog, .bin, .log, .ulg) under {' '.join(args.paths)}")
     rerun = "all" if args.rerun_all else "outdated" if args.rerun_outdated else "none"
-    plan = engine.plan(logs, out, rerun=rerun, config=args.config)
+    plan = engine.plan(logs, out, rerun=rerun, config=args.config, diagnose=not args.no_diagnose)
     where = args.scheduler or ("this process" if args.workers == 0 else "a local Dask cluster")
     skipped = f", {plan.skipped} done before (skipped)" if plan.skipped else ""
     dups = f", {plan.duplicates} duplicate file(s)" if plan.duplicates else ""
@@ -132,24 +145,53 @@ def _run(args: argparse.Namespace) -> int:
             f"in {st.wall_s:.1f} s on {st.workers} worker(s): {rate:.1f} logs/min, "
             f"{st.cpu_s / max(st.analysed, 1):.2f} s CPU per log"
         )
-    vehicles = _vehicles(out, vmap)
+    vehicles = _vehicles(out, vmap, args.theta_from)
     print(f"results: {out / 'logs'} (Parquet, per log), {out / 'vehicles.parquet'}, {out / 'vehicles.json'}")
+    n_params = sum(1 for v in vehicles if v.params)
+    if n_params:
+        print(f"compensation parameters for {n_params} vehicle(s): {out / 'params'}")
     _print_inspect(vehicles)
     return 0
 
 
-def _vehicles(out: Path, vmap: Any) -> list[Any]:
+def _vehicles(out: Path, vmap: Any, theta_from: str = "auto") -> list[Any]:
     from magcomp.fleet import store
     from magcomp.fleet.vehicles import flat_rows, summarise
 
     rows = store.read_rows(out).to_pylist()
-    vehicles = summarise(rows, vmap)
-    doc = {"vehicles": [v.to_json() for v in vehicles]}
+    if theta_from == "auto":  # diagnose's interval covers the truth at its level, the replay's less (docs)
+        theta_from = "diagnose" if any(r.get("diagnose_status") == "ok" for r in rows) else "replay"
+    vehicles = summarise(rows, vmap, theta_from=theta_from)
+    _write_params(out, vehicles)
+    doc = {"theta_from": theta_from, "vehicles": [v.to_json() for v in vehicles]}
     tmp = out / ".vehicles.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, out / "vehicles.json")
     store.write_table(out / "vehicles.parquet", flat_rows(vehicles))
     return vehicles
+
+
+def _write_params(out: Path, vehicles: list[Any]) -> None:
+    """Per vehicle with compensation parameters, the files ``magcomp diagnose --params-out`` writes:
+    OUT/params/VEHICLE.params (QGroundControl) for PX4 and ArduPilot, and VEHICLE.param (Mission Planner)
+    for ArduPilot; the folder holds only the current ones."""
+    import re
+
+    from magcomp.adapters.param_files import write_param_file
+
+    folder = out / "params"
+    for old in folder.glob("*.param*") if folder.is_dir() else []:
+        old.unlink()
+    for v in vehicles:
+        if not v.params:
+            continue
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = re.sub(r"[^A-Za-z0-9._-]+", "_", v.vehicle).strip("_") or "vehicle"
+        px4 = v.params["autopilot"] == "PX4"
+        files = [folder / f"{stem}.params"] + ([] if px4 else [folder / f"{stem}.param"])
+        for f in files:
+            write_param_file(f, v.params["values"], stack="PX4 Pro" if px4 else "ArduPilot")
+        v.params["files"] = [str(f) for f in files]
 
 
 def _print_inspect(vehicles: list[Any], limit: int = 10) -> None:
@@ -181,7 +223,7 @@ def _report(out: Path, args: argparse.Namespace) -> int:
     from magcomp.fleet.report import write_report
 
     vmap = load_vehicle_map(args.vehicles)
-    vehicles = _vehicles(out, vmap)
+    vehicles = _vehicles(out, vmap, args.theta_from)
     rows = store.read_rows(out).to_pylist()
     html = Path(args.html) if args.html else out / "report.html"
     write_report(html, vehicles, rows)

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.diagnosis.effects import drive_columns
-from magcomp.diagnosis.gate import noise_floor_mgauss
+from magcomp.diagnosis.gate import structured_shift_bound
 from magcomp.diagnosis.intervals import column_halfwidth
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
 
@@ -128,11 +128,7 @@ def model_error_bound(data: CompassData, fit: ModelFit) -> tuple[float, float, f
     """(bound on theta's shift per axis, mgauss; the residual's structured part, mgauss; sd of the drive):
     see the module docstring."""
     d = drive_columns(data.drive, fit.ext)[0][:, 0]
-    sd_d = float(np.std(d))
-    floor = noise_floor_mgauss(fit.residual_mgauss)
-    floor = floor if np.isfinite(floor) else 0.0
-    structured = float(np.sqrt(max(fit.rms_mgauss**2 - floor**2, 0.0)))
-    return (structured / sd_d if sd_d > 0 else float("inf")), structured, sd_d
+    return structured_shift_bound(fit.residual_mgauss, d)
 
 
 def _with_extra(data: CompassData, extra: F64, names: tuple[str, ...]) -> CompassData:

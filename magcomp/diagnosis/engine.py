@@ -123,7 +123,8 @@ def with_gate(
         p=gp,
     )
     if not result.observable and not result.theta_why and c.data.attitude_source != "stationary":
-        # only the calibration is refused: theta against the autopilot's calibration as prior (partial.py)
+        # theta is not refused with the rest: against the autopilot's calibration as prior (partial.py); where
+        # the model leaves more than the gate allows, its model-error bound decides too
         gp = gp or gate_mod.GateParams()
         pt = theta_with_prior(
             c.data,
@@ -132,6 +133,7 @@ def with_gate(
             earth.strength_mgauss,
             None if earth.inclination_deg is None else math.radians(earth.inclination_deg),
             gp.max_scale_error,
+            model_error_decides=result.residual_refused,
         )
         return replace(c, gate=result, prior_theta=pt)
     if result.observable:  # non-blocking: when theta's interval is a lower bound (consistency module)

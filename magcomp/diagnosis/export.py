@@ -97,12 +97,15 @@ def prior_theta_json(cd: CompassDiagnosis) -> dict[str, Any] | None:
         "theta_ci95_halfwidth": r4(pt.halfwidth_mgauss),
         "identifiable": pt.identifiable,
         "residual_rms_mgauss": r4(pt.residual_rms_mgauss),
+        "model_error_bound_mgauss": r4(pt.model_error_bound_mgauss)
+        if math.isfinite(pt.model_error_bound_mgauss)
+        else None,
         "prior": pt.prior,
         "calibration": f"not observable in this log ({why}); theta does not need it: the throttle varies",
         "note": (
             "theta is determined by the field's change with throttle at a near-constant attitude"
             if pt.identifiable
-            else "theta's interval is wider than |theta|: the log does not determine it"
+            else f"the log does not determine theta: {pt.why}"
         ),
     }
 

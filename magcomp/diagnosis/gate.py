@@ -58,7 +58,6 @@ from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 F64 = NDArray[np.float64]
 
 
-
 @dataclass(frozen=True)
 class GateParams:
     max_scale_error: float = 0.35
@@ -103,14 +102,16 @@ NO_POSITION = EarthReference(None, "no GPS position in the log: checked against 
 @dataclass(frozen=True)
 class GateResult:
     """observable: every check passed; why: the failed checks; theta_why: the failed checks that concern theta
-    itself (a throttle that does not vary, a model that leaves too much), empty when only the calibration is
-    refused: then theta is still estimated with the autopilot's calibration as prior
-    (:mod:`magcomp.diagnosis.partial`)."""
+    itself (a throttle that does not vary; on a stationary bench log also a model that leaves too much),
+    empty when the rest is refused: then theta is still estimated with the autopilot's calibration as prior
+    (:mod:`magcomp.diagnosis.partial`), which tells by itself whether the residual leaves theta determined."""
 
     observable: bool
     why: str
     checks: dict[str, Any] = field(default_factory=dict)
     theta_why: str = ""
+    #: the forward model leaves more than ``max_residual_fraction`` of the field
+    residual_refused: bool = False
 
 
 def yaw_span_deg(r_nb: F64) -> float:
@@ -251,7 +252,8 @@ def check(
     if not stationary:
         reasons += _rotation_reasons(strength, cond, inc, checks, earth, p)
     scale = ref if ref is not None else (strength if not stationary else EARTH_MIN_MGAUSS)
-    if residual_rms_mgauss > p.max_residual_fraction * scale:
+    residual_refused = residual_rms_mgauss > p.max_residual_fraction * scale
+    if residual_refused:
         r = (
             f"the forward model leaves {residual_rms_mgauss:.0f} mgauss rms "
             f"(> {100 * p.max_residual_fraction:.0f} % of the {scale:.0f} mgauss field, i.e. > "
@@ -259,11 +261,24 @@ def check(
             "this compass"
         )
         reasons.append(r)
-        theta_reasons.append(r)
-    return GateResult(not reasons, "; ".join(reasons), checks, "; ".join(theta_reasons))
+        if stationary:  # the bench fit has no prior to fall back on: the model is all there is
+            theta_reasons.append(r)
+    return GateResult(not reasons, "; ".join(reasons), checks, "; ".join(theta_reasons), residual_refused)
 
 
 def _r(x: float | None) -> float | None:
     if x is None or not math.isfinite(x):
         return None
     return round(float(x), 3)
+
+
+def structured_shift_bound(residual_mgauss: F64, drive: F64) -> tuple[float, float, float]:
+    """(bound on theta's shift, mgauss; the residual's structured part, mgauss; sd of the drive): a least-
+    squares coefficient moves by cov(e, d) / var(d) under an unmodelled error e, at most sd(e) / sd(d)
+    (Cauchy-Schwarz); sd(e) is the residual's rms above its white floor (second differences)."""
+    sd_d = float(np.std(drive))
+    rms = float(np.sqrt(np.mean(residual_mgauss**2)))
+    floor = noise_floor_mgauss(residual_mgauss)
+    floor = floor if np.isfinite(floor) else 0.0
+    structured = float(np.sqrt(max(rms**2 - floor**2, 0.0)))
+    return (structured / sd_d if sd_d > 0 else math.inf), structured, sd_d

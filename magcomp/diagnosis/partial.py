@@ -37,6 +37,7 @@ from scipy.optimize import least_squares
 
 from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 from magcomp.diagnosis.effects import ExtensionParams, drive_columns
+from magcomp.diagnosis.gate import structured_shift_bound
 from magcomp.diagnosis.model import CompassData, earth_dir_body
 from magcomp.diagnosis.selection import bartlett_factor
 
@@ -50,8 +51,12 @@ Z95 = 1.959964
 class PriorTheta:
     """theta (compass frame, mgauss at full throttle) with the calibration held at the prior.
 
-    halfwidth: 95 % per axis; identifiable: |halfwidth| < |theta|; residual_rms_mgauss: of the prior fit;
-    field_mgauss: F of the prior; prior: one sentence on A0 and its width."""
+    halfwidth: 95 % per axis; identifiable: |halfwidth| < |theta| (and, where the model leaves more than the
+    gate allows, the model-error bound below |theta| too); residual_rms_mgauss: of the prior fit;
+    field_mgauss: F of the prior; prior: one sentence on A0 and its width; model_error_bound_mgauss: how far
+    an unmodelled error of the residual's structured size could move theta if it followed the throttle
+    (:func:`magcomp.diagnosis.consistency.model_error_bound`'s rule); why: why theta is not identifiable
+    (empty when it is)."""
 
     theta_mgauss: F64
     halfwidth_mgauss: F64
@@ -59,6 +64,8 @@ class PriorTheta:
     residual_rms_mgauss: float
     field_mgauss: float
     prior: str
+    model_error_bound_mgauss: float = math.inf
+    why: str = ""
 
 
 def _map_solve(x: F64, v: F64, prior_rows: int, a0: F64, w: float) -> tuple[F64, F64]:
@@ -83,8 +90,15 @@ def theta_with_prior(
     field_strength_mgauss: float | None,
     inclination_rad: float | None,
     max_scale_error: float,
+    model_error_decides: bool = False,
 ) -> PriorTheta | None:
-    """theta with A held near the autopilot's calibration (module docstring); None without throttle."""
+    """theta with A held near the autopilot's calibration (module docstring); None without throttle.
+
+    ``model_error_decides``: the free fit left more residual than the gate allows, so an unmodelled error of
+    that size might follow the throttle: theta is identifiable only when the model-error bound (structured
+    residual / sd of throttle^2, Cauchy-Schwarz) is below |theta| as well. Where the residual is within the
+    gate's limit the bound is reported, not applied: it is a worst case (an error wholly aligned with the
+    throttle) that a hover's small throttle swing fails whatever the data say."""
     cols, names = drive_columns(data.drive, ExtensionParams())
     if "throttle" not in names or data.n < 20:
         return None
@@ -134,11 +148,32 @@ def theta_with_prior(
         f"calibration held at the autopilot's (A = {f:.0f} mgauss x identity, each element within "
         f"+-{100 * max_scale_error:.0f} % at 95 %), hard iron fitted"
     )
+    bound, why = _not_identifiable(tn, hw, res, d, model_error_decides)
     return PriorTheta(
         theta,
         hw,
-        bool(float(np.linalg.norm(hw)) < tn),
+        not why,
         float(np.sqrt(np.mean(res**2))),
         f,
         prior,
+        bound,
+        "; ".join(why),
     )
+
+
+def _not_identifiable(
+    theta_norm: float, hw: F64, residual: F64, drive: F64, model_error_decides: bool
+) -> tuple[float, list[str]]:
+    """(the model-error bound, mgauss; why theta is not identifiable, empty when it is): see
+    :func:`theta_with_prior`."""
+    bound, structured, sd_d = structured_shift_bound(residual, drive)
+    why = []
+    width = float(np.linalg.norm(hw))
+    if width >= theta_norm:
+        why.append(f"theta's 95 % interval ({width:.0f} mgauss) is wider than |theta| {theta_norm:.0f}")
+    if model_error_decides and bound >= theta_norm:
+        why.append(
+            f"{structured:.1f} mgauss of structured residual over a drive (throttle^2) sd of {sd_d:.3f} "
+            f"could move theta by up to {bound:.0f} mgauss, more than |theta| {theta_norm:.0f}"
+        )
+    return bound, why

@@ -18,7 +18,7 @@ from magcomp.diagnosis.model import ModelFit, design
 F64 = NDArray[np.float64]
 
 
-def _earth_part(c: CompassDiagnosis, fit: ModelFit) -> F64:
+def earth_part(c: CompassDiagnosis, fit: ModelFit) -> F64:
     x, _ = design(c.data, fit.inc_rad, fit.dec_rad, fit.drift_rad_s, fit.ext)
     return np.asarray(x[:, :4] @ np.vstack([fit.a_mgauss.T, fit.c_mgauss]))
 
@@ -66,7 +66,7 @@ def _plot_residual(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> t
 def _plot_bias(c: CompassDiagnosis, plt: Any, out_dir: Path, stem: str) -> tuple[str, str]:
     """Bias against throttle: measured field minus the fitted Earth part, with both models' bias curves."""
     thr = c.data.throttle_01
-    meas = c.data.field_mgauss - _earth_part(c, c.extended)
+    meas = c.data.field_mgauss - earth_part(c, c.extended)
     cols_b, _ = drive_columns(c.data.drive, c.baseline.ext)
     bias_b = cols_b @ c.baseline.coefs
     bias_e = c.bias_mgauss(c.extended)

@@ -19,11 +19,10 @@ from pathlib import Path
 from typing import Any
 
 from magcomp import __version__
+from magcomp.fleet.diagnosed import FLYING_THROTTLE, LogDiagnosis, diagnose_columns, failed_columns
 
 #: bytes read at a time when hashing a log
 HASH_CHUNK = 1 << 20
-#: a throttle above this (0..1) counts as flying, for ``flight_s``
-FLYING_THROTTLE = 0.15
 
 
 def content_hash(path: str | Path) -> str:
@@ -43,6 +42,8 @@ class LogTask:
     sha256: str
     size_bytes: int
     config: str | None = None
+    #: run ``magcomp diagnose`` too (its findings, theta and parameters in the row)
+    diagnose: bool = True
 
 
 class _Excitation:
@@ -80,6 +81,14 @@ class _Excitation:
     @property
     def duration_s(self) -> float:
         return self.t_last - self.t_first if self.n >= 2 else math.nan
+
+    @property
+    def throttle_min(self) -> float:
+        return self.thr_min if self.n and math.isfinite(self.thr_min) else math.nan
+
+    @property
+    def throttle_max(self) -> float:
+        return self.thr_max if self.n and math.isfinite(self.thr_max) else math.nan
 
     @property
     def flight_s(self) -> float:
@@ -148,8 +157,11 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
         date_source=ident.date_source,
     )
     cfg = load_config(task.config)
-    exc_stats = _Excitation()
-    rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=exc_stats.add)
+    diag = _diagnosis(task)
+    # the excitation from the diagnosis's read of the log when there is one; else from the estimates
+    exc_stats: _Excitation | LogDiagnosis = diag if isinstance(diag, LogDiagnosis) else _Excitation()
+    on_estimate = exc_stats.add if isinstance(exc_stats, _Excitation) else None
+    rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=on_estimate)
     if rep.interrupted:  # ^C: the replay kept a partial result; it must not become this log's row
         raise KeyboardInterrupt
     summary = rep.summary
@@ -168,18 +180,34 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
         error=None,
         duration_s=exc_stats.duration_s,
         flight_s=exc_stats.flight_s,
-        throttle_min=exc_stats.thr_min if exc_stats.n_flying or exc_stats.n else math.nan,
-        throttle_max=exc_stats.thr_max if exc_stats.n else math.nan,
+        throttle_min=exc_stats.throttle_min,
+        throttle_max=exc_stats.throttle_max,
         earth_field_mgauss=earth_norm,
         earth_field_source=str(earth.get("source", "")),
         warnings=" | ".join(str(w) for w in summary.get("warnings", [])),
         onboard_motor_compensation=bool(summary.get("onboard_motor_compensation")),
     )
-    for k in ("throttle_min", "throttle_max"):
-        if not math.isfinite(base[k]):
-            base[k] = math.nan
     rows = [_compass_row(base, c, earth_norm) for c in summary.get("compasses", [])]
+    for r in rows:
+        if isinstance(diag, LogDiagnosis):
+            r.update(diag.columns.get(r["compass"]) or failed_columns("diagnose left this compass out"))
+        elif diag is not None:
+            r.update(failed_columns(diag))
     return rows or [{**base, "status": "failed", "error": "no compass in the log"}]
+
+
+def _diagnosis(task: LogTask) -> LogDiagnosis | str | None:
+    """The log's diagnosis (fleet/diagnosed.py), its one-line failure, or None when not asked for."""
+    if not task.diagnose:
+        return None
+    cpu0 = _cpu_s()
+    try:
+        diag = diagnose_columns(task.path, task.config)
+    except Exception as exc:  # the replay's row stands without it
+        return _one_line(exc)
+    for cols in diag.columns.values():
+        cols["diagnose_cpu_s"] = _cpu_s() - cpu0  # of the whole diagnosis (every compass), in cpu_s too
+    return diag
 
 
 def _f(value: Any) -> float:

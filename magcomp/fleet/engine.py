@@ -52,9 +52,12 @@ class RunStats:
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
 
 
-def plan(logs: list[Path], out: Path, rerun: str = "none", config: str | None = None) -> Plan:
+def plan(
+    logs: list[Path], out: Path, rerun: str = "none", config: str | None = None, diagnose: bool = True
+) -> Plan:
     """Hash every log; skip those with a part already (``rerun``: ``none``; ``outdated``: also analyse those
-    a different magcomp version did; ``all``: analyse everything again)."""
+    a different magcomp version did; ``all``: analyse everything again). ``diagnose``: the rows carry
+    ``magcomp diagnose``'s results too."""
     done = store.done(out)
     hashes = _HashCache(out)
     tasks: list[LogTask] = []
@@ -78,7 +81,7 @@ def plan(logs: list[Path], out: Path, rerun: str = "none", config: str | None = 
                 if version != __version__:
                     outdated += 1
                 continue
-        tasks.append(LogTask(path=str(p), sha256=sha, size_bytes=size, config=config))
+        tasks.append(LogTask(path=str(p), sha256=sha, size_bytes=size, config=config, diagnose=diagnose))
     hashes.save()
     return Plan(tasks, len(logs), skipped, duplicates, outdated)
 
@@ -148,8 +151,7 @@ class _Progress:
     """A bar with the counts and an ETA on a terminal; otherwise a line now and then (and none in CI)."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        from magcomp.service.console import progress_enabled
-        from magcomp.service.console import quiet_tqdm as _quiet_tqdm
+        from magcomp.service.console import progress_enabled, quiet_tqdm
 
         self.total = total
         self.bar: Any = None
@@ -157,7 +159,7 @@ class _Progress:
         self.t0 = time.monotonic()
         self.last_line = self.t0
         if enabled and progress_enabled():
-            self.bar = _quiet_tqdm()(
+            self.bar = quiet_tqdm()(
                 total=total, desc="fleet", unit="log", file=sys.stderr, dynamic_ncols=True, mininterval=0.5
             )
 

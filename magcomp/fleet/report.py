@@ -98,11 +98,23 @@ def write_report(path: Path, vehicles: list[Vehicle], rows: list[dict[str, Any]]
         f"<p>{len(vehicles)} vehicles, {n_logs} logs ({n_failed} failed). Made {made} by magcomp "
         f"{_e(__version__)}. Intervals are &plusmn;{K_INTERVAL:g} standard deviations.</p>"
     )
-    parts.append("<h2 id='inspect'>Vehicles to inspect</h2>")
-    parts.append(
+    parts += _inspect_section(vehicles)
+    parts += _theta_section(vehicles)
+    parts += _logs_section(rows)
+    parts.append("</body></html>\n")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("".join(parts), encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _inspect_section(vehicles: list[Vehicle]) -> list[str]:
+    """The inspect list: one table row per vehicle, in rank order."""
+    parts = [
+        "<h2 id='inspect'>Vehicles to inspect</h2>",
         "<table><tr><th>#</th><th>vehicle</th><th>logs</th><th>failed</th><th>last flight</th>"
-        "<th>theta now (mgauss)</th><th>score</th><th>why</th></tr>"
-    )
+        "<th>theta now (mgauss)</th><th>score</th><th>why</th><th>parameters to set</th></tr>",
+    ]
     for i, v in enumerate(vehicles, 1):
         changed = any(c.confirmed for h in v.compasses for c in h.changes)
         thetas = "<br>".join(
@@ -116,10 +128,25 @@ def write_report(path: Path, vehicles: list[Vehicle], rows: list[dict[str, Any]]
             f"<td><a href='#v{i}'>{_e(v.vehicle)}</a><br><small>{_e(v.identity_source)}; {_e(v.autopilot)} "
             f"{_e(v.firmware)}</small></td><td class='num'>{v.logs}</td><td class='num'>{v.failed}</td>"
             f"<td>{_e(last)}</td><td>{thetas}</td><td class='num'>{v.score:.0f}</td>"
-            f"<td>{'<br>'.join(_e(r) for r in v.reasons)}</td></tr>"
+            f"<td>{'<br>'.join(_e(r) for r in v.reasons)}</td><td>{_params_cell(v)}</td></tr>"
         )
     parts.append("</table>")
-    parts.append("<h2>Theta per vehicle over time</h2>")
+    return parts
+
+
+def _params_cell(v: Vehicle) -> str:
+    """The compensation parameters diagnose suggests for the vehicle (fleet.vehicles.vehicle_params)."""
+    if not v.params:
+        return ""
+    values = "<br>".join(f"{_e(k)} = {val:g}" for k, val in v.params["values"].items())
+    files = ", ".join(_e(Path(f).name) for f in v.params.get("files", []))
+    src = f"<small>from {_e(v.params['flight'])}" + (f"; params/{files}" if files else "") + "</small>"
+    return f"{values}<br>{src}"
+
+
+def _theta_section(vehicles: list[Vehicle]) -> list[str]:
+    """Per vehicle: its changes in words, and theta per flight as a plot."""
+    parts = ["<h2>Theta per vehicle over time</h2>"]
     for i, v in enumerate(vehicles, 1):
         parts.append(f"<h3 id='v{i}'>{i}. {_e(v.vehicle)}</h3>")
         for h in v.compasses:
@@ -139,42 +166,62 @@ def write_report(path: Path, vehicles: list[Vehicle], rows: list[dict[str, Any]]
             parts.append("<p>(not plotted: see the dataset)</p>")
         else:
             parts.append("<p>No flight with theta applied.</p>")
-    parts.append("<h2>Logs</h2>")
-    parts.append(
+    return parts
+
+
+def _logs_section(rows: list[dict[str, Any]]) -> list[str]:
+    """Every log's rows (failures in red), at most MAX_ROWS."""
+    parts = [
+        "<h2>Logs</h2>",
         "<table><tr><th>file</th><th>vehicle</th><th>date</th><th>status</th><th>compass</th>"
         "<th>applied</th><th>theta (mgauss)</th><th>interference %</th><th>yaw span deg</th>"
-        "<th>throttle</th><th>why / error</th></tr>"
-    )
+        "<th>throttle</th><th>why / error</th><th>diagnose</th></tr>",
+    ]
     ordered = sorted(rows, key=lambda r: (str(r.get("vehicle")), str(r.get("date_utc")), str(r.get("path"))))
-    for r in ordered[:MAX_ROWS]:
-        ok = r.get("status") == "ok"
-        theta = ""
-        if ok and r.get("theta_x_mgauss") is not None:
-            theta = interval_text(
-                [r["theta_x_mgauss"], r["theta_y_mgauss"], r["theta_z_mgauss"]],
-                [
-                    r.get("theta_sigma_x_mgauss") or math.nan,
-                    r.get("theta_sigma_y_mgauss") or math.nan,
-                    r.get("theta_sigma_z_mgauss") or math.nan,
-                ],
-            )
-        d = r.get("date_utc")
-        thr = f"{_num(r.get('throttle_min'), '.2f')}-{_num(r.get('throttle_max'), '.2f')}" if ok else ""
-        parts.append(
-            f"<tr class='{'' if ok else 'failed'}'>"
-            f"<td title='{_e(r.get('path'))}'>{_e(r.get('file_name'))}</td>"
-            f"<td>{_e(r.get('vehicle'))}</td><td>{_e(d.strftime('%Y-%m-%d %H:%M') if d else '')}</td>"
-            f"<td>{_e(r.get('status'))}</td><td class='num'>{_e(r.get('compass'))}</td>"
-            f"<td>{'yes' if r.get('applied') else ('no' if ok else '')}</td><td>{_e(theta)}</td>"
-            f"<td class='num'>{_num(r.get('interference_pct'))}</td>"
-            f"<td class='num'>{_num(r.get('yaw_span_deg'), '.0f')}</td><td>{thr}</td>"
-            f"<td>{_e(r.get('why') if ok else r.get('error'))}</td></tr>"
-        )
+    parts += [_log_row(r) for r in ordered[:MAX_ROWS]]
     parts.append("</table>")
     if len(ordered) > MAX_ROWS:
         parts.append(f"<p>{len(ordered) - MAX_ROWS} more rows in the dataset.</p>")
-    parts.append("</body></html>\n")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("".join(parts), encoding="utf-8")
-    os.replace(tmp, path)
+    return parts
+
+
+def _log_row(r: dict[str, Any]) -> str:
+    ok = r.get("status") == "ok"
+    theta = ""
+    if ok and r.get("theta_x_mgauss") is not None:
+        theta = interval_text(
+            [r["theta_x_mgauss"], r["theta_y_mgauss"], r["theta_z_mgauss"]],
+            [
+                r.get("theta_sigma_x_mgauss") or math.nan,
+                r.get("theta_sigma_y_mgauss") or math.nan,
+                r.get("theta_sigma_z_mgauss") or math.nan,
+            ],
+        )
+    d = r.get("date_utc")
+    thr = f"{_num(r.get('throttle_min'), '.2f')}-{_num(r.get('throttle_max'), '.2f')}" if ok else ""
+    return (
+        f"<tr class='{'' if ok else 'failed'}'>"
+        f"<td title='{_e(r.get('path'))}'>{_e(r.get('file_name'))}</td>"
+        f"<td>{_e(r.get('vehicle'))}</td><td>{_e(d.strftime('%Y-%m-%d %H:%M') if d else '')}</td>"
+        f"<td>{_e(r.get('status'))}</td><td class='num'>{_e(r.get('compass'))}</td>"
+        f"<td>{'yes' if r.get('applied') else ('no' if ok else '')}</td><td>{_e(theta)}</td>"
+        f"<td class='num'>{_num(r.get('interference_pct'))}</td>"
+        f"<td class='num'>{_num(r.get('yaw_span_deg'), '.0f')}</td><td>{thr}</td>"
+        f"<td>{_e(r.get('why') if ok else r.get('error'))}</td><td>{_diagnose_cell(r)}</td></tr>"
+    )
+
+
+def _diagnose_cell(r: dict[str, Any]) -> str:
+    """diagnose's theta (95 %) and findings for the row, or why it has none."""
+    if r.get("diagnose_status") == "failed":
+        return f"failed: {_e(r.get('diagnose_error'))}"
+    if r.get("diagnose_status") != "ok":
+        return ""
+    out = _e(r.get("diagnose_findings"))
+    if r.get("diagnose_theta_x_mgauss") is not None:
+        theta = ", ".join(f"{float(r[f'diagnose_theta_{a}_mgauss']):.0f}" for a in "xyz")
+        hw = ", ".join(f"{float(r.get(f'diagnose_theta_ci95_{a}_mgauss') or math.nan):.0f}" for a in "xyz")
+        ident = "" if r.get("diagnose_theta_identifiable") else " (not identifiable)"
+        frm = _e(r.get("diagnose_theta_from"))
+        out += f"<br><small>theta ({theta}) &plusmn; ({hw}) 95 %, {frm}{ident}</small>"
+    return out

@@ -69,6 +69,8 @@ class Vehicle:
     onboard_comp_wrong: int = 0
     score: float = 0.0
     reasons: list[str] = field(default_factory=list)
+    #: the compensation parameters to set (:func:`vehicle_params`), None when no flight gave any
+    params: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -82,6 +84,7 @@ class Vehicle:
             "last_date": _iso(self.last_date),
             "score": self.score,
             "reasons": self.reasons,
+            "params": self.params,
             "compasses": [
                 {
                     "compass": h.compass,
@@ -104,9 +107,20 @@ def _f(v: Any) -> float:
     return float(v) if v is not None else math.nan
 
 
-def summarise(rows: list[dict[str, Any]], vmap: VehicleMap | None = None) -> list[Vehicle]:
+#: 95 % two-sided normal quantile: diagnose's half-widths -> standard deviations
+Z95 = 1.959964
+
+
+def summarise(
+    rows: list[dict[str, Any]], vmap: VehicleMap | None = None, theta_from: str = "replay"
+) -> list[Vehicle]:
     """The vehicles of the dataset's rows, ranked (most worth inspecting first). ``vmap`` re-maps the
-    vehicles (a mapping file given after the logs were analysed)."""
+    vehicles (a mapping file given after the logs were analysed). ``theta_from``: whose theta per flight the
+    history and the changes follow: ``replay`` (the correction's theta and sigma, flights where it was
+    applied) or ``diagnose`` (diagnose's theta, sigma = its 95 % half-width / 1.96, flights where it is
+    identifiable)."""
+    if theta_from not in ("replay", "diagnose"):
+        raise ValueError(f"theta_from: replay or diagnose, not {theta_from!r}")
     if vmap is not None:
         for r in rows:
             name = vmap.vehicle(
@@ -117,7 +131,7 @@ def summarise(rows: list[dict[str, Any]], vmap: VehicleMap | None = None) -> lis
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault(str(r.get("vehicle") or r.get("vehicle_detected") or "unknown"), []).append(r)
-    out = [_vehicle(name, rs) for name, rs in groups.items()]
+    out = [_vehicle(name, rs, theta_from) for name, rs in groups.items()]
     for v in out:
         _rank(v)
     out.sort(key=lambda v: (-v.score, v.vehicle))
@@ -129,7 +143,23 @@ def _order_key(r: dict[str, Any]) -> tuple[float, str]:
     return (d.timestamp() if isinstance(d, datetime) else math.inf, str(r.get("path") or ""))
 
 
-def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
+def _flight_theta(r: dict[str, Any], theta_from: str) -> tuple[list[float], list[float]] | None:
+    """(theta, sigma) of a row's compass from ``theta_from`` (:func:`summarise`); None when it has none."""
+    if theta_from == "diagnose":
+        if not r.get("diagnose_theta_identifiable"):
+            return None
+        theta = [_f(r.get(f"diagnose_theta_{a}_mgauss")) for a in "xyz"]
+        sigma = [_f(r.get(f"diagnose_theta_ci95_{a}_mgauss")) / Z95 for a in "xyz"]
+    else:
+        if not r.get("applied"):
+            return None
+        theta = [_f(r.get(k)) for k in _THETA]
+        sigma = [_f(r.get(k)) for k in _SIGMA]
+    good = all(math.isfinite(t) for t in theta) and all(math.isfinite(s) and s > 0 for s in sigma)
+    return (theta, sigma) if good else None
+
+
+def _vehicle(name: str, rows: list[dict[str, Any]], theta_from: str = "replay") -> Vehicle:
     rows = sorted(rows, key=_order_key)
     logs = {r["sha256"]: r for r in rows}
     failed = sum(1 for r in logs.values() if r.get("status") != "ok")
@@ -146,6 +176,7 @@ def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
         first_date=min(dates) if dates else None,
         last_date=max(dates) if dates else None,
     )
+    v.params = vehicle_params(ok)
     v.onboard_comp_wrong = len(
         {
             r["sha256"]
@@ -158,17 +189,15 @@ def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
         mine = [r for r in ok if r.get("compass") == compass]
         flights = []
         for r in mine:
-            theta = [_f(r.get(k)) for k in _THETA]
-            sigma = [_f(r.get(k)) for k in _SIGMA]
-            good = all(math.isfinite(t) for t in theta) and all(math.isfinite(s) and s > 0 for s in sigma)
-            if r.get("applied") and good:
+            ts = _flight_theta(r, theta_from)
+            if ts is not None:
                 flights.append(
                     Flight(
                         str(r["sha256"]),
                         str(r.get("file_name") or ""),
                         r.get("date_utc"),
-                        theta,
-                        sigma,
+                        ts[0],
+                        ts[1],
                         _f(r.get("heading_sigma_deg")),
                         _f(r.get("interference_pct")),
                     )
@@ -188,6 +217,41 @@ def _vehicle(name: str, rows: list[dict[str, Any]]) -> Vehicle:
             )
         )
     return v
+
+
+def vehicle_params(ok_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The compensation parameters ``magcomp diagnose`` would write for the vehicle's latest flight (rows in
+    flight order) that has any: {"flight", "sha256", "autopilot", "values", "notes"}; the primary compass is
+    the lowest index, as diagnose's default. A flight whose theta is not identifiable has none (diagnose
+    writes none for it), so an older flight's may be the latest."""
+    import json
+
+    from magcomp.adapters.param_files import MAV_AUTOPILOT_PX4, compensation_params
+
+    by_log: dict[str, list[dict[str, Any]]] = {}
+    for r in ok_rows:
+        by_log.setdefault(str(r["sha256"]), []).append(r)
+    for sha in reversed(list(by_log)):  # dicts keep the flight order of ok_rows
+        rows = [r for r in by_log[sha] if r.get("compass") is not None]
+        sugg = [
+            (int(r["compass"]), json.loads(r["diagnose_params_json"]))
+            for r in rows
+            if r.get("diagnose_params_json")
+        ]
+        if not sugg:
+            continue
+        px4 = str(rows[0].get("autopilot") or "") == "PX4"
+        primary = min(int(r["compass"]) for r in rows)
+        values, notes = compensation_params(sugg, primary, MAV_AUTOPILOT_PX4 if px4 else 3)
+        if values:
+            return {
+                "flight": str(rows[0].get("file_name") or ""),
+                "sha256": sha,
+                "autopilot": "PX4" if px4 else "ArduPilot",
+                "values": values,
+                "notes": notes,
+            }
+    return None
 
 
 def _rank(v: Vehicle) -> None:
@@ -261,6 +325,10 @@ def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
             "last_date": v.last_date,
             "score": v.score,
             "reasons": " | ".join(v.reasons),
+            "params_from": v.params["flight"] if v.params else None,
+            "params": ", ".join(f"{k}={val:g}" for k, val in v.params["values"].items())
+            if v.params
+            else None,
         }
         hist: list[CompassHistory | None] = [*v.compasses] or [None]
         for h in hist:

@@ -41,7 +41,7 @@ FLIGHTS = [
 ]
 VEHICLES_TOML = '[vehicles]\nalpha = ["*/vehA/*"]\nbravo = ["*/vehB/*"]\n'
 #: columns that differ between two analyses of the same log (when, where, how long)
-RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "peak_rss_mb", "path"}
+RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "peak_rss_mb", "path"}
 
 
 def _foreign_threads() -> list[str]:
@@ -111,7 +111,9 @@ def analysed(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
                 "--workers",
                 "0",
                 "--vehicles",
-                str(fleet / "vehicles.toml"), "--config", str(fleet / "estimator_only.toml"),
+                str(fleet / "vehicles.toml"),
+                "--config",
+                str(fleet / "estimator_only.toml"),
             ]
         )
         == 0
@@ -155,6 +157,50 @@ def test_every_log_is_a_row_and_the_corrupt_one_a_failure(analysed: Path, fleet:
     import pyarrow.dataset as ds
 
     assert ds.dataset(analysed / "logs", format="parquet").to_table().num_rows == len(rows)
+
+
+def test_rows_carry_diagnose_and_vehicles_its_parameter_files(
+    analysed: Path, fleet: Path, tmp_path: Path
+) -> None:
+    """Each ok row holds what `magcomp diagnose LOG` finds for that compass (theta with its interval, the
+    findings), and each vehicle the parameter file diagnose writes for its latest flight with parameters."""
+    rows = _rows(analysed)
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert all(r["diagnose_status"] == "ok" for r in ok)
+    # the fleet's row equals the CLI's diagnosis of the same log
+    r = next(r for r in ok if r["vehicle"] == "bravo" and r["file_name"] == "flight04.tlog")
+    j, par = tmp_path / "d.json", tmp_path / "d.param"
+    assert main(["diagnose", r["path"], "--json", str(j), "--params-out", str(par)]) == 0
+    c = json.loads(j.read_text())["compasses"][0]
+    assert c["observable"] and r["diagnose_theta_from"] == "free fit"
+    got = [r[f"diagnose_theta_{a}_mgauss"] for a in "xyz"]
+    hw = [r[f"diagnose_theta_ci95_{a}_mgauss"] for a in "xyz"]
+    assert got == pytest.approx(c["theta"]) and hw == pytest.approx(c["theta_ci95_halfwidth"])
+    assert math.dist(got, THETA_B2) < 30.0
+    assert json.loads(r["diagnose_findings_json"]) == c["findings"]
+    assert r["diagnose_findings"] == "no finding" or c["findings"]
+    # bravo's latest flight gives parameters: the fleet's file holds diagnose's values
+    whole = json.loads((analysed / "vehicles.json").read_text())
+    assert whole["theta_from"] == "diagnose"  # the vehicles follow diagnose's theta where the rows have it
+    doc = {v["vehicle"]: v for v in whole["vehicles"]}
+    params = doc["bravo"]["params"]
+    assert params is not None and params["flight"] == "flight04.tlog" and params["autopilot"] == "ArduPilot"
+    from magcomp.adapters.param_files import read_param_file
+
+    mine = read_param_file(analysed / "params" / "bravo.param")
+    assert mine == pytest.approx(read_param_file(par))
+    assert read_param_file(analysed / "params" / "bravo.params") == pytest.approx(mine)
+
+
+def test_no_diagnose_leaves_the_diagnose_columns_empty(fleet: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    one = fleet / "vehA" / "flight01.tlog"
+    args = ["fleet", str(one), "--out", str(out), "--workers", "0", "--no-diagnose"]
+    assert main([*args, "--config", str(fleet / "estimator_only.toml")]) == 0
+    rows = _rows(out)
+    assert len(rows) == 1 and rows[0]["status"] == "ok" and rows[0]["diagnose_status"] is None
+    assert 55.0 < rows[0]["duration_s"] <= 60.5 and rows[0]["throttle_max"] > rows[0]["throttle_min"]
+    assert json.loads((out / "vehicles.json").read_text())["theta_from"] == "replay"
 
 
 def test_the_change_is_found_at_its_flight_and_only_there(analysed: Path) -> None:
@@ -231,7 +277,9 @@ def test_kill_9_halfway_then_resume_gives_the_uninterrupted_table(
         "--workers",
         "0",
         "--vehicles",
-        str(fleet / "vehicles.toml"), "--config", str(fleet / "estimator_only.toml"),
+        str(fleet / "vehicles.toml"),
+        "--config",
+        str(fleet / "estimator_only.toml"),
     ]
     env = {**os.environ, "CI": "1"}
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
@@ -279,7 +327,9 @@ def test_local_dask_cluster_gives_the_same_rows(fleet: Path, analysed: Path, tmp
         "--memory-limit",
         "2GiB",
         "--vehicles",
-        str(fleet / "vehicles.toml"), "--config", str(fleet / "estimator_only.toml"),
+        str(fleet / "vehicles.toml"),
+        "--config",
+        str(fleet / "estimator_only.toml"),
     )
     assert res.returncode == 0, res.stderr
     assert "analysing 3 on a local Dask cluster" in res.stdout and "on 2 worker(s)" in res.stdout
@@ -439,6 +489,9 @@ def test_report_is_one_self_contained_page(analysed: Path, tmp_path: Path) -> No
     text = " ".join(p.cells)
     assert "theta changed" in text and "flight03.tlog" in text and "broken.tlog" in text
     assert text.index("bravo") < text.index("alpha")  # the inspect list: the changed vehicle first
+    # what to set, from diagnose: bravo's parameters and the file holding them; diagnose's theta per log row
+    assert "COMPASS_MOT_X = " in text and "bravo.param" in text
+    assert "95 %, free fit" in text
 
 
 @pytest.mark.browser

@@ -17,9 +17,17 @@ THETA = np.array([-61.0, 26.4, -12.0])
 M_NED = np.array([230.0, -20.0, 410.0])
 
 
-def hover_log(seed: int, throttle_varies: bool = True, duration_s: float = 120.0) -> LogData:
+def hover_log(
+    seed: int,
+    throttle_varies: bool = True,
+    duration_s: float = 120.0,
+    noise_mgauss: float = 2.0,
+    wander_mgauss: float = 0.0,
+) -> LogData:
     """50 Hz hover: yaw wanders over ~40 deg, roll/pitch within +-3 deg, throttle 0.35-0.75 (or constant);
-    the compass is calibrated to within a few % (as the autopilot flies it) and carries theta throttle^2."""
+    the compass is calibrated to within a few % (as the autopilot flies it) and carries theta throttle^2.
+    ``noise_mgauss``: white noise per axis; ``wander_mgauss``: a slow field error no model term describes
+    (a 23 s sine on every axis, partly in step with the 9 s throttle cycle's beats)."""
     rng = np.random.default_rng(seed)
     dt = 0.02
     n = int(duration_s / dt)
@@ -34,7 +42,8 @@ def hover_log(seed: int, throttle_varies: bool = True, duration_s: float = 120.0
     kmat = np.array([[1.03, 0.02, -0.01], [0.01, 0.98, 0.02], [-0.02, 0.01, 1.01]])
     b = np.array([40.0, -25.0, 60.0])
     h_b = np.einsum("nji,j->ni", r, M_NED)
-    field = h_b @ kmat.T + b + np.outer(thr**2, THETA) + rng.normal(0.0, 2.0, (n, 3))
+    field = h_b @ kmat.T + b + np.outer(thr**2, THETA) + rng.normal(0.0, noise_mgauss, (n, 3))
+    field += wander_mgauss * np.sqrt(2.0) * np.sin(2 * np.pi * u / 23.0)[:, None] * np.ones(3)
     att = np.column_stack([roll, pitch, yaw])
     accel = np.einsum("nji,j->ni", r, np.array([0.0, 0.0, -9.81]))
     return LogData(
@@ -85,3 +94,35 @@ def test_hover_without_a_position_takes_the_field_from_the_compass() -> None:
     assert abs(strength - float(np.linalg.norm(M_NED))) < 0.35 * float(np.linalg.norm(M_NED))
     theta, hw = np.array(pt["theta"]), np.array(pt["theta_ci95_halfwidth"])
     assert np.all(np.abs(theta - THETA) <= hw), (theta, hw)
+
+
+def test_a_noisy_compass_refused_for_its_residual_still_gets_theta() -> None:
+    """The telemetry case of issue 26: the forward model leaves more than 5 % of the field (here white noise
+    of 30 mgauss per axis), so the calibration is refused, but that residual does not follow the throttle:
+    theta is given, identifiable, its interval bracketing the truth (before: refused with no theta)."""
+    d = diagnose(hover_log(4, noise_mgauss=30.0), earth=EARTH)
+    c = d.to_json()["compasses"][0]
+    assert not c["observable"]
+    assert "forward model leaves" in c["unobservable_why"]
+    pt = c["theta_given_prior"]
+    assert pt is not None
+    assert pt["identifiable"], pt["note"]
+    theta, hw = np.array(pt["theta"]), np.array(pt["theta_ci95_halfwidth"])
+    assert np.all(np.abs(theta - THETA) <= hw), (theta, hw)
+    assert pt["model_error_bound_mgauss"] < float(np.linalg.norm(theta))
+
+
+def test_a_structured_residual_beyond_the_gate_leaves_theta_given_but_not_identifiable() -> None:
+    """A slow 40 mgauss error no term models: theta is still printed with its interval, flagged not
+    identifiable with the model-error bound as the reason, and no autopilot parameter is suggested."""
+    d = diagnose(hover_log(5, wander_mgauss=40.0), earth=EARTH)
+    c = d.to_json()["compasses"][0]
+    assert "forward model leaves" in c["unobservable_why"]
+    pt = c["theta_given_prior"]
+    assert pt is not None
+    assert not pt["identifiable"]
+    assert "structured residual" in pt["note"]
+    assert pt["model_error_bound_mgauss"] >= float(np.linalg.norm(pt["theta"]))
+    assert not c["autopilot"]
+    text = markdown(d)
+    assert "does not determine theta" in text and "None" not in text

@@ -101,3 +101,25 @@ def test_flat_rows_have_one_schema_whatever_the_vehicle(tmp_path: Path) -> None:
     write_table(tmp_path / "v.parquet", flat)
     t = pq.read_table(tmp_path / "v.parquet")
     assert t.num_rows == 2 and t.column("flights_applied").to_pylist().count(3) == 1
+
+
+def _diag(r: dict[str, Any], theta: tuple[float, float, float], hw: float, identifiable: bool = True) -> None:
+    r["diagnose_theta_identifiable"] = identifiable
+    for axis, v in zip("xyz", theta, strict=True):
+        r[f"diagnose_theta_{axis}_mgauss"] = v
+        r[f"diagnose_theta_ci95_{axis}_mgauss"] = hw
+
+
+def test_theta_from_diagnose_follows_its_theta_and_skips_what_it_cannot_identify() -> None:
+    """The replay's theta stays flat while diagnose's jumps at flight 3: each source gives its own changes;
+    diagnose's half-width becomes a sigma (/1.96) and a flight it calls not identifiable is left out."""
+    a, b = (-60.0, 20.0, 0.0), (40.0, -20.0, 30.0)
+    rows = [_row("v1", i, a, day=10 + i) for i in range(6)]
+    for i, r in enumerate(rows):
+        _diag(r, a if i < 3 else b, 5.88, identifiable=i != 1)
+    replay = summarise([dict(r) for r in rows])[0].compasses[0]
+    diag = summarise([dict(r) for r in rows], theta_from="diagnose")[0].compasses[0]
+    assert replay.changes == [] and len(replay.flights) == 6
+    assert [f.file_name for f in diag.flights] == ["f00.tlog", "f02.tlog", "f03.tlog", "f04.tlog", "f05.tlog"]
+    assert diag.flights[0].sigma == [5.88 / 1.959964] * 3
+    assert [(diag.flights[c.index].file_name, c.confirmed) for c in diag.changes] == [("f03.tlog", True)]
