@@ -26,31 +26,20 @@ MAX_CORE_CLASS_METHODS = 15
 
 #: import cycles allowed for now: a cycle passes when all its modules lie in one of these groups
 KNOWN_CYCLES: list[frozenset[str]] = [
-    # owner "core": record <-> inflight_stage <-> attitude <-> align
-    frozenset(f"magcomp.service.{m}" for m in ("align", "attitude", "inflight_stage", "record")),
-    # owner "core" (calibrate, compass, theta) with the lead (heading)
-    frozenset(f"magcomp.service.{m}" for m in ("calibrate", "compass", "heading", "theta")),
     # owner "fleetdiag": export <-> results
     frozenset({"magcomp.diagnosis.export", "magcomp.diagnosis.results"}),
 ]
 #: functions over MAX_FUNCTION_LINES allowed for now, as "module:qualified name"
 KNOWN_LONG_FUNCTIONS: set[str] = {
     "magcomp.fleet.report:write_report",  # owner "fleetdiag"
-    "magcomp.adapters.rerun_viz:build_blueprint",  # owner "pilots"
 }
 #: private names imported across modules allowed for now, as "importer -> module.name"
 KNOWN_PRIVATE_IMPORTS: set[str] = {
-    # owner "replay" (the forked RPC layers it removes)
-    "magcomp.service.inflight_process -> magcomp.service.observer_process._foreign_threads",
-    "magcomp.service.inflight_process -> magcomp.service.observer_process._send",
-    "magcomp.service.inflight_process -> magcomp.service.observer_process._sigint_held",
     # owner "fleetdiag"
     "magcomp.commands.diagnose -> magcomp.diagnosis.report._earth_part",
 }
 #: classes of magcomp/core over MAX_CORE_CLASS_METHODS allowed for now, as "module:class"
-KNOWN_BIG_CORE_CLASSES: set[str] = {
-    "magcomp.core.inflight:InflightEstimator",  # owner "core"
-}
+KNOWN_BIG_CORE_CLASSES: set[str] = set()
 
 
 def _modules(root: Path = PACKAGE) -> dict[str, Path]:

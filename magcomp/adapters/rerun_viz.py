@@ -52,16 +52,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcomp.core.types import (
-    FLAG_CALIBRATED,
-    FLAG_INPUTS_STALE,
-    FLAG_NO_THROTTLE,
-    FLAG_OBSERVER_RESET,
-    FLAG_SATURATED,
-    FLAG_THETA_CONVERGED,
-    FLAG_Z_UNOBSERVABLE,
-    HeadingEstimate,
-)
+from magcomp.core.types import HeadingEstimate, flags_text
 from magcomp.errors import MagcompError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -94,27 +85,6 @@ COLOR_TRUTH_LINE = (40, 40, 40, 210)
 """Truth lines (RGBA): thin, slightly translucent dark grey; the wider corrected heading under them shows."""
 COLOR_CORRECTION = (170, 120, 230)
 COLOR_AXES = ((235, 70, 70), (90, 205, 90), (95, 125, 245))
-
-FLAG_NAMES: tuple[tuple[int, str], ...] = (
-    (FLAG_CALIBRATED, "CALIBRATED"),
-    (FLAG_THETA_CONVERGED, "THETA_CONVERGED"),
-    (FLAG_INPUTS_STALE, "INPUTS_STALE"),
-    (FLAG_NO_THROTTLE, "NO_THROTTLE"),
-    (FLAG_OBSERVER_RESET, "OBSERVER_RESET"),
-    (FLAG_Z_UNOBSERVABLE, "Z_UNOBSERVABLE"),
-    (FLAG_SATURATED, "SATURATED"),
-)
-
-
-def flags_text(flags: int) -> str:
-    """``FLAG_*`` bits as ``"CALIBRATED|THETA_CONVERGED"`` (``"none"`` for 0; unknown bits as hex)."""
-    names = [name for bit, name in FLAG_NAMES if flags & bit]
-    known = 0
-    for bit, _ in FLAG_NAMES:
-        known |= bit
-    if flags & ~known:
-        names.append(f"0x{flags & ~known:x}")
-    return "|".join(names) if names else "none"
 
 
 def wrap_deg(angle_deg: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -229,6 +229,27 @@ FLAG_OBSERVER_RESET = 16
 FLAG_Z_UNOBSERVABLE = 32
 FLAG_SATURATED = 64
 
+FLAG_NAMES: tuple[tuple[int, str], ...] = (
+    (FLAG_CALIBRATED, "CALIBRATED"),
+    (FLAG_THETA_CONVERGED, "THETA_CONVERGED"),
+    (FLAG_INPUTS_STALE, "INPUTS_STALE"),
+    (FLAG_NO_THROTTLE, "NO_THROTTLE"),
+    (FLAG_OBSERVER_RESET, "OBSERVER_RESET"),
+    (FLAG_Z_UNOBSERVABLE, "Z_UNOBSERVABLE"),
+    (FLAG_SATURATED, "SATURATED"),
+)
+
+
+def flags_text(flags: int) -> str:
+    """``FLAG_*`` bits as ``"CALIBRATED|THETA_CONVERGED"`` (``"none"`` for 0; unknown bits as hex)."""
+    names = [name for bit, name in FLAG_NAMES if flags & bit]
+    known = 0
+    for bit, _ in FLAG_NAMES:
+        known |= bit
+    if flags & ~known:
+        names.append(f"0x{flags & ~known:x}")
+    return "|".join(names) if names else "none"
+
 
 @dataclass(frozen=True, slots=True)
 class HeadingEstimate:

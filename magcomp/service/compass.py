@@ -99,11 +99,8 @@ class CompassCorrector:
         :class:`~magcomp.service.calibrate.CalibrationCloud`)."""
         return self.calib.cloud()
 
-    def to_state(
-        self, system_id: int, t_s: float, current_theta: bool = True, vehicle_uid: str | None = None
-    ) -> CompassState:
-        """The state to save. ``current_theta``: kept for its callers (service/persist.py); every observer
-        steps in this process, so its theta is always current."""
+    def to_state(self, system_id: int, t_s: float, vehicle_uid: str | None = None) -> CompassState:
+        """The state to save (every observer steps in this process, so its theta is current)."""
         cal = self.calibration
         keep = cal is not None and cal.source != "identity"
         info = None

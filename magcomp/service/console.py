@@ -261,8 +261,7 @@ def progress_enabled() -> bool:
 
 def quiet_tqdm() -> Any:
     """tqdm without its monitor thread (it only retunes ``miniters`` of a stalled bar; ours refresh on
-    ``mininterval``): a replay bar then leaves the process single-threaded, so the first pass can fork its
-    observer process (service/observer_process.py)."""
+    ``mininterval``): a replay bar then adds no thread to the process."""
     from tqdm import tqdm
 
     return type("QuietTqdm", (tqdm,), {"monitor_interval": 0})

@@ -41,13 +41,8 @@ class PersistStage:
         interval_s: float,
         vehicle: Callable[[], tuple[int, str | None]],
         warnings: list[str],
-        theta_at_close: bool = False,
     ) -> None:
-        """``theta_at_close``: the saves before the end (``final=False``) carry the observer's theta as of
-        its last read instead of waiting for the observer process (service/observer_process.py): a
-        two-pass replay's first pass, whose memory store keeps only each compass's state saved at close."""
         self.store = store
-        self._theta_at_close = theta_at_close
         self._writer = writer
         self._interval_s = interval_s
         self._vehicle = vehicle
@@ -66,7 +61,7 @@ class PersistStage:
         if self.store is None:
             return
         sysid, uid = self._vehicle()
-        state = c.to_state(sysid, t_s, current_theta=final or not self._theta_at_close, vehicle_uid=uid)
+        state = c.to_state(sysid, t_s, vehicle_uid=uid)
         self._pending = [f for f in self._pending if not f.done()]
         self._pending.append(self._writer.submit(self._write, state))
 

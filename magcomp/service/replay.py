@@ -308,6 +308,7 @@ def replay_log(
     The refined calibration fits and the state writes run on worker threads owned by this call.
     """
     t_wall = time.perf_counter()
+    asked = _Asked(emit, keep_estimates, on_estimate, should_stop, on_progress)
     log.debug("replaying %s (%s)", path, "two passes" if two_pass and store is None else "one pass")
     with Workers.threads() as workers:
         first: _FirstPass | None = None
@@ -327,15 +328,14 @@ def replay_log(
                 first.pipeline.hover_thetas.update(hovers)
         if first is not None and finals is not None:
             pipeline = first.pipeline
-            report = _second_pass(path, cfg, first, finals, emit, keep_estimates, on_estimate, should_stop,
-                                  on_progress)  # fmt: skip
+            report = _second_pass(path, cfg, first, finals, asked)
         else:  # one pass; or two, the second per sample from the stored states (per-motor terms)
             mem = store
             if first is not None:
                 first.samples.close()
                 mem = first.store
             pipeline = Pipeline(cfg, store=mem, on_text=on_text, workers=workers)
-            report = _replay(path, cfg, pipeline, emit, keep_estimates, on_estimate, should_stop, on_progress)
+            report = _replay(path, cfg, pipeline, asked)
     report.wall_s = time.perf_counter() - t_wall
     report.summary["passes"] = 2 if first is not None else 1
     if keep_estimates or keep_clouds:
@@ -343,31 +343,38 @@ def replay_log(
     return report
 
 
+@dataclass(frozen=True)
+class _Asked:
+    """What the caller of :func:`replay_log` asked of the pass that publishes (see its doc)."""
+
+    emit: str | Path | None
+    keep_estimates: bool
+    on_estimate: Callable[[HeadingEstimate], None] | None
+    should_stop: Callable[[], bool] | None
+    on_progress: Callable[[float], None] | None
+
+    def outputs(self, cfg: Config) -> _Outputs:
+        return _Outputs(cfg, self.emit, self.keep_estimates, self.on_estimate)
+
+
 def _second_pass(
-    path: str | Path,
-    cfg: Config,
-    first: _FirstPass,
-    finals: dict[int, FinalCompass],
-    emit: str | Path | None,
-    keep_estimates: bool,
-    on_estimate: Callable[[HeadingEstimate], None] | None,
-    should_stop: Callable[[], bool] | None,
-    on_progress: Callable[[float], None] | None,
+    path: str | Path, cfg: Config, first: _FirstPass, finals: dict[int, FinalCompass], asked: _Asked
 ) -> ReplayReport:
     """The second pass of a two-pass replay over the first pass's sample log (service/final_pass.py)."""
-    outputs = _Outputs(cfg, emit, keep_estimates, on_estimate)
+    outputs = asked.outputs(cfg)
     sink: Callable[[HeadingEstimate], None] | None = None
-    if keep_estimates or on_estimate is not None:
+    keep, on_estimate = asked.keep_estimates, asked.on_estimate
+    if keep or on_estimate is not None:
 
         def sink(est: HeadingEstimate) -> None:
-            if keep_estimates:
+            if keep:
                 outputs.kept.append(est)
             if on_estimate is not None:
                 on_estimate(est)
 
     try:
         res = final_pass(first.samples, first.pipeline, finals, outputs.encoder, outputs.writer, sink,
-                         should_stop, on_progress)  # fmt: skip
+                         asked.should_stop, asked.on_progress)  # fmt: skip
     except BaseException:
         outputs.close(failed=True)
         raise
@@ -405,27 +412,18 @@ def _with_onboard(
     return summary
 
 
-def _replay(
-    path: str | Path,
-    cfg: Config,
-    pipeline: Pipeline,
-    emit: str | Path | None,
-    keep_estimates: bool,
-    on_estimate: Callable[[HeadingEstimate], None] | None,
-    should_stop: Callable[[], bool] | None,
-    on_progress: Callable[[float], None] | None,
-) -> ReplayReport:
+def _replay(path: str | Path, cfg: Config, pipeline: Pipeline, asked: _Asked) -> ReplayReport:
     """One pass of :func:`replay_log` with ``pipeline``."""
     from magcomp.adapters.mavlink_source import open_source
 
     source = open_source(path, throttle_source=source_throttle(cfg), pipeline_only=True)
     try:
-        outputs = _Outputs(cfg, emit, keep_estimates, on_estimate)
+        outputs = asked.outputs(cfg)
     except BaseException:
         source.close()
         raise
     try:
-        prog = _replay_loop(source, pipeline, outputs, should_stop, on_progress)
+        prog = _replay_loop(source, pipeline, outputs, asked.should_stop, asked.on_progress)
     except BaseException:
         outputs.close(failed=True)
         raise

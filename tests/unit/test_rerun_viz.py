@@ -23,7 +23,6 @@ from magcomp.adapters.rerun_viz import (
     bias_fit_canvas,
     default_mode_for_demo,
     flag_changes,
-    flags_text,
     labelled_axis_range,
     nice_range,
     open_viz,
@@ -32,7 +31,7 @@ from magcomp.adapters.rerun_viz import (
     theta_band,
     wrap_deg,
 )
-from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, HeadingEstimate
+from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, HeadingEstimate, flags_text
 from magcomp.errors import MagcompError
 
 REPO = Path(__file__).resolve().parents[2]
