@@ -1,8 +1,7 @@
 """One log -> its fleet rows (one per compass): identity, the two-pass replay's correction, the excitation,
 the interference. Never raises for a bad log: a failure is one row with the one-line reason.
 
-Runs in one process, no forks (a Dask worker's task): the replay's observer and in-flight helper processes
-are switched off here, with the same numbers (service/replay.py says so of both switches).
+Runs in one process, no forks (a Dask worker's task): the replay itself runs in one process.
 """
 
 from __future__ import annotations

@@ -20,9 +20,8 @@ from pathlib import Path
 from typing import Any
 
 # pyarrow's jemalloc starts a background thread at import unless told not to; a process with that native
-# thread cannot fork the replay's observer and in-flight helpers (service/observer_process.py), so a library
-# user who reads fleet results and then replays a log would lose them. Set before pyarrow's first import
-# (no effect if something imported it already).
+# thread should not fork (the replay no longer does, a library user's code may). Set before pyarrow's first
+# import (no effect if something imported it already).
 os.environ.setdefault("JE_ARROW_MALLOC_CONF", "background_thread:false")
 
 import pyarrow as pa
