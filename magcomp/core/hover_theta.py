@@ -12,10 +12,12 @@ R_nb from the autopilot's roll, pitch and yaw; e_n (3) and theta (3) are the six
 adds a change d (3) of the autopilot's hard-iron offsets (``m_b - d``, eq. (2) with L = I), under a prior of
 OFFSET_PRIOR_SD_MGAUSS: where the autopilot's calibration is off (a battery or payload moved since, a
 calibration accepted at its fit limit), theta alone cannot take the heading error that turns with the yaw.
-Either form moves the heading's constant part by what the flight cannot tell from the Earth field (a hover
-hardly turns): :func:`anchored` gives the heading offset that keeps the mean heading the autopilot's own, as
-the live path anchors its constant part (service/heading.py; a rotation of the field about the body z axis
-would not do: with the vehicle tilted it mixes the vertical field into the heading). Departure from
+The second form moves the heading's constant part by what the flight cannot tell from the Earth field (a
+hover hardly turns): :func:`anchored` gives the heading offset that takes d's constant heading change out
+again (a rotation of the field about the body z axis would not do: with the vehicle tilted it mixes the
+vertical field into the heading). Theta's constant change, its bias at the mean throttle, is a correction
+and stays: anchoring the whole correction to the autopilot's mean heading put that bias back (simulated
+ordinary flight, theta x6: the heading's constant error 4.0 -> 9.2-13.3 deg). Departure from
 the paper's eqs. (12)-(15): no DPI calibration first, no observer; one batch solve. Where the autopilot's yaw
 is fused from this compass it carries part of the bias; the throttle moves faster (seconds) than the
 autopilot pulls its yaw to the compass (a minute or more, docs/real-flights.md), so the fit still sees
@@ -32,6 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.rotations import dcms_from_quats, quats_from_euler
 
 F64 = NDArray[np.float64]
@@ -75,14 +78,31 @@ class HoverTheta:
         return (*identity, *self.offset_mgauss.tolist()), (th[0], th[1], th[2])
 
 
-def anchored(fit: HoverTheta, baseline_heading_rad: F64, candidate_heading_rad: F64) -> HoverTheta:
-    """``fit`` with the anchor that removes the circular mean of ``candidate - baseline`` (the headings of
-    the same samples, the candidate without anchor): the flight cannot tell the heading's constant part."""
-    d = np.asarray(candidate_heading_rad, dtype=float) - np.asarray(baseline_heading_rad, dtype=float)
+def anchored(
+    fit: HoverTheta, field_b_mgauss: F64, throttle_01: F64, cos_roll: F64, sin_roll: F64, cos_pitch: F64,
+    sin_pitch: F64,
+) -> HoverTheta:
+    """``fit`` with the anchor that removes the heading's constant change made by its offsets' change d alone
+    (the circular mean over the samples of eq. (24) with d and theta removed minus eq. (24) with theta
+    removed): the flight cannot tell d's constant part from the Earth field's. Theta's own constant change
+    (its bias at the mean throttle) is what the correction is for and stays. Zero in the theta-only form."""
+    if not self_offset_changed(fit):
+        return replace(fit, anchor_rad=0.0)
+    d2 = np.asarray(throttle_01, dtype=float) ** 2
+    u = np.asarray(field_b_mgauss, dtype=float) - d2[:, None] * fit.theta_mgauss
+    w = u - fit.offset_mgauss
+    trig = (cos_roll, sin_roll, cos_pitch, sin_pitch)
+    d = np.radians(heading_from_trig_deg(w[:, 0], w[:, 1], w[:, 2], *trig)
+                   - heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))  # fmt: skip
     d = d[np.isfinite(d)]
     if d.size == 0:
         return fit
     return replace(fit, anchor_rad=math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d)))))
+
+
+def self_offset_changed(fit: HoverTheta) -> bool:
+    """The fit has the second form's change of the autopilot's offsets."""
+    return bool(np.any(fit.offset_mgauss != 0.0))
 
 
 def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:

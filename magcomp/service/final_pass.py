@@ -126,7 +126,7 @@ class FinalCompass:
     #: the coefficients apply to the field as the autopilot had it (its onboard motor compensation kept:
     #: theta against the autopilot's calibration), not to the field as measured
     autopilot_field: bool = False
-    #: subtracted from the corrected heading (deg): its constant part anchored to the autopilot's own
+    #: subtracted from the corrected heading (deg): the constant change of an offsets' change taken out
     heading_offset_deg: float = 0.0
 
 
@@ -227,7 +227,7 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     applied = Applied(_columns(field_cal), _columns(bias), _columns(fc))
     psi, psi_raw = headings_deg(applied, rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
                                 rows[:, SIN_PITCH])  # eq. (24)
-    psi = np.where(have, (psi - offset_deg) % 360.0, psi_raw)  # the anchor of theta against the autopilot's
+    psi = np.where(have, (psi - offset_deg) % 360.0, psi_raw)  # the anchor of an offsets' change (hover)
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
@@ -292,11 +292,11 @@ def hover_correction(fit: HoverTheta) -> Correction:
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
     the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
-    offsets (the simpler form first: a second form is tried only where the first does not pass), anchored to
-    the autopilot's mean heading. The check judges each sample with the fit of the other half of the log
-    (alternate 10 s windows, two folds): the fit takes its attitude from the autopilot's yaw, so judged on its
-    own samples against that yaw (the reference where the gyro is slow) it would pass by construction. None
-    where theta cannot be fitted."""
+    offsets (the simpler form first: a second form is tried only where the first does not pass), the constant
+    heading change of the offsets' change taken out again (``anchored``). The check judges each sample with
+    the fit of the other half of the log (alternate 10 s windows, two folds): the fit takes its attitude from
+    the autopilot's yaw, so judged on its own samples against that yaw (the reference where the gyro is slow)
+    it would pass by construction. None where theta cannot be fitted."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
@@ -314,8 +314,7 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
                         halves[1].corrected_mgauss(field, thr))  # fmt: skip
         cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # eq. (11), (24)
         chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
-        u = fit.corrected_mgauss(field, thr)
-        got = anchored(fit, base, np.radians(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))), chk
+        got = anchored(fit, field, thr, *trig), chk
         if chk.applies:
             break
     return got

@@ -41,13 +41,16 @@ class HoverShadow:
     equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
-    __slots__ = ("_block", "_coefs", "_fit_t", "checks", "deg", "filter", "fits", "normal", "on_form")
+    __slots__ = ("_anchor_sc", "_block", "_coefs", "_fit_t", "checks", "deg", "filter", "fits", "normal",
+                 "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.normal = HoverNormal()
         self._fit_t = math.nan
         self._block: list[tuple[float, float, float, float, float, float, float]] = []
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
+        #: per form, the sums (sin, cos) of the offsets' change's heading change over the samples
+        self._anchor_sc = [[0.0, 0.0] for _ in HOVER_FORMS]
         #: the fits' (theta, offset change) as floats for the per-sample path
         self._coefs: list[tuple[float, ...] | None] = [None] * len(HOVER_FORMS)
         self.checks = [RunningSelfCheck() for _ in HOVER_FORMS]
@@ -58,8 +61,8 @@ class HoverShadow:
 
     def refit(self) -> None:
         """The buffered samples into the normal equations, every form solved again."""
-        if self._block:
-            a = np.asarray(self._block)
+        a = np.asarray(self._block) if self._block else None
+        if a is not None:
             self._block = []
             self.normal.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
         self.fits = [self.normal.fit(sd) for sd in HOVER_FORMS]
@@ -82,13 +85,18 @@ class HoverShadow:
             fx, fy, fz = own_field
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             cands: list[float] = []
-            for coef, chk in zip(self._coefs, self.checks, strict=True):
+            for k, (coef, chk) in enumerate(zip(self._coefs, self.checks, strict=True)):
                 if coef is None:
                     cands.append(psi_own)
                     continue
                 t0, t1, t2, o0, o1, o2 = coef
-                ux, uy, uz = fx - o0 - t0 * d2, fy - o1 - t1 * d2, fz - o2 - t2 * d2  # eq. (11)
-                cand = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
+                ux, uy, uz = fx - t0 * d2, fy - t1 * d2, fz - t2 * d2  # eq. (11)
+                cand = heading_from_trig_deg(ux - o0, uy - o1, uz - o2, cr, sr, cp, sp)  # eq. (24)
+                if o0 or o1 or o2:  # the offsets' change's own heading change, averaged (see published_deg)
+                    a = math.radians(cand - heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp))
+                    sc = self._anchor_sc[k]  # its mean over every sample so far: d's heading change turns
+                    sc[0] += math.sin(a)  # with the yaw about a constant part, and only that goes
+                    sc[1] += math.cos(a)
                 cands.append(cand)
                 if ok and ref == ref:
                     refit |= chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
@@ -108,9 +116,13 @@ class HoverShadow:
         return None if self.on_form is None else self.fits[self.on_form]
 
     def published_deg(self) -> float:
-        """The published form's filtered heading with its constant part the autopilot's own (deg)."""
-        assert self.on_form is not None
-        return (self.deg + math.degrees(self.checks[self.on_form].offset_rad)) % 360.0
+        """The published form's filtered heading, the constant heading change of an offsets' change taken out
+        (core/hover_theta.py ``anchored``; theta's own change at the mean throttle is the correction), deg."""
+        k = self.on_form
+        if k is None or (coef := self._coefs[k]) is None or not any(coef[3:]):
+            return self.deg % 360.0
+        sn, cs = self._anchor_sc[k]
+        return (self.deg - math.degrees(math.atan2(sn, cs))) % 360.0
 
 
 #: the live hover model is solved again when a self-check window closes, or with this many new samples
