@@ -204,7 +204,7 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             if any(off):
                 kept = (
                     f"the autopilot's calibration with its offsets changed by ({off[0]:.0f}, {off[1]:.0f}, "
-                    f"{off[2]:.0f}) mgauss, mean heading kept the autopilot's (the flight determines no "
+                    f"{off[2]:.0f}) mgauss, their constant heading change left out (the flight determines no "
                     f"calibration of its own)"
                 )
             lines.append(_corrected_line(c, kept, sig, ""))
