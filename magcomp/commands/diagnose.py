@@ -457,10 +457,12 @@ def _write_outputs(
 ) -> None:
     """The JSON, the autopilot parameters, the report and the Rerun view that were asked for."""
     from magcomp.errors import InputError
+    from magcomp.service.console import json_safe
 
     if args.json:
         try:
-            Path(args.json).write_text(json.dumps(j, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+            text = json.dumps(json_safe(j), indent=1, allow_nan=False)  # a damaged log's NaN: null
+            Path(args.json).write_text(text + "\n", encoding="utf-8")
         except OSError as exc:
             raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
         print(f"wrote {args.json}")

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from magcomp.service.console import json_safe
+
 #: a throttle above this (0..1) counts as flying, for ``flight_s``
 FLYING_THROTTLE = 0.15
 
@@ -94,8 +96,8 @@ def compass_columns(c: dict[str, Any]) -> dict[str, Any]:
         "diagnose_theta_ci95_z_mgauss": hw[2],
         "diagnose_theta_identifiable": identifiable if theta[0] is not None else None,
         "diagnose_findings": "; ".join(finding_text(f) for f in findings) or "no finding",
-        "diagnose_findings_json": json.dumps(findings, allow_nan=False, default=str),
-        "diagnose_params_json": json.dumps(params, allow_nan=False) if params else None,
+        "diagnose_findings_json": json.dumps(json_safe(findings), allow_nan=False, default=str),
+        "diagnose_params_json": json.dumps(json_safe(params), allow_nan=False) if params else None,
     }
 
 

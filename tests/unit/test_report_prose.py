@@ -80,3 +80,17 @@ def test_bias_plot_points_are_thinned_at_any_log_length() -> None:
     centres, med = binned_median(x, np.column_stack([x**2, -x, 0 * x]))
     assert len(centres) == 20
     np.testing.assert_allclose(med[:, 0], centres**2, atol=0.01)
+
+
+def test_diagnose_json_writes_a_damaged_logs_nan_as_null(tmp_path: Path) -> None:
+    """A NaN a damaged log puts in a finding (the hostile corpus: a ULog with 1000 flipped bits) is written
+    as null, not a traceback from the strict JSON writer (issue 25)."""
+    import argparse
+    import json
+
+    from magcomp.commands.diagnose import _write_outputs
+
+    out = tmp_path / "d.json"
+    args = argparse.Namespace(json=str(out), params_out=None, report=None, rerun=None)
+    _write_outputs(args, None, {"co_stepping_signals": {"body_rate": float("nan")}, "n": 1.5}, 3, None)
+    assert json.loads(out.read_text()) == {"co_stepping_signals": {"body_rate": None}, "n": 1.5}
