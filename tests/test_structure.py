@@ -25,19 +25,11 @@ MAX_FUNCTION_LINES = 80
 MAX_CORE_CLASS_METHODS = 15
 
 #: import cycles allowed for now: a cycle passes when all its modules lie in one of these groups
-KNOWN_CYCLES: list[frozenset[str]] = [
-    # owner "fleetdiag": export <-> results
-    frozenset({"magcomp.diagnosis.export", "magcomp.diagnosis.results"}),
-]
+KNOWN_CYCLES: list[frozenset[str]] = []
 #: functions over MAX_FUNCTION_LINES allowed for now, as "module:qualified name"
-KNOWN_LONG_FUNCTIONS: set[str] = {
-    "magcomp.fleet.report:write_report",  # owner "fleetdiag"
-}
+KNOWN_LONG_FUNCTIONS: set[str] = set()
 #: private names imported across modules allowed for now, as "importer -> module.name"
-KNOWN_PRIVATE_IMPORTS: set[str] = {
-    # owner "fleetdiag"
-    "magcomp.commands.diagnose -> magcomp.diagnosis.report._earth_part",
-}
+KNOWN_PRIVATE_IMPORTS: set[str] = set()
 #: classes of magcomp/core over MAX_CORE_CLASS_METHODS allowed for now, as "module:class"
 KNOWN_BIG_CORE_CLASSES: set[str] = set()
 
