@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.rotations import dcms_from_quats, quats_from_euler
 
@@ -60,22 +61,23 @@ class HoverTheta:
     n: int
     #: the change of the autopilot's hard-iron offsets (zeros in the theta-only form), mgauss
     offset_mgauss: F64 = field(default_factory=lambda: np.zeros(3))
-    #: subtracted from the heading of the corrected field (rad): the mean heading stays the autopilot's own
-    #: (:func:`anchored`)
+    #: subtracted from the heading of the corrected field (rad): the constant heading change of the
+    #: offsets' change taken out again (:func:`anchored`)
     anchor_rad: float = 0.0
 
-    def corrected_mgauss(self, field_b_mgauss: F64, throttle_01: F64) -> F64:
-        """Eq. (11) with this fit: ``m_b - d - theta throttle^2``, (n, 3) mgauss."""
-        d2 = np.asarray(throttle_01, dtype=float) ** 2
-        u = np.asarray(field_b_mgauss, dtype=float) - self.offset_mgauss - d2[:, None] * self.theta_mgauss
-        return np.asarray(u)
-
-    def coeffs(self) -> tuple[tuple[float, ...], tuple[float, float, float]]:
-        """(L and d of eq. (2) as 12 floats, theta) that give :meth:`corrected_mgauss` as
-        ``L m - d - theta t^2``: L = I, d the offsets' change."""
+    def correction(self) -> Correction:
+        """The fit as a core correction (eq. (2) with L = I and d the offsets' change, eq. (11) with theta),
+        applied where the throttle is known."""
         th = self.theta_mgauss.tolist()
         identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-        return (*identity, *self.offset_mgauss.tolist()), (th[0], th[1], th[2])
+        return Correction((*identity, *self.offset_mgauss.tolist()), (th[0], th[1], th[2]), source="hover",
+                          needs_throttle=True)  # fmt: skip
+
+    def corrected_mgauss(self, field_b_mgauss: F64, throttle_01: F64) -> F64:
+        """``m_b - d - theta throttle^2`` per sample, (n, 3) mgauss (:meth:`correction`'s apply)."""
+        m = np.asarray(field_b_mgauss, dtype=float)
+        got = self.correction().apply(m[:, 0], m[:, 1], m[:, 2], np.asarray(throttle_01, dtype=float))
+        return np.column_stack(got.corrected)
 
 
 def anchored(
@@ -86,21 +88,20 @@ def anchored(
     (the circular mean over the samples of eq. (24) with d and theta removed minus eq. (24) with theta
     removed): the flight cannot tell d's constant part from the Earth field's. Theta's own constant change
     (its bias at the mean throttle) is what the correction is for and stays. Zero in the theta-only form."""
-    if not self_offset_changed(fit):
+    if not offset_changed(fit):
         return replace(fit, anchor_rad=0.0)
-    d2 = np.asarray(throttle_01, dtype=float) ** 2
-    u = np.asarray(field_b_mgauss, dtype=float) - d2[:, None] * fit.theta_mgauss
-    w = u - fit.offset_mgauss
+    m = np.asarray(field_b_mgauss, dtype=float)
+    got = fit.correction().apply(m[:, 0], m[:, 1], m[:, 2], np.asarray(throttle_01, dtype=float))
+    u = (m[:, 0] - got.bias[0], m[:, 1] - got.bias[1], m[:, 2] - got.bias[2])  # theta removed, d kept
     trig = (cos_roll, sin_roll, cos_pitch, sin_pitch)
-    d = np.radians(heading_from_trig_deg(w[:, 0], w[:, 1], w[:, 2], *trig)
-                   - heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], *trig))  # fmt: skip
+    d = np.radians(heading_from_trig_deg(*got.corrected, *trig) - heading_from_trig_deg(*u, *trig))
     d = d[np.isfinite(d)]
     if d.size == 0:
         return fit
     return replace(fit, anchor_rad=math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d)))))
 
 
-def self_offset_changed(fit: HoverTheta) -> bool:
+def offset_changed(fit: HoverTheta) -> bool:
     """The fit has the second form's change of the autopilot's offsets."""
     return bool(np.any(fit.offset_mgauss != 0.0))
 

@@ -282,13 +282,6 @@ def _hover_rows(rows: F64, idx: int) -> F64:
     return np.column_stack(cols)
 
 
-def hover_correction(fit: HoverTheta) -> Correction:
-    """Theta against the autopilot's calibration (eq. (2) the identity, or its offsets changed), applied where
-    the throttle is known."""
-    coeffs, th = fit.coeffs()  # L = I, d the change of the autopilot's offsets (zero in the theta-only form)
-    return Correction(coeffs, th, source="hover", needs_throttle=True)
-
-
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
     the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
@@ -358,7 +351,7 @@ def self_check_finals(
         fit, chk = got
         f = finals[i]
         acc = None if f.accounts is None else "corrected"
-        out[i] = FinalCompass(hover_correction(fit), acc, autopilot_field=True,
+        out[i] = FinalCompass(fit.correction(), acc, autopilot_field=True,
                               heading_offset_deg=math.degrees(fit.anchor_rad))  # fmt: skip
         checks[i] = chk
         hovers[i] = fit

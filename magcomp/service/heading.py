@@ -13,8 +13,9 @@ import math
 
 import numpy as np
 
+from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta
+from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
 from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import LIVE_WINDOW_S, RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
@@ -41,8 +42,8 @@ class HoverShadow:
     equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
-    __slots__ = ("_anchor_sc", "_block", "_coefs", "_fit_t", "checks", "deg", "filter", "fits", "normal",
-                 "on_form")  # fmt: skip
+    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_offset", "checks", "deg", "filter", "fits",
+                 "normal", "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.normal = HoverNormal()
@@ -51,8 +52,9 @@ class HoverShadow:
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
         #: per form, the sums (sin, cos) of the offsets' change's heading change over the samples
         self._anchor_sc = [[0.0, 0.0] for _ in HOVER_FORMS]
-        #: the fits' (theta, offset change) as floats for the per-sample path
-        self._coefs: list[tuple[float, ...] | None] = [None] * len(HOVER_FORMS)
+        #: the fits as core corrections, and which of them change the offsets
+        self._cors: list[Correction | None] = [None] * len(HOVER_FORMS)
+        self._offset = [False] * len(HOVER_FORMS)
         self.checks = [RunningSelfCheck() for _ in HOVER_FORMS]
         self.filter = est_core.HeadingFilter(tau_s)
         self.deg = math.nan
@@ -66,8 +68,8 @@ class HoverShadow:
             self._block = []
             self.normal.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
         self.fits = [self.normal.fit(sd) for sd in HOVER_FORMS]
-        self._coefs = [None if f is None else (*f.theta_mgauss.tolist(), *f.offset_mgauss.tolist())
-                       for f in self.fits]  # fmt: skip
+        self._cors = [None if f is None else f.correction() for f in self.fits]
+        self._offset = [f is not None and offset_changed(f) for f in self.fits]
 
     def step(self, rec: MagRecord, own_field: Float3, psi_own: float, judged: bool, shadow: bool,
              rate: float, dt: float) -> None:  # fmt: skip
@@ -81,26 +83,26 @@ class HoverShadow:
             self._block.append((*own_field, roll, pitch, rec.ap_yaw, rec.throttle_01))
         refit = False
         if shadow:
-            d2 = rec.throttle_01 * rec.throttle_01
+            thr = rec.throttle_01
             fx, fy, fz = own_field
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             cands: list[float] = []
-            for k, (coef, chk) in enumerate(zip(self._coefs, self.checks, strict=True)):
-                if coef is None:
+            for k, (cor, chk) in enumerate(zip(self._cors, self.checks, strict=True)):
+                if cor is None:
                     cands.append(psi_own)
                     continue
-                t0, t1, t2, o0, o1, o2 = coef
-                ux, uy, uz = fx - t0 * d2, fy - t1 * d2, fz - t2 * d2  # eq. (11)
-                cand = heading_from_trig_deg(ux - o0, uy - o1, uz - o2, cr, sr, cp, sp)  # eq. (24)
-                if o0 or o1 or o2:  # the offsets' change's own heading change, averaged (see published_deg)
-                    a = math.radians(cand - heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp))
+                got = cor.apply(fx, fy, fz, thr)  # eqs. (2), (11)
+                cand = heading_from_trig_deg(*got.corrected, cr, sr, cp, sp)  # eq. (24)
+                if self._offset[k]:  # the offsets' change's own heading change, averaged (see published_deg)
+                    b0, b1, b2 = got.bias
+                    a = math.radians(cand - heading_from_trig_deg(fx - b0, fy - b1, fz - b2, cr, sr, cp, sp))
                     sc = self._anchor_sc[k]  # its mean over every sample so far: d's heading change turns
                     sc[0] += math.sin(a)  # with the yaw about a constant part, and only that goes
                     sc[1] += math.cos(a)
                 cands.append(cand)
                 if ok and ref == ref:
                     refit |= chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-            self.on_form = next((k for k, c in enumerate(self.checks) if c.on and self._coefs[k] is not None),
+            self.on_form = next((k for k, c in enumerate(self.checks) if c.on and self._cors[k] is not None),
                                 None)  # fmt: skip
             self.deg = self.filter.update(cands[self.on_form if self.on_form is not None else 0], rate, dt)
         else:
@@ -119,7 +121,7 @@ class HoverShadow:
         """The published form's filtered heading, the constant heading change of an offsets' change taken out
         (core/hover_theta.py ``anchored``; theta's own change at the mean throttle is the correction), deg."""
         k = self.on_form
-        if k is None or (coef := self._coefs[k]) is None or not any(coef[3:]):
+        if k is None or self._cors[k] is None or not self._offset[k]:
             return self.deg % 360.0
         sn, cs = self._anchor_sc[k]
         return (self.deg - math.degrees(math.atan2(sn, cs))) % 360.0

@@ -188,8 +188,8 @@ def test_hover_correction_is_anchored_and_its_coefficients_reproduce_it() -> Non
     """An offsets' change that moves the heading's constant part (150 mgauss across a 200 mgauss horizontal
     field): anchored()'s offset takes that constant change out again (the mean heading within 0.2 deg of the
     one with theta alone removed) and keeps the changes about it; theta's own constant change (its bias at
-    the mean throttle) stays, and the theta-only form gets no anchor. coeffs() gives the same corrected field
-    through eq. (2) and eq. (11) as corrected_mgauss()."""
+    the mean throttle) stays, and the theta-only form gets no anchor. The fit's core correction (L = I, d
+    the offsets' change) gives the field with d and theta removed."""
     from dataclasses import replace
 
     from magcomp.core.heading import heading_from_trig_deg
@@ -217,7 +217,9 @@ def test_hover_correction_is_anchored_and_its_coefficients_reproduce_it() -> Non
     assert sc.offset_removed_rms_deg(sc.wrap_rad(after - free)) < 1e-6  # the changes about the mean kept
     assert anchored(only, m, thr, *trig).anchor_rad == 0.0  # theta's bias removal is the correction
     assert abs(mean_deg(heading(only.corrected_mgauss(m, thr)) - heading(m))) > 1.0
-    coeffs, th = fixed.coeffs()
+    cor = fixed.correction()
+    assert cor.coeffs is not None and cor.source == "hover" and cor.needs_throttle
+    coeffs, th = cor.coeffs, cor.theta_mgauss
     big_l = np.reshape(coeffs[:9], (3, 3))
     via_eq2 = m @ big_l.T - np.asarray(coeffs[9:]) - np.outer(thr**2, th)
     np.testing.assert_allclose(via_eq2, fixed.corrected_mgauss(m, thr), atol=1e-9)
