@@ -52,6 +52,14 @@ def _foreign_threads() -> list[str]:
     return [n for n in names if n != own]
 
 
+
+def _fleet_args(fleet: Path, out: Path) -> list[str]:
+    """`magcomp fleet` over the simulated fleet, in process (no workers), with its vehicle map and config."""
+    vehicles, config = str(fleet / "vehicles.toml"), str(fleet / "estimator_only.toml")
+    return ["fleet", str(fleet), "--out", str(out), "--workers", "0", "--vehicles", vehicles,
+            "--config", config]
+
+
 @pytest.fixture(autouse=True)
 def no_threads_left() -> Iterator[None]:
     """No test here leaves a thread in the test process, Python's or a library's native one (pyarrow's
@@ -101,23 +109,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def analysed(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The whole fleet, in this process, uninterrupted: the reference the other runs are compared with."""
     out = tmp_path_factory.mktemp("out")
-    assert (
-        main(
-            [
-                "fleet",
-                str(fleet),
-                "--out",
-                str(out),
-                "--workers",
-                "0",
-                "--vehicles",
-                str(fleet / "vehicles.toml"),
-                "--config",
-                str(fleet / "estimator_only.toml"),
-            ]
-        )
-        == 0
-    )
+    assert main(_fleet_args(fleet, out)) == 0
     return out
 
 
@@ -270,16 +262,7 @@ def test_kill_9_halfway_then_resume_gives_the_uninterrupted_table(
         sys.executable,
         "-m",
         "magcomp",
-        "fleet",
-        str(fleet),
-        "--out",
-        str(out),
-        "--workers",
-        "0",
-        "--vehicles",
-        str(fleet / "vehicles.toml"),
-        "--config",
-        str(fleet / "estimator_only.toml"),
+        *_fleet_args(fleet, out),
     ]
     env = {**os.environ, "CI": "1"}
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
