@@ -136,6 +136,8 @@ class Pipeline:
         #: theta fitted against the autopilot's calibration where the flight does not determine one, published
         #: where it passed the self-check (the two-pass replay's; service/final_pass.py)
         self.hover_thetas: dict[int, HoverTheta] = {}
+        #: the two-pass replay's checks of theta against the autopilot's calibration, tried and not published
+        self.hover_refused: dict[int, SelfCheck] = {}
         self._earth_ned = est_core.earth_field(cfg)
         self._earth_ned.flags.writeable = False  # shared by every stage
         self._params: dict[str, float] = {}  # the autopilot's parameters (in-flight calibration)
@@ -478,12 +480,21 @@ class Pipeline:
             return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
             if st.status == "uncorrected" and self.cfg.output.self_check and self.throttle.t is not None:
-                return Status("uncorrected", f"publishing the autopilot's own heading ({st.why})")
+                why = f"{st.why}{self._tried(c)}"
+                return Status("uncorrected", f"publishing the autopilot's own heading ({why})")
             return st
         if on:
             return Status("corrected", f"{st.why}; {chk.describe()}")
         return Status("uncorrected", f"publishing the autopilot's own heading (the correction learned in "
-                                     f"flight: {chk.reason})")  # fmt: skip
+                                     f"flight: {chk.reason}{self._tried(c)})")  # fmt: skip
+
+    def _tried(self, c: CompassCorrector) -> str:
+        """What became of theta against the autopilot's calibration where it was tried and not published
+        (the two-pass replay's check), as a clause of the uncorrected status; empty where not tried."""
+        chk = self.hover_refused.get(c.mag_index)
+        if chk is None:
+            return ""
+        return f"; theta against the autopilot's calibration, tried: {chk.reason}"
 
     def _hover(self, c: CompassCorrector) -> HoverTheta | None:
         """The theta against the autopilot's calibration a compass publishes: the two-pass replay's, else the

@@ -323,9 +323,10 @@ def replay_log(
             finals = final_compasses(first.pipeline) if first is not None else None
             if first is not None and finals is not None and cfg.output.self_check:  # never worse than its own
                 hover_on = cfg.inflight.enabled and cfg.observer.learn  # theta is learned in flight
-                finals, checks, hovers = self_check_finals(first.samples, finals, hover_on)
+                finals, checks, hovers, refused = self_check_finals(first.samples, finals, hover_on)
                 first.pipeline.self_checks.update(checks)
                 first.pipeline.hover_thetas.update(hovers)
+                first.pipeline.hover_refused.update(refused)
         if first is not None and finals is not None:
             pipeline = first.pipeline
             report = _second_pass(path, cfg, first, finals, asked)

@@ -284,3 +284,24 @@ def test_live_hover_theta_switches_on_and_corrects() -> None:
         own_rms = sc.offset_removed_rms_deg(sc.wrap_rad(np.asarray(own_err[-1200:])))
         pub_rms = sc.offset_removed_rms_deg(sc.wrap_rad(np.asarray(pub_err)))
         assert pub_rms < 0.6 * own_rms, (pub_rms, own_rms)  # measured 2.0 against 3.9 deg
+
+
+def test_uncorrected_status_says_what_became_of_theta_against_the_autopilots_calibration() -> None:
+    """Where the two-pass replay tried theta against the autopilot's calibration and its held-out check
+    refused it, the compass's status says so with the check's reason (a pilot reading "not observable"
+    alone would not know the fallback was tried); where it was published, no such clause. The simulated
+    fixed-wing bench log: compass 0's hover theta passes, compass 1's (its yaw span 14 deg) does not."""
+    from pathlib import Path
+
+    from magcomp.adapters.config import load_config
+    from magcomp.service.replay import replay_log
+
+    log = Path(__file__).resolve().parents[2] / "replay_logs" / "bench_clean.tlog"
+    rep = replay_log(log, load_config(None), two_pass=True)
+    whys = {int(c["index"]): (c["status"], c["why"]) for c in rep.summary["compasses"]}
+    tried = "theta against the autopilot's calibration, tried: "
+    status, why = whys[1]
+    assert status == "uncorrected" and tried in why, why
+    assert "gyro" in why.split(tried)[1]  # the check's reason, with its figures
+    status, why = whys[0]
+    assert status == "corrected" and tried not in why, why
