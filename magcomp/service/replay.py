@@ -16,6 +16,7 @@ from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.final_pass import (
     FinalCompass,
+    PassOutputs,
     PassProgress,
     SampleLog,
     final_compasses,
@@ -373,8 +374,8 @@ def _second_pass(
                 on_estimate(est)
 
     try:
-        res = final_pass(first.samples, first.pipeline, finals, outputs.encoder, outputs.writer, sink,
-                         asked.should_stop, asked.on_progress)  # fmt: skip
+        to = PassOutputs(outputs.encoder, outputs.writer, sink)
+        res = final_pass(first.samples, first.pipeline, finals, to, asked.should_stop, asked.on_progress)
     except BaseException:
         outputs.close(failed=True)
         raise
