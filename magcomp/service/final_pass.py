@@ -83,8 +83,8 @@ class SampleLog:
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
         buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
-                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
-                    rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws,
+                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh,
+                    gy, gz, boot_offset_s, reboot, *yaws,
                     imu_dt_s, *onb))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
