@@ -191,14 +191,15 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
     """Every compass with enough samples, its impacts left out (noted)."""
     log = run.log
     comps: list[CompassDiagnosis] = []
+    left_out: dict[str, list[int]] = {}  # the stretches left out (as printed) -> the compasses
+    first = len(notes)
     for idx in sorted(log.mag):
         if idx in log.mag and len(log.mag[idx]) > 0:
             mag = finite_series(log.mag[idx])  # what compass_data decides on, at its decimation
             crash = impact_left_out(log, mag.t_s, decimation_step(len(mag)))
-            for a, b in spans(mag.t_s, crash):
-                notes.append(
-                    f"compass {idx}: left out t = {a:.1f}-{b:.1f} s (impact above 2.5 g: a crash or a drop)"
-                )
+            stretches = [f"{a:.1f}-{b:.1f}" for a, b in spans(mag.t_s, crash)]
+            if stretches:
+                left_out.setdefault(", ".join(stretches), []).append(idx)
             if not crash.any():
                 for a, b in spans(mag.t_s, crash_mask(log, mag.t_s)):
                     notes.append(
@@ -218,9 +219,20 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
                 f"before): attitude re-timed by {-1000 * latency:+.1f} ms, the compass's fitted latency"
             )
         comps.append(run.compass(data))
+    notes[first:first] = [_left_out_note(ts, idxs) for ts, idxs in left_out.items()]
     if not comps:
         raise InputError("no compass has enough samples to diagnose")
     return comps
+
+
+def _left_out_note(stretches: str, compasses: list[int]) -> str:
+    """One note for the impacts left out of the compasses that share them (one line per log, not one per
+    compass and stretch)."""
+    n = stretches.count(",") + 1
+    who = f"compass {compasses[0]}" if len(compasses) == 1 else "compasses " + ", ".join(map(str, compasses))
+    what = "a stretch" if n == 1 else f"{n} stretches"
+    why = "with an impact above 2.5 g (a crash, a drop or a hard landing)"
+    return f"{who}: left out {what} {why}: t = {stretches} s"
 
 
 def _prefer_compass_yaw(run: _Run, comps: list[CompassDiagnosis], notes: list[str]) -> list[CompassDiagnosis]:

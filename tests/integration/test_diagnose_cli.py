@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -93,7 +94,28 @@ def test_cli_does_not_claim_to_leave_out_an_impact_it_kept(
     write_tlog(res, path)
     assert main(["diagnose", str(path), "--json", str(tmp_path / "d.json")]) == 0
     out = capsys.readouterr().out
-    assert "left out t =" not in out, out
+    assert "with an impact above 2.5 g (a crash" not in out, out
     assert "impact above 2.5 g around t =" in out and "kept" in out, out
     doc = json.loads((tmp_path / "d.json").read_text())
     assert doc["compasses"], doc
+
+
+def test_cli_notes_the_impacts_left_out_once_per_log(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The stretches left out for an impact (the > 2.5 g take-off of a simulated flight) are the same for
+    every compass of the log: one note names them all with the compasses (issue 25: repeated warnings
+    summarised), not one line per compass and stretch."""
+    res = simulate(SimConfig(scenario="ordinary", duration_s=40.0, seed=23))
+    acc = res.samples.accel_m_s2.copy()
+    t = res.samples.t_s
+    for t_hit in (15.0, 28.0):  # two knocks of 4 g, 50 ms each, on every IMU
+        acc[:, (t >= t[0] + t_hit) & (t < t[0] + t_hit + 0.05)] = (0.0, 0.0, -4.0 * 9.80665)
+    res = replace(res, samples=replace(res.samples, accel_m_s2=acc))
+    path = tmp_path / "flight.tlog"
+    write_tlog(res, path)
+    assert main(["diagnose", str(path)]) == 0
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if "with an impact above 2.5 g" in ln]
+    assert len(lines) == 1, out
+    assert lines[0].startswith("note: compasses 0, 1: left out 2 stretches"), lines[0]
