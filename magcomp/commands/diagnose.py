@@ -345,6 +345,15 @@ def _summary(j: dict[str, Any]) -> list[str]:
                 f"(lag {s['lag_s']} s, {100 * (s['r2'] or 0.0):.1f} % of its variance)"
             )
     g = j["gain"]
+    for c in j["compasses"]:
+        h = c.get("heading_vs_gyro")
+        if h:
+            verdict = "helps" if h["helps"] else f"does not help: {h['verdict']}"
+            lines.append(
+                f"compass {c['index']}: heading vs gyro, the field as logged -> this model: "
+                f"{h['baseline_gyro_deg']:.1f} -> {h['model_gyro_deg']:.1f} deg over {h['windows']} windows "
+                f"of 10 s with the motors running; {verdict}"
+            )
     if "heading_error_rms_deg" in g and "paper" in g["heading_error_rms_deg"]:
         h = g["heading_error_rms_deg"]
         lines.append(
@@ -511,6 +520,20 @@ def note_skipped(d: Any, log: Any) -> dict[str, int]:
     return skipped
 
 
+def add_heading_checks(j: dict[str, Any], d: Any, log: Any) -> None:
+    """Per compass of the JSON ``j``: the self-check against the gyro of the heading the diagnosis's model
+    gives (diagnosis/gyro_check.py) as ``heading_vs_gyro`` (null where there is nothing to judge)."""
+    from magcomp.diagnosis.gyro_check import heading_check
+
+    for cj, c in zip(j["compasses"], d.compasses, strict=True):
+        chk = heading_check(c, log)
+        cj["heading_vs_gyro"] = None if chk is None else {
+            "baseline_gyro_deg": chk.baseline_gyro_deg, "model_gyro_deg": chk.candidate_gyro_deg,
+            "baseline_att_deg": chk.baseline_att_deg, "model_att_deg": chk.candidate_att_deg,
+            "windows": chk.n_windows, "z": chk.z, "helps": chk.applies, "verdict": chk.reason,
+        }  # fmt: skip
+
+
 def diagnose_file(path: str, throttle_source: str = "auto", config: str | None = None) -> tuple[Any, Any]:
     """(Diagnosis, LogData) of one log with no option set: what ``magcomp diagnose LOG`` computes (the fleet
     calls this per log)."""
@@ -549,6 +572,7 @@ def execute(args: argparse.Namespace) -> int:
     skipped = note_skipped(d, log)
     j = d.to_json()
     j["counts"] = skipped
+    add_heading_checks(j, d, log)
     print(f"{args.log}: {len(d.compasses)} compass(es), primary {d.primary}")
     for line in _summary(j):
         print(line)

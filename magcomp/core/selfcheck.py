@@ -73,6 +73,14 @@ MAX_GYRO_DT_S = 0.15
 MAX_GYRO_GAP_S = 0.5
 
 
+#: the throttle (0..1) above which the motors count as running for the check: the corrected heading differs
+#: from the autopilot's only through the bias theta * throttle^2, and an idle motor's few percent leave
+#: nothing to judge
+MOTORS_RUNNING_01 = 0.05
+#: the check takes samples within 60 deg of roll and pitch (their cosines above this): beyond, the
+#: tilt-compensated heading is dominated by the tilt's own error
+MAX_TILT_COS = 0.5
+
 #: the largest relative increase of the rms against the autopilot's yaw still "no worse" (att_tolerance_deg)
 MAX_ATT_WORSE_FRACTION = 0.1
 

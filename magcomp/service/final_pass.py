@@ -231,19 +231,14 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
-#: the throttle above which the motors count as running (0..1): as the corrected heading differs from the
-#: autopilot's only through the bias theta * throttle^2, an idle motor's few percent leave nothing to judge
-MOTORS_RUNNING_01 = 0.05
-#: beyond this roll or pitch (rad) the tilt-compensated heading is dominated by the tilt's own error
-MAX_TILT_COS = math.cos(math.radians(60.0))
 
 
 def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
     """(t, baseline heading, candidate heading, autopilot yaw, gyro yaw, gyro epoch, IMU dt) of compass
     ``idx``'s samples with the motors running and the tilt below 60 deg, from one chunk (rad)."""
     m = rows[:, MAG] == idx
-    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > MOTORS_RUNNING_01)
-    m &= (rows[:, COS_ROLL] > MAX_TILT_COS) & (rows[:, COS_PITCH] > MAX_TILT_COS)
+    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > selfcheck.MOTORS_RUNNING_01)
+    m &= (rows[:, COS_ROLL] > selfcheck.MAX_TILT_COS) & (rows[:, COS_PITCH] > selfcheck.MAX_TILT_COS)
     r = rows[m]
     trig = (r[:, COS_ROLL], r[:, SIN_ROLL], r[:, COS_PITCH], r[:, SIN_PITCH])
     own = r[:, RAW_X:RAW_Z + 1] + r[:, ONB_X:ONB_Z + 1]  # the field as the autopilot had it
@@ -271,8 +266,8 @@ def _hover_rows(rows: F64, idx: int) -> F64:
     """(t, field as logged xyz, roll, pitch, autopilot yaw, throttle, and the self-check's gyro yaw, epoch,
     IMU dt) of compass ``idx``'s samples with the motors running and the tilt below 60 deg."""
     m = rows[:, MAG] == idx
-    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > MOTORS_RUNNING_01)
-    m &= (rows[:, COS_ROLL] > MAX_TILT_COS) & (rows[:, COS_PITCH] > MAX_TILT_COS)
+    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > selfcheck.MOTORS_RUNNING_01)
+    m &= (rows[:, COS_ROLL] > selfcheck.MAX_TILT_COS) & (rows[:, COS_PITCH] > selfcheck.MAX_TILT_COS)
     r = rows[m]
     roll = np.arctan2(r[:, SIN_ROLL], r[:, COS_ROLL])
     pitch = np.arctan2(r[:, SIN_PITCH], r[:, COS_PITCH])

@@ -17,16 +17,12 @@ from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
 from magcomp.core.inflight import InflightOutput
-from magcomp.core.selfcheck import LIVE_WINDOW_S, RunningSelfCheck
+from magcomp.core.selfcheck import LIVE_WINDOW_S, MAX_TILT_COS, MOTORS_RUNNING_01, RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
-#: the throttle (0..1) above which the motors count as running for the self-check (service/final_pass.py)
-MOTORS_RUNNING_01 = 0.05
-#: beyond 60 deg of roll or pitch the tilt-compensated heading is dominated by the tilt's own error
-MAX_TILT_COS = 0.5
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
 MIN_COS_PITCH = 0.25
 

@@ -119,3 +119,28 @@ def test_cli_notes_the_impacts_left_out_once_per_log(
     lines = [ln for ln in out.splitlines() if "with an impact above 2.5 g" in ln]
     assert len(lines) == 1, out
     assert lines[0].startswith("note: compasses 0, 1: left out 2 stretches"), lines[0]
+
+
+@pytest.mark.parametrize("theta_on", [True, False])
+def test_cli_judges_its_model_against_the_gyro(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], theta_on: bool
+) -> None:
+    """diagnose says per compass whether the heading its model gives is better than the field as logged
+    against the gyro (diagnosis/gyro_check.py, the replay's self-check): on a simulated flight whose compass
+    0 carries theta and no calibration, the model helps (its rms below 0.8 of the field's); with no theta and
+    the autopilot's calibration exact, there is nothing to correct and it does not."""
+    from magcomp.sim.config import Variation
+
+    exact = Variation(theta_scale=0.0, ap_calibration=True, ap_cal_hard_iron_mgauss=0.0, ap_cal_soft_iron=0.0)
+    var = Variation() if theta_on else exact
+    path = tmp_path / "flight.tlog"
+    write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=120.0, seed=5, variation=var)), path)
+    assert main(["diagnose", str(path), "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    h = json.loads((tmp_path / "d.json").read_text())["compasses"][0]["heading_vs_gyro"]
+    assert h is not None and h["windows"] >= 10, h
+    assert "compass 0: heading vs gyro, the field as logged -> this model:" in out, out
+    if theta_on:
+        assert h["helps"] and h["model_gyro_deg"] < 0.8 * h["baseline_gyro_deg"], h
+    else:
+        assert not h["helps"] and "does not help" in out, h
