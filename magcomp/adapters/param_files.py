@@ -93,11 +93,16 @@ def compensation_params(
     "px4_throttle": ..., "px4_current": ...})``; returns it and notes on what was left out."""
     notes: list[str] = []
     by_index = dict(suggestions)
-    if primary not in by_index:
-        return {}, ["no compensation parameters: the primary compass has none"]
+    if not by_index:
+        return {}, ["no compensation parameters: no compass has any"]
+    ref = primary
+    if primary not in by_index:  # the shared setting (what drives the terms) follows the next compass's
+        ref = min(by_index)
+        notes.append(f"the primary compass {primary} has no compensation terms: the shared compensation type "
+                     f"follows compass {ref}'s")  # fmt: skip
     out: dict[str, float] = {}
     if autopilot == MAV_AUTOPILOT_PX4:
-        typ = by_index[primary].get("px4", {}).get("CAL_MAG_COMP_TYP", 1.0)
+        typ = by_index[ref].get("px4", {}).get("CAL_MAG_COMP_TYP", 1.0)
         key = "px4_current" if typ == 2.0 else "px4_throttle"
         for index, sugg in sorted(by_index.items()):
             chosen = sugg.get(key)
@@ -106,12 +111,13 @@ def compensation_params(
                 continue
             out.update(chosen)
         return out, notes
-    mot = by_index[primary].get("ardupilot", {})
+    mot = by_index[ref].get("ardupilot", {})
     motct = mot.get("COMPASS_MOTCT", 1.0)
     for index, sugg in sorted(by_index.items()):
         ap = sugg.get("ardupilot", {})
         if ap.get("COMPASS_MOTCT", motct) != motct:
-            notes.append(f"compass {index}: its terms use another COMPASS_MOTCT than the primary's, left out")
+            notes.append(f"compass {index}: its terms use another COMPASS_MOTCT than compass {ref}'s, "
+                         "left out")
             continue
         out.update({k: v for k, v in ap.items() if "_if_" not in k})
     return out, notes

@@ -348,9 +348,10 @@ def _summary(j: dict[str, Any]) -> list[str]:
     for c in j["compasses"]:
         h = c.get("heading_vs_gyro")
         if h:
-            verdict = "helps" if h["helps"] else f"does not help: {h['verdict']}"
+            verdict = "helps" if h["helps"] else f"makes it worse: {h['verdict']}" if h["worse"] else (
+                f"no clear gain: {h['verdict']}")
             lines.append(
-                f"compass {c['index']}: heading vs gyro, the field as logged -> this model: "
+                f"compass {c['index']}: heading vs gyro, the field as logged -> with this theta removed: "
                 f"{h['baseline_gyro_deg']:.1f} -> {h['model_gyro_deg']:.1f} deg over {h['windows']} windows "
                 f"of 10 s with the motors running; {verdict}"
             )
@@ -409,10 +410,16 @@ def _show_in_rerun(mode: str, d: Any, reference: tuple[Any, Any] | None) -> None
     viz.close()
 
 
-def _write_params(path: str, d: Any, autopilot: int) -> None:
+def _write_params(path: str, d: Any, autopilot: int, unhelpful: dict[int, str]) -> None:
+    """The compensation parameters of the compasses whose theta does not make the heading worse against the
+    gyro (diagnosis/gyro_check.py); ``unhelpful``: compass -> why its theta does (noted, left out)."""
     from magcomp.adapters.param_files import MAV_AUTOPILOT_PX4, compensation_params, write_param_file
 
-    params, notes = compensation_params([(c.index, c.autopilot) for c in d.compasses], d.primary, autopilot)
+    for idx, why in sorted(unhelpful.items()):
+        print(f"note: compass {idx}: no compensation parameters: its theta makes the heading worse on this "
+              f"log ({why})")  # fmt: skip
+    kept = [(c.index, c.autopilot) for c in d.compasses if c.index not in unhelpful]
+    params, notes = compensation_params(kept, d.primary, autopilot)
     px4 = autopilot == MAV_AUTOPILOT_PX4
     for note in notes:
         print(f"note: {note}")
@@ -476,7 +483,9 @@ def _write_outputs(
             raise InputError(f"cannot write {args.json}: {exc.strerror or exc}") from exc
         print(f"wrote {args.json}")
     if args.params_out:
-        _write_params(args.params_out, d, autopilot)
+        unhelpful = {int(c["index"]): c["heading_vs_gyro"]["verdict"] for c in j["compasses"]
+                     if c.get("heading_vs_gyro") and c["heading_vs_gyro"]["worse"]}  # fmt: skip
+        _write_params(args.params_out, d, autopilot, unhelpful)
     if args.report:
         from magcomp.diagnosis.report import write_report
 
@@ -526,11 +535,12 @@ def add_heading_checks(j: dict[str, Any], d: Any, log: Any) -> None:
     from magcomp.diagnosis.gyro_check import heading_check
 
     for cj, c in zip(j["compasses"], d.compasses, strict=True):
-        chk = heading_check(c, log)
+        chk = heading_check(c, log, d.primary)
         cj["heading_vs_gyro"] = None if chk is None else {
             "baseline_gyro_deg": chk.baseline_gyro_deg, "model_gyro_deg": chk.candidate_gyro_deg,
             "baseline_att_deg": chk.baseline_att_deg, "model_att_deg": chk.candidate_att_deg,
-            "windows": chk.n_windows, "z": chk.z, "helps": chk.applies, "verdict": chk.reason,
+            "windows": chk.n_windows, "z": chk.z, "helps": chk.applies, "worse": chk.worse,
+            "verdict": chk.reason,
         }  # fmt: skip
 
 

@@ -10,12 +10,14 @@ deg, on the same samples and the same tilt:
 
 * the baseline: the field as logged (the autopilot's calibration applied; an onboard motor compensation, which
   the diagnosis reads out of the field, taken out), tilt-compensated (eq. (24));
-* the candidate: the field corrected by the model the diagnosis reports: the extended fit's calibration and
-  bias (eqs. (1)-(2), (11) and the named effects) where the compass is observable, else theta with the
-  autopilot's calibration as prior (the field minus theta throttle^2).
+* the candidate: the same field with the motor term the diagnosis reports removed, ``theta throttle^2``
+  (eq. (11); the extended fit's theta where the compass is observable, else theta with the autopilot's
+  calibration as prior): what the compensation parameters it writes (ArduPilot COMPASS_MOT*, PX4
+  CAL_MAGn_xCOMP) do on top of the autopilot's own calibration.
 
 So that the parameters the diagnosis suggests are judged on the data in hand, as the replay judges its own
-correction. Pure: arrays in, a verdict out; no I/O.
+correction; ``diagnose --params-out`` leaves out a compass whose theta makes the heading worse. Pure:
+arrays in, a verdict out; no I/O.
 """
 
 from __future__ import annotations
@@ -27,8 +29,15 @@ from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import LogData
 from magcomp.diagnosis.export import CompassDiagnosis
-from magcomp.diagnosis.heading import compass_yaw_rad
 from magcomp.diagnosis.model import F64
+from magcomp.diagnosis.yaw_follow import yaw_follow_gain
+
+#: the autopilot's yaw is no second reference where it follows the compass it fuses this fast or faster
+#: (1/s): within the check's own window (WINDOW_S) it then carries that compass's throttle-driven error (a
+#: complementary filter's ~0.5 /s), and the other compasses' errors follow the same throttle; a real EKF's
+#: pull of 0.01-0.05 /s leaves it an independent reference over the window (diagnosis's yaw-follow note
+#: measures the rate)
+CIRCULAR_FOLLOW_PER_S = 1.0 / selfcheck.WINDOW_S
 
 
 def _reference(log: LogData, t_s: F64) -> tuple[F64, F64, bool] | None:
@@ -47,24 +56,23 @@ def _reference(log: LogData, t_s: F64) -> tuple[F64, F64, bool] | None:
     return np.interp(t_s, att.t_s, yaw), np.zeros(t_s.shape[0]), False
 
 
-def heading_check(c: CompassDiagnosis, log: LogData) -> selfcheck.SelfCheck | None:
-    """The self-check of the heading corrected by ``c``'s model against the field as logged (module doc);
-    None where there is nothing to judge (no attitude, no model with theta, the motors never running)."""
+def heading_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.SelfCheck | None:
+    """The self-check of the heading with ``c``'s theta removed against the field as logged (module doc);
+    ``primary``: the compass the autopilot fuses (whose pull on its yaw decides whether that yaw is a second
+    reference). None where there is nothing to judge (no attitude, no theta, the motors never running)."""
     data = c.data
     if c.observable:
-        cand = compass_yaw_rad(data, c.extended)
+        theta = c.extended.theta_mgauss
     elif c.prior_theta is not None:
-        thr2 = data.throttle_01**2
-        m = data.field_mgauss - np.outer(thr2, c.prior_theta.theta_mgauss)
-        roll, pitch, _ = euler_from_dcms(data.r_nb).T
-        trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
-        cand = np.radians(heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], *trig))
+        theta = c.prior_theta.theta_mgauss
     else:
         return None
     roll, pitch, _ = euler_from_dcms(data.r_nb).T
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
     y = data.field_mgauss
-    base = np.radians(heading_from_trig_deg(y[:, 0], y[:, 1], y[:, 2], *trig))
+    m = y - np.outer(data.throttle_01**2, theta)  # eq. (11)
+    base = np.radians(heading_from_trig_deg(y[:, 0], y[:, 1], y[:, 2], *trig))  # eq. (24)
+    cand = np.radians(heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], *trig))
     ref = _reference(log, data.t_s)
     if ref is None:
         return None
@@ -77,4 +85,18 @@ def heading_check(c: CompassDiagnosis, log: LogData) -> selfcheck.SelfCheck | No
     att = log.attitude_rad
     ap_yaw = np.interp(t, att.t_s, np.unwrap(att.values[:, 2]))
     ids = selfcheck.window_ids(t, seg[keep])
-    return selfcheck.compare(base[keep], cand[keep], ref_yaw[keep], ids, ap_yaw)
+    follows = _follow_rate_per_s(log, primary, t) if primary in log.mag else float("nan")
+    second = ap_yaw if not follows >= CIRCULAR_FOLLOW_PER_S else None  # NaN (not measured): kept
+    return selfcheck.compare(base[keep], cand[keep], ref_yaw[keep], ids, second)
+
+
+def _follow_rate_per_s(log: LogData, index: int, t_s: F64) -> float:
+    """How fast the autopilot's yaw follows compass ``index`` over the judged samples' span (1/s; NaN where
+    it cannot be measured)."""
+    mag, att = log.mag[index], log.attitude_rad
+    try:
+        fit = yaw_follow_gain(att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
+                              t_start_s=float(t_s[0]), t_end_s=float(t_s[-1]))  # fmt: skip
+    except (np.linalg.LinAlgError, ValueError):
+        return float("nan")
+    return float("nan") if fit is None else float(fit.gain_per_s)

@@ -36,12 +36,14 @@ class LogDiagnosis:
 
 def diagnose_columns(path: str, config: str | None) -> LogDiagnosis:
     """The diagnosis of one log as row columns (raises what diagnose raises: the caller makes it a reason)."""
-    from magcomp.commands.diagnose import diagnose_file
+    from magcomp.commands.diagnose import add_heading_checks, diagnose_file
 
     d, log = diagnose_file(path, config=config)
     out = LogDiagnosis()
     _excitation(out, log)
-    for c in d.to_json()["compasses"]:
+    j = d.to_json()
+    add_heading_checks(j, d, log)
+    for c in j["compasses"]:
         out.columns[int(c["index"])] = compass_columns(c)
     return out
 
@@ -83,6 +85,8 @@ def compass_columns(c: dict[str, Any]) -> dict[str, Any]:
     hw = hw or [None] * 3
     findings = c.get("findings") or []
     params = c.get("autopilot") or {}
+    if (c.get("heading_vs_gyro") or {}).get("worse"):
+        params = {}  # its theta makes the heading worse against the gyro: diagnose writes none for it
     return {
         "diagnose_status": "ok",
         "diagnose_observable": bool(c.get("observable")),

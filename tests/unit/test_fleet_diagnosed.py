@@ -53,3 +53,23 @@ def test_theta_from_the_free_fit_the_prior_or_none() -> None:
     assert json.loads(c["diagnose_params_json"]) == {"ardupilot": {"COMPASS_MOT_X": 1.0}}
     none = compass_columns({"observable": False, "unobservable_why": "the throttle spans only 0.00"})
     assert none["diagnose_theta_x_mgauss"] is None and none["diagnose_theta_identifiable"] is None
+
+
+def test_no_parameters_for_a_theta_that_does_not_help_the_heading() -> None:
+    """A compass whose theta the self-check against the gyro finds makes the heading worse
+    (diagnosis/gyro_check.py) gets no compensation parameters in its row, as ``diagnose --params-out`` writes
+    none for it; one it helps, with no clear gain, or not judged keeps them. With its primary left out the
+    set follows the next compass's type."""
+    from magcomp.adapters.param_files import compensation_params
+
+    sugg = {"ardupilot": {"COMPASS_MOT2_X": 1.0, "COMPASS_MOTCT": 1.0}}
+    base = {"observable": True, "theta": [1.0, 2.0, 3.0], "findings": [], "autopilot": sugg}
+    cases = ((None, True), ({"helps": True, "worse": False}, True), ({"helps": False, "worse": False}, True),
+             ({"helps": False, "worse": True}, False))  # fmt: skip
+    for check, kept in cases:
+        c = compass_columns({**base, "heading_vs_gyro": check})
+        assert (c["diagnose_params_json"] is not None) == kept, check
+    values, notes = compensation_params([(1, sugg)], 0, 3)
+    assert values == {"COMPASS_MOT2_X": 1.0, "COMPASS_MOTCT": 1.0}
+    assert "follows compass 1" in notes[0]
+    assert compensation_params([], 0, 3) == ({}, ["no compensation parameters: no compass has any"])
