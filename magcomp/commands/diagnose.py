@@ -348,8 +348,7 @@ def _summary(j: dict[str, Any]) -> list[str]:
     for c in j["compasses"]:
         h = c.get("heading_vs_gyro")
         if h:
-            verdict = "helps" if h["helps"] else f"makes it worse: {h['verdict']}" if h["worse"] else (
-                f"no clear gain: {h['verdict']}")
+            verdict = "helps" if h["helps"] else f"{h['result']}: {h['verdict']}"
             lines.append(
                 f"compass {c['index']}: heading vs gyro, the field as logged -> with this theta removed: "
                 f"{h['baseline_gyro_deg']:.1f} -> {h['model_gyro_deg']:.1f} deg over {h['windows']} windows "
@@ -530,17 +529,21 @@ def note_skipped(d: Any, log: Any) -> dict[str, int]:
 
 
 def add_heading_checks(j: dict[str, Any], d: Any, log: Any) -> None:
-    """Per compass of the JSON ``j``: the self-check against the gyro of the heading the diagnosis's model
-    gives (diagnosis/gyro_check.py) as ``heading_vs_gyro`` (null where there is nothing to judge)."""
-    from magcomp.diagnosis.gyro_check import heading_check
+    """Per compass of the JSON ``j``: the self-check against the gyro of the heading with the diagnosis's
+    theta removed (diagnosis/gyro_check.py) as ``heading_vs_gyro`` (null where there is nothing to judge)."""
+    from magcomp.diagnosis.gyro_check import heading_check, verdict
 
     for cj, c in zip(j["compasses"], d.compasses, strict=True):
         chk = heading_check(c, log, d.primary)
-        cj["heading_vs_gyro"] = None if chk is None else {
+        if chk is None:
+            cj["heading_vs_gyro"] = None
+            continue
+        what, why = verdict(chk)
+        cj["heading_vs_gyro"] = {
             "baseline_gyro_deg": chk.baseline_gyro_deg, "model_gyro_deg": chk.candidate_gyro_deg,
             "baseline_att_deg": chk.baseline_att_deg, "model_att_deg": chk.candidate_att_deg,
-            "windows": chk.n_windows, "z": chk.z, "helps": chk.applies, "worse": chk.worse,
-            "verdict": chk.reason,
+            "windows": chk.n_windows, "z": chk.z, "helps": what == "helps", "worse": chk.worse,
+            "result": what, "verdict": why,
         }  # fmt: skip
 
 

@@ -38,6 +38,20 @@ from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 #: pull of 0.01-0.05 /s leaves it an independent reference over the window (diagnosis's yaw-follow note
 #: measures the rate)
 CIRCULAR_FOLLOW_PER_S = 1.0 / selfcheck.WINDOW_S
+#: "helps" also asks for a gain a pilot sees: the rms against the gyro down to this fraction or below (the
+#: real-flight benchmark's "better": down 10 % or more); a gain beyond the noise but smaller is no clear gain
+MATERIAL_GAIN = 0.9
+
+
+def verdict(chk: selfcheck.SelfCheck) -> tuple[str, str]:
+    """("helps" | "no clear gain" | "makes it worse", why) of a check."""
+    if chk.worse:
+        return "makes it worse", chk.reason
+    if chk.applies and chk.candidate_gyro_deg <= MATERIAL_GAIN * chk.baseline_gyro_deg:
+        return "helps", chk.reason
+    if chk.applies:
+        return "no clear gain", f"better beyond the noise but by less than {100 * (1 - MATERIAL_GAIN):.0f} %"
+    return "no clear gain", chk.reason
 
 
 def _reference(log: LogData, t_s: F64) -> tuple[F64, F64, bool] | None:
