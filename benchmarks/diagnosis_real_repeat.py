@@ -20,6 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI: before numpy l
 import argparse
 import itertools
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -46,25 +47,139 @@ VEHICLES: dict[str, list[str]] = {
 }
 
 
-def thetas(path: str) -> dict[int, tuple[list[float], list[float], str] | None]:
-    """Per compass index: (theta, 95 % half-width, where it came from), or None where diagnose gives none."""
+@dataclass(frozen=True)
+class CompassTheta:
+    """One compass of one flight: its slot, the sensor in it (device id, None: the log does not say), theta,
+    its 95 % half-width, where it came from, and whether diagnose calls it identifiable."""
+
+    index: int
+    sensor: int | None
+    sensor_text: str
+    theta: list[float]
+    halfwidth: list[float]
+    source: str
+    identifiable: bool
+
+
+@dataclass(frozen=True)
+class OperatingPoint:
+    """How the flight loaded the powertrain (throttle above 5 %): throttle 5-50-95th percentiles, the mean
+    battery current (A) and voltage (V) when logged, the current's slope against throttle^2 (A at full
+    throttle^2: what a theta per throttle^2 scales with), and the flying time (s)."""
+
+    throttle: tuple[float, float, float]
+    current_a: float | None
+    voltage_v: float | None
+    current_per_throttle2_a: float | None
+    flying_s: float
+
+    def text(self) -> str:
+        t = self.throttle
+        out = f"throttle {t[0]:.2f}-{t[2]:.2f} (median {t[1]:.2f}) over {self.flying_s:.0f} s"
+        if self.current_a is not None:
+            out += f", {self.current_a:.1f} A"
+        if self.current_per_throttle2_a is not None:
+            out += f" ({self.current_per_throttle2_a:.0f} A per throttle^2)"
+        if self.voltage_v is not None:
+            out += f" at {self.voltage_v:.1f} V"
+        return out
+
+
+def operating_point(log: Any) -> OperatingPoint | None:
+    """The flight's :class:`OperatingPoint` from its LogData (None: no flying throttle)."""
+    import numpy as np
+
+    thr = log.throttle_01
+    if len(thr) < 2:
+        return None
+    fly = thr.values > 0.05
+    if int(np.sum(fly)) < 2:
+        return None
+    tf = thr.values[fly]
+    dt = np.diff(thr.t_s, append=thr.t_s[-1])
+    p5, p50, p95 = (float(v) for v in np.percentile(tf, [5, 50, 95]))
+
+    def mean_over_flying(s: Any) -> tuple[float | None, Any]:
+        if len(s) < 2:
+            return None, None
+        at = np.interp(s.t_s, thr.t_s, thr.values)
+        ok = (at > 0.05) & np.isfinite(s.values)
+        return (float(np.mean(s.values[ok])), (at[ok], s.values[ok])) if np.sum(ok) >= 10 else (None, None)
+
+    current, pairs = mean_over_flying(log.current_a)
+    slope = None
+    if pairs is not None and float(np.ptp(pairs[0] ** 2)) > 0.0:
+        slope = float(np.polyfit(pairs[0] ** 2, pairs[1], 1)[0])
+    voltage, _ = mean_over_flying(log.voltage_v)
+    return OperatingPoint((p5, p50, p95), current, voltage, slope, float(np.sum(dt[fly])))
+
+
+def thetas(path: str) -> tuple[list[CompassTheta], OperatingPoint | None]:
+    """Per compass its :class:`CompassTheta` (theta None: diagnose gives none), and the flight's operating
+    point."""
     from magcomp.commands.diagnose import diagnose_file
 
-    d, _ = diagnose_file(path)
-    out: dict[int, tuple[list[float], list[float], str] | None] = {}
+    d, log = diagnose_file(path)
+    out: list[CompassTheta] = []
     for c in d.to_json()["compasses"]:
+        sensor = c.get("sensor") or {}
+        dev, text = sensor.get("device_id"), sensor.get("text", "sensor not named in the log")
         prior = c.get("theta_given_prior")
         if c["observable"] and c.get("theta"):
-            out[int(c["index"])] = (c["theta"], c["theta_ci95_halfwidth"], "free fit")
+            th, hw, src = c["theta"], c["theta_ci95_halfwidth"], "free fit"
+            ident = c["gate"].get("theta_identifiable", True) is not False
         elif prior:
-            out[int(c["index"])] = (prior["theta"], prior["theta_ci95_halfwidth"], "prior")
+            th, hw, src, ident = prior["theta"], prior["theta_ci95_halfwidth"], "prior", prior["identifiable"]
         else:
-            out[int(c["index"])] = None
-    return out
+            th, hw, src, ident = [], [], "none", False
+        out.append(CompassTheta(int(c["index"]), dev, text, th, hw, src, ident))
+    return out, operating_point(log)
 
 
 def _v(x: list[float]) -> str:
     return "(" + ", ".join(f"{v:.0f}" for v in x) + ")"
+
+
+def _name(f: str) -> str:
+    return f.rsplit("-", 1)[-1] if "flugdrohne" not in f else f.split("-")[1]
+
+
+Row = tuple[str, CompassTheta]
+
+
+def pair_up(rows: list[Row]) -> tuple[dict[str, list[Row]], list[str]]:
+    """Group one vehicle's compasses by sensor: by device id where the log names it, else by slot index
+    (marked "slot N"). Returns the groups and one line per slot whose sensor changed between flights (those
+    are not repeats and are not paired)."""
+    groups: dict[str, list[Row]] = {}
+    notes: list[str] = []
+    by_slot: dict[int, list[Row]] = {}
+    for name, c in rows:
+        by_slot.setdefault(c.index, []).append((name, c))
+        key = f"sensor {c.sensor}" if c.sensor is not None else f"slot {c.index}"
+        groups.setdefault(key, []).append((name, c))
+    for idx, slot in sorted(by_slot.items()):
+        ids = {c.sensor for _, c in slot if c.sensor is not None}
+        if len(ids) > 1:
+            who = ", ".join(f"{n}: {c.sensor}" for n, c in slot if c.sensor is not None)
+            notes.append(
+                f"compass slot {idx} holds different sensors in different flights ({who}): paired by device "
+                "id, not by slot (a pair of different sensors is not a repeat and is not counted)"
+            )
+    # a slot whose sensor is unnamed in one flight joins the named group of that slot when the vehicle's other
+    # flights agree on one sensor there
+    for key in [k for k in groups if k.startswith("slot ")]:
+        idx = int(key.split()[1])
+        ids = {c.sensor for _, c in by_slot[idx] if c.sensor is not None}
+        if len(ids) == 1:
+            target = f"sensor {next(iter(ids))}"
+            for name, c in groups.pop(key):
+                notes.append(
+                    f"{name} compass {idx}: the log does not name its sensor; paired by slot with {target} "
+                    "(the sensor the vehicle's other flights have in that slot)"
+                )
+                groups[target].append((name, c))
+    return groups, notes
 
 
 def main() -> int:
@@ -82,27 +197,47 @@ def main() -> int:
     from multiprocessing import Pool
 
     with Pool(args.workers) as pool:
-        results: dict[str, Any] = dict(
-            zip(files, pool.map(thetas, [str(folder / f) for f in files]), strict=True)
-        )
+        results = dict(zip(files, pool.map(thetas, [str(folder / f) for f in files]), strict=True))
     total = agree = 0
     for vehicle, logs in VEHICLES.items():
         print(f"{vehicle}:")
-        per: dict[int, list[tuple[str, list[float], list[float]]]] = {}
+        rows: list[Row] = []
+        ops: dict[str, OperatingPoint | None] = {}
         for f in logs:
-            for idx, th in sorted(results.get(f, {}).items()):
-                name = f.rsplit("-", 1)[-1] if "flugdrohne" not in f else f.split("-")[1]
-                if th is None:
-                    print(f"  {name} compass {idx}: no theta (the throttle does not vary enough)")
+            if f not in results:
+                continue
+            comps, op = results[f]
+            name = _name(f)
+            ops[name] = op
+            print(f"  {name}: {op.text() if op else 'no flying throttle'}")
+            for c in comps:
+                if not c.theta:
+                    print(
+                        f"    compass {c.index} [{c.sensor_text}]: no theta (the throttle varies too little)"
+                    )
                     continue
-                print(f"  {name} compass {idx}: theta {_v(th[0])} +- {_v(th[1])} mgauss ({th[2]})")
-                per.setdefault(idx, []).append((name, th[0], th[1]))
-        for idx, rows in sorted(per.items()):
-            for (na, a, ha), (nb, b, hb) in itertools.combinations(rows, 2):
-                ok = all(abs(x - y) <= wx + wy for x, y, wx, wy in zip(a, b, ha, hb, strict=True))
+                flag = "" if c.identifiable else ", flagged not identifiable"
+                print(
+                    f"    compass {c.index} [{c.sensor_text}]: theta {_v(c.theta)} +- {_v(c.halfwidth)} "
+                    f"mgauss ({c.source}{flag})"
+                )
+                rows.append((name, c))
+        groups, notes = pair_up(rows)
+        for note in notes:
+            print(f"  note: {note}")
+        for key, members in groups.items():
+            for (na, a), (nb, b) in itertools.combinations(members, 2):
+                gap = [
+                    abs(x - y) / max(wx + wy, 1e-9)
+                    for x, y, wx, wy in zip(a.theta, b.theta, a.halfwidth, b.halfwidth, strict=True)
+                ]
+                ok = max(gap) <= 1.0
                 total += 1
                 agree += ok
-                print(f"    compass {idx}: {na} vs {nb}: {'overlap' if ok else 'DISJOINT'}")
+                line = f"    {key}: {na} c{a.index} vs {nb} c{b.index}: {'overlap' if ok else 'DISJOINT'}"
+                if not ok:
+                    line += f" (largest gap {max(gap):.1f}x the summed half-widths)"
+                print(line)
     print(f"pairs of flights whose theta intervals overlap on all three axes: {agree}/{total}")
     return 0
 
