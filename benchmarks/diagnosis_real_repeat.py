@@ -147,41 +147,6 @@ def _name(f: str) -> str:
 Row = tuple[str, CompassTheta]
 
 
-def pair_up(rows: list[Row]) -> tuple[dict[str, list[Row]], list[str]]:
-    """Group one vehicle's compasses by sensor: by device id where the log names it, else by slot index
-    (marked "slot N"). Returns the groups and one line per slot whose sensor changed between flights (those
-    are not repeats and are not paired)."""
-    groups: dict[str, list[Row]] = {}
-    notes: list[str] = []
-    by_slot: dict[int, list[Row]] = {}
-    for name, c in rows:
-        by_slot.setdefault(c.index, []).append((name, c))
-        key = f"sensor {c.sensor}" if c.sensor is not None else f"slot {c.index}"
-        groups.setdefault(key, []).append((name, c))
-    for idx, slot in sorted(by_slot.items()):
-        ids = {c.sensor for _, c in slot if c.sensor is not None}
-        if len(ids) > 1:
-            who = ", ".join(f"{n}: {c.sensor}" for n, c in slot if c.sensor is not None)
-            notes.append(
-                f"compass slot {idx} holds different sensors in different flights ({who}): paired by device "
-                "id, not by slot (a pair of different sensors is not a repeat and is not counted)"
-            )
-    # a slot whose sensor is unnamed in one flight joins the named group of that slot when the vehicle's other
-    # flights agree on one sensor there
-    for key in [k for k in groups if k.startswith("slot ")]:
-        idx = int(key.split()[1])
-        ids = {c.sensor for _, c in by_slot[idx] if c.sensor is not None}
-        if len(ids) == 1:
-            target = f"sensor {next(iter(ids))}"
-            for name, c in groups.pop(key):
-                notes.append(
-                    f"{name} compass {idx}: the log does not name its sensor; paired by slot with {target} "
-                    "(the sensor the vehicle's other flights have in that slot)"
-                )
-                groups[target].append((name, c))
-    return groups, notes
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", nargs="?", default="/work/corpus")
@@ -222,10 +187,13 @@ def main() -> int:
                     f"mgauss ({c.source}{flag})"
                 )
                 rows.append((name, c))
-        groups, notes = pair_up(rows)
+        from magcomp.diagnosis.identity import group_by_sensor
+
+        groups, notes = group_by_sensor([(name, c.index, c.sensor) for name, c in rows])
         for note in notes:
             print(f"  note: {note}")
-        for key, members in groups.items():
+        for key, positions in groups.items():
+            members = [rows[i] for i in positions]
             for (na, a), (nb, b) in itertools.combinations(members, 2):
                 gap = [
                     abs(x - y) / max(wx + wy, 1e-9)

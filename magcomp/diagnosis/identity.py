@@ -74,3 +74,38 @@ def _device_id(value: float) -> int | None:
     """A device id parameter (an int32 holding a uint32) as the unsigned id; None for 0 (no sensor)."""
     dev = int(value) & 0xFFFFFFFF
     return dev if dev > 0 else None
+
+
+def group_by_sensor(entries: list[tuple[str, int, int | None]]) -> tuple[dict[str, list[int]], list[str]]:
+    """Group compasses of several flights of one vehicle by the sensor they are.
+
+    ``entries``: per compass (flight name, slot index, device id or None). Returns groups (``"sensor ID"`` or,
+    where no flight names the sensor in that slot, ``"slot N"``) of positions in ``entries``, and one line per
+    decision the grouping made that a reader should know of: a slot that holds different sensors in different
+    flights (those are not paired: a pair of two sensors is not a repeat), and a compass whose flight does not
+    name its sensor, paired by slot with the one sensor the vehicle's other flights have there (an
+    assumption: said, not hidden)."""
+    groups: dict[str, list[int]] = {}
+    notes: list[str] = []
+    slot_ids: dict[int, list[tuple[str, int]]] = {}
+    for name, slot, dev in entries:
+        if dev is not None:
+            slot_ids.setdefault(slot, []).append((name, dev))
+    for slot, named in sorted(slot_ids.items()):
+        if len({dev for _, dev in named}) > 1:
+            who = ", ".join(f"{name}: {dev}" for name, dev in named)
+            notes.append(
+                f"compass slot {slot} holds different sensors in different flights ({who}): paired by device "
+                "id, not by slot (a pair of two sensors is not a repeat and is not compared)"
+            )
+    for pos, (name, slot, dev) in enumerate(entries):
+        if dev is None:
+            ids = {d for _, d in slot_ids.get(slot, [])}
+            if len(ids) == 1:
+                dev = next(iter(ids))
+                notes.append(
+                    f"{name} compass {slot}: the log does not name its sensor; paired by slot with sensor "
+                    f"{dev} (the one the vehicle's other flights have in that slot)"
+                )
+        groups.setdefault(f"slot {slot}" if dev is None else f"sensor {dev}", []).append(pos)
+    return groups, notes
