@@ -11,6 +11,9 @@ and driver type packed in one integer, the same layout in ArduPilot's ``AP_HAL::
   ``COMPASS_EXTERNAL``, ``COMPASS_EXTERN2``, ``COMPASS_EXTERN3``;
 - PX4: ``CAL_MAGn_ID`` of slot n (the ulog reader puts a ``sensor_mag`` instance in the slot whose
   ``CAL_MAGn_ID`` is its ``device_id``); external when ``CAL_MAGn_ROT`` >= 0 (an internal compass has -1).
+  A sensor the autopilot has not calibrated keeps its instance number as slot, and that slot's
+  ``CAL_MAGn_ID`` may then name another sensor: the log's ``device_id`` is not carried into
+  :class:`~magcomp.core.types.LogData`, so this case is not told apart here.
 
 A telemetry log carries them only when the ground station fetched the parameters. Pure, no I/O.
 """
