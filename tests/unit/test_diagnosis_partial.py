@@ -161,10 +161,12 @@ def test_two_hovers_of_one_vehicle_with_coloured_noise_repeat() -> None:
 
 
 def test_diagnose_json_names_each_compass_sensor() -> None:
-    """The compass's sensor (device id, external flag) from the log's parameters, in the JSON: what a
-    comparison between flights pairs on (tests/unit/test_diagnosis_identity.py)."""
+    """The compass's sensor (device id, external flag) from the log's parameters, in the JSON and the report:
+    what a comparison between flights pairs on (tests/unit/test_diagnosis_identity.py)."""
     params = {"COMPASS_DEV_ID": 131594.0, "COMPASS_DEV_ID2": 0.0, "COMPASS_EXTERNAL": 0.0}
-    c = diagnose(replace(hover_log(7), params=params), earth=EARTH).to_json()["compasses"][0]
+    d = diagnose(replace(hover_log(7), params=params), earth=EARTH)
+    c = d.to_json()["compasses"][0]
     assert c["sensor"]["device_id"] == 131594 and c["sensor"]["external"] is False
     assert c["sensor"]["from"] == "COMPASS_DEV_ID" and "SPI bus 1" in c["sensor"]["text"]
+    assert "Sensor: device id 131594 (SPI bus 1, address 0x02), internal (COMPASS_DEV_ID)." in markdown(d)
     assert diagnose(hover_log(7), earth=EARTH).to_json()["compasses"][0]["sensor"]["device_id"] is None
