@@ -47,8 +47,10 @@ class SensorIdentity:
         if self.device_id is None:
             return "sensor not named in the log"
         d = self.device_id
-        bus = BUS_TYPES.get(d & 0x7, f"bus type {d & 0x7}")
-        text = f"device id {d} ({bus} bus {(d >> 3) & 0x1F}, address 0x{(d >> 8) & 0xFF:02x})"
+        bus = BUS_TYPES.get(d & 0x7)
+        text = f"device id {d}"
+        if bus is not None:  # the packed layout (older PX4 ids, e.g. 262144, use another one)
+            text += f" ({bus} bus {(d >> 3) & 0x1F}, address 0x{(d >> 8) & 0xFF:02x})"
         if self.external is not None:
             text += ", external" if self.external else ", internal"
         return text

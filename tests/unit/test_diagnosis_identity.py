@@ -33,6 +33,8 @@ def test_px4_slots_name_their_sensor() -> None:
     s0, s1 = sensor_identity(params, 0), sensor_identity(params, 1)
     assert (s0.device_id, s0.external, s0.source) == (396321, False, "CAL_MAG0_ID")
     assert (s1.device_id, s1.external) == (2**32 - 5, True)  # an int32 parameter holding a uint32 id
+    # an id outside the packed bus layout (pyulog's sample log) is named as it is
+    assert sensor_identity({"CAL_MAG0_ID": 262144.0}, 0).describe() == "device id 262144"
 
 
 def test_flights_are_paired_by_sensor_not_by_slot() -> None:
