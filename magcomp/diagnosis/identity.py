@@ -15,7 +15,10 @@ and driver type packed in one integer, the same layout in ArduPilot's ``AP_HAL::
   ``CAL_MAGn_ID`` may then name another sensor: the log's ``device_id`` is not carried into
   :class:`~magcomp.core.types.LogData`, so this case is not told apart here.
 
-A telemetry log carries them only when the ground station fetched the parameters. Pure, no I/O.
+A device id names where a sensor sits and which driver reads it, not a serial number: two Pixhawks with a
+3DR GPS share 73225 (HMC5883 on I2C) and 131594 (the board's LSM303D), so it tells sensors apart within one
+vehicle only. A telemetry log carries the ids only when the ground station fetched the parameters. Pure, no
+I/O.
 """
 
 from __future__ import annotations
