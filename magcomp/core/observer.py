@@ -105,6 +105,9 @@ StepStatus = Literal["ok", "init", "dt_out_of_range", "non_finite"]
 Bool3 = tuple[bool, bool, bool]
 
 NO_THROTTLE_D2 = 1e-4  # delta^2 below this (delta < 1 %): theta has no effect on v
+#: an interval longer than this many of the stream's usual intervals has at least one sample missing in it
+#: (one missing sample doubles the interval; the margin takes timestamp jitter up to half an interval)
+MISSING_SAMPLE_INTERVALS = 1.5
 _NAN3: Vec3 = (math.nan, math.nan, math.nan)
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 #: builds a named tuple from its fields in order without the generated Python ``__new__`` (0.2-0.8 us a
@@ -442,6 +445,21 @@ def excitation_from_rates(
     sq = np.einsum("ni,ni->n", w, w)
     g = np.einsum("n,nij->ij", d2**2, sq[:, None, None] * np.eye(3) - w[:, :, None] * w[:, None, :])
     return excitation(g / max(w.shape[0], 1), min_info_rad2_s2)
+
+
+def samples_missing(dt_s: float, dt_usual_s: float | None) -> bool:
+    """True when an interval of ``dt_s`` (s) skips at least one sample of a stream whose usual interval,
+    measured from its own timestamps, is ``dt_usual_s`` (s; None: not measured yet).
+
+    Not in the paper. The step's rotation ``dR_k`` (:func:`rotation_increment`) interpolates the gyro
+    samples at the two ends of the step (and the one before); over an interval with samples missing in
+    it the rotation is not known to the accuracy the regression differences (an error ``e`` rad on the
+    ~500 mgauss Earth field is ``500 e`` mgauss of ``y_k``, against a theta signal of
+    ``delta^2 |omega| dt |theta|``, a few mgauss a step in a spin), and that step weighs ``~n^2`` times
+    a regular one in the regression. The observer re-anchors after such an interval instead
+    (:func:`observer_reset`): no step is formed across missing samples.
+    """
+    return dt_usual_s is not None and dt_s > MISSING_SAMPLE_INTERVALS * dt_usual_s
 
 
 # --- discrete step: named pieces ------------------------------------------------------------------------

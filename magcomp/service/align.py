@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcomp.adapters.config import Config
+from magcomp.core.observer import samples_missing
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_NO_THROTTLE, LogData, MagSample, Series, ThrottleSample
 from magcomp.service.record import Float3, MagRecord
 
@@ -216,8 +217,9 @@ class AlignStage:
                 self.counts["gaps"] += 1
                 reset = obs_reset = True
             else:
+                # samples missing in the interval: the observer steps only between consecutive samples
+                obs_reset = dt < self._dt_min or dt > self._dt_max or samples_missing(dt, nominal)
                 clock.dt_nominal = dt if nominal is None else nominal + 0.05 * (dt - nominal)
-                obs_reset = dt < self._dt_min or dt > self._dt_max
         thr, thr_t = self.throttle.value, self.throttle.t
         flags = 0
         if thr_t is None:
