@@ -149,6 +149,8 @@ class ThetaStage:
             rec.flags |= FLAG_OBSERVER_RESET
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
             tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
+        elif self._learn:  # a sample the observer cannot take: no step across it (observer.samples_missing)
+            tr.queue_reset(rec.t_s)
         self.drain(c, rec.t_s)
         if not self._outputs:  # a learn-only pass: theta-hat is read at its end
             return _ZERO3
