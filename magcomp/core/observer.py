@@ -457,7 +457,7 @@ def samples_missing(dt_s: float, dt_usual_s: float | None) -> bool:
     ~500 mgauss Earth field is ``500 e`` mgauss of ``y_k``, against a theta signal of
     ``delta^2 |omega| dt |theta|``, a few mgauss a step in a spin), and that step weighs ``~n^2`` times
     a regular one in the regression. The observer re-anchors after such an interval instead
-    (:func:`observer_reset`): no step is formed across missing samples.
+    (:func:`observer_skip`): no step is formed across missing samples.
     """
     return dt_usual_s is not None and dt_s > MISSING_SAMPLE_INTERVALS * dt_usual_s
 
@@ -494,11 +494,27 @@ def observer_reset(state: ObserverState, p: ObserverParams, keep_theta: bool = T
     return state._replace(initialized=False, lp=None, dt_prev_s=math.nan)
 
 
+def observer_skip(state: ObserverState) -> ObserverState:
+    """Samples missing before the next one (:func:`samples_missing`): the next sample re-anchors the step
+    (no regression sample across the interval), theta, J and the excitation kept as by
+    :func:`observer_reset`, and the sec. II-D low-pass on the regression keeps its memory.
+
+    Not in the paper. That low-pass filters ``y`` and every column of ``Phi`` alike, so ``y_f = Phi_f theta``
+    holds for any sequence of regression samples, one left out included; restarting it instead starts it
+    at steady state on the first sample after the interval, which then weighs like several (in a spin at
+    full throttle, where one sample's noise is tens of mgauss of theta while J is still small, that moved
+    theta by up to 14 mgauss in the hostile corpus). The prefilters on the inputs ("field", "inputs")
+    filter signals in time and restart as after a reset.
+    """
+    return state._replace(initialized=False, dt_prev_s=math.nan)
+
+
 def _anchor(
     state: ObserverState, field_b: Vec3, omega_b: Vec3, d2: float, p: ObserverParams
 ) -> ObserverState:
-    """First sample after init or a reset: the model's previous sample; theta and J kept."""
-    lp = None
+    """First sample after init, a reset or a skip: the model's previous sample; theta and J kept, and the
+    regression low-pass's state as it is (None after init and a reset; kept by :func:`observer_skip`)."""
+    lp = state.lp if p.prefilter == "regression" else None
     if p.prefilter == "field":
         lp = lowpass_init(field_b)
     elif p.prefilter == "inputs":
@@ -700,7 +716,8 @@ def observer_step(
         return ObserverStep(state, _held_info(state, p, "non_finite", FLAG_INPUTS_STALE))
     d2 = (0.0 if delta < 0.0 else 1.0 if delta > 1.0 else delta) ** 2  # min(max(delta, 0), 1)^2
     if not (state.initialized and p.dt_min_s <= dt <= p.dt_max_s):
-        new = _anchor(state, v1, w1, d2, p)
+        # an interval out of range restarts the filters (the state after a skip or a reset is not initialised)
+        new = _anchor(state._replace(lp=None) if state.initialized else state, v1, w1, d2, p)
         status: StepStatus = "dt_out_of_range" if state.initialized else "init"
         return ObserverStep(new, _held_info(new, p, status, FLAG_OBSERVER_RESET))
     k = p.step_constants(dt)

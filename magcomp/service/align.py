@@ -207,6 +207,7 @@ class AlignStage:
         if self._first_mag_t is None or verdict == TIME_RESET:
             self._first_mag_t = t
         reset = obs_reset = verdict == TIME_RESET or prev_t is None  # filters restart
+        obs_skip = False
         if not reset:
             assert prev_t is not None
             dt = t - prev_t
@@ -217,8 +218,10 @@ class AlignStage:
                 self.counts["gaps"] += 1
                 reset = obs_reset = True
             else:
+                obs_reset = dt < self._dt_min or dt > self._dt_max
                 # samples missing in the interval: the observer steps only between consecutive samples
-                obs_reset = dt < self._dt_min or dt > self._dt_max or samples_missing(dt, nominal)
+                obs_skip = not obs_reset and samples_missing(dt, nominal)
+                obs_reset = obs_reset or obs_skip
                 clock.dt_nominal = dt if nominal is None else nominal + 0.05 * (dt - nominal)
         thr, thr_t = self.throttle.value, self.throttle.t
         flags = 0
@@ -229,7 +232,7 @@ class AlignStage:
         elif t - thr_t > self._stale_s:
             flags = FLAG_INPUTS_STALE
         return MagRecord(
-            s, t, s.mag_index, (vx, vy, vz), prev_t, reset, obs_reset, thr, thr_t is not None, flags
+            s, t, s.mag_index, (vx, vy, vz), prev_t, reset, obs_reset, thr, thr_t is not None, flags, obs_skip
         )
 
     def _no_throttle(self, t: float) -> None:

@@ -1,9 +1,10 @@
 """Issue 25: a few magnetometer samples missing in a fast spin cost theta nothing beyond their own data.
 
 The observer's discrete step (eqs. (16), (19)-(20)) differences two samples through the rotation between
-them; over an interval with samples missing in it that rotation is not known well enough, and before the
-observer re-anchored there (``core.observer.samples_missing``) nine missing samples of a damaged ULog
-moved a compass's theta by 25 % (hostile corpus cases 14 and 170, docs/benchmarks.md).
+them; over an interval with samples missing in it that rotation is not known well enough. Before the
+observer skipped such an interval (``core.observer.samples_missing``, ``observer_skip``: the step
+re-anchored, the regression low-pass kept) nine missing samples of a damaged ULog moved a compass's theta by
+25 % (hostile corpus cases 14 and 170, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -68,8 +69,9 @@ def _thetas(rep: ReplayReport) -> list[np.ndarray]:
 
 def test_missing_samples_in_a_spin_keep_theta_within_20_percent(spin_logs: dict[str, Path]) -> None:
     """Two-pass replay as the CLI runs it: the headings of the intact samples kept, theta of each compass
-    within 20 % (of at least 25 mgauss) of the undamaged log's; before the rule compass 0 was 16.7 mgauss
-    (25 %) off. The observer re-anchors once per run of missing samples and compass."""
+    within 20 % (of at least 25 mgauss) of the undamaged log's; stepping across the runs compass 0 was
+    16.7 mgauss (25 %) off, skipping them 1.1. The observer re-anchors once per run of missing samples and
+    compass."""
     clean = replay_log(spin_logs["clean"], Config(), two_pass=True)
     bad = replay_log(spin_logs["missing"], Config(), two_pass=True)
     assert bad.n_estimates == clean.n_estimates - 18
@@ -100,8 +102,8 @@ def _record(t: float, gyro_fresh: bool) -> MagRecord:
 
 
 def test_the_observer_does_not_step_across_a_sample_it_could_not_take() -> None:
-    """A sample without a fresh gyro is left out of the observer; the next one re-anchors it rather than
-    forming one step over two intervals (the same rule as a missing sample)."""
+    """A sample without a fresh gyro is left out of the observer; the next one re-anchors it (a skip, its
+    filters kept) rather than forming one step over two intervals (the same rule as a missing sample)."""
     cfg = Config()
     counts: Counter[str] = Counter()
     throttle = ThrottleTrack(cfg, counts)
@@ -115,3 +117,4 @@ def test_the_observer_does_not_step_across_a_sample_it_could_not_take() -> None:
         info = host.theta.last_info
         statuses.append(None if info is None else info.status)
     assert statuses == ["init", "ok", "ok", "ok", "init", "ok"], statuses
+    assert host.theta.est.state.lp is not None and counts["observer_resets"] == 0
