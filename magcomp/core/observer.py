@@ -51,7 +51,8 @@ Departures from the paper (all deliberate, all measured in tests/unit/test_obser
   field per step, are as large as the theta signal ``delta^2 |omega| dt |theta|`` and bias the result);
 * the rotation over a step integrates a quadratic through the last three gyro samples plus the
   two-sample coning term, not the gyro sample held constant;
-* excitation (Definition 1, eq. (21)) is monitored online and theta is held on unexcited axes.
+* excitation (Definition 1, eq. (21)) is monitored online and theta is held on unexcited axes;
+* no step across samples missing (:func:`samples_missing`): :func:`observer_skip` re-anchors the next step.
 """
 
 from __future__ import annotations

@@ -439,9 +439,9 @@ def _theta_with_samples_missing(sc: dict[str, np.ndarray], missing: set[int], ho
 
 def test_missing_samples_skipped_cost_theta_nothing_beyond_their_own_data() -> None:
     """Five runs of three missing samples (50 Hz, 3 mgauss noise, the hand rotation at full throttle):
-    a step across each run moves theta 1-3 mgauss from the undamaged run's (its rotation interpolated over
-    4 intervals); a reset before the next sample 0.2-0.6 (the regression low-pass restarts at steady state
-    on one noisy sample); a skip (the step re-anchored, the low-pass kept) about a tenth of that."""
+    a step across each run moves theta 1.0-2.2 mgauss from the undamaged run's (its rotation interpolated
+    over 4 intervals); a reset before the next sample 0.2-0.6 (the regression low-pass restarts at steady
+    state on one noisy sample); a skip (the step re-anchored, the low-pass kept) 0.07-0.19."""
     errs: dict[str, list[float]] = {"across": [], "reset": [], "skip": []}
     for seed in range(4):
         sc = scenario(50.0, 40.0, THETA_SMALL, noise_mgauss=3.0, seed=seed)
