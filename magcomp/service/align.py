@@ -3,9 +3,10 @@
 Every ``dt`` comes from the messages' own timestamps (never arrival time). A sample that goes back in
 time a little is skipped; one that goes back by more than ``[input] time_reset_s`` is a clock reset
 (filters restart). A gap (an interval above GAP_FACTOR times the compass's usual one) restarts the filters
-too. The throttle is aligned two ways (see :mod:`magcomp.service.pipeline`): the latest one for the
-published heading, and the one interpolated at the sample's own time for the observer
-(:meth:`ThrottleTrack.at`).
+too; a shorter interval with samples missing in it (``core.observer.samples_missing``) only makes the observer
+skip it (``MagRecord.obs_skip``). The throttle is aligned two ways (see :mod:`magcomp.service.pipeline`):
+the latest one for the published heading, and the one interpolated at the sample's own time for the
+observer (:meth:`ThrottleTrack.at`).
 """
 
 from __future__ import annotations
