@@ -9,7 +9,10 @@ cases (``mild``), `replay` must also keep >= 90 % of the clean run's headings wi
 (of at least 25 mgauss) of the clean run's.
 
     .venv/bin/python benchmarks/hostile_corpus.py [--cases 200] [--seed 0] [--commands replay diagnose fit]
-        [--timeout 60] [--memory-mib 1024] [--keep DIR]
+        [--timeout 60] [--memory-mib 1024] [--keep DIR] [--only 10 14 170] [--mild-only]
+
+``--only`` runs just the listed cases and ``--mild-only`` just the mild ones (the damage of every case is
+still drawn in order, so case k is the same log whichever cases run).
 
 Prints one line per failing run and the counts: cases, runs, tracebacks, timeouts, over-memory, too many
 lines, mild cases below the headings or theta bar.
@@ -161,6 +164,8 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=60.0)
     ap.add_argument("--memory-mib", type=int, default=1024)
     ap.add_argument("--keep", type=Path, help="keep the corpus in this directory")
+    ap.add_argument("--only", type=int, nargs="+", metavar="CASE", help="run only these cases")
+    ap.add_argument("--mild-only", action="store_true", help="run only the mild cases")
     args = ap.parse_args()
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="magcomp-hostile-"))
@@ -175,6 +180,8 @@ def main() -> int:
     for k in range(args.cases):
         name, fmt, make, mild = cases[k % len(cases)]
         data = make()(clean[fmt].read_bytes(), rng)
+        if (args.only is not None and k not in args.only) or (args.mild_only and not mild):
+            continue
         log = work / f"case{k:04d}-{name}.{fmt}"
         log.write_bytes(data)
         tally["cases"] += 1
@@ -216,4 +223,3 @@ def main() -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
-

@@ -51,7 +51,8 @@ Departures from the paper (all deliberate, all measured in tests/unit/test_obser
   field per step, are as large as the theta signal ``delta^2 |omega| dt |theta|`` and bias the result);
 * the rotation over a step integrates a quadratic through the last three gyro samples plus the
   two-sample coning term, not the gyro sample held constant;
-* excitation (Definition 1, eq. (21)) is monitored online and theta is held on unexcited axes.
+* excitation (Definition 1, eq. (21)) is monitored online and theta is held on unexcited axes;
+* no step across samples missing (:func:`samples_missing`): :func:`observer_skip` re-anchors the next step.
 """
 
 from __future__ import annotations
@@ -105,6 +106,9 @@ StepStatus = Literal["ok", "init", "dt_out_of_range", "non_finite"]
 Bool3 = tuple[bool, bool, bool]
 
 NO_THROTTLE_D2 = 1e-4  # delta^2 below this (delta < 1 %): theta has no effect on v
+#: an interval longer than this many of the stream's usual intervals has at least one sample missing in it
+#: (one missing sample doubles the interval; the margin takes timestamp jitter up to half an interval)
+MISSING_SAMPLE_INTERVALS = 1.5
 _NAN3: Vec3 = (math.nan, math.nan, math.nan)
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 #: builds a named tuple from its fields in order without the generated Python ``__new__`` (0.2-0.8 us a
@@ -444,6 +448,21 @@ def excitation_from_rates(
     return excitation(g / max(w.shape[0], 1), min_info_rad2_s2)
 
 
+def samples_missing(dt_s: float, dt_usual_s: float | None) -> bool:
+    """True when an interval of ``dt_s`` (s) skips at least one sample of a stream whose usual interval,
+    measured from its own timestamps, is ``dt_usual_s`` (s; None: not measured yet).
+
+    Not in the paper. The step's rotation ``dR_k`` (:func:`rotation_increment`) interpolates the gyro
+    samples at the two ends of the step (and the one before); over an interval with samples missing in
+    it the rotation is not known to the accuracy the regression differences (an error ``e`` rad on the
+    ~500 mgauss Earth field is ``500 e`` mgauss of ``y_k``, against a theta signal of
+    ``delta^2 |omega| dt |theta|``, a few mgauss a step in a spin), and that step weighs ``~n^2`` times
+    a regular one in the regression. The observer re-anchors after such an interval instead
+    (:func:`observer_skip`): no step is formed across missing samples.
+    """
+    return dt_usual_s is not None and dt_s > MISSING_SAMPLE_INTERVALS * dt_usual_s
+
+
 # --- discrete step: named pieces ------------------------------------------------------------------------
 
 
@@ -476,11 +495,27 @@ def observer_reset(state: ObserverState, p: ObserverParams, keep_theta: bool = T
     return state._replace(initialized=False, lp=None, dt_prev_s=math.nan)
 
 
+def observer_skip(state: ObserverState) -> ObserverState:
+    """Samples missing before the next one (:func:`samples_missing`): the next sample re-anchors the step
+    (no regression sample across the interval), theta, J and the excitation kept as by
+    :func:`observer_reset`, and the sec. II-D low-pass on the regression keeps its memory.
+
+    Not in the paper. That low-pass filters ``y`` and every column of ``Phi`` alike, so ``y_f = Phi_f theta``
+    holds for any sequence of regression samples, one left out included; restarting it instead starts it
+    at steady state on the first sample after the interval, which then weighs like several (in a spin at
+    full throttle, where one sample's noise is tens of mgauss of theta while J is still small, that moved
+    theta by up to 14 mgauss in the hostile corpus). The prefilters on the inputs ("field", "inputs")
+    filter signals in time and restart as after a reset.
+    """
+    return state._replace(initialized=False, dt_prev_s=math.nan)
+
+
 def _anchor(
     state: ObserverState, field_b: Vec3, omega_b: Vec3, d2: float, p: ObserverParams
 ) -> ObserverState:
-    """First sample after init or a reset: the model's previous sample; theta and J kept."""
-    lp = None
+    """First sample after init, a reset or a skip: the model's previous sample; theta and J kept, and the
+    regression low-pass's state as it is (None after init and a reset; kept by :func:`observer_skip`)."""
+    lp = state.lp if p.prefilter == "regression" else None
     if p.prefilter == "field":
         lp = lowpass_init(field_b)
     elif p.prefilter == "inputs":
@@ -682,7 +717,8 @@ def observer_step(
         return ObserverStep(state, _held_info(state, p, "non_finite", FLAG_INPUTS_STALE))
     d2 = (0.0 if delta < 0.0 else 1.0 if delta > 1.0 else delta) ** 2  # min(max(delta, 0), 1)^2
     if not (state.initialized and p.dt_min_s <= dt <= p.dt_max_s):
-        new = _anchor(state, v1, w1, d2, p)
+        # an interval out of range restarts the filters (the state after a skip or a reset is not initialised)
+        new = _anchor(state._replace(lp=None) if state.initialized else state, v1, w1, d2, p)
         status: StepStatus = "dt_out_of_range" if state.initialized else "init"
         return ObserverStep(new, _held_info(new, p, status, FLAG_OBSERVER_RESET))
     k = p.step_constants(dt)

@@ -3,9 +3,10 @@
 Every ``dt`` comes from the messages' own timestamps (never arrival time). A sample that goes back in
 time a little is skipped; one that goes back by more than ``[input] time_reset_s`` is a clock reset
 (filters restart). A gap (an interval above GAP_FACTOR times the compass's usual one) restarts the filters
-too. The throttle is aligned two ways (see :mod:`magcomp.service.pipeline`): the latest one for the
-published heading, and the one interpolated at the sample's own time for the observer
-(:meth:`ThrottleTrack.at`).
+too; a shorter interval with samples missing in it (``core.observer.samples_missing``) only makes the observer
+skip it (``MagRecord.obs_skip``). The throttle is aligned two ways (see :mod:`magcomp.service.pipeline`):
+the latest one for the published heading, and the one interpolated at the sample's own time for the
+observer (:meth:`ThrottleTrack.at`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcomp.adapters.config import Config
+from magcomp.core.observer import samples_missing
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_NO_THROTTLE, LogData, MagSample, Series, ThrottleSample
 from magcomp.service.record import Float3, MagRecord
 
@@ -206,6 +208,7 @@ class AlignStage:
         if self._first_mag_t is None or verdict == TIME_RESET:
             self._first_mag_t = t
         reset = obs_reset = verdict == TIME_RESET or prev_t is None  # filters restart
+        obs_skip = False
         if not reset:
             assert prev_t is not None
             dt = t - prev_t
@@ -216,8 +219,11 @@ class AlignStage:
                 self.counts["gaps"] += 1
                 reset = obs_reset = True
             else:
-                clock.dt_nominal = dt if nominal is None else nominal + 0.05 * (dt - nominal)
                 obs_reset = dt < self._dt_min or dt > self._dt_max
+                # samples missing in the interval: the observer steps only between consecutive samples
+                obs_skip = not obs_reset and samples_missing(dt, nominal)
+                obs_reset = obs_reset or obs_skip
+                clock.dt_nominal = dt if nominal is None else nominal + 0.05 * (dt - nominal)
         thr, thr_t = self.throttle.value, self.throttle.t
         flags = 0
         if thr_t is None:
@@ -227,7 +233,7 @@ class AlignStage:
         elif t - thr_t > self._stale_s:
             flags = FLAG_INPUTS_STALE
         return MagRecord(
-            s, t, s.mag_index, (vx, vy, vz), prev_t, reset, obs_reset, thr, thr_t is not None, flags
+            s, t, s.mag_index, (vx, vy, vz), prev_t, reset, obs_reset, thr, thr_t is not None, flags, obs_skip
         )
 
     def _no_throttle(self, t: float) -> None:

@@ -27,6 +27,7 @@ from magcomp.core.observer import (
     Variant,
     observer_init,
     observer_reset,
+    observer_skip,
     observer_step,
 )
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
@@ -123,6 +124,11 @@ class ThetaEstimator:
     def reset_filters(self) -> None:
         """Soft reset (gap, clock reset, new calibration): keeps theta and its information."""
         self.state = observer_reset(self.state, self.params, keep_theta=True)
+
+    def skip(self) -> None:
+        """Samples missing before the next one: no step across them, the filters kept
+        (:func:`~magcomp.core.observer.observer_skip`)."""
+        self.state = observer_skip(self.state)
 
     def step(
         self,

@@ -55,6 +55,9 @@ class MagRecord:
     have_throttle: bool
     #: FLAG_* bits so far
     flags: int
+    #: with ``obs_reset``: the interval has samples missing in it (no more): the observer skips it, its
+    #: filters kept (core.observer.observer_skip), rather than restarting them
+    obs_skip: bool = False
     # ---- attitude (service/attitude.py)
     #: the settled down vector of the attitude filter in body axes (None while not settled)
     down: Float3 | None = None

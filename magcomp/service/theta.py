@@ -31,11 +31,13 @@ F64 = NDArray[np.float64]
 
 
 class Queued(NamedTuple):
-    """An observer input waiting for the throttle at its time; ``field`` None: a reset marker."""
+    """An observer input waiting for the throttle at its time; ``field`` None: a marker, of a reset of the
+    observer's filters, or with ``skip`` of a skip (samples missing: core.observer.observer_skip)."""
 
     t_s: float
     gyro: Sequence[float] | None
     field: Float3 | None
+    skip: bool = False
 
 
 class ThetaTracker:
@@ -47,9 +49,10 @@ class ThetaTracker:
         self.last_t: float | None = None
         self.last_info: est_core.ThetaStepInfo | None = None
 
-    def queue_reset(self, t_s: float) -> None:
-        """Reset the observer's filters (theta kept) once the samples queued before now are through."""
-        self.queue.append(Queued(t_s, None, None))
+    def queue_reset(self, t_s: float, skip: bool = False) -> None:
+        """Reset the observer's filters (theta kept) once the samples queued before now are through; ``skip``:
+        samples are missing, the next step re-anchors but the filters keep their memory."""
+        self.queue.append(Queued(t_s, None, None, skip))
 
     def drain(self, t_now: float, throttle: ThrottleTrack, stale_s: float, counts: Counts) -> bool:
         """Feed the observer every queued sample whose throttle is known now (the throttle stream has
@@ -60,10 +63,13 @@ class ThetaTracker:
         est = self.est
         stepped = False
         while q:
-            t, omega, u = q[0]
-            if u is None:  # a reset marker
+            t, omega, u, skip = q[0]
+            if u is None:  # a reset or skip marker
                 q.popleft()
-                est.reset_filters()
+                if skip:
+                    est.skip()
+                else:
+                    est.reset_filters()
                 self.last_t = None
                 continue
             if t_thr is None or (t > t_thr and t_now - t <= stale_s):
@@ -144,11 +150,13 @@ class ThetaStage:
         sample's own time (queued until the throttle after it is known); theta-hat now."""
         tr = c.theta
         if rec.obs_reset:
-            tr.queue_reset(rec.t_s)
+            tr.queue_reset(rec.t_s, rec.obs_skip)
             self.counts["observer_resets"] += 1
             rec.flags |= FLAG_OBSERVER_RESET
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
             tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
+        elif self._learn:  # a sample the observer cannot take: no step across it (observer.samples_missing)
+            tr.queue_reset(rec.t_s, skip=True)
         self.drain(c, rec.t_s)
         if not self._outputs:  # a learn-only pass: theta-hat is read at its end
             return _ZERO3
