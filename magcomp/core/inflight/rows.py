@@ -238,11 +238,18 @@ def window_field_rows(
         rows = like.rows.copy()
         rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
         return WindowFieldRows(rows, like.z, like.field_cols, like.common)
-    template, pos = _window_rows_template(x.shape[0])
+    n_r = x.shape[0]
+    template, pos = _window_rows_template(n_r)
     rows = template.copy()
     rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
-    # the x_r I blocks' diagonals (one regressor: its value broadcast, no repeated array)
-    rows.ravel()[pos] = x[0] if x.shape[0] == 1 else np.repeat(x, 3)
+    # the x_r I blocks' diagonals (one regressor: its three entries set one by one, no index array)
+    if n_r == 1:
+        x0 = float(x[0])
+        rows[0, k + 3] = x0
+        rows[1, k + 4] = x0
+        rows[2, k + 5] = x0
+    else:
+        rows.ravel()[pos] = np.repeat(x, 3)
     r = np.asarray(r_nb, dtype=np.float64)
     # views of R_nb (read only here and by the estimator, never written)
     return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T, r[2])
