@@ -158,15 +158,15 @@ class InflightEstimator:
             acc.take(rows, z, x0, nuisance, window, common, aug)
             self._dirty = True
             return math.nan
-        r = z - rows @ self._theta
+        r = z - rows @ self._theta  # a new array: the subtractions below go into it
         if common is not None:
-            r = r - common * self.common_estimate
+            r -= common * self.common_estimate
         h_ee = None
         if nuisance is not None:
             e_hat, h_ee = acc.nuisance_estimate(
                 nuisance, r, window, common is not None, self._theta, self.common_estimate
             )
-            r = r - nuisance @ e_hat
+            r -= nuisance @ e_hat
         rn2 = float(r @ r)
         if innovation_gated(r, rn2, rows, nuisance, h_ee, self._cov, self._solution, self.p):
             self.n_gated += 1
