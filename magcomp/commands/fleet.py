@@ -11,6 +11,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from magcomp.commands import options
+
 DEFAULT_OUT = "magcomp-fleet"
 
 
@@ -31,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--vehicles", metavar="FILE.toml", help='name vehicles: [vehicles] name = ["path or id pattern", ...]'
     )
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration for the replays")
+    options.add_config(parser, help="TOML configuration for the replays")
     parser.add_argument(
         "--scheduler",
         metavar="tcp://HOST:8786",
@@ -72,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="whose theta per flight the vehicles' history and changes follow: diagnose's (its 95 %% "
         "interval) or the replay's correction; auto (default): diagnose's where the rows have it",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="the replays' log lines")
+    options.add_verbose(parser, help="the replays' log lines")
 
 
 def execute(args: argparse.Namespace) -> int:

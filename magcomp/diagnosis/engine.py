@@ -35,6 +35,7 @@ from magcomp.diagnosis.consistency import consistency_checks
 from magcomp.diagnosis.export import MAX_CONDITION_INDEX
 from magcomp.diagnosis.gyro_heading import with_gyro_bias_heading
 from magcomp.diagnosis.heading import compass_yaw_rad, heading_errors
+from magcomp.diagnosis.identity import sensor_identity
 from magcomp.diagnosis.inputs import (
     GRID_DT_S,
     IMPACT_M_S2,
@@ -296,6 +297,7 @@ def diagnose(
     if prim not in [c.index for c in comps]:
         raise InputError(f"compass {prim} is not in the log or has too few samples")
     comps = [replace(c, heading=_heading(c, comps, heading_reference)) if c.observable else c for c in comps]
+    comps = [replace(c, sensor=sensor_identity(log.params, c.index)) for c in comps]
     if heading_reference is None and all(c.heading is None for c in comps):
         notes.append("no heading reference (no truth, no compass far from the wires): heading errors omitted")
     follow = _yaw_follow_note(log, prim)

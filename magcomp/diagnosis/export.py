@@ -18,6 +18,7 @@ from magcomp.core.types import LogData
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, drive_columns
+from magcomp.diagnosis.identity import SensorIdentity
 from magcomp.diagnosis.inputs import finite_series
 from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, theta_halfwidth
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
@@ -84,7 +85,15 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
         out["linearisation"] = ""
         out["heading_drift_deg_per_min"] = None
     out["theta_given_prior"] = prior_theta_json(cd)
+    out["sensor"] = sensor_json(cd.sensor)
     return out
+
+
+def sensor_json(s: SensorIdentity | None) -> dict[str, Any] | None:
+    """The physical sensor of a compass slot (None: not looked up)."""
+    if s is None:
+        return None
+    return {"device_id": s.device_id, "external": s.external, "from": s.source, "text": s.describe()}
 
 
 def prior_theta_json(cd: CompassDiagnosis) -> dict[str, Any] | None:
@@ -425,6 +434,8 @@ class CompassDiagnosis:
     structure: list[dict[str, Any]] = field(default_factory=list)
     #: theta with the autopilot's calibration as prior, when the gate refuses the calibration only
     prior_theta: PriorTheta | None = None
+    #: which physical sensor this compass slot is, from the log's parameters (identity.py)
+    sensor: SensorIdentity | None = None
 
     @property
     def observable(self) -> bool:

@@ -101,7 +101,7 @@ def hac_variance(residual: F64, z: F64) -> F64:
     return np.asarray(np.maximum(var, gamma[0] * zz[0]))
 
 
-def block_jackknife_halfwidth(t_s: F64, x: F64, residual: F64, w: F64) -> float:
+def block_jackknife_halfwidth(t_s: F64, x: F64, residual: F64, w: F64, prior: F64 | None = None) -> float:
     """95 % half-width of w^T beta from the delete-one-block jackknife over contiguous blocks of the log.
 
     The HAC variance above sees the residual; it cannot see a model error that the fit has absorbed into
@@ -112,7 +112,12 @@ def block_jackknife_halfwidth(t_s: F64, x: F64, residual: F64, w: F64) -> float:
     (the nonlinear parameters, linearised in ``x``, stay free): beta_-k - beta = (X_-k^T X_-k)^+ X_-k^T r_-k.
     Blocks: :data:`JACKKNIFE_BLOCK_S` long (whole manoeuvres: a paper-scenario throttle step, a turn), between
     :data:`JACKKNIFE_MIN_BLOCKS` and :data:`JACKKNIFE_MAX_BLOCKS` of them; half-width t(0.975, K - 1) times
-    the jackknife standard error (K - 1) / K sum_k (d_k - mean d)^2."""
+    the jackknife standard error (K - 1) / K sum_k (d_k - mean d)^2.
+
+    ``prior``: the precision P of a Gaussian prior on the coefficients (a maximum a posteriori fit, as
+    :mod:`magcomp.diagnosis.partial`'s calibration prior): beta = (X^T X + P)^-1 (X^T v + P beta0), and
+    without block k, beta_-k - beta = (X^T X + P - X_k^T X_k)^-1 (X^T r - P (beta - beta0) - X_k^T r_k),
+    whose first two terms cancel at the posterior mode; the prior is kept whole in every refit."""
     from scipy.stats import t as student_t
 
     dur = float(t_s[-1] - t_s[0]) if t_s.shape[0] > 1 else 0.0
@@ -123,6 +128,9 @@ def block_jackknife_halfwidth(t_s: F64, x: F64, residual: F64, w: F64) -> float:
     which = np.clip(np.searchsorted(edges, t_s, side="right") - 1, 0, k - 1)
     g = x.T @ x
     xr = x.T @ residual
+    if prior is not None:
+        g = g + prior
+        xr = np.zeros_like(xr)
     d = np.empty(k)
     for b in range(k):
         xb = x[which == b]

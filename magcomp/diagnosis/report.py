@@ -264,6 +264,9 @@ def _compass_section(
 ) -> list[str]:
     cj = c.to_json()
     out = ["", f"## Compass {c.index}", ""]
+    if c.sensor is not None and c.sensor.device_id is not None:
+        # what to compare between flights: the slot's sensor changes when a GPS compass is unplugged
+        out.append(f"Sensor: {c.sensor.describe()} ({c.sensor.source}).")
     out.append(f"Rotation used by the model: {c.data.attitude_note}.")
     out.append(
         f"Earth field through the calibration: {_text(cj['field_strength_mgauss'], ' mgauss')}, inclination "

@@ -33,7 +33,7 @@ from magcomp.service.align import (
 )
 from magcomp.service.estimators import mahony_params
 from magcomp.service.fastpath import FastMahony
-from magcomp.service.record import Float3, MagRecord
+from magcomp.service.record import Float3, MagRecord, Tilt
 
 F64 = NDArray[np.float64]
 
@@ -70,10 +70,7 @@ class AttitudeView(NamedTuple):
     """What the magnetometer path needs of the attitude (derived once per IMU or ATTITUDE sample)."""
 
     down: Float3 | None  # the settled down vector in body axes, None while not settled
-    cos_roll: float
-    sin_roll: float
-    cos_pitch: float
-    sin_pitch: float
+    tilt: Tilt
 
 
 class AttitudeStage:
@@ -290,14 +287,14 @@ class AttitudeStage:
                 down = d
         else:
             roll, pitch = self.roll, self.pitch
-        a = AttitudeView(down, math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch))
+        a = AttitudeView(down, Tilt(math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)))
         self._view = a
         self._heading_coef = euler_yaw_rate_coefs(roll, pitch)
         return a
 
     def stamp(self, rec: MagRecord) -> None:
         """The attitude and gyro of a magnetometer sample: those of the latest IMU sample."""
-        rec.down, rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch = self.view()
+        rec.down, rec.tilt = self.view()
         t = rec.t_s
         rec.gyro = self.gyro
         rec.gyro_yaw, rec.gyro_epoch = self.heading_yaw_rad, float(self.gyro_yaw_epoch)

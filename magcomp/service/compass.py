@@ -17,7 +17,6 @@ from magcomp.service.calibrate import (
     HandCalibration,
     RotationSource,
 )
-from magcomp.service.estimators import ThetaEstimator
 from magcomp.service.heading import HeadingTrack
 from magcomp.service.inflight_stage import InflightStage
 from magcomp.service.theta import ThetaTracker
@@ -75,22 +74,6 @@ class CompassCorrector:
         return self.calib.summary
 
     @property
-    def calib_l(self) -> F64 | None:
-        return self.calib.calib_l
-
-    @property
-    def calib_d(self) -> F64 | None:
-        return self.calib.calib_d
-
-    @property
-    def calibrated(self) -> bool:
-        return self.calib.calibrated
-
-    @property
-    def theta_est(self) -> ThetaEstimator:
-        return self.theta.est
-
-    @property
     def last_t(self) -> float | None:
         return self.clock.last_t
 
@@ -118,8 +101,8 @@ class CompassCorrector:
         return CompassState(
             system_id=system_id,
             mag_index=self.mag_index,
-            calib_l=self.calib_l if keep else None,
-            calib_d=self.calib_d if keep else None,
+            calib_l=self.calib.calib_l if keep else None,
+            calib_d=self.calib.calib_d if keep else None,
             theta_mgauss=theta,
             t_s=t_s,
             calib_info=info,

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.linalg3 import Vec3, Vec3Like, vec3
-from magcomp.core.mahony import MahonyParams, MahonyState, Quat, mahony_update
+from magcomp.core.mahony import MahonyParams, MahonyState, mahony_update
 
 F64 = NDArray[np.float64]
 
@@ -28,11 +28,6 @@ class FastMahony:
         self.p = p
         q = (float(q_nb[0]), float(q_nb[1]), float(q_nb[2]), float(q_nb[3]))
         self.state = MahonyState(q, vec3(gyro_bias_b_rad_s))
-
-    @property
-    def q(self) -> Quat:
-        """Attitude ``q_nb`` (w, x, y, z)."""
-        return self.state.q_nb
 
     @property
     def b(self) -> Vec3:

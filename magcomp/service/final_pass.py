@@ -83,8 +83,8 @@ class SampleLog:
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
         buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
-                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, rec.cos_roll, rec.sin_roll,
-                    rec.cos_pitch, rec.sin_pitch, rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws,
+                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh,
+                    gy, gz, boot_offset_s, reboot, *yaws,
                     imu_dt_s, *onb))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
@@ -407,22 +407,29 @@ class PassProgress:
     t_last_s: float = float("nan")
 
 
+@dataclass(frozen=True)
+class PassOutputs:
+    """Where the second pass's published headings go: each MAGCOMP_HEADING packed by ``encoder`` into
+    ``writer`` (when there is one), each estimate handed to ``on_estimate`` (when there is one)."""
+
+    encoder: HeadingEncoder
+    writer: TlogWriter | None
+    on_estimate: Callable[[HeadingEstimate], None] | None
+
+
 def final_pass(
     samples: SampleLog,
     pipeline: Pipeline,
     finals: dict[int, FinalCompass],
-    encoder: HeadingEncoder,
-    writer: TlogWriter | None,
-    on_estimate: Callable[[HeadingEstimate], None] | None,
+    out: PassOutputs,
     should_stop: Callable[[], bool] | None = None,
     on_progress: Callable[[float], None] | None = None,
 ) -> PassProgress:
     """The second pass over ``samples`` (see the module's doc): headings with ``finals`` applied, the
-    published ones packed into ``writer`` and handed to ``on_estimate``; counts and times into
-    ``pipeline`` (its summary then describes this pass)."""
+    published ones to ``out``; counts and times into ``pipeline`` (its summary then describes this pass)."""
     res = PassProgress()
     if pipeline.system_id is not None:
-        encoder.set_system(pipeline.system_id)
+        out.encoder.set_system(pipeline.system_id)
     try:
         for rows in samples.chunks():
             if should_stop is not None and should_stop():
@@ -430,22 +437,17 @@ def final_pass(
                 break
             if on_progress is not None:
                 on_progress(float(rows[-1, T]))
-            _block(rows, pipeline, finals, encoder, writer, on_estimate, res)
+            _block(rows, pipeline, finals, out, res)
     except KeyboardInterrupt:  # as the per-sample loop: what was written stays, the report says where
         res.interrupted = True
     return res
 
 
 def _block(
-    rows: F64,
-    pipeline: Pipeline,
-    finals: dict[int, FinalCompass],
-    encoder: HeadingEncoder,
-    writer: TlogWriter | None,
-    on_estimate: Callable[[HeadingEstimate], None] | None,
-    res: PassProgress,
+    rows: F64, pipeline: Pipeline, finals: dict[int, FinalCompass], out: PassOutputs, res: PassProgress
 ) -> None:
     """One block of the sample log through :func:`final_pass`."""
+    encoder, writer, on_estimate = out.encoder, out.writer, out.on_estimate
     cor = correct(rows, finals)
     idx, head, head_raw = filter_and_publish(rows, cor, pipeline, finals)
     res.n_estimates += len(idx)

@@ -76,7 +76,7 @@ class HoverShadow:
         """One sample: ``own_field`` the field as the autopilot had it, ``psi_own`` its heading; ``judged``:
         the motors run and the tilt is within the check's bounds; ``shadow``: judge and filter the forms'
         headings (False while the in-flight correction is published: the samples are only accumulated)."""
-        cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
+        cr, sr, cp, sp = rec.tilt
         ok = judged and rec.ap_yaw == rec.ap_yaw
         if ok:
             roll, pitch = math.atan2(sr, cr), math.atan2(sp, cp)
@@ -236,8 +236,7 @@ def _shadow_heading_deg(rec: MagRecord) -> float | None:
     coeffs, theta = rec.shadow
     ux, uy, uz = apply_eq2(coeffs, *rec.raw)
     d2 = rec.throttle_01 * rec.throttle_01
-    return heading_from_trig_deg(ux - theta[0] * d2, uy - theta[1] * d2, uz - theta[2] * d2, rec.cos_roll,
-                                 rec.sin_roll, rec.cos_pitch, rec.sin_pitch)  # fmt: skip
+    return heading_from_trig_deg(ux - theta[0] * d2, uy - theta[1] * d2, uz - theta[2] * d2, *rec.tilt)
 
 
 def _within_baseline(out: InflightOutput, chk: RunningSelfCheck) -> bool:
@@ -261,7 +260,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     part from the autopilot's own over the check's latest windows (their circular mean difference), so that
     it neither jumps when the correction switches on or off nor drifts with the re-solves. The two-pass
     replay, whose correction is fixed over the log, keeps its own."""
-    cr, sr, cp, sp = rec.cos_roll, rec.sin_roll, rec.cos_pitch, rec.sin_pitch
+    cr, sr, cp, sp = rec.tilt
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
     if rec.have_throttle:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 from magcomp.adapters.state_store import CompassState
@@ -30,28 +31,22 @@ class StateSink(Protocol):
     def load(self, system_id: int, mag_index: int, uid: str | None = None) -> CompassState | None: ...
 
 
+@dataclass(eq=False)
 class PersistStage:
-    """Saves compass states to ``store`` (None: only the bookkeeping) through the ``writer`` executor;
-    a failed write becomes one warning in ``warnings``."""
+    """Saves compass states to ``store`` (None: only the bookkeeping) through the ``writer`` executor, a
+    changed compass at most every ``interval_s`` of message time, each state keyed by ``vehicle()`` (system
+    id, unique id); a failed write becomes one warning in ``warnings``."""
 
-    def __init__(
-        self,
-        store: StateSink | None,
-        writer: Executor,
-        interval_s: float,
-        vehicle: Callable[[], tuple[int, str | None]],
-        warnings: list[str],
-    ) -> None:
-        self.store = store
-        self._writer = writer
-        self._interval_s = interval_s
-        self._vehicle = vehicle
-        self._warnings = warnings
-        self._pending: list[Future[None]] = []
+    store: StateSink | None
+    writer: Executor
+    interval_s: float
+    vehicle: Callable[[], tuple[int, str | None]]
+    warnings: list[str]
+    _pending: list[Future[None]] = field(default_factory=list, init=False)
 
     def run(self, c: CompassCorrector, t_s: float) -> None:
         """Save ``c`` if it changed and its last save is ``interval_s`` of message time old."""
-        if c.dirty and (c.last_saved_t is None or t_s - c.last_saved_t >= self._interval_s):
+        if c.dirty and (c.last_saved_t is None or t_s - c.last_saved_t >= self.interval_s):
             self.save(c, t_s)
 
     def save(self, c: CompassCorrector, t_s: float, final: bool = False) -> None:
@@ -60,10 +55,10 @@ class PersistStage:
         c.dirty = False
         if self.store is None:
             return
-        sysid, uid = self._vehicle()
+        sysid, uid = self.vehicle()
         state = c.to_state(sysid, t_s, vehicle_uid=uid)
         self._pending = [f for f in self._pending if not f.done()]
-        self._pending.append(self._writer.submit(self._write, state))
+        self._pending.append(self.writer.submit(self._write, state))
 
     def _write(self, state: CompassState) -> None:
         assert self.store is not None
@@ -71,7 +66,7 @@ class PersistStage:
             self.store.save(state)
         except OSError as exc:
             msg = f"cannot write state for compass {state.mag_index}: {exc.strerror}"
-            self._warnings.append(msg)
+            self.warnings.append(msg)
             log.warning(msg)
 
     def wait(self) -> None:

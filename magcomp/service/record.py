@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from magcomp.core.inflight import InflightOutput
 from magcomp.core.types import MagSample
@@ -17,6 +18,20 @@ from magcomp.service.estimators import ThetaStepInfo
 
 Float3 = tuple[float, float, float]
 ZERO3: Float3 = (0.0, 0.0, 0.0)
+
+
+class Tilt(NamedTuple):
+    """cos / sin of roll and pitch: what eq. (24) takes of the attitude (derived once per IMU or ATTITUDE
+    sample by the attitude stage, carried by each magnetometer sample's record)."""
+
+    cos_roll: float
+    sin_roll: float
+    cos_pitch: float
+    sin_pitch: float
+
+
+#: the tilt before any attitude: level
+LEVEL = Tilt(1.0, 0.0, 1.0, 0.0)
 
 
 @dataclass(slots=True)
@@ -44,10 +59,7 @@ class MagRecord:
     #: the settled down vector of the attitude filter in body axes (None while not settled)
     down: Float3 | None = None
     #: cos / sin of roll and pitch for eq. (24)
-    cos_roll: float = 1.0
-    sin_roll: float = 0.0
-    cos_pitch: float = 1.0
-    sin_pitch: float = 0.0
+    tilt: Tilt = LEVEL
     #: the gyro (and the attitude derived from it) may be used for this sample
     gyro_fresh: bool = False
     #: the bias-corrected body rate of the latest IMU sample (rad/s)

@@ -16,6 +16,7 @@ from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.final_pass import (
     FinalCompass,
+    PassOutputs,
     PassProgress,
     SampleLog,
     final_compasses,
@@ -373,8 +374,8 @@ def _second_pass(
                 on_estimate(est)
 
     try:
-        res = final_pass(first.samples, first.pipeline, finals, outputs.encoder, outputs.writer, sink,
-                         asked.should_stop, asked.on_progress)  # fmt: skip
+        to = PassOutputs(outputs.encoder, outputs.writer, sink)
+        res = final_pass(first.samples, first.pipeline, finals, to, asked.should_stop, asked.on_progress)
     except BaseException:
         outputs.close(failed=True)
         raise
@@ -382,16 +383,27 @@ def _second_pass(
         outputs.close()
         first.samples.close()
     summary = _with_onboard(first.pipeline.summary(), first.source.onboard, first.source.clock_offsets)
+    return _report(path, summary, first.source.counts, outputs, res)
+
+
+def _report(
+    path: str | Path,
+    summary: dict[str, Any],
+    source_counts: dict[str, int],
+    outputs: _Outputs,
+    prog: PassProgress,
+) -> ReplayReport:
+    """The report of the pass that published (``wall_s`` is set by :func:`replay_log`)."""
     return ReplayReport(
         path=str(path),
         summary=summary,
-        source_counts=first.source.counts,
+        source_counts=source_counts,
         wall_s=0.0,
-        n_estimates=res.n_estimates,
+        n_estimates=prog.n_estimates,
         emitted=outputs.emitted,
         estimates=outputs.kept,
-        interrupted=res.interrupted,
-        t_last_s=res.t_last_s,
+        interrupted=prog.interrupted,
+        t_last_s=prog.t_last_s,
     )
 
 
@@ -434,14 +446,4 @@ def _replay(path: str | Path, cfg: Config, pipeline: Pipeline, asked: _Asked) ->
         pipeline.close()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
     summary = _with_onboard(pipeline.summary(), onboard, _clock_offsets(source))
-    return ReplayReport(
-        path=str(path),
-        summary=summary,
-        source_counts=dict(source.counts),
-        wall_s=0.0,
-        n_estimates=prog.n_estimates,
-        emitted=outputs.emitted,
-        estimates=outputs.kept,
-        interrupted=prog.interrupted,
-        t_last_s=prog.t_last_s,
-    )
+    return _report(path, summary, dict(source.counts), outputs, prog)

@@ -26,9 +26,9 @@ def compass_summary(
     """Calibration, theta, whether the headings are corrected and why: one compass."""
     cal = c.calibration
     st = c.inflight
-    theta = np.asarray(c.theta_est.theta_mgauss, dtype=float).tolist()
-    converged = bool(c.theta_est.converged)
-    calibrated = c.calibrated
+    theta = np.asarray(c.theta.est.theta_mgauss, dtype=float).tolist()
+    converged = bool(c.theta.est.converged)
+    calibrated = c.calib.calibrated
     calib_doc: dict[str, object] | None = None
     if cal is not None:
         calib_doc = {
@@ -36,8 +36,8 @@ def compass_summary(
             "residual_rms_mgauss": cal.residual_rms_mgauss,
             "coverage": cal.coverage,
             "n": cal.n,
-            "L": None if c.calib_l is None else np.asarray(c.calib_l).tolist(),
-            "d_mgauss": None if c.calib_d is None else np.asarray(c.calib_d).tolist(),
+            "L": None if c.calib.calib_l is None else np.asarray(c.calib.calib_l).tolist(),
+            "d_mgauss": None if c.calib.calib_d is None else np.asarray(c.calib.calib_d).tolist(),
         }
     elif st is not None and st.solution is not None and st.applied:
         sol = st.solution

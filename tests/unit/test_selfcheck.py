@@ -258,6 +258,7 @@ def test_live_hover_theta_switches_on_and_corrects() -> None:
 
     from magcomp.core.heading import heading_from_trig_deg
     from magcomp.service.heading import HoverShadow
+    from magcomp.service.record import Tilt
 
     for varied in (True, False):
         m, roll, pitch, yaw, thr, _, _ = _hover_with_offset(21)
@@ -268,7 +269,7 @@ def test_live_hover_theta_switches_on_and_corrects() -> None:
         pub_err: list[float] = []
         for i in range(m.shape[0]):
             cr, sr, cp, sp = math.cos(roll[i]), math.sin(roll[i]), math.cos(pitch[i]), math.sin(pitch[i])
-            rec = SimpleNamespace(cos_roll=cr, sin_roll=sr, cos_pitch=cp, sin_pitch=sp, throttle_01=thr[i],
+            rec = SimpleNamespace(tilt=Tilt(cr, sr, cp, sp), throttle_01=thr[i],
                                   ap_yaw=yaw[i], gyro_yaw=yaw[i] + 1e-4 * i, gyro_epoch=0.0,
                                   imu_fast=True, t_s=i * 0.1)  # fmt: skip
             field = (float(m[i, 0]), float(m[i, 1]), float(m[i, 2]))
