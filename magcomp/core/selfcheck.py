@@ -35,7 +35,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import stdtrit
 
 F64 = NDArray[np.float64]
 
@@ -91,7 +90,11 @@ def t_critical(n_windows: int) -> float:
     Student's t with n - 1 degrees of freedom (inf below 2 windows)."""
     if n_windows < 2:
         return math.inf
-    return float(stdtrit(n_windows - 1, P_APPLY))  # (scipy.special: scipy.stats would load scipy.optimize)
+    # scipy.special (scipy.stats would load scipy.optimize), imported at the first call: it costs ~0.1 s of
+    # CPU, which a run whose self-check never reaches two windows need not pay
+    from scipy.special import stdtrit
+
+    return float(stdtrit(n_windows - 1, P_APPLY))
 
 
 def att_tolerance_deg(att_deg: float, n_windows: int) -> float:

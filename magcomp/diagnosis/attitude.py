@@ -131,6 +131,7 @@ def _tilt_pass(
         g = gyro_b_rad_s[lo : a + _ROW_BLOCK].tolist()
         r = ref[lo : a + _ROW_BLOCK].tolist()
         dt_block = dts[a : a + _ROW_BLOCK].tolist()
+        q_block: list[tuple[float, float, float, float]] = []  # the block's rows of ``out``, set at once
         for i, dt in enumerate(dt_block):
             k = a + i
             j = k - lo  # row k in g and r
@@ -168,7 +169,8 @@ def _tilt_pass(
                 )
                 nq = math.sqrt(w * w + x * x + y * y + z * z)
                 w, x, y, z = w / nq, x / nq, y / nq, z / nq
-            out[k] = (w, x, y, z)
+            q_block.append((w, x, y, z))
+        out[a : a + len(q_block)] = q_block
     return bx, by, bz
 
 

@@ -176,6 +176,28 @@ def design(
     return np.column_stack([h, np.ones(data.n), cols]), names
 
 
+class _DesignParts:
+    """:func:`design`'s matrix with its two parts kept from the last call: a finite-difference step of the
+    fit moves either the field direction (inc, dec, drift) or one extension, so the other part is the
+    same array as before (the same numbers, not computed again)."""
+
+    def __init__(self, data: CompassData) -> None:
+        self.data = data
+        self._ones = np.ones(data.n)
+        self._h_key: tuple[float, float, float] | None = None
+        self._h: F64 | None = None
+        self._ext: ExtensionParams | None = None
+        self._cols: F64 | None = None
+
+    def design(self, inc: float, dec: float, drift: float, ext: ExtensionParams) -> F64:
+        """``design(data, inc, dec, drift, ext)[0]``."""
+        if self._h is None or self._h_key != (inc, dec, drift):
+            self._h, self._h_key = earth_dir_body(self.data, inc, dec, drift), (inc, dec, drift)
+        if self._cols is None or self._ext != ext:
+            self._cols, self._ext = drive_columns(self.data.drive, ext)[0], ext
+        return np.column_stack([self._h, self._ones, self._cols])
+
+
 def _solve(x: F64, v: F64, rows: B64) -> F64:
     beta, *_ = np.linalg.lstsq(x[rows], v[rows], rcond=1e-10)
     return np.asarray(beta)
@@ -209,13 +231,17 @@ def fit_model(
         if p is not None:
             ext0 = set_value(ext0, p, float(value))
             seeded.add(e)
-    v = data.field_mgauss
+    # the training rows taken once (all of them: the arrays as they are, no copy per evaluation)
+    all_rows = bool(rows.all())
+    v_rows = data.field_mgauss if all_rows else data.field_mgauss[rows]
+    parts = _DesignParts(data)
 
     def residual(z: F64) -> F64:
         inc, dec, drift, ext = unpack(z, effects, ext0)
-        x, _ = design(data, inc, dec, drift, ext)
-        beta = _solve(x, v, rows)
-        return np.asarray((x[rows] @ beta - v[rows]).ravel())
+        x = parts.design(inc, dec, drift, ext)
+        x_rows = x if all_rows else x[rows]
+        beta, *_ = np.linalg.lstsq(x_rows, v_rows, rcond=1e-10)
+        return np.asarray((x_rows @ np.asarray(beta) - v_rows).ravel())
 
     z0 = pack(start.inc_rad, start.dec_rad, start.drift_rad_s, ext0, effects)
     # grid-start each nonlinear extension parameter that the start point does not carry

@@ -179,3 +179,32 @@ def test_heading_error_smaller_with_the_right_model() -> None:
     h = d.compass(0).heading
     assert h is not None
     assert h.rms_deg["extended"] < h.rms_deg["paper"] < h.rms_deg["uncompensated"]
+
+
+def test_the_fits_kept_design_parts_are_the_design_bit_for_bit() -> None:
+    """The fit's residual keeps the field-direction and drive columns between evaluations
+    (model._DesignParts): after any sequence of steps (the field direction only, one extension only,
+    both) its matrix is design()'s, bit for bit."""
+    from dataclasses import replace
+
+    from magcomp.diagnosis.effects import ExtensionParams
+    from magcomp.diagnosis.model import _DesignParts, design
+
+    log, _, _ = synth_log(3, duration_s=20.0)
+    data = compass_data(log, 0)
+    parts = _DesignParts(data)
+    base = ExtensionParams()
+    steps = [
+        (1.0, 0.2, 0.0, base),
+        (1.0 + 1e-4, 0.2, 0.0, base),  # the field direction moves, the drive columns stay
+        (1.0, 0.2, 0.0, replace(base, offset=0.1)),  # one extension moves, the field direction stays
+        (1.0, 0.2, 1e-3, replace(base, offset=0.1)),
+        (0.9, -0.3, 1e-3, replace(base, offset=0.1, exponent=1.8)),
+        (0.9, -0.3, 1e-3, replace(base, offset=0.1, exponent=1.8)),  # nothing moves
+        (1.0, 0.2, 0.0, base),  # back to the start
+    ]
+    for inc, dec, drift, ext in steps:
+        got = parts.design(inc, dec, drift, ext)
+        want, _ = design(data, inc, dec, drift, ext)
+        assert got.shape == want.shape
+        assert got.tobytes() == want.tobytes()

@@ -121,3 +121,41 @@ def test_ardupilot_motor_compensation_parameters() -> None:
     assert motor_comp_known_off({"COMPASS_MOTCT": 0.0}, 0)
     assert not motor_comp_known_off({"COMPASS_MOTCT": 0.0, "COMPASS_PMOT_EN": 1.0}, 0)
     assert motor_comp_known_off({"COMPASS_MOTCT": 0.0, "COMPASS_PMOT_EN": 1.0}, 1)
+
+
+def test_the_linearisation_point_in_floats_is_numpys_bit_for_bit() -> None:
+    """``InflightEstimator.uncalibrated`` with one regressor computes ``y - d - x theta`` in floats: the
+    same numbers, bit for bit, as the array expression it replaces (and as it still uses with motors)."""
+    from magcomp.core.inflight import InflightEstimator
+
+    rng = np.random.default_rng(7)
+    for n_motors in (0, 4):
+        est = InflightEstimator("relative", n_motors)
+        k = est._k
+        for _ in range(200):
+            est._theta = rng.normal(0.0, 300.0, size=est._theta.shape)
+            y = rng.normal(0.0, 500.0, size=3)
+            x = rng.uniform(0.0, 1.0, size=1 + n_motors)
+            th = est._theta[k + 3 :].reshape(-1, 3)
+            want = y - est._theta[k : k + 3] - x[: th.shape[0]] @ th
+            assert est.uncalibrated(y, x).tobytes() == want.tobytes()
+
+
+def test_the_open_window_forgets_a_nonzero_h_ee_when_its_sums_clear() -> None:
+    """The open window remembers that its nuisance information H_ee is nonzero until its sums clear: a
+    window of rows whose nuisance columns are all zero after a cleared one has no nuisance estimate."""
+    from magcomp.core.inflight.window import OpenWindow
+
+    rng = np.random.default_rng(3)
+    w = OpenWindow(4, prior_sd=1.0)
+    p = np.zeros(4)
+    w.key = "a"
+    for _ in range(5):
+        w.add(rng.normal(size=(3, 4)), rng.normal(size=3), rng.normal(size=(3, 2)), None, None)
+    assert w.nuisance(1, False, p, 0.0, 10.0) is not None
+    w.clear()
+    w.n_rows = 0
+    w.key = "b"
+    for _ in range(5):
+        w.add(rng.normal(size=(3, 4)), rng.normal(size=3), np.zeros((3, 2)), None, None)
+    assert w.nuisance(2, False, p, 0.0, 10.0) is None

@@ -69,7 +69,7 @@ class Accumulator:
         self.halves.add(self.n_windows, self.batch_windows, ws)
         self.eq.add_window(ws)
         self.n_windows += 1
-        w.gram[...] = 0.0
+        w.clear()
         w.key = None
 
     def refill(self, samples: list[tuple[F64, F64, F64, F64 | None]]) -> bool:
@@ -79,7 +79,7 @@ class Accumulator:
         if w.key is None:
             return False
         self.rev += 1
-        w.gram[...] = 0.0
+        w.clear()
         w.sums[...] = 0.0
         w.n_rows = 0
         for rows, z, nuisance, common in samples:
@@ -164,5 +164,5 @@ class Accumulator:
             return None
         out = w.nuisance(self.rev, True, p, c, self.s_ref)
         if out is None:  # no rows with nuisance columns (or singular: what the last row alone gives, 0)
-            return None if w.n_rows == 0 or not w.ee.any() else np.zeros(k)
+            return None if w.n_rows == 0 or not w.ee_nonzero() else np.zeros(k)
         return out[0]

@@ -70,7 +70,8 @@ class InflightEstimator:
         self._dirty = True
         #: the unknown common to the flight at the last solution (mgauss; 0 before any)
         self.common_estimate = 0.0
-        self._unc_cache: tuple[F64, F64, F64] | None = None  # uncalibrated(): theta's d and Theta views
+        #: uncalibrated(): theta's d and Theta views, with one regressor their six floats
+        self._unc_cache: tuple[F64, F64, F64, tuple[float, ...] | None] | None = None
         #: another estimator of the same parameters from other rows whose theta the published solution
         #: takes, the rest conditioned on it; this one's own estimate stays the linearisation point and the
         #: gate's
@@ -157,15 +158,15 @@ class InflightEstimator:
             acc.take(rows, z, x0, nuisance, window, common, aug)
             self._dirty = True
             return math.nan
-        r = z - rows @ self._theta
+        r = z - rows @ self._theta  # a new array: the subtractions below go into it
         if common is not None:
-            r = r - common * self.common_estimate
+            r -= common * self.common_estimate
         h_ee = None
         if nuisance is not None:
             e_hat, h_ee = acc.nuisance_estimate(
                 nuisance, r, window, common is not None, self._theta, self.common_estimate
             )
-            r = r - nuisance @ e_hat
+            r -= nuisance @ e_hat
         rn2 = float(r @ r)
         if innovation_gated(r, rn2, rows, nuisance, h_ee, self._cov, self._solution, self.p):
             self.n_gated += 1
@@ -303,6 +304,16 @@ class InflightEstimator:
         if cached is None or cached[0] is not self._theta:
             k = self._k
             p = self._theta
-            cached = self._unc_cache = (p, p[k : k + 3], p[k + 3 :].reshape(-1, 3))
-        _, d, th = cached
+            th = p[k + 3 :].reshape(-1, 3)
+            d = p[k : k + 3]
+            one = (*d.tolist(), *th[0].tolist()) if th.shape[0] == 1 else None
+            cached = self._unc_cache = (p, d, th, one)
+        _, d, th, one = cached
+        if one is not None:
+            # one regressor: the same arithmetic in floats (its product with theta is a single rounding,
+            # as numpy's; no sum whose order could differ), without four small-array operations
+            y0, y1, y2 = y_mgauss.tolist()
+            d0, d1, d2, t0, t1, t2 = one
+            x0 = float(x[0])
+            return np.array([(y0 - d0) - x0 * t0, (y1 - d1) - x0 * t1, (y2 - d2) - x0 * t2])
         return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)

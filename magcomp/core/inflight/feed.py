@@ -21,6 +21,7 @@ from magcomp.core.inflight.rows import (
     window_nuisance_cols,
 )
 from magcomp.core.inflight.yawframe import GYRO_WINDOW_S, GyroYawFrame, YawErrorLine
+from magcomp.core.linalg3 import Vec3Like
 
 #: the relative form's rotation-source yaw-rate error (InflightEstimator.add) is taken as constant over
 #: windows this long (s). The error is the autopilot's compass-driven yaw correction, which varies on the
@@ -96,6 +97,12 @@ class FeedSwitches:
         return self.tilt_condition and not self.ap_yaw_tilt and self.gyro_yaw
 
 
+#: nuisance windows per residual batch of the window-field rows, by whether the gyro's yaw frame is on
+#: (its windows are GYRO_WINDOW_S long, else ROTATION_WINDOW_S)
+_BATCH_WINDOWS = {
+    on: max(1, round(VIF_BATCH_S / (GYRO_WINDOW_S if on else ROTATION_WINDOW_S))) for on in (True, False)
+}
+
 _PRIOR_SD_CACHE: dict[tuple[float, ...], F64] = {}
 
 
@@ -139,8 +146,8 @@ class WindowRowFeed:
         self.sw = switches
         self._line = YawErrorLine()
         # the window field each estimator's yaw-rate column was last written about
-        self._field: F64 | None = None
-        self._field_tilt: F64 | None = None
+        self._field: tuple[float, float, float] | None = None
+        self._field_tilt: tuple[float, float, float] | None = None
         # relinearise_window: the open window's key and its used rows (rows, z, field cols, R_nb, tau, common)
         self._rl_key: tuple[int, int] | None = None
         self._rl_rows: list[tuple[F64, F64, F64, F64, float, F64 | None]] = []
@@ -179,7 +186,7 @@ class WindowRowFeed:
     def _add(
         self,
         est: InflightEstimator,
-        win_field: F64 | None,
+        win_field: tuple[float, float, float] | None,
         t_s: float,
         key: tuple[int, int],
         tau: float,
@@ -190,19 +197,19 @@ class WindowRowFeed:
         relin: bool,
         frame: GyroYawFrame,
         like: WindowFieldRows | None = None,
-    ) -> tuple[F64 | None, WindowFieldRows]:
+    ) -> tuple[tuple[float, float, float] | None, WindowFieldRows]:
         """One sample's window-field rows into ``est`` (the tilt model's when ``tilt_model``); returns the
         window field the yaw-rate column was written about (kept for the next window's first samples) and
         the rows (``like``: this sample's rows for the other estimator, whose columns but the soft-iron
         ones they share)."""
         w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x), like)
-        batch_windows = max(1, round(VIF_BATCH_S / (GYRO_WINDOW_S if frame.on else ROTATION_WINDOW_S)))
         # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
-        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's)
+        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's); three floats
         e_w = est.window_nuisance(key)
         if e_w is not None:
-            win_field = np.array([e_w[0], e_w[1], est.common_estimate])
-        h_w = est.field_ned_mgauss if win_field is None else win_field
+            e0, e1 = e_w[:2].tolist()
+            win_field = (e0, e1, float(est.common_estimate))
+        h_w: Vec3Like = est.field_ned_mgauss if win_field is None else win_field
         ap_yaw = tilt_model and frame.on and self.sw.ap_yaw_nuisance
         z = w.z
         if tilt_model and frame.on:
@@ -218,7 +225,7 @@ class WindowRowFeed:
             nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
         gated = est.n_gated
         est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt,
-                prior_sd=window_prior_sd(ap_yaw), batch_windows=batch_windows)  # fmt: skip
+                prior_sd=window_prior_sd(ap_yaw), batch_windows=_BATCH_WINDOWS[frame.on])  # fmt: skip
         if relin and est.n_gated == gated:
             self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
         return win_field, w

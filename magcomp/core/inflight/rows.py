@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.inflight.base import F64, InflightMode
+from magcomp.core.linalg3 import Vec3Like
 
 #: basis of the relative form's soft-iron correction E (L = I + E): symmetric and traceless (x-y, x+y-2z
 #: scale differences and the three off-diagonal terms). A common scale is left out: rotations cannot see
@@ -136,14 +137,14 @@ def reference_yaw_error_rows(r_nb: F64, field_ref_n_mgauss: F64) -> F64:
     return np.asarray(r_nb.T @ np.array(_yaw_error_ned(field_ref_n_mgauss)), dtype=np.float64).reshape(3, 1)
 
 
-def _yaw_error_ned(h_ned: F64) -> tuple[float, float, float]:
+def _yaw_error_ned(h_ned: Vec3Like) -> tuple[float, float, float]:
     """``-(e_3 x h)`` (NED): the Earth field's first-order change per radian of yaw error of the attitude
     (``Rz(e) R_nb`` for ``R_nb``)."""
     return (float(h_ned[1]), -float(h_ned[0]), 0.0)
 
 
 def window_nuisance_cols(
-    r_nb: F64, h_w: F64, tau: float, tilt: bool = True, vh: tuple[float, float, float] | None = None
+    r_nb: F64, h_w: Vec3Like, tau: float, tilt: bool = True, vh: tuple[float, float, float] | None = None
 ) -> F64:
     """A window-field row's nuisance columns (3, k) (:func:`window_field_rows`), all ``R_nb^T c`` for NED
     vectors ``c``, so one product: the window's horizontal field (``R^T e_N``, ``R^T e_E``: the row's
@@ -237,11 +238,18 @@ def window_field_rows(
         rows = like.rows.copy()
         rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
         return WindowFieldRows(rows, like.z, like.field_cols, like.common)
-    template, pos = _window_rows_template(x.shape[0])
+    n_r = x.shape[0]
+    template, pos = _window_rows_template(n_r)
     rows = template.copy()
     rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
-    # the x_r I blocks' diagonals (one regressor: its value broadcast, no repeated array)
-    rows.ravel()[pos] = x[0] if x.shape[0] == 1 else np.repeat(x, 3)
+    # the x_r I blocks' diagonals (one regressor: its three entries set one by one, no index array)
+    if n_r == 1:
+        x0 = float(x[0])
+        rows[0, k + 3] = x0
+        rows[1, k + 4] = x0
+        rows[2, k + 5] = x0
+    else:
+        rows.ravel()[pos] = np.repeat(x, 3)
     r = np.asarray(r_nb, dtype=np.float64)
     # views of R_nb (read only here and by the estimator, never written)
     return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T, r[2])

@@ -115,7 +115,8 @@ class SampleStats:
     def add(self, x0: float) -> None:
         """One used sample whose collective regressor is ``x0`` (delta^2)."""
         self.n += 1
-        self.x0_max = max(self.x0_max, x0)
+        if x0 > self.x0_max:  # max() without its call
+            self.x0_max = x0
         self._x0_sum += x0
         self._x0_sq += x0 * x0
 

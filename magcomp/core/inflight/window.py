@@ -52,6 +52,11 @@ class OpenWindow:
         m = g.shape[0]
         c, z, e = n, n + 1, slice(n + 2, m)
         self.pp, self.pe, self.ee = g[:n, :n], g[:n, e], g[e, e]
+        #: the Gram matrix's nuisance rows ``[W_ep | w_ec | w_be | H_ee]`` (the nuisance's right-hand side)
+        self.erows = g[n + 2 :]
+        #: H_ee was seen to hold a nonzero entry since the sums were last cleared: its diagonal (sums of
+        #: squares) only grows until then, so it stays so (``nuisance`` need not look again)
+        self.ee_seen = False
         self.bp, self.be, self.pc, self.ec = g[:n, z], g[e, z], g[:n, c], g[e, c]
         self.srows, self.sn, self.scom, self.sz = sa[:, :n], sa[:, e], sa[:, c], sa[:, z]
 
@@ -158,12 +163,12 @@ class OpenWindow:
         cached = self._open_cache
         if cached is not None and cached[0] == key:
             return cached[1]
-        if self.n_rows == 0 or not self.ee.any():
+        if self.n_rows == 0 or not (self.ee_seen or self.ee_nonzero()):
             return None
         hee = self.hee(s_ref, key[2])
         # b_e = w_be - W_pe' p - w_ec c as one product with the window's Gram rows of the nuisance (their
         # nuisance block times 0): [W_ep | w_ec | w_be | H_ee] [-p, -c, 1, 0]
-        b_e = self.gram[p.shape[0] + 2 :] @ self._b_e_coef(k, p, c if with_common else 0.0)
+        b_e = self.erows @ self._b_e_coef(k, p, c if with_common else 0.0)
         # LAPACK's Cholesky solve directly (numpy's solve costs 6x more in checks for a 5x5)
         _, e_hat, info = lapack().dposv(hee, b_e)
         if info != 0:
@@ -171,6 +176,16 @@ class OpenWindow:
         out = np.asarray(e_hat, dtype=np.float64), hee
         self._open_cache = (key, out)
         return out
+
+    def ee_nonzero(self) -> bool:
+        """H_ee has a nonzero entry (remembered until the sums are cleared: :meth:`clear`)."""
+        self.ee_seen = bool(self.ee.any())
+        return self.ee_seen
+
+    def clear(self) -> None:
+        """The window's sums zero (its key and row count as they are)."""
+        self.gram[...] = 0.0
+        self.ee_seen = False
 
     def _b_e_coef(self, k: int, p: F64, c: float) -> F64:
         """``[-p, -c, 1, 0_k]``: the window Gram's nuisance rows times it are the nuisance's right-hand side.

@@ -10,7 +10,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from magcomp.core.inflight.base import F64
-from magcomp.core.linalg3 import cross, vec3
+from magcomp.core.linalg3 import Vec3Like, cross, vec3
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 #: with the gyro's yaw, a window's Earth field and yaw rate (the gyro's bias about the vertical) are taken
@@ -110,7 +110,7 @@ class YawErrorLine:
         est: WindowFields,
         t_s: float,
         key: tuple[int, int],
-        h_w: F64,
+        h_w: Vec3Like,
         ap_yaw_dev: float,
         accel_h: tuple[float, float],
     ) -> tuple[float, tuple[float, float, float]]:
@@ -127,7 +127,7 @@ class YawErrorLine:
         return psi, cross((v1, v2, 0.0), vec3(h_w))
 
     @staticmethod
-    def frame_of(est: WindowFields, h: F64) -> float:
+    def frame_of(est: WindowFields, h: Vec3Like) -> float:
         """The direction of the horizontal field ``h`` against the Earth field's (rad)."""
         ref = est.field_ned_mgauss
         return math.atan2(float(h[1]), float(h[0])) - math.atan2(float(ref[1]), float(ref[0]))
@@ -154,7 +154,7 @@ class YawErrorLine:
         b = (n * stf - st * sf) / den
         return float((sf - b * st) / n + b * t)
 
-    def _at(self, est: WindowFields, t_s: float, h_w: F64) -> float:
+    def _at(self, est: WindowFields, t_s: float, h_w: Vec3Like) -> float:
         if self._fit[0] < 3 or self._key is None or self._key[0] != self._fit_epoch:
             return self.frame_of(est, h_w)
         return self._value(t_s)
