@@ -57,17 +57,25 @@ def verdict(chk: selfcheck.SelfCheck) -> tuple[str, str]:
 def _reference(log: LogData, t_s: F64) -> tuple[F64, F64, bool] | None:
     """(reference yaw, its segment, from the gyro) at ``t_s`` (rad): the gyro's integral where the IMU is
     logged at 10 Hz or faster, else the autopilot's yaw; None without an attitude."""
-    att = log.attitude_rad
-    if len(att) < 10:
+    att_t, att_v = _finite_attitude(log)
+    if att_t.size < 10:
         return None
-    roll, pitch, yaw = att.values[:, 0], att.values[:, 1], np.unwrap(att.values[:, 2])
+    roll, pitch, yaw = att_v[:, 0], att_v[:, 1], np.unwrap(att_v[:, 2])
     gt, gyro = log.imu_t_s, log.gyro_rad_s
     if gt.size > 10 and float(np.median(np.diff(gt))) <= selfcheck.MAX_GYRO_DT_S:
-        r = np.interp(gt, att.t_s, roll)
-        p = np.interp(gt, att.t_s, pitch)
+        r = np.interp(gt, att_t, roll)
+        p = np.interp(gt, att_t, pitch)
         g_yaw, seg = selfcheck.integrate_yaw_rad(gt, selfcheck.euler_yaw_rate_rad_s(gyro, r, p))
         return np.interp(t_s, gt, g_yaw), np.interp(t_s, gt, seg).round(), True
-    return np.interp(t_s, att.t_s, yaw), np.zeros(t_s.shape[0]), False
+    return np.interp(t_s, att_t, yaw), np.zeros(t_s.shape[0]), False
+
+
+def _finite_attitude(log: LogData) -> tuple[F64, F64]:
+    """The autopilot's attitude rows that are finite (a damaged record's NaN would end an unwrapped yaw)."""
+    att = log.attitude_rad
+    v = np.asarray(att.values, dtype=float).reshape(-1, 3)
+    ok = np.isfinite(v).all(axis=1) & np.isfinite(np.asarray(att.t_s, dtype=float))
+    return np.asarray(att.t_s, dtype=float)[ok], v[ok]
 
 
 def heading_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.SelfCheck | None:
@@ -96,8 +104,8 @@ def heading_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.
     if np.count_nonzero(keep) < selfcheck.MIN_PER_WINDOW * selfcheck.MIN_WINDOWS:
         return None
     t = data.t_s[keep]
-    att = log.attitude_rad
-    ap_yaw = np.interp(t, att.t_s, np.unwrap(att.values[:, 2]))
+    att_t, att_v = _finite_attitude(log)
+    ap_yaw = np.interp(t, att_t, np.unwrap(att_v[:, 2]))
     ids = selfcheck.window_ids(t, seg[keep])
     follows = _follow_rate_per_s(log, primary, t) if primary in log.mag else float("nan")
     second = ap_yaw if not follows >= CIRCULAR_FOLLOW_PER_S else None  # NaN (not measured): kept

@@ -8,6 +8,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from magcomp.adapters.mavlink_emit import write_tlog, write_truth
@@ -144,3 +145,26 @@ def test_cli_judges_its_model_against_the_gyro(
         assert h["helps"] and h["model_gyro_deg"] < 0.8 * h["baseline_gyro_deg"], h
     else:
         assert not h["helps"] and ("no clear gain" in out or "makes it worse" in out), h
+
+
+def test_check_against_the_gyro_survives_a_nan_attitude(tmp_path: Path) -> None:
+    """A damaged ATTITUDE record (NaN) early in the log must not end the check's unwrapped yaw
+    (diagnosis/gyro_check.py), the reference where the gyro comes slow: the check is made over the same
+    windows, with the same figures within 5 %."""
+    from magcomp.commands.diagnose import diagnose_file
+    from magcomp.core.types import Series
+    from magcomp.diagnosis.gyro_check import heading_check
+
+    path = tmp_path / "flight.tlog"
+    write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=120.0, seed=5)), path)
+    d, log = diagnose_file(str(path))
+    # the IMU as 2.5 Hz telemetry: the autopilot's yaw is then the check's windowed reference
+    log = replace(log, imu_t_s=log.imu_t_s[::20], gyro_rad_s=log.gyro_rad_s[::20])
+    clean = heading_check(d.compasses[0], log, d.primary)
+    v = log.attitude_rad.values.copy()
+    v[50:53] = np.nan
+    damaged_log = replace(log, attitude_rad=Series(log.attitude_rad.t_s, v))
+    damaged = heading_check(d.compasses[0], damaged_log, d.primary)
+    assert clean is not None and damaged is not None
+    assert damaged.n_windows == clean.n_windows, (damaged, clean)
+    assert abs(damaged.candidate_gyro_deg - clean.candidate_gyro_deg) < 0.05 * clean.candidate_gyro_deg
