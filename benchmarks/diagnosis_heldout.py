@@ -310,7 +310,8 @@ def main() -> int:
         axes = [r["axes_inside"] for r in mine if "axes_inside" in r]
         if axes:
             per_axis = [sum(a[i] for a in axes) for i in range(3)]
-            line += f", per-axis coverage (each at 95 %) {per_axis[0]}/{per_axis[1]}/{per_axis[2]} of {len(axes)}"
+            cov = "/".join(str(c) for c in per_axis)
+            line += f", per-axis coverage (each at 95 %) {cov} of {len(axes)}"
         print(line)
     ok = sum(r["is_top"] and r["inside"] for r in rows)
     print(f"top finding with the value inside its interval: {ok}/{len(rows)}")
