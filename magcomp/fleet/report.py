@@ -218,7 +218,7 @@ def _log_row(r: dict[str, Any]) -> str:
 
 
 def _diagnose_cell(r: dict[str, Any]) -> str:
-    """diagnose's theta (95 %) and findings for the row, or why it has none."""
+    """diagnose's theta (95 % per axis) and findings for the row, or why it has none."""
     if r.get("diagnose_status") == "failed":
         return f"failed: {_e(r.get('diagnose_error'))}"
     if r.get("diagnose_status") != "ok":
@@ -229,5 +229,5 @@ def _diagnose_cell(r: dict[str, Any]) -> str:
         hw = ", ".join(f"{float(r.get(f'diagnose_theta_ci95_{a}_mgauss') or math.nan):.0f}" for a in "xyz")
         ident = "" if r.get("diagnose_theta_identifiable") else " (not identifiable)"
         frm = _e(r.get("diagnose_theta_from"))
-        out += f"<br><small>theta ({theta}) &plusmn; ({hw}) 95 %, {frm}{ident}</small>"
+        out += f"<br><small>theta ({theta}) &plusmn; ({hw}) 95 % per axis, {frm}{ident}</small>"
     return out
