@@ -204,7 +204,7 @@ def _print_inspect(vehicles: list[Any], limit: int = 10) -> None:
     print(f"vehicles, most worth inspecting first ({len(vehicles)}):")
     for v in vehicles[:limit]:
         thetas = "; ".join(
-            f"compass {h.compass} theta {interval_text(h.level, h.level_sigma)} mgauss"
+            f"{h.label} theta {interval_text(h.level, h.level_sigma)} mgauss"
             for h in v.compasses
             if h.level is not None
         )

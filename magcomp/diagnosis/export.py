@@ -20,7 +20,7 @@ from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_para
 from magcomp.diagnosis.effects import EFFECTS, drive_columns
 from magcomp.diagnosis.identity import SensorIdentity
 from magcomp.diagnosis.inputs import finite_series
-from magcomp.diagnosis.intervals import column_halfwidth, profile_interval, theta_halfwidth
+from magcomp.diagnosis.intervals import column_halfwidths, profile_interval
 from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
 from magcomp.diagnosis.partial import PriorTheta
 from magcomp.diagnosis.rivals import motors_identified
@@ -72,7 +72,9 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
             "theta",
             "theta_baseline",
             "theta_ci95_halfwidth",
+            "theta_ci95_joint_halfwidth",
             "theta_baseline_ci95_halfwidth",
+            "theta_baseline_ci95_joint_halfwidth",
             "heading_error",
             "residual_step",
             "field_step_motors_off",
@@ -105,6 +107,7 @@ def prior_theta_json(cd: CompassDiagnosis) -> dict[str, Any] | None:
     return {
         "theta": r4(pt.theta_mgauss),
         "theta_ci95_halfwidth": r4(pt.halfwidth_mgauss),
+        "theta_ci95_joint_halfwidth": r4(pt.joint_halfwidth_mgauss),
         "identifiable": pt.identifiable,
         "residual_rms_mgauss": r4(pt.residual_rms_mgauss),
         "model_error_bound_mgauss": r4(pt.model_error_bound_mgauss)
@@ -137,16 +140,30 @@ def nuisances_at_bound(cd: CompassDiagnosis) -> list[str]:
     return out
 
 
+def vector_halfwidths(
+    data: CompassData, fit: ModelFit, weights: dict[str, float], blocks: bool, coordinates: int = 3
+) -> tuple[F64, F64]:
+    """(per-axis 95 % half-widths, the joint 95 % box's over ``coordinates``) of a vector parameter: the
+    per-axis ones are each 95 %, the box holds the whole vector with 95 % (Bonferroni,
+    :mod:`magcomp.diagnosis.intervals`)."""
+    per_axis, joint = column_halfwidths(data, fit, weights, blocks, (1, coordinates))
+    return per_axis, joint
+
+
 def _result_json(cd: CompassDiagnosis) -> dict[str, Any]:
+    hw, hw_joint = vector_halfwidths(cd.data, cd.extended, {"throttle": 1.0}, blocks=True)
+    hw0, hw0_joint = vector_halfwidths(cd.data, cd.baseline, {"throttle": 1.0}, blocks=True)
     return {
         "index": cd.index,
         "source": cd.source,
         "n_samples": cd.data.n,
         "excluded_spans_s": [[r4(a), r4(b)] for a, b in cd.excluded],
         "theta": r4(cd.extended.theta_mgauss),
-        "theta_ci95_halfwidth": r4(theta_halfwidth(cd.data, cd.extended)),
+        "theta_ci95_halfwidth": r4(hw),
+        "theta_ci95_joint_halfwidth": r4(hw_joint),
         "theta_baseline": r4(cd.baseline.theta_mgauss),
-        "theta_baseline_ci95_halfwidth": r4(theta_halfwidth(cd.data, cd.baseline)),
+        "theta_baseline_ci95_halfwidth": r4(hw0),
+        "theta_baseline_ci95_joint_halfwidth": r4(hw0_joint),
         "residual_rms_baseline": r4(cd.baseline.rms_mgauss),
         "residual_rms_extended": r4(cd.extended.rms_mgauss),
         "findings": [finding_json(f) for f in cd.findings],
@@ -244,10 +261,12 @@ def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]
         mag = float(np.linalg.norm(k))
         # at least the block jackknife's, as theta's: a slow column absorbs slow model error the HAC variance
         # cannot see (measured coverage: magcomp.diagnosis.intervals)
-        hw = column_halfwidth(data, fit, {"temperature": 1.0}, blocks=True)
+        hw, hw_joint = vector_halfwidths(data, fit, {"temperature": 1.0}, blocks=True)
         return {
             "mgauss_per_degc": r4(mag),
             "mgauss_per_degc_ci95_halfwidth_per_axis": r4(hw),
+            # the box that holds the whole coefficient vector with 95 %: "every axis inside" is a joint claim
+            "mgauss_per_degc_ci95_joint_halfwidth": r4(hw_joint),
             "direction": r4(k / mag if mag > 0 else k),
         }
     theta = fit.theta_mgauss
@@ -255,9 +274,12 @@ def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]
     rows = [list(fit.columns).index(c) for c in names]
     delta = np.vstack([fit.coefs[rows], -np.sum(fit.coefs[rows], axis=0, keepdims=True)])
     theta_i = theta + delta
-    hws = [column_halfwidth(data, fit, {"throttle": 1.0, c: 1.0}) for c in names]
-    hws.append(column_halfwidth(data, fit, {"throttle": 1.0, **{c: -1.0 for c in names}}))
-    hw = np.vstack(hws)
+    # per axis, and the joint box over all m x 3 coordinates of the motors' vectors (intervals module)
+    coords = 3 * (len(names) + 1)
+    pairs = [vector_halfwidths(data, fit, {"throttle": 1.0, c: 1.0}, False, coords) for c in names]
+    pairs.append(vector_halfwidths(data, fit, {"throttle": 1.0, **{c: -1.0 for c in names}}, False, coords))
+    hw = np.vstack([p[0] for p in pairs])
+    hw_joint = np.vstack([p[1] for p in pairs])
     tn = float(np.linalg.norm(theta))
     spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
     cols, _ = drive_columns(data.drive, fit.ext)
@@ -280,6 +302,7 @@ def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]
     if cond <= MAX_CONDITION_INDEX and stable and motors_identified(theta_i, hw, theta):
         out["theta_per_motor_mgauss"] = [r4(row) for row in theta_i]
         out["theta_per_motor_ci95_halfwidth"] = [r4(row) for row in hw]
+        out["theta_per_motor_ci95_joint_halfwidth"] = [r4(row) for row in hw_joint]
     else:
         why = []
         if cond > MAX_CONDITION_INDEX:

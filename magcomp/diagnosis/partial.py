@@ -19,7 +19,7 @@ inclination when known is the start).
 theta's 95 % interval is the posterior one, sigma^2 (X'X + P)^-1 with the residual's variance, inflated by
 Bartlett's factor of the residual against the theta column (the effective sample size of
 :mod:`magcomp.diagnosis.selection`): it includes what the prior leaves uncertain about A. It is at least the
-block jackknife's (:func:`magcomp.diagnosis.intervals.block_jackknife_halfwidth`, the prior kept in every
+block jackknife's (:func:`magcomp.diagnosis.intervals.block_jackknife_se`, the prior kept in every
 refit; inclination, declination and heading drift linearised and free), as the free fit's interval is: the
 Bartlett factor sees only the residual's autocorrelation against the drive, not a model error that moves
 theta from one manoeuvre to the next. Measured: on hovers with AR(1) compass noise (5 mgauss, 10 s,
@@ -45,7 +45,7 @@ from scipy.optimize import least_squares
 from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 from magcomp.diagnosis.effects import ExtensionParams, drive_columns
 from magcomp.diagnosis.gate import structured_shift_bound
-from magcomp.diagnosis.intervals import block_jackknife_halfwidth
+from magcomp.diagnosis.intervals import block_jackknife_se, box_quantile
 from magcomp.diagnosis.model import CompassData, earth_dir_body
 from magcomp.diagnosis.selection import bartlett_factor
 
@@ -74,6 +74,8 @@ class PriorTheta:
     prior: str
     model_error_bound_mgauss: float = math.inf
     why: str = ""
+    #: the joint 95 % box of theta (Bonferroni over the three axes, :mod:`magcomp.diagnosis.intervals`)
+    joint_halfwidth_mgauss: F64 | None = None
 
 
 def _map_solve(x: F64, v: F64, prior_rows: int, a0: F64, w: float) -> tuple[F64, F64]:
@@ -150,8 +152,10 @@ def theta_with_prior(
     theta = beta[4]
     var_res = np.mean(res**2, axis=0)
     inflate = bartlett_factor(res, np.outer(d - d.mean(), theta))
-    hw = Z95 * np.sqrt(var_res * inv[4, 4] * inflate)
-    hw = np.maximum(hw, _jackknife_halfwidth(data, x, beta, res, w, (float(z[0]), float(z[1]), drift_rad_s)))
+    sd = np.sqrt(var_res * inv[4, 4] * inflate)
+    jk_se, jk_dof = _jackknife_se(data, x, beta, res, w, (float(z[0]), float(z[1]), drift_rad_s))
+    hw = np.maximum(Z95 * sd, box_quantile(1, jk_dof) * jk_se)
+    hw_joint = np.maximum(box_quantile(3) * sd, box_quantile(3, jk_dof) * jk_se)
     tn = float(np.linalg.norm(theta))
     prior = (
         f"calibration held at the autopilot's (A = {f:.0f} mgauss x identity, each element within "
@@ -167,14 +171,16 @@ def theta_with_prior(
         prior,
         bound,
         "; ".join(why),
+        hw_joint,
     )
 
 
-def _jackknife_halfwidth(
+def _jackknife_se(
     data: CompassData, x: F64, beta: F64, res: F64, w: float, z3: tuple[float, float, float]
-) -> F64:
-    """95 % half-width of theta per axis from the delete-one-block jackknife of the posterior mode
-    (:func:`magcomp.diagnosis.intervals.block_jackknife_halfwidth` with the prior kept in every refit). The
+) -> tuple[F64, int]:
+    """Standard error of theta per axis (and its degrees of freedom) from the delete-one-block jackknife of
+    the posterior mode (:func:`magcomp.diagnosis.intervals.block_jackknife_se` with the prior kept in every
+    refit). The
     Earth field's inclination, declination and the heading drift enter linearised (their derivative columns
     per axis, as the free fit's interval has them), so a block whose removal would move them moves theta as
     it would in a refit."""
@@ -190,10 +196,11 @@ def _jackknife_halfwidth(
     sel = np.zeros(k_cols + 3)
     sel[4] = 1.0
     out = np.zeros(3)
+    dof = 1
     for a in range(3):
         xa = np.column_stack([x, np.column_stack([dk @ beta[:3, a] for dk in dh])])
-        out[a] = block_jackknife_halfwidth(data.t_s, xa, res[:, a], sel, prior)
-    return out
+        out[a], dof = block_jackknife_se(data.t_s, xa, res[:, a], sel, prior)
+    return out, dof
 
 
 def _not_identifiable(

@@ -230,9 +230,9 @@ def markdown(
             )
             continue
         names = ", ".join(f.label for f in c.findings) or "none"
-        hw = c.to_json()["theta_ci95_halfwidth"]
+        hw = c.to_json()["theta_ci95_joint_halfwidth"]  # the whole vector: the joint box (intervals module)
         lines.append(
-            f"| {c.index} | {_vec(c.extended.theta_mgauss)} +- {_vec(hw)} (95 %) | "
+            f"| {c.index} | {_vec(c.extended.theta_mgauss)} +- {_vec(hw)} (95 % joint) | "
             f"{c.baseline.rms_mgauss:.2f} | {c.extended.rms_mgauss:.2f} | {names} |"
         )
     lines.append("")
@@ -294,8 +294,8 @@ def _compass_section(
                 f"**Calibration not observable:** {cj['unobservable_why']}. No finding or autopilot "
                 "parameter is given from the free fit. **theta is**: the throttle varies at a near-constant "
                 f"attitude, so with the {pt['prior']}, theta = {_vec(pt['theta'])} +- "
-                f"{_vec(pt['theta_ci95_halfwidth'])} "
-                f"mgauss (95 %, compass frame; residual {pt['residual_rms_mgauss']} mgauss): {pt['note']}."
+                f"{_vec(pt['theta_ci95_joint_halfwidth'])} mgauss (95 % joint over the axes, compass frame; "
+                f"residual {pt['residual_rms_mgauss']} mgauss): {pt['note']}."
             )
         else:
             out.append(

@@ -188,6 +188,9 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
     )
     rows = [_compass_row(base, c, earth_norm) for c in summary.get("compasses", [])]
     for r in rows:
+        # which sensor the slot holds (a remounted / unplugged compass changes it): the vehicle's history
+        # follows sensors, not slots (fleet.vehicles)
+        r["compass_sensor"] = ident.compass_sensor(int(r["compass"]))
         if isinstance(diag, LogDiagnosis):
             r.update(diag.columns.get(r["compass"]) or failed_columns("diagnose left this compass out"))
         elif diag is not None:

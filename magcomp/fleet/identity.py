@@ -9,6 +9,11 @@
   ``STATUSTEXT``, ``HEARTBEAT`` (autopilot, vehicle type, system id), ``SYSTEM_TIME`` (Unix time from GNSS),
   else the ground station's own recording clock (the tlog's frame timestamps).
 
+Each compass slot's sensor (device id): the parameters that name it (``COMPASS_DEV_ID*`` /
+``COMPASS_EXTERN*``; PX4 ``CAL_MAGn_ID`` / ``CAL_MAGn_ROT``; :mod:`magcomp.diagnosis.identity` reads
+them) from the ULog's initial parameters, the DataFlash ``PARM`` records of the scanned part, a tlog's
+``PARAM_VALUE``.
+
 When the log names no board, the vehicle is a guess: the folder it lies in and the MAVLink system id
 (``identity_source`` says so); a mapping file (:mod:`magcomp.fleet.mapping`) names vehicles for certain.
 """
@@ -20,10 +25,12 @@ import mmap
 import re
 import struct
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
+
+from magcomp.diagnosis.identity import sensor_identity
 
 #: bytes of a DataFlash log read for its boot messages and first GPS time (the boot text comes first)
 DATAFLASH_SCAN_BYTES = 16 << 20
@@ -50,6 +57,12 @@ class LogIdentity:
     system_id: int = -1
     date_utc: datetime | None = None
     date_source: str = ""  # gps | gps-system-time | tlog-clock | ulog-time-ref | ""
+    #: the parameters naming each compass slot's sensor (:func:`sensor_param`)
+    params: dict[str, float] = field(default_factory=dict)
+
+    def compass_sensor(self, index: int) -> str | None:
+        """The sensor in compass slot ``index`` (its device id as text); None: the log does not name it."""
+        return sensor_identity(self.params, index).key
 
     def vehicle_id(self, path: Path) -> tuple[str, str]:
         """(vehicle id, how it was found)."""
@@ -74,6 +87,24 @@ def scan_identity(path: Path) -> LogIdentity:
         return _scan_tlog(path)
     except (OSError, ValueError, struct.error, IndexError, KeyError, UnicodeDecodeError, TypeError):
         return LogIdentity(format=fmt)
+
+
+_SENSOR_PARAM = re.compile(r"^(COMPASS_DEV_ID\d?|COMPASS_EXTERN(AL|\d)|CAL_MAG\d_(ID|ROT))$")
+
+
+def sensor_param(name: str) -> bool:
+    """Is ``name`` one of the parameters that say which sensor sits in a compass slot?"""
+    return _SENSOR_PARAM.match(name) is not None
+
+
+def _param(ident: LogIdentity, name: str, value: Any) -> None:
+    if sensor_param(name):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            return
+        if math.isfinite(v):
+            ident.params[name] = v
 
 
 def log_format(path: Path) -> str:
@@ -152,6 +183,8 @@ def _scan_ulog(path: Path) -> LogIdentity:
     sys_name = str(info.get("sys_name", "") or "")
     if sys_name and sys_name != "PX4":
         ident.autopilot = sys_name
+    for name, value in ulog.initial_parameters.items():
+        _param(ident, str(name), value)
     for d in ulog.data_list:
         utc = d.data.get("time_utc_usec")
         if utc is None:
@@ -203,7 +236,7 @@ def _scan_dataflash_binary(path: Path) -> LogIdentity:
         n = min(len(mm), DATAFLASH_SCAN_BYTES)
         data = mm[:n]
     formats: dict[int, tuple[str, struct.Struct, list[str], int]] = {}
-    wanted = {"MSG", "VER", "GPS"}
+    wanted = {"MSG", "VER", "GPS", "PARM"}
     p = 0
     while p + 3 <= n:
         if data[p] != 0xA3 or data[p + 1] != 0x95:
@@ -245,8 +278,11 @@ def _scan_dataflash_binary(path: Path) -> LogIdentity:
 
 
 def _df_record(ident: LogIdentity, name: str, values: dict[str, Any]) -> bool:
-    """One MSG / VER / GPS record into ``ident``; True when nothing more is needed."""
-    if name == "MSG":
+    """One MSG / VER / GPS / PARM record into ``ident``; True when nothing more is needed."""
+    if name == "PARM":
+        raw = values.get("Name", b"")
+        _param(ident, _cstr(raw) if isinstance(raw, bytes) else str(raw), values.get("Value"))
+    elif name == "MSG":
         raw = values.get("Message", b"")
         _text(ident, _cstr(raw) if isinstance(raw, bytes) else str(raw))
     elif name == "VER":
@@ -287,7 +323,7 @@ def _scan_dataflash_text(path: Path) -> LogIdentity:
                 _text(
                     ident, ",".join(parts[2:]) if "TimeUS" in columns.get("MSG", []) else ",".join(parts[1:])
                 )
-            elif name in ("VER", "GPS") and name in columns:
+            elif name in ("VER", "GPS", "PARM") and name in columns:
                 values: dict[str, Any] = {}
                 for col, raw in zip(columns[name], parts[1:], strict=False):
                     try:
@@ -310,7 +346,9 @@ def _scan_tlog(path: Path) -> LogIdentity:
 
     ident = LogIdentity(format="tlog")
     mod = _mavlink_module()
-    names = ("HEARTBEAT", "AUTOPILOT_VERSION", "STATUSTEXT", "SYSTEM_TIME")
+    from magcomp.adapters.param_values import param_value
+
+    names = ("HEARTBEAT", "AUTOPILOT_VERSION", "STATUSTEXT", "SYSTEM_TIME", "PARAM_VALUE")
     decoders = frame_decoders(mod, {name: (lambda m: None) for name in names})
     counts: dict[str, int] = defaultdict(int)
     system_ids: dict[int, int] = defaultdict(int)
@@ -335,6 +373,15 @@ def _scan_tlog(path: Path) -> LogIdentity:
                 _autopilot_version(ident, msg)
             elif kind == "STATUSTEXT":
                 _text(ident, str(msg.text))
+            elif kind == "PARAM_VALUE":
+                pid = msg.param_id
+                pid = pid.decode(errors="replace") if isinstance(pid, bytes) else str(pid)
+                bytewise = ident.autopilot == "PX4"  # PX4 copies an integer's bytes (adapters.param_values)
+                _param(
+                    ident,
+                    pid.rstrip("\0"),
+                    param_value(float(msg.param_value), int(msg.param_type), bytewise),
+                )
             elif kind == "SYSTEM_TIME" and ident.date_source != "gps-system-time":
                 when = _unix_datetime(msg.time_unix_usec * 1e-6)
                 if when is not None:

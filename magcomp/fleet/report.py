@@ -74,7 +74,7 @@ def _theta_plot(v: Vehicle) -> str | None:
                     ax.axvline(c.index + 0.5, color="tab:red" if c.confirmed else "tab:orange", ls="--")
                 ax.set_ylabel(f"theta {axis} (mgauss)")
                 if row == 0:
-                    ax.set_title(f"compass {h.compass}")
+                    ax.set_title(h.label)
             axes[2][col].set_xlabel("flight (applied, in order)")
             axes[2][col].xaxis.set_major_locator(MaxNLocator(integer=True))
         fig.suptitle(v.vehicle)
@@ -118,7 +118,7 @@ def _inspect_section(vehicles: list[Vehicle]) -> list[str]:
     for i, v in enumerate(vehicles, 1):
         changed = any(c.confirmed for h in v.compasses for c in h.changes)
         thetas = "<br>".join(
-            f"compass {h.compass}: {_e(interval_text(h.level, h.level_sigma))}"
+            f"{_e(h.label)}: {_e(interval_text(h.level, h.level_sigma))}"
             for h in v.compasses
             if h.level is not None
         )
@@ -149,12 +149,13 @@ def _theta_section(vehicles: list[Vehicle]) -> list[str]:
     parts = ["<h2>Theta per vehicle over time</h2>"]
     for i, v in enumerate(vehicles, 1):
         parts.append(f"<h3 id='v{i}'>{i}. {_e(v.vehicle)}</h3>")
+        parts += [f"<p><small>{_e(note)}</small></p>" for note in v.notes]
         for h in v.compasses:
             for c in h.changes:
                 f = h.flights[c.index]
                 state = "changed" if c.confirmed else "may have changed (not yet confirmed)"
                 parts.append(
-                    f"<p>compass {h.compass}: theta {state} at {_e(f.file_name)} "
+                    f"<p>{_e(h.label)}: theta {state} at {_e(f.file_name)} "
                     f"({_e(f.date_utc.date() if f.date_utc else '')}): "
                     f"{_e(interval_text(c.before.mean.tolist(), c.before.std.tolist()))} &rarr; "
                     f"{_e(interval_text(c.after.mean.tolist(), c.after.std.tolist()))} mgauss</p>"
@@ -167,6 +168,11 @@ def _theta_section(vehicles: list[Vehicle]) -> list[str]:
         else:
             parts.append("<p>No flight with theta applied.</p>")
     return parts
+
+
+def _sensor(r: dict[str, Any]) -> str:
+    s = r.get("compass_sensor")
+    return f"<br><small>sensor {_e(s)}</small>" if s else ""
 
 
 def _logs_section(rows: list[dict[str, Any]]) -> list[str]:
@@ -203,7 +209,7 @@ def _log_row(r: dict[str, Any]) -> str:
         f"<tr class='{'' if ok else 'failed'}'>"
         f"<td title='{_e(r.get('path'))}'>{_e(r.get('file_name'))}</td>"
         f"<td>{_e(r.get('vehicle'))}</td><td>{_e(d.strftime('%Y-%m-%d %H:%M') if d else '')}</td>"
-        f"<td>{_e(r.get('status'))}</td><td class='num'>{_e(r.get('compass'))}</td>"
+        f"<td>{_e(r.get('status'))}</td><td class='num'>{_e(r.get('compass'))}{_sensor(r)}</td>"
         f"<td>{'yes' if r.get('applied') else ('no' if ok else '')}</td><td>{_e(theta)}</td>"
         f"<td class='num'>{_num(r.get('interference_pct'))}</td>"
         f"<td class='num'>{_num(r.get('yaw_span_deg'), '.0f')}</td><td>{thr}</td>"
@@ -212,7 +218,7 @@ def _log_row(r: dict[str, Any]) -> str:
 
 
 def _diagnose_cell(r: dict[str, Any]) -> str:
-    """diagnose's theta (95 %) and findings for the row, or why it has none."""
+    """diagnose's theta (95 % per axis) and findings for the row, or why it has none."""
     if r.get("diagnose_status") == "failed":
         return f"failed: {_e(r.get('diagnose_error'))}"
     if r.get("diagnose_status") != "ok":
@@ -223,5 +229,5 @@ def _diagnose_cell(r: dict[str, Any]) -> str:
         hw = ", ".join(f"{float(r.get(f'diagnose_theta_ci95_{a}_mgauss') or math.nan):.0f}" for a in "xyz")
         ident = "" if r.get("diagnose_theta_identifiable") else " (not identifiable)"
         frm = _e(r.get("diagnose_theta_from"))
-        out += f"<br><small>theta ({theta}) &plusmn; ({hw}) 95 %, {frm}{ident}</small>"
+        out += f"<br><small>theta ({theta}) &plusmn; ({hw}) 95 % per axis, {frm}{ident}</small>"
     return out

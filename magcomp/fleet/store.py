@@ -57,6 +57,9 @@ SCHEMA = pa.schema(
         ("duration_s", _F64),
         ("flight_s", _F64),
         ("compass", pa.int32()),
+        # the physical sensor in that slot (device id; null: the log does not say; diagnosis.identity); a
+        # dataset written before this column reads it as null (pyarrow fills a missing column)
+        ("compass_sensor", _STR),
         ("applied", pa.bool_()),
         ("why", _STR),
         ("form", _STR),

@@ -1,5 +1,12 @@
 """Per vehicle: each compass's theta flight after flight (with intervals), the persistent changes
-(:mod:`magcomp.core.changes`), and the ranked list of vehicles to inspect."""
+(:mod:`magcomp.core.changes`), and the ranked list of vehicles to inspect.
+
+A compass is a physical sensor, not a slot: the history follows the sensor (the row's ``compass_sensor``,
+its device id, :mod:`magcomp.diagnosis.identity`) where the log names it, the slot index where no flight
+does. An unplugged GPS compass moves the board's own sensor up to slot 0 (yladzislay's Pixhawk 1, sample-3):
+by slot, that flight's theta would be compared with another sensor's and flagged as a change that is none.
+A flight that does not name its sensor joins the one sensor the vehicle's other flights have in that slot
+(said in the vehicle's notes, :func:`magcomp.diagnosis.identity.group_by_sensor`)."""
 
 from __future__ import annotations
 
@@ -11,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from magcomp.core.changes import K_INTERVAL, Change, find_changes, level_after
+from magcomp.diagnosis.identity import group_by_sensor
 from magcomp.fleet.discover import VehicleMap
 
 _THETA = ("theta_x_mgauss", "theta_y_mgauss", "theta_z_mgauss")
@@ -30,12 +38,18 @@ class Flight:
 
 @dataclass
 class CompassHistory:
-    compass: int
+    compass: int  # the slot of its latest flight
     flights: list[Flight]  # applied flights, in flight order
     not_applied: int
     changes: list[Change]
     level: list[float] | None  # since the last confirmed change
     level_sigma: list[float] | None
+    sensor: str | None = None  # its device id (None: no flight names it; the history follows the slot)
+
+    @property
+    def label(self) -> str:
+        """``compass 0`` or ``compass 0 (sensor 131594)``."""
+        return f"compass {self.compass}" + (f" (sensor {self.sensor})" if self.sensor else "")
 
     def change_rows(self) -> list[dict[str, Any]]:
         return [
@@ -71,6 +85,8 @@ class Vehicle:
     reasons: list[str] = field(default_factory=list)
     #: the compensation parameters to set (:func:`vehicle_params`), None when no flight gave any
     params: dict[str, Any] | None = None
+    #: how the compasses were grouped where a reader should know (a slot holding another sensor)
+    notes: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -85,9 +101,11 @@ class Vehicle:
             "score": self.score,
             "reasons": self.reasons,
             "params": self.params,
+            "notes": self.notes,
             "compasses": [
                 {
                     "compass": h.compass,
+                    "sensor": h.sensor,
                     "flights_applied": len(h.flights),
                     "flights_not_applied": h.not_applied,
                     "theta_mgauss": h.level,
@@ -185,8 +203,8 @@ def _vehicle(name: str, rows: list[dict[str, Any]], theta_from: str = "replay") 
             and "was wrong" in str(r.get("warnings") or "")
         }
     )
-    for compass in sorted({int(r["compass"]) for r in ok if r.get("compass") is not None}):
-        mine = [r for r in ok if r.get("compass") == compass]
+    groups, v.notes = sensor_groups(ok)
+    for sensor, mine in groups:
         flights = []
         for r in mine:
             ts = _flight_theta(r, theta_from)
@@ -208,15 +226,41 @@ def _vehicle(name: str, rows: list[dict[str, Any]], theta_from: str = "replay") 
         level = level_after(x, s, changes) if flights else None
         v.compasses.append(
             CompassHistory(
-                compass,
+                int(mine[-1]["compass"]),
                 flights,
                 len(mine) - len(flights),
                 changes,
                 level.mean.tolist() if level is not None else None,
                 level.std.tolist() if level is not None else None,
+                sensor,
             )
         )
     return v
+
+
+def _device_id(r: dict[str, Any]) -> int | None:
+    s = r.get("compass_sensor")
+    try:
+        return int(str(s)) if s not in (None, "") else None
+    except ValueError:
+        return None
+
+
+def sensor_groups(
+    ok_rows: list[dict[str, Any]],
+) -> tuple[list[tuple[str | None, list[dict[str, Any]]]], list[str]]:
+    """The rows (in flight order) of each physical compass of one vehicle: (its sensor's device id, or None
+    where no flight names it and the slot groups them; its rows), ordered by the slot of the latest flight;
+    and the notes on the grouping (module docstring)."""
+    rows = [r for r in ok_rows if r.get("compass") is not None]
+    entries = [(str(r.get("file_name") or r.get("sha256")), int(r["compass"]), _device_id(r)) for r in rows]
+    groups, notes = group_by_sensor(entries)
+    out: list[tuple[str | None, list[dict[str, Any]]]] = []
+    for key, positions in groups.items():
+        sensor = key.removeprefix("sensor ") if key.startswith("sensor ") else None
+        out.append((sensor, [rows[i] for i in positions]))
+    out.sort(key=lambda g: (int(g[1][-1]["compass"]), g[0] or ""))
+    return out, notes
 
 
 def vehicle_params(ok_rows: list[dict[str, Any]]) -> dict[str, Any] | None:
@@ -265,20 +309,17 @@ def _rank(v: Vehicle) -> None:
             f = h.flights[c.index]
             if c.confirmed:
                 score += 100.0
-                reasons.append(f"compass {h.compass}: theta changed by {c.size:.0f} mgauss at {f.file_name}")
+                reasons.append(f"{h.label}: theta changed by {c.size:.0f} mgauss at {f.file_name}")
             else:
                 score += 30.0
-                reasons.append(
-                    f"compass {h.compass}: theta may have changed at {f.file_name} (not yet confirmed)"
-                )
+                reasons.append(f"{h.label}: theta may have changed at {f.file_name} (not yet confirmed)")
         if h.flights:
             last = h.flights[-1]
             if math.isfinite(last.interference_pct):
                 score += last.interference_pct
                 if last.interference_pct >= 30.0:
                     reasons.append(
-                        f"compass {h.compass}: interference {last.interference_pct:.0f} % "
-                        "(ArduPilot wants < 30 %)"
+                        f"{h.label}: interference {last.interference_pct:.0f} % (ArduPilot wants < 30 %)"
                     )
             if math.isfinite(last.heading_sigma_deg):
                 score += 2.0 * last.heading_sigma_deg
@@ -302,7 +343,8 @@ def interval_text(theta: list[float] | None, sigma: list[float] | None) -> str:
 
 
 _COMPASS_KEYS = (
-    "compass", "flights_applied", "flights_not_applied", "theta_x_mgauss", "theta_y_mgauss", "theta_z_mgauss",
+    "compass", "compass_sensor", "flights_applied", "flights_not_applied", "theta_x_mgauss", "theta_y_mgauss",
+    "theta_z_mgauss",
     "theta_sigma_x_mgauss", "theta_sigma_y_mgauss", "theta_sigma_z_mgauss", "changes_confirmed",
     "last_change_file", "last_change_date", "last_change_confirmed", "last_change_mgauss",
 )  # fmt: skip
@@ -341,6 +383,7 @@ def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
                 sig = h.level_sigma or [math.nan] * 3
                 row.update(
                     compass=h.compass,
+                    compass_sensor=h.sensor,
                     flights_applied=len(h.flights),
                     flights_not_applied=h.not_applied,
                     theta_x_mgauss=lvl[0],

@@ -474,7 +474,7 @@ def test_report_is_one_self_contained_page(analysed: Path, tmp_path: Path) -> No
     assert text.index("bravo") < text.index("alpha")  # the inspect list: the changed vehicle first
     # what to set, from diagnose: bravo's parameters and the file holding them; diagnose's theta per log row
     assert "COMPASS_MOT_X = " in text and "bravo.param" in text
-    assert "95 %, free fit" in text
+    assert "95 % per axis, free fit" in text  # the row carries per-axis half-widths, not the joint box
 
 
 @pytest.mark.browser

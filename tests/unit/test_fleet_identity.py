@@ -86,7 +86,7 @@ def test_ulog_sys_uuid_firmware_and_gps_time(tmp_path: Path) -> None:
     assert ident.date_source == "gps"
 
 
-_DF_SIZES = {"B": 1, "H": 2, "I": 4, "Q": 8, "n": 4, "N": 16, "Z": 64}
+_DF_SIZES = {"B": 1, "H": 2, "I": 4, "Q": 8, "f": 4, "n": 4, "N": 16, "Z": 64}
 
 
 def _df_fmt(typ: int, name: str, fmt: str, cols: str) -> bytes:
@@ -140,3 +140,48 @@ def test_a_board_id_printed_in_either_byte_order_is_one_id() -> None:
     b = canonical_uid(["001A002D", "35324717", "36343032"])
     assert a == b == "001A002D3532471736343032"
     assert canonical_uid(["001A002D", "35324717", "36343033"]) != a
+
+
+def test_each_format_names_its_compass_sensors(tmp_path: Path) -> None:
+    """The slot's sensor from the log's parameters: a tlog's PARAM_VALUE (ArduPilot casts, PX4 copies an
+    integer's bytes), a DataFlash PARM record, a ULog's initial parameters; a slot without one: None."""
+    from magcomp.adapters.dialect import ensure_dialect
+    from magcomp.adapters.ulog_writer import UlogWriter
+
+    mod = ensure_dialect()
+    mav = mod.MAVLink(None, srcSystem=1, srcComponent=1)
+    frames = [
+        bytes(mav.heartbeat_encode(2, 3, 0, 0, 0, 3).pack(mav)),
+        bytes(mav.param_value_encode(b"COMPASS_DEV_ID", 466441.0, 6, 3, 0).pack(mav)),
+        bytes(mav.param_value_encode(b"COMPASS_DEV_ID2", 131594.0, 6, 3, 1).pack(mav)),
+        bytes(mav.param_value_encode(b"COMPASS_MOTCT", 1.0, 2, 3, 2).pack(mav)),  # not an identity
+    ]
+    p = tmp_path / "a.tlog"
+    _tlog(p, frames)
+    a = scan_identity(p)
+    assert [a.compass_sensor(i) for i in range(3)] == ["466441", "131594", None]
+    assert "COMPASS_MOTCT" not in a.params
+    px4_id = struct.unpack("<f", struct.pack("<i", 396321))[0]  # PX4: the int32's bytes in the float
+    frames = [
+        bytes(mav.heartbeat_encode(2, 12, 0, 0, 0, 3).pack(mav)),
+        bytes(mav.param_value_encode(b"CAL_MAG0_ID", px4_id, 6, 1, 0).pack(mav)),
+    ]
+    q = tmp_path / "b.tlog"
+    _tlog(q, frames)
+    assert scan_identity(q).compass_sensor(0) == "396321"
+
+    data = _df_fmt(128, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
+    data += _df_fmt(64, "PARM", "QNf", "TimeUS,Name,Value")
+    data += b"\xa3\x95\x40" + struct.pack("<Q16sf", 1, b"COMPASS_DEV_ID", 131594.0)
+    d = tmp_path / "00000003.BIN"
+    d.write_bytes(data)
+    assert scan_identity(d).compass_sensor(0) == "131594"
+
+    w = UlogWriter()
+    w.info("sys_name", "PX4")
+    w.param("CAL_MAG1_ID", 396817, is_int=True)
+    w.param("CAL_MAG1_ROT", 10, is_int=True)
+    u = tmp_path / "c.ulg"
+    w.write(u)
+    b = scan_identity(u)
+    assert (b.compass_sensor(0), b.compass_sensor(1)) == (None, "396817")

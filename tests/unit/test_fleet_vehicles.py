@@ -123,3 +123,42 @@ def test_theta_from_diagnose_follows_its_theta_and_skips_what_it_cannot_identify
     assert [f.file_name for f in diag.flights] == ["f00.tlog", "f02.tlog", "f03.tlog", "f04.tlog", "f05.tlog"]
     assert diag.flights[0].sigma == [5.88 / 1.959964] * 3
     assert [(diag.flights[c.index].file_name, c.confirmed) for c in diag.changes] == [("f03.tlog", True)]
+
+
+def test_history_follows_the_sensor_not_the_slot() -> None:
+    """yladzislay's case: an external compass (sensor 466441) in slot 0 and the board's (131594) in slot 1;
+    on flights 3 and 4 the external one is unplugged and the board's moves up to slot 0. By slot, slot 0
+    would jump between two sensors' thetas (a change that is none); by sensor, neither history changes, and
+    the notes say that slot 0 held two sensors. A flight that names no sensor joins its slot's one sensor."""
+    ext, board = (-60.0, 20.0, 0.0), (300.0, -150.0, 200.0)
+    rows = []
+    for i in range(8):
+        unplugged = i in (3, 4)
+        rows.append(
+            _row(
+                "v",
+                i,
+                board if unplugged else ext,
+                day=10 + i,
+                compass_sensor="131594" if unplugged else "466441",
+            )
+        )
+        if not unplugged:
+            rows.append({**_row("v", i, board, day=10 + i, compass_sensor="131594"), "compass": 1})
+    assert rows[1]["compass"] == 1
+    rows[1]["compass_sensor"] = None  # a log that does not name it: slot 1 holds only 131594, paired with it
+    (v,) = summarise(rows)
+    by = {h.sensor: h for h in v.compasses}
+    assert set(by) == {"466441", "131594"}
+    assert len(by["466441"].flights) == 6 and len(by["131594"].flights) == 8
+    assert all(h.changes == [] for h in v.compasses), [h.changes for h in v.compasses]
+    assert not any("changed" in r for r in v.reasons), v.reasons
+    assert any("slot 0 holds different sensors" in n for n in v.notes), v.notes
+    assert any("does not name its sensor" in n for n in v.notes), v.notes
+    assert by["131594"].compass == 1 and by["131594"].label == "compass 1 (sensor 131594)"
+    # without sensors (an older dataset) the history is by slot, as before: slot 0 then "changes"
+    for r in rows:
+        r.pop("compass_sensor", None)
+    (old,) = summarise(rows)
+    assert {h.sensor for h in old.compasses} == {None}
+    assert any(c.confirmed for h in old.compasses for c in h.changes)
