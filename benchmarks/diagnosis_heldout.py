@@ -27,6 +27,10 @@ reported not identifiable). Over seeds 5000-5019 (``--effects temperature_drift 
 temperature per-axis coverage 18 / 20 / 16 (was 12 / 14 / 13), every axis 14 / 20 (was 3 / 20); per_motor
 top 14 / 20 (was 4 / 20), spread within 40 % 12 / 20 (was 1 / 20). Causes and ablations: docs/benchmarks.md.
 
+Measured 2026-11-27 (``--effects per_motor throttle_offset --seeds 10``), per_motor scored against the spread
+each seed drew: top 6/10, inside 4/10 (5/10 against the nominal 1.2; the fitted spreads are 19-59 % above
+the realised ones); throttle_offset 9/10. Why the four misses give no finding: docs/diagnosis.md.
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
 """
 
