@@ -354,6 +354,13 @@ def _summary(j: dict[str, Any]) -> list[str]:
                 f"{h['baseline_gyro_deg']:.1f} -> {h['model_gyro_deg']:.1f} deg over {h['windows']} windows "
                 f"of 10 s with the motors running; {verdict}"
             )
+        m = c.get("heading_vs_gyro_model")
+        if m and m["helps"] and not (h and h["helps"]):  # the gain is the calibration's, not theta's
+            lines.append(
+                f"  with the diagnosis's calibration as well: {m['baseline_gyro_deg']:.1f} -> "
+                f"{m['model_gyro_deg']:.1f} deg: the autopilot's calibration of this compass is off; "
+                "calibrate it again (`magcomp replay` learns one in flight)"
+            )
     if "heading_error_rms_deg" in g and "paper" in g["heading_error_rms_deg"]:
         h = g["heading_error_rms_deg"]
         lines.append(
@@ -489,7 +496,8 @@ def _write_outputs(
         from magcomp.diagnosis.report import write_report
 
         try:
-            written = write_report(d, Path(args.report))
+            checks = {int(c["index"]): c.get("heading_vs_gyro") for c in j["compasses"]}
+            written = write_report(d, Path(args.report), checks=checks)
         except OSError as exc:
             raise InputError(f"cannot write {args.report}: {exc.strerror or exc}") from exc
         print(f"wrote {written[0]} and {len(written) - 1} plot(s)")
@@ -530,21 +538,28 @@ def note_skipped(d: Any, log: Any) -> dict[str, int]:
 
 def add_heading_checks(j: dict[str, Any], d: Any, log: Any) -> None:
     """Per compass of the JSON ``j``: the self-check against the gyro of the heading with the diagnosis's
-    theta removed (diagnosis/gyro_check.py) as ``heading_vs_gyro`` (null where there is nothing to judge)."""
-    from magcomp.diagnosis.gyro_check import heading_check, verdict
+    theta removed (diagnosis/gyro_check.py) as ``heading_vs_gyro``, and of the heading its whole model gives
+    (its calibration too) as ``heading_vs_gyro_model`` (null where there is nothing to judge)."""
+    from magcomp.diagnosis.gyro_check import heading_check, model_check
 
     for cj, c in zip(j["compasses"], d.compasses, strict=True):
-        chk = heading_check(c, log, d.primary)
-        if chk is None:
-            cj["heading_vs_gyro"] = None
-            continue
-        what, why = verdict(chk)
-        cj["heading_vs_gyro"] = {
-            "baseline_gyro_deg": chk.baseline_gyro_deg, "model_gyro_deg": chk.candidate_gyro_deg,
-            "baseline_att_deg": chk.baseline_att_deg, "model_att_deg": chk.candidate_att_deg,
-            "windows": chk.n_windows, "z": chk.z, "helps": what == "helps", "worse": chk.worse,
-            "result": what, "verdict": why,
-        }  # fmt: skip
+        cj["heading_vs_gyro"] = _check_json(heading_check(c, log, d.primary))
+        cj["heading_vs_gyro_model"] = _check_json(model_check(c, log, d.primary))
+
+
+def _check_json(chk: Any) -> dict[str, Any] | None:
+    """A check's figures and its verdict (diagnosis/gyro_check.py ``verdict``) as JSON values."""
+    from magcomp.diagnosis.gyro_check import verdict
+
+    if chk is None:
+        return None
+    what, why = verdict(chk)
+    return {
+        "baseline_gyro_deg": chk.baseline_gyro_deg, "model_gyro_deg": chk.candidate_gyro_deg,
+        "baseline_att_deg": chk.baseline_att_deg, "model_att_deg": chk.candidate_att_deg,
+        "windows": chk.n_windows, "z": chk.z, "helps": what == "helps", "worse": chk.worse,
+        "result": what, "verdict": why,
+    }  # fmt: skip
 
 
 def diagnose_file(path: str, throttle_source: str = "auto", config: str | None = None) -> tuple[Any, Any]:

@@ -29,6 +29,7 @@ from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import LogData
 from magcomp.diagnosis.export import CompassDiagnosis
+from magcomp.diagnosis.heading import compass_yaw_rad
 from magcomp.diagnosis.model import F64
 from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 
@@ -91,10 +92,28 @@ def heading_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.
         return None
     roll, pitch, _ = euler_from_dcms(data.r_nb).T
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
+    m = data.field_mgauss - np.outer(data.throttle_01**2, theta)  # eq. (11)
+    cand = np.radians(heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], *trig))  # eq. (24)
+    return _judge(c, log, primary, cand)
+
+
+def model_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.SelfCheck | None:
+    """The same check of the heading the diagnosis's whole model gives (its calibration, eqs. (1)-(2), and
+    its bias: :func:`magcomp.diagnosis.heading.compass_yaw_rad`), where the compass is observable: what
+    calibrating the compass again would add to the compensation parameters. None elsewhere."""
+    if not c.observable:
+        return None
+    return _judge(c, log, primary, compass_yaw_rad(c.data, c.extended))
+
+
+def _judge(c: CompassDiagnosis, log: LogData, primary: int, cand: F64) -> selfcheck.SelfCheck | None:
+    """:func:`magcomp.core.selfcheck.compare` of ``cand`` (rad, at ``c``'s samples) against the field as
+    logged, on the samples with the motors running and the tilt within 60 deg."""
+    data = c.data
+    roll, pitch, _ = euler_from_dcms(data.r_nb).T
+    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
     y = data.field_mgauss
-    m = y - np.outer(data.throttle_01**2, theta)  # eq. (11)
     base = np.radians(heading_from_trig_deg(y[:, 0], y[:, 1], y[:, 2], *trig))  # eq. (24)
-    cand = np.radians(heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], *trig))
     ref = _reference(log, data.t_s)
     if ref is None:
         return None

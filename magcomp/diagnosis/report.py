@@ -205,9 +205,11 @@ def _vec(v: Any) -> str:
 
 
 def markdown(
-    d: Diagnosis, figures: dict[int, list[tuple[str, str]]] | None = None, rel_dir: str = "."
-) -> str:
-    """The report as Markdown; ``figures`` maps compass index -> (file, caption) under ``rel_dir``."""
+    d: Diagnosis, figures: dict[int, list[tuple[str, str]]] | None = None, rel_dir: str = ".",
+    checks: dict[int, dict[str, Any] | None] | None = None,
+) -> str:  # fmt: skip
+    """The report as Markdown; ``figures`` maps compass index -> (file, caption) under ``rel_dir``;
+    ``checks``: compass index -> its theta's check against the gyro (diagnose's ``heading_vs_gyro``)."""
     j = d.to_json()
     lines = [f"# magcomp diagnosis: `{Path(d.log_source).name}`", ""]
     lines += [
@@ -256,7 +258,23 @@ def markdown(
         lines.append(f"- note: {note}")
     for c in d.compasses:
         lines += _compass_section(c, (figures or {}).get(c.index, []), rel_dir, d.autopilot)
+        lines += _check_lines((checks or {}).get(c.index))
     return "\n".join(lines) + "\n"
+
+
+def _check_lines(h: dict[str, Any] | None) -> list[str]:
+    """theta's check against the gyro (diagnosis/gyro_check.py), as diagnose prints it."""
+    if not h:
+        return []
+    out = [
+        f"**Against the gyro** (10 s windows, motors running, {h['windows']} windows): the field as logged "
+        f"{h['baseline_gyro_deg']:.1f} deg -> with this theta removed {h['model_gyro_deg']:.1f} deg: "
+        f"**{h['result']}** ({h['verdict']})."
+    ]
+    if h.get("worse"):
+        out.append("These compensation parameters would make the heading worse: `--params-out` leaves them "
+                   "out.")  # fmt: skip
+    return [*out, ""]
 
 
 def _compass_section(
@@ -411,8 +429,14 @@ def _autopilot_lines(
     return out
 
 
-def write_report(d: Diagnosis, path: Path, img_dir: Path | None = None) -> list[Path]:
-    """Write the Markdown report to ``path`` and its PNGs to ``img_dir`` (default: beside it)."""
+def write_report(
+    d: Diagnosis,
+    path: Path,
+    img_dir: Path | None = None,
+    checks: dict[int, dict[str, Any] | None] | None = None,
+) -> list[Path]:
+    """Write the Markdown report to ``path`` and its PNGs to ``img_dir`` (default: beside it); ``checks``: as
+    :func:`markdown`'s."""
     path.parent.mkdir(parents=True, exist_ok=True)
     img_dir = img_dir or path.parent / (path.stem + "_img")
     stem = path.stem
@@ -421,7 +445,7 @@ def write_report(d: Diagnosis, path: Path, img_dir: Path | None = None) -> list[
         rel = img_dir.resolve().relative_to(path.parent.resolve()).as_posix()
     except ValueError:
         rel = img_dir.resolve().as_posix()
-    path.write_text(markdown(d, figs, rel), encoding="utf-8")
+    path.write_text(markdown(d, figs, rel, checks), encoding="utf-8")
     written = [path] + [img_dir / f for fl in figs.values() for f, _ in fl]
     return written
 

@@ -60,6 +60,7 @@ def test_cli_report_has_plots_and_names_the_cause(skewed_log: Path) -> None:
     assert main(["diagnose", str(skewed_log), "--report", str(md)]) == 0
     text = md.read_text()
     assert "time_skew" in text and "COMPASS_MOT" in text
+    assert "**Against the gyro** (10 s windows" in text  # theta's check, as the console prints it
     # an ArduPilot log: its own parameters only (the JSON keeps both); no "None" in the prose
     assert "CAL_MAG" not in text and "None" not in text
     pngs = sorted((md.parent / "report_img").glob("*.png"))
@@ -168,3 +169,23 @@ def test_check_against_the_gyro_survives_a_nan_attitude(tmp_path: Path) -> None:
     assert clean is not None and damaged is not None
     assert damaged.n_windows == clean.n_windows, (damaged, clean)
     assert abs(damaged.candidate_gyro_deg - clean.candidate_gyro_deg) < 0.05 * clean.candidate_gyro_deg
+
+
+def test_cli_says_when_the_calibration_not_theta_is_what_helps(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A simulated flight with no current-driven bias and the raw (uncalibrated) field logged: theta alone
+    gives no clear gain against the gyro, the diagnosis's whole model (its calibration) helps, and diagnose
+    says the compass wants calibrating again."""
+    from magcomp.sim.config import Variation
+
+    path = tmp_path / "flight.tlog"
+    var = Variation(theta_scale=0.0)
+    write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=120.0, seed=5, variation=var)), path)
+    assert main(["diagnose", str(path), "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    c = json.loads((tmp_path / "d.json").read_text())["compasses"][0]
+    assert not c["heading_vs_gyro"]["helps"], c["heading_vs_gyro"]
+    m = c["heading_vs_gyro_model"]
+    assert m["helps"] and m["model_gyro_deg"] < 0.9 * m["baseline_gyro_deg"], m
+    assert "the autopilot's calibration of this compass is off" in out, out
