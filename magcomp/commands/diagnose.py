@@ -540,11 +540,12 @@ def add_heading_checks(j: dict[str, Any], d: Any, log: Any) -> None:
     """Per compass of the JSON ``j``: the self-check against the gyro of the heading with the diagnosis's
     theta removed (diagnosis/gyro_check.py) as ``heading_vs_gyro``, and of the heading its whole model gives
     (its calibration too) as ``heading_vs_gyro_model`` (null where there is nothing to judge)."""
-    from magcomp.diagnosis.gyro_check import heading_check, model_check
+    from magcomp.diagnosis.gyro_check import heading_check, model_check, references
 
+    refs = references(log, d.yaw_follow_per_s)  # once per log
     for cj, c in zip(j["compasses"], d.compasses, strict=True):
-        cj["heading_vs_gyro"] = _check_json(heading_check(c, log, d.primary))
-        cj["heading_vs_gyro_model"] = _check_json(model_check(c, log, d.primary))
+        cj["heading_vs_gyro"] = None if refs is None else _check_json(heading_check(c, refs))
+        cj["heading_vs_gyro_model"] = None if refs is None else _check_json(model_check(c, refs))
 
 
 def _check_json(chk: Any) -> dict[str, Any] | None:

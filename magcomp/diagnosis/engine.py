@@ -312,37 +312,40 @@ def diagnose(
     comps = [replace(c, sensor=sensor_identity(log.params, c.index)) for c in comps]
     if heading_reference is None and all(c.heading is None for c in comps):
         notes.append("no heading reference (no truth, no compass far from the wires): heading errors omitted")
-    follow = _yaw_follow_note(log, prim)
+    follow, rate = _yaw_follow(log, prim)
     if follow:
         notes.append(follow)
-    return Diagnosis(log.source, prim, comps, notes, autopilot=int(log.autopilot))
+    return Diagnosis(log.source, prim, comps, notes, autopilot=int(log.autopilot), yaw_follow_per_s=rate)
 
 
-def _yaw_follow_note(log: LogData, compass: int) -> str | None:
-    """How fast the autopilot's yaw follows compass ``compass`` with the motors running (yaw_follow.py):
-    a real EKF's pull is slow (log171: 0.02 /s), a complementary filter's ~0.5 /s; how long the autopilot
-    keeps a compass error in its yaw, and so in its GPS-aided tilt."""
+def _yaw_follow(log: LogData, compass: int) -> tuple[str | None, float]:
+    """How fast the autopilot's yaw follows compass ``compass`` with the motors running (yaw_follow.py), as
+    a note and as the rate (1/s; NaN where it cannot be measured): a real EKF's pull is slow (log171:
+    0.02 /s), a complementary filter's ~0.5 /s; how long the autopilot keeps a compass error in its yaw, and
+    so in its GPS-aided tilt. The check against the gyro (gyro_check.py) decides on the rate whether that
+    yaw is a second reference."""
     mag, att, thr = log.mag.get(compass), log.attitude_rad, log.throttle_01
     if mag is None or len(att) < 2 or log.imu_t_s.size < 2 or len(thr) < 2:
-        return None
+        return None, math.nan
     on = thr.t_s[thr.values > 0.1]
     if on.size < 2:
-        return None
+        return None, math.nan
     try:
         fit = yaw_follow_gain(
             att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
             t_start_s=float(on[0]) + 5.0, t_end_s=float(on[-1]),
         )  # fmt: skip
     except (np.linalg.LinAlgError, ValueError):  # a note, never a reason for diagnose to fail
-        return None
+        return None, math.nan
     if fit is None or not math.isfinite(fit.gain_per_s) or not math.isfinite(fit.gain_sigma_per_s):
-        return None
-    return (
+        return None, math.nan
+    note = (
         f"the autopilot's yaw follows compass {compass}'s heading at {fit.gain_per_s:.3f} +- "
         f"{fit.gain_sigma_per_s:.3f} /s with the motors running ({fit.n_windows} windows of 2 s; the yaw "
         f"minus the gyro's integral against the compass's heading)"
         + yaw_follow_comment(fit.gain_per_s, fit.gain_sigma_per_s)
     )
+    return note, float(fit.gain_per_s)
 
 
 def yaw_follow_comment(gain: float, sigma: float) -> str:

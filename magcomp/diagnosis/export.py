@@ -479,6 +479,9 @@ class Diagnosis:
     notes: list[str]
     #: MAV_AUTOPILOT of the log (3 ArduPilot, 12 PX4, -1 unknown): whose parameters the report prints
     autopilot: int = -1
+    #: how fast the autopilot's yaw follows the primary compass with the motors running (1/s; NaN: not
+    #: measured), as the yaw-follow note says
+    yaw_follow_per_s: float = math.nan
 
     def compass(self, index: int) -> CompassDiagnosis:
         for c in self.compasses:

@@ -22,6 +22,8 @@ arrays in, a verdict out; no I/O.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from magcomp.core import selfcheck
@@ -30,14 +32,14 @@ from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import LogData
 from magcomp.diagnosis.export import CompassDiagnosis
 from magcomp.diagnosis.heading import compass_yaw_rad
+from magcomp.diagnosis.inputs import finite_series
 from magcomp.diagnosis.model import F64
-from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 
 #: the autopilot's yaw is no second reference where it follows the compass it fuses this fast or faster
 #: (1/s): within the check's own window (WINDOW_S) it then carries that compass's throttle-driven error (a
 #: complementary filter's ~0.5 /s), and the other compasses' errors follow the same throttle; a real EKF's
-#: pull of 0.01-0.05 /s leaves it an independent reference over the window (diagnosis's yaw-follow note
-#: measures the rate)
+#: pull of 0.01-0.05 /s leaves it an independent reference over the window (the diagnosis measures the rate
+#: for its yaw-follow note, ``Diagnosis.yaw_follow_per_s``)
 CIRCULAR_FOLLOW_PER_S = 1.0 / selfcheck.WINDOW_S
 #: "helps" also asks for a gain a pilot sees: the rms against the gyro down to this fraction or below (the
 #: real-flight benchmark's "better": down 10 % or more); a gain beyond the noise but smaller is no clear gain
@@ -55,89 +57,81 @@ def verdict(chk: selfcheck.SelfCheck) -> tuple[str, str]:
     return "no clear gain", chk.reason
 
 
-def _reference(log: LogData, t_s: F64) -> tuple[F64, F64, bool] | None:
-    """(reference yaw, its segment, from the gyro) at ``t_s`` (rad): the gyro's integral where the IMU is
-    logged at 10 Hz or faster, else the autopilot's yaw; None without an attitude."""
-    att_t, att_v = _finite_attitude(log)
-    if att_t.size < 10:
+@dataclass(frozen=True)
+class References:
+    """What every compass of a log is judged against, computed once per log: the windowed reference (the
+    gyro's integral where the IMU is logged at 10 Hz or faster, else the autopilot's yaw) and the autopilot's
+    unwrapped yaw, at their own times (rad), and whether that yaw is a second reference."""
+
+    ref_t_s: F64
+    ref_yaw_rad: F64
+    ref_segment: F64
+    att_t_s: F64
+    ap_yaw_rad: F64
+    ap_yaw_second: bool
+
+
+def references(log: LogData, yaw_follow_per_s: float) -> References | None:
+    """The log's references; ``yaw_follow_per_s``: how fast the autopilot's yaw follows its primary compass
+    (the diagnosis's ``yaw_follow_per_s``; NaN, not measured, keeps that yaw as a second reference). None
+    without an attitude."""
+    att = finite_series(log.attitude_rad)  # a damaged record's NaN would end an unwrapped yaw
+    if len(att) < 10:
         return None
-    roll, pitch, yaw = att_v[:, 0], att_v[:, 1], np.unwrap(att_v[:, 2])
-    gt, gyro = log.imu_t_s, log.gyro_rad_s
+    roll, pitch, yaw = att.values[:, 0], att.values[:, 1], np.unwrap(att.values[:, 2])
+    second = not yaw_follow_per_s >= CIRCULAR_FOLLOW_PER_S
+    gt = log.imu_t_s
     if gt.size > 10 and float(np.median(np.diff(gt))) <= selfcheck.MAX_GYRO_DT_S:
-        r = np.interp(gt, att_t, roll)
-        p = np.interp(gt, att_t, pitch)
-        g_yaw, seg = selfcheck.integrate_yaw_rad(gt, selfcheck.euler_yaw_rate_rad_s(gyro, r, p))
-        return np.interp(t_s, gt, g_yaw), np.interp(t_s, gt, seg).round(), True
-    return np.interp(t_s, att_t, yaw), np.zeros(t_s.shape[0]), False
+        rate = selfcheck.euler_yaw_rate_rad_s(log.gyro_rad_s, np.interp(gt, att.t_s, roll),
+                                              np.interp(gt, att.t_s, pitch))  # fmt: skip
+        g_yaw, seg = selfcheck.integrate_yaw_rad(gt, rate)
+        return References(gt, g_yaw, seg, att.t_s, yaw, second)
+    return References(att.t_s, yaw, np.zeros(att.t_s.shape[0]), att.t_s, yaw, second)
 
 
-def _finite_attitude(log: LogData) -> tuple[F64, F64]:
-    """The autopilot's attitude rows that are finite (a damaged record's NaN would end an unwrapped yaw)."""
-    att = log.attitude_rad
-    v = np.asarray(att.values, dtype=float).reshape(-1, 3)
-    ok = np.isfinite(v).all(axis=1) & np.isfinite(np.asarray(att.t_s, dtype=float))
-    return np.asarray(att.t_s, dtype=float)[ok], v[ok]
-
-
-def heading_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.SelfCheck | None:
+def heading_check(c: CompassDiagnosis, refs: References) -> selfcheck.SelfCheck | None:
     """The self-check of the heading with ``c``'s theta removed against the field as logged (module doc);
-    ``primary``: the compass the autopilot fuses (whose pull on its yaw decides whether that yaw is a second
-    reference). None where there is nothing to judge (no attitude, no theta, the motors never running)."""
-    data = c.data
+    None where there is nothing to judge (no theta, the motors never running)."""
     if c.observable:
         theta = c.extended.theta_mgauss
     elif c.prior_theta is not None:
         theta = c.prior_theta.theta_mgauss
     else:
         return None
-    roll, pitch, _ = euler_from_dcms(data.r_nb).T
-    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
-    m = data.field_mgauss - np.outer(data.throttle_01**2, theta)  # eq. (11)
+    trig = _trig(c)
+    m = c.data.field_mgauss - np.outer(c.data.throttle_01**2, theta)  # eq. (11)
     cand = np.radians(heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], *trig))  # eq. (24)
-    return _judge(c, log, primary, cand)
+    return _judge(c, refs, cand, trig)
 
 
-def model_check(c: CompassDiagnosis, log: LogData, primary: int) -> selfcheck.SelfCheck | None:
+def model_check(c: CompassDiagnosis, refs: References) -> selfcheck.SelfCheck | None:
     """The same check of the heading the diagnosis's whole model gives (its calibration, eqs. (1)-(2), and
     its bias: :func:`magcomp.diagnosis.heading.compass_yaw_rad`), where the compass is observable: what
     calibrating the compass again would add to the compensation parameters. None elsewhere."""
     if not c.observable:
         return None
-    return _judge(c, log, primary, compass_yaw_rad(c.data, c.extended))
+    return _judge(c, refs, compass_yaw_rad(c.data, c.extended), _trig(c))
 
 
-def _judge(c: CompassDiagnosis, log: LogData, primary: int, cand: F64) -> selfcheck.SelfCheck | None:
+def _trig(c: CompassDiagnosis) -> tuple[F64, F64, F64, F64]:
+    """cos / sin of roll and pitch of the diagnosis's compass-free attitude at ``c``'s samples."""
+    roll, pitch, _ = euler_from_dcms(c.data.r_nb).T
+    return np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+
+
+def _judge(c: CompassDiagnosis, refs: References, cand: F64, trig: tuple[F64, F64, F64, F64]
+           ) -> selfcheck.SelfCheck | None:  # fmt: skip
     """:func:`magcomp.core.selfcheck.compare` of ``cand`` (rad, at ``c``'s samples) against the field as
     logged, on the samples with the motors running and the tilt within 60 deg."""
     data = c.data
-    roll, pitch, _ = euler_from_dcms(data.r_nb).T
-    trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
     y = data.field_mgauss
     base = np.radians(heading_from_trig_deg(y[:, 0], y[:, 1], y[:, 2], *trig))  # eq. (24)
-    ref = _reference(log, data.t_s)
-    if ref is None:
-        return None
-    ref_yaw, seg, _ = ref
+    ref_yaw = np.interp(data.t_s, refs.ref_t_s, refs.ref_yaw_rad)
     keep = (data.throttle_01 > selfcheck.MOTORS_RUNNING_01) & (trig[0] > selfcheck.MAX_TILT_COS)
     keep &= (trig[2] > selfcheck.MAX_TILT_COS) & np.isfinite(ref_yaw) & np.isfinite(cand) & np.isfinite(base)
     if np.count_nonzero(keep) < selfcheck.MIN_PER_WINDOW * selfcheck.MIN_WINDOWS:
         return None
     t = data.t_s[keep]
-    att_t, att_v = _finite_attitude(log)
-    ap_yaw = np.interp(t, att_t, np.unwrap(att_v[:, 2]))
-    ids = selfcheck.window_ids(t, seg[keep])
-    follows = _follow_rate_per_s(log, primary, t) if primary in log.mag else float("nan")
-    second = ap_yaw if not follows >= CIRCULAR_FOLLOW_PER_S else None  # NaN (not measured): kept
-    return selfcheck.compare(base[keep], cand[keep], ref_yaw[keep], ids, second)
-
-
-def _follow_rate_per_s(log: LogData, index: int, t_s: F64) -> float:
-    """How fast the autopilot's yaw follows compass ``index`` over the judged samples' span (1/s; NaN where
-    it cannot be measured)."""
-    mag, att = log.mag[index], log.attitude_rad
-    try:
-        fit = yaw_follow_gain(att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
-                              t_start_s=float(t_s[0]), t_end_s=float(t_s[-1]))  # fmt: skip
-    except (np.linalg.LinAlgError, ValueError):
-        return float("nan")
-    return float("nan") if fit is None else float(fit.gain_per_s)
+    seg = np.interp(t, refs.ref_t_s, refs.ref_segment).round()
+    ap_yaw = np.interp(t, refs.att_t_s, refs.ap_yaw_rad) if refs.ap_yaw_second else None
+    return selfcheck.compare(base[keep], cand[keep], ref_yaw[keep], selfcheck.window_ids(t, seg), ap_yaw)

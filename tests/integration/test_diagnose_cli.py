@@ -154,18 +154,22 @@ def test_check_against_the_gyro_survives_a_nan_attitude(tmp_path: Path) -> None:
     windows, with the same figures within 5 %."""
     from magcomp.commands.diagnose import diagnose_file
     from magcomp.core.types import Series
-    from magcomp.diagnosis.gyro_check import heading_check
+    from magcomp.diagnosis.gyro_check import heading_check, references
 
     path = tmp_path / "flight.tlog"
     write_tlog(simulate(SimConfig(scenario="ordinary", duration_s=120.0, seed=5)), path)
     d, log = diagnose_file(str(path))
     # the IMU as 2.5 Hz telemetry: the autopilot's yaw is then the check's windowed reference
     log = replace(log, imu_t_s=log.imu_t_s[::20], gyro_rad_s=log.gyro_rad_s[::20])
-    clean = heading_check(d.compasses[0], log, d.primary)
+    refs = references(log, d.yaw_follow_per_s)
+    assert refs is not None
+    clean = heading_check(d.compasses[0], refs)
     v = log.attitude_rad.values.copy()
     v[50:53] = np.nan
     damaged_log = replace(log, attitude_rad=Series(log.attitude_rad.t_s, v))
-    damaged = heading_check(d.compasses[0], damaged_log, d.primary)
+    damaged_refs = references(damaged_log, d.yaw_follow_per_s)
+    assert damaged_refs is not None
+    damaged = heading_check(d.compasses[0], damaged_refs)
     assert clean is not None and damaged is not None
     assert damaged.n_windows == clean.n_windows, (damaged, clean)
     assert abs(damaged.candidate_gyro_deg - clean.candidate_gyro_deg) < 0.05 * clean.candidate_gyro_deg

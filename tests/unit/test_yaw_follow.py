@@ -88,12 +88,13 @@ def test_log171s_autopilot_follows_its_compass_far_slower_than_the_simulators_de
 @pytest.mark.skipif(not LOG171.exists(), reason="needs ../shared/data/measured (not in a user's clone)")
 def test_diagnose_notes_log171s_yaw_follow_gain_with_the_motors_running() -> None:
     from magcomp.adapters.mavlink_source import load_log
-    from magcomp.diagnosis.engine import _yaw_follow_note
+    from magcomp.diagnosis.engine import _yaw_follow
 
-    note = _yaw_follow_note(load_log(LOG171), 0)
+    note, rate = _yaw_follow(load_log(LOG171), 0)
     assert note is not None and note.startswith("the autopilot's yaw follows compass 0's heading at ")
     gain, sigma = (float(x) for x in note.split(" at ")[1].split(" /s")[0].split(" +- "))
     assert abs(gain) < 3.0 * sigma + 0.02 and sigma < 0.05
+    assert abs(rate - gain) < 5e-4  # the rate the check against the gyro decides on, as the note prints it
 
 
 def test_nan_rows_and_disorder_are_left_out_not_a_crash() -> None:
