@@ -6,7 +6,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable
-from typing import IO
+from typing import IO, Any
 
 
 def wait_for(cond: Callable[[], object], timeout_s: float = 60.0, what: str = "condition") -> None:
@@ -52,3 +52,17 @@ def finish(proc: subprocess.Popen[str], timeout_s: float = 60.0) -> int:
         proc.kill()
         proc.wait()
         raise AssertionError(f"the process did not stop within {timeout_s:.0f} s") from None
+
+
+def collect_mavlink(sock: Any, stop: threading.Event, out: list[Any], mav: Any,
+                    types: tuple[str, ...] | None = None) -> None:  # fmt: skip
+    """Until ``stop``: receive datagrams on ``sock`` (a timeout set on it), parse them with ``mav`` (a
+    pymavlink MAVLink object) and append the messages (of ``types`` only, when given) to ``out``."""
+    while not stop.is_set():
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            continue
+        for m in mav.parse_buffer(data) or []:
+            if types is None or m.get_type() in types:
+                out.append(m)

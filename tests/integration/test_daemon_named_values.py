@@ -19,7 +19,7 @@ from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.publish import named_value_names
-from tests.waiting import wait_for
+from tests.waiting import collect_mavlink, wait_for
 
 
 def _listen(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
@@ -27,14 +27,7 @@ def _listen(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
 
     mav = common.MAVLink(None)
     mav.robust_parsing = True  # MAGCOMP_HEADING is unknown to this dialect: skipped as bad data
-    while not stop.is_set():
-        try:
-            data = sock.recv(65536)
-        except TimeoutError:
-            continue
-        for m in mav.parse_buffer(data) or []:
-            if m.get_type() == "NAMED_VALUE_FLOAT":
-                out.append(m)
+    collect_mavlink(sock, stop, out, mav, ("NAMED_VALUE_FLOAT",))
 
 
 @pytest.mark.slow

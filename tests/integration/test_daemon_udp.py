@@ -33,6 +33,7 @@ def fast_cfg() -> Config:
 
 def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
     from magcomp.adapters.dialect import ensure_dialect
+    from tests.waiting import collect_mavlink
 
     mod = ensure_dialect()
     mav = mod.MAVLink(None)
@@ -44,13 +45,7 @@ def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
     sock.bind(("127.0.0.1", port))
     sock.settimeout(0.1)
     try:
-        while not stop.is_set():
-            try:
-                data = sock.recv(65536)
-            except TimeoutError:
-                continue
-            for m in mav.parse_buffer(data) or []:
-                out.append(m)
+        collect_mavlink(sock, stop, out, mav)
     finally:
         sock.close()
 

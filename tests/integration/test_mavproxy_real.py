@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from magcomp.service.demo import free_udp_port, truth_at
-from tests.waiting import LineReader, wait_for
+from tests.waiting import LineReader, collect_mavlink, wait_for
 
 pytest.importorskip("MAVProxy", reason="MAVProxy is not installed (pip install MAVProxy; in the dev extra)")
 
@@ -38,14 +38,7 @@ def _listen(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
 
     mav = ensure_dialect().MAVLink(None)
     mav.robust_parsing = True
-    while not stop.is_set():
-        try:
-            data = sock.recv(65536)
-        except TimeoutError:
-            continue
-        for m in mav.parse_buffer(data) or []:
-            if m.get_type() in ("MAGCOMP_HEADING", "NAMED_VALUE_FLOAT"):
-                out.append(m)
+    collect_mavlink(sock, stop, out, mav, ("MAGCOMP_HEADING", "NAMED_VALUE_FLOAT"))
 
 
 def _stop_group(proc: subprocess.Popen[str]) -> None:
