@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import threading
 import time
@@ -66,3 +67,14 @@ def collect_mavlink(sock: Any, stop: threading.Event, out: list[Any], mav: Any,
         for m in mav.parse_buffer(data) or []:
             if types is None or m.get_type() in types:
                 out.append(m)
+
+
+def loopback_udp_socket(port: int = 0) -> socket.socket:
+    """A UDP socket bound on 127.0.0.1 (``port`` 0: any free one) with a 0.1 s timeout and a 4 MiB receive
+    buffer: a listener thread sharing the interpreter can wait for the GIL longer than a default buffer
+    (~200 datagrams) lasts on a busy machine."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    sock.bind(("127.0.0.1", port))
+    sock.settimeout(0.1)
+    return sock

@@ -19,7 +19,7 @@ from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.publish import named_value_names
-from tests.waiting import collect_mavlink, wait_for
+from tests.waiting import collect_mavlink, loopback_udp_socket, wait_for
 
 
 def _listen(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
@@ -35,10 +35,7 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
     from magcomp.adapters.mavlink_emit import stream_to_link
     from magcomp.sim import SimConfig, simulate
 
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    sock.bind(("127.0.0.1", 0))
-    sock.settimeout(0.1)
+    sock = loopback_udp_socket()
     got: list[Any] = []
     stop = threading.Event()
     rx = threading.Thread(target=_listen, args=(sock, stop, got))

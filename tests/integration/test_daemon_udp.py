@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -33,17 +32,12 @@ def fast_cfg() -> Config:
 
 def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
     from magcomp.adapters.dialect import ensure_dialect
-    from tests.waiting import collect_mavlink
+    from tests.waiting import collect_mavlink, loopback_udp_socket
 
     mod = ensure_dialect()
     mav = mod.MAVLink(None)
     mav.robust_parsing = True
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    # this thread shares the interpreter with the sender and the daemon: on a busy machine it can wait for
-    # the GIL longer than a default receive buffer (~200 datagrams, 0.1 s at this rate) lasts
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    sock.bind(("127.0.0.1", port))
-    sock.settimeout(0.1)
+    sock = loopback_udp_socket(port)  # this thread shares the interpreter with the sender and the daemon
     try:
         collect_mavlink(sock, stop, out, mav)
     finally:

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from magcomp.service.demo import free_udp_port, truth_at
-from tests.waiting import LineReader, collect_mavlink, wait_for
+from tests.waiting import LineReader, collect_mavlink, loopback_udp_socket, wait_for
 
 pytest.importorskip("MAVProxy", reason="MAVProxy is not installed (pip install MAVProxy; in the dev extra)")
 
@@ -83,10 +83,7 @@ def test_real_mavproxy_with_module_load_magcomp_publishes_corrected_headings(tmp
         pytest.skip(f"MAVProxy is importable but mavproxy.py is not beside {sys.executable}")
     result = simulate(SimConfig(scenario="paper", duration_s=90.0, seed=0))
 
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    sock.bind(("127.0.0.1", 0))
-    sock.settimeout(0.1)
+    sock = loopback_udp_socket()
     got: list[Any] = []
     stop = threading.Event()
     rx = threading.Thread(target=_listen, args=(sock, stop, got), daemon=True)
