@@ -35,7 +35,7 @@ from magcomp.adapters.config import load_config
 from magcomp.adapters.mavlink_source import load_log
 from magcomp.core import selfcheck as sc
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.types import LogData
+from magcomp.core.types import FLAG_CALIBRATED, LogData
 from magcomp.errors import InputError
 from magcomp.service.evaluate import FLYING_THROTTLE_01
 from magcomp.service.replay import replay_log
@@ -129,15 +129,21 @@ Scores = dict[int, dict[str, float]]
 def magcomp_scores(
     path: Path, ref: Reference, causal: bool
 ) -> tuple[Scores, dict[int, str], dict[int, float]]:
+    """Scores of the published heading per compass (each with ``gyro_corrected``: the gyro metric on the
+    samples published as corrected, FLAG_CALIBRATED, which is what the printed +-sigma describes: before a
+    live correction switches on, the autopilot's own heading is published), what replay said, the sigma."""
     rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal)
-    by: dict[int, list[tuple[float, float]]] = {}
+    by: dict[int, list[tuple[float, float, float]]] = {}
     for e in rep.estimates:
-        by.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg))
+        by.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg, float(e.flags & FLAG_CALIBRATED)))
     out: dict[int, dict[str, float]] = {}
     for idx, rows in by.items():
         a = np.asarray(rows)
         got = score(ref, a[:, 0], a[:, 1])
         if got is not None:
+            on = a[:, 2] > 0
+            cor = score(ref, a[on, 0], a[on, 1]) if on.any() else None
+            got["gyro_corrected"] = math.nan if cor is None else cor["gyro"]
             out[idx] = got
     said = {int(c["index"]): f"{c['status']}: {c['why']}" for c in rep.summary.get("compasses", [])}
     sigma = {  # the heading uncertainty printed for a compass corrected in flight (deg, 1 sigma); none is
@@ -198,13 +204,15 @@ def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
         ratios = [r[m]["att"] / r["autopilot"]["att"] for r in big]
         better_big = sum(r[m + "_verdict"] == "better" for r in big)
         med = statistics.median(ratios) if ratios else math.nan
-        cov = [(r[m]["gyro"], r[m + "_sigma"]) for r in rows if r[m] is not None and r.get(m + "_sigma")]
-        in1 = sum(g <= s for g, s in cov)
-        in2 = sum(g <= 2 * s for g, s in cov)
-        out.append(
-            f"{m}: printed +-sigma of {len(cov)} corrected compasses vs their realised error (gyro): "
-            f"within 1 sigma {in1}/{len(cov)}, within 2 sigma {in2}/{len(cov)}"
-        )
+        for key, what in (("gyro", "all samples"), ("gyro_corrected", "the samples published corrected")):
+            cov = [(r[m][key], r[m + "_sigma"]) for r in rows
+                   if r[m] is not None and r.get(m + "_sigma") and r[m].get(key, math.nan) == r[m].get(key)]
+            in1 = sum(g <= s for g, s in cov)
+            in2 = sum(g <= 2 * s for g, s in cov)
+            out.append(
+                f"{m}: printed +-sigma of {len(cov)} corrected compasses vs their realised error (gyro, "
+                f"{what}): within 1 sigma {in1}/{len(cov)}, within 2 sigma {in2}/{len(cov)}"
+            )  # fmt: skip
         out.append(
             f"{m}: {len(rows)} compasses: worse {v.count('worse')}, better {v.count('better')}, "
             f"same {v.count('same')}, missing {v.count('missing')}; own heading >= 8 deg att: "

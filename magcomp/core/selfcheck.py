@@ -338,6 +338,22 @@ class RunningSelfCheck:
         s = np.asarray(self._offset_sums)
         return math.atan2(float(s[:, 0].sum()), float(s[:, 1].sum()))
 
+    @property
+    def baseline_deg(self) -> float:
+        """The error measured of the autopilot's own heading on the verdict's windows (deg): against its yaw,
+        else the gyro; NaN before a verdict."""
+        v = self.verdict
+        if v is None:
+            return math.nan
+        return v.baseline_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.baseline_gyro_deg
+
+    def publishes(self, heading_sigma_deg: float) -> bool:
+        """The correction is published: the check is on and the estimate's own heading uncertainty (deg,
+        1 sigma) is within the error measured of the autopilot's own heading (:attr:`baseline_deg`): a
+        correction that may itself be off by more than what it corrects cannot be shown to help, whatever a
+        few windows say."""
+        return self.on and heading_sigma_deg <= self.baseline_deg
+
     def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
             ap_yaw_rad: float) -> bool:  # fmt: skip
         """One sample (rad; ``ap_yaw_rad`` NaN: none); True when a window closed (the verdict was renewed)."""

@@ -16,7 +16,6 @@ import numpy as np
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
-from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import LIVE_WINDOW_S, MAX_TILT_COS, MOTORS_RUNNING_01, RunningSelfCheck
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
@@ -235,17 +234,6 @@ def _shadow_heading_deg(rec: MagRecord) -> float | None:
     return heading_from_trig_deg(ux - theta[0] * d2, uy - theta[1] * d2, uz - theta[2] * d2, *rec.tilt)
 
 
-def _within_baseline(out: InflightOutput, chk: RunningSelfCheck) -> bool:
-    """The estimate's own heading uncertainty is below the error measured of the autopilot's own heading
-    (against its yaw, else the gyro): a correction that may itself be off by more than what it corrects
-    cannot be shown to help, whatever a few windows say."""
-    v = chk.verdict
-    if v is None:
-        return False
-    base = v.baseline_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.baseline_gyro_deg
-    return out.heading_sigma_deg <= base
-
-
 def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
@@ -255,7 +243,11 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     at all: the mount's yaw), which no window of the check sees: the published heading takes its constant
     part from the autopilot's own over the check's latest windows (their circular mean difference), so that
     it neither jumps when the correction switches on or off nor drifts with the re-solves. The two-pass
-    replay, whose correction is fixed over the log, keeps its own."""
+    replay, whose correction is fixed over the log, keeps its own. Theta against the autopilot's calibration
+    is published only where no in-flight correction applies: where one applies but is not published (its
+    check not on, or its heading sigma above the autopilot's own error:
+    :meth:`~magcomp.core.selfcheck.RunningSelfCheck.publishes`), the autopilot's own heading is (publishing
+    the hover theta there made two development compasses worse, docs/benchmarks.md)."""
     cr, sr, cp, sp = rec.tilt
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
@@ -298,7 +290,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-    if rec.inflight is not None and chk is not None and chk.on and _within_baseline(rec.inflight, chk):
+    if rec.inflight is not None and chk is not None and chk.publishes(rec.inflight.heading_sigma_deg):
         rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0  # see the doc
         return
     if rec.inflight is None and not rec.calibrated and hover is not None and hover.on_form is not None:

@@ -485,8 +485,14 @@ class Pipeline:
             return st
         if on:
             return Status("corrected", f"{st.why}; {chk.describe()}")
+        reason = chk.reason
+        run, sol = c.heading.check, None if c.inflight is None else c.inflight.solution
+        if run is not None and run.on and sol is not None:  # the live check's verdict applies; the sigma not
+            reason = (f"its heading uncertainty (+-{sol.heading_sigma_deg:.1f} deg) is above the error of "
+                      f"the autopilot's own heading on the check's windows ({run.baseline_deg:.1f} deg), so "
+                      f"a gain cannot be shown")  # fmt: skip
         return Status("uncorrected", f"publishing the autopilot's own heading (the correction learned in "
-                                     f"flight: {chk.reason}{self._tried(c)})")  # fmt: skip
+                                     f"flight: {reason}{self._tried(c)})")  # fmt: skip
 
     def _tried(self, c: CompassCorrector) -> str:
         """What became of theta against the autopilot's calibration where it was tried and not published
@@ -501,11 +507,11 @@ class Pipeline:
         live one's (service/heading.py HoverShadow) where its self-check is on and nothing else applies."""
         if c.mag_index in self.self_checks or c.mag_index in self.hover_thetas:  # the two-pass replay's
             return self.hover_thetas.get(c.mag_index)
-        live, run, st = c.heading.hover, c.heading.check, c.inflight
+        live, st = c.heading.hover, c.inflight
         if live is None or c.calibration is not None:
             return None
-        if st is not None and st.applied and run is not None and run.on:
-            return None  # the in-flight correction is published
+        if st is not None and st.applied:
+            return None  # the in-flight correction applies (published or not: service/heading.py)
         return live.fit
 
     def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
@@ -522,7 +528,8 @@ class Pipeline:
                 return v, True
         run = c.heading.check
         if run is not None and run.verdict is not None:
-            return run.verdict, run.on
+            sol = None if c.inflight is None else c.inflight.solution
+            return run.verdict, run.on if sol is None else run.publishes(sol.heading_sigma_deg)
         return None, False
 
     def _learned_status(self, c: CompassCorrector) -> Status:
