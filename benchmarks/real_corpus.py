@@ -204,6 +204,8 @@ def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
         ratios = [r[m]["att"] / r["autopilot"]["att"] for r in big]
         better_big = sum(r[m + "_verdict"] == "better" for r in big)
         med = statistics.median(ratios) if ratios else math.nan
+        g_ratios = [r[m]["gyro"] / r["autopilot"]["gyro"] for r in big if r["autopilot"]["gyro"] > 0]
+        g_med = statistics.median(g_ratios) if g_ratios else math.nan
         for key, what in (("gyro", "all samples"), ("gyro_corrected", "the samples published corrected")):
             cov = [(r[m][key], r[m + "_sigma"]) for r in rows
                    if r[m] is not None and r.get(m + "_sigma") and r[m].get(key, math.nan) == r[m].get(key)]
@@ -216,7 +218,7 @@ def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
         out.append(
             f"{m}: {len(rows)} compasses: worse {v.count('worse')}, better {v.count('better')}, "
             f"same {v.count('same')}, missing {v.count('missing')}; own heading >= 8 deg att: "
-            f"{better_big}/{len(big)} better, median att ratio {med:.2f}"
+            f"{better_big}/{len(big)} better, median att ratio {med:.2f} (gyro ratio {g_med:.2f})"
         )
     return out
 
