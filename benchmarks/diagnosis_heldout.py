@@ -31,6 +31,11 @@ Measured 2026-11-27 (``--effects per_motor throttle_offset --seeds 10``), per_mo
 each seed drew: top 6/10, inside 4/10 (5/10 against the nominal 1.2; the fitted spreads are 19-59 % above
 the realised ones); throttle_offset 9/10. Why the four misses give no finding: docs/diagnosis.md.
 
+Measured 2026-11-28 (``--effects per_motor --seeds 10``, first seeds 5000 and 5010), the realised spread
+against the spread's 95 % interval (:mod:`magcomp.diagnosis.spread`): VALUE 1.2 found 13/20, inside 12/20
+(5/10 on 5000-5009); 1.6 found 17/20, inside 15/20; 2.0 found 19/20, inside 16/20. The misses per seed and
+why: docs/diagnosis.md ("The per-motor spread's interval").
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
 """
 
