@@ -6,8 +6,8 @@ biased up: with delta_hat_i = delta_i + e_i, E |delta_hat_i|^2 = |delta_i|^2 + t
 held-out per-motor logs the per-motor vectors' standard errors (sqrt of that trace, 50-150 mgauss) are of
 the size of the vectors themselves (|delta_i| 80-200 mgauss against |theta| ~ 130): the plain spread read off
 the fit was 19-59 % above the one the simulator drew (``benchmarks/diagnosis_heldout.py``, docs/diagnosis.md).
-Subtracting the trace from each |delta_hat_i|^2 removes the bias on average but not its skew, and it gives
-no interval; the interval below does both.
+Subtracting the trace from each |delta_hat_i|^2 (tried before, docs/diagnosis.md) gives no interval and
+was not kept; the construction below gives both the estimate and its interval.
 
 The interval is a Neyman construction on the ray of the fitted shape (the exact confidence interval of a
 non-central chi distribution's non-centrality when the noise is isotropic): the truth is taken as
@@ -20,11 +20,13 @@ and the result reproducible.
 
 The covariance is the HAC one of :mod:`magcomp.diagnosis.intervals` (the residual's own autocovariance, the
 field direction and heading drift free), here for all the motor columns and theta at once (their errors are
-correlated: delta_m = -sum of the others), per axis. Measured on the held-out per-motor logs (20 seeds,
-5000-5019): the coordinate errors of the per-motor vectors against the simulated ones were 1.18x their HAC
-standard errors (rms), so the HAC alone understates the noise; the covariance is scaled up to the
-delete-one-block jackknife's variance of the spread when that is larger, as theta's interval is floored by
-the jackknife's (the jackknife sees model error that the residual's autocovariance cannot).
+correlated: delta_m = -sum of the others), per axis; the axes are taken as independent. Measured on the
+held-out per-motor logs (docs/diagnosis.md, "The per-motor spread's interval"): coefficients on the motor
+columns shifted in time scatter as the HAC variance says (1.01x, seeds 5000-5009), but the per-motor
+vectors' errors are 1.22x it: part of the log's error is aligned with the motor commands themselves, which
+no residual-based variance sees, and it is what the interval still misses. A delete-one-block jackknife
+floor (theta's, six 10 s blocks on a 60 s log: 5 degrees of freedom) was tried and not kept: the floored
+interval reached down to a spread of 0 on 12 of 20 held-out logs.
 """
 
 from __future__ import annotations
