@@ -139,6 +139,37 @@ def dpi_design(down_b: F64, field_raw_mgauss: F64) -> F64:
     return np.hstack([wv, -down_b])  # eq. (3): - w^T d
 
 
+def field_error_dilution(down_b: F64, field_raw_mgauss: F64) -> float:
+    """How much of one sample's noise a calibration fitted on these pairs carries into the calibrated field:
+    the rms over the samples (and the three axes) of the standard error of ``u = L v - d`` (eq. (2)) when
+    eq. (3) is solved by least squares on them, divided by the standard deviation of eq. (3)'s residual.
+
+    With the residual's variance s^2, Cov(pack(L, d)) = s^2 (A^T A)^-1 for the eq. (3) design A
+    (:func:`dpi_design`), and u's error at a sample v is G dx with G = d u / d pack(L, d) = [I (x) v^T, -I].
+    So the ratio is sqrt(mean_t tr(G_t (A^T A)^-1 G_t^T)): a number of the rotation's geometry alone, not of
+    the noise, that falls as 1 / sqrt(n) for more pairs of the same rotation and grows when the down vector
+    visits few directions (the Earth field's dilution of precision of a calibration). 1: the calibration is
+    known as well as one sample is measured. inf when eq. (3) cannot be solved (rank deficient)."""
+    w = np.asarray(down_b, dtype=float)
+    v = np.asarray(field_raw_mgauss, dtype=float)
+    if w.shape[0] < 12:
+        return float("inf")
+    a = dpi_design(w, v)
+    scale = np.linalg.norm(a, axis=0)
+    if not np.all(scale > 0.0):
+        return float("inf")
+    gram = (a / scale).T @ (a / scale)
+    if np.linalg.cond(gram) > 1e12:
+        return float("inf")
+    inv = np.linalg.inv(gram) / np.outer(scale, scale)  # (A^T A)^-1
+    # tr(G inv G^T) = sum_i (v^T inv_LiLi v - 2 v^T inv_Li,di + inv_di,di), L row-major: L_i = x[3i:3i+3]
+    total = np.zeros(w.shape[0])
+    for i in range(3):
+        li = slice(3 * i, 3 * i + 3)
+        total += np.einsum("tj,jk,tk->t", v, inv[li, li], v) - 2.0 * v @ inv[li, 9 + i] + inv[9 + i, 9 + i]
+    return float(np.sqrt(max(float(np.mean(total)), 0.0) / 3.0))
+
+
 def coverage_of(down_b: F64, design: F64 | None = None) -> CalibrationCoverage:
     """Attitude coverage of a set of unit down vectors (n, 3) and, if given, of the design matrix."""
     n = down_b.shape[0]

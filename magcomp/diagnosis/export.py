@@ -25,6 +25,7 @@ from magcomp.diagnosis.model import CompassData, ModelFit, fit_model
 from magcomp.diagnosis.partial import PriorTheta
 from magcomp.diagnosis.rivals import motors_identified
 from magcomp.diagnosis.selection import Comparison
+from magcomp.diagnosis.spread import spread_estimate
 from magcomp.diagnosis.suspects import SignalRelation, StepEvent
 
 F64 = NDArray[np.float64]
@@ -281,14 +282,21 @@ def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]
     hw = np.vstack([p[0] for p in pairs])
     hw_joint = np.vstack([p[1] for p in pairs])
     tn = float(np.linalg.norm(theta))
-    spread = float(np.mean(np.linalg.norm(theta_i - theta, axis=1))) / tn if tn > 0 else float("nan")
+    # the spread is a mean of norms of noisy vectors: biased up by the noise; median-unbiased, with its 95 %
+    # interval (magcomp.diagnosis.spread)
+    sp = spread_estimate(data, fit)
     cols, _ = drive_columns(data.drive, fit.ext)
     sel = cols[:, [list(fit.columns).index(c) for c in ("throttle", *names)]]
     sel = sel - sel.mean(axis=0)
     sel = sel / np.maximum(np.linalg.norm(sel, axis=0), 1e-12)
     sv = np.linalg.svd(sel, compute_uv=False)
     cond = float(sv[0] / max(sv[-1], 1e-12))
-    out = {"spread": r4(spread), "condition_index": r4(cond)}
+    out = {
+        "spread": r4(sp.spread),
+        "spread_ci95": [r4(sp.ci95[0]), r4(sp.ci95[1])],
+        "spread_raw": r4(sp.raw),
+        "condition_index": r4(cond),
+    }
     # the same vectors from each half of the log must agree within their intervals (a half has twice the
     # variance, a difference of two halves four times: 2 x the whole log's half-width)
     halves = []

@@ -31,6 +31,7 @@ from magcomp.core.autopilot_params import (
     relative_rotation_source,
     yaw_reference,
 )
+from magcomp.core.dpi import field_error_dilution
 from magcomp.core.inflight import InflightMode, InflightOutput
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED, STANDARD_GRAVITY_M_S2
 from magcomp.service import estimators as est_core
@@ -48,6 +49,13 @@ FIT_MAX_ROWS = 3000
 INTERIM_FIT_MAX_ROWS = 1000
 #: the refined calibration is adopted this many magnetometer samples after the motors start
 REFINE_ADOPT_AFTER = 50
+#: a hand rotation cut short (fewer pairs than ``[calibration] min_samples`` when the motors start or the
+#: autopilot reboots) is still fitted when its pairs determine the calibration at least as well as one
+#: sample is measured: :func:`magcomp.core.dpi.field_error_dilution` <= 1. Measured: a whole hand rotation
+#: (833 pairs) 0.22; the hostile corpus's case 10 (492 pairs left by three damaged blocks) 0.40-0.41; the
+#: two parts of a rotation split by a reboot at 13 s (tests/integration/test_fault_clock.py) 2.5 (300 pairs
+#: before it: theta 15 mgauss off once fitted) and 3.5 (197 after it: 93 mgauss off)
+MAX_SHORT_ROTATION_DILUTION = 1.0
 #: attitude rows of the in-flight calibration are left out beyond this tilt (acrobatics, a crash)
 MAX_TILT_RAD = math.radians(60.0)
 COS_MAX_TILT = math.cos(MAX_TILT_RAD)
@@ -198,8 +206,18 @@ class HandCalibration:
         self._next_check = self.cfg.calibration.min_samples
 
     def fit_now(self) -> bool:
-        """Fit (eq. (3)) on the pairs collected so far; True when the fit was adopted."""
-        return self._n > 0 and self._fit()
+        """Fit (eq. (3)) on the pairs collected so far, the rotation having ended; True when the fit was
+        adopted. Fewer than ``min_samples`` pairs only when they carry enough information
+        (:data:`MAX_SHORT_ROTATION_DILUTION`): a count is no measure of a rotation cut short."""
+        n = self._n
+        if n == 0:
+            return False
+        if n < self.cfg.calibration.min_samples:
+            dilution = field_error_dilution(self._down[:n], self._field[:n])
+            if not dilution <= MAX_SHORT_ROTATION_DILUTION:
+                return False
+            log.info("hand rotation cut short at %d pairs: fitted (field error dilution %.2f)", n, dilution)
+        return self._fit()
 
     def collect(self, down_b: Float3, field_raw: Float3, n_mag: int) -> bool:
         """Add one (down vector, raw field) pair at zero throttle and refit now and then (eq. (3)).
@@ -227,7 +245,7 @@ class HandCalibration:
         it runs on the ``fits`` executor (tens to hundreds of ms) and is adopted exactly
         ``REFINE_ADOPT_AFTER`` magnetometer samples later (waiting for it if need be)."""
         self._collecting = False
-        if not self.learned:
+        if not self.learned and not (self._n < self.cfg.calibration.min_samples and self.fit_now()):
             return
         n = self._n
         stride = max(1, n // FIT_MAX_ROWS)

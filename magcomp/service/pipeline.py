@@ -376,8 +376,8 @@ class Pipeline:
             cal = c.calib
             if cal.collecting:
                 learned = cal.learned
-                if not learned and cal.n_collected >= self.cfg.calibration.min_samples:
-                    learned = cal.fit_now()  # the old boot's pairs on their own, if the DPI fit accepts them
+                if not learned:  # the old boot's pairs on their own, if they determine a calibration
+                    learned = cal.fit_now()
                 if learned:
                     cal.freeze(c.clock.n_mag)
                 else:

@@ -14,6 +14,7 @@ from magcomp.core.dpi import (
     calibrate_dpi,
     calibrate_dpi_from_imu,
     dpi_design,
+    field_error_dilution,
     pack,
     unpack,
 )
@@ -209,3 +210,35 @@ def test_norm_refinement_solver_matches_scipy_least_squares(start: str) -> None:
         cost_ref, cost_ours = float(ref.fun @ ref.fun), float(ours.fun @ ours.fun)
         assert cost_ours <= cost_ref * (1 + 1e-12)
         np.testing.assert_allclose(ours.fun, _residuals(ours.x, w, v, U_N[2], F_N, 2.0), atol=1e-9)
+
+
+def test_field_error_dilution_predicts_the_calibrations_error_and_falls_with_more_pairs() -> None:
+    """field_error_dilution x eq. (3)'s residual = the rms standard error of the calibrated field (eq. (2))
+    at the samples: checked against 300 refits of the same rotation with fresh noise; 1 / sqrt(n) for more
+    pairs of the same rotation; larger for a rotation that tilts little."""
+    rng = np.random.default_rng(21)
+    k, b = _distortion(rng)
+    r_nb = _random_rotations(rng, 300)
+    clean = _measure(r_nb, k, b, rng, noise=0.0)
+    l_true, d_true = np.linalg.inv(k), np.linalg.inv(k) @ b
+    errs, resid = [], []
+    for _ in range(300):
+        res = calibrate_dpi(r_nb[:, 2, :], clean + 3.0 * rng.standard_normal(clean.shape), U_N[2], F_N)
+        assert res.success, res.message
+        errs.append(clean @ (res.L - l_true).T - (res.d - d_true))  # error of u = L v - d at each sample
+        resid.append(res.residual_rms_mgauss)
+    measured = float(np.sqrt(np.mean(np.square(errs))))  # over refits, samples and axes
+    predicted = field_error_dilution(r_nb[:, 2, :], clean) * float(np.mean(resid))
+    assert abs(measured / predicted - 1.0) < 0.15, (measured, predicted)
+    # four times the pairs of the same rotation: half the dilution
+    r4 = _random_rotations(rng, 1200)
+    v4 = _measure(r4, k, b, rng, noise=0.0)
+    ratio = field_error_dilution(r4[:, 2, :], v4) / field_error_dilution(r_nb[:, 2, :], clean)
+    assert 0.4 < ratio < 0.6, ratio
+    # the same number of pairs tilted by at most 20 deg: far less information
+    tilt = rng.uniform(-np.radians(20.0), np.radians(20.0), (300, 2))
+    r_flat = np.array(
+        [dcm_from_euler(a, c, y) for (a, c), y in zip(tilt, rng.uniform(-np.pi, np.pi, 300), strict=True)]
+    )
+    flat = field_error_dilution(r_flat[:, 2, :], _measure(r_flat, k, b, rng, noise=0.0))
+    assert flat > 3.0 * field_error_dilution(r_nb[:, 2, :], clean)
