@@ -82,7 +82,7 @@ class InflightStage:
             heading_converged_deg=cfg.heading_converged_deg,
         )
         self.field_norm_mgauss = field_norm_mgauss
-        self.est: InflightEstimator | None = None
+        self._est: InflightEstimator | None = None
         #: the tilt model's own estimator (FeedSwitches.tilt_condition), fed the same samples
         self.est_tilt: InflightEstimator | None = None
         self._rows: WindowRowFeed | None = None  # the relative form's window-field rows into both
@@ -115,6 +115,13 @@ class InflightStage:
         self._warm: tuple[F64, F64] | None = None
         self._warm_start(warm, mode, field_norm_mgauss)
 
+    @property
+    def est(self) -> InflightEstimator | None:
+        """The estimator, with the samples held for the window-field rows in it (:meth:`flush`): whoever
+        reads it sees every sample fed so far."""
+        self.flush()
+        return self._est
+
     def _warm_start(
         self, warm: dict[str, object] | None, mode: InflightMode, field_norm_mgauss: float
     ) -> None:
@@ -126,21 +133,21 @@ class InflightStage:
                 np.asarray(warm["sd"], dtype=float),
             )
             self._new_estimators()
-            assert self.est is not None
-            if self.est.prior.mean.shape == self._warm[0].shape and np.array_equal(
-                self.est.prior.mean, self._warm[0]
+            assert self._est is not None
+            if self._est.prior.mean.shape == self._warm[0].shape and np.array_equal(
+                self._est.prior.mean, self._warm[0]
             ):
                 self.warm_started = True
                 # applied from the first sample only if the run it comes from had found it good enough
                 self.applied = bool(warm.get("applied", False))
             else:
-                self.est, self.n_motors, self._warm = None, -1, None
+                self._est, self.n_motors, self._warm = None, -1, None
                 self.est_tilt = self._rows = None
 
     def _new_estimators(self) -> None:
         """The estimator, and in the relative form the tilt model's (its theta the published one's) and the
         window-field rows that feed both."""
-        self.est = InflightEstimator(
+        self._est = InflightEstimator(
             self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm, TILT_SOLVE_EVERY
         )
         self.est_tilt = None
@@ -149,7 +156,7 @@ class InflightStage:
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
         relative = self.mode == "relative"
-        self._rows = WindowRowFeed(self.est, self.est_tilt, self.switches) if relative else None
+        self._rows = WindowRowFeed(self._est, self.est_tilt, self.switches) if relative else None
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -163,7 +170,7 @@ class InflightStage:
         the old field are dropped."""
         self.field_norm_mgauss = field_norm_mgauss
         if self.mode == "absolute" and not self.warm_started:
-            self.est = None
+            self._est = None
             self.solution = None
             self.applied = False
         self._continuing = False
@@ -197,13 +204,13 @@ class InflightStage:
         if self.n_motors < 0:
             use = self.cfg.per_motor == "auto" and 2 <= len(motors_01) <= 8
             self.n_motors = len(motors_01) if use else 0
-        if self.est is None:
+        if self._est is None:
             self._new_estimators()
-        assert self.est is not None
+        assert self._est is not None
         if field_ref_n_mgauss is not None:
-            self.est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
+            self._est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
             if self.est_tilt is not None:
-                self.est_tilt.set_earth_field(self.est.field_ned_mgauss)
+                self.est_tilt.set_earth_field(self._est.field_ned_mgauss)
         mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
@@ -245,11 +252,11 @@ class InflightStage:
     def _use(self, t_s: float, y: F64, x: F64, r_nb: F64, field_ref_n_mgauss: F64 | None) -> None:
         """One sample with its attitude and regressors at its own time: absolute rows, or window-field
         rows."""
-        assert self.est is not None
+        assert self._est is not None
         if self.mode == "absolute":
             assert field_ref_n_mgauss is not None
             self._span.track(r_nb)
-            add_absolute_row(self.est, t_s, self._epoch, r_nb, field_ref_n_mgauss, y, x)
+            add_absolute_row(self._est, t_s, self._epoch, r_nb, field_ref_n_mgauss, y, x)
             self.n_rows += 1
             return
         if x[0] > 0.0 or not self.switches.window_rows_motors_only:
@@ -284,14 +291,17 @@ class InflightStage:
         motors_01: tuple[float, ...],
     ) -> InflightOutput | None:
         """The correction for this sample, or None while the estimate is not good enough to apply."""
-        est = self.est
+        est = self._est
         state = "uncorrected"
         out: InflightOutput | None = None
+        sol = self.solution
+        due = sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < SOLVE_PERIOD_S
+        if due:
+            self.flush()
         if est is not None and (est.n >= 10 or self.warm_started):
             # re-solved at most every SOLVE_PERIOD_S of message time (a few 30x30 factorisations), whatever
-            # the magnetometer rate; the rows are accumulated at every sample
-            sol = self.solution
-            if sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < SOLVE_PERIOD_S:
+            # the magnetometer rate; the rows go in as a block before each solution (WindowRowFeed)
+            if due or sol is None:
                 sol = est.solve()
                 self.solution = sol
                 self._solved_t = t_s
@@ -324,6 +334,12 @@ class InflightStage:
         self.account(t_s, state)
         return out
 
+    def flush(self) -> None:
+        """The samples held for the window-field rows into the estimators (before a solution, or whatever
+        reads them)."""
+        if self._rows is not None and self._rows.pending:
+            self._rows.flush()
+
     def account(self, t_s: float, state: str) -> None:
         """The time since the previous sample (up to 5 s) spent in ``state`` (one of STATES)."""
         if self._last_t is not None and 0.0 < t_s - self._last_t <= 5.0:
@@ -332,11 +348,12 @@ class InflightStage:
 
     def final_state(self) -> str:
         """The state of a sample with the final estimate held fixed (the two-pass replay's second pass)."""
-        if self.est is not None:
-            self.est.sync_theta_from()  # the final estimate takes the tilt model's final theta
+        self.flush()
+        if self._est is not None:
+            self._est.sync_theta_from()  # the final estimate takes the tilt model's final theta
         if self.applied and self.solution is not None:
             return "corrected"
-        est = self.est
+        est = self._est
         return "learning" if est is not None and (est.n >= 10 or self.warm_started) else "uncorrected"
 
     def restart_accounts(self) -> None:
@@ -346,10 +363,11 @@ class InflightStage:
 
     def state(self) -> dict[str, object] | None:
         """What the state store keeps to start the next run from (None before any estimate)."""
-        if self.est is None or (self.est.n == 0 and not self.warm_started):
+        self.flush()
+        if self._est is None or (self._est.n == 0 and not self.warm_started):
             return None
-        self.est.sync_theta_from()
-        mean, sd = self.est.state()
+        self._est.sync_theta_from()
+        mean, sd = self._est.state()
         return {
             "form": self.mode,
             "n_motors": self.n_motors,
@@ -364,7 +382,7 @@ class InflightStage:
         the estimator's split check hold data): before that, a bias that leaves no residual
         (a short flight's, docs/inflight.md "Short flights") cannot show in it. A run started from a stored
         state was checked by the run that stored it."""
-        return self.warm_started or (self.est is not None and self.est.split_checked)
+        return self.warm_started or (self._est is not None and self._est.split_checked)
 
     @property
     def yaw_span_deg(self) -> float:
@@ -375,7 +393,7 @@ class InflightStage:
 
     def why_not(self) -> str:
         """Why the estimate is not applied (for the summary), from what the data held."""
-        est = self.est
+        est = self._est
         if est is None or (self.n_rows == 0 and not self.warm_started):
             if self.mode == "absolute":
                 return "no usable attitude with the motors running (absolute form)"
@@ -409,8 +427,9 @@ class InflightStage:
         return "not observable: " + ", ".join(parts)
 
     def summary(self) -> dict[str, object]:
+        self.flush()
         sol = self.solution
-        est = self.est
+        est = self._est
         span = self._span.span_deg
         return {
             "form": self.mode,

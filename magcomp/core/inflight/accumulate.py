@@ -72,6 +72,16 @@ class Accumulator:
         w.clear()
         w.key = None
 
+    def take_block(self, aug: F64, x0: F64, key: object) -> None:
+        """N used samples' augmented columns ``aug`` (N, 3, n + 2 + k) of nuisance window ``key`` (a new key
+        closes the open window) and their delta^2 ``x0`` (N,)."""
+        self.rev += 1
+        if key != self.window.key:
+            self._close_window()
+            self.window.key = key
+        self.window.add_block(aug, self.eq.info.shape[0])
+        self.stats.add_block(x0)
+
     def refill(self, samples: list[tuple[F64, F64, F64, F64 | None]]) -> bool:
         """Replace the open window's rows by ``samples`` (rows, z, nuisance, common); sample counts and
         throttle statistics stay as they were. False (nothing done) without an open window."""

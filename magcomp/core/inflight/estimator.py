@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.core.inflight.accumulate import Accumulator
 from magcomp.core.inflight.base import (
@@ -22,8 +23,8 @@ from magcomp.core.inflight.base import (
     identity,
     lapack,
 )
-from magcomp.core.inflight.gate import innovation_gated
-from magcomp.core.inflight.rows import augmented, bounded, norm_row
+from magcomp.core.inflight.gate import innovation_gated, innovation_gated_block
+from magcomp.core.inflight.rows import ROW_ENTRY_MAX, augmented, bounded, norm_row
 from magcomp.core.inflight.solve import GaussianPrior, condition_on_theta, map_estimate
 from magcomp.core.inflight.uncertainty import HeadingSigma, build_solution, with_split
 
@@ -175,6 +176,52 @@ class InflightEstimator:
         self._dirty = True
         return math.sqrt(rn2)
 
+    def add_block(
+        self,
+        rows: F64,
+        z: F64,
+        x0: F64,
+        nuisance: F64,
+        window: object,
+        common: F64,
+        gate: bool = True,
+        prior_sd: float | F64 | None = None,
+        batch_windows: int | None = None,
+    ) -> NDArray[np.bool_]:
+        """N samples' rows (N, 3, n), right-hand sides (N, 3), delta^2 ``x0`` (N,), nuisance columns (N, 3,
+        k) and common columns (N, 3), all of nuisance window ``window``, as :meth:`add` takes one sample's
+        (the same arguments with a leading axis N); returns which samples were used (N,).
+
+        The gate (``gate``) judges every sample against the last solution and the open window's nuisance
+        estimate as they were before the block (:meth:`add` moves the latter with each row): a block is a
+        few rows between two solutions. A block that opens its window is not gated: one row's nuisance
+        fitted to that row alone (what :meth:`add` does there) leaves it no residual."""
+        acc = self.acc
+        if prior_sd is not None:
+            acc.window.prior_sd = prior_sd
+        if batch_windows is not None:
+            acc.batch_windows = batch_windows
+        aug = np.concatenate((rows, common[:, :, None], z[:, :, None], nuisance), axis=2)
+        use = np.abs(aug).max(axis=(1, 2)) <= ROW_ENTRY_MAX  # as bounded(): a NaN compares False
+        n_bad = use.shape[0] - int(np.count_nonzero(use))
+        self.n_nonfinite += n_bad
+        w = acc.window
+        if gate and window == w.key and w.ee.shape[0] == nuisance.shape[2] and self._solution is not None:
+            out = w.nuisance(acc.rev, True, self._theta, self.common_estimate, acc.s_ref)
+            if out is not None:
+                e_hat, h_ee = out
+                r = z - rows @ self._theta - common * self.common_estimate - nuisance @ e_hat
+                gated = innovation_gated_block(r, rows, nuisance, h_ee, self._cov, self._solution, self.p)
+                gated &= use
+                self.n_gated += int(np.count_nonzero(gated))
+                use &= ~gated
+        if n_bad or not use.all():
+            aug, x0 = aug[use], x0[use]
+        if aug.shape[0] > 0:
+            acc.take_block(aug, x0, window)
+            self._dirty = True
+        return use
+
     def window_nuisance(self, window: object) -> F64 | None:
         """The open window's nuisance estimate at the current parameters when ``window`` is the open one
         and has rows (window-field rows: its horizontal Earth field first), else None."""
@@ -296,6 +343,13 @@ class InflightEstimator:
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) * inflate
         floor = 0.1 / np.sqrt(np.diag(self.prior.info))
         return mean.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self.prior.sd_max, floor))
+
+    def uncalibrated_block(self, y_mgauss: F64, x: F64) -> F64:
+        """:meth:`uncalibrated` of N samples (fields (N, 3), regressors (N, n_r)): (N, 3)."""
+        k = self._k
+        p = self._theta
+        th = p[k + 3 :].reshape(-1, 3)
+        return np.asarray(y_mgauss - p[k : k + 3] - x[:, : th.shape[0]] @ th, dtype=np.float64)
 
     def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
         """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation

@@ -121,17 +121,27 @@ class OpenWindow:
 
     def add(self, rows: F64, z: F64, nuisance: F64, common: F64 | None, aug: F64 | None) -> None:
         """One sample's rows into the open window (``aug``: its augmented columns when already built)."""
-        n, k = rows.shape[1], nuisance.shape[1]
+        a = augmented(rows, z, nuisance, common) if aug is None else aug
+        self.add_block(a[None], rows.shape[1])
+
+    def add_block(self, aug: F64, n: int) -> None:
+        """N samples' augmented columns ``aug`` (N, 3, n + 2 + k) into the open window (``n`` parameters)."""
+        k = aug.shape[2] - n - 2
         if self.ee.shape[0] != k:  # a new nuisance size: the nuisance's sums start again
             g, sa = self.gram, self.sums
             self.n_params = n
             self.blocks(n, k)
             self.gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
             self.sums[:, : n + 2] = sa[:, : n + 2]
-        a = augmented(rows, z, nuisance, common) if aug is None else aug
-        self.gram += a.T @ a
-        self.sums += a
-        self.n_rows += 1
+        if aug.shape[0] == 1:
+            a = aug[0]
+            self.gram += a.T @ a
+            self.sums += a
+        else:
+            a = aug.reshape(-1, aug.shape[2])
+            self.gram += a.T @ a
+            self.sums += aug.sum(axis=0)
+        self.n_rows += aug.shape[0]
 
     def residual_sums(self, x: F64 | None) -> tuple[F64, F64, F64, int] | None:
         """The window's residual sum as ``c - M p - g c0`` (the nuisance at its least-squares value e = H^-1
