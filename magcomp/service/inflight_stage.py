@@ -1,10 +1,10 @@
 """The in-flight calibration stage of one compass: the stateful shell around :mod:`magcomp.core.inflight`.
 
 It decides, sample by sample, which samples go to the estimator and when (the rate limit, the motor set,
-the attitude source, waiting for a late attitude or throttle), re-solves it at most every SOLVE_PERIOD_S,
-and keeps the time spent in each state for the summary. The rows, the yaw frame, the late matching and the
-apply decision are core's (:mod:`magcomp.core.inflight.feed`, ``.yawframe``, ``.matching``, ``.apply``).
-No I/O.
+the attitude source, waiting for a late attitude or throttle), re-solves it at most every ``solve_period_s``
+of its configuration, and keeps the time spent in each state for the summary. The rows, the yaw frame, the
+late matching and the apply decision are core's (:mod:`magcomp.core.inflight.feed`, ``.yawframe``,
+``.matching``, ``.apply``). No I/O.
 """
 
 from __future__ import annotations
@@ -41,8 +41,12 @@ from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 
 F64 = NDArray[np.float64]
 
-#: the estimate is re-solved at most this often (s of message time)
-SOLVE_PERIOD_S = 0.1
+#: the first pass of a two-pass replay re-solves the estimate at most this often (s of message time; the
+#: live stages: ``InflightConfig.solve_period_s``, 0.1 s). Only its final estimate is published; what the
+#: solutions in between steer (the rows' linearisation point, the gate, the window-field rows' blocks: the
+#: samples between two solutions) changed the simulated ordinary flight's and log171's headings by under
+#: 1 % and the corpus's two-pass figures not at all, for ~1/3 of the replay's CPU (docs/benchmarks.md)
+LEARN_SOLVE_PERIOD_S = 1.0
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
@@ -88,6 +92,7 @@ class InflightStage:
         self._rows: WindowRowFeed | None = None  # the relative form's window-field rows into both
         self.n_motors = -1  # decided at the first sample
         self._period = 1.0 / cfg.max_rate_hz
+        self._solve_period = cfg.solve_period_s
         self._last_fed: float | None = None
         #: a window sequence is running (False: the next sample starts one; a window never spans a gap)
         self._continuing = False
@@ -295,11 +300,11 @@ class InflightStage:
         state = "uncorrected"
         out: InflightOutput | None = None
         sol = self.solution
-        due = sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < SOLVE_PERIOD_S
+        due = sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < self._solve_period
         if due:
             self.flush()
         if est is not None and (est.n >= 10 or self.warm_started):
-            # re-solved at most every SOLVE_PERIOD_S of message time (a few 30x30 factorisations), whatever
+            # re-solved at most every solve_period_s of message time (a few 30x30 factorisations), whatever
             # the magnetometer rate; the rows go in as a block before each solution (WindowRowFeed)
             if due or sol is None:
                 sol = est.solve()

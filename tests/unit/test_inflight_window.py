@@ -32,7 +32,7 @@ def _run(seed: int, noise: float, live: bool = False) -> tuple[InflightStage, np
     """The stage fed 3000 samples (10 Hz) of a flight whose rotation source's yaw follows the compass's own
     bias at 0.5/s (as ArduPilot's with an internal primary); returns the stage and the true rotations.
     ``live``: its output asked for after every sample, as the pipeline does (a solution every
-    SOLVE_PERIOD_S, the samples going in as blocks between them)."""
+    solve_period_s, the samples going in as blocks between them)."""
     r, thr, _ = _flight(3000, seed)
     y = _measure(r, thr, np.eye(3), D_TRUE, seed, noise=noise)
     psi = _autopilot_yaw_drift(r, thr, DT_S, kp=0.5)

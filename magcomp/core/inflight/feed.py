@@ -53,7 +53,7 @@ AP_YAW_PRIOR_RAD = math.radians(5.0)
 #: Earth field (under 700 mgauss anywhere), i.e. free
 WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
 #: the tilt model's estimator is re-solved at every this many solutions of the published one (every
-#: SOLVE_PERIOD_S of the stage): theta moves little in a second, and solving both every 0.1 s cost 55 % more
+#: solve_period_s of the stage): theta moves little in a second, and solving both every 0.1 s cost 55 % more
 #: CPU on a 50 Hz replay (now 17 %); the final state and the stored one always take its latest theta
 TILT_SOLVE_EVERY = 10
 
@@ -137,8 +137,8 @@ def add_absolute_row(
 
 
 #: the most samples a block of window-field rows holds before it goes into the estimators (the stage
-#: flushes it before every solution, every SOLVE_PERIOD_S: 5 samples at 50 Hz)
-BLOCK_MAX = 64
+#: flushes it before every solution: 5 samples at 50 Hz with a solution every 0.1 s, 50 with one a second)
+BLOCK_MAX = 128
 
 
 class _Block:
