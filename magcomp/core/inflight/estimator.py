@@ -80,6 +80,8 @@ class InflightEstimator:
         self._theta_every = theta_solve_every
         #: the published (conditioned) mean and covariance (inflated) when a theta is taken
         self._pub: tuple[F64, F64] | None = None
+        #: the variance inflation at the last solution (another estimator taking this one's theta reads it)
+        self._vif = 1.0
         self._n_refresh = 0
         self._sync = False
 
@@ -277,7 +279,7 @@ class InflightEstimator:
         if fail != 0:
             return
         self._cov = cov  # white: the gate's predictive covariance
-        vif = acc.vif_at(theta, self.common_estimate, cov, s2)
+        vif = self._vif = acc.vif_at(theta, self.common_estimate, cov, s2)
         self._pub = None
         self._n_refresh += 1
         other = self._theta_from
@@ -288,7 +290,8 @@ class InflightEstimator:
             p_o, c_w = other._theta, other._cov
             if c_w is not None and p_o.shape == theta.shape:
                 th = slice(self._k + 3, self._k + 6)
-                c_o = c_w[th, th] * other.acc.vif_at(p_o, other.common_estimate, c_w)
+                # theta's covariance at the other's last solution, with its variance inflation there
+                c_o = c_w[th, th] * other._vif
                 self._pub = condition_on_theta(theta, cov * vif, self._k, p_o, c_o)
         grads = self._heading.grads(self.field_ned_mgauss, theta.shape[0], acc.stats)
         if self._pub is not None and other is not None:
