@@ -287,11 +287,10 @@ class WindowRowFeed:
         ap_yaw = tilt_model and b.on and self.sw.ap_yaw_nuisance
         z = w.z
         if tilt_model and b.on:
-            idx = range(len(b)) if sel is None else sel.tolist()
-            psi = np.empty(len(idx))
-            vh = np.empty((len(idx), 3))
-            for j, i in enumerate(idx):
-                psi[j], vh[j] = self._line.tilt(est, b.t[i], key, h_w, b.ap_dev[i], b.accel[i])
+            t_s, ap_dev, accel = np.array(b.t), np.array(b.ap_dev), np.array(b.accel)
+            if sel is not None:
+                t_s, ap_dev, accel = t_s[sel], ap_dev[sel], accel[sel]
+            psi, vh = self._line.tilt(est, t_s, key, h_w, ap_dev, accel)
             # the tilt's column R^T (v x h) last: the window's yaw rate tilts it too (its column takes it
             # times tau); the right-hand side with the tilt removed; with ap_yaw_nuisance the column stays,
             # for what the line fit leaves of the gyro yaw's error, one per window
