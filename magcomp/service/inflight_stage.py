@@ -93,6 +93,7 @@ class InflightStage:
         self.n_motors = -1  # decided at the first sample
         self._period = 1.0 / cfg.max_rate_hz
         self._solve_period = cfg.solve_period_s
+        self._earth_given: object = None  # the Earth field last handed to the estimators (feed)
         self._last_fed: float | None = None
         #: a window sequence is running (False: the next sample starts one; a window never spans a gap)
         self._continuing = False
@@ -155,6 +156,7 @@ class InflightStage:
         self._est = InflightEstimator(
             self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm, TILT_SOLVE_EVERY
         )
+        self._earth_given = None  # the new estimators take the Earth field at the next sample
         self.est_tilt = None
         if self.mode == "relative" and self.switches.tilt_model:
             self.est_tilt = InflightEstimator(
@@ -212,7 +214,9 @@ class InflightStage:
         if self._est is None:
             self._new_estimators()
         assert self._est is not None
-        if field_ref_n_mgauss is not None:
+        if field_ref_n_mgauss is not None and field_ref_n_mgauss is not self._earth_given:
+            # the pipeline hands the same read-only array until the Earth field changes
+            self._earth_given = field_ref_n_mgauss
             self._est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
             if self.est_tilt is not None:
                 self.est_tilt.set_earth_field(self._est.field_ned_mgauss)

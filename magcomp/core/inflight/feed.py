@@ -136,6 +136,9 @@ def add_absolute_row(
     est.add(rows, z, float(x[0]), cols, key, prior_sd=REFERENCE_YAW_PRIOR_RAD)
 
 
+#: a block that opens its nuisance window writes its rows about its own samples' mean field when it has at
+#: least this many (else about the previous window's field)
+OWN_FIELD_MIN = 5
 #: the most samples a block of window-field rows holds before it goes into the estimators (the stage
 #: flushes it before every solution: 5 samples at 50 Hz with a solution every 0.1 s, 50 with one a second)
 BLOCK_MAX = 128
@@ -273,12 +276,13 @@ class WindowRowFeed:
         w = window_field_rows_block(r_nb, y, x, v, like)
         # the yaw-rate column about the window's own field (its horizontal part as estimated before the
         # block: an autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's); a block
-        # that opens its window takes the mean of its own samples' fields, R_nb v, in the window's frame
+        # of OWN_FIELD_MIN samples or more that opens its window takes the mean of its own samples' fields,
+        # R_nb v, in the window's frame (a shorter one: the previous window's, as a row of its own would)
         e_w = est.window_nuisance(key)
         if e_w is not None:
             e0, e1 = e_w[:2].tolist()
             win_field = (e0, e1, float(est.common_estimate))
-        else:
+        elif v.shape[0] >= OWN_FIELD_MIN or win_field is None:
             f0, f1 = np.einsum("nij,nj->i", r_nb[:, 0:2], v).tolist()
             n_s = v.shape[0]
             c = est.common_estimate if est.common_estimate != 0.0 else float(est.field_ned_mgauss[2])
