@@ -20,9 +20,10 @@ construction. Bad input never stops the pipeline: non-finite or saturated sample
 backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`Pipeline.counts`.
 
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
-theta stage feeds the observers without reading theta back into the records; the states every stage
-reaches are the same as in a full run. With a ``recorder`` it also records what the second pass needs
-(:mod:`magcomp.service.final_pass`).
+theta stage feeds the observers without reading theta back into the records, and the in-flight estimate is
+re-solved every ``LEARN_SOLVE_PERIOD_S`` (only its final state is published); the states every stage reaches
+are the same as in a full run with that re-solve period. With a ``recorder`` it also records what the second
+pass needs (:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
