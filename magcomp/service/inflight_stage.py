@@ -153,15 +153,15 @@ class InflightStage:
     def _new_estimators(self) -> None:
         """The estimator, and in the relative form the tilt model's (its theta the published one's) and the
         window-field rows that feed both."""
-        self._est = InflightEstimator(
-            self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm, TILT_SOLVE_EVERY
-        )
-        self._earth_given = None  # the new estimators take the Earth field at the next sample
         self.est_tilt = None
         if self.mode == "relative" and self.switches.tilt_model:
+            # rows only with a raw gyro's yaw: the published theta is its own until then
             self.est_tilt = InflightEstimator(
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
+        self._est = InflightEstimator(self.mode, self.n_motors, self.params, self.field_norm_mgauss,
+                                      self._warm, self.est_tilt, TILT_SOLVE_EVERY)  # fmt: skip
+        self._earth_given = None  # the new estimators take the Earth field at the next sample
         relative = self.mode == "relative"
         self._rows = WindowRowFeed(self._est, self.est_tilt, self.switches) if relative else None
 

@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from magcomp.core.inflight.base import F64, NUISANCE_PRIOR_RAD_S, VIF_MIN_BATCHES
+from magcomp.core.inflight.rows import augmented
 from magcomp.core.inflight.solve import NormalEquations
 from magcomp.core.inflight.uncertainty import ResidualBatches, SampleStats, SplitHalves
 from magcomp.core.inflight.window import OpenWindow, WindowSchur
@@ -54,7 +55,8 @@ class Accumulator:
             if key != self.window.key:
                 self._close_window()
                 self.window.key = key
-            self.window.add(rows, z, nuisance, common, aug)
+            a = augmented(rows, z, nuisance, common) if aug is None else aug
+            self.window.add_block(a[None], rows.shape[1])
 
     def _close_window(self) -> None:
         """The open window's rows with its nuisance eliminated into the normal equations, its residual sum

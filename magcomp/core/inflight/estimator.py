@@ -44,13 +44,15 @@ class InflightEstimator:
         p: InflightParams | None = None,
         field_norm_mgauss: float = 500.0,
         warm: tuple[F64, F64] | None = None,
+        theta_from: InflightEstimator | None = None,
         theta_solve_every: int = 1,
     ) -> None:
         """``warm``: (mean, standard deviation) of every parameter from an earlier run (the state store),
-        used as the prior instead of the autopilot's calibration. ``theta_solve_every``: with another
-        estimator's theta taken (:meth:`condition_theta_on`), that one is re-solved at every this many
-        solutions of this one (its cost: a second set of normal equations solved), and whenever
-        :meth:`sync_theta_from` asks."""
+        used as the prior instead of the autopilot's calibration. ``theta_from``: another estimator of the
+        same parameters from other rows whose theta the published solution takes once it has rows, the rest
+        conditioned on it (this one's own estimate stays the linearisation point and the gate's); it is
+        re-solved at every ``theta_solve_every`` solutions of this one (its cost: a second set of normal
+        equations solved), and whenever :meth:`sync_theta_from` asks."""
         self.mode: InflightMode = mode
         #: the Earth field (NED, mgauss) for the heading uncertainty (:meth:`set_earth_field`). Default: the
         #: norm at 60 deg of inclination
@@ -73,10 +75,7 @@ class InflightEstimator:
         self.common_estimate = 0.0
         #: uncalibrated(): theta's d and Theta views, with one regressor their six floats
         self._unc_cache: tuple[F64, F64, F64, tuple[float, ...] | None] | None = None
-        #: another estimator of the same parameters from other rows whose theta the published solution
-        #: takes, the rest conditioned on it; this one's own estimate stays the linearisation point and the
-        #: gate's
-        self._theta_from: InflightEstimator | None = None
+        self._theta_from = theta_from
         self._theta_every = theta_solve_every
         #: the published (conditioned) mean and covariance (inflated) when a theta is taken
         self._pub: tuple[F64, F64] | None = None
@@ -104,10 +103,6 @@ class InflightEstimator:
     def set_earth_field(self, field_ned_mgauss: F64) -> None:
         """The Earth field (NED, mgauss: the WMM's at the vehicle) of the heading uncertainty."""
         self.field_ned_mgauss = field_ned_mgauss
-
-    def condition_theta_on(self, other: InflightEstimator | None) -> None:
-        """The published solution takes ``other``'s theta (None: its own), the rest conditioned on it."""
-        self._theta_from = other
 
     def add(
         self,
@@ -314,9 +309,10 @@ class InflightEstimator:
         self._dirty = False
 
     def sync_theta_from(self) -> None:
-        """The next solution takes the theta source's latest theta (:meth:`condition_theta_on`), whatever
+        """The next solution takes the theta source's latest theta (``theta_from``), whatever
         ``theta_solve_every`` says (the final state of a log, the state stored for a later run)."""
-        if self._theta_from is not None and self._theta_from._dirty:
+        src = self._theta_from
+        if src is not None and src.n > 0 and src._dirty:  # a source without rows gives no theta
             self._sync = True
             self._dirty = True
 
@@ -347,30 +343,11 @@ class InflightEstimator:
         floor = 0.1 / np.sqrt(np.diag(self.prior.info))
         return mean.copy(), np.minimum(np.maximum(sd, floor), np.maximum(self.prior.sd_max, floor))
 
-    def uncalibrated_block(self, y_mgauss: F64, x: F64) -> F64:
-        """:meth:`uncalibrated` of N samples (fields (N, 3), regressors (N, n_r)): (N, 3)."""
+    def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
+        """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
+        point of the relative form's soft-iron columns; of one sample (fields (3,), regressors (n_r,)) or
+        of N (fields (N, 3), regressors (N, n_r): (N, 3))."""
         k = self._k
         p = self._theta
         th = p[k + 3 :].reshape(-1, 3)
-        return np.asarray(y_mgauss - p[k : k + 3] - x[:, : th.shape[0]] @ th, dtype=np.float64)
-
-    def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
-        """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
-        point of the relative form's soft-iron columns."""
-        cached = self._unc_cache
-        if cached is None or cached[0] is not self._theta:
-            k = self._k
-            p = self._theta
-            th = p[k + 3 :].reshape(-1, 3)
-            d = p[k : k + 3]
-            one = (*d.tolist(), *th[0].tolist()) if th.shape[0] == 1 else None
-            cached = self._unc_cache = (p, d, th, one)
-        _, d, th, one = cached
-        if one is not None:
-            # one regressor: the same arithmetic in floats (its product with theta is a single rounding,
-            # as numpy's; no sum whose order could differ), without four small-array operations
-            y0, y1, y2 = y_mgauss.tolist()
-            d0, d1, d2, t0, t1, t2 = one
-            x0 = float(x[0])
-            return np.array([(y0 - d0) - x0 * t0, (y1 - d1) - x0 * t1, (y2 - d2) - x0 * t2])
-        return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)
+        return np.asarray(y_mgauss - p[k : k + 3] - x[..., : th.shape[0]] @ th, dtype=np.float64)

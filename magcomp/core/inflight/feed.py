@@ -243,14 +243,12 @@ class WindowRowFeed:
         tau = np.array(b.tau)
         est, tilt = self.est, self.est_tilt
         self._field, w, used = self._add(est, self._field, b, r_nb, y, x, tau, self.sw.ap_yaw_tilt)
-        if b.on and tilt is not None:
-            est.condition_theta_on(tilt)
-            if used.any():
-                sel = None if used.all() else np.flatnonzero(used)
-                if sel is not None:
-                    r_nb, y, x, tau = r_nb[sel], y[sel], x[sel], tau[sel]
-                    w = WindowFieldRows(w.rows[sel], w.z[sel], w.field_cols[sel], w.common[sel])
-                self._field_tilt, _, _ = self._add(tilt, self._field_tilt, b, r_nb, y, x, tau, True, w, sel)
+        if b.on and tilt is not None and used.any():
+            sel = None if used.all() else np.flatnonzero(used)
+            if sel is not None:
+                r_nb, y, x, tau = r_nb[sel], y[sel], x[sel], tau[sel]
+                w = WindowFieldRows(w.rows[sel], w.z[sel], w.field_cols[sel], w.common[sel])
+            self._field_tilt, _, _ = self._add(tilt, self._field_tilt, b, r_nb, y, x, tau, True, w, sel)
         b.clear()
 
     def _add(
@@ -272,7 +270,7 @@ class WindowRowFeed:
         columns but the soft-iron ones they share) and which samples were used."""
         key = b.key
         assert key is not None
-        v = est.uncalibrated_block(y, x)
+        v = est.uncalibrated(y, x)
         w = window_field_rows_block(r_nb, y, x, v, like)
         # the yaw-rate column about the window's own field (its horizontal part as estimated before the
         # block: an autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's); a block

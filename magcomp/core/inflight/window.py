@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from magcomp.core.inflight.base import F64, NUISANCE_PRIOR_RAD_S, lapack
-from magcomp.core.inflight.rows import augmented
 
 #: the open window's contribution with its nuisance eliminated (:meth:`OpenWindow.schur`): (info, rhs, z'z)
 #: of the parameters and (parameters x common, common x common, common rhs) of the common unknown
@@ -119,13 +118,9 @@ class OpenWindow:
         zz, cc, bc = float(sc[n + 1, n + 1]), float(sc[n, n]), float(sc[n, n + 1])
         return sc[:n, :n], sc[:n, n + 1], zz, sc[:n, n], cc, bc
 
-    def add(self, rows: F64, z: F64, nuisance: F64, common: F64 | None, aug: F64 | None) -> None:
-        """One sample's rows into the open window (``aug``: its augmented columns when already built)."""
-        a = augmented(rows, z, nuisance, common) if aug is None else aug
-        self.add_block(a[None], rows.shape[1])
-
     def add_block(self, aug: F64, n: int) -> None:
-        """N samples' augmented columns ``aug`` (N, 3, n + 2 + k) into the open window (``n`` parameters)."""
+        """N samples' augmented columns ``aug`` (N, 3, n + 2 + k: ``rows.augmented`` stacked) into the open
+        window (``n`` parameters)."""
         k = aug.shape[2] - n - 2
         if self.ee.shape[0] != k:  # a new nuisance size: the nuisance's sums start again
             g, sa = self.gram, self.sums
