@@ -44,9 +44,9 @@ F64 = NDArray[np.float64]
 #: the first pass of a two-pass replay re-solves the estimate at most this often (s of message time; the
 #: live stages: ``InflightConfig.solve_period_s``, 0.1 s). Only its final estimate is published; what the
 #: solutions in between steer (the rows' linearisation point, the gate, the window-field rows' blocks: the
-#: samples between two solutions) changed the simulated ordinary flight's and log171's headings by under
-#: 1 % and the corpus's two-pass figures not at all, for ~1/3 of the replay's CPU (docs/benchmarks.md)
-LEARN_SOLVE_PERIOD_S = 1.0
+#: samples between two solutions) left the simulated ordinary flight's and log171's headings and the corpus's
+#: two-pass figures as they were or better, for ~2/3 of the replay's CPU (1.0 s: docs/benchmarks.md)
+LEARN_SOLVE_PERIOD_S = 3.0
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
