@@ -45,7 +45,8 @@ F64 = NDArray[np.float64]
 #: live stages: ``InflightConfig.solve_period_s``, 0.1 s). Only its final estimate is published; what the
 #: solutions in between steer (the rows' linearisation point, the gate, the window-field rows' blocks: the
 #: samples between two solutions) left the simulated ordinary flight's and log171's headings and the corpus's
-#: two-pass figures as they were or better, for ~2/3 of the replay's CPU (1.0 s: docs/benchmarks.md)
+#: two-pass figures as they were or better; the ordinary flight's two-pass replay took 6.3 s of CPU re-solving
+#: every 0.1 s, 3.7 s every 1 s (docs/benchmarks.md)
 LEARN_SOLVE_PERIOD_S = 3.0
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
