@@ -44,10 +44,11 @@ F64 = NDArray[np.float64]
 #: the first pass of a two-pass replay re-solves the estimate at most this often (s of message time; the
 #: live stages: ``InflightConfig.solve_period_s``, 0.1 s). Only its final estimate is published; what the
 #: solutions in between steer (the rows' linearisation point, the gate, the window-field rows' blocks: the
-#: samples between two solutions) left the simulated ordinary flight's and log171's headings and the corpus's
-#: two-pass figures as they were or better; the ordinary flight's two-pass replay took 6.3 s of CPU re-solving
-#: every 0.1 s, 3.7 s every 1 s (docs/benchmarks.md)
-LEARN_SOLVE_PERIOD_S = 3.0
+#: samples between two solutions) moved the simulated ordinary flight's and log171's headings by under 1 %
+#: and none of the corpus's two-pass figures; the ordinary flight's two-pass replay took 6.3 s of CPU
+#: re-solving every 0.1 s, 3.7 s every 1 s. Every 3 s (3.4 s of CPU) rows linearised at older estimates
+#: leave correlated residuals: log171 compass 0's heading sigma 0.92 -> 1.55 deg (docs/benchmarks.md)
+LEARN_SOLVE_PERIOD_S = 1.0
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 

@@ -140,8 +140,8 @@ def add_absolute_row(
 #: least this many (else about the previous window's field)
 OWN_FIELD_MIN = 5
 #: the most samples a block of window-field rows holds before it goes into the estimators (the stage
-#: flushes it before every solution: 5 samples at 50 Hz with a solution every 0.1 s, 150 with one every 3 s)
-BLOCK_MAX = 256
+#: flushes it before every solution: 5 samples at 50 Hz with a solution every 0.1 s, 50 with one a second)
+BLOCK_MAX = 128
 
 
 class _Block:
