@@ -180,6 +180,9 @@ class InflightConfig:
     absolute_settle_s: the autopilot's yaw is used only with the motors running and this long after they
     start (before arming its yaw can be tens of degrees off).
     sigma_*: the prior around the autopilot's own calibration (see InflightParams).
+    solve_period_s: the estimate is re-solved at most this often (s of message time): how often the live
+    correction is refreshed (the first pass of a two-pass replay re-solves less often,
+    ``service/inflight_stage.py`` LEARN_SOLVE_PERIOD_S: only its final estimate is published).
     """
 
     enabled: bool = True
@@ -195,6 +198,7 @@ class InflightConfig:
     sigma_theta_mgauss: float = _positive_field(600.0)
     heading_ok_deg: float = _up_to(2.0, 90.0, "deg")
     heading_converged_deg: float = _up_to(1.0, 90.0, "deg")
+    solve_period_s: float = _up_to(0.1, 10.0, "s")
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,10 @@
 """The in-flight calibration stage of one compass: the stateful shell around :mod:`magcomp.core.inflight`.
 
 It decides, sample by sample, which samples go to the estimator and when (the rate limit, the motor set,
-the attitude source, waiting for a late attitude or throttle), re-solves it at most every SOLVE_PERIOD_S,
-and keeps the time spent in each state for the summary. The rows, the yaw frame, the late matching and the
-apply decision are core's (:mod:`magcomp.core.inflight.feed`, ``.yawframe``, ``.matching``, ``.apply``).
-No I/O.
+the attitude source, waiting for a late attitude or throttle), re-solves it at most every ``solve_period_s``
+of its configuration, and keeps the time spent in each state for the summary. The rows, the yaw frame, the
+late matching and the apply decision are core's (:mod:`magcomp.core.inflight.feed`, ``.yawframe``,
+``.matching``, ``.apply``). No I/O.
 """
 
 from __future__ import annotations
@@ -41,8 +41,14 @@ from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 
 F64 = NDArray[np.float64]
 
-#: the estimate is re-solved at most this often (s of message time)
-SOLVE_PERIOD_S = 0.1
+#: the first pass of a two-pass replay re-solves the estimate at most this often (s of message time; the
+#: live stages: ``InflightConfig.solve_period_s``, 0.1 s). Only its final estimate is published; what the
+#: solutions in between steer (the rows' linearisation point, the gate, the window-field rows' blocks: the
+#: samples between two solutions) moved the simulated ordinary flight's and log171's headings by under 1 %
+#: and none of the corpus's two-pass figures; the ordinary flight's two-pass replay took 6.3 s of CPU
+#: re-solving every 0.1 s, 3.7 s every 1 s. Every 3 s (3.4 s of CPU) rows linearised at older estimates
+#: leave correlated residuals: log171 compass 0's heading sigma 0.92 -> 1.55 deg (docs/benchmarks.md)
+LEARN_SOLVE_PERIOD_S = 1.0
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
@@ -82,12 +88,14 @@ class InflightStage:
             heading_converged_deg=cfg.heading_converged_deg,
         )
         self.field_norm_mgauss = field_norm_mgauss
-        self.est: InflightEstimator | None = None
+        self._est: InflightEstimator | None = None
         #: the tilt model's own estimator (FeedSwitches.tilt_condition), fed the same samples
         self.est_tilt: InflightEstimator | None = None
         self._rows: WindowRowFeed | None = None  # the relative form's window-field rows into both
         self.n_motors = -1  # decided at the first sample
         self._period = 1.0 / cfg.max_rate_hz
+        self._solve_period = cfg.solve_period_s
+        self._earth_given: object = None  # the Earth field last handed to the estimators (feed)
         self._last_fed: float | None = None
         #: a window sequence is running (False: the next sample starts one; a window never spans a gap)
         self._continuing = False
@@ -115,6 +123,13 @@ class InflightStage:
         self._warm: tuple[F64, F64] | None = None
         self._warm_start(warm, mode, field_norm_mgauss)
 
+    @property
+    def est(self) -> InflightEstimator | None:
+        """The estimator, with the samples held for the window-field rows in it (:meth:`flush`): whoever
+        reads it sees every sample fed so far."""
+        self.flush()
+        return self._est
+
     def _warm_start(
         self, warm: dict[str, object] | None, mode: InflightMode, field_norm_mgauss: float
     ) -> None:
@@ -126,30 +141,31 @@ class InflightStage:
                 np.asarray(warm["sd"], dtype=float),
             )
             self._new_estimators()
-            assert self.est is not None
-            if self.est.prior.mean.shape == self._warm[0].shape and np.array_equal(
-                self.est.prior.mean, self._warm[0]
+            assert self._est is not None
+            if self._est.prior.mean.shape == self._warm[0].shape and np.array_equal(
+                self._est.prior.mean, self._warm[0]
             ):
                 self.warm_started = True
                 # applied from the first sample only if the run it comes from had found it good enough
                 self.applied = bool(warm.get("applied", False))
             else:
-                self.est, self.n_motors, self._warm = None, -1, None
+                self._est, self.n_motors, self._warm = None, -1, None
                 self.est_tilt = self._rows = None
 
     def _new_estimators(self) -> None:
         """The estimator, and in the relative form the tilt model's (its theta the published one's) and the
         window-field rows that feed both."""
-        self.est = InflightEstimator(
-            self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm, TILT_SOLVE_EVERY
-        )
         self.est_tilt = None
         if self.mode == "relative" and self.switches.tilt_model:
+            # rows only with a raw gyro's yaw: the published theta is its own until then
             self.est_tilt = InflightEstimator(
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
+        self._est = InflightEstimator(self.mode, self.n_motors, self.params, self.field_norm_mgauss,
+                                      self._warm, self.est_tilt, TILT_SOLVE_EVERY)  # fmt: skip
+        self._earth_given = None  # the new estimators take the Earth field at the next sample
         relative = self.mode == "relative"
-        self._rows = WindowRowFeed(self.est, self.est_tilt, self.switches) if relative else None
+        self._rows = WindowRowFeed(self._est, self.est_tilt, self.switches) if relative else None
 
     # ------------------------------------------------------------------------------------------ feeding
 
@@ -163,7 +179,7 @@ class InflightStage:
         the old field are dropped."""
         self.field_norm_mgauss = field_norm_mgauss
         if self.mode == "absolute" and not self.warm_started:
-            self.est = None
+            self._est = None
             self.solution = None
             self.applied = False
         self._continuing = False
@@ -197,13 +213,15 @@ class InflightStage:
         if self.n_motors < 0:
             use = self.cfg.per_motor == "auto" and 2 <= len(motors_01) <= 8
             self.n_motors = len(motors_01) if use else 0
-        if self.est is None:
+        if self._est is None:
             self._new_estimators()
-        assert self.est is not None
-        if field_ref_n_mgauss is not None:
-            self.est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
+        assert self._est is not None
+        if field_ref_n_mgauss is not None and field_ref_n_mgauss is not self._earth_given:
+            # the pipeline hands the same read-only array until the Earth field changes
+            self._earth_given = field_ref_n_mgauss
+            self._est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
             if self.est_tilt is not None:
-                self.est_tilt.set_earth_field(self.est.field_ned_mgauss)
+                self.est_tilt.set_earth_field(self._est.field_ned_mgauss)
         mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
@@ -245,11 +263,11 @@ class InflightStage:
     def _use(self, t_s: float, y: F64, x: F64, r_nb: F64, field_ref_n_mgauss: F64 | None) -> None:
         """One sample with its attitude and regressors at its own time: absolute rows, or window-field
         rows."""
-        assert self.est is not None
+        assert self._est is not None
         if self.mode == "absolute":
             assert field_ref_n_mgauss is not None
             self._span.track(r_nb)
-            add_absolute_row(self.est, t_s, self._epoch, r_nb, field_ref_n_mgauss, y, x)
+            add_absolute_row(self._est, t_s, self._epoch, r_nb, field_ref_n_mgauss, y, x)
             self.n_rows += 1
             return
         if x[0] > 0.0 or not self.switches.window_rows_motors_only:
@@ -284,14 +302,17 @@ class InflightStage:
         motors_01: tuple[float, ...],
     ) -> InflightOutput | None:
         """The correction for this sample, or None while the estimate is not good enough to apply."""
-        est = self.est
+        est = self._est
         state = "uncorrected"
         out: InflightOutput | None = None
+        sol = self.solution
+        due = sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < self._solve_period
+        if due:
+            self.flush()
         if est is not None and (est.n >= 10 or self.warm_started):
-            # re-solved at most every SOLVE_PERIOD_S of message time (a few 30x30 factorisations), whatever
-            # the magnetometer rate; the rows are accumulated at every sample
-            sol = self.solution
-            if sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < SOLVE_PERIOD_S:
+            # re-solved at most every solve_period_s of message time (a few 30x30 factorisations), whatever
+            # the magnetometer rate; the rows go in as a block before each solution (WindowRowFeed)
+            if due or sol is None:
                 sol = est.solve()
                 self.solution = sol
                 self._solved_t = t_s
@@ -324,6 +345,12 @@ class InflightStage:
         self.account(t_s, state)
         return out
 
+    def flush(self) -> None:
+        """The samples held for the window-field rows into the estimators (before a solution, or whatever
+        reads them)."""
+        if self._rows is not None and self._rows.pending:
+            self._rows.flush()
+
     def account(self, t_s: float, state: str) -> None:
         """The time since the previous sample (up to 5 s) spent in ``state`` (one of STATES)."""
         if self._last_t is not None and 0.0 < t_s - self._last_t <= 5.0:
@@ -332,11 +359,12 @@ class InflightStage:
 
     def final_state(self) -> str:
         """The state of a sample with the final estimate held fixed (the two-pass replay's second pass)."""
-        if self.est is not None:
-            self.est.sync_theta_from()  # the final estimate takes the tilt model's final theta
+        self.flush()
+        if self._est is not None:
+            self._est.sync_theta_from()  # the final estimate takes the tilt model's final theta
         if self.applied and self.solution is not None:
             return "corrected"
-        est = self.est
+        est = self._est
         return "learning" if est is not None and (est.n >= 10 or self.warm_started) else "uncorrected"
 
     def restart_accounts(self) -> None:
@@ -346,10 +374,11 @@ class InflightStage:
 
     def state(self) -> dict[str, object] | None:
         """What the state store keeps to start the next run from (None before any estimate)."""
-        if self.est is None or (self.est.n == 0 and not self.warm_started):
+        self.flush()
+        if self._est is None or (self._est.n == 0 and not self.warm_started):
             return None
-        self.est.sync_theta_from()
-        mean, sd = self.est.state()
+        self._est.sync_theta_from()
+        mean, sd = self._est.state()
         return {
             "form": self.mode,
             "n_motors": self.n_motors,
@@ -364,7 +393,7 @@ class InflightStage:
         the estimator's split check hold data): before that, a bias that leaves no residual
         (a short flight's, docs/inflight.md "Short flights") cannot show in it. A run started from a stored
         state was checked by the run that stored it."""
-        return self.warm_started or (self.est is not None and self.est.split_checked)
+        return self.warm_started or (self._est is not None and self._est.split_checked)
 
     @property
     def yaw_span_deg(self) -> float:
@@ -375,7 +404,7 @@ class InflightStage:
 
     def why_not(self) -> str:
         """Why the estimate is not applied (for the summary), from what the data held."""
-        est = self.est
+        est = self._est
         if est is None or (self.n_rows == 0 and not self.warm_started):
             if self.mode == "absolute":
                 return "no usable attitude with the motors running (absolute form)"
@@ -409,8 +438,9 @@ class InflightStage:
         return "not observable: " + ", ".join(parts)
 
     def summary(self) -> dict[str, object]:
+        self.flush()
         sol = self.solution
-        est = self.est
+        est = self._est
         span = self._span.span_deg
         return {
             "form": self.mode,

@@ -1,11 +1,12 @@
 """The pipeline's stages: the first pass of a replay (heading and publish left out) reaches the state of a
-full run; the worker threads end with their owner; the service reads samples through the core types only;
-every function of the stages stays short (issue 13)."""
+full run (whose in-flight estimate is re-solved as often); the worker threads end with their owner; the
+service reads samples through the core types only; every function of the stages stays short (issue 13)."""
 
 from __future__ import annotations
 
 import ast
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.mavlink_source import open_source
 from magcomp.core.types import Sample
+from magcomp.service.inflight_stage import LEARN_SOLVE_PERIOD_S
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.replay import MemoryStore, replay_log
 from magcomp.sim import SimConfig, simulate
@@ -40,8 +42,12 @@ def _samples(path: Path) -> list[Sample]:
 
 
 def _final_states(samples: list[Sample], learn_only: bool) -> MemoryStore:
+    """The states a run stores at its end; the in-flight estimate re-solved as often in both runs (a
+    learn-only pass re-solves it every LEARN_SOLVE_PERIOD_S)."""
     store = MemoryStore()
-    p = Pipeline(Config(), store=store, learn_only=learn_only)
+    cfg = Config()
+    cfg = replace(cfg, inflight=replace(cfg.inflight, solve_period_s=LEARN_SOLVE_PERIOD_S))
+    p = Pipeline(cfg, store=store, learn_only=learn_only)
     published = sum(p.feed(s) for s in samples)
     p.close()
     assert (published == 0) == learn_only

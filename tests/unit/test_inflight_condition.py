@@ -1,5 +1,5 @@
 """The published in-flight solution conditioned on another estimator's theta
-(``InflightEstimator.condition_theta_on``, the tilt model's estimator of ``FeedSwitches.tilt_condition``): the
+(``InflightEstimator``'s ``theta_from``, the tilt model's estimator of ``FeedSwitches.tilt_condition``): the
 Schur-complement update must equal the estimate re-solved with theta held at the other's value, and the
 published theta must be the other's."""
 
@@ -32,7 +32,7 @@ def _fed(seed: int, theta_shift: float) -> tuple[InflightEstimator, InflightEsti
 def test_conditioned_solution_equals_the_estimate_resolved_with_theta_held(seed: int) -> None:
     ordinary, tilt = _fed(seed, 15.0)
     free, _ = ordinary.state(inflate=1.0)
-    ordinary.condition_theta_on(tilt)
+    ordinary._theta_from = tilt  # as if constructed with theta_from=tilt
     ordinary._dirty = True
     mean, _ = ordinary.state(inflate=1.0)
     tilt_mean, _ = tilt.state(inflate=1.0)

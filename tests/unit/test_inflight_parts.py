@@ -18,6 +18,7 @@ from magcomp.core.autopilot_params import (
 from magcomp.core.inflight import GyroYaw, InflightSolution
 from magcomp.core.inflight.apply import MAX_APPLY_HEADING_SIGMA_DEG, YawSpan, apply_decision
 from magcomp.core.inflight.matching import MAX_PAIR_S, LateMatcher
+from magcomp.core.inflight.rows import augmented
 from magcomp.core.inflight.yawframe import GyroYawFrame
 from magcomp.core.rotations import dcm_from_euler
 
@@ -123,22 +124,22 @@ def test_ardupilot_motor_compensation_parameters() -> None:
     assert motor_comp_known_off({"COMPASS_MOTCT": 0.0, "COMPASS_PMOT_EN": 1.0}, 1)
 
 
-def test_the_linearisation_point_in_floats_is_numpys_bit_for_bit() -> None:
-    """``InflightEstimator.uncalibrated`` with one regressor computes ``y - d - x theta`` in floats: the
-    same numbers, bit for bit, as the array expression it replaces (and as it still uses with motors)."""
+def test_the_linearisation_point_of_a_block_is_each_samples() -> None:
+    """``InflightEstimator.uncalibrated`` of N samples at once gives each sample's ``y - d - x theta`` (with
+    the collective regressor alone and with four motors' too)."""
     from magcomp.core.inflight import InflightEstimator
 
     rng = np.random.default_rng(7)
     for n_motors in (0, 4):
         est = InflightEstimator("relative", n_motors)
         k = est._k
-        for _ in range(200):
-            est._theta = rng.normal(0.0, 300.0, size=est._theta.shape)
-            y = rng.normal(0.0, 500.0, size=3)
-            x = rng.uniform(0.0, 1.0, size=1 + n_motors)
-            th = est._theta[k + 3 :].reshape(-1, 3)
-            want = y - est._theta[k : k + 3] - x[: th.shape[0]] @ th
-            assert est.uncalibrated(y, x).tobytes() == want.tobytes()
+        est._theta = rng.normal(0.0, 300.0, size=est._theta.shape)
+        y = rng.normal(0.0, 500.0, size=(200, 3))
+        x = rng.uniform(0.0, 1.0, size=(200, 1 + n_motors))
+        th = est._theta[k + 3 :].reshape(-1, 3)
+        want = np.array([y[i] - est._theta[k : k + 3] - x[i, : th.shape[0]] @ th for i in range(200)])
+        np.testing.assert_allclose(est.uncalibrated(y, x), want, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(est.uncalibrated(y[5], x[5]), want[5], rtol=1e-12, atol=1e-9)
 
 
 def test_the_open_window_forgets_a_nonzero_h_ee_when_its_sums_clear() -> None:
@@ -151,11 +152,13 @@ def test_the_open_window_forgets_a_nonzero_h_ee_when_its_sums_clear() -> None:
     p = np.zeros(4)
     w.key = "a"
     for _ in range(5):
-        w.add(rng.normal(size=(3, 4)), rng.normal(size=3), rng.normal(size=(3, 2)), None, None)
+        a = augmented(rng.normal(size=(3, 4)), rng.normal(size=3), rng.normal(size=(3, 2)), None)
+        w.add_block(a[None], 4)
     assert w.nuisance(1, False, p, 0.0, 10.0) is not None
     w.clear()
     w.n_rows = 0
     w.key = "b"
     for _ in range(5):
-        w.add(rng.normal(size=(3, 4)), rng.normal(size=3), np.zeros((3, 2)), None, None)
+        a = augmented(rng.normal(size=(3, 4)), rng.normal(size=3), np.zeros((3, 2)), None)
+        w.add_block(a[None], 4)
     assert w.nuisance(2, False, p, 0.0, 10.0) is None

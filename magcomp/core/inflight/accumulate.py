@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from magcomp.core.inflight.base import F64, NUISANCE_PRIOR_RAD_S, VIF_MIN_BATCHES
+from magcomp.core.inflight.rows import augmented
 from magcomp.core.inflight.solve import NormalEquations
 from magcomp.core.inflight.uncertainty import ResidualBatches, SampleStats, SplitHalves
 from magcomp.core.inflight.window import OpenWindow, WindowSchur
@@ -54,7 +55,8 @@ class Accumulator:
             if key != self.window.key:
                 self._close_window()
                 self.window.key = key
-            self.window.add(rows, z, nuisance, common, aug)
+            a = augmented(rows, z, nuisance, common) if aug is None else aug
+            self.window.add_block(a[None], rows.shape[1])
 
     def _close_window(self) -> None:
         """The open window's rows with its nuisance eliminated into the normal equations, its residual sum
@@ -71,6 +73,16 @@ class Accumulator:
         self.n_windows += 1
         w.clear()
         w.key = None
+
+    def take_block(self, aug: F64, x0: F64, key: object) -> None:
+        """N used samples' augmented columns ``aug`` (N, 3, n + 2 + k) of nuisance window ``key`` (a new key
+        closes the open window) and their delta^2 ``x0`` (N,)."""
+        self.rev += 1
+        if key != self.window.key:
+            self._close_window()
+            self.window.key = key
+        self.window.add_block(aug, self.eq.info.shape[0])
+        self.stats.add_block(x0)
 
     def refill(self, samples: list[tuple[F64, F64, F64, F64 | None]]) -> bool:
         """Replace the open window's rows by ``samples`` (rows, z, nuisance, common); sample counts and

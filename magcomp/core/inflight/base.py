@@ -30,7 +30,7 @@ WARM_INFLATE = 2.0
 #: manoeuvre's tilt error, 5-30 s), and at least this many batches come in before it is used
 VIF_BATCH_S = 30.0
 VIF_MIN_BATCHES = 4
-#: a solution conditioned on another estimator's theta (``InflightEstimator.condition_theta_on``) counts
+#: a solution conditioned on another estimator's theta (``InflightEstimator``'s ``theta_from``) counts
 #: the two thetas' difference as a model uncertainty of the one it takes (its covariance plus the
 #: difference's outer product)
 THETA_MODEL_SPREAD = True

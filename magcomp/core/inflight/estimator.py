@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.core.inflight.accumulate import Accumulator
 from magcomp.core.inflight.base import (
@@ -22,8 +23,8 @@ from magcomp.core.inflight.base import (
     identity,
     lapack,
 )
-from magcomp.core.inflight.gate import innovation_gated
-from magcomp.core.inflight.rows import augmented, bounded, norm_row
+from magcomp.core.inflight.gate import innovation_gated, innovation_gated_block
+from magcomp.core.inflight.rows import ROW_ENTRY_MAX, augmented, bounded, norm_row
 from magcomp.core.inflight.solve import GaussianPrior, condition_on_theta, map_estimate
 from magcomp.core.inflight.uncertainty import HeadingSigma, build_solution, with_split
 
@@ -43,13 +44,15 @@ class InflightEstimator:
         p: InflightParams | None = None,
         field_norm_mgauss: float = 500.0,
         warm: tuple[F64, F64] | None = None,
+        theta_from: InflightEstimator | None = None,
         theta_solve_every: int = 1,
     ) -> None:
         """``warm``: (mean, standard deviation) of every parameter from an earlier run (the state store),
-        used as the prior instead of the autopilot's calibration. ``theta_solve_every``: with another
-        estimator's theta taken (:meth:`condition_theta_on`), that one is re-solved at every this many
-        solutions of this one (its cost: a second set of normal equations solved), and whenever
-        :meth:`sync_theta_from` asks."""
+        used as the prior instead of the autopilot's calibration. ``theta_from``: another estimator of the
+        same parameters from other rows whose theta the published solution takes once it has rows, the rest
+        conditioned on it (this one's own estimate stays the linearisation point and the gate's); it is
+        re-solved at every ``theta_solve_every`` solutions of this one (its cost: a second set of normal
+        equations solved), and whenever :meth:`sync_theta_from` asks."""
         self.mode: InflightMode = mode
         #: the Earth field (NED, mgauss) for the heading uncertainty (:meth:`set_earth_field`). Default: the
         #: norm at 60 deg of inclination
@@ -72,13 +75,12 @@ class InflightEstimator:
         self.common_estimate = 0.0
         #: uncalibrated(): theta's d and Theta views, with one regressor their six floats
         self._unc_cache: tuple[F64, F64, F64, tuple[float, ...] | None] | None = None
-        #: another estimator of the same parameters from other rows whose theta the published solution
-        #: takes, the rest conditioned on it; this one's own estimate stays the linearisation point and the
-        #: gate's
-        self._theta_from: InflightEstimator | None = None
+        self._theta_from = theta_from
         self._theta_every = theta_solve_every
         #: the published (conditioned) mean and covariance (inflated) when a theta is taken
         self._pub: tuple[F64, F64] | None = None
+        #: the variance inflation at the last solution (another estimator taking this one's theta reads it)
+        self._vif = 1.0
         self._n_refresh = 0
         self._sync = False
 
@@ -101,10 +103,6 @@ class InflightEstimator:
     def set_earth_field(self, field_ned_mgauss: F64) -> None:
         """The Earth field (NED, mgauss: the WMM's at the vehicle) of the heading uncertainty."""
         self.field_ned_mgauss = field_ned_mgauss
-
-    def condition_theta_on(self, other: InflightEstimator | None) -> None:
-        """The published solution takes ``other``'s theta (None: its own), the rest conditioned on it."""
-        self._theta_from = other
 
     def add(
         self,
@@ -175,6 +173,52 @@ class InflightEstimator:
         self._dirty = True
         return math.sqrt(rn2)
 
+    def add_block(
+        self,
+        rows: F64,
+        z: F64,
+        x0: F64,
+        nuisance: F64,
+        window: object,
+        common: F64,
+        gate: bool = True,
+        prior_sd: float | F64 | None = None,
+        batch_windows: int | None = None,
+    ) -> NDArray[np.bool_]:
+        """N samples' rows (N, 3, n), right-hand sides (N, 3), delta^2 ``x0`` (N,), nuisance columns (N, 3,
+        k) and common columns (N, 3), all of nuisance window ``window``, as :meth:`add` takes one sample's
+        (the same arguments with a leading axis N); returns which samples were used (N,).
+
+        The gate (``gate``) judges every sample against the last solution and the open window's nuisance
+        estimate as they were before the block (:meth:`add` moves the latter with each row): a block is a
+        few rows between two solutions. A block that opens its window is not gated: one row's nuisance
+        fitted to that row alone (what :meth:`add` does there) leaves it no residual."""
+        acc = self.acc
+        if prior_sd is not None:
+            acc.window.prior_sd = prior_sd
+        if batch_windows is not None:
+            acc.batch_windows = batch_windows
+        aug = np.concatenate((rows, common[:, :, None], z[:, :, None], nuisance), axis=2)
+        use = np.abs(aug).max(axis=(1, 2)) <= ROW_ENTRY_MAX  # as bounded(): a NaN compares False
+        n_bad = use.shape[0] - int(np.count_nonzero(use))
+        self.n_nonfinite += n_bad
+        w = acc.window
+        if gate and window == w.key and w.ee.shape[0] == nuisance.shape[2] and self._solution is not None:
+            out = w.nuisance(acc.rev, True, self._theta, self.common_estimate, acc.s_ref)
+            if out is not None:
+                e_hat, h_ee = out
+                r = z - rows @ self._theta - common * self.common_estimate - nuisance @ e_hat
+                gated = innovation_gated_block(r, rows, nuisance, h_ee, self._cov, self._solution, self.p)
+                gated &= use
+                self.n_gated += int(np.count_nonzero(gated))
+                use &= ~gated
+        if n_bad or not use.all():
+            aug, x0 = aug[use], x0[use]
+        if aug.shape[0] > 0:
+            acc.take_block(aug, x0, window)
+            self._dirty = True
+        return use
+
     def window_nuisance(self, window: object) -> F64 | None:
         """The open window's nuisance estimate at the current parameters when ``window`` is the open one
         and has rows (window-field rows: its horizontal Earth field first), else None."""
@@ -230,7 +274,7 @@ class InflightEstimator:
         if fail != 0:
             return
         self._cov = cov  # white: the gate's predictive covariance
-        vif = acc.vif_at(theta, self.common_estimate, cov, s2)
+        vif = self._vif = acc.vif_at(theta, self.common_estimate, cov, s2)
         self._pub = None
         self._n_refresh += 1
         other = self._theta_from
@@ -241,7 +285,8 @@ class InflightEstimator:
             p_o, c_w = other._theta, other._cov
             if c_w is not None and p_o.shape == theta.shape:
                 th = slice(self._k + 3, self._k + 6)
-                c_o = c_w[th, th] * other.acc.vif_at(p_o, other.common_estimate, c_w)
+                # theta's covariance at the other's last solution, with its variance inflation there
+                c_o = c_w[th, th] * other._vif
                 self._pub = condition_on_theta(theta, cov * vif, self._k, p_o, c_o)
         grads = self._heading.grads(self.field_ned_mgauss, theta.shape[0], acc.stats)
         if self._pub is not None and other is not None:
@@ -264,9 +309,10 @@ class InflightEstimator:
         self._dirty = False
 
     def sync_theta_from(self) -> None:
-        """The next solution takes the theta source's latest theta (:meth:`condition_theta_on`), whatever
+        """The next solution takes the theta source's latest theta (``theta_from``), whatever
         ``theta_solve_every`` says (the final state of a log, the state stored for a later run)."""
-        if self._theta_from is not None and self._theta_from._dirty:
+        src = self._theta_from
+        if src is not None and src.n > 0 and src._dirty:  # a source without rows gives no theta
             self._sync = True
             self._dirty = True
 
@@ -299,21 +345,9 @@ class InflightEstimator:
 
     def uncalibrated(self, y_mgauss: F64, x: F64) -> F64:
         """``y - d - sum theta_r x_r`` at the current estimate (raw frame, before L): the linearisation
-        point of the relative form's soft-iron columns."""
-        cached = self._unc_cache
-        if cached is None or cached[0] is not self._theta:
-            k = self._k
-            p = self._theta
-            th = p[k + 3 :].reshape(-1, 3)
-            d = p[k : k + 3]
-            one = (*d.tolist(), *th[0].tolist()) if th.shape[0] == 1 else None
-            cached = self._unc_cache = (p, d, th, one)
-        _, d, th, one = cached
-        if one is not None:
-            # one regressor: the same arithmetic in floats (its product with theta is a single rounding,
-            # as numpy's; no sum whose order could differ), without four small-array operations
-            y0, y1, y2 = y_mgauss.tolist()
-            d0, d1, d2, t0, t1, t2 = one
-            x0 = float(x[0])
-            return np.array([(y0 - d0) - x0 * t0, (y1 - d1) - x0 * t1, (y2 - d2) - x0 * t2])
-        return np.asarray(y_mgauss - d - x[: th.shape[0]] @ th, dtype=np.float64)
+        point of the relative form's soft-iron columns; of one sample (fields (3,), regressors (n_r,)) or
+        of N (fields (N, 3), regressors (N, n_r): (N, 3))."""
+        k = self._k
+        p = self._theta
+        th = p[k + 3 :].reshape(-1, 3)
+        return np.asarray(y_mgauss - p[k : k + 3] - x[..., : th.shape[0]] @ th, dtype=np.float64)

@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.core.inflight.base import F64, NUISANCE_PRIOR_RAD_S, VIF_BATCH_S
 from magcomp.core.inflight.estimator import InflightEstimator
@@ -17,8 +18,9 @@ from magcomp.core.inflight.rows import (
     WindowFieldRows,
     absolute_rows,
     reference_yaw_error_rows,
-    window_field_rows,
+    window_field_rows_block,
     window_nuisance_cols,
+    window_nuisance_cols_block,
 )
 from magcomp.core.inflight.yawframe import GYRO_WINDOW_S, GyroYawFrame, YawErrorLine
 from magcomp.core.linalg3 import Vec3Like
@@ -51,7 +53,7 @@ AP_YAW_PRIOR_RAD = math.radians(5.0)
 #: Earth field (under 700 mgauss anywhere), i.e. free
 WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
 #: the tilt model's estimator is re-solved at every this many solutions of the published one (every
-#: SOLVE_PERIOD_S of the stage): theta moves little in a second, and solving both every 0.1 s cost 55 % more
+#: solve_period_s of the stage): theta moves little in a second, and solving both every 0.1 s cost 55 % more
 #: CPU on a 50 Hz replay (now 17 %); the final state and the stored one always take its latest theta
 TILT_SOLVE_EVERY = 10
 
@@ -134,9 +136,51 @@ def add_absolute_row(
     est.add(rows, z, float(x[0]), cols, key, prior_sd=REFERENCE_YAW_PRIOR_RAD)
 
 
+#: a block that opens its nuisance window writes its rows about its own samples' mean field when it has at
+#: least this many (else about the previous window's field)
+OWN_FIELD_MIN = 5
+#: the most samples a block of window-field rows holds before it goes into the estimators (the stage
+#: flushes it before every solution: 5 samples at 50 Hz with a solution every 0.1 s, 50 with one a second)
+BLOCK_MAX = 128
+
+
+class _Block:
+    """Samples of one nuisance window waiting to become rows (:class:`WindowRowFeed`): their times, times from
+    the window's middle, attitudes, fields, regressors and the gyro frame's tilt-model inputs."""
+
+    def __init__(self) -> None:
+        self.key: tuple[int, int] | None = None
+        self.on = False
+        self.relin = False
+        self.n_r = 0
+        self.t: list[float] = []
+        self.tau: list[float] = []
+        self.r: list[F64] = []
+        self.y: list[F64] = []
+        self.x: list[F64] = []
+        self.ap_dev: list[float] = []
+        self.accel: list[tuple[float, float]] = []
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def fits(self, key: tuple[int, int], on: bool, relin: bool, n_r: int) -> bool:
+        """A sample of this window, frame and form joins the block."""
+        return key == self.key and on == self.on and relin == self.relin and n_r == self.n_r
+
+    def clear(self) -> None:
+        for a in (self.t, self.tau, self.r, self.y, self.x, self.ap_dev, self.accel):
+            a.clear()
+
+
 class WindowRowFeed:
     """The relative form's window-field rows of one compass: into the ordinary estimator ``est`` and, with a
-    raw gyro's yaw, into the tilt model's ``est_tilt`` (its theta the published one)."""
+    raw gyro's yaw, into the tilt model's ``est_tilt`` (its theta the published one).
+
+    Samples are held in a block (at most BLOCK_MAX, one nuisance window) and become rows together
+    (:meth:`flush`; the stage flushes before every solution): their nuisance columns written about the
+    window's field as estimated before the block, their gate against the last solution and that estimate,
+    each a few numpy calls over the block instead of ~35 per row."""
 
     def __init__(
         self, est: InflightEstimator, est_tilt: InflightEstimator | None, switches: FeedSwitches
@@ -151,6 +195,12 @@ class WindowRowFeed:
         # relinearise_window: the open window's key and its used rows (rows, z, field cols, R_nb, tau, common)
         self._rl_key: tuple[int, int] | None = None
         self._rl_rows: list[tuple[F64, F64, F64, F64, float, F64 | None]] = []
+        self._block = _Block()
+
+    @property
+    def pending(self) -> int:
+        """Samples held in the block (not yet rows)."""
+        return len(self._block)
 
     def add(
         self, t_s: float, epoch: int, r_nb: F64, y: F64, x: F64, frame: GyroYawFrame, slow_link: bool
@@ -159,76 +209,105 @@ class WindowRowFeed:
         field and the rotation source's yaw rate as the window's nuisance; with the tilt model the same
         sample into its estimator too. ``epoch`` counts rotation-source restarts (a window never spans one);
         ``frame``: the gyro yaw's frame (``on``: ``r_nb`` has the gyro's yaw); ``slow_link``: the attitude
-        is matched to the field's time."""
+        is matched to the field's time. Held in the block until it is flushed (a new window, a full block,
+        :meth:`flush`)."""
         w_s = GYRO_WINDOW_S if frame.on else ROTATION_WINDOW_S
         win = math.floor(t_s / w_s)
         tau = t_s - (win + 0.5) * w_s
         key = (epoch, win)
         relin = self.sw.relinearise_window and not frame.on and slow_link
+        b = self._block
+        if len(b) and (not b.fits(key, frame.on, relin, x.shape[0]) or len(b) >= BLOCK_MAX):
+            self.flush()
         if relin and key != self._rl_key:
             self._relinearise()
             self._rl_key = key
+        if not len(b):
+            b.key, b.on, b.relin, b.n_r = key, frame.on, relin, x.shape[0]
+        b.t.append(t_s)
+        b.tau.append(tau)
+        b.r.append(r_nb)
+        b.y.append(y)
+        b.x.append(x)
+        b.ap_dev.append(frame.ap_yaw_dev)
+        b.accel.append(frame.accel_h)
+
+    def flush(self) -> None:
+        """The block's samples into the estimators: the ordinary one's rows (gated), and the tilt model's for
+        the samples with a raw gyro's yaw that the ordinary one's gate passed (the same glitches). Only
+        those: its windows carry one more nuisance column, and a window never mixes the two."""
+        b = self._block
+        if not len(b) or b.key is None:
+            return
+        r_nb, y, x = np.array(b.r), np.array(b.y), np.array(b.x)
+        tau = np.array(b.tau)
         est, tilt = self.est, self.est_tilt
-        gated = est.n_gated
-        self._field, w = self._add(
-            est, self._field, t_s, key, tau, r_nb, y, x, self.sw.ap_yaw_tilt, relin, frame
-        )
-        # the tilt model's estimator takes the samples with a raw gyro's yaw (a compass marked external never
-        # has one: no cost) that the ordinary one's gate passed (the same glitches). Only those: its windows
-        # carry one more nuisance column, and a window never mixes the two
-        if frame.on and tilt is not None:
-            est.condition_theta_on(tilt)
-        if frame.on and tilt is not None and est.n_gated == gated:
-            self._field_tilt, _ = self._add(
-                tilt, self._field_tilt, t_s, key, tau, r_nb, y, x, True, False, frame, w
-            )
+        self._field, w, used = self._add(est, self._field, b, r_nb, y, x, tau, self.sw.ap_yaw_tilt)
+        if b.on and tilt is not None and used.any():
+            sel = None if used.all() else np.flatnonzero(used)
+            if sel is not None:
+                r_nb, y, x, tau = r_nb[sel], y[sel], x[sel], tau[sel]
+                w = WindowFieldRows(w.rows[sel], w.z[sel], w.field_cols[sel], w.common[sel])
+            self._field_tilt, _, _ = self._add(tilt, self._field_tilt, b, r_nb, y, x, tau, True, w, sel)
+        b.clear()
 
     def _add(
         self,
         est: InflightEstimator,
         win_field: tuple[float, float, float] | None,
-        t_s: float,
-        key: tuple[int, int],
-        tau: float,
+        b: _Block,
         r_nb: F64,
         y: F64,
         x: F64,
+        tau: F64,
         tilt_model: bool,
-        relin: bool,
-        frame: GyroYawFrame,
         like: WindowFieldRows | None = None,
-    ) -> tuple[tuple[float, float, float] | None, WindowFieldRows]:
-        """One sample's window-field rows into ``est`` (the tilt model's when ``tilt_model``); returns the
-        window field the yaw-rate column was written about (kept for the next window's first samples) and
-        the rows (``like``: this sample's rows for the other estimator, whose columns but the soft-iron
-        ones they share)."""
-        w = window_field_rows(r_nb, y, x, est.uncalibrated(y, x), like)
-        # the yaw-rate column about the window's own field (its horizontal part as estimated so far: an
-        # autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's); three floats
+        sel: NDArray[np.intp] | None = None,
+    ) -> tuple[tuple[float, float, float] | None, WindowFieldRows, NDArray[np.bool_]]:
+        """The block's window-field rows (``sel``: those of its samples) into ``est`` (the tilt model's when
+        ``tilt_model``); returns the window field the yaw-rate column was written about (kept for the next
+        window's first samples), the rows (``like``: these samples' rows for the other estimator, whose
+        columns but the soft-iron ones they share) and which samples were used."""
+        key = b.key
+        assert key is not None
+        v = est.uncalibrated(y, x)
+        w = window_field_rows_block(r_nb, y, x, v, like)
+        # the yaw-rate column about the window's own field (its horizontal part as estimated before the
+        # block: an autopilot yaw following a compass 15 deg off puts it 15 deg from the WMM's); a block
+        # of OWN_FIELD_MIN samples or more that opens its window takes the mean of its own samples' fields,
+        # R_nb v, in the window's frame (a shorter one: the previous window's, as a row of its own would)
         e_w = est.window_nuisance(key)
         if e_w is not None:
             e0, e1 = e_w[:2].tolist()
             win_field = (e0, e1, float(est.common_estimate))
-        h_w: Vec3Like = est.field_ned_mgauss if win_field is None else win_field
-        ap_yaw = tilt_model and frame.on and self.sw.ap_yaw_nuisance
+        elif v.shape[0] >= OWN_FIELD_MIN or win_field is None:
+            f0, f1 = np.einsum("nij,nj->i", r_nb[:, 0:2], v).tolist()
+            n_s = v.shape[0]
+            c = est.common_estimate if est.common_estimate != 0.0 else float(est.field_ned_mgauss[2])
+            win_field = (f0 / n_s, f1 / n_s, c)
+        h_w: Vec3Like = win_field
+        ap_yaw = tilt_model and b.on and self.sw.ap_yaw_nuisance
         z = w.z
-        if tilt_model and frame.on:
-            psi, vh = self._line.tilt(est, t_s, key, h_w, frame.ap_yaw_dev, frame.accel_h)
+        if tilt_model and b.on:
+            t_s, ap_dev, accel = np.array(b.t), np.array(b.ap_dev), np.array(b.accel)
+            if sel is not None:
+                t_s, ap_dev, accel = t_s[sel], ap_dev[sel], accel[sel]
+            psi, vh = self._line.tilt(est, t_s, key, h_w, ap_dev, accel)
             # the tilt's column R^T (v x h) last: the window's yaw rate tilts it too (its column takes it
             # times tau); the right-hand side with the tilt removed; with ap_yaw_nuisance the column stays,
             # for what the line fit leaves of the gyro yaw's error, one per window
-            nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0, vh)
-            z = z - psi * nuis[:, -1]
+            nuis = window_nuisance_cols_block(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0, vh)
+            z = z - psi[:, None] * nuis[:, :, -1]
             if not self.sw.ap_yaw_nuisance:
-                nuis = nuis[:, :-1]
+                nuis = nuis[:, :, :-1]
         else:
-            nuis = window_nuisance_cols(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
-        gated = est.n_gated
-        est.add(w.rows, z, float(x[0]), nuis, key, w.common, gate=est is not self.est_tilt,
-                prior_sd=window_prior_sd(ap_yaw), batch_windows=_BATCH_WINDOWS[frame.on])  # fmt: skip
-        if relin and est.n_gated == gated:
-            self._rl_rows.append((w.rows, z, w.field_cols, r_nb, tau, w.common))
-        return win_field, w
+            nuis = window_nuisance_cols_block(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
+        used = est.add_block(w.rows, z, x[:, 0], nuis, key, w.common, gate=est is not self.est_tilt,
+                             prior_sd=window_prior_sd(ap_yaw), batch_windows=_BATCH_WINDOWS[b.on])
+        if b.relin and est is self.est:
+            for i in np.flatnonzero(used).tolist():
+                self._rl_rows.append((w.rows[i], z[i], w.field_cols[i], r_nb[i], float(tau[i]), w.common[i]))
+        return win_field, w, used
 
     def _relinearise(self) -> None:
         """The window closing: its rows' yaw-rate and tilt columns written again about the window's final

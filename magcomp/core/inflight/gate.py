@@ -6,6 +6,7 @@ Pure (no state, no I/O)."""
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.core.inflight.base import (
     F64,
@@ -47,3 +48,25 @@ def innovation_gated(
     except np.linalg.LinAlgError:
         m2 = 0.0
     return m2 > GATE_CHI2_3DOF
+
+
+def innovation_gated_block(
+    r: F64,
+    rows: F64,
+    nuisance: F64,
+    h_ee: F64 | None,
+    cov: F64 | None,
+    sol: InflightSolution | None,
+    p: InflightParams,
+) -> NDArray[np.bool_]:
+    """:func:`innovation_gated` for N rows of one nuisance window (a-priori residuals ``r`` (N, 3), rows
+    (N, 3, n), nuisance columns (N, 3, k)): a mask (N,) of the implausible ones. The residuals are compared
+    with the noise alone first, in one product; only the few above it are judged one by one."""
+    out = np.zeros(r.shape[0], dtype=bool)
+    if cov is None or sol is None or not sol.heading_sigma_deg < p.heading_converged_deg:
+        return out
+    s2 = max(sol.residual_rms_mgauss**2, GATE_SIGMA_FLOOR_MGAUSS**2)
+    rn2 = np.einsum("ni,ni->n", r, r)
+    for i in np.flatnonzero(rn2 > GATE_CHI2_3DOF * s2).tolist():
+        out[i] = innovation_gated(r[i], float(rn2[i]), rows[i], nuisance[i], h_ee, cov, sol, p)
+    return out

@@ -9,7 +9,6 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from magcomp.core.inflight.base import F64, InflightMode
 from magcomp.core.linalg3 import Vec3Like
@@ -49,24 +48,6 @@ N_SOFT = SOFT_BASIS.shape[0]
 #: .reshape(3, N_SOFT)`` is the (3, N_SOFT) block ``-[S_k v]`` in one product
 _NEG_SOFT_ROWS = -SOFT_BASIS.transpose(1, 0, 2).reshape(3 * N_SOFT, 3)
 _NEG_SOFT_ROWS.flags.writeable = False
-#: per number of regressors: the window-field rows' template (zeros, the hard iron's identity block) and the
-#: flat positions of the ``x_r I`` blocks' diagonals (regressor-major)
-_WINDOW_ROWS_TEMPLATE: dict[int, tuple[F64, NDArray[np.intp]]] = {}
-
-
-def _window_rows_template(n_r: int) -> tuple[F64, NDArray[np.intp]]:
-    t = _WINDOW_ROWS_TEMPLATE.get(n_r)
-    if t is None:
-        k = N_SOFT
-        m = k + 3 + 3 * n_r
-        rows = np.zeros((3, m))
-        rows[:, k : k + 3] = _EYE3
-        pos = np.array([i * m + k + 3 + 3 * r + i for r in range(n_r) for i in range(3)], dtype=np.intp)
-        rows.flags.writeable = False
-        t = _WINDOW_ROWS_TEMPLATE[n_r] = (rows, pos)
-    return t
-
-
 #: the largest magnitude a row, target or nuisance entry may have (mgauss, or mgauss per unit regressor):
 #: a million gauss, far beyond any magnetometer's range, and far below where the normal equations'
 #: products of up to ~10^4 rows of 30 such entries would overflow a float64
@@ -146,28 +127,40 @@ def _yaw_error_ned(h_ned: Vec3Like) -> tuple[float, float, float]:
 def window_nuisance_cols(
     r_nb: F64, h_w: Vec3Like, tau: float, tilt: bool = True, vh: tuple[float, float, float] | None = None
 ) -> F64:
-    """A window-field row's nuisance columns (3, k) (:func:`window_field_rows`), all ``R_nb^T c`` for NED
-    vectors ``c``, so one product: the window's horizontal field (``R^T e_N``, ``R^T e_E``: the row's
-    ``field_cols``); the rotation source's yaw-rate error about the window's field ``h_w`` (yaw error = rate x
-    ``tau``, the time from the window's middle: ``R^T (-(e_3 x h)) tau``, the column of
-    :func:`reference_yaw_error_rows`); with ``tilt``, its tilt error about north and east (``R^T (e_N x h)``,
-    ``R^T (e_E x h)``: the vertical carries it); with ``vh`` (the tilt that the autopilot's yaw error makes,
-    ``v x h``: ``yawframe.YawErrorLine``) its column ``R^T (v x h)`` last, added times ``tau`` to the
-    yaw-rate column too (the window's yaw rate tilts it as well)."""
+    """One row's nuisance columns (3, k): :func:`window_nuisance_cols_block` for one sample."""
+    vh_b = None if vh is None else np.array([vh], dtype=np.float64)
+    return window_nuisance_cols_block(r_nb[None], h_w, np.array([tau]), tilt, vh_b)[0]
+
+
+def window_nuisance_cols_block(
+    r_nb: F64, h_w: Vec3Like, tau: F64, tilt: bool = True, vh: F64 | None = None
+) -> F64:
+    """The window-field rows' nuisance columns (N, 3, k) of N samples (attitudes ``r_nb`` (N, 3, 3), times
+    ``tau`` (N,) from the window's middle) of one window (:func:`window_field_rows`), all ``R_nb^T c`` for
+    NED vectors ``c``, so one product per sample: the window's horizontal field (``R^T e_N``, ``R^T e_E``:
+    the rows' ``field_cols``); the rotation source's yaw-rate error about the window's field ``h_w`` (yaw
+    error = rate x ``tau``: ``R^T (-(e_3 x h)) tau``, the column of :func:`reference_yaw_error_rows`); with
+    ``tilt``, its tilt error about north and east (``R^T (e_N x h)``, ``R^T (e_E x h)``: the vertical carries
+    it); with ``vh`` (N, 3) (the tilt that the autopilot's yaw error makes, ``v x h``:
+    ``yawframe.YawErrorLine``) its column ``R^T (v x h)`` last, added times ``tau`` to the yaw-rate column
+    too (the window's yaw rate tilts it as well)."""
     h1, h2, h3 = float(h_w[0]), float(h_w[1]), float(h_w[2])
-    e1, e2, e3 = _yaw_error_ned(h_w)
-    y1, y2, y3 = e1 * tau, e2 * tau, e3 * tau
-    if vh is not None:
-        y1, y2, y3 = y1 + vh[0] * tau, y2 + vh[1] * tau, y3 + vh[2] * tau
+    n_s = tau.shape[0]
+    k = 3 + (2 if tilt else 0) + (0 if vh is None else 1)
+    c = np.zeros((n_s, 3, k))
+    c[:, 0, 0] = 1.0
+    c[:, 1, 1] = 1.0
+    yaw_dir = np.array(_yaw_error_ned(h_w))
+    if vh is None:
+        c[:, :, 2] = tau[:, None] * yaw_dir
+    else:
+        c[:, :, 2] = tau[:, None] * (yaw_dir + vh)
+        c[:, :, k - 1] = vh
     # rows N, E, D; columns e_N, e_E, the yaw rate's, then e_N x h = (0, -h3, h2), e_E x h = (h3, 0, -h1)
     if tilt:
-        c = [[1.0, 0.0, y1, 0.0, h3], [0.0, 1.0, y2, -h3, 0.0], [0.0, 0.0, y3, h2, -h1]]
-    else:
-        c = [[1.0, 0.0, y1], [0.0, 1.0, y2], [0.0, 0.0, y3]]
-    if vh is not None:
-        for row, v in zip(c, vh, strict=True):
-            row.append(v)
-    return np.asarray(r_nb.T @ np.array(c), dtype=np.float64)
+        c[:, :, 3] = (0.0, -h3, h2)
+        c[:, :, 4] = (h3, 0.0, -h1)
+    return np.asarray(np.matmul(r_nb.transpose(0, 2, 1), c), dtype=np.float64)
 
 
 def relative_rows(
@@ -207,7 +200,8 @@ class WindowFieldRows(NamedTuple):
     """One sample's rows of the window-field form (:func:`window_field_rows`): ``rows`` (3, n) over the
     relative form's parameters, right-hand side ``z`` (3,), ``field_cols`` (3, 2) of the window's
     horizontal Earth field (a nuisance per window) and ``common`` (3,) the column of the vertical Earth
-    field (one unknown for the flight)."""
+    field (one unknown for the flight); N samples' (:func:`window_field_rows_block`) with a leading axis
+    N."""
 
     rows: F64
     z: F64
@@ -218,8 +212,20 @@ class WindowFieldRows(NamedTuple):
 def window_field_rows(
     r_nb: F64, y_mgauss: F64, x: F64, v: F64, like: WindowFieldRows | None = None
 ) -> WindowFieldRows:
+    """One sample's rows of the window-field form: :func:`window_field_rows_block` for one sample."""
+    like_b = None if like is None else WindowFieldRows(like.rows[None], like.z[None], like.field_cols[None],
+                                                       like.common[None])  # fmt: skip
+    w = window_field_rows_block(np.asarray(r_nb, dtype=np.float64)[None], np.asarray(y_mgauss)[None],
+                                np.asarray(x)[None], np.asarray(v)[None], like_b)  # fmt: skip
+    return WindowFieldRows(w.rows[0], w.z[0], w.field_cols[0], w.common[0])
+
+
+def window_field_rows_block(
+    r_nb: F64, y_mgauss: F64, x: F64, v: F64, like: WindowFieldRows | None = None
+) -> WindowFieldRows:
     """Rows of the relative form's unknowns written against the Earth field of a short window instead of
-    an earlier sample (eqs. (2), (11), (13))::
+    an earlier sample (eqs. (2), (11), (13)), for N samples (attitudes ``r_nb`` (N, 3, 3), fields
+    ``y_mgauss`` (N, 3), regressors ``x`` (N, n_r))::
 
         y = d + sum_r theta_r x_r + (I - E) R_nb^T n_w,   n_w = (a_w, b_w, h_D)
 
@@ -228,31 +234,31 @@ def window_field_rows(
     over the window (the autopilot's compass-driven yaw) costs nothing; the vertical ``h_D`` is one
     unknown common to the flight, since a yaw error leaves it alone (the DPI invariance of eq. (3)). The
     soft-iron term is linearised at the current estimate, ``E R^T n ~ E v`` with ``v = y - d - Theta x``
-    (as :func:`relative_rows`). Unlike the 0.3 s pairs, every throttle change within a window and every
-    one along the vertical, however slow, informs theta.
+    (N, 3) (as :func:`relative_rows`). Unlike the 0.3 s pairs, every throttle change within a window and
+    every one along the vertical, however slow, informs theta.
 
-    ``like``: this sample's rows at another linearisation point (another estimator's ``v``): only the
-    soft-iron columns differ, the rest is copied from it."""
+    Returns rows (N, 3, n), z (N, 3), field_cols (N, 3, 2), common (N, 3). ``like``: these samples' rows at
+    another linearisation point (another estimator's ``v``): only the soft-iron columns differ, the rest is
+    copied from it."""
     k = N_SOFT
+    n_s = v.shape[0]
+    soft = (v @ _NEG_SOFT_ROWS.T).reshape(n_s, 3, k)
     if like is not None:
         rows = like.rows.copy()
-        rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
+        rows[:, :, 0:k] = soft
         return WindowFieldRows(rows, like.z, like.field_cols, like.common)
-    n_r = x.shape[0]
-    template, pos = _window_rows_template(n_r)
-    rows = template.copy()
-    rows[:, 0:k] = (_NEG_SOFT_ROWS @ v).reshape(3, k)
-    # the x_r I blocks' diagonals (one regressor: its three entries set one by one, no index array)
-    if n_r == 1:
-        x0 = float(x[0])
-        rows[0, k + 3] = x0
-        rows[1, k + 4] = x0
-        rows[2, k + 5] = x0
-    else:
-        rows.ravel()[pos] = np.repeat(x, 3)
+    n_r = x.shape[1]
+    rows = np.zeros((n_s, 3, k + 3 + 3 * n_r))
+    rows[:, :, 0:k] = soft
+    rows[:, :, k : k + 3] = _EYE3
+    # the x_r I blocks' diagonals
+    i3 = np.arange(3)
+    for j in range(n_r):
+        rows[:, i3, k + 3 + 3 * j + i3] = x[:, j : j + 1]
     r = np.asarray(r_nb, dtype=np.float64)
+    y = np.asarray(y_mgauss, dtype=np.float64)
     # views of R_nb (read only here and by the estimator, never written)
-    return WindowFieldRows(rows, np.asarray(y_mgauss, dtype=np.float64), r[0:2].T, r[2])
+    return WindowFieldRows(rows, y, r[:, 0:2].transpose(0, 2, 1), r[:, 2])
 
 
 def norm_row(p: F64, k: int, y_mgauss: F64, x: F64) -> tuple[F64, float, float] | None:

@@ -120,6 +120,15 @@ class SampleStats:
         self._x0_sum += x0
         self._x0_sq += x0 * x0
 
+    def add_block(self, x0: F64) -> None:
+        """N used samples whose collective regressors are ``x0`` (N,)."""
+        if x0.shape[0] == 0:
+            return
+        self.n += x0.shape[0]
+        self.x0_max = max(self.x0_max, float(x0.max()))
+        self._x0_sum += float(x0.sum())
+        self._x0_sq += float(x0 @ x0)
+
     @property
     def mean_x0(self) -> float:
         """The mean delta^2 (0 before any sample)."""

@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from magcomp.core.inflight.base import F64, NUISANCE_PRIOR_RAD_S, lapack
-from magcomp.core.inflight.rows import augmented
 
 #: the open window's contribution with its nuisance eliminated (:meth:`OpenWindow.schur`): (info, rhs, z'z)
 #: of the parameters and (parameters x common, common x common, common rhs) of the common unknown
@@ -119,19 +118,25 @@ class OpenWindow:
         zz, cc, bc = float(sc[n + 1, n + 1]), float(sc[n, n]), float(sc[n, n + 1])
         return sc[:n, :n], sc[:n, n + 1], zz, sc[:n, n], cc, bc
 
-    def add(self, rows: F64, z: F64, nuisance: F64, common: F64 | None, aug: F64 | None) -> None:
-        """One sample's rows into the open window (``aug``: its augmented columns when already built)."""
-        n, k = rows.shape[1], nuisance.shape[1]
+    def add_block(self, aug: F64, n: int) -> None:
+        """N samples' augmented columns ``aug`` (N, 3, n + 2 + k: ``rows.augmented`` stacked) into the open
+        window (``n`` parameters)."""
+        k = aug.shape[2] - n - 2
         if self.ee.shape[0] != k:  # a new nuisance size: the nuisance's sums start again
             g, sa = self.gram, self.sums
             self.n_params = n
             self.blocks(n, k)
             self.gram[: n + 2, : n + 2] = g[: n + 2, : n + 2]
             self.sums[:, : n + 2] = sa[:, : n + 2]
-        a = augmented(rows, z, nuisance, common) if aug is None else aug
-        self.gram += a.T @ a
-        self.sums += a
-        self.n_rows += 1
+        if aug.shape[0] == 1:
+            a = aug[0]
+            self.gram += a.T @ a
+            self.sums += a
+        else:
+            a = aug.reshape(-1, aug.shape[2])
+            self.gram += a.T @ a
+            self.sums += aug.sum(axis=0)
+        self.n_rows += aug.shape[0]
 
     def residual_sums(self, x: F64 | None) -> tuple[F64, F64, F64, int] | None:
         """The window's residual sum as ``c - M p - g c0`` (the nuisance at its least-squares value e = H^-1

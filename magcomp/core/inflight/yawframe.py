@@ -10,7 +10,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from magcomp.core.inflight.base import F64
-from magcomp.core.linalg3 import Vec3Like, cross, vec3
+from magcomp.core.linalg3 import Vec3Like, vec3
 from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 #: with the gyro's yaw, a window's Earth field and yaw rate (the gyro's bias about the vertical) are taken
@@ -108,23 +108,34 @@ class YawErrorLine:
     def tilt(
         self,
         est: WindowFields,
-        t_s: float,
+        t_s: F64,
         key: tuple[int, int],
         h_w: Vec3Like,
-        ap_yaw_dev: float,
-        accel_h: tuple[float, float],
-    ) -> tuple[float, tuple[float, float, float]]:
-        """``psi`` and ``v x h`` (NED, ``v = -a / g``) at ``t_s`` in window ``key`` of field ``h_w``: the
-        tilt's column per radian of yaw error is R^T (v x h) (``window_nuisance_cols``), the right-hand side
-        has ``psi`` times it removed. ``est``: the estimator the rows go to (its windows' fields);
-        ``ap_yaw_dev``, ``accel_h``: :class:`GyroYawFrame`'s at this sample."""
+        ap_yaw_dev: F64,
+        accel_h: F64,
+    ) -> tuple[F64, F64]:
+        """``psi`` (N,) and ``v x h`` (N, 3; NED, ``v = -a / g``) at times ``t_s`` (N,) in window ``key`` of
+        field ``h_w``: the tilt's column per radian of yaw error is R^T (v x h) (``window_nuisance_cols``),
+        the right-hand side has ``psi`` times it removed. ``est``: the estimator the rows go to (its windows'
+        fields); ``ap_yaw_dev`` (N,), ``accel_h`` (N, 2): :class:`GyroYawFrame`'s at these samples."""
         if key != self._key:
             if self._key is not None:
                 self._close(est, self._key)
             self._key = key
-        psi = _wrap(ap_yaw_dev + self._at(est, t_s, h_w))
-        v1, v2 = -accel_h[0] / STANDARD_GRAVITY_M_S2, -accel_h[1] / STANDARD_GRAVITY_M_S2
-        return psi, cross((v1, v2, 0.0), vec3(h_w))
+        if self._fit[0] < 3 or self._key[0] != self._fit_epoch:
+            at: F64 | float = self.frame_of(est, h_w)
+        else:
+            a, b = self._line()
+            at = a + b * t_s
+        psi = np.remainder(ap_yaw_dev + at + math.pi, 2.0 * math.pi) - math.pi
+        v = accel_h * (-1.0 / STANDARD_GRAVITY_M_S2)
+        h1, h2, h3 = vec3(h_w)
+        # (v1, v2, 0) x h
+        vh = np.empty((t_s.shape[0], 3))
+        vh[:, 0] = v[:, 1] * h3
+        vh[:, 1] = -v[:, 0] * h3
+        vh[:, 2] = v[:, 0] * h2 - v[:, 1] * h1
+        return psi, vh
 
     @staticmethod
     def frame_of(est: WindowFields, h: Vec3Like) -> float:
@@ -146,15 +157,15 @@ class YawErrorLine:
             f = self._value(t) + (f - self._value(t) + math.pi) % (2.0 * math.pi) - math.pi
         self._fit += np.array([1.0, t, t * t, f, t * f])
 
-    def _value(self, t: float) -> float:
-        n, st, stt, sf, stf = self._fit
+    def _line(self) -> tuple[float, float]:
+        """The line fit's value at t = 0 and its slope (a constant with fewer than three windows)."""
+        n, st, stt, sf, stf = self._fit.tolist()
         den = n * stt - st * st
         if n < 3 or abs(den) < 1e-9:
-            return float(sf / n)
+            return sf / n, 0.0
         b = (n * stf - st * sf) / den
-        return float((sf - b * st) / n + b * t)
+        return (sf - b * st) / n, b
 
-    def _at(self, est: WindowFields, t_s: float, h_w: Vec3Like) -> float:
-        if self._fit[0] < 3 or self._key is None or self._key[0] != self._fit_epoch:
-            return self.frame_of(est, h_w)
-        return self._value(t_s)
+    def _value(self, t: float) -> float:
+        a, b = self._line()
+        return a + b * t
