@@ -70,6 +70,13 @@ class _Search:
     folds: Folds | None = None
     candidates: dict[str, list[str]] = field(default_factory=dict)
     candidate_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: per effect, its single fit and that fit's profile interval (the report asks for it again)
+    intervals: dict[str, tuple[ModelFit, tuple[float, float] | None]] = field(default_factory=dict)
+
+    def interval(self, name: str, fit: ModelFit) -> tuple[float, float] | None:
+        """The profile interval of ``name`` already computed for this very ``fit``, or None."""
+        known = self.intervals.get(name)
+        return known[1] if known is not None and known[0] is fit else None
 
     def base_cv(self, data: CompassData, base: ModelFit, p: SelectionParams) -> Callable[[], CVScore]:
         """The baseline's held-out score, computed at the first call (a comparison that fails the BIC test
@@ -135,16 +142,19 @@ def _cheap_rejection(
     return None
 
 
-def interval_at_edge(name: str, data: CompassData, f: ModelFit) -> str | None:
+def interval_at_edge(
+    name: str, data: CompassData, f: ModelFit, ci: tuple[float, float] | None = None
+) -> str | None:
     """Why a significant nonlinear extension is not identified, or None: its 95 % profile interval reaches the
     end of its physical range (a lower end of 0 is the effect switched off, judged by the BIC instead).
 
     The rule of :func:`_cheap_rejection` for the point estimate, applied to what the data cannot exclude: a
     parameter that may as well sit at its physical ceiling (a 9 s "lag" on a 1-2 min hover, interval to the
     10 s ceiling) is a slow drift of the log, not the cause. Measured: the one false alarm on fresh clean
-    seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0]."""
+    seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0].
+    ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`)."""
     param = EFFECTS[name].param
-    ci = profile_interval(data, f, name)
+    ci = ci if ci is not None else profile_interval(data, f, name)
     if param is None or ci is None:
         return None
     lo_b, hi_b = EFFECTS[name].bounds
@@ -178,7 +188,9 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
             return
         s.temp_vs_time[name] = vs_time
     if c.significant and EFFECTS[name].param is not None:
-        why_edge = interval_at_edge(name, data, f)
+        ci = profile_interval(data, f, name)
+        s.intervals[name] = (f, ci)
+        why_edge = interval_at_edge(name, data, f, ci)
         if why_edge is not None:
             s.rejected[name] = {"delta_bic": r4(dbic), "cv_gain_pct": r4(100 * c.cv_gain), "why": why_edge}
             return
@@ -227,7 +239,9 @@ def group_rivals(data: CompassData, s: _Search) -> None:
         best = same[0]
         s.candidates[best] = same
         s.candidate_params[best] = {
-            k: params_json(members[k].fit, k, data) | {"delta_bic_vs_best": r4(gap[k])} for k in same
+            k: params_json(members[k].fit, k, data, s.interval(k, members[k].fit))
+            | {"delta_bic_vs_best": r4(gap[k])}
+            for k in same
         }
         for k in same[1:]:
             s.singles.remove(members[k])
@@ -300,7 +314,7 @@ def keep_repeatable(
                 "size_mgauss": [round(float(v), 2) for v in np.sqrt(np.mean(explained**2, axis=0))],
                 "rms_reduction_pct": round(100.0 * (1.0 - current.rms_mgauss / reduced.rms_mgauss), 2),
                 "effect": name,
-                "params": params_json(current, name, data),
+                "params": params_json(current, name, data, s.interval(name, current)),
                 "halves_chi2": r4(rep.statistic),
                 "note": f"{name} fits the whole log but not each half ({halves}): a structure of one stretch "
                 "of the log, not a constant cause; not named as a finding",
@@ -342,7 +356,7 @@ def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
         Finding(
             name,
             EFFECTS[name].cause,
-            params_json(comb.fit, name, data),
+            params_json(comb.fit, name, data, s.interval(name, comb.fit)),
             evidence_json(c, data)
             | ({"delta_bic_vs_time_shapes": s.temp_vs_time[name]} if name in s.temp_vs_time else {}),
             c.fit.rms_mgauss,
