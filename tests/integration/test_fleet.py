@@ -41,7 +41,9 @@ FLIGHTS = [
 ]
 VEHICLES_TOML = '[vehicles]\nalpha = ["*/vehA/*"]\nbravo = ["*/vehB/*"]\n'
 #: columns that differ between two analyses of the same log (when, where, how long)
-RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "peak_rss_mb", "path"}
+RUN_COLUMNS = {
+    "analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "replay_cpu_s", "peak_rss_mb", "path",
+}  # fmt: skip
 
 
 def _foreign_threads() -> list[str]:
@@ -159,6 +161,10 @@ def test_rows_carry_diagnose_and_vehicles_its_parameter_files(
     rows = _rows(analysed)
     ok = [r for r in rows if r["status"] == "ok"]
     assert all(r["diagnose_status"] == "ok" for r in ok)
+    # the log's CPU split: its diagnosis and its replay are each a part of it
+    for r in ok:
+        assert 0.0 < r["diagnose_cpu_s"] and 0.0 < r["replay_cpu_s"]
+        assert r["diagnose_cpu_s"] + r["replay_cpu_s"] <= r["cpu_s"] + 1e-6
     # the fleet's row equals the CLI's diagnosis of the same log
     r = next(r for r in ok if r["vehicle"] == "bravo" and r["file_name"] == "flight04.tlog")
     j, par = tmp_path / "d.json", tmp_path / "d.param"
