@@ -74,8 +74,14 @@ def with_gyro_bias_heading(data: CompassData) -> CompassData:
     cols, _ = drive_columns(data.drive, ExtensionParams())
     v = data.field_mgauss
 
+    turned: list[tuple[tuple[float, ...], CompassData]] = []  # the last bias and its data
+
     def rotated(b: F64) -> CompassData:
-        return replace(data, r_nb=turn_heading(data.r_nb, integ @ b))
+        # a finite-difference step in inc, dec or drift keeps the bias: the same turned rotations
+        key = tuple(b.tolist())
+        if not turned or turned[0][0] != key:
+            turned[:] = [(key, replace(data, r_nb=turn_heading(data.r_nb, integ @ b)))]
+        return turned[0][1]
 
     def residual(z: F64) -> F64:
         d2 = rotated(z[3:])
