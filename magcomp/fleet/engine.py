@@ -37,6 +37,9 @@ ALLOWED_FAILURES = 1
 #: unsets Dask's default; a value the environment sets still passes through). A remote cluster's workers
 #: are set up by whoever started them.
 LOCAL_WORKER_CONFIG: dict[str, Any] = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
+#: that variable as this process had it before any cluster (a nanny writes Dask's value into its parent's
+#: environment and leaves it there, where the next cluster's workers would inherit it)
+_MALLOC_TRIM_OWN = os.environ.get("MALLOC_TRIM_THRESHOLD_")
 
 
 @dataclass
@@ -291,6 +294,8 @@ def local_cluster(workers: int, memory_limit: str) -> Any:
     import dask
     from distributed import LocalCluster
 
+    if _MALLOC_TRIM_OWN is None:  # not the user's: an earlier cluster's nanny left Dask's value here
+        os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
     with dask.config.set(LOCAL_WORKER_CONFIG):  # read by each nanny as the cluster starts it
         return LocalCluster(
             n_workers=workers,

@@ -330,12 +330,16 @@ def test_local_dask_cluster_gives_the_same_rows(fleet: Path, analysed: Path, tmp
 def test_local_workers_start_without_dasks_malloc_trim_threshold() -> None:
     """Dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_, which makes every large array a fresh
     mmap (diagnose ~40 % more CPU per log, magcomp/fleet/engine.py): the fleet's local workers start with the
-    C library's default, as the CLI runs. In a process of its own (Dask's threads outlive the client)."""
+    C library's default, as the CLI runs, also after another cluster in the same process (whose nanny leaves
+    Dask's value in the process's environment). In a process of its own (Dask's threads outlive the
+    client)."""
     code = (
         "import os\n"
-        "from distributed import Client\n"
+        "from distributed import Client, LocalCluster\n"
         "from magcomp.fleet.engine import local_cluster\n"
         "if __name__ == '__main__':\n"
+        "    LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None).close()\n"
+        "    assert os.environ['MALLOC_TRIM_THRESHOLD_'] == '65536'\n"
         "    cluster = local_cluster(1, '1GiB')\n"
         "    with Client(cluster) as client:\n"
         "        got = client.run(lambda: os.environ.get('MALLOC_TRIM_THRESHOLD_', 'unset'))\n"
