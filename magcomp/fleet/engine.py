@@ -31,11 +31,11 @@ ALLOWED_FAILURES = 1
 #: Dask settings of a local cluster's workers. Dask's nanny starts each worker with
 #: MALLOC_TRIM_THRESHOLD_=65536 (so that freed memory goes back to the OS); setting it also switches off
 #: glibc's adaptive mmap threshold, so every array over 128 KiB is a fresh mmap whose pages are faulted in
-#: again, and diagnose's fits allocate many such temporaries. Measured (benchmarks/fleet.py logs, 1 worker,
-#: alternated): diagnose 2.8 -> 2.0 s of CPU per 10-min log and the whole log 11.1-11.9 -> 10.3-10.6 s
-#: without it, peak RSS 226-241 -> 230-244 MB. So the workers keep glibc's default, as the CLI has (None
-#: unsets Dask's default; a value the environment sets still passes through). A remote cluster's workers
-#: are set up by whoever started them.
+#: again, and diagnose's fits allocate many such temporaries. Measured (six 10-min logs of
+#: benchmarks/fleet.py, 1 worker): diagnose 3.45 -> 2.08 s of CPU per log and the whole log 11.3 -> 9.5 s
+#: without it, the worker's peak RSS after the sixth log 250 -> 244 MB. So the workers keep glibc's
+#: default, as the CLI has (None unsets Dask's default; a value the environment sets still passes through).
+#: A remote cluster's workers are set up by whoever started them.
 LOCAL_WORKER_CONFIG: dict[str, Any] = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 #: that variable as this process had it before any cluster (a nanny writes Dask's value into its parent's
 #: environment and leaves it there, where the next cluster's workers would inherit it)
