@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState, StateStore
+from magcomp.core.identity import SIM_UID
 from magcomp.service.demo import heading_errors
 from magcomp.service.replay import replay_log
 
@@ -57,8 +58,10 @@ def main() -> int:
             for c in result.compasses:
                 k = np.asarray(c.k_matrix, dtype=float)
                 l_true = np.linalg.inv(k)
+                # keyed by the simulated board's unique id, as the replay keys the state it applies
                 store.save(CompassState(1, int(c.index), l_true, l_true @ np.asarray(c.b_mgauss, dtype=float),
-                                        np.asarray(c.theta_mgauss, dtype=float), 0.0))  # fmt: skip
+                                        np.asarray(c.theta_mgauss, dtype=float), 0.0,
+                                        vehicle_uid=SIM_UID))  # fmt: skip
             orc = replay_log(path, oracle_cfg, store=store, keep_estimates=True)
         ours = {s.name: s for s in heading_errors(result, rep.estimates)}
         ora = {s.name: s for s in heading_errors(result, orc.estimates)}
