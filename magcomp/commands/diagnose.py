@@ -189,7 +189,10 @@ def earth_reference(path: str, log: Any, location: str | None = None, year_arg: 
 def log_events(path: str) -> list[tuple[float, str]]:
     """Timestamped events of a log (messages, mode changes, arming, parameter sets), for the step report."""
     suffix = Path(path).suffix.lower()
-    if suffix not in (".bin", ".log", ".tlog"):
+    if suffix not in (".bin", ".log"):
+        # a tlog's only event message, STATUSTEXT, carries no boot time, and without one message that does
+        # there is no clock offset to place it by (below): reading the file (a second pass through pymavlink,
+        # ~0.1-0.4 s for a 10 min flight) could only end in no event
         return []
     rows: list[tuple[float | None, float, str]] = []  # (boot time or None, reader timestamp, text)
     with _raw_log(path) as m:

@@ -128,17 +128,22 @@ def _tilt_pass(
     # of the whole log they took ~300 bytes a row, 0.2 GB for 4 h at 50 Hz (issue 12)
     for a in range(0, n, _ROW_BLOCK):
         lo = max(a - 1, 0)
-        g = gyro_b_rad_s[lo : a + _ROW_BLOCK].tolist()
-        r = ref[lo : a + _ROW_BLOCK].tolist()
+        # flat lists (x, y, z, x, y, z, ...): a list of floats, not one list object per row
+        g = gyro_b_rad_s[lo : a + _ROW_BLOCK].ravel().tolist()
+        r = ref[lo : a + _ROW_BLOCK].ravel().tolist()
         dt_block = dts[a : a + _ROW_BLOCK].tolist()
         q_block: list[tuple[float, float, float, float]] = []  # the block's rows of ``out``, set at once
-        for i, dt in enumerate(dt_block):
-            k = a + i
-            j = k - lo  # row k in g and r
+        append = q_block.append
+        # the rows before the first of the block (row k - 1; row 0 for the log's first sample)
+        j0 = 3 * (a - lo - 1) if a > 0 else 0
+        gpx, gpy, gpz = g[j0], g[j0 + 1], g[j0 + 2]
+        rx, ry, rz = r[j0], r[j0 + 1], r[j0 + 2]
+        j = 3 * (a - lo)  # row k in g and r
+        for dt in dt_block:
             if not 0.0 < dt < 10.0 * med:
-                dt = 0.0 if k == 0 else med
+                dt = 0.0 if j == 0 else med
             dx, dy, dz = down_b_from_quat((w, x, y, z))  # estimated down in body axes
-            rx, ry, rz = r[j - 1] if k > 0 else r[0]  # the state still stands for t_{k-1}
+            # (rx, ry, rz): the reference at t_{k-1}, which the state still stands for
             # tilt error e = d_est x d_ref (rotation that takes the estimate to the reference)
             ex = dy * rz - dz * ry
             ey = dz * rx - dx * rz
@@ -147,14 +152,13 @@ def _tilt_pass(
             by += ki * ey * dt
             bz += ki * ez * dt
             # trapezoid: the mean rate over (t_{k-1}, t_k], whichever end of the interval a sample stands for
-            gk = g[j]
-            gp = g[j - 1] if k > 0 else gk
-            gx = 0.5 * (gk[0] + gp[0])
-            gy = 0.5 * (gk[1] + gp[1])
-            gz = 0.5 * (gk[2] + gp[2])
-            ox = gx - bx - kp * ex
-            oy = gy - by - kp * ey
-            oz = gz - bz - kp * ez
+            gkx, gky, gkz = g[j], g[j + 1], g[j + 2]
+            ox = 0.5 * (gkx + gpx) - bx - kp * ex
+            oy = 0.5 * (gky + gpy) - by - kp * ey
+            oz = 0.5 * (gkz + gpz) - bz - kp * ez
+            gpx, gpy, gpz = gkx, gky, gkz
+            rx, ry, rz = r[j], r[j + 1], r[j + 2]
+            j += 3
             # q <- q * exp(omega dt / 2), eq. (18) in closed form
             ang = math.sqrt(ox * ox + oy * oy + oz * oz) * dt
             if ang > 1e-12:
@@ -169,7 +173,7 @@ def _tilt_pass(
                 )
                 nq = math.sqrt(w * w + x * x + y * y + z * z)
                 w, x, y, z = w / nq, x / nq, y / nq, z / nq
-            q_block.append((w, x, y, z))
+            append((w, x, y, z))
         out[a : a + len(q_block)] = q_block
     return bx, by, bz
 
@@ -211,6 +215,50 @@ def attitude_track(
     att_rad: F64,
 ) -> AttitudeTrack:
     """Choose and build the rotation for the forward model at times ``t_s`` (see module docstring)."""
+    return attitude_source(imu_t_s, gyro_b_rad_s, accel_b_m_s2, att_t_s, att_rad).at(t_s)
+
+
+@dataclass(frozen=True)
+class AttitudeSource:
+    """The rotation of a log before it is taken at a compass's sample times: which source, and for the gyro
+    the filtered integral at the IMU times. Built once per log (:func:`attitude_source`): the choice and the
+    integral depend on the log's IMU and attitude only, not on the compass or its latency, and the integral
+    is most of the cost of :func:`attitude_track` (a Python loop over every IMU sample, twice)."""
+
+    source: str
+    note: str
+    #: stationary / none: the one rotation (3, 3)
+    r0_nb: F64 | None = None
+    #: gyro: the IMU times (n,) and the quaternions q_nb there (n, 4)
+    imu_t_s: F64 | None = None
+    q_nb: F64 | None = None
+    #: autopilot: its attitude's times (m,) and roll, pitch, yaw (m, 3)
+    att_t_s: F64 | None = None
+    att_rad: F64 | None = None
+
+    def at(self, t_s: F64) -> AttitudeTrack:
+        """The rotation at the times ``t_s`` (n,) as an :class:`AttitudeTrack`."""
+        if self.q_nb is not None and self.imu_t_s is not None:
+            r = dcms_from_quats(quats_at(t_s, self.imu_t_s, self.q_nb))
+        elif self.att_t_s is not None and self.att_rad is not None:
+            att_t, att_rad = self.att_t_s, self.att_rad
+            att = np.column_stack([np.interp(t_s, att_t, np.unwrap(att_rad[:, j])) for j in range(3)])
+            r = dcms_from_euler(att)
+        else:
+            assert self.r0_nb is not None
+            r = np.repeat(self.r0_nb[None], t_s.shape[0], axis=0)
+        return AttitudeTrack(r, self.source, self.note)
+
+
+def attitude_source(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    accel_b_m_s2: F64,
+    att_t_s: F64,
+    att_rad: F64,
+) -> AttitudeSource:
+    """Choose the rotation for the forward model and integrate the gyro when it is the source (see module
+    docstring); :meth:`AttitudeSource.at` takes it at a compass's times."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -232,14 +280,13 @@ def attitude_track(
                 pitch0 = -math.asin(float(np.clip(d[0] / np.linalg.norm(d), -1.0, 1.0)))
             else:
                 roll0 = pitch0 = 0.0
-            r0 = dcm_from_euler(roll0, pitch0, 0.0)
-            return AttitudeTrack(
-                np.repeat(r0[None], t_s.shape[0], axis=0),
+            return AttitudeSource(
                 "stationary",
                 "the vehicle does not rotate (gyro within "
                 f"{STATIONARY_RATE_RAD_S} rad/s of its median): the Earth field is constant in body axes, as "
                 "in the paper's offline fit (eqs. (14a), (15)); the calibration is neither "
                 "needed nor observable",
+                r0_nb=dcm_from_euler(roll0, pitch0, 0.0),
             )
     if has_gyro:
         if has_att:
@@ -262,25 +309,27 @@ def attitude_track(
             src = "gyro+tilt(accelerometer)"
             tilt = "the accelerometer's gravity direction"
         q = propagate_attitude(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
-        r = dcms_from_quats(quats_at(t_s, imu_t_s, q))
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
             "because the autopilot's yaw is fused from the disturbed compass"
         )
-        return AttitudeTrack(r, src, note)
+        return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q)
     if has_att:
-        att = np.column_stack([np.interp(t_s, att_t_s, np.unwrap(att_rad[:, j])) for j in range(3)])
-        return AttitudeTrack(
-            dcms_from_euler(att),
+        return AttitudeSource(
             "autopilot",
             (slow_gyro or "no gyro in the log: ")
             + "rotation from the autopilot's attitude (estimated on board at the full IMU rate), whose "
             "yaw is fused from a compass: if that is this compass, the heading-axis part of its bias is "
             "partly hidden from this residual",
+            att_t_s=att_t_s,
+            att_rad=att_rad,
         )
-    r = np.repeat(dcm_from_quat(np.array([1.0, 0.0, 0.0, 0.0]))[None], t_s.shape[0], axis=0)
-    return AttitudeTrack(r, "none", "no gyro and no attitude: the vehicle is assumed not to rotate")
+    return AttitudeSource(
+        "none",
+        "no gyro and no attitude: the vehicle is assumed not to rotate",
+        r0_nb=dcm_from_quat(np.array([1.0, 0.0, 0.0, 0.0])),
+    )
 
 
 def with_yaw_reference(r_nb: F64, yaw_ref_rad: F64) -> F64:

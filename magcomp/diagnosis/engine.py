@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from functools import partial
+from functools import cache, partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +47,7 @@ from magcomp.diagnosis.inputs import (
     finite_series,
     impact_left_out,
     inlier_mask,
+    log_attitude,
     signals_at,
     spans,
     subset,
@@ -194,6 +195,7 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
     comps: list[CompassDiagnosis] = []
     left_out: dict[str, list[int]] = {}  # the stretches left out (as printed) -> the compasses
     first = len(notes)
+    attitude = cache(partial(log_attitude, log))  # one rotation for every compass (and latency) of the log
     for idx in sorted(log.mag):
         if idx in log.mag and len(log.mag[idx]) > 0:
             mag = finite_series(log.mag[idx])  # what compass_data decides on, at its decimation
@@ -208,13 +210,13 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
                         "samples without it)"
                     )
         try:
-            data = compass_data(log, idx)
+            data = compass_data(log, idx, attitude=attitude)
         except InputError as exc:
             notes.append(f"compass {idx} skipped: {exc}")
             continue
         held = held_fraction(finite_series(log.mag[idx]).values)
         if held >= MIN_HELD_FRACTION:
-            latency, data = compass_latency_s(data, partial(compass_data, log, idx))
+            latency, data = compass_latency_s(data, partial(compass_data, log, idx, attitude=attitude))
             notes.append(
                 f"compass {idx}: held in a faster message ({100 * held:.0f} % of its samples repeat the one "
                 f"before): attitude re-timed by {-1000 * latency:+.1f} ms, the compass's fitted latency"

@@ -246,12 +246,15 @@ def diagnosis_json(d: Diagnosis) -> dict[str, Any]:
     }
 
 
-def params_json(fit: ModelFit, effect: str, data: CompassData) -> dict[str, Any]:
-    """The fitted parameter of ``effect`` with its 95 % interval (per-motor vectors when identifiable)."""
+def params_json(
+    fit: ModelFit, effect: str, data: CompassData, ci: tuple[float, float] | None = None
+) -> dict[str, Any]:
+    """The fitted parameter of ``effect`` with its 95 % interval (per-motor vectors when identifiable);
+    ``ci``: that interval when the caller has it already (:func:`profile_interval` of this fit)."""
     e = EFFECTS[effect]
     if e.param is not None:
         out: dict[str, Any] = {e.param: r4(float(getattr(fit.ext, e.param)))}
-        ci = profile_interval(data, fit, effect)
+        ci = ci if ci is not None else profile_interval(data, fit, effect)
         if ci is not None:
             out[f"{e.param}_ci95"] = [r4(ci[0]), r4(ci[1])]
         if effect == "voltage_sag":

@@ -7,13 +7,14 @@ impacts and outliers left out; every signal the residual may follow (:func:`sign
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
-from magcomp.diagnosis.attitude import attitude_track
+from magcomp.diagnosis.attitude import AttitudeSource, attitude_source
 from magcomp.diagnosis.effects import DriveInputs
 from magcomp.diagnosis.latency import MIN_HELD_FRACTION, held_fraction
 from magcomp.diagnosis.model import CompassData
@@ -112,7 +113,26 @@ def impact_left_out(log: LogData, t_s: F64, step: int = 1) -> NDArray[np.bool_]:
     return crash
 
 
-def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassData:
+def log_attitude(log: LogData) -> AttitudeSource:
+    """The compass-free rotation of ``log`` (:func:`~magcomp.diagnosis.attitude.attitude_source`), once for
+    all its compasses."""
+    att = finite_series(log.attitude_rad)
+    imu_ok = log.imu_t_s.shape[0] >= 10
+    return attitude_source(
+        log.imu_t_s if imu_ok else np.zeros(0),
+        log.gyro_rad_s if imu_ok else np.zeros((0, 3)),
+        log.accel_m_s2 if imu_ok else np.zeros((0, 3)),
+        att.t_s,
+        att.values if len(att) else np.zeros((0, 3)),
+    )
+
+
+def compass_data(
+    log: LogData,
+    index: int,
+    latency_s: float = 0.0,
+    attitude: Callable[[], AttitudeSource] | None = None,
+) -> CompassData:
     """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES).
 
     latency_s: how much older each compass sample is than its logged time, against the attitude
@@ -124,7 +144,10 @@ def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassDat
     a 42 ms current_lag that way, :mod:`magcomp.diagnosis.latency`); the hold is the compass's own and
     known from the data. Measured (``benchmarks/diagnosis_heldout.py`` current_lag case, 20 Hz compass held
     in a 40 Hz RAW_IMU, seeds 5000-5007): the fitted 0.3 s lag 0.352 s on average before, 0.326 s after
-    (every seed about 26 ms lower; the mean age of the hold is 22 ms)."""
+    (every seed about 26 ms lower; the mean age of the hold is 22 ms).
+
+    attitude: gives the log's rotation (:func:`log_attitude`), for a caller that builds it once for every
+    compass and latency of the log (``functools.cache``); by default it is built from ``log`` here."""
     if index not in log.mag:
         raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
     mag = finite_series(log.mag[index])
@@ -135,16 +158,7 @@ def compass_data(log: LogData, index: int, latency_s: float = 0.0) -> CompassDat
     v = mag.values[::step].astype(float)
     keep = ~impact_left_out(log, t)
     t, v = t[keep], v[keep]
-    att = finite_series(log.attitude_rad)
-    imu_ok = log.imu_t_s.shape[0] >= 10
-    track = attitude_track(
-        t - latency_s,
-        log.imu_t_s if imu_ok else np.zeros(0),
-        log.gyro_rad_s if imu_ok else np.zeros((0, 3)),
-        log.accel_m_s2 if imu_ok else np.zeros((0, 3)),
-        att.t_s,
-        att.values if len(att) else np.zeros((0, 3)),
-    )
+    track = (attitude() if attitude is not None else log_attitude(log)).at(t - latency_s)
     # a held compass (updated slower than its messages) measured each sample when its value first appeared:
     # the powertrain that biased it is taken then, not at the logged time (measured_times_s)
     t_drive = t

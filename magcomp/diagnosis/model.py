@@ -179,23 +179,30 @@ def design(
 class _DesignParts:
     """:func:`design`'s matrix with its two parts kept from the last call: a finite-difference step of the
     fit moves either the field direction (inc, dec, drift) or one extension, so the other part is the
-    same array as before (the same numbers, not computed again)."""
+    same array as before (the same numbers, not computed again). The matrix is one buffer whose parts are
+    overwritten in place: valid until the next call."""
 
     def __init__(self, data: CompassData) -> None:
         self.data = data
-        self._ones = np.ones(data.n)
+        self._x: F64 | None = None
         self._h_key: tuple[float, float, float] | None = None
-        self._h: F64 | None = None
         self._ext: ExtensionParams | None = None
-        self._cols: F64 | None = None
 
     def design(self, inc: float, dec: float, drift: float, ext: ExtensionParams) -> F64:
-        """``design(data, inc, dec, drift, ext)[0]``."""
-        if self._h is None or self._h_key != (inc, dec, drift):
-            self._h, self._h_key = earth_dir_body(self.data, inc, dec, drift), (inc, dec, drift)
-        if self._cols is None or self._ext != ext:
-            self._cols, self._ext = drive_columns(self.data.drive, ext)[0], ext
-        return np.column_stack([self._h, self._ones, self._cols])
+        """``design(data, inc, dec, drift, ext)[0]`` (the buffer: valid until the next call)."""
+        x = self._x
+        if x is None or self._ext != ext:
+            cols = drive_columns(self.data.drive, ext)[0]
+            if x is None or x.shape[1] != 4 + cols.shape[1]:
+                x = self._x = np.empty((self.data.n, 4 + cols.shape[1]))
+                x[:, 3] = 1.0
+                self._h_key = None
+            x[:, 4:] = cols
+            self._ext = ext
+        if self._h_key != (inc, dec, drift):
+            x[:, 0:3] = earth_dir_body(self.data, inc, dec, drift)
+            self._h_key = (inc, dec, drift)
+        return x
 
 
 def _solve(x: F64, v: F64, rows: B64) -> F64:

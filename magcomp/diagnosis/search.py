@@ -8,7 +8,9 @@ cannot tell apart, the greedy combination, and the open search for a step of the
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -68,6 +70,24 @@ class _Search:
     folds: Folds | None = None
     candidates: dict[str, list[str]] = field(default_factory=dict)
     candidate_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: per effect, its single fit and that fit's profile interval (the report asks for it again)
+    intervals: dict[str, tuple[ModelFit, tuple[float, float] | None]] = field(default_factory=dict)
+
+    def interval(self, name: str, fit: ModelFit) -> tuple[float, float] | None:
+        """The profile interval of ``name`` already computed for this very ``fit``, or None."""
+        known = self.intervals.get(name)
+        return known[1] if known is not None and known[0] is fit else None
+
+    def base_cv(self, data: CompassData, base: ModelFit, p: SelectionParams) -> Callable[[], CVScore]:
+        """The baseline's held-out score, computed at the first call (a comparison that fails the BIC test
+        never asks for it) and kept."""
+
+        def get() -> CVScore:
+            if self.cv_base is None:
+                self.cv_base = cv_score(data, base, p, self.folds)
+            return self.cv_base
+
+        return get
 
 
 class Combined(NamedTuple):
@@ -122,16 +142,19 @@ def _cheap_rejection(
     return None
 
 
-def interval_at_edge(name: str, data: CompassData, f: ModelFit) -> str | None:
+def interval_at_edge(
+    name: str, data: CompassData, f: ModelFit, ci: tuple[float, float] | None = None
+) -> str | None:
     """Why a significant nonlinear extension is not identified, or None: its 95 % profile interval reaches the
     end of its physical range (a lower end of 0 is the effect switched off, judged by the BIC instead).
 
     The rule of :func:`_cheap_rejection` for the point estimate, applied to what the data cannot exclude: a
     parameter that may as well sit at its physical ceiling (a 9 s "lag" on a 1-2 min hover, interval to the
     10 s ceiling) is a slow drift of the log, not the cause. Measured: the one false alarm on fresh clean
-    seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0]."""
+    seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0].
+    ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`)."""
     param = EFFECTS[name].param
-    ci = profile_interval(data, f, name)
+    ci = ci if ci is not None else profile_interval(data, f, name)
     if param is None or ci is None:
         return None
     lo_b, hi_b = EFFECTS[name].bounds
@@ -152,9 +175,7 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         return
     if s.folds is None:
         s.folds = folds_for(data, base, p)
-    if s.cv_base is None:
-        s.cv_base = cv_score(data, base, p, s.folds)
-    c = compare(data, base, f, s.cv_base, p, s.folds)
+    c = compare(data, base, f, s.base_cv(data, base, p), p, s.folds)
     if c.significant and name == "temperature_drift":
         wins, shape, vs_time = temperature_beats_time(data, base, f, RIVAL_DELTA_BIC, p.max_nfev)
         if not wins:
@@ -167,7 +188,9 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
             return
         s.temp_vs_time[name] = vs_time
     if c.significant and EFFECTS[name].param is not None:
-        why_edge = interval_at_edge(name, data, f)
+        ci = profile_interval(data, f, name)
+        s.intervals[name] = (f, ci)
+        why_edge = interval_at_edge(name, data, f, ci)
         if why_edge is not None:
             s.rejected[name] = {"delta_bic": r4(dbic), "cv_gain_pct": r4(100 * c.cv_gain), "why": why_edge}
             return
@@ -175,16 +198,18 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         s.singles.append(c)
     else:
         held_out_ok = c.cv_gain > 0.0 and c.cv_t >= c.cv_t_critical
+        if c.cv_extended is None:  # the BIC test failed first: the held-out test was not run
+            why = f"effective BIC {c.delta_bic:.0f} > -{p.min_delta_bic:.0f} (held-out test not run)"
+        elif held_out_ok:
+            why = f"effective BIC {c.delta_bic:.0f}"
+        else:
+            why = f"held-out (Diebold-Mariano {c.cv_t:.1f} < {c.cv_t_critical:.2f})"
         s.rejected[name] = {
             "delta_bic": r4(dbic),
             "effective_delta_bic": r4(c.delta_bic),
             "cv_gain_pct": r4(100 * c.cv_gain),
             "cv_t": r4(c.cv_t) if math.isfinite(c.cv_t) else None,
-            "why": (
-                f"effective BIC {c.delta_bic:.0f}"
-                if held_out_ok
-                else f"held-out (Diebold-Mariano {c.cv_t:.1f} < {c.cv_t_critical:.2f})"
-            ),
+            "why": why,
         }
 
 
@@ -214,7 +239,9 @@ def group_rivals(data: CompassData, s: _Search) -> None:
         best = same[0]
         s.candidates[best] = same
         s.candidate_params[best] = {
-            k: params_json(members[k].fit, k, data) | {"delta_bic_vs_best": r4(gap[k])} for k in same
+            k: params_json(members[k].fit, k, data, s.interval(k, members[k].fit))
+            | {"delta_bic_vs_best": r4(gap[k])}
+            for k in same
         }
         for k in same[1:]:
             s.singles.remove(members[k])
@@ -238,9 +265,8 @@ def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -
         param = EFFECTS[name].param
         init = {name: float(getattr(c.fit.ext, param))} if param is not None else None
         trial = fit_model(data, (*current.effects, name), start=current, init=init, max_nfev=p.max_nfev)
-        if cv_current is None:
-            cv_current = cv_score(data, current, p, s.folds)
-        ct = compare(data, current, trial, cv_current, p, s.folds)
+        cv_ref = cv_current or partial(cv_score, data, current, p, s.folds)
+        ct = compare(data, current, trial, cv_ref, p, s.folds)
         if ct.significant:
             current, cv_current = trial, ct.cv_extended
             kept.append((name, ct))
@@ -288,7 +314,7 @@ def keep_repeatable(
                 "size_mgauss": [round(float(v), 2) for v in np.sqrt(np.mean(explained**2, axis=0))],
                 "rms_reduction_pct": round(100.0 * (1.0 - current.rms_mgauss / reduced.rms_mgauss), 2),
                 "effect": name,
-                "params": params_json(current, name, data),
+                "params": params_json(current, name, data, s.interval(name, current)),
                 "halves_chi2": r4(rep.statistic),
                 "note": f"{name} fits the whole log but not each half ({halves}): a structure of one stretch "
                 "of the log, not a constant cause; not named as a finding",
@@ -315,11 +341,12 @@ def open_step(
     # a step on its own (against the paper's model) that fits better than every named cause on its own:
     # the named ones were soaking it up
     folds = s.folds or folds_for(data, base, p)
-    st = step_candidate(data, base, p, s.cv_base or cv_score(data, base, p, folds), sig0, events, folds)
+    cv_base = s.cv_base or (lambda: cv_score(data, base, p, folds))  # held-out scores only when a step passes
+    st = step_candidate(data, base, p, cv_base, sig0, events, folds)
     best_named = min((c.fit.bic for c in s.singles), default=math.inf)
     if st is None or st.fit.bic >= best_named:
         # or a step in what the named causes leave
-        cv_comb = comb.cv or cv_score(data, comb.fit, p, folds)
+        cv_comb = comb.cv or (lambda: cv_score(data, comb.fit, p, folds))
         st = step_candidate(data, comb.fit, p, cv_comb, sig0, events, folds)
     return st
 
@@ -329,7 +356,7 @@ def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
         Finding(
             name,
             EFFECTS[name].cause,
-            params_json(comb.fit, name, data),
+            params_json(comb.fit, name, data, s.interval(name, comb.fit)),
             evidence_json(c, data)
             | ({"delta_bic_vs_time_shapes": s.temp_vs_time[name]} if name in s.temp_vs_time else {}),
             c.fit.rms_mgauss,
@@ -433,7 +460,7 @@ def step_candidate(
     data: CompassData,
     base: ModelFit,
     p: SelectionParams,
-    cv_base: CVScore,
+    cv_base: CVScore | Callable[[], CVScore],
     sig: Signals,
     events: Events | None,
     folds: Folds | None = None,
@@ -453,9 +480,16 @@ def step_candidate(
     drive = replace(d, extra=col, extra_names=("step",))
     data_s = replace(data, drive=drive)
     fs = fit_model(data_s, base.effects, start=base, max_nfev=p.max_nfev)
-    cmp = compare(data_s, base, fs, cv_base, p, folds)
     extra_penalty = math.log(3 * n)
     in_sample = 1.0 - fs.rms_mgauss / base.rms_mgauss
+    # the in-sample tests first: a step that fails them is not kept whatever it gains held out, so the
+    # held-out refits are run only for one that passes (compare's effective BIC is the same number)
+    if not (
+        in_sample >= p.min_cv_gain
+        and effective_delta_bic(base, fs) <= -p.min_delta_bic_structure - extra_penalty
+    ):
+        return None
+    cmp = compare(data_s, base, fs, cv_base, p, folds)
     if not (
         cmp.cv_gain >= p.min_cv_gain
         and in_sample >= p.min_cv_gain

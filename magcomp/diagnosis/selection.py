@@ -34,6 +34,7 @@ already holds the previous winners, and the combination is refitted jointly.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -399,15 +400,20 @@ def compare(
     data: CompassData,
     reference: ModelFit,
     extended: ModelFit,
-    cv_reference: CVScore,
+    cv_reference: CVScore | Callable[[], CVScore],
     p: SelectionParams,
     folds: Folds | None = None,
 ) -> Comparison:
-    """``extended`` against ``reference``; ``cv_reference`` must come from the same ``folds``."""
-    cv_ext = cv_score(data, extended, p, folds)
-    gain = 1.0 - cv_ext.rms / cv_reference.rms if cv_reference.rms > 0 else 0.0
-    t = cv_t(cv_reference, cv_ext)
+    """``extended`` against ``reference``; ``cv_reference`` (or the function that gives it, called only when
+    needed) must come from the same ``folds``. An extension that fails the BIC test is not significant
+    whatever it gains held out, so its held-out refits are not run: its ``cv_*`` fields are NaN."""
     crit = cv_t_critical(p.cv_alpha)
     dbic = effective_delta_bic(reference, extended)
+    if not dbic <= -p.min_delta_bic:
+        return Comparison(extended, reference, math.nan, math.nan, dbic, math.nan, False, math.nan, crit)
+    cv_ref = cv_reference() if callable(cv_reference) else cv_reference
+    cv_ext = cv_score(data, extended, p, folds)
+    gain = 1.0 - cv_ext.rms / cv_ref.rms if cv_ref.rms > 0 else 0.0
+    t = cv_t(cv_ref, cv_ext)
     ok = gain > 0.0 and t >= crit and dbic <= -p.min_delta_bic
-    return Comparison(extended, reference, cv_reference.rms, cv_ext.rms, dbic, gain, ok, t, crit, cv_ext)
+    return Comparison(extended, reference, cv_ref.rms, cv_ext.rms, dbic, gain, ok, t, crit, cv_ext)

@@ -45,11 +45,11 @@ class StepEvent:
     events: list[tuple[float, str]]
 
 
-def _r2_with(res: F64, s: F64) -> tuple[float, F64]:
+def _r2_with(rc: F64, tss: float, s: F64) -> tuple[float, F64]:
+    """R^2 over the three axes of the centred residual ``rc`` (total sum of squares ``tss``) regressed on
+    ``s`` plus a constant, and the slope per axis."""
     sc = s - s.mean()
     ss = float(sc @ sc)
-    rc = res - res.mean(axis=0)
-    tss = float(np.sum(rc**2))
     if ss <= 1e-12 or tss <= 0.0:
         return 0.0, np.zeros(3)
     slope = (sc @ rc) / ss
@@ -71,13 +71,18 @@ def relate(
     """
     out = []
     lags = np.arange(-max_lag_s, max_lag_s + 1e-9, lag_step_s)
+    # the residual's side of every regression, once: centred, and its total sum of squares
+    rc = residual_mgauss - residual_mgauss.mean(axis=0)
+    tss = float(np.sum(rc**2))
+    # every lag's sample times in one array (row j: t - lags[j]), interpolated per signal in one call
+    t_lagged = t_s[None, :] - lags[:, None]
     for name, (ts, vs) in signals.items():
         if ts.shape[0] < 2 or not np.all(np.isfinite(vs)) or float(np.ptp(vs)) <= 0.0:
             continue
         best = SignalRelation(name, 0.0, -1.0, (0.0, 0.0, 0.0))
-        for lag in lags:
-            s = np.interp(t_s - lag, ts, vs)
-            r2, slope = _r2_with(residual_mgauss, s)
+        lagged = np.interp(t_lagged, ts, vs)
+        for lag, s in zip(lags, lagged, strict=True):
+            r2, slope = _r2_with(rc, tss, s)
             # prefer the smallest |lag| among near-ties
             if r2 > best.r2 + 1e-6:
                 best = SignalRelation(

@@ -112,9 +112,13 @@ def yaw_follow_gain(
     hi = min(t_end_s, float(t_att_s[-1]), float(t_imu_s[-1]), float(t_mag_s[-1]))
     rates: list[float] = []
     offs: list[float] = []
-    for a in np.arange(lo, hi - window_s, window_s):
-        sel = (t_att_s >= a) & (t_att_s < a + window_s)
-        if int(sel.sum()) < MIN_SAMPLES_PER_WINDOW or not bool(level[sel].all()):
+    starts = np.arange(lo, hi - window_s, window_s)
+    # each window's samples t in [a, a + window_s): one slice of the increasing times
+    first = np.searchsorted(t_att_s, starts, side="left")
+    end = np.searchsorted(t_att_s, starts + window_s, side="left")
+    for i0, i1 in zip(first.tolist(), end.tolist(), strict=True):
+        sel = slice(i0, i1)
+        if i1 - i0 < MIN_SAMPLES_PER_WINDOW or not bool(level[sel].all()):
             continue
         tw, dw = t_att_s[sel], d[sel]
         rates.append(float((dw[-1] - dw[0]) / (tw[-1] - tw[0])))

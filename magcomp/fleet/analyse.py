@@ -160,7 +160,9 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
     # the excitation from the diagnosis's read of the log when there is one; else from the estimates
     exc_stats: _Excitation | LogDiagnosis = diag if isinstance(diag, LogDiagnosis) else _Excitation()
     on_estimate = exc_stats.add if isinstance(exc_stats, _Excitation) else None
+    cpu0 = _cpu_s()
     rep = replay_mod.replay_log(path, cfg, two_pass=True, on_estimate=on_estimate)
+    replay_cpu = _cpu_s() - cpu0  # the two-pass replay's (its worker threads' too), in cpu_s too
     if rep.interrupted:  # ^C: the replay kept a partial result; it must not become this log's row
         raise KeyboardInterrupt
     summary = rep.summary
@@ -185,6 +187,7 @@ def _analyse(task: LogTask, base: dict[str, Any]) -> list[dict[str, Any]]:
         earth_field_source=str(earth.get("source", "")),
         warnings=" | ".join(str(w) for w in summary.get("warnings", [])),
         onboard_motor_compensation=bool(summary.get("onboard_motor_compensation")),
+        replay_cpu_s=replay_cpu,
     )
     rows = [_compass_row(base, c, earth_norm) for c in summary.get("compasses", [])]
     for r in rows:

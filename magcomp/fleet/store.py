@@ -110,6 +110,7 @@ SCHEMA = pa.schema(
         ("diagnose_findings_json", _STR),
         ("diagnose_params_json", _STR),
         ("diagnose_cpu_s", _F64),
+        ("replay_cpu_s", _F64),
         ("magcomp_version", _STR),
         ("analysed_at", _TS),
         ("host", _STR),

@@ -41,7 +41,9 @@ FLIGHTS = [
 ]
 VEHICLES_TOML = '[vehicles]\nalpha = ["*/vehA/*"]\nbravo = ["*/vehB/*"]\n'
 #: columns that differ between two analyses of the same log (when, where, how long)
-RUN_COLUMNS = {"analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "peak_rss_mb", "path"}
+RUN_COLUMNS = {
+    "analysed_at", "host", "wall_s", "cpu_s", "diagnose_cpu_s", "replay_cpu_s", "peak_rss_mb", "path",
+}  # fmt: skip
 
 
 def _foreign_threads() -> list[str]:
@@ -159,6 +161,10 @@ def test_rows_carry_diagnose_and_vehicles_its_parameter_files(
     rows = _rows(analysed)
     ok = [r for r in rows if r["status"] == "ok"]
     assert all(r["diagnose_status"] == "ok" for r in ok)
+    # the log's CPU split: its diagnosis and its replay are each a part of it
+    for r in ok:
+        assert r["diagnose_cpu_s"] > 0.0 and r["replay_cpu_s"] > 0.0
+        assert r["diagnose_cpu_s"] + r["replay_cpu_s"] <= r["cpu_s"] + 1e-6
     # the fleet's row equals the CLI's diagnosis of the same log
     r = next(r for r in ok if r["vehicle"] == "bravo" and r["file_name"] == "flight04.tlog")
     j, par = tmp_path / "d.json", tmp_path / "d.param"
@@ -319,6 +325,31 @@ def test_local_dask_cluster_gives_the_same_rows(fleet: Path, analysed: Path, tmp
     mine = _comparable(_rows(out))
     ref = [r for r in _comparable(_rows(analysed)) if r["sha256"] in {m["sha256"] for m in mine}]
     assert len(mine) == 3 and mine == ref
+
+
+def test_local_workers_start_without_dasks_malloc_trim_threshold() -> None:
+    """Dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_, which makes every large array a fresh
+    mmap (diagnose ~40 % more CPU per log, magcomp/fleet/engine.py): the fleet's local workers start with the
+    C library's default, as the CLI runs, also after another cluster in the same process (whose nanny leaves
+    Dask's value in the process's environment). In a process of its own (Dask's threads outlive the
+    client)."""
+    code = (
+        "import os\n"
+        "from distributed import Client, LocalCluster\n"
+        "from magcomp.fleet.engine import local_cluster\n"
+        "if __name__ == '__main__':\n"
+        "    LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None).close()\n"
+        "    assert os.environ['MALLOC_TRIM_THRESHOLD_'] == '65536'\n"
+        "    cluster = local_cluster(1, '1GiB')\n"
+        "    with Client(cluster) as client:\n"
+        "        got = client.run(lambda: os.environ.get('MALLOC_TRIM_THRESHOLD_', 'unset'))\n"
+        "        print(sorted(got.values()))\n"
+        "    cluster.close()\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == "['unset']"
 
 
 def _free_port() -> int:
