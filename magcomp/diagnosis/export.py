@@ -261,18 +261,29 @@ def params_json(
             out["v_full_v"] = r4(data.drive.v_full_v)
         return out
     if effect == "temperature_drift":
-        k = fit.coefs[list(fit.columns).index("temperature")]
-        mag = float(np.linalg.norm(k))
-        # at least the block jackknife's, as theta's: a slow column absorbs slow model error the HAC variance
-        # cannot see (measured coverage: magcomp.diagnosis.intervals)
-        hw, hw_joint = vector_halfwidths(data, fit, {"temperature": 1.0}, blocks=True)
-        return {
-            "mgauss_per_degc": r4(mag),
-            "mgauss_per_degc_ci95_halfwidth_per_axis": r4(hw),
-            # the box that holds the whole coefficient vector with 95 %: "every axis inside" is a joint claim
-            "mgauss_per_degc_ci95_joint_halfwidth": r4(hw_joint),
-            "direction": r4(k / mag if mag > 0 else k),
-        }
+        return _temperature_json(fit, data)
+    return _per_motor_json(fit, data)
+
+
+def _temperature_json(fit: ModelFit, data: CompassData) -> dict[str, Any]:
+    """temperature_drift's coefficient vector with its per-axis and joint 95 % half-widths."""
+    k = fit.coefs[list(fit.columns).index("temperature")]
+    mag = float(np.linalg.norm(k))
+    # at least the block jackknife's, as theta's: a slow column absorbs slow model error the HAC variance
+    # cannot see (measured coverage: magcomp.diagnosis.intervals)
+    hw, hw_joint = vector_halfwidths(data, fit, {"temperature": 1.0}, blocks=True)
+    return {
+        "mgauss_per_degc": r4(mag),
+        "mgauss_per_degc_ci95_halfwidth_per_axis": r4(hw),
+        # the box that holds the whole coefficient vector with 95 %: "every axis inside" is a joint claim
+        "mgauss_per_degc_ci95_joint_halfwidth": r4(hw_joint),
+        "direction": r4(k / mag if mag > 0 else k),
+    }
+
+
+def _per_motor_json(fit: ModelFit, data: CompassData) -> dict[str, Any]:
+    """per_motor: the spread (median-unbiased, 95 % interval), the motor columns' condition index, the two
+    halves' agreement, and each motor's theta with its intervals where identifiable."""
     theta = fit.theta_mgauss
     names = [c for c in fit.columns if c.startswith("motor_diff")]
     rows = [list(fit.columns).index(c) for c in names]
