@@ -323,6 +323,7 @@ class RunningSelfCheck:
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
         self._offset_sums: list[tuple[float, float]] = []  # per window: sum sin, sum cos of (base - cand)
+        self._offset: float | None = None  # offset_rad of the current windows (None: not computed yet)
         self._off: tuple[float, float] | None = None
         self.verdict: SelfCheck | None = None
         #: the correction is published: switched on where the verdict applies, off only where it is worse
@@ -335,8 +336,10 @@ class RunningSelfCheck:
         """The circular mean of (baseline - candidate) over the windows the verdict was taken on (rad)."""
         if not self._offset_sums:
             return 0.0
-        s = np.asarray(self._offset_sums)
-        return math.atan2(float(s[:, 0].sum()), float(s[:, 1].sum()))
+        if self._offset is None:  # computed once per window closed (read at every published sample)
+            s = np.asarray(self._offset_sums)
+            self._offset = math.atan2(float(s[:, 0].sum()), float(s[:, 1].sum()))
+        return self._offset
 
     @property
     def baseline_deg(self) -> float:
@@ -378,6 +381,7 @@ class RunningSelfCheck:
         self._n.append(float(n[0]))
         dbc = a[:, 0] - a[:, 1]
         self._offset_sums.append((float(np.sin(dbc).sum()), float(np.cos(dbc).sum())))
+        self._offset = None
         self._mse_b.append(float(mb[0]))
         self._mse_c.append(float(mc[0]))
         ap = a[:, 3]

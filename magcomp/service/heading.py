@@ -97,8 +97,12 @@ class HoverShadow:
                 cands.append(cand)
                 if ok and ref == ref:
                     refit |= chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-            self.on_form = next((k for k, c in enumerate(self.checks) if c.on and self._cors[k] is not None),
-                                None)  # fmt: skip
+            on_form = None  # the first form whose check is on (a loop: a generator costs ~1 us a sample)
+            for k, c in enumerate(self.checks):
+                if c.on and self._cors[k] is not None:
+                    on_form = k
+                    break
+            self.on_form = on_form
             self.deg = self.filter.update(cands[self.on_form if self.on_form is not None else 0], rate, dt)
         else:
             self.filter.reset()

@@ -83,3 +83,19 @@ def test_batch_quats_from_euler_same_rotation_as_single(rng: np.random.Generator
         sign = 1.0 if batch[k, 0] >= 0.0 else -1.0
         np.testing.assert_allclose(sign * batch[k], single, atol=1e-12)
     np.testing.assert_allclose(rot.euler_from_quats(batch), np.stack([roll, pitch, yaw], axis=1), atol=1e-9)
+
+
+def test_batch_dcm_same_bits_as_scipy_and_rejects_zero_norm(rng: np.random.Generator) -> None:
+    """dcms_from_quats is written out (no scipy.spatial import on the replay path) with scipy's arithmetic:
+    the same bits on unnormalised and unit quaternions, and the same error on a zero or NaN norm."""
+    from scipy.spatial.transform import Rotation
+
+    q = rng.normal(size=(20_000, 4)) * rng.uniform(0.2, 5.0, size=(20_000, 1))
+    q[:5000] /= np.linalg.norm(q[:5000], axis=1)[:, None]
+    got = rot.dcms_from_quats(q)
+    want = Rotation.from_quat(q, scalar_first=True).as_matrix()
+    assert got.shape == (20_000, 3, 3)
+    assert np.array_equal(got, want)
+    for bad in (0.0, np.nan):
+        with pytest.raises(ValueError):
+            rot.dcms_from_quats(np.array([[1.0, 0.0, 0.0, 0.0], [bad, 0.0, 0.0, 0.0]]))

@@ -40,6 +40,8 @@ SOFT_BASIS = np.concatenate([SYM_BASIS, ROT_BASIS])
 #: the identity, built once (read only): the per-sample rows copy it rather than call np.eye each time
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
+_I3 = np.arange(3)
+_I3.flags.writeable = False
 _ZERO3 = np.zeros(3)
 _ZERO3.flags.writeable = False
 N_SYM = SYM_BASIS.shape[0]
@@ -252,7 +254,7 @@ def window_field_rows_block(
     rows[:, :, 0:k] = soft
     rows[:, :, k : k + 3] = _EYE3
     # the x_r I blocks' diagonals
-    i3 = np.arange(3)
+    i3 = _I3
     for j in range(n_r):
         rows[:, i3, k + 3 + 3 * j + i3] = x[:, j : j + 1]
     r = np.asarray(r_nb, dtype=np.float64)

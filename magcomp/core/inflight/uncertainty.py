@@ -19,6 +19,10 @@ from magcomp.core.inflight.base import (
 from magcomp.core.inflight.rows import N_SOFT, SOFT_BASIS, soft_iron_matrix
 from magcomp.core.inflight.solve import common_schur
 
+#: I (3x3), read only: built once, not at every solution
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+
 #: the eight headings of the heading-sigma rms (rad)
 _PSI8_RAD = np.radians(np.arange(0.0, 360.0, 45.0))
 
@@ -305,12 +309,12 @@ def build_solution(
         except np.linalg.LinAlgError:
             l_mat = np.eye(3)
     else:
-        l_mat = np.eye(3) + soft_iron_matrix(p[0:N_SOFT])
+        l_mat = _EYE3 + soft_iron_matrix(p[0:N_SOFT])
     d_raw = p[k : k + 3]
     th_raw = p[k + 3 : k + 6]
     mot_raw = p[k + 6 :].reshape(-1, 3)
     th_cov = cov[k + 3 : k + 6, k + 3 : k + 6]
-    th_sd = np.sqrt(np.maximum(np.diag(l_mat @ th_cov @ l_mat.T), 0.0))
+    th_sd = np.sqrt(np.maximum((l_mat @ th_cov @ l_mat.T).diagonal(), 0.0))
     return InflightSolution(
         calib_l=l_mat,
         calib_d=l_mat @ d_raw,

@@ -63,6 +63,8 @@ class GyroYawFrame:
         #: frame (m/s^2), at the last sample (the tilt model's inputs)
         self.ap_yaw_dev = 0.0
         self.accel_h = (0.0, 0.0)
+        #: the yaw rotation's matrix, rewritten in place at each sample (building it anew cost ~1 us)
+        self._rz = np.eye(3)
 
     def apply(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> tuple[F64, bool]:
         """``r_nb`` with the gyro's yaw (None: as it is), and whether a window sequence starts anew (the gyro
@@ -85,7 +87,9 @@ class GyroYawFrame:
         an, ae = gyro_yaw.accel_h_m_s2
         co, so = math.cos(self._offset), math.sin(self._offset)
         self.accel_h = (co * an - so * ae, so * an + co * ae)
-        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r_nb, restart
+        rz = self._rz  # [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        rz[0, 0], rz[0, 1], rz[1, 0], rz[1, 1] = c, -s, s, c
+        return rz @ r_nb, restart
 
 
 class YawErrorLine:
