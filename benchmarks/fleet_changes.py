@@ -152,6 +152,11 @@ def main() -> int:
             pairs, "diagnose_theta", "diagnose_theta_ci95", "diagnose ci95", [(1.0, 95.0)]
         ):
             print(line)
+        # the joint box: its "all three axes" share is the one stated at 95 %
+        for line in coverage_lines(
+            pairs, "diagnose_theta", "diagnose_theta_ci95_joint", "diagnose joint ci95", [(1.0, 95.0)]
+        ):
+            print(line)
     return 0
 
 

@@ -72,17 +72,20 @@ def compass_columns(c: dict[str, Any]) -> dict[str, Any]:
     prior = c.get("theta_given_prior")
     if c.get("observable"):
         theta, hw, frm = c.get("theta"), c.get("theta_ci95_halfwidth"), "free fit"
+        joint = c.get("theta_ci95_joint_halfwidth")
         gate = c.get("gate")
         gate = gate if isinstance(gate, dict) else {}
         identifiable = bool(gate.get("theta_identifiable", True))
     elif prior:
         theta, hw = prior.get("theta"), prior.get("theta_ci95_halfwidth")
+        joint = prior.get("theta_ci95_joint_halfwidth")
         frm = "autopilot calibration as prior"
         identifiable = bool(prior.get("identifiable"))
     else:
-        theta, hw, frm, identifiable = None, None, "", False
+        theta, hw, joint, frm, identifiable = None, None, None, "", False
     theta = theta or [None] * 3
     hw = hw or [None] * 3
+    joint = joint or [None] * 3
     findings = c.get("findings") or []
     params = c.get("autopilot") or {}
     if (c.get("heading_vs_gyro") or {}).get("worse"):
@@ -98,6 +101,10 @@ def compass_columns(c: dict[str, Any]) -> dict[str, Any]:
         "diagnose_theta_ci95_x_mgauss": hw[0],
         "diagnose_theta_ci95_y_mgauss": hw[1],
         "diagnose_theta_ci95_z_mgauss": hw[2],
+        # the box that holds the whole vector with 95 % (Bonferroni over the axes, diagnosis.intervals)
+        "diagnose_theta_ci95_joint_x_mgauss": joint[0],
+        "diagnose_theta_ci95_joint_y_mgauss": joint[1],
+        "diagnose_theta_ci95_joint_z_mgauss": joint[2],
         "diagnose_theta_identifiable": identifiable if theta[0] is not None else None,
         "diagnose_findings": "; ".join(finding_text(f) for f in findings) or "no finding",
         "diagnose_findings_json": json.dumps(json_safe(findings), allow_nan=False, default=str),

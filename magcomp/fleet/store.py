@@ -105,6 +105,10 @@ SCHEMA = pa.schema(
         ("diagnose_theta_ci95_x_mgauss", _F64),
         ("diagnose_theta_ci95_y_mgauss", _F64),
         ("diagnose_theta_ci95_z_mgauss", _F64),
+        # the joint 95 % box (a dataset written before these columns reads them as null)
+        ("diagnose_theta_ci95_joint_x_mgauss", _F64),
+        ("diagnose_theta_ci95_joint_y_mgauss", _F64),
+        ("diagnose_theta_ci95_joint_z_mgauss", _F64),
         ("diagnose_theta_identifiable", pa.bool_()),
         ("diagnose_findings", _STR),
         ("diagnose_findings_json", _STR),

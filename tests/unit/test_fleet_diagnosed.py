@@ -29,6 +29,7 @@ def test_theta_from_the_free_fit_the_prior_or_none() -> None:
         "observable": True,
         "theta": [1.0, 2.0, 3.0],
         "theta_ci95_halfwidth": [0.5, 0.5, 0.5],
+        "theta_ci95_joint_halfwidth": [0.6, 0.6, 0.7],
         "gate": {"theta_identifiable": False},
         "findings": [],
         "autopilot": {},
@@ -36,6 +37,7 @@ def test_theta_from_the_free_fit_the_prior_or_none() -> None:
     c = compass_columns(free)
     assert c["diagnose_theta_from"] == "free fit" and c["diagnose_theta_identifiable"] is False
     assert (c["diagnose_theta_z_mgauss"], c["diagnose_theta_ci95_z_mgauss"]) == (3.0, 0.5)
+    assert c["diagnose_theta_ci95_joint_z_mgauss"] == 0.7  # the joint 95 % box beside the per-axis interval
     assert c["diagnose_findings"] == "no finding" and c["diagnose_params_json"] is None
     prior = {
         "observable": False,
@@ -43,6 +45,7 @@ def test_theta_from_the_free_fit_the_prior_or_none() -> None:
         "theta_given_prior": {
             "theta": [4.0, 5.0, 6.0],
             "theta_ci95_halfwidth": [1, 1, 1],
+            "theta_ci95_joint_halfwidth": [1.2, 1.2, 1.2],
             "identifiable": True,
         },
         "autopilot": {"ardupilot": {"COMPASS_MOT_X": 1.0}},
@@ -50,6 +53,7 @@ def test_theta_from_the_free_fit_the_prior_or_none() -> None:
     c = compass_columns(prior)
     assert c["diagnose_theta_from"] == "autopilot calibration as prior" and c["diagnose_theta_identifiable"]
     assert c["diagnose_why"].startswith("the heading covers only")
+    assert c["diagnose_theta_ci95_joint_x_mgauss"] == 1.2
     assert json.loads(c["diagnose_params_json"]) == {"ardupilot": {"COMPASS_MOT_X": 1.0}}
     none = compass_columns({"observable": False, "unobservable_why": "the throttle spans only 0.00"})
     assert none["diagnose_theta_x_mgauss"] is None and none["diagnose_theta_identifiable"] is None
