@@ -195,13 +195,14 @@ def coverage_lines(
 ) -> list[str]:
     """Per stated level: the share of (flight, axis) whose interval (k x the printed width) covers the
     truth, and of flights covered on all three axes; the median |error| / width per axis."""
-    est, hw = [], []
+    est, hw, veh = [], [], []
     for r, th in pairs:
         e = [r.get(f"{theta}_{a}_mgauss") for a in "xyz"]
         w = [r.get(f"{width}_{a}_mgauss") for a in "xyz"]
         if all(isinstance(v, float) for v in e + w):
             est.append(np.array(e, dtype=float) - th)
             hw.append(np.array(w, dtype=float))
+            veh.append(str(r.get("vehicle")))
     if not est:
         return [f"{label}: no flight with an interval"]
     err, wid = np.abs(np.array(est)), np.array(hw)
@@ -214,6 +215,13 @@ def coverage_lines(
             f"  +-{k:g} x {label}: per axis {100 * inside.mean():.0f} % (stated {stated:g} %; x/y/z "
             + "/".join(f"{100 * v:.0f}" for v in inside.mean(axis=0))
             + f"), all three axes {100 * inside.all(axis=1).mean():.0f} %"
+        )
+        names = np.array(veh)
+        per_vehicle = {v: float(inside.all(axis=1)[names == v].mean()) for v in sorted(set(veh))}
+        worst = min(per_vehicle, key=lambda v: per_vehicle[v])
+        out.append(
+            f"    per vehicle, all three axes: lowest {100 * per_vehicle[worst]:.0f} % ({worst}); at "
+            f">= 90 %: {sum(x >= 0.9 for x in per_vehicle.values())}/{len(per_vehicle)}"
         )
     return out
 
