@@ -10,6 +10,7 @@ name the effect first and bracket the simulated value with its 95 % interval (al
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import cast
 
@@ -92,24 +93,16 @@ def test_heldout_per_motor_spread_interval_brackets_the_drawn_spread(tmp_path: P
     autopilot's calibration): the spread the seed drew, in the logged field's frame, lies inside the
     reported 95 % interval, and the reported spread is below the plain mean of norms (noise bias removed,
     :mod:`magcomp.diagnosis.spread`)."""
-    settings: dict[str, object] = {
-        "mag_hz": 20,
-        "raw_imu_hz": 40,
-        "attitude_hz": 20,
-        "mag_ar1_sigma_mgauss": 3,
-        "mag_ar1_tau_s": 3,
-        "theta_scale": 2,
-        "ap_calibration": "on",
-        "att_noise_deg": 0.2,
-        "lat_deg": 60.2,
-        "lon_deg": 24.9,
-    }
+    sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
+    from diagnosis_heldout import CASES as HELD_OUT  # the benchmark's case, one definition
+
+    scenario, vehicle, duration_s, value, seed, settings = HELD_OUT["per_motor"]
     cfg = SimConfig(
-        scenario="paper",
-        duration_s=60.0,
-        seed=107,
-        effects={"per_motor": 1.2},
-        vehicle="multirotor",
+        scenario=scenario,
+        duration_s=duration_s,
+        seed=seed,
+        effects={"per_motor": value},
+        vehicle=vehicle,
         n_compasses=1,
     )
     res = simulate(apply_settings(cfg, settings))
