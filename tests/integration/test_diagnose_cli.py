@@ -52,7 +52,11 @@ def test_cli_writes_json_with_the_issue_keys_and_finds_the_skew(
     assert {"COMPASS_MOT_X", "COMPASS_MOT_Y", "COMPASS_MOT_Z"} <= set(ap["ardupilot"])
     assert {"CAL_MAG0_XCOMP", "CAL_MAG0_YCOMP", "CAL_MAG0_ZCOMP"} <= set(ap["px4_throttle"])
     assert "linearly" in j["compasses"][0]["linearisation"]
-    assert "time_skew" in capsys.readouterr().out
+    # the console line gives the parameter with its 95 % interval, as the JSON has it (issue 26)
+    lo, hi = j["findings"][0]["params"]["skew_s_ci95"]
+    console = capsys.readouterr().out
+    assert "time_skew" in console
+    assert f"skew_s={j['findings'][0]['params']['skew_s']:.3g} [{lo:.3g}, {hi:.3g}]" in console, console
 
 
 def test_cli_report_has_plots_and_names_the_cause(skewed_log: Path) -> None:
