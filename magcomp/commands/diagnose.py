@@ -291,19 +291,6 @@ def _g3(v: float | None) -> str:
     return "?" if v is None else f"{float(v):.3g}"
 
 
-def _params_text(params: dict[str, Any]) -> str:
-    """A finding's scalar parameters for the console, each with its 95 % interval where the JSON has one
-    (``skew_s=0.0401 [0.021, 0.059]``)."""
-    parts = []
-    for k, v in params.items():
-        if not isinstance(v, int | float | None) or isinstance(v, bool):
-            continue
-        ci = params.get(f"{k}_ci95")
-        rng = f" [{_g3(ci[0])}, {_g3(ci[1])}]" if isinstance(ci, list) and len(ci) == 2 else ""
-        parts.append(f"{k}={_g3(v)}{rng}")
-    return " ".join(parts)
-
-
 def _vec1(v: list[float] | None, ci95: list[float] | None) -> str:
     """(x, y, z) to 0.1, with the 95 % half-widths when known."""
     if v is None:
@@ -315,6 +302,8 @@ def _vec1(v: list[float] | None, ci95: list[float] | None) -> str:
 
 
 def _summary(j: dict[str, Any]) -> list[str]:
+    from magcomp.diagnosis.export import finding_text
+
     lines = []
     for c in j["compasses"]:
         if not c["observable"]:
@@ -326,14 +315,7 @@ def _summary(j: dict[str, Any]) -> list[str]:
                     f"  theta {theta} mgauss with the autopilot's calibration as prior; {pt['note']}"
                 )
             continue
-        names = (
-            ", ".join(
-                f"{f['effect']} "
-                + _params_text(f["params"])
-                for f in c["findings"]
-            )
-            or "no finding"
-        )
+        names = ", ".join(finding_text(f) for f in c["findings"]) or "no finding"
         theta = _vec1(c["theta"], c.get("theta_ci95_halfwidth"))
         lines.append(
             f"compass {c['index']}: theta {theta} mgauss; residual "

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from magcomp.diagnosis.export import finding_text
 from magcomp.service.console import json_safe
 
 #: a throttle above this (0..1) counts as flying, for ``flight_s``
@@ -110,29 +111,6 @@ def compass_columns(c: dict[str, Any]) -> dict[str, Any]:
         "diagnose_findings_json": json.dumps(json_safe(findings), allow_nan=False, default=str),
         "diagnose_params_json": json.dumps(json_safe(params), allow_nan=False) if params else None,
     }
-
-
-def finding_text(f: dict[str, Any]) -> str:
-    """``effect name=value [lo, hi]`` (95 %), or the set the data cannot tell apart, each with its own."""
-    cands = f.get("candidates") or [f.get("effect")]
-    if len(cands) > 1:
-        per = f.get("candidate_params") or {}
-        inner = ", ".join(_one(str(e), per.get(e) or {}) for e in cands)
-        return f"one of {{{inner}}}"
-    return _one(str(f.get("effect")), f.get("params") or {})
-
-
-def _one(effect: str, params: dict[str, Any]) -> str:
-    parts = []
-    for k, v in params.items():
-        if k.endswith("_ci95") or not isinstance(v, int | float) or isinstance(v, bool):
-            continue
-        ci = params.get(f"{k}_ci95")
-        txt = f"{k}={v:.3g}"
-        if isinstance(ci, list | tuple) and len(ci) == 2 and all(isinstance(x, int | float) for x in ci):
-            txt += f" [{ci[0]:.3g}, {ci[1]:.3g}]"
-        parts.append(txt)
-    return effect + (" " + " ".join(parts) if parts else "")
 
 
 def failed_columns(why: str) -> dict[str, Any]:
