@@ -155,6 +155,8 @@ class AttitudeStage:
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
         self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
+        if self._auto:  # the view takes this roll and pitch while it is fresh: the integral follows them
+            self._heading_coef = self._yaw_coef  # now, not at the next magnetometer sample's view
         self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) and abs(s.yaw_rad) <= YAW_MAX_RAD else self.yaw
         self._view = None
 
