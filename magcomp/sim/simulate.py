@@ -201,7 +201,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     ap_cal = None
     if config.ap_calibration:
         ap_cal = tuple(
-            autopilot_calibration(c, config.ap_cal_hard_iron_mgauss, config.ap_cal_soft_iron, rng_cal)
+            autopilot_calibration(c, *config.ap_cal_errors, rng_cal)
             for c in compasses
         )
     decl = declination_rad(m_n)
