@@ -131,10 +131,13 @@ class SimResult:
         """(L, d) of eq. (2) for the LOGGED field of compass j: ``L logged - d = u + B + D`` (body frame,
         noise aside). Without the autopilot's calibration the logged field is the raw reading: L = K^-1,
         d = K^-1 b."""
-        if self.ap_calibration is not None:
-            cal = self.ap_calibration[j]
-            return cal.l_matrix, cal.d_mgauss
         c = self.compasses[j]
+        if self.ap_calibration is not None:  # logged = A (v - b_ap): L = (A K)^-1, d = K^-1 (b - b_ap)
+            cal = self.ap_calibration[j]
+            l_ap = np.asarray(np.linalg.inv(cal.a_matrix @ c.k_matrix), dtype=np.float64)
+            return l_ap, np.asarray(
+                np.linalg.solve(c.k_matrix, c.b_mgauss - cal.b_ap_mgauss), dtype=np.float64
+            )
         l_matrix = np.asarray(np.linalg.inv(c.k_matrix), dtype=np.float64)
         return l_matrix, l_matrix @ c.b_mgauss
 
@@ -212,10 +215,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     sensed = _measure(run, field_total_b, r_nb, rng_noise, rng_cnoise)
     ap_cal = None
     if config.ap_calibration:
-        ap_cal = tuple(
-            autopilot_calibration(c, *config.ap_cal_errors, rng_cal)
-            for c in compasses
-        )
+        ap_cal = tuple(autopilot_calibration(c, *config.ap_cal_errors, rng_cal) for c in compasses)
     decl = declination_rad(m_n)
     attitude = _autopilot_attitude(run, sensed, ap_cal, decl, rng_att)
     samples = _samples(run, sensed, ap_cal, attitude, rng_noise)
@@ -456,9 +456,7 @@ def _hold_index(n: int, loop_hz: float, update_hz: float) -> NDArray[np.int64]:
 EARTH_RADIUS_M = 6_378_137.0
 
 
-def _gps_track(
-    config: SimConfig, vel_n: F64, alt_m: F64, dt_s: float, idx: NDArray[np.int64]
-) -> GpsTrack:
+def _gps_track(config: SimConfig, vel_n: F64, alt_m: F64, dt_s: float, idx: NDArray[np.int64]) -> GpsTrack:
     """Latitude/longitude from the integrated NED velocity around the configured location (flat-Earth
     local tangent plane: metres to degrees with the WGS-84 equatorial radius), altitude = location + climb."""
     pos = np.concatenate([np.zeros((1, 3)), np.cumsum(vel_n[:-1], axis=0) * dt_s])[idx]
