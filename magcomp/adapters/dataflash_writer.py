@@ -226,7 +226,7 @@ def write_sim_dataflash(
     events += _df_att_events(result)
     events += _df_output_events(result)
     events += _df_bat_events(result)
-    if result.config.gps and s.gps_lat_deg is not None and s.gps_lon_deg is not None:
+    if s.gps is not None:
         events += _df_gps_events(result, start_unix)
     events.sort(key=lambda e: (e[0], e[1]))
     for _, _, name, values in events:
@@ -368,20 +368,20 @@ def _df_gps_events(result: SimResult, start_unix: float) -> list[DfEvent]:
     """GPS at gps_hz: GPS week and ms of week, a 3D fix, course over ground and (yaw_source = truth) yaw."""
     s = result.samples
     rates = result.config.rates
-    assert s.gps_lat_deg is not None and s.gps_lon_deg is not None
-    assert s.gps_alt_msl_m is not None and s.gps_vel_n_m_s is not None
+    track = s.gps
+    assert track is not None
     t_us = _t_us(result)
     yaw_true = true_yaw_deg(result)
     events: list[DfEvent] = []
     for i in rate_indices(t_us.size, rates.imu_hz, min(rates.gps_hz, rates.imu_hz)):
         ti = int(t_us[i])
         week, ms = gps_week_ms(start_unix + float(s.t_s[i]))
-        v = s.gps_vel_n_m_s[i]
+        v = track.vel_n_m_s[i]
         ground = math.hypot(float(v[0]), float(v[1]))
         cog = math.degrees(math.atan2(float(v[1]), float(v[0]))) % 360.0 if ground > 0.5 else 0.0
         gps_yaw = float(yaw_true[i]) % 360.0 if result.config.variation.yaw_source == "truth" else 0.0
-        lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
-        alt_cm = round(float(s.gps_alt_msl_m[i]) * 100.0)
+        lat, lon = track.lat_lon_e7(i)
+        alt_cm = round(float(track.alt_msl_m[i]) * 100.0)
         gps = [ti, 0, 3, ms, week, 14, 80, lat, lon, alt_cm, ground, cog, float(v[2]), gps_yaw, 1]
         events.append((ti, 10, "GPS", gps))
     return events

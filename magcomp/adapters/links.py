@@ -61,21 +61,19 @@ class UdpPeerLock:
     datagrams from any other address are dropped before the MAVLink parser sees them (counted as
     ``foreign_datagrams``, the first senders named in a warning), and what the link sends goes to that
     address only (pymavlink would send to every address that ever sent a datagram). A peer silent for
-    ``relock_s`` may be replaced by the next sender of vehicle data (logged). ``udpout``: only the
+    :data:`PEER_RELOCK_S` may be replaced by the next sender of vehicle data (logged). ``udpout``: only the
     destination's replies are read. Installed by replacing the connection's ``recv``."""
 
     def __init__(
         self,
         conn: Any,
         counts: dict[str, int],
-        relock_s: float = PEER_RELOCK_S,
         signing_key: bytes | None = None,
     ) -> None:
         import socket
 
         self.conn = conn
         self.counts = counts
-        self.relock_s = relock_s
         self.peer: tuple[Any, ...] | None = None
         self.vehicle: tuple[int, int] | None = None
         self._last_from_peer = -math.inf
@@ -110,7 +108,7 @@ class UdpPeerLock:
         if addr == self.peer:
             self._last_from_peer = now
             return bytes(data)
-        if self.peer is not None and (not self._relockable or now - self._last_from_peer < self.relock_s):
+        if self.peer is not None and (not self._relockable or now - self._last_from_peer < PEER_RELOCK_S):
             self._refuse(addr)
             return b""
         vehicle = self._vehicle_in(data)

@@ -88,17 +88,17 @@ def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, i
 
     s = result.samples
     cfg = result.config
-    assert s.gps_lat_deg is not None and s.gps_lon_deg is not None
-    assert s.gps_alt_msl_m is not None and s.gps_vel_n_m_s is not None
+    gps = s.gps
+    assert gps is not None
     n = s.t_s.size
     t = s.t_s
     alt0 = cfg.location.alt_m
     yaw_true_deg = true_yaw_deg(result)
     events: list[tuple[float, int, Any]] = []
     for i in rate_indices(n, cfg.rates.imu_hz, min(cfg.rates.gps_hz, cfg.rates.imu_hz)):
-        lat, lon = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
-        alt_mm = round(float(s.gps_alt_msl_m[i]) * 1000.0)
-        v = s.gps_vel_n_m_s[i]
+        lat, lon = gps.lat_lon_e7(i)
+        alt_mm = round(float(gps.alt_msl_m[i]) * 1000.0)
+        v = gps.vel_n_m_s[i]
         ground = math.hypot(float(v[0]), float(v[1]))
         cog = round(math.degrees(math.atan2(float(v[1]), float(v[0]))) * 100.0) % 36000 if ground > 0.5 else 0
         gps_yaw = 0
@@ -139,7 +139,7 @@ def _gps_messages(result: SimResult, start_unix_s: float) -> list[tuple[float, i
                     lat,
                     lon,
                     alt_mm,
-                    round((float(s.gps_alt_msl_m[i]) - alt0) * 1000.0),
+                    round((float(gps.alt_msl_m[i]) - alt0) * 1000.0),
                     round(float(v[0]) * 100.0),
                     round(float(v[1]) * 100.0),
                     round(float(v[2]) * 100.0),
@@ -410,9 +410,9 @@ def _px4_power_gps_events(apm: Any, result: SimResult) -> list[Event]:
             round(loc.lon_deg * 1e7),
             round(float(s.alt_m[i]) * 1e3),
         )
-        if s.gps_lat_deg is not None and s.gps_lon_deg is not None and s.gps_alt_msl_m is not None:
-            lat_e7, lon_e7 = round(float(s.gps_lat_deg[i]) * 1e7), round(float(s.gps_lon_deg[i]) * 1e7)
-            alt_mm = round(float(s.gps_alt_msl_m[i]) * 1e3)  # the flown track (``gps`` on)
+        if s.gps is not None:
+            lat_e7, lon_e7 = s.gps.lat_lon_e7(i)
+            alt_mm = round(float(s.gps.alt_msl_m[i]) * 1e3)  # the flown track (``gps`` on)
         gps = apm.MAVLink_gps_raw_int_message(int(t_us[i]), 3, lat_e7, lon_e7, alt_mm, 100, 150, 0, 0, 12)
         events.append((float(t[i]), 9, gps))
         unix_us = round((start_unix + float(t[i])) * 1e6)
@@ -627,8 +627,8 @@ def truth_arrays(result: SimResult) -> dict[str, F64]:
     arrays["mag_logged_mgauss"] = s.mag_mgauss
     if s.mag_sensor_mgauss is not None:
         arrays["mag_sensor_mgauss"] = s.mag_sensor_mgauss
-    if s.gps_lat_deg is not None and s.gps_lon_deg is not None and s.gps_alt_msl_m is not None:
-        arrays["gps_lat_lon_alt"] = np.stack([s.gps_lat_deg, s.gps_lon_deg, s.gps_alt_msl_m], axis=1)
+    if s.gps is not None:
+        arrays["gps_lat_lon_alt"] = np.stack([s.gps.lat_deg, s.gps.lon_deg, s.gps.alt_msl_m], axis=1)
     return arrays
 
 

@@ -146,6 +146,22 @@ DEFAULT_AP_CAL_HARD_IRON_MGAUSS = 10.0
 DEFAULT_AP_CAL_SOFT_IRON = 0.02
 
 
+def _loop_rate(default: float | None) -> Any:
+    """A :class:`Rates` field for a message the autopilot's loop sends: in (0, imu_hz] (None: imu_hz)."""
+    return field(default=default, metadata={"max_hz": "imu_hz"})
+
+
+def _slow_rate(default: float) -> Any:
+    """A :class:`Rates` field for a slow stream (GPS, SYSTEM_TIME): in (0, 50] Hz."""
+    return field(default=default, metadata={"max_hz": 50.0})
+
+
+def _bounded(default: float | None, lo: float, hi: float, *, open_below: bool = False) -> Any:
+    """A :class:`Variation` knob whose value (unless None) must be finite and in [lo, hi] ((lo, hi] when
+    ``open_below``); :meth:`Variation.__post_init__` checks every such field."""
+    return field(default=default, metadata={"range": (lo, hi, open_below)})
+
+
 @dataclass(frozen=True)
 class Location:
     """Where and when: geodetic latitude/longitude (deg), altitude above the ellipsoid (m), decimal year.
@@ -172,16 +188,16 @@ class Rates:
 
     truth_hz: float = 200.0
     imu_hz: float = 50.0
-    attitude_hz: float = 25.0
-    servo_hz: float = 25.0
-    rc_hz: float = 10.0
-    vfr_hud_hz: float = 10.0
-    power_hz: float = 10.0
-    heartbeat_hz: float = 1.0
-    raw_imu_hz: float | None = None
-    mag_hz: float | None = None
-    gps_hz: float = 5.0
-    system_time_hz: float = 1.0
+    attitude_hz: float = _loop_rate(25.0)
+    servo_hz: float = _loop_rate(25.0)
+    rc_hz: float = _loop_rate(10.0)
+    vfr_hud_hz: float = _loop_rate(10.0)
+    power_hz: float = _loop_rate(10.0)
+    heartbeat_hz: float = _loop_rate(1.0)
+    raw_imu_hz: float | None = _loop_rate(None)
+    mag_hz: float | None = _loop_rate(None)
+    gps_hz: float = _slow_rate(5.0)
+    system_time_hz: float = _slow_rate(1.0)
 
     def __post_init__(self) -> None:
         if self.truth_hz < 200.0:
@@ -189,17 +205,15 @@ class Rates:
         ratio = self.truth_hz / self.imu_hz if self.imu_hz > 0 else 0.0
         if self.imu_hz <= 0 or abs(ratio - round(ratio)) > 1e-9:
             raise InputError(f"IMU rate {self.imu_hz} Hz must divide the truth rate {self.truth_hz} Hz")
-        for name in ("attitude_hz", "servo_hz", "rc_hz", "vfr_hud_hz", "power_hz", "heartbeat_hz"):
-            value = getattr(self, name)
-            if not (0.0 < value <= self.imu_hz):
-                raise InputError(f"rate {name}={value} Hz must be in (0, imu_hz={self.imu_hz}]")
-        for name in ("raw_imu_hz", "mag_hz"):
-            value = getattr(self, name)
-            if value is not None and not (0.0 < value <= self.imu_hz):
-                raise InputError(f"rate {name}={value} Hz must be in (0, loop rate imu_hz={self.imu_hz}]")
-        for name in ("gps_hz", "system_time_hz"):
-            if not (0.0 < getattr(self, name) <= 50.0):
-                raise InputError(f"rate {name}={getattr(self, name)} Hz must be in (0, 50]")
+        for f in dataclasses.fields(self):
+            cap = f.metadata.get("max_hz")
+            value = getattr(self, f.name)
+            if cap is None or value is None:
+                continue
+            top = self.imu_hz if cap == "imu_hz" else cap
+            if not (0.0 < value <= top):
+                limit = f"loop rate imu_hz={self.imu_hz}" if cap == "imu_hz" else f"{cap:g}"
+                raise InputError(f"rate {f.name}={value} Hz must be in (0, {limit}]")
 
     @property
     def raw_imu_rate(self) -> float:
@@ -247,62 +261,40 @@ class Variation:
         never dropped), as in a telemetry tlog
     """
 
-    mag_ar1_sigma_mgauss: float = 0.0
-    mag_ar1_tau_s: float = 2.0
-    mag_rw_mgauss_per_sqrt_s: float = 0.0
-    mag_noise_scale: float = 1.0
-    mag_lsb_mgauss: float | None = None
+    mag_ar1_sigma_mgauss: float = _bounded(0.0, 0.0, 100.0)
+    mag_ar1_tau_s: float = _bounded(2.0, 0.01, 1000.0)
+    mag_rw_mgauss_per_sqrt_s: float = _bounded(0.0, 0.0, 10.0)
+    mag_noise_scale: float = _bounded(1.0, 0.0, 10.0)
+    mag_lsb_mgauss: float | None = _bounded(None, 0.0, 50.0, open_below=True)
     ap_calibration: bool | None = None
-    ap_cal_hard_iron_mgauss: float | None = None
-    ap_cal_soft_iron: float | None = None
+    ap_cal_hard_iron_mgauss: float | None = _bounded(None, 0.0, 200.0)
+    ap_cal_soft_iron: float | None = _bounded(None, 0.0, 0.2)
     yaw_source: str = "compass"
     primary_compass: int = 0
     external_compass0: bool = False
-    att_roll_bias_deg: float = 0.0
-    att_pitch_bias_deg: float = 0.0
-    att_yaw_bias_deg: float = 0.0
-    att_noise_deg: float = 0.0
+    att_roll_bias_deg: float = _bounded(0.0, -10.0, 10.0)
+    att_pitch_bias_deg: float = _bounded(0.0, -10.0, 10.0)
+    att_yaw_bias_deg: float = _bounded(0.0, -30.0, 30.0)
+    att_noise_deg: float = _bounded(0.0, 0.0, 10.0)
     gps: bool | None = None
-    ap_kp_yaw: float = 0.5
-    ap_kp_tilt: float = 1.0
-    gyro_noise_scale: float = 1.0
-    gyro_bias_scale: float = 1.0
-    hover_throttle: float | None = None
-    current_max_a: float | None = None
-    theta_scale: float = 1.0
-    link_loss: float = 0.0
+    ap_kp_yaw: float = _bounded(0.5, 0.01, 10.0)
+    ap_kp_tilt: float = _bounded(1.0, 0.01, 10.0)
+    gyro_noise_scale: float = _bounded(1.0, 0.0, 20.0)
+    gyro_bias_scale: float = _bounded(1.0, 0.0, 20.0)
+    hover_throttle: float | None = _bounded(None, 0.2, 0.7)
+    current_max_a: float | None = _bounded(None, 1.0, 500.0)
+    theta_scale: float = _bounded(1.0, 0.0, 10.0)
+    link_loss: float = _bounded(0.0, 0.0, 0.5)
 
     def __post_init__(self) -> None:
-        if self.hover_throttle is not None and not (0.2 <= self.hover_throttle <= 0.7):
-            raise InputError(f"hover_throttle={self.hover_throttle}: must be in [0.2, 0.7]")
-        if self.current_max_a is not None and not (1.0 <= self.current_max_a <= 500.0):
-            raise InputError(f"current_max_a={self.current_max_a}: must be in [1, 500] A")
-        bounds = {
-            "ap_kp_yaw": (0.01, 10.0),
-            "ap_kp_tilt": (0.01, 10.0),
-            "gyro_noise_scale": (0.0, 20.0),
-            "gyro_bias_scale": (0.0, 20.0),
-            "theta_scale": (0.0, 10.0),
-            "link_loss": (0.0, 0.5),
-            "mag_ar1_sigma_mgauss": (0.0, 100.0),
-            "mag_ar1_tau_s": (0.01, 1000.0),
-            "mag_rw_mgauss_per_sqrt_s": (0.0, 10.0),
-            "mag_noise_scale": (0.0, 10.0),
-            "att_roll_bias_deg": (-10.0, 10.0),
-            "att_pitch_bias_deg": (-10.0, 10.0),
-            "att_yaw_bias_deg": (-30.0, 30.0),
-            "att_noise_deg": (0.0, 10.0),
-        }
-        for name, (lo, hi) in bounds.items():
-            v = getattr(self, name)
-            if not (math.isfinite(v) and lo <= v <= hi):
-                raise InputError(f"{name}={v}: must be in [{lo}, {hi}]")
-        if self.mag_lsb_mgauss is not None and not (0.0 < self.mag_lsb_mgauss <= 50.0):
-            raise InputError(f"mag_lsb_mgauss={self.mag_lsb_mgauss}: must be in (0, 50]")
-        if self.ap_cal_hard_iron_mgauss is not None and not (0.0 <= self.ap_cal_hard_iron_mgauss <= 200.0):
-            raise InputError(f"ap_cal_hard_iron_mgauss={self.ap_cal_hard_iron_mgauss}: must be in [0, 200]")
-        if self.ap_cal_soft_iron is not None and not (0.0 <= self.ap_cal_soft_iron <= 0.2):
-            raise InputError(f"ap_cal_soft_iron={self.ap_cal_soft_iron}: must be in [0, 0.2]")
+        for f in dataclasses.fields(self):
+            limits = f.metadata.get("range")
+            v = getattr(self, f.name)
+            if limits is None or v is None:
+                continue
+            lo, hi, open_below = limits
+            if not (math.isfinite(v) and (lo < v if open_below else lo <= v) and v <= hi):
+                raise InputError(f"{f.name}={v}: must be in {'(' if open_below else '['}{lo:g}, {hi:g}]")
         if self.yaw_source not in YAW_SOURCES:
             raise InputError(f"yaw_source={self.yaw_source!r}: choose from {', '.join(YAW_SOURCES)}")
         if not 0 <= self.primary_compass <= 2:
@@ -396,27 +388,29 @@ class SimConfig:
             and self.rates.mag_hz is None
         )
 
+    def _extended_default(self, switch: bool | None) -> bool:
+        """A Variation switch left at None: on for the extended scenarios (``ordinary``), off otherwise."""
+        return self.scenario in EXTENDED_SCENARIOS if switch is None else bool(switch)
+
     @property
     def ap_calibration(self) -> bool:
         """The autopilot calibrates the compasses before logging them (default: on for ``ordinary``)."""
-        v = self.variation.ap_calibration
-        return self.scenario in EXTENDED_SCENARIOS if v is None else bool(v)
+        return self._extended_default(self.variation.ap_calibration)
 
     @property
-    def ap_cal_hard_iron_mgauss(self) -> float:
-        v = self.variation.ap_cal_hard_iron_mgauss
-        return DEFAULT_AP_CAL_HARD_IRON_MGAUSS if v is None else float(v)
-
-    @property
-    def ap_cal_soft_iron(self) -> float:
-        v = self.variation.ap_cal_soft_iron
-        return DEFAULT_AP_CAL_SOFT_IRON if v is None else float(v)
+    def ap_cal_errors(self) -> tuple[float, float]:
+        """The errors that calibration leaves: residual hard iron |h| (mgauss) and soft-iron rms (fraction),
+        :data:`DEFAULT_AP_CAL_HARD_IRON_MGAUSS` / :data:`DEFAULT_AP_CAL_SOFT_IRON` where not set."""
+        hard, soft = self.variation.ap_cal_hard_iron_mgauss, self.variation.ap_cal_soft_iron
+        return (
+            DEFAULT_AP_CAL_HARD_IRON_MGAUSS if hard is None else float(hard),
+            DEFAULT_AP_CAL_SOFT_IRON if soft is None else float(soft),
+        )
 
     @property
     def gps(self) -> bool:
         """GPS_RAW_INT / GLOBAL_POSITION_INT / SYSTEM_TIME in the output (default: on for ``ordinary``)."""
-        v = self.variation.gps
-        return self.scenario in EXTENDED_SCENARIOS if v is None else bool(v)
+        return self._extended_default(self.variation.gps)
 
     @property
     def duration(self) -> float:
@@ -586,8 +580,8 @@ def _with_rates(rates: Rates, rate_changes: dict[str, float]) -> Rates:
     kw.update(rate_changes)
     current = dataclasses.asdict(rates)
     current.update(kw)
-    capped = ("attitude_hz", "servo_hz", "rc_hz", "vfr_hud_hz", "power_hz", "heartbeat_hz")
-    needed = max(float(current[k]) for k in (*capped, "raw_imu_hz", "mag_hz") if current[k] is not None)
+    carried = [f.name for f in dataclasses.fields(Rates) if f.metadata.get("max_hz") == "imu_hz"]
+    needed = max(float(current[k]) for k in carried if current[k] is not None)
     loop_hz = float(loop) if loop is not None else max(rates.imu_hz, _loop_rate_for(rates.truth_hz, needed))
     current["imu_hz"] = loop_hz
     if loop is None and loop_hz != rates.imu_hz and rates.raw_imu_hz is None and "raw_imu_hz" not in kw:

@@ -167,8 +167,9 @@ class AutopilotCalibration:
         logged = A K (u + B + D) + A (b - b_ap) + A n
     so the true calibration of the LOGGED field, in the sense of eq. (2), is
         L = (A K)^-1,  d = K^-1 (b - b_ap):   L logged - d = u + B + D (+ L A n)
-    and theta in the logged frame is ``theta_logged = A K theta``. An ellipsoid fit cannot see the
-    misalignment part of K, so even a perfect autopilot calibration leaves L a small rotation.
+    (:meth:`magcomp.sim.simulate.SimResult.true_calibration`) and theta in the logged frame is
+    ``L^-1 theta = A K theta``. An ellipsoid fit cannot see the misalignment part of K, so even a perfect
+    autopilot calibration leaves L a small rotation.
 
     a_matrix: A (symmetric); b_ap_mgauss: the autopilot's hard-iron estimate (raw frame);
     residual_hard_iron_mgauss: A (b - b_ap), the offset error as it appears in the logged frame;
@@ -179,9 +180,6 @@ class AutopilotCalibration:
     b_ap_mgauss: F64
     residual_hard_iron_mgauss: F64
     soft_iron_error: F64
-    l_matrix: F64
-    d_mgauss: F64
-    theta_logged_mgauss: F64
 
     @property
     def offsets_mgauss(self) -> F64:
@@ -204,18 +202,7 @@ def autopilot_calibration(
     a = s_inv_half @ (np.eye(3) + e) @ s_inv_half
     a = (a + a.T) / 2.0
     b_ap = c.b_mgauss - np.linalg.solve(a, h)
-    ak = a @ c.k_matrix
-    l_matrix = np.linalg.inv(ak)
-    d = np.asarray(np.linalg.solve(c.k_matrix, c.b_mgauss - b_ap), dtype=np.float64)
-    return AutopilotCalibration(
-        a_matrix=a,
-        b_ap_mgauss=b_ap,
-        residual_hard_iron_mgauss=h,
-        soft_iron_error=e,
-        l_matrix=l_matrix,
-        d_mgauss=d,
-        theta_logged_mgauss=ak @ c.theta_mgauss,
-    )
+    return AutopilotCalibration(a_matrix=a, b_ap_mgauss=b_ap, residual_hard_iron_mgauss=h, soft_iron_error=e)
 
 
 def measure_gyro(c: CompassTruth, omega_b_rad_s: F64, rng: np.random.Generator) -> F64:

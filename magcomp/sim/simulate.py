@@ -52,6 +52,22 @@ F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
+class GpsTrack:
+    """The simulated GNSS track at the loop rows (n samples): truth, no GNSS noise. lat_deg, lon_deg (n,);
+    alt_msl_m (n,) m, above the ellipsoid = MSL here (the geoid separation is taken as 0); vel_n_m_s (n, 3)
+    NED velocity."""
+
+    lat_deg: F64
+    lon_deg: F64
+    alt_msl_m: F64
+    vel_n_m_s: F64
+
+    def lat_lon_e7(self, i: int) -> tuple[int, int]:
+        """Latitude and longitude of row ``i`` in 1e-7 deg, as GPS_RAW_INT and DataFlash GPS carry them."""
+        return round(float(self.lat_deg[i]) * 1e7), round(float(self.lon_deg[i]) * 1e7)
+
+
+@dataclass(frozen=True)
 class SimSamples:
     """What the simulated autopilot reports, at imu_hz (n samples; J compasses / IMUs; m motors).
 
@@ -65,8 +81,7 @@ class SimSamples:
 
     mag_mgauss is what the messages carry: the raw reading, or, with the autopilot's calibration on, the
     calibrated field ``A (v - b_ap)`` rounded to 1 mgauss; mag_sensor_mgauss is then the raw reading v.
-    With GPS on: gps_lat_deg, gps_lon_deg, gps_alt_msl_m (n,), gps_vel_n_m_s (n, 3) (truth, no GNSS noise;
-    altitude above the ellipsoid = MSL here, the geoid separation is taken as 0).
+    gps: the :class:`GpsTrack` with GPS on, else None.
     """
 
     t_s: F64
@@ -85,10 +100,7 @@ class SimSamples:
     alt_m: F64
     climb_m_s: F64
     mag_sensor_mgauss: F64 | None = None
-    gps_lat_deg: F64 | None = None
-    gps_lon_deg: F64 | None = None
-    gps_alt_msl_m: F64 | None = None
-    gps_vel_n_m_s: F64 | None = None
+    gps: GpsTrack | None = None
 
 
 @dataclass(frozen=True)
@@ -119,10 +131,13 @@ class SimResult:
         """(L, d) of eq. (2) for the LOGGED field of compass j: ``L logged - d = u + B + D`` (body frame,
         noise aside). Without the autopilot's calibration the logged field is the raw reading: L = K^-1,
         d = K^-1 b."""
-        if self.ap_calibration is not None:
-            cal = self.ap_calibration[j]
-            return cal.l_matrix, cal.d_mgauss
         c = self.compasses[j]
+        if self.ap_calibration is not None:  # logged = A (v - b_ap): L = (A K)^-1, d = K^-1 (b - b_ap)
+            cal = self.ap_calibration[j]
+            l_ap = np.asarray(np.linalg.inv(cal.a_matrix @ c.k_matrix), dtype=np.float64)
+            return l_ap, np.asarray(
+                np.linalg.solve(c.k_matrix, c.b_mgauss - cal.b_ap_mgauss), dtype=np.float64
+            )
         l_matrix = np.asarray(np.linalg.inv(c.k_matrix), dtype=np.float64)
         return l_matrix, l_matrix @ c.b_mgauss
 
@@ -200,10 +215,7 @@ def simulate(config: SimConfig, rng: np.random.Generator | None = None) -> SimRe
     sensed = _measure(run, field_total_b, r_nb, rng_noise, rng_cnoise)
     ap_cal = None
     if config.ap_calibration:
-        ap_cal = tuple(
-            autopilot_calibration(c, config.ap_cal_hard_iron_mgauss, config.ap_cal_soft_iron, rng_cal)
-            for c in compasses
-        )
+        ap_cal = tuple(autopilot_calibration(c, *config.ap_cal_errors, rng_cal) for c in compasses)
     decl = declination_rad(m_n)
     attitude = _autopilot_attitude(run, sensed, ap_cal, decl, rng_att)
     samples = _samples(run, sensed, ap_cal, attitude, rng_noise)
@@ -348,7 +360,7 @@ def _samples(
         mag_sensor = mag
         logged = [(mag[j] - cal.b_ap_mgauss) @ cal.a_matrix.T for j, cal in enumerate(ap_cal)]
         mag = np.round(np.stack(logged))  # RAW_IMU carries whole mgauss
-    gps: dict[str, F64] = {}
+    gps: GpsTrack | None = None
     if config.gps:
         gps = _gps_track(config, motion.vel_n_m_s, motion.alt_m, 1.0 / config.rates.truth_hz, idx)
     voltage = np.round(power.voltage_v[idx] + rng_noise.normal(0.0, 0.01, idx.size), 3)
@@ -372,10 +384,7 @@ def _samples(
         alt_m=motion.alt_m[idx],
         climb_m_s=-vel[:, 2],
         mag_sensor_mgauss=mag_sensor,
-        gps_lat_deg=gps.get("lat_deg"),
-        gps_lon_deg=gps.get("lon_deg"),
-        gps_alt_msl_m=gps.get("alt_msl_m"),
-        gps_vel_n_m_s=gps.get("vel_n_m_s"),
+        gps=gps,
     )
 
 
@@ -447,13 +456,11 @@ def _hold_index(n: int, loop_hz: float, update_hz: float) -> NDArray[np.int64]:
 EARTH_RADIUS_M = 6_378_137.0
 
 
-def _gps_track(
-    config: SimConfig, vel_n: F64, alt_m: F64, dt_s: float, idx: NDArray[np.int64]
-) -> dict[str, F64]:
+def _gps_track(config: SimConfig, vel_n: F64, alt_m: F64, dt_s: float, idx: NDArray[np.int64]) -> GpsTrack:
     """Latitude/longitude from the integrated NED velocity around the configured location (flat-Earth
     local tangent plane: metres to degrees with the WGS-84 equatorial radius), altitude = location + climb."""
     pos = np.concatenate([np.zeros((1, 3)), np.cumsum(vel_n[:-1], axis=0) * dt_s])[idx]
     loc = config.location
     lat = loc.lat_deg + np.degrees(pos[:, 0] / EARTH_RADIUS_M)
     lon = loc.lon_deg + np.degrees(pos[:, 1] / (EARTH_RADIUS_M * math.cos(math.radians(loc.lat_deg))))
-    return {"lat_deg": lat, "lon_deg": lon, "alt_msl_m": loc.alt_m + alt_m[idx], "vel_n_m_s": vel_n[idx]}
+    return GpsTrack(lat_deg=lat, lon_deg=lon, alt_msl_m=loc.alt_m + alt_m[idx], vel_n_m_s=vel_n[idx])

@@ -59,7 +59,7 @@ def test_bin_reads_into_the_tlog_twins_samples(ordinary: tuple[SimResult, Path, 
     _same_series(a.current_a, b.current_a, 1e-5)
     # GPS: Lat/Lng 1e-7 deg both, Alt cm (.bin) against mm (tlog)
     assert len(b.position) > 0 and len(a.position) > 0
-    np.testing.assert_allclose(b.position.values[:, :2], result.samples.gps_lat_deg is not None
+    np.testing.assert_allclose(b.position.values[:, :2], result.samples.gps is not None
                                and a.position.values[: len(b.position), :2], atol=2e-7)  # fmt: skip
     np.testing.assert_allclose(b.position.values[:, 2], a.position.values[: len(b.position), 2], atol=0.006)
     # the date: GPS week + ms (GPS time, 18 s ahead of UTC: 6e-7 year) against SYSTEM_TIME's UTC

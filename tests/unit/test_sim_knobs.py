@@ -12,7 +12,7 @@ import pytest
 
 from magcomp.errors import InputError
 from magcomp.sim import SimConfig, simulate
-from magcomp.sim.config import Variation, apply_settings, setting_keys
+from magcomp.sim.config import Rates, Variation, apply_settings, setting_keys
 from magcomp.sim.sensors import coloured_noise
 
 FIELD = (240.0, -27.0, 386.0)  # explicit Earth field: these tests do not need the WMM
@@ -125,6 +125,26 @@ def test_bad_settings_are_one_line_errors(setting: str, message: str) -> None:
     with pytest.raises(InputError, match=message) as info:
         apply_settings(SimConfig(scenario="ordinary"), [setting])
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda: Variation(hover_throttle=0.9), r"hover_throttle=0.9: must be in \[0.2, 0.7\]$"),
+        (lambda: Variation(mag_lsb_mgauss=0.0), r"mag_lsb_mgauss=0.0: must be in \(0, 50\]$"),
+        (lambda: Variation(current_max_a=600.0), r"current_max_a=600.0: must be in \[1, 500\]$"),
+        (lambda: Variation(ap_kp_yaw=math.nan), r"ap_kp_yaw=nan: must be in \[0.01, 10\]$"),
+        (lambda: Rates(attitude_hz=60.0), r"attitude_hz=60.0 Hz must be in \(0, loop rate imu_hz=50.0\]$"),
+        (lambda: Rates(mag_hz=0.0), r"mag_hz=0.0 Hz must be in \(0, loop rate imu_hz=50.0\]$"),
+        (lambda: Rates(gps_hz=60.0), r"gps_hz=60.0 Hz must be in \(0, 50\]$"),
+    ],
+)
+def test_out_of_range_knobs_and_rates_name_their_range(make: object, message: str) -> None:
+    assert callable(make)
+    with pytest.raises(InputError, match=message):
+        make()
+    Variation(hover_throttle=None, mag_lsb_mgauss=50.0, ap_kp_yaw=10.0)  # the edges and None pass
+    Rates(attitude_hz=50.0, mag_hz=None, gps_hz=50.0)
 
 
 def test_every_variation_field_is_a_setting() -> None:

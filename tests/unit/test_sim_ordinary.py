@@ -96,8 +96,8 @@ def test_earth_field_is_the_wmm_at_the_configured_place_and_date() -> None:
     np.testing.assert_allclose(
         np.einsum("nij,nj->ni", r_nb, r.field_earth_b_mgauss), np.tile(expected, (len(r_nb), 1)), atol=1.0
     )
-    lat = r.samples.gps_lat_deg
-    assert lat is not None and abs(lat[0] - 46.05) < 1e-9
+    gps = r.samples.gps
+    assert gps is not None and abs(gps.lat_deg[0] - 46.05) < 1e-9
 
 
 def heading_error_from_bias_deg(r: SimResult, j: int) -> np.ndarray:
