@@ -1,6 +1,6 @@
 """Real-flight corpus: magcomp's published heading against the heading the autopilot already had, per compass.
 
-    python benchmarks/real_corpus.py DIR [--modes two-pass,causal] [--json OUT]
+    python benchmarks/real_corpus.py DIR [--modes two-pass,causal,chained] [--json OUT]
 
 Every log in DIR (tlog, DataFlash .bin/.log, ULog; the development logs of ../shared/data/real-corpus.md are
 fetched there, never into the project) is replayed with no configuration, and each compass is scored on the
@@ -16,6 +16,11 @@ motor compensation applied) tilt-compensated with the autopilot's roll and pitch
 the published MAGCOMP_HEADING ``heading``. worse = att or gyro up by more than 10 % and 0.5 deg; better =
 both down by 10 % or more. The metrics are :mod:`magcomp.core.selfcheck`'s, the ones the product's own
 self-check uses.
+
+Modes: ``two-pass`` (``magcomp replay``), ``causal`` (``replay --causal``: what the live daemon publishes on a
+vehicle it has never seen) and ``chained``: the daemon as it is used, flight after flight: each vehicle's logs
+(grouped and ordered as ``magcomp fleet`` does: the board's id, the log's date) replayed ``--causal`` with one
+``--state-dir`` per vehicle, so that each flight starts from the state the previous one saved.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.types import FLAG_CALIBRATED, LogData
 from magcomp.errors import InputError
 from magcomp.service.evaluate import FLYING_THROTTLE_01
+from magcomp.service.persist import StateSink
 from magcomp.service.replay import replay_log
 
 SUFFIXES = {".tlog", ".bin", ".log", ".ulg"}
@@ -127,12 +133,13 @@ Scores = dict[int, dict[str, float]]
 
 
 def magcomp_scores(
-    path: Path, ref: Reference, causal: bool
+    path: Path, ref: Reference, causal: bool, store: StateSink | None = None
 ) -> tuple[Scores, dict[int, str], dict[int, float]]:
     """Scores of the published heading per compass (each with ``gyro_corrected``: the gyro metric on the
     samples published as corrected, FLAG_CALIBRATED, which is what the printed +-sigma describes: before a
-    live correction switches on, the autopilot's own heading is published), what replay said, the sigma."""
-    rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal)
+    live correction switches on, the autopilot's own heading is published), what replay said, the sigma.
+    ``store``: the vehicle's saved state (``chained``), loaded at the start and saved at the end."""
+    rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal, store=store)
     by: dict[int, list[tuple[float, float, float]]] = {}
     for e in rep.estimates:
         by.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg, float(e.flags & FLAG_CALIBRATED)))
@@ -157,8 +164,33 @@ def magcomp_scores(
     return out, said, sigma
 
 
+def vehicle_order(paths: list[Path]) -> list[tuple[Path, str]]:
+    """The logs with their vehicle, each vehicle's in date order (what ``magcomp fleet`` groups by)."""
+    from magcomp.fleet.identity import scan_identity
+
+    keyed = []
+    for path in paths:
+        try:
+            ident = scan_identity(path)
+            vehicle = ident.vehicle_id(path)[0]
+            date = ident.date_utc or ""
+        except Exception:  # an unreadable log: its own vehicle (run() reports why)
+            vehicle, date = path.name, ""
+        keyed.append((vehicle, str(date), path.name, path))
+    return [(p, v) for v, _, _, p in sorted(keyed, key=lambda k: k[:3])]
+
+
 def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
+    import tempfile
+
+    from magcomp.adapters.state_store import StateStore
+
     rows: list[dict[str, Any]] = []
+    chained = "chained" in modes
+    vehicle_of = dict(vehicle_order(paths)) if chained else {}
+    if chained:  # each vehicle's flights in order
+        paths = [p for p, _ in vehicle_order(paths)]
+    state_root = Path(tempfile.mkdtemp(prefix="magcomp-corpus-state-")) if chained else None
     for path in paths:
         try:
             data = load_log(path, undo_motor_comp=False)  # the field as the autopilot had it
@@ -170,9 +202,14 @@ def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
             print(f"{path.name}: no attitude or throttle to score against", file=sys.stderr)
             continue
         base = baseline_scores(data, ref)
-        per_mode = {m: magcomp_scores(path, ref, m == "causal") for m in modes}
+        store = StateStore(state_root / _safe(vehicle_of[path])) if state_root is not None else None
+        per_mode = {
+            m: magcomp_scores(path, ref, m != "two-pass", store if m == "chained" else None) for m in modes
+        }
         for idx, b in base.items():
             row: dict[str, Any] = {"log": path.name, "compass": idx, "autopilot": b}
+            if chained:
+                row["vehicle"] = vehicle_of[path]
             for m, (scores, said, sigma) in per_mode.items():
                 got = scores.get(idx)
                 row[m] = got
@@ -182,6 +219,10 @@ def run(paths: list[Path], modes: list[str]) -> list[dict[str, Any]]:
             rows.append(row)
             print(line(row, modes), flush=True)
     return rows
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)[:80] or "vehicle"
 
 
 def _fmt(s: dict[str, float] | None) -> str:
@@ -226,7 +267,7 @@ def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="+", help="log files or directories")
-    ap.add_argument("--modes", default="two-pass,causal")
+    ap.add_argument("--modes", default="two-pass,causal,chained")
     ap.add_argument("--json", help="write the rows here")
     args = ap.parse_args()
     files: list[Path] = []
