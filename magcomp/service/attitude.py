@@ -66,6 +66,12 @@ ACCEL_LP_S = 1.0
 TRACK_ACCEL_H = True
 
 
+def _coefs_from_down(d: Float3) -> tuple[float, float]:
+    """:func:`euler_yaw_rate_coefs` of the roll and pitch of a down vector in body axes (as the view takes
+    them)."""
+    return euler_yaw_rate_coefs(math.atan2(d[1], d[2]), -math.asin(max(-1.0, min(1.0, d[0]))))
+
+
 class AttitudeView(NamedTuple):
     """What the magnetometer path needs of the attitude (derived once per IMU or ATTITUDE sample)."""
 
@@ -155,8 +161,8 @@ class AttitudeStage:
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
         self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
-        if self._auto:  # the view takes this roll and pitch while it is fresh: the integral follows them
-            self._heading_coef = self._yaw_coef  # now, not at the next magnetometer sample's view
+        if self._auto or not self._use_mahony:  # the view takes this roll and pitch (while it is fresh):
+            self._heading_coef = self._yaw_coef  # the integral follows them now, not at the next view
         self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) and abs(s.yaw_rad) <= YAW_MAX_RAD else self.yaw
         self._view = None
 
@@ -204,6 +210,9 @@ class AttitudeStage:
         ):
             self.imu_t = t
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
+            att_t = self.att_t  # the view's roll and pitch are the filter's: the integral follows them now
+            if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
+                self._heading_coef = _coefs_from_down(m.down_b())
             b = m.b
             self.gyro = (gx - b[0], gy - b[1], gz - b[2])
             self.qg = quat_step_body_rate(self.qg, self.gyro, t - prev_t)
