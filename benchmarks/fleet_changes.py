@@ -276,7 +276,18 @@ def track_lines(
         + "/".join(f"{v:.2f}" for v in ratio)
         + "; median half-width mgauss x/y/z "
         + "/".join(f"{v:.1f}" for v in np.median(np.array(widths), axis=0)),
+        "  on the flights whose own box is among the widest 10 % (per axis): half-width / diagnose's, median "
+        "x/y/z " + "/".join(f"{v:.2f}" for v in _wide_ratio(np.array(widths), np.array(diag))),
     ]
+
+
+def _wide_ratio(widths: np.ndarray, diag: np.ndarray) -> list[float]:
+    """Per axis: the median track / diagnose half-width over the flights in diagnose's widest 10 %."""
+    out = []
+    for j in range(3):
+        wide = diag[:, j] >= np.quantile(diag[:, j], 0.9)
+        out.append(float(np.median(widths[wide, j] / diag[wide, j])))
+    return out
 
 
 def ablation_lines(rows: list[dict[str, Any]], truth: dict[str, Any]) -> list[str]:

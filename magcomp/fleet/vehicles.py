@@ -390,6 +390,16 @@ def _rank(v: Vehicle) -> None:
     v.reasons = reasons
 
 
+def track_text(h: CompassHistory) -> str:
+    """The track at the latest flight: ``(x, y, z) in [lo, hi] x [lo, hi] x [lo, hi]``."""
+    t = h.track
+    if t is None:
+        return "-"
+    v = ", ".join(f"{a:.0f}" for a in t.mean[-1])
+    box = " x ".join(f"[{lo:.0f}, {hi:.0f}]" for lo, hi in zip(t.lower[-1], t.upper[-1], strict=True))
+    return f"({v}) in {box}"
+
+
 def interval_text(theta: list[float] | None, sigma: list[float] | None) -> str:
     if theta is None or sigma is None:
         return "-"
@@ -403,6 +413,10 @@ _COMPASS_KEYS = (
     "theta_z_mgauss",
     "theta_sigma_x_mgauss", "theta_sigma_y_mgauss", "theta_sigma_z_mgauss", "changes_confirmed",
     "last_change_file", "last_change_date", "last_change_confirmed", "last_change_mgauss",
+    # the track at the latest flight (the vehicle's theta now) and its band, TRACK_FAMILY_LEVEL over the track
+    "track_theta_x_mgauss", "track_theta_y_mgauss", "track_theta_z_mgauss",
+    "track_lower_x_mgauss", "track_lower_y_mgauss", "track_lower_z_mgauss",
+    "track_upper_x_mgauss", "track_upper_y_mgauss", "track_upper_z_mgauss", "track_family_level",
 )  # fmt: skip
 
 
@@ -454,5 +468,12 @@ def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
                     last_change_confirmed=last.confirmed if last else None,
                     last_change_mgauss=last.size if last else None,
                 )
+                if h.track is not None:
+                    t = h.track
+                    for j, a in enumerate("xyz"):
+                        row[f"track_theta_{a}_mgauss"] = float(t.mean[-1, j])
+                        row[f"track_lower_{a}_mgauss"] = float(t.lower[-1, j])
+                        row[f"track_upper_{a}_mgauss"] = float(t.upper[-1, j])
+                    row["track_family_level"] = TRACK_FAMILY_LEVEL
             out.append(row)
     return out
