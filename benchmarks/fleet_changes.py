@@ -292,28 +292,24 @@ def _wide_ratio(widths: np.ndarray, diag: np.ndarray) -> list[float]:
 
 def ablation_lines(rows: list[dict[str, Any]], truth: dict[str, Any]) -> list[str]:
     """The track without each of its parts: no systematic term; 95 % per flight (box over the three axes)
-    instead of one band over the vehicle's whole track; Bonferroni over the flights instead of the band."""
-    from magcomp.core.pooling import family_level, pooled_track, simultaneous_track
+    instead of the whole track at 95 %."""
+    from magcomp.core.pooling import family_level, pooled_track
     from magcomp.fleet import vehicles as fv
 
     def make(kind: str, systematic: bool) -> Callable[..., Any]:
         rel, ab = (fv.TRACK_SYSTEMATIC_REL, fv.TRACK_SYSTEMATIC_ABS_MGAUSS) if systematic else (0.0, 0.0)
 
         def track(x: np.ndarray, s: np.ndarray, changes: list[Any]) -> Any:
-            starts = [c.index for c in changes]
-            if kind == "band":
-                return simultaneous_track(x, s, starts, 0.95, rel, ab)
-            level = family_level(0.95, x.shape[0] if kind == "bonferroni" else 1, 3)
-            return pooled_track(x, s, starts, level, rel, ab)
+            level = family_level(0.95, x.shape[0] if kind == "track" else 1, 3)
+            return pooled_track(x, s, [c.index for c in changes], level, rel, ab)
 
         return track
 
     out: list[str] = []
     for label, kind, systematic in (
-        ("ablation: band, no systematic term", "band", False),
-        ("ablation: 95 % per flight (box), systematic term kept", "flight", True),
-        ("ablation: 95 % per flight (box), no systematic term", "flight", False),
-        ("ablation: Bonferroni over the flights, systematic term kept", "bonferroni", True),
+        ("ablation: no systematic term", "track", False),
+        ("ablation: 95 % per flight (box over the axes), systematic term kept", "flight", True),
+        ("ablation: 95 % per flight (box over the axes), no systematic term", "flight", False),
     ):
         out += track_lines(rows, truth, label, make(kind, systematic))
     return out

@@ -1,8 +1,7 @@
 """Partial pooling of a vehicle's per-flight estimates (its theta, flight after flight): each flight's value
 with a posterior interval that borrows strength from the flights that share its level.
 
-Pure statistics: arrays in, results out (no I/O, no clock; the Monte Carlo of :func:`simultaneous_track`
-has a fixed seed, so a result is a function of its inputs).
+Pure statistics: arrays in, results out (no I/O, no clock).
 
 Between two changes (:mod:`magcomp.core.changes`) a vehicle's flights share theta up to a small
 flight-to-flight variation. Per component, the normal random-effects model (the hierarchical normal model
@@ -30,9 +29,10 @@ random part of the interval narrows roughly as ``1 / sqrt(n)``; flights that sca
 intervals say get a large ``tau`` and keep most of their own value and width.
 
 :func:`pooled_track` gives equal-tailed intervals at a level per flight and component;
-:func:`simultaneous_track` a band that holds the whole track (every flight, every component) at once with a
-stated probability, from draws of the joint posterior (the flights of a segment share ``mu`` and ``b``, so
-their errors are strongly correlated and the band is much narrower than a Bonferroni one).
+:func:`family_level` the level at which a whole track (every flight, every component) holds at once with a
+stated probability (Bonferroni). A band from draws of the joint posterior (its flights share ``mu`` and
+``b``) was tried: on the simulated fleets of ``benchmarks/fleet_changes.py`` it was no narrower, because
+with ten-odd flights per segment ``tau`` stays uncertain enough to keep the flights nearly independent.
 """
 
 from __future__ import annotations
@@ -45,8 +45,6 @@ from scipy.special import ndtr
 
 #: points of the grid over tau (0 included)
 TAU_GRID = 161
-#: joint-posterior draws behind a simultaneous band
-DRAWS = 4000
 
 
 @dataclass(frozen=True)
@@ -59,14 +57,9 @@ class PooledTrack:
     lower: NDArray[np.float64]  # (n, m)
     upper: NDArray[np.float64]  # (n, m)
     std: NDArray[np.float64]  # (n, m)
-    #: two-sided level per flight and component (a simultaneous band: a normal's at the same half-width)
-    level: float
+    level: float  # two-sided, per flight and component
     segments: list[tuple[int, int]]  # [start, end) of each segment
     tau: NDArray[np.float64]  # (segments, m)
-    #: the probability that the whole track holds at once (None: intervals per flight and component)
-    family: float | None = None
-    #: half-width in posterior standard deviations (a simultaneous band; nan for equal-tailed intervals)
-    k: float = float("nan")
 
 
 def family_level(family: float, n_flights: int, n_components: int) -> float:
@@ -81,9 +74,6 @@ class _Mixture:
     """One component of one segment: the posterior of each flight's value as a mixture over the tau grid."""
 
     weights: NDArray[np.float64]  # (k,) p(tau | y) on the grid
-    mu: NDArray[np.float64]  # (k,) mu_hat(tau)
-    v_mu: NDArray[np.float64]  # (k,) V_mu(tau)
-    shrink: NDArray[np.float64]  # (k, n) B_i(tau)
     means: NDArray[np.float64]  # (k, n)
     var: NDArray[np.float64]  # (k, n), sigma_sys^2 not included
     tau_median: float
@@ -118,7 +108,7 @@ def _segment_mixture(y: NDArray[np.float64], s: NDArray[np.float64]) -> _Mixture
     means = (1.0 - b) * y[None, :] + b * mu[:, None]
     var = (1.0 - b) * s[None, :] ** 2 + b**2 * v_mu[:, None]
     tau_median = float(taus[min(int(np.searchsorted(np.cumsum(p), 0.5)), taus.size - 1)])
-    return _Mixture(p, mu, v_mu, b, means, var, tau_median)
+    return _Mixture(p, means, var, tau_median)
 
 
 def _mixture_quantile(
@@ -143,10 +133,8 @@ def _check_level(level: float) -> None:
 
 def _segments(
     x: ArrayLike, s: ArrayLike, starts: list[int], systematic_rel: float, systematic_abs: float
-) -> tuple[
-    NDArray[np.float64], NDArray[np.float64], list[tuple[int, int]], list[list[_Mixture]], list[float]
-]:
-    """The checked series and its standard deviations, its segments, each segment's mixtures (one per
+) -> tuple[NDArray[np.float64], list[tuple[int, int]], list[list[_Mixture]], list[float]]:
+    """The checked series, its segments, each segment's mixtures (one per
     component) and the variance of the error its flights share."""
     xa = np.atleast_2d(np.asarray(x, dtype=float))
     sa = np.atleast_2d(np.asarray(s, dtype=float))
@@ -167,7 +155,7 @@ def _segments(
         size = float(np.linalg.norm([float(np.mean(c.mean)) for c in mix]))
         mixtures.append(mix)
         sys_vars.append((systematic_rel * size) ** 2 + systematic_abs**2)
-    return xa, sa, segments, mixtures, sys_vars
+    return xa, segments, mixtures, sys_vars
 
 
 def pooled_track(
@@ -186,7 +174,7 @@ def pooled_track(
     doc), standard deviation per component ``hypot(systematic_rel * |segment's value|, systematic_abs)``,
     |.| the vector's length."""
     _check_level(level)
-    xa, _, segments, mixtures, sys_vars = _segments(x, s, starts, systematic_rel, systematic_abs)
+    xa, segments, mixtures, sys_vars = _segments(x, s, starts, systematic_rel, systematic_abs)
     n, m = xa.shape
     mean, lower, upper, std = (np.empty((n, m)) for _ in range(4))
     tau = np.zeros((len(segments), m))
@@ -199,41 +187,3 @@ def pooled_track(
             upper[a:b, j] = _mixture_quantile(1.0 - alpha / 2.0, c.weights, c.means, stds)
             tau[k, j] = c.tau_median
     return PooledTrack(mean, lower, upper, std, level, segments, tau)
-
-
-def simultaneous_track(
-    x: ArrayLike,
-    s: ArrayLike,
-    starts: list[int],
-    family: float,
-    systematic_rel: float = 0.0,
-    systematic_abs: float = 0.0,
-    draws: int = DRAWS,
-) -> PooledTrack:
-    """As :func:`pooled_track`, but one band for the whole series: ``mean +- k std`` per flight and
-    component, ``k`` the ``family`` quantile of the largest ``|theta - mean| / std`` over all flights and
-    components in draws of the joint posterior (tau from its grid posterior, then mu, b and each flight's
-    value given them). The band holds every flight's value at once with posterior probability ``family``."""
-    _check_level(family)
-    xa, sa, segments, mixtures, sys_vars = _segments(x, s, starts, systematic_rel, systematic_abs)
-    n, m = xa.shape
-    mean, std = np.empty((n, m)), np.empty((n, m))
-    tau = np.zeros((len(segments), m))
-    worst = np.zeros(draws)
-    rng = np.random.default_rng(20261128)  # fixed: the band is a function of the flights
-    for k, ((a, b), mix, sys_var) in enumerate(zip(segments, mixtures, sys_vars, strict=True)):
-        for j, c in enumerate(mix):
-            mean[a:b, j], std[a:b, j] = c.mean, c.std(sys_var)
-            tau[k, j] = c.tau_median
-            g = rng.choice(c.weights.size, size=draws, p=c.weights)
-            mu = c.mu[g] + np.sqrt(c.v_mu[g]) * rng.standard_normal(draws)
-            bias = np.sqrt(sys_var) * rng.standard_normal(draws)
-            shrink = c.shrink[g]  # (draws, n)
-            y, sd = xa[a:b, j], sa[a:b, j]
-            value = (1.0 - shrink) * y + shrink * mu[:, None]
-            value += np.sqrt((1.0 - shrink) * sd**2) * rng.standard_normal((draws, b - a)) + bias[:, None]
-            dev = np.abs(value - mean[a:b, j]) / np.maximum(std[a:b, j], 1e-300)
-            worst = np.maximum(worst, dev.max(axis=1))
-    half = float(np.quantile(worst, family))
-    level = float(2.0 * ndtr(half) - 1.0)
-    return PooledTrack(mean, mean - half * std, mean + half * std, std, level, segments, tau, family, half)

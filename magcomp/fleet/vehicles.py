@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from magcomp.core.changes import K_INTERVAL, Change, find_changes, level_after
-from magcomp.core.pooling import PooledTrack, simultaneous_track
+from magcomp.core.pooling import PooledTrack, family_level, pooled_track
 from magcomp.diagnosis.identity import group_by_sensor
 from magcomp.fleet.discover import VehicleMap
 
@@ -134,7 +134,6 @@ class Vehicle:
                     "changes": h.change_rows(),
                     "track_family_level": TRACK_FAMILY_LEVEL,
                     "track_level_per_flight_axis": h.track.level if h.track else None,
-                    "track_k_sigma": h.track.k if h.track else None,
                     "track_tau_mgauss": h.track.tau.tolist() if h.track else None,
                     "track": h.track_rows(),
                 }
@@ -155,8 +154,8 @@ def _f(v: Any) -> float:
 Z95 = 1.959964
 
 #: The vehicle's theta track (:func:`theta_track`) holds the truth on every flight and axis of a compass's
-#: history at once with this probability: a fleet manager sees a false "outside" on about 1 vehicle in 20,
-#: however many flights each has (a simultaneous band, :func:`magcomp.core.pooling.simultaneous_track`).
+#: history at once with at least this probability: a fleet manager sees a false "outside" on at most 1
+#: vehicle in 20, however many flights each has (Bonferroni over the flights and the three axes).
 TRACK_FAMILY_LEVEL = 0.95
 #: The error that all flights of a segment share, which pooling cannot average away: per axis
 #: hypot(TRACK_SYSTEMATIC_REL x |theta|, TRACK_SYSTEMATIC_ABS_MGAUSS). Measured on simulated fleets with
@@ -170,14 +169,15 @@ def theta_track(x: np.ndarray, s: np.ndarray, changes: list[Change]) -> PooledTr
     """theta per flight as the vehicle sees it: between its changes (confirmed or pending) the flights share
     theta up to a small flight-to-flight variation, so each flight's value borrows strength from its
     siblings (:mod:`magcomp.core.pooling`: the variation estimated from the flights, its uncertainty kept;
-    the shared systematic error added), one band that holds the whole track at :data:`TRACK_FAMILY_LEVEL`."""
+    the shared systematic error added), at the level per flight and axis that makes the whole track hold
+    at :data:`TRACK_FAMILY_LEVEL`."""
     if x.shape[0] == 0:
         return None
-    return simultaneous_track(
+    return pooled_track(
         x,
         s,
         [c.index for c in changes],
-        TRACK_FAMILY_LEVEL,
+        family_level(TRACK_FAMILY_LEVEL, x.shape[0], x.shape[1]),
         systematic_rel=TRACK_SYSTEMATIC_REL,
         systematic_abs=TRACK_SYSTEMATIC_ABS_MGAUSS,
     )
