@@ -56,15 +56,7 @@ def main() -> int:
     )
     args = ap.parse_args()
     if args.rescore:
-        import pyarrow.parquet as pq
-
-        saved = Path(args.rescore)
-        rows = pq.read_table(saved / "rows.parquet").to_pylist()
-        truth = json.loads((saved / "truth.json").read_text())
-        print(f"{args.rescore}: {len(rows)} rows, {len(truth)} vehicles")
-        for line in score_lines(rows, truth, args.ablate):
-            print(line)
-        return 0
+        return rescore(Path(args.rescore), args.ablate)
 
     from magcomp.cli import main as cli
     from magcomp.fleet import engine, store
@@ -201,6 +193,18 @@ def main() -> int:
         if args.ablate:
             for line in ablation_lines(rows, truth):
                 print(line)
+    return 0
+
+
+def rescore(saved: Path, ablate: bool) -> int:
+    """Print the scores of the rows and truth a ``--save`` run wrote."""
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(saved / "rows.parquet").to_pylist()
+    truth = json.loads((saved / "truth.json").read_text())
+    print(f"{saved}: {len(rows)} rows, {len(truth)} vehicles")
+    for line in score_lines(rows, truth, ablate):
+        print(line)
     return 0
 
 
