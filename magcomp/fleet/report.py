@@ -135,7 +135,7 @@ def _inspect_section(vehicles: list[Vehicle]) -> list[str]:
     for i, v in enumerate(vehicles, 1):
         changed = any(c.confirmed for h in v.compasses for c in h.changes)
         thetas = "<br>".join(
-            f"{_e(h.label)}: {_e(track_text(h) if h.track else interval_text(h.level, h.level_sigma))}"
+            f"{_e(h.label)}: {_e(track_text(h))}"
             for h in v.compasses
             if h.level is not None
         )

@@ -391,10 +391,11 @@ def _rank(v: Vehicle) -> None:
 
 
 def track_text(h: CompassHistory) -> str:
-    """The track at the latest flight: ``(x, y, z) in [lo, hi] x [lo, hi] x [lo, hi]``."""
+    """theta now: the track at the latest flight, ``(x, y, z) in [lo, hi] x [lo, hi] x [lo, hi]`` (without a
+    track, the level since the last change +- 2 sigma)."""
     t = h.track
     if t is None:
-        return "-"
+        return interval_text(h.level, h.level_sigma)
     v = ", ".join(f"{a:.0f}" for a in t.mean[-1])
     box = " x ".join(f"[{lo:.0f}, {hi:.0f}]" for lo, hi in zip(t.lower[-1], t.upper[-1], strict=True))
     return f"({v}) in {box}"
