@@ -3,9 +3,15 @@ flight), and on every other vehicle one hidden change (theta jumps at a known fl
 fleet` (its engine, in this process or on a local cluster) and scores: changes found at the right flight,
 changes flagged on vehicles without one, and how often each flight's printed theta interval covers the
 truth at its stated level: the replay's theta sigma (+-1 sigma: 68.3 % per axis; +-2 sigma: 95.4 % per axis,
-86.8 % on all three axes at once if the axes were independent) and `diagnose`'s 95 % half-width per axis.
+86.8 % on all three axes at once if the axes were independent) and `diagnose`'s 95 % half-width per axis;
+and how often each vehicle's theta track (fleet.vehicles.theta_track: pooled between changes, 95 % over the
+whole track) holds the truth, per vehicle, with its widths against diagnose's box (``--ablate``: without
+each of its parts). ``--seed`` changes the thetas, the changes and every flight's simulation (seed 0: the
+flights of before); ``--jitter`` varies the true theta from flight to flight; ``--save DIR`` keeps the rows
+and the truth, ``--rescore DIR`` scores them again without simulating (docs/fleet.md).
 
     .venv/bin/python benchmarks/fleet_changes.py [--vehicles 10] [--flights 6] [--duration 60] [--workers 0]
+        [--seed 0] [--jitter 0] [--save DIR] [--rescore DIR] [--ablate]
 """
 
 from __future__ import annotations
