@@ -206,6 +206,9 @@ def rescore(saved: Path, ablate: bool) -> int:
     """Print the scores of the rows and truth a ``--save`` run wrote."""
     import pyarrow.parquet as pq
 
+    if not (saved / "rows.parquet").is_file() or not (saved / "truth.json").is_file():
+        print(f"{saved}: no rows.parquet and truth.json here (write them with --save)", file=sys.stderr)
+        return 2
     rows = pq.read_table(saved / "rows.parquet").to_pylist()
     truth = json.loads((saved / "truth.json").read_text())
     print(f"{saved}: {len(rows)} rows, {len(truth)} vehicles")
