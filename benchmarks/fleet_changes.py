@@ -3,9 +3,15 @@ flight), and on every other vehicle one hidden change (theta jumps at a known fl
 fleet` (its engine, in this process or on a local cluster) and scores: changes found at the right flight,
 changes flagged on vehicles without one, and how often each flight's printed theta interval covers the
 truth at its stated level: the replay's theta sigma (+-1 sigma: 68.3 % per axis; +-2 sigma: 95.4 % per axis,
-86.8 % on all three axes at once if the axes were independent) and `diagnose`'s 95 % half-width per axis.
+86.8 % on all three axes at once if the axes were independent) and `diagnose`'s 95 % half-width per axis;
+and how often each vehicle's theta track (fleet.vehicles.theta_track: pooled between changes, 95 % over the
+whole track) holds the truth, per vehicle, with its widths against diagnose's box (``--ablate``: without
+each of its parts). ``--seed`` changes the thetas, the changes and every flight's simulation (seed 0: the
+flights of before); ``--jitter`` varies the true theta from flight to flight; ``--save DIR`` keeps the rows
+and the truth, ``--rescore DIR`` scores them again without simulating (docs/fleet.md).
 
     .venv/bin/python benchmarks/fleet_changes.py [--vehicles 10] [--flights 6] [--duration 60] [--workers 0]
+        [--seed 0] [--jitter 0] [--save DIR] [--rescore DIR] [--ablate]
 """
 
 from __future__ import annotations
@@ -20,7 +26,9 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +43,26 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=0, help="0: in this process (default)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--config", help="TOML configuration for the replays (e.g. [output] self_check = false)")
+    ap.add_argument(
+        "--jitter",
+        type=float,
+        default=0.0,
+        help="flight-to-flight variation of the true theta, mgauss (standard deviation per axis; default 0)",
+    )
+    ap.add_argument(
+        "--save", help="also write the rows (rows.parquet) and the truth (truth.json) to this folder"
+    )
+    ap.add_argument(
+        "--rescore",
+        metavar="DIR",
+        help="score the rows and truth a --save run wrote (no simulation, no analysis)",
+    )
+    ap.add_argument(
+        "--ablate", action="store_true", help="also score the vehicle track without its parts (docs/fleet.md)"
+    )
     args = ap.parse_args()
+    if args.rescore:
+        return rescore(Path(args.rescore), args.ablate)
 
     from magcomp.cli import main as cli
     from magcomp.fleet import engine, store
@@ -56,6 +83,8 @@ def main() -> int:
             thetas = []
             for f in range(args.flights):
                 th = theta1 if change_at is not None and f >= change_at else theta0
+                if args.jitter > 0:
+                    th = th + rng.normal(0.0, args.jitter, 3)
                 thetas.append(th.tolist())
                 year = 2026.0 + 0.05 * (f + 1)
                 rc = cli(
@@ -68,7 +97,7 @@ def main() -> int:
                         "--compasses",
                         "1",
                         "--seed",
-                        str(1000 * v + f),
+                        str(100_000 * args.seed + 1000 * v + f),  # seed 0: the flights of before
                         "--year",
                         f"{year:.3f}",
                         "--set",
@@ -89,7 +118,15 @@ def main() -> int:
             f"analysed {st.analysed} logs in {st.wall_s:.0f} s ({st.failed} failed), "
             f"{st.cpu_s / max(st.analysed, 1):.2f} s CPU per log"
         )
-        rows = store.read_rows(out).to_pylist()
+        table = store.read_rows(out)
+        rows = table.to_pylist()
+        if args.save:
+            import pyarrow.parquet as pq
+
+            save = Path(args.save)
+            save.mkdir(parents=True, exist_ok=True)
+            pq.write_table(table, save / "rows.parquet")
+            (save / "truth.json").write_text(json.dumps(truth, indent=1))
         vehicles = {v.vehicle: v for v in summarise(rows)}
         hits = misses = wrong_flight = false_flags = 0
         covered = total = applied = 0
@@ -157,7 +194,138 @@ def main() -> int:
             pairs, "diagnose_theta", "diagnose_theta_ci95_joint", "diagnose joint ci95", [(1.0, 95.0)]
         ):
             print(line)
+        for line in track_lines(rows, truth):
+            print(line)
+        if args.ablate:
+            for line in ablation_lines(rows, truth):
+                print(line)
     return 0
+
+
+def rescore(saved: Path, ablate: bool) -> int:
+    """Print the scores of the rows and truth a ``--save`` run wrote."""
+    import pyarrow.parquet as pq
+
+    if not (saved / "rows.parquet").is_file() or not (saved / "truth.json").is_file():
+        print(f"{saved}: no rows.parquet and truth.json here (write them with --save)", file=sys.stderr)
+        return 2
+    rows = pq.read_table(saved / "rows.parquet").to_pylist()
+    truth = json.loads((saved / "truth.json").read_text())
+    print(f"{saved}: {len(rows)} rows, {len(truth)} vehicles")
+    for line in score_lines(rows, truth, ablate):
+        print(line)
+    return 0
+
+
+def score_lines(rows: list[dict[str, Any]], truth: dict[str, Any], ablate: bool) -> list[str]:
+    """The scores of saved rows: changes, diagnose's joint box, the vehicle track (and its ablations)."""
+    pairs = []
+    for r in rows:
+        if r["status"] == "ok" and r["vehicle"] in truth:
+            pairs.append((r, np.array(truth[r["vehicle"]]["thetas"][int(r["file_name"][6:8])])))
+    out = ["with diagnose's theta per flight: " + change_score(rows, truth, "diagnose")]
+    out += coverage_lines(
+        pairs, "diagnose_theta", "diagnose_theta_ci95_joint", "diagnose joint ci95", [(1.0, 95.0)]
+    )
+    out += track_lines(rows, truth)
+    if ablate:
+        out += ablation_lines(rows, truth)
+    return out
+
+
+def _track_coverage(
+    rows: list[dict[str, Any]], truth: dict[str, Any], track: Callable[..., Any] | None = None
+) -> tuple[dict[str, list[bool]], list[np.ndarray], list[np.ndarray]]:
+    """Per vehicle, per flight of its track: whether the track's box holds the truth on all three axes; the
+    track's half-widths and diagnose's joint half-widths of the same flights. ``track(x, s, changes)``:
+    another track than the shipped one (fleet.vehicles.theta_track)."""
+    from magcomp.fleet.vehicles import summarise
+
+    by_file = {(str(r["vehicle"]), str(r["file_name"])): r for r in rows if r["status"] == "ok"}
+    inside: dict[str, list[bool]] = {}
+    widths: list[np.ndarray] = []
+    diag: list[np.ndarray] = []
+    for v in summarise([dict(r) for r in rows], theta_from="diagnose"):
+        if v.vehicle not in truth or not v.compasses:
+            continue
+        h = v.compasses[0]
+        t = h.track
+        if track is not None and h.flights:
+            x = np.array([f.theta for f in h.flights])
+            sd = np.array([f.sigma for f in h.flights])
+            t = track(x, sd, h.changes)
+        if t is None:
+            continue
+        for i, f in enumerate(h.flights):
+            th = np.array(truth[v.vehicle]["thetas"][int(f.file_name[6:8])])
+            inside.setdefault(v.vehicle, []).append(bool(np.all((t.lower[i] <= th) & (th <= t.upper[i]))))
+            widths.append((t.upper[i] - t.lower[i]) / 2.0)
+            r = by_file[(v.vehicle, f.file_name)]
+            diag.append(np.array([r[f"diagnose_theta_ci95_joint_{a}_mgauss"] for a in "xyz"], dtype=float))
+    return inside, widths, diag
+
+
+def track_lines(
+    rows: list[dict[str, Any]],
+    truth: dict[str, Any],
+    label: str = "vehicle track",
+    track: Callable[..., Any] | None = None,
+) -> list[str]:
+    """How often the vehicle track (fleet.vehicles.theta_track) holds the truth: overall, per vehicle, the
+    vehicles where it misses any flight (stated: at most 5 %), and its widths against diagnose's box."""
+    inside, widths, diag = _track_coverage(rows, truth, track)
+    if not inside:
+        return [f"{label}: no vehicle with a track"]
+    per = {v: float(np.mean(x)) for v, x in inside.items()}
+    worst = min(per, key=lambda v: per[v])
+    n = sum(len(x) for x in inside.values())
+    ratio = np.median(np.array(widths) / np.array(diag), axis=0)
+    return [
+        f"{label}: holds the truth on all three axes on {sum(sum(x) for x in inside.values())}/{n} flights "
+        f"({100 * sum(sum(x) for x in inside.values()) / n:.1f} %); per vehicle lowest "
+        f"{100 * per[worst]:.0f} % ({worst}), at >= 90 %: {sum(x >= 0.9 for x in per.values())}/{len(per)}; "
+        f"vehicles with any flight outside: {sum(not all(x) for x in inside.values())}/{len(per)}",
+        "  half-width / diagnose's joint half-width, median per axis x/y/z "
+        + "/".join(f"{v:.2f}" for v in ratio)
+        + "; median half-width mgauss x/y/z "
+        + "/".join(f"{v:.1f}" for v in np.median(np.array(widths), axis=0)),
+        "  on the flights whose own box is among the widest 10 % (per axis): half-width / diagnose's, median "
+        "x/y/z " + "/".join(f"{v:.2f}" for v in _wide_ratio(np.array(widths), np.array(diag))),
+    ]
+
+
+def _wide_ratio(widths: np.ndarray, diag: np.ndarray) -> list[float]:
+    """Per axis: the median track / diagnose half-width over the flights in diagnose's widest 10 %."""
+    out = []
+    for j in range(3):
+        wide = diag[:, j] >= np.quantile(diag[:, j], 0.9)
+        out.append(float(np.median(widths[wide, j] / diag[wide, j])))
+    return out
+
+
+def ablation_lines(rows: list[dict[str, Any]], truth: dict[str, Any]) -> list[str]:
+    """The track without each of its parts: no systematic term; 95 % per flight (box over the three axes)
+    instead of the whole track at 95 %."""
+    from magcomp.core.pooling import family_level, pooled_track
+    from magcomp.fleet import vehicles as fv
+
+    def make(kind: str, systematic: bool) -> Callable[..., Any]:
+        rel, ab = (fv.TRACK_SYSTEMATIC_REL, fv.TRACK_SYSTEMATIC_ABS_MGAUSS) if systematic else (0.0, 0.0)
+
+        def track(x: np.ndarray, s: np.ndarray, changes: list[Any]) -> Any:
+            level = family_level(0.95, x.shape[0] if kind == "track" else 1, 3)
+            return pooled_track(x, s, [c.index for c in changes], level, rel, ab)
+
+        return track
+
+    out: list[str] = []
+    for label, kind, systematic in (
+        ("ablation: no systematic term", "track", False),
+        ("ablation: 95 % per flight (box over the axes), systematic term kept", "flight", True),
+        ("ablation: 95 % per flight (box over the axes), no systematic term", "flight", False),
+    ):
+        out += track_lines(rows, truth, label, make(kind, systematic))
+    return out
 
 
 def change_score(rows: list[dict[str, object]], truth: dict[str, dict[str, object]], theta_from: str) -> str:

@@ -197,14 +197,14 @@ def _write_params(out: Path, vehicles: list[Any]) -> None:
 
 
 def _print_inspect(vehicles: list[Any], limit: int = 10) -> None:
-    from magcomp.fleet.vehicles import interval_text
+    from magcomp.fleet.vehicles import track_text
 
     if not vehicles:
         return
     print(f"vehicles, most worth inspecting first ({len(vehicles)}):")
     for v in vehicles[:limit]:
         thetas = "; ".join(
-            f"{h.label} theta {interval_text(h.level, h.level_sigma)} mgauss"
+            f"{h.label} theta now {track_text(h)} mgauss"
             for h in v.compasses
             if h.level is not None
         )

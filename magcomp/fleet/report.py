@@ -15,7 +15,8 @@ from typing import Any
 
 from magcomp import __version__
 from magcomp.core.changes import K_INTERVAL
-from magcomp.fleet.vehicles import Vehicle, interval_text
+from magcomp.core.pooling import PooledTrack
+from magcomp.fleet.vehicles import TRACK_FAMILY_LEVEL, Vehicle, interval_text, track_text
 
 #: vehicles plotted (the most worth inspecting first); the rest are in the tables
 MAX_PLOTS = 30
@@ -51,7 +52,8 @@ def _png(fig: Any) -> str:
 
 
 def _theta_plot(v: Vehicle) -> str | None:
-    """theta x, y, z per flight (applied ones) with +-k sigma, one column per compass; changes marked."""
+    """theta x, y, z per flight, one column per compass: each log's own estimate with +-k sigma (grey), the
+    vehicle's track (pooled between changes) as a line in its band; changes marked."""
     hist = [h for h in v.compasses if h.flights]
     if not hist:
         return None
@@ -69,7 +71,9 @@ def _theta_plot(v: Vehicle) -> str | None:
                 ax = axes[row][col]
                 ys = [f.theta[row] for f in h.flights]
                 es = [K_INTERVAL * f.sigma[row] for f in h.flights]
-                ax.errorbar(xs, ys, yerr=es, fmt="o", ms=3, capsize=2)
+                ax.errorbar(xs, ys, yerr=es, fmt="o", ms=3, capsize=2, color="0.55", label="log")
+                if h.track is not None:
+                    _plot_track(ax, h.track, xs, row)
                 for c in h.changes:
                     ax.axvline(c.index + 0.5, color="tab:red" if c.confirmed else "tab:orange", ls="--")
                 ax.set_ylabel(f"theta {axis} (mgauss)")
@@ -81,6 +85,14 @@ def _theta_plot(v: Vehicle) -> str | None:
         return _png(fig)
     finally:
         plt.close(fig)
+
+
+def _plot_track(ax: Any, t: PooledTrack, xs: list[int], row: int) -> None:
+    """The track of one axis: a line in its band, segment by segment (no line across a change)."""
+    for a, b in t.segments:
+        seg = xs[a:b]
+        ax.fill_between(seg, t.lower[a:b, row], t.upper[a:b, row], color="tab:blue", alpha=0.25, lw=0)
+        ax.plot(seg, t.mean[a:b, row], color="tab:blue", lw=1.5, marker="_" if b - a == 1 else "")
 
 
 def write_report(path: Path, vehicles: list[Vehicle], rows: list[dict[str, Any]]) -> None:
@@ -96,7 +108,11 @@ def write_report(path: Path, vehicles: list[Vehicle], rows: list[dict[str, Any]]
     made = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     parts.append(
         f"<p>{len(vehicles)} vehicles, {n_logs} logs ({n_failed} failed). Made {made} by magcomp "
-        f"{_e(__version__)}. Intervals are &plusmn;{K_INTERVAL:g} standard deviations.</p>"
+        f"{_e(__version__)}. A log's own theta: &plusmn;{K_INTERVAL:g} standard deviations (grey). A "
+        f"vehicle's theta track (blue): the flights between two changes share theta up to a small "
+        f"flight-to-flight variation, so each flight's value is pooled with its siblings', with the error "
+        f"they all share; its band holds every flight of the compass on all three axes at once with "
+        f"{100 * TRACK_FAMILY_LEVEL:.0f} % (at most 1 vehicle in 20 shows a flight falsely outside).</p>"
     )
     parts += _inspect_section(vehicles)
     parts += _theta_section(vehicles)
@@ -113,12 +129,13 @@ def _inspect_section(vehicles: list[Vehicle]) -> list[str]:
     parts = [
         "<h2 id='inspect'>Vehicles to inspect</h2>",
         "<table><tr><th>#</th><th>vehicle</th><th>logs</th><th>failed</th><th>last flight</th>"
-        "<th>theta now (mgauss)</th><th>score</th><th>why</th><th>parameters to set</th></tr>",
+        "<th>theta now (mgauss; the track at the last flight)</th><th>score</th><th>why</th>"
+        "<th>parameters to set</th></tr>",
     ]
     for i, v in enumerate(vehicles, 1):
         changed = any(c.confirmed for h in v.compasses for c in h.changes)
         thetas = "<br>".join(
-            f"{_e(h.label)}: {_e(interval_text(h.level, h.level_sigma))}"
+            f"{_e(h.label)}: {_e(track_text(h))}"
             for h in v.compasses
             if h.level is not None
         )

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from magcomp.core.changes import K_INTERVAL, Change, find_changes, level_after
+from magcomp.core.pooling import PooledTrack, family_level, pooled_track
 from magcomp.diagnosis.identity import group_by_sensor
 from magcomp.fleet.discover import VehicleMap
 
@@ -45,6 +46,8 @@ class CompassHistory:
     level: list[float] | None  # since the last confirmed change
     level_sigma: list[float] | None
     sensor: str | None = None  # its device id (None: no flight names it; the history follows the slot)
+    #: the vehicle's view of theta per flight: partially pooled between changes (:func:`theta_track`)
+    track: PooledTrack | None = None
 
     @property
     def label(self) -> str:
@@ -66,6 +69,24 @@ class CompassHistory:
                 "after_sigma_mgauss": c.after.std.tolist(),
             }
             for c in self.changes
+        ]
+
+    def track_rows(self) -> list[dict[str, Any]]:
+        """Per flight: diagnose's (or the replay's) theta and the pooled track's value with its interval."""
+        t = self.track
+        if t is None:
+            return []
+        return [
+            {
+                "file_name": f.file_name,
+                "date_utc": _iso(f.date_utc),
+                "flight_theta_mgauss": f.theta,
+                "flight_sigma_mgauss": f.sigma,
+                "theta_mgauss": t.mean[i].tolist(),
+                "lower_mgauss": t.lower[i].tolist(),
+                "upper_mgauss": t.upper[i].tolist(),
+            }
+            for i, f in enumerate(self.flights)
         ]
 
 
@@ -111,6 +132,10 @@ class Vehicle:
                     "theta_mgauss": h.level,
                     "theta_sigma_mgauss": h.level_sigma,
                     "changes": h.change_rows(),
+                    "track_family_level": TRACK_FAMILY_LEVEL,
+                    "track_level_per_flight_axis": h.track.level if h.track else None,
+                    "track_tau_mgauss": h.track.tau.tolist() if h.track else None,
+                    "track": h.track_rows(),
                 }
                 for h in self.compasses
             ],
@@ -127,6 +152,35 @@ def _f(v: Any) -> float:
 
 #: 95 % two-sided normal quantile: diagnose's half-widths -> standard deviations
 Z95 = 1.959964
+
+#: The vehicle's theta track (:func:`theta_track`) holds the truth on every flight and axis of a compass's
+#: history at once with at least this probability: a fleet manager sees a false "outside" on at most 1
+#: vehicle in 20, however many flights each has (Bonferroni over the flights and the three axes).
+TRACK_FAMILY_LEVEL = 0.95
+#: The error that all flights of a segment share, which pooling cannot average away: per axis
+#: hypot(TRACK_SYSTEMATIC_REL x |theta|, TRACK_SYSTEMATIC_ABS_MGAUSS). Measured on simulated fleets with
+#: the truth known (benchmarks/fleet_changes.py seeds 0 and 1, docs/fleet.md): diagnose's theta carries a
+#: bias that follows theta itself (~3 % of |theta| per axis, the same on every flight of a vehicle).
+TRACK_SYSTEMATIC_REL = 0.03
+TRACK_SYSTEMATIC_ABS_MGAUSS = 1.0
+
+
+def theta_track(x: np.ndarray, s: np.ndarray, changes: list[Change]) -> PooledTrack | None:
+    """theta per flight as the vehicle sees it: between its changes (confirmed or pending) the flights share
+    theta up to a small flight-to-flight variation, so each flight's value borrows strength from its
+    siblings (:mod:`magcomp.core.pooling`: the variation estimated from the flights, its uncertainty kept;
+    the shared systematic error added), at the level per flight and axis that makes the whole track hold
+    at :data:`TRACK_FAMILY_LEVEL`."""
+    if x.shape[0] == 0:
+        return None
+    return pooled_track(
+        x,
+        s,
+        [c.index for c in changes],
+        family_level(TRACK_FAMILY_LEVEL, x.shape[0], x.shape[1]),
+        systematic_rel=TRACK_SYSTEMATIC_REL,
+        systematic_abs=TRACK_SYSTEMATIC_ABS_MGAUSS,
+    )
 
 
 def summarise(
@@ -224,6 +278,7 @@ def _vehicle(name: str, rows: list[dict[str, Any]], theta_from: str = "replay") 
         s = np.array([f.sigma for f in flights], dtype=float).reshape(-1, 3)
         changes = find_changes(x, s) if len(flights) >= 2 else []
         level = level_after(x, s, changes) if flights else None
+        track = theta_track(x, s, changes)
         v.compasses.append(
             CompassHistory(
                 int(mine[-1]["compass"]),
@@ -233,6 +288,7 @@ def _vehicle(name: str, rows: list[dict[str, Any]], theta_from: str = "replay") 
                 level.mean.tolist() if level is not None else None,
                 level.std.tolist() if level is not None else None,
                 sensor,
+                track,
             )
         )
     return v
@@ -334,6 +390,17 @@ def _rank(v: Vehicle) -> None:
     v.reasons = reasons
 
 
+def track_text(h: CompassHistory) -> str:
+    """theta now: the track at the latest flight, ``(x, y, z) in [lo, hi] x [lo, hi] x [lo, hi]`` (without a
+    track, the level since the last change +- 2 sigma)."""
+    t = h.track
+    if t is None:
+        return interval_text(h.level, h.level_sigma)
+    v = ", ".join(f"{a:.0f}" for a in t.mean[-1])
+    box = " x ".join(f"[{lo:.0f}, {hi:.0f}]" for lo, hi in zip(t.lower[-1], t.upper[-1], strict=True))
+    return f"({v}) in {box}"
+
+
 def interval_text(theta: list[float] | None, sigma: list[float] | None) -> str:
     if theta is None or sigma is None:
         return "-"
@@ -347,6 +414,10 @@ _COMPASS_KEYS = (
     "theta_z_mgauss",
     "theta_sigma_x_mgauss", "theta_sigma_y_mgauss", "theta_sigma_z_mgauss", "changes_confirmed",
     "last_change_file", "last_change_date", "last_change_confirmed", "last_change_mgauss",
+    # the track at the latest flight (the vehicle's theta now) and its band, TRACK_FAMILY_LEVEL over the track
+    "track_theta_x_mgauss", "track_theta_y_mgauss", "track_theta_z_mgauss",
+    "track_lower_x_mgauss", "track_lower_y_mgauss", "track_lower_z_mgauss",
+    "track_upper_x_mgauss", "track_upper_y_mgauss", "track_upper_z_mgauss", "track_family_level",
 )  # fmt: skip
 
 
@@ -398,5 +469,12 @@ def flat_rows(vehicles: list[Vehicle]) -> list[dict[str, Any]]:
                     last_change_confirmed=last.confirmed if last else None,
                     last_change_mgauss=last.size if last else None,
                 )
+                if h.track is not None:
+                    t = h.track
+                    for j, a in enumerate("xyz"):
+                        row[f"track_theta_{a}_mgauss"] = float(t.mean[-1, j])
+                        row[f"track_lower_{a}_mgauss"] = float(t.lower[-1, j])
+                        row[f"track_upper_{a}_mgauss"] = float(t.upper[-1, j])
+                    row["track_family_level"] = TRACK_FAMILY_LEVEL
             out.append(row)
     return out

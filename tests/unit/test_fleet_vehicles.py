@@ -7,6 +7,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from magcomp.fleet.discover import VehicleMap
 from magcomp.fleet.vehicles import summarise
 
@@ -162,3 +164,47 @@ def test_history_follows_the_sensor_not_the_slot() -> None:
     (old,) = summarise(rows)
     assert {h.sensor for h in old.compasses} == {None}
     assert any(c.confirmed for h in old.compasses for c in h.changes)
+
+
+def test_the_vehicle_track_holds_every_vehicle_whose_flights_share_a_bias() -> None:
+    """A seeded fleet shaped like benchmarks/fleet_changes.py's finding (docs/fleet.md): 12 vehicles x 17
+    flights, theta jumping on every other vehicle, each flight's estimate off by its own noise (the stated
+    sigma) plus a bias every flight of the vehicle shares (~4 % of theta, as diagnose's theta has). Each
+    flight's own +-2 sigma leaves some vehicle below 90 % of its flights; the vehicle's track (pooled
+    between changes, the shared error included) holds the truth on >= 90 % of every vehicle's flights, and
+    is narrower than the own interval on the flights that determine theta worst."""
+    rng = np.random.default_rng(28)
+    gain = np.array([[0.05, 0.03, -0.03], [0.03, -0.02, 0.01], [0.04, 0.0, 0.01]])
+    rows, truth = [], {}
+    for v in range(12):
+        theta0 = rng.uniform(-120, 120, 3)
+        theta1 = theta0 + rng.choice([-1, 1], 3) * rng.uniform(60, 120, 3)
+        at = int(rng.integers(3, 14)) if v % 2 else 99
+        for i in range(17):
+            th = theta1 if i >= at else theta0
+            sigma = rng.uniform(4.0, 14.0, 3)
+            est = th + gain @ th + sigma * rng.standard_normal(3)
+            r = _row(f"v{v:02d}", i, tuple(est), day=1 + i)
+            for axis, e, s in zip("xyz", est, sigma, strict=True):
+                r[f"diagnose_theta_{axis}_mgauss"] = float(e)
+                r[f"diagnose_theta_ci95_{axis}_mgauss"] = 1.959964 * float(s)
+            r["diagnose_theta_identifiable"] = True
+            rows.append(r)
+            truth[(f"guess:v{v:02d}/sys1", f"f{i:02d}.tlog")] = th
+    own_worst, track_worst, any_outside = 1.0, 1.0, 0
+    narrower = []
+    for veh in summarise(rows, theta_from="diagnose"):
+        h = veh.compasses[0]
+        assert h.track is not None and len(h.flights) == 17
+        th = np.array([truth[(veh.vehicle, f.file_name)] for f in h.flights])
+        x, s = np.array([f.theta for f in h.flights]), np.array([f.sigma for f in h.flights])
+        own_worst = min(own_worst, float(np.mean(np.all(np.abs(x - th) <= 2.0 * s, axis=1))))
+        inside = np.all((h.track.lower <= th) & (th <= h.track.upper), axis=1)
+        track_worst = min(track_worst, float(np.mean(inside)))
+        any_outside += int(not np.all(inside))
+        wide = s >= np.quantile(s, 0.9, axis=0)
+        narrower.append(float(np.median(((h.track.upper - h.track.lower) / (2 * 2.394 * s))[wide])))
+    assert own_worst < 0.9  # the flights' own intervals: some vehicle below 90 %
+    assert track_worst >= 0.9
+    assert any_outside <= 1  # the track holds every flight of a vehicle at 95 %: ~0.6 of 12 expected
+    assert float(np.median(narrower)) < 0.95  # on the worst-determined flights: narrower than their own box
