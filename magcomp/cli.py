@@ -61,9 +61,11 @@ def interpreter_tuning(command: str) -> Iterator[None]:
         ensure_dialect()
         importlib.import_module("pymavlink.mavutil")
         importlib.import_module("magcomp.service.daemon")
-        # the in-flight estimator imports scipy's LAPACK at its first solve (core/inflight.py: a replay's
-        # main process never needs it); live, that first solve would stall the sample loop ~0.2 s
-        importlib.import_module("scipy.linalg")
+        # the in-flight estimator loads scipy's LAPACK at its first solve (core/inflight/base.py: a replay
+        # of a log that never learns in flight never needs it); live, that first solve would stall the loop
+        from magcomp.core.inflight.base import lapack
+
+        lapack()
         gc.collect()
         gc.freeze()
         old_switch = sys.getswitchinterval()

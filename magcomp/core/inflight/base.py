@@ -53,15 +53,42 @@ _LAPACK: ModuleType | None = None
 
 
 def lapack() -> ModuleType:
-    """scipy's LAPACK wrappers (Cholesky solves), imported at the first solve: importing scipy.linalg costs
-    ~0.19 s of CPU, which a run whose compasses never learn in flight need not pay (the live daemon
-    imports it before its sample loop: cli.py)."""
+    """scipy's LAPACK wrappers (Cholesky solves: ``dposv``, ``dpotrs``), imported at the first solve: a run
+    whose compasses never learn in flight need not pay for them (the live daemon imports them before its
+    sample loop: cli.py). The wrappers are scipy's compiled ``scipy.linalg._flapack`` module, the very
+    functions ``scipy.linalg.lapack`` re-exports; loaded on its own, without the ``scipy.linalg`` package
+    around it, it costs ~15 ms of CPU where importing ``scipy.linalg`` costs ~120 ms (its Python layers,
+    which the solver never calls). Where scipy's layout differs, the package is imported after all."""
     global _LAPACK
     if _LAPACK is None:
+        _LAPACK = _flapack_alone()
+    return _LAPACK
+
+
+def _flapack_alone() -> ModuleType:
+    """``scipy.linalg._flapack`` loaded without importing ``scipy.linalg`` (see :func:`lapack`); registered
+    under its own name, so that a later ``import scipy.linalg`` takes this module, not a second copy."""
+    import importlib.machinery
+    import importlib.util
+    import os
+    import sys
+
+    import scipy
+
+    name = "scipy.linalg._flapack"
+    mod = sys.modules.get(name)
+    if mod is not None:
+        return mod
+    where = os.path.join(os.path.dirname(scipy.__file__), "linalg")
+    spec = importlib.machinery.PathFinder.find_spec(name, [where])
+    if spec is None or spec.loader is None:
         from scipy.linalg import lapack as scipy_lapack
 
-        _LAPACK = scipy_lapack
-    return _LAPACK
+        return scipy_lapack
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @dataclass(frozen=True, slots=True)

@@ -217,12 +217,13 @@ class WindowRowFeed:
         key = (epoch, win)
         relin = self.sw.relinearise_window and not frame.on and slow_link
         b = self._block
-        if len(b) and (not b.fits(key, frame.on, relin, x.shape[0]) or len(b) >= BLOCK_MAX):
+        held = b.t  # the block's samples (its length without a call: once per sample)
+        if held and (not b.fits(key, frame.on, relin, x.shape[0]) or len(held) >= BLOCK_MAX):
             self.flush()
         if relin and key != self._rl_key:
             self._relinearise()
             self._rl_key = key
-        if not len(b):
+        if not held:
             b.key, b.on, b.relin, b.n_r = key, frame.on, relin, x.shape[0]
         b.t.append(t_s)
         b.tau.append(tau)
