@@ -54,6 +54,10 @@ F64 = NDArray[np.float64]
 #: bound on the fitted latency (s): more than any compass hold or filter delay in the logs seen (a 10 Hz
 #: compass held is at most 0.1 s old); beyond it the estimate is model error, not timing
 MAX_LATENCY_S = 0.1
+#: the oldest a held compass value can be (s): autopilots read their compasses at 10 Hz or faster (75-100 Hz
+#: for the common I2C / SPI parts), so a value repeated for longer than 0.1 s was read again and had not
+#: changed (a still vehicle, a 1 mgauss resolution): not a hold
+MAX_HOLD_S = 0.1
 #: share of consecutive identical samples from which a compass is taken as held (module docstring)
 MIN_HELD_FRACTION = 0.2
 #: re-timing passes (the linearisation is exact to first order; the second pass takes up what is left)

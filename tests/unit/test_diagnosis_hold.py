@@ -33,6 +33,18 @@ def test_measured_times_of_a_hold() -> None:
     np.testing.assert_allclose(measured_times_s(t, unheld), want)
 
 
+def test_a_value_repeated_longer_than_any_compass_period_is_not_a_hold() -> None:
+    """4 Hz telemetry of a compass whose reading does not change (a still vehicle): a compass is read at
+    10 Hz or faster, so a value repeated 0.25 s later was read again, not held: each sample at its own time
+    (before the bound: 0.125-0.625 s before it). A 50 Hz hold of 3 samples is unchanged by the bound."""
+    t = 0.25 * np.arange(8, dtype=np.float64)
+    v = np.repeat(np.array([1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0, 3.0])[:, None], 3, axis=1)
+    np.testing.assert_allclose(measured_times_s(t, v), t)
+    fast = 0.02 * np.arange(7, dtype=np.float64)
+    w = np.repeat(np.array([1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0])[:, None], 3, axis=1)
+    np.testing.assert_allclose(measured_times_s(fast, w), [0.0, 0.01, 0.01, 0.01, 0.07, 0.07, 0.07])
+
+
 def _held(field: np.ndarray, every: int) -> np.ndarray:
     """Each update (every ``every`` samples) measured halfway between its first sample and the one before,
     then held."""
