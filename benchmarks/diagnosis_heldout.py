@@ -36,6 +36,11 @@ against the spread's 95 % interval (:mod:`magcomp.diagnosis.spread`): VALUE 1.2 
 (5/10 on 5000-5009); 1.6 found 17/20, inside 15/20; 2.0 found 19/20, inside 16/20. The misses per seed and
 why: docs/diagnosis.md ("The per-motor spread's interval").
 
+Measured 2026-11-28 after the rotation of a held compass's sample is taken at that sample's measurement
+time (branch permotor2; ``--seeds 10``, all seven 63/70 as before): per_motor at 1.2 found 13/20, inside
+12/20 (unchanged); at 2.0 found 19/20, inside 18/20 (was 16/20). docs/diagnosis.md ("The rotation at the
+per-motor samples").
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
 """
 

@@ -217,9 +217,11 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
         held = held_fraction(finite_series(log.mag[idx]).values)
         if held >= MIN_HELD_FRACTION:
             latency, data = compass_latency_s(data, partial(compass_data, log, idx, attitude=attitude))
+            age_ms = 1000.0 * float(np.mean(data.t_s - data.drive.t_s))
             notes.append(
                 f"compass {idx}: held in a faster message ({100 * held:.0f} % of its samples repeat the one "
-                f"before): attitude re-timed by {-1000 * latency:+.1f} ms, the compass's fitted latency"
+                f"before): attitude re-timed to each sample's measurement time ({age_ms:.1f} ms before its "
+                f"logged time on average), then by {-1000 * latency:+.1f} ms, the compass's fitted latency"
             )
         comps.append(run.compass(data))
     notes[first:first] = [_left_out_note(ts, idxs) for ts, idxs in left_out.items()]

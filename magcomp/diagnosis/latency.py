@@ -23,17 +23,20 @@ mgauss. A hold is seen in the data itself: consecutive samples identical on all 
 about 2 %.
 
 Here the latency is one least-squares nuisance of the paper's model (eq. (11)) fitted first, linearised:
-v(t) = A h_b(t - tau) + ... ~ A h_b(t) - tau d(A h_b)/dt, so tau is the regression of the baseline residual
-on -d(A h_b)/dt over all three axes; twice (the second pass on the re-timed attitude refines it). The attitude
-is then taken at t - tau (:func:`magcomp.diagnosis.inputs.compass_data`). tau is relative to the attitude
-source: it absorbs the attitude's own delay too (the gyro integral's, the autopilot filter's), which is what
-the model needs. The drive signals (throttle, motors, battery, temperature) are not moved by tau: their
-timing against the field is what ``current_lag`` and ``time_skew`` test, and moving them by an attitude
-delay made a 42 ms current_lag out of a clean 5 Hz log (``benchmarks/diagnosis_false_alarm.py`` seed 11534,
-first version of this module). They are taken at each held sample's own measurement time, read from the
-hold itself (:func:`magcomp.diagnosis.inputs.measured_times_s`): the hold's age is the compass's, not the
-attitude's, and left in place it was fitted as lag (+26 ms on the held-out current_lag case). Departure
-from the paper: the paper's compass and attitude share one clock.
+v(t) = A h_b(t - tau) + ... ~ A h_b(t) - tau d(A h_b)/dt, so tau is the regression of the baseline residual on
+-d(A h_b)/dt over all three axes; twice (the second pass on the re-timed attitude refines it). The attitude is
+then taken at each sample's measurement time minus tau (:func:`magcomp.diagnosis.inputs.compass_data`): the
+measurement times (:func:`magcomp.diagnosis.inputs.measured_times_s`) take each sample's own age out of the
+hold, which one tau for all samples cannot (ages 0-40 ms apart in the 40 Hz case), and tau what is left: the
+attitude source's own delay (the gyro integral's, the autopilot filter's) and the mean error of the
+measurement times (an update is placed halfway between two messages), which is what the model needs. The drive
+signals (throttle, motors, battery, temperature) are not moved by tau: their timing against the field is what
+``current_lag`` and ``time_skew`` test, and moving them by an attitude delay made a 42 ms current_lag out of a
+clean 5 Hz log (``benchmarks/diagnosis_false_alarm.py`` seed 11534, first version of this module). They are
+taken at each held sample's own measurement time, read from the hold itself
+(:func:`magcomp.diagnosis.inputs.measured_times_s`): the hold's age is the compass's, not the attitude's, and
+left in place it was fitted as lag (+26 ms on the held-out current_lag case). Departure from the paper: the
+paper's compass and attitude share one clock.
 """
 
 from __future__ import annotations
@@ -51,6 +54,10 @@ F64 = NDArray[np.float64]
 #: bound on the fitted latency (s): more than any compass hold or filter delay in the logs seen (a 10 Hz
 #: compass held is at most 0.1 s old); beyond it the estimate is model error, not timing
 MAX_LATENCY_S = 0.1
+#: the oldest a held compass value can be (s): autopilots read their compasses at 10 Hz or faster (75-100 Hz
+#: for the common I2C / SPI parts), so a value repeated for longer than 0.1 s was read again and had not
+#: changed (a still vehicle, a 1 mgauss resolution): not a hold
+MAX_HOLD_S = 0.1
 #: share of consecutive identical samples from which a compass is taken as held (module docstring)
 MIN_HELD_FRACTION = 0.2
 #: re-timing passes (the linearisation is exact to first order; the second pass takes up what is left)

@@ -24,9 +24,12 @@ correlated: delta_m = -sum of the others), per axis; the axes are taken as indep
 held-out per-motor logs (docs/diagnosis.md, "The per-motor spread's interval"): coefficients on the motor
 columns shifted in time scatter as the HAC variance says (1.01x, seeds 5000-5009), but the per-motor
 vectors' errors are 1.22x it: part of the log's error is aligned with the motor commands themselves, which
-no residual-based variance sees, and it is what the interval still misses (it goes with the 40 Hz gyro
-of those logs, whose strap-down integral is the forward model's rotation: with RAW_IMU at 100 Hz the ratio
-is 0.81). A delete-one-block jackknife
+no residual-based variance sees, and it is what the interval still misses. It is the forward model's
+rotation, not the 40 Hz gyro's integral (docs/diagnosis.md, "The rotation at the per-motor samples"): a held
+compass's samples were taken at one latency for all (0-40 ms apart), and the tilt follows the log's roll
+and pitch; with the rotation at each sample's measurement time the ratio is 1.10 over seeds 5000-5011
+(1.14 before, 1.04 with the simulator's rotation; the HAC variance alone on the exact model: 1.03), the
+rest from the tilt of the log's attitude. A delete-one-block jackknife
 floor (theta's, six 10 s blocks on a 60 s log: 5 degrees of freedom) was tried and not kept: the floored
 interval reached down to a spread of 0 on 12 of 20 held-out logs.
 """
