@@ -55,13 +55,20 @@ class Plan:
 
 @dataclass
 class RunStats:
+    """What a run did, for its closing line and ``benchmarks/fleet.py``."""
+
+    #: logs analysed in this run (skipped ones not counted), and of them those with a row and those failed
     analysed: int = 0
     ok: int = 0
     failed: int = 0
+    #: rows written (one per compass, or one for a failed log)
     rows: int = 0
+    #: CPU of the logs' analyses summed over the workers, and the run's wall time (s)
     cpu_s: float = 0.0
     wall_s: float = 0.0
+    #: workers the analyses ran on (1: in this process)
     workers: int = 0
+    #: the largest resident set a worker reached, per worker address (MB)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
 
 

@@ -42,7 +42,7 @@ from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 F64 = NDArray[np.float64]
 
 #: the first pass of a two-pass replay re-solves the estimate at most this often (s of message time; the
-#: live stages: ``InflightConfig.solve_period_s``, 0.1 s). Only its final estimate is published; what the
+#: live stages: ``InflightConfig.solve_period_s``, 0.5 s). Only its final estimate is published; what the
 #: solutions in between steer (the rows' linearisation point, the gate, the window-field rows' blocks: the
 #: samples between two solutions) moved the simulated ordinary flight's and log171's headings by under 1 %
 #: and none of the corpus's two-pass figures; the ordinary flight's two-pass replay took 6.3 s of CPU
