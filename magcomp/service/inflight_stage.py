@@ -9,6 +9,8 @@ late matching and the apply decision are core's (:mod:`magcomp.core.inflight.fee
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,7 +32,6 @@ from magcomp.core.inflight.apply import (
     bias_at,
 )
 from magcomp.core.inflight.feed import (
-    TILT_SOLVE_EVERY,
     FeedSwitches,
     WindowRowFeed,
     add_absolute_row,
@@ -49,6 +50,18 @@ F64 = NDArray[np.float64]
 #: re-solving every 0.1 s, 3.7 s every 1 s. Every 3 s (3.4 s of CPU) rows linearised at older estimates
 #: leave correlated residuals: log171 compass 0's heading sigma 0.92 -> 1.55 deg (docs/benchmarks.md)
 LEARN_SOLVE_PERIOD_S = 1.0
+#: and the tilt model's every this often (10 solutions: what it has been since the first pass re-solves once a
+#: second; the live stages: ``InflightConfig.tilt_solve_period_s``, 1 s)
+LEARN_TILT_SOLVE_PERIOD_S = 10.0
+
+
+def learn_config(cfg: InflightConfig) -> InflightConfig:
+    """The in-flight settings of a two-pass replay's first pass: re-solved no more often than
+    LEARN_SOLVE_PERIOD_S, the tilt model no more often than LEARN_TILT_SOLVE_PERIOD_S."""
+    return replace(cfg, solve_period_s=max(cfg.solve_period_s, LEARN_SOLVE_PERIOD_S),
+                   tilt_solve_period_s=max(cfg.tilt_solve_period_s, LEARN_TILT_SOLVE_PERIOD_S))  # fmt: skip
+
+
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
@@ -95,6 +108,8 @@ class InflightStage:
         self.n_motors = -1  # decided at the first sample
         self._period = 1.0 / cfg.max_rate_hz
         self._solve_period = cfg.solve_period_s
+        #: the tilt model's estimator is re-solved at every this many solutions of the published one
+        self._tilt_every = max(1, round(cfg.tilt_solve_period_s / cfg.solve_period_s))
         self._earth_given: object = None  # the Earth field last handed to the estimators (feed)
         self._last_fed: float | None = None
         #: a window sequence is running (False: the next sample starts one; a window never spans a gap)
@@ -162,7 +177,7 @@ class InflightStage:
                 self.mode, self.n_motors, self.params, self.field_norm_mgauss, self._warm
             )
         self._est = InflightEstimator(self.mode, self.n_motors, self.params, self.field_norm_mgauss,
-                                      self._warm, self.est_tilt, TILT_SOLVE_EVERY)  # fmt: skip
+                                      self._warm, self.est_tilt, self._tilt_every)  # fmt: skip
         self._earth_given = None  # the new estimators take the Earth field at the next sample
         relative = self.mode == "relative"
         self._rows = WindowRowFeed(self._est, self.est_tilt, self.switches) if relative else None

@@ -21,9 +21,9 @@ backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`P
 
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
 theta stage feeds the observers without reading theta back into the records, and the in-flight estimate is
-re-solved every ``LEARN_SOLVE_PERIOD_S`` (only its final state is published); the states every stage reaches
-are the same as in a full run with that re-solve period. With a ``recorder`` it also records what the second
-pass needs (:mod:`magcomp.service.final_pass`).
+re-solved less often (``inflight_stage.learn_config``: only its final state is published); the states every
+stage reaches are the same as in a full run with those re-solve periods. With a ``recorder`` it also records
+what the second pass needs (:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
 from magcomp.service.heading import heading_stage
-from magcomp.service.inflight_stage import LEARN_SOLVE_PERIOD_S
+from magcomp.service.inflight_stage import learn_config
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
 from magcomp.service.record import Float3, MagRecord
@@ -156,8 +156,7 @@ class Pipeline:
         self.persist = PersistStage(store, self._workers.state, cfg.state.save_interval_s, self._vehicle,
                                     self.warnings)  # fmt: skip
         # the first pass of a two-pass replay publishes only its final estimate: re-solved less often
-        cal_cfg = replace(cfg, inflight=replace(cfg.inflight, solve_period_s=LEARN_SOLVE_PERIOD_S)) if (
-            learn_only and cfg.inflight.solve_period_s < LEARN_SOLVE_PERIOD_S) else cfg  # fmt: skip
+        cal_cfg = replace(cfg, inflight=learn_config(cfg.inflight)) if learn_only else cfg
         self.calibrate = CalibrateStage(cal_cfg, self.attitude, self.throttle, self._params, self._earth_ned,
                                         self.persist.save, self._text)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)

@@ -16,7 +16,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.mavlink_source import open_source
 from magcomp.core.types import Sample
-from magcomp.service.inflight_stage import LEARN_SOLVE_PERIOD_S
+from magcomp.service.inflight_stage import learn_config
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.replay import MemoryStore, replay_log
 from magcomp.sim import SimConfig, simulate
@@ -43,10 +43,10 @@ def _samples(path: Path) -> list[Sample]:
 
 def _final_states(samples: list[Sample], learn_only: bool) -> MemoryStore:
     """The states a run stores at its end; the in-flight estimate re-solved as often in both runs (a
-    learn-only pass re-solves it every LEARN_SOLVE_PERIOD_S)."""
+    learn-only pass re-solves it as ``learn_config`` says)."""
     store = MemoryStore()
     cfg = Config()
-    cfg = replace(cfg, inflight=replace(cfg.inflight, solve_period_s=LEARN_SOLVE_PERIOD_S))
+    cfg = replace(cfg, inflight=learn_config(cfg.inflight))
     p = Pipeline(cfg, store=store, learn_only=learn_only)
     published = sum(p.feed(s) for s in samples)
     p.close()

@@ -52,11 +52,6 @@ AP_YAW_PRIOR_RAD = math.radians(5.0)
 #: prior standard deviation (mgauss) of a window's horizontal Earth field in the window-field rows: any
 #: Earth field (under 700 mgauss anywhere), i.e. free
 WINDOW_FIELD_PRIOR_MGAUSS = 1000.0
-#: the tilt model's estimator is re-solved at every this many solutions of the published one (each
-#: solve_period_s of the stage, 0.5 s live, 1 s in a replay's first pass): theta moves little in seconds, and
-#: solving both every 0.1 s cost 55 % more CPU on a 50 Hz replay (then 17 %); the final state and the
-#: stored one always take its latest theta
-TILT_SOLVE_EVERY = 10
 
 
 @dataclass(frozen=True, slots=True)
