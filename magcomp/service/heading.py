@@ -288,8 +288,11 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
     if cand is not None and rec.have_throttle:
         if chk is None:
+            # off until it beats the autopilot's own heading on this flight, also where it is carried over
+            # from the vehicle's saved state: the vehicle may have changed since, and the relative form's
+            # constant part settles again on the new flight (37-42 deg off for 5 s on a development log when
+            # a saved correction was published from the first window: test_warm_start_check.py)
             chk = track.check = RunningSelfCheck()
-            chk.on = rec.inflight is not None and rec.inflight.warm_started  # judged on its own flight
         if judged:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
