@@ -81,6 +81,7 @@ def main() -> int:
             change_at = int(rng.integers(2, args.flights - 1)) if v % 2 == 1 else None
             theta1 = theta0 + rng.choice([-1, 1], 3) * rng.uniform(60, 120, 3)
             thetas = []
+            logged: list[list[float]] = []  # the same in the frame of the logged field (truth_theta)
             for f in range(args.flights):
                 th = theta1 if change_at is not None and f >= change_at else theta0
                 if args.jitter > 0:
@@ -107,7 +108,9 @@ def main() -> int:
                     ]
                 )
                 assert rc == 0
-            truth[name] = {"change_at": change_at, "thetas": thetas}
+                sim = json.loads((root / name / f"flight{f:02d}.truth.json").read_text())
+                logged.append(sim["compasses"][0]["logged_frame"]["theta_logged_mgauss"])
+            truth[name] = {"change_at": change_at, "thetas": thetas, "thetas_logged": logged}
         print(f"simulated {args.vehicles} x {args.flights} flights in {time.perf_counter() - t0:.0f} s")
         out = root / "out"
         logs = find_logs([str(root)], exclude=out)
@@ -154,7 +157,7 @@ def main() -> int:
             )
             for r in mine:
                 f = int(r["file_name"][6:8])
-                th = np.array(t["thetas"][f])  # type: ignore[index]
+                th = truth_theta(t, f)
                 pairs.append((r, th))
                 total += 1
                 if not r["applied"] or r["theta_sigma_x_mgauss"] is None:
@@ -202,6 +205,15 @@ def main() -> int:
     return 0
 
 
+def truth_theta(t: Any, flight: int) -> np.ndarray:
+    """The true theta of a flight in the frame diagnose reports it in and the autopilot takes it in: the
+    frame of the logged (autopilot-calibrated) field, ``L^-1 theta`` of the simulator's truth (ArduPilot
+    adds COMPASS_MOT x throttle after its offsets and DIA/ODI matrix). A --save folder written before this
+    frame was recorded has the body-frame theta only (the simulator's ``theta_mgauss``), used then."""
+    key = "thetas_logged" if "thetas_logged" in t else "thetas"
+    return np.array(t[key][flight], dtype=float)
+
+
 def rescore(saved: Path, ablate: bool) -> int:
     """Print the scores of the rows and truth a ``--save`` run wrote."""
     import pyarrow.parquet as pq
@@ -222,7 +234,7 @@ def score_lines(rows: list[dict[str, Any]], truth: dict[str, Any], ablate: bool)
     pairs = []
     for r in rows:
         if r["status"] == "ok" and r["vehicle"] in truth:
-            pairs.append((r, np.array(truth[r["vehicle"]]["thetas"][int(r["file_name"][6:8])])))
+            pairs.append((r, truth_theta(truth[r["vehicle"]], int(r["file_name"][6:8]))))
     out = ["with diagnose's theta per flight: " + change_score(rows, truth, "diagnose")]
     out += coverage_lines(
         pairs, "diagnose_theta", "diagnose_theta_ci95_joint", "diagnose joint ci95", [(1.0, 95.0)]
@@ -257,7 +269,7 @@ def _track_coverage(
         if t is None:
             continue
         for i, f in enumerate(h.flights):
-            th = np.array(truth[v.vehicle]["thetas"][int(f.file_name[6:8])])
+            th = truth_theta(truth[v.vehicle], int(f.file_name[6:8]))
             inside.setdefault(v.vehicle, []).append(bool(np.all((t.lower[i] <= th) & (th <= t.upper[i]))))
             widths.append((t.upper[i] - t.lower[i]) / 2.0)
             r = by_file[(v.vehicle, f.file_name)]

@@ -160,7 +160,9 @@ TRACK_FAMILY_LEVEL = 0.95
 #: The error that all flights of a segment share, which pooling cannot average away: per axis
 #: hypot(TRACK_SYSTEMATIC_REL x |theta|, TRACK_SYSTEMATIC_ABS_MGAUSS). Measured on simulated fleets with
 #: the truth known (benchmarks/fleet_changes.py seeds 0 and 1, docs/fleet.md): diagnose's theta carries a
-#: bias that follows theta itself (~3 % of |theta| per axis, the same on every flight of a vehicle).
+#: bias that follows theta itself (~3 % of |theta| per axis, the same on every flight of a vehicle). Its
+#: cause is diagnose's rotation (its tilt follows the autopilot's, which leans with the autopilot's
+#: compass-driven yaw error when the vehicle accelerates; docs/diagnosis.md): kept until that is fixed.
 TRACK_SYSTEMATIC_REL = 0.03
 TRACK_SYSTEMATIC_ABS_MGAUSS = 1.0
 
