@@ -66,15 +66,16 @@ class LeastSquares(NamedTuple):
     residuals: F64  # y - X beta, the shape of y
 
 
-def least_squares(x: F64, y: F64) -> LeastSquares:
+def least_squares(x: F64, y: F64, eliminated: int = 0) -> LeastSquares:
     """The least-squares estimator of ``y = X beta`` and its covariance, eqs. (14a), (14b), with the noise
-    variance of eq. (15); ``y`` (n,) or (n, k) (one fit per column, one X). The one implementation of these
-    equations: the offline fit on a stationary sweep (:func:`fit_bias_offline`) and the batch solve of the
-    observer's regression (:mod:`magcomp.core.observer_batch`) both call it."""
+    variance of eq. (15); ``y`` (n,) or (n, k) (one fit per column, one X). ``eliminated``: parameters
+    solved out of ``X`` and ``y`` before the call (they count in eq. (15)'s ``p``). The one implementation
+    of these equations: the offline fit on a stationary sweep (:func:`fit_bias_offline`) and the batch
+    solve of a whole log (:mod:`magcomp.core.observer_batch`) both call it."""
     n, n_params = x.shape
     beta, *_ = np.linalg.lstsq(x, y, rcond=None)  # eq. (14a)
     resid = y - x @ beta
-    sigma2 = np.sum(resid**2, axis=0) / (n - n_params)  # eq. (15)
+    sigma2 = np.sum(resid**2, axis=0) / (n - n_params - eliminated)  # eq. (15)
     xtx_inv = np.linalg.inv(x.T @ x)
     cov = xtx_inv * sigma2 if np.ndim(sigma2) == 0 else xtx_inv[None, :, :] * sigma2[:, None, None]  # (14b)
     return LeastSquares(np.asarray(beta, dtype=np.float64), cov, np.asarray(sigma2, dtype=np.float64), resid)

@@ -10,9 +10,9 @@ instead, theta came out 8-15 % off on simulated flights (docs/benchmarks.md).
 
 A learn-only pass (the first of a two-pass replay, whose theta is read at its end only) does not step the
 observer: each tracker logs the samples it would step on, through the same queue and gates
-(:class:`ObserverRowLog`), and :meth:`ThetaTracker.finish` solves them at once by least squares
-(core/observer_batch.py, eqs. (14a)-(15) on the observer's regression); the live path and ``--causal``
-step the observer.
+(:class:`ObserverRowLog`), and :meth:`ThetaTracker.finish` solves them at once by the least squares of
+eqs. (12)-(15) on the moving vehicle (core/observer_batch.py); the live path and ``--causal`` step the
+observer.
 
 With the in-flight calibration, theta and the bias come with its correction (calibrate stage).
 The bias ``theta * throttle^2`` (eq. (11)) uses the latest throttle: the published heading adds no latency.
@@ -73,7 +73,7 @@ class ObserverRowLog:
         log does not excite."""
         a = np.frombuffer(self.buf, dtype=np.float64).reshape(-1, 9)
         p = est.params
-        rows = observer_batch.regression_rows(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8], p)
+        rows = observer_batch.model_rows(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8], p)
         return observer_batch.batch_theta(rows, p, est.theta_mgauss)
 
 
@@ -173,8 +173,8 @@ class ThetaStage:
         self._stale_s = cfg.input.stale_s
         self._learn = cfg.observer.learn
         self._outputs = outputs
-        #: a learn-only pass logs the observers' samples for the batch solve (where it has one for the form)
-        self._batch = not outputs and observer_batch.supported(est_core.observer_params(cfg))
+        #: a learn-only pass logs the observers' samples for the batch solve
+        self._batch = not outputs
 
     def drain(self, c: ThetaHost, t_now: float) -> None:
         """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""

@@ -1,6 +1,8 @@
-"""The batch solve of the observer's regression (core/observer_batch.py): its rows are the online step's
-rows, and on seeded simulated flights its theta and the recursive solver's final theta agree within their
-stated uncertainty (issue 24: "At the end of a log the two agree within their stated uncertainty")."""
+"""The batch solve of theta over a whole log (core/observer_batch.py): its rotations are the online step's,
+standing still it is the paper's offline fit (eq. (14a)), its stated 1-sigma is the spread of its error on
+the model's own data, and on seeded simulated flights its theta and the recursive solver's final theta agree
+within their stated uncertainty (issue 24: "At the end of a log the two agree within their stated
+uncertainty")."""
 
 from __future__ import annotations
 
@@ -15,105 +17,106 @@ from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.mavlink_source import open_source
 from magcomp.core import observer_batch as ob
 from magcomp.core.bias_fit import fit_bias_offline, least_squares
-from magcomp.core.linalg3 import minus_matvec
-from magcomp.core.lowpass import biquad_step, lowpass_coefficients, lowpass_init
-from magcomp.core.observer import ObserverParams, regressor, rotation_increment
+from magcomp.core.observer import ObserverParams, rotation_increment
 from magcomp.core.rotations import dcm_from_rotvec
 from magcomp.service.pipeline import Pipeline
 from magcomp.sim import SimConfig, simulate
 
-
-def _scalar_rows(t: np.ndarray, w: np.ndarray, v: np.ndarray, d: np.ndarray, p: ObserverParams) -> np.ndarray:
-    """The online step's (y_k, Phi_k) for one run of steps, from the per-sample functions, (m, 12)."""
-    out = []
-    for k in range(1, t.size):
-        dt = t[k] - t[k - 1]
-        dt_prev = t[k - 1] - t[k - 2] if k >= 2 else math.nan
-        w0 = w[k - 2] if k >= 2 else w[k - 1]
-        ph = rotation_increment(tuple(w0), tuple(w[k - 1]), tuple(w[k]), dt_prev, dt, p.rate_interp)
-        a = dcm_from_rotvec((-ph[0], -ph[1], -ph[2]))
-        phi = regressor(a, d[k - 1] ** 2, d[k] ** 2, p.variant)
-        y = minus_matvec(tuple(v[k]), a, tuple(v[k - 1]))
-        out.append((*y, *phi))
-    return np.array(out)
+THETA = np.array([-61.0, 26.4, -1.2])
 
 
-def _random_run(n: int, seed: int) -> tuple[np.ndarray, ...]:
-    rng = np.random.default_rng(seed)
+def test_rotations_over_arrays_are_the_online_steps() -> None:
+    rng = np.random.default_rng(1)
+    n = 300
     t = np.cumsum(rng.uniform(0.018, 0.022, n))
     w = np.cumsum(rng.normal(0.0, 0.2, (n, 3)), axis=0)
-    v = rng.normal(0.0, 300.0, (n, 3))
-    d = rng.uniform(0.2, 1.0, n)
-    return t, w, v, d
+    dt = np.diff(t)
+    h0 = np.concatenate([[math.nan], dt[:-1]])  # the first step has no interval before it: the trapezoid
+    w0 = np.concatenate([w[:1], w[:-2]])
+    ph = ob.rotation_increments(w0, w[:-1], w[1:], h0, dt, ObserverParams())
+    a = ob.dcms_from_rotvecs(-ph)
+    for k in range(n - 1):
+        ref = rotation_increment(tuple(w0[k]), tuple(w[k]), tuple(w[k + 1]), h0[k], dt[k], "quadratic")
+        np.testing.assert_allclose(ph[k], ref, rtol=0.0, atol=1e-15)
+        np.testing.assert_allclose(a[k].ravel(), dcm_from_rotvec((-ref[0], -ref[1], -ref[2])), atol=1e-15)
 
 
-@pytest.mark.parametrize("variant", ["delta_dot", "paper"])
-def test_rows_over_arrays_are_the_online_steps_rows(variant: str) -> None:
-    t, w, v, d = _random_run(400, 1)
-    p = ObserverParams(prefilter="none", variant=variant)  # type: ignore[arg-type]
-    rows = ob.regression_rows(t, w, v, d, np.zeros(t.size), p)
-    ref = _scalar_rows(t, w, v, d, p)
-    assert rows.y_mgauss.shape == (t.size - 1, 3)
-    np.testing.assert_allclose(rows.y_mgauss, ref[:, :3], rtol=0.0, atol=1e-9)
-    np.testing.assert_allclose(rows.phi.reshape(-1, 9), ref[:, 3:], rtol=0.0, atol=1e-12)
-
-
-def test_low_pass_of_the_rows_is_the_online_filter_and_restarts_where_it_does() -> None:
-    """At a steady interval the filtered rows are the online biquad's; a reset marker restarts it (at rest on
-    the next run's first row), a skip marker keeps its memory, an interval out of range re-anchors."""
-    n = 300
-    t, w, v, d = _random_run(n, 2)
+def test_standing_still_it_is_the_offline_fit_of_eq_14a() -> None:
+    """No rotation, one window: the windows' field is eq. (12)'s constant u, and theta is eq. (14a)'s."""
+    rng = np.random.default_rng(2)
+    n = 400  # 8 s at 50 Hz: one window
     t = np.arange(n) * 0.02
-    t[200:] += 1.0  # an interval above dt_max_s: re-anchors, the filter restarts
-    start = np.zeros(n)
-    start[80] = ob.START_RESET
-    start[140] = ob.START_SKIP
+    thr = np.linspace(0.0, 1.0, n)
+    u = np.array([120.0, -40.0, 380.0])
+    field = np.outer(thr**2, THETA) + u + rng.normal(0.0, 8.0, (n, 3))
+    p = ObserverParams(excitation_min_rad2_s2=1e-12)  # the throttle sweep alone excites (barely)
+    rows = ob.model_rows(t, np.zeros((n, 3)), field, thr, np.zeros(n), p)
+    assert rows.n_windows == 1
+    got = ob.batch_theta(rows, p)
+    ref = fit_bias_offline(thr, field, n_monte_carlo=0)
+    np.testing.assert_allclose(got.theta_mgauss, ref.theta_mgauss, rtol=0.0, atol=1e-9)
+    # eq. (15) pooled over the axes (one noise variance, 3n - 6 degrees of freedom; per axis: n - 2)
+    pooled = ref.covariance[:, 0, 0] / ref.sigma_mgauss**2 * np.mean(ref.sigma_mgauss**2)
+    np.testing.assert_allclose(got.theta_std_mgauss, np.sqrt(pooled), rtol=1e-9)
+
+
+def _rotating_flight(n: int) -> tuple[np.ndarray, ...]:
+    """Samples of eq. (12) on a vehicle turning about all axes (the attitude integrated finely), varying
+    throttle, the Earth field fixed in NED; no noise."""
+    dt, sub = 0.02, 20
+    t = np.arange(n) * dt
+    rate = lambda s: 1.5 * np.array([np.sin(0.7 * s), np.cos(0.5 * s), 0.3 * np.sin(0.3 * s + 1.0)])  # noqa: E731
+    r = np.eye(3)
+    field = np.empty((n, 3))
+    u_e = np.array([240.0, -27.0, 386.0])
+    thr = 0.6 + 0.35 * np.sin(0.4 * t)
+    for i in range(n):
+        field[i] = r.T @ u_e + thr[i] ** 2 * THETA
+        for j in range(sub):  # body-to-NED rotation, R' = R [omega]_x, at the sub-step's midpoint rate
+            h = dt / sub
+            r = r @ np.array(dcm_from_rotvec(tuple(rate(t[i] + (j + 0.5) * h) * h))).reshape(3, 3)
+    omega = np.array([rate(s) for s in t])
+    return t, omega, field, thr
+
+
+def test_stated_sigma_is_the_spread_of_the_error_on_the_models_own_data() -> None:
+    rng = np.random.default_rng(3)
+    t, omega, clean, thr = _rotating_flight(1500)
+    z = []
     p = ObserverParams()
-    rows = ob.regression_rows(t, w, v, d, start, p)
-    raw = ob.regression_rows(t, w, v, d, start, ObserverParams(prefilter="none"))
-    # steps: 1..79 (run 1), 81..139 and 141..199 (run 2: the skip keeps the filter), 201..299 (run 3)
-    assert rows.dt_s.size == 79 + 59 + 59 + 99
-    c = lowpass_coefficients(p.lowpass, 0.02)
-    regs = np.concatenate([raw.y_mgauss, raw.phi.reshape(-1, 9)], axis=1)
-    ref = np.empty_like(regs)
-    for a, b in ((0, 79), (79, 79 + 118), (79 + 118, regs.shape[0])):
-        st = lowpass_init(regs[a].tolist())
-        for i in range(a, b):
-            st, ref[i] = biquad_step(c, st, regs[i].tolist())
-    got = np.concatenate([rows.y_mgauss, rows.phi.reshape(-1, 9)], axis=1)
-    np.testing.assert_allclose(got, ref, rtol=0.0, atol=1e-9 * float(np.abs(regs).max()))
+    for _ in range(12):
+        field = clean + rng.normal(0.0, 8.0, clean.shape)
+        got = ob.batch_theta(ob.model_rows(t, omega, field, thr, np.zeros(t.size), p), p)
+        assert all(got.converged)
+        z.append((got.theta_mgauss - THETA) / got.theta_std_mgauss)
+    zz = np.concatenate(z)
+    assert 0.6 < float(np.std(zz)) < 1.6  # 36 draws of N(0, 1), and the rotation's integration error
+    assert float(np.abs(np.mean(zz))) < 0.7
 
 
-def test_a_non_finite_sample_is_left_out_and_the_next_one_re_anchors() -> None:
-    t, w, v, d = _random_run(100, 3)
-    v[50, 1] = math.nan
-    rows = ob.regression_rows(t, w, v, d, np.zeros(t.size), ObserverParams(prefilter="none"))
-    assert rows.dt_s.size == 99 - 2  # the steps into and out of sample 50 are gone
+def test_a_non_finite_sample_is_left_out_and_the_next_one_starts_a_window() -> None:
+    rng = np.random.default_rng(4)
+    t, omega, field, thr = _rotating_flight(100)
+    field = field + rng.normal(0.0, 8.0, field.shape)
+    field[50, 1] = math.nan
+    start = np.zeros(t.size)
+    start[20] = ob.START_RESET
+    rows = ob.model_rows(t, omega, field, thr, start, ObserverParams())
+    assert rows.n_windows == 3 and rows.y_mgauss.shape == (99, 3)
+    assert rows.dt_s.size == 19 + 29 + 48  # the online steps: none into 20, into 50 or into 51
     assert np.isfinite(rows.y_mgauss).all()
 
 
-def test_least_squares_is_the_offline_fits_and_recovers_theta_from_rows() -> None:
-    """One implementation of eqs. (14a), (14b), (15): the offline fit's numbers, and on rows built from a
-    known theta with noise, theta within its stated 1-sigma (several draws)."""
+def test_least_squares_is_the_offline_fits() -> None:
+    """One implementation of eqs. (14a), (14b), (15): the offline fit's own numbers."""
     rng = np.random.default_rng(5)
     thr = np.linspace(0.0, 1.0, 200)
     u = np.array([100.0, 50.0, -300.0])
     field = np.outer(thr**2, [-40.0, 17.0, -1.0]) + u + rng.normal(0.0, 5.0, (200, 3))
     fit = fit_bias_offline(thr, field, n_monte_carlo=0)
-    x = np.column_stack([thr**2, np.ones_like(thr)])
-    ls = least_squares(x, field)
+    ls = least_squares(np.column_stack([thr**2, np.ones_like(thr)]), field)
     np.testing.assert_array_equal(fit.theta_mgauss, ls.beta[0])
     np.testing.assert_array_equal(fit.covariance, ls.covariance)
-    theta = np.array([-61.0, 26.4, -1.2])
-    z = []
-    for _ in range(20):
-        phi = rng.normal(0.0, 0.05, (500, 3, 3))
-        y = phi @ theta + rng.normal(0.0, 2.0, (500, 3))
-        f = least_squares(phi.reshape(-1, 3), y.reshape(-1))
-        z.append((f.beta - theta) / np.sqrt(np.diag(f.covariance)))
-    zz = np.concatenate(z)
-    assert 0.6 < float(np.std(zz)) < 1.4  # the stated sigma is the spread
-    assert float(np.abs(zz).max()) < 4.5
 
 
 def _pipeline(path: Path, learn_only: bool) -> Pipeline:
@@ -133,7 +136,7 @@ def _pipeline(path: Path, learn_only: bool) -> Pipeline:
 def test_batch_and_recursive_theta_agree_within_their_uncertainty(tmp_path: Path, seed: int) -> None:
     """The paper's scenario (hand rotation, then flight): the learn-only pass's batch theta and the per-sample
     observer's final theta, each compass, differ by less than 3 combined sigmas (each solver's own 1-sigma);
-    and the batch theta is within 3 % of the simulated theta plus its 3 sigma."""
+    and the batch theta is within 4 % of the simulated theta (the learned calibration's error part of it)."""
     result = simulate(SimConfig(scenario="paper", duration_s=133.0, seed=seed))
     path = tmp_path / "paper.tlog"
     write_tlog(result, path)
@@ -141,7 +144,7 @@ def test_batch_and_recursive_theta_agree_within_their_uncertainty(tmp_path: Path
     live = _pipeline(path, learn_only=False)
     for idx, c in batch.correctors.items():
         b = c.theta.batch
-        assert b is not None and b.n_steps > 1000
+        assert b is not None and b.n_samples > 3000
         assert all(b.converged)
         np.testing.assert_allclose(c.theta.est.theta_values(), b.theta_mgauss)  # what the pass hands on
         tr = live.correctors[idx].theta
@@ -151,5 +154,4 @@ def test_batch_and_recursive_theta_agree_within_their_uncertainty(tmp_path: Path
         combined = np.sqrt(b.theta_std_mgauss**2 + sd_online**2)
         assert np.all(np.abs(b.theta_mgauss - online) <= 3.0 * combined), (idx, b, online, sd_online)
         truth = np.asarray(result.compasses[idx].theta_mgauss)
-        err = np.abs(b.theta_mgauss - truth)
-        assert np.all(err <= 0.03 * np.linalg.norm(truth) + 3.0 * b.theta_std_mgauss), (idx, b, truth)
+        assert np.linalg.norm(b.theta_mgauss - truth) <= 0.04 * np.linalg.norm(THETA), (idx, b, truth)
