@@ -66,13 +66,17 @@ class LeastSquares(NamedTuple):
     residuals: F64  # y - X beta, the shape of y
 
 
-def least_squares(x: F64, y: F64, eliminated: int = 0) -> LeastSquares:
+def least_squares(x: F64, y: F64, eliminated: int = 0, n_obs: int | None = None) -> LeastSquares:
     """The least-squares estimator of ``y = X beta`` and its covariance, eqs. (14a), (14b), with the noise
     variance of eq. (15); ``y`` (n,) or (n, k) (one fit per column, one X). ``eliminated``: parameters
-    solved out of ``X`` and ``y`` before the call (they count in eq. (15)'s ``p``). The one implementation
-    of these equations: the offline fit on a stationary sweep (:func:`fit_bias_offline`) and the batch
-    solve of a whole log (:mod:`magcomp.core.observer_batch`) both call it."""
+    solved out of ``X`` and ``y`` before the call (they count in eq. (15)'s ``p``). ``n_obs``: the number
+    of observations when ``[X y]`` is a compressed form of them with the same normal equations (the R of
+    their QR factorisation: the same beta, covariance and sum of squared residuals; the residuals returned
+    are then the compressed rows'). The one implementation of these equations: the offline fit on a
+    stationary sweep (:func:`fit_bias_offline`) and the batch solve of a whole log
+    (:mod:`magcomp.core.observer_batch`) both call it."""
     n, n_params = x.shape
+    n = n if n_obs is None else n_obs
     beta, *_ = np.linalg.lstsq(x, y, rcond=None)  # eq. (14a)
     resid = y - x @ beta
     sigma2 = np.sum(resid**2, axis=0) / (n - n_params - eliminated)  # eq. (15)

@@ -65,6 +65,37 @@ class BatchRows(NamedTuple):
     n_windows: int  # windows with two samples or more (three parameters each, in eq. (15)'s p)
     dt_s: F64  # (k,) the online estimator's steps' intervals
     observable: NDArray[np.bool_]  # (k, 3) per step and axis, from the windowed Gramian of eq. (21)
+    #: the windowed Gramian's sum and weight after the last step (10,): where the next part of the log goes on
+    excitation_carry: F64
+
+
+class BatchSums(NamedTuple):
+    """A log's rows so far, compressed (:func:`batch_add`): the R of the QR factorisation of ``[X y]`` per
+    part, stacked (the same normal equations as the rows, so the same least squares), the numbers of
+    observations and windows, each axis's excited time and the Gramian's carry."""
+
+    r: F64  # (k, 4)
+    n_obs: int
+    n_windows: int
+    excited_s: F64  # (3,)
+    excitation_carry: F64  # (10,)
+    n_samples: int
+
+
+def batch_init() -> BatchSums:
+    """Nothing seen yet."""
+    return BatchSums(np.zeros((0, 4)), 0, 0, np.zeros(3), np.zeros(10), 0)
+
+
+def batch_add(sums: BatchSums, rows: BatchRows) -> BatchSums:
+    """``sums`` with one more part of the log (the parts in time order): its rows compressed to 4 numbers
+    a column, so that a long log is solved in bounded memory."""
+    m = np.column_stack([rows.x.reshape(-1, 3), rows.y_mgauss.reshape(-1)])
+    r: F64 = np.linalg.qr(m, mode="r") if m.shape[0] > 4 else m  # type: ignore[assignment]
+    excited = (rows.observable * rows.dt_s[:, None]).sum(axis=0) if rows.dt_s.size else np.zeros(3)
+    n = rows.y_mgauss.shape[0]
+    return BatchSums(np.concatenate([sums.r, r]), sums.n_obs + 3 * n, sums.n_windows + rows.n_windows,
+                     sums.excited_s + excited, rows.excitation_carry, sums.n_samples + n)  # fmt: skip
 
 
 class BatchTheta(NamedTuple):
@@ -105,14 +136,14 @@ def dcms_from_rotvecs(phi: F64) -> F64:
     return np.eye(3) + s1[:, None, None] * k + s2[:, None, None] * (k @ k)
 
 
-def _observable(phi: F64, dt: F64, p: ObserverParams) -> NDArray[np.bool_]:
+def _observable(phi: F64, dt: F64, carry: F64, p: ObserverParams) -> tuple[NDArray[np.bool_], F64]:
     """Per step and axis: the exponentially windowed Gramian of ``Phi^T Phi / dt`` (eq. (21), window
-    ``excitation_window_s``, from zero at the log's start) gives the axis at least
-    ``excitation_min_rad2_s2`` of information, the other axes marginalised
-    (:func:`magcomp.core.observer.excitation`'s rule)."""
+    ``excitation_window_s``, going on from ``carry``: its sum and weight before the first step) gives the
+    axis at least ``excitation_min_rad2_s2`` of information, the other axes marginalised
+    (:func:`magcomp.core.observer.excitation`'s rule). Returns the flags and the carry after the last step."""
     m = dt.size
     if m == 0:
-        return np.zeros((0, 3), dtype=bool)
+        return np.zeros((0, 3), dtype=bool), carry
     q = np.einsum("mki,mkj->mij", phi, phi) / dt[:, None, None]
     lam = math.exp(-float(np.median(dt)) / p.excitation_window_s)
     h = np.power(lam, np.arange(min(m, int(math.log(_TAIL) / math.log(lam)) + 1)), dtype=np.float64)
@@ -120,6 +151,7 @@ def _observable(phi: F64, dt: F64, p: ObserverParams) -> NDArray[np.bool_]:
     n_fft = 1 << (m + h.size - 2).bit_length()  # the exponential window by FFT: as the recursion to ~1e-14
     spectrum = np.fft.rfft(x, n=n_fft, axis=0) * np.fft.rfft(h, n=n_fft)[:, None]
     filt = np.fft.irfft(spectrum, n=n_fft, axis=0)[:m]
+    filt += np.power(lam, np.arange(1, m + 1), dtype=np.float64)[:, None] * carry
     g = filt[:, :9].reshape(-1, 3, 3) / filt[:, 9][:, None, None]
     tr = np.trace(g, axis1=1, axis2=2)
     g = g + (1e-9 * np.maximum(tr, 1e-12))[:, None, None] * np.eye(3)
@@ -129,7 +161,7 @@ def _observable(phi: F64, dt: F64, p: ObserverParams) -> NDArray[np.bool_]:
                     g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] * g[:, 1, 0]], axis=1)  # fmt: skip
     with np.errstate(divide="ignore", invalid="ignore"):
         info = det[:, None] / cof  # 1 / [G^-1]_ii
-    return np.asarray(info >= p.excitation_min_rad2_s2)
+    return np.asarray(info >= p.excitation_min_rad2_s2), filt[-1].copy()
 
 
 I64 = NDArray[np.int64]
@@ -163,7 +195,7 @@ def _window_rotations(da: F64, first: NDArray[np.bool_]) -> F64:
 
 def model_rows(
     t_s: ArrayLike, omega_b_rad_s: ArrayLike, field_b_mgauss: ArrayLike, throttle_01: ArrayLike,
-    start: ArrayLike, p: ObserverParams, window_s: float = WINDOW_S,
+    start: ArrayLike, p: ObserverParams, window_s: float = WINDOW_S, excitation_carry: F64 | None = None,
 ) -> BatchRows:
     """The rows of eq. (12) over a whole log, each window's field solved out (see the module's doc).
 
@@ -175,6 +207,9 @@ def model_rows(
     throttle_01 : (n,) throttle at each sample's own time, 0..1
     start : (n,) START_CONTINUE, or START_RESET / START_SKIP: the online estimator re-anchors at the sample
     p : the online estimator's parameters (intervals, rotation interpolation, excitation window)
+    window_s : longest window of one field
+    excitation_carry : where the excitation Gramian stands before the first sample (the previous part's
+        ``excitation_carry``; None: at the log's start)
     """
     t, w, v, thr, code = _finite(
         np.asarray(t_s, dtype=float), np.asarray(omega_b_rad_s, dtype=float).reshape(-1, 3),
@@ -194,7 +229,8 @@ def model_rows(
     w0 = np.where(prev_step[idx][:, None], w[np.maximum(idx - 2, 0)], w[idx - 1])
     a = dcms_from_rotvecs(-rotation_increments(w0, w[idx - 1], w[idx], h0, dt[idx], p))  # A_k = dR_k^T
     phi = d2[idx][:, None, None] * np.eye(3) - d2[idx - 1][:, None, None] * a  # the online Phi_k, eq. (16)
-    observable = _observable(phi, dt[idx], p)
+    carry = np.zeros(10) if excitation_carry is None else excitation_carry
+    observable, carry = _observable(phi, dt[idx], carry, p)
     # windows: from each anchor, cut every window_s
     anchor = ~step
     t_anchor = t[np.flatnonzero(anchor)][np.cumsum(anchor) - 1] if n else t
@@ -215,28 +251,27 @@ def model_rows(
     keep = count[wid] >= 2.0
     y = v - np.einsum("nij,nj->ni", ct, mean_cv[wid])
     x = d2[:, None, None] * np.eye(3) - ct @ mean_dc[wid]
-    return BatchRows(x[keep], y[keep], int((count >= 2.0).sum()), dt[idx], observable)
+    return BatchRows(x[keep], y[keep], int((count >= 2.0).sum()), dt[idx], observable, carry)
 
 
-def batch_theta(rows: BatchRows, p: ObserverParams, theta0_mgauss: ArrayLike | None = None) -> BatchTheta:
-    """theta by the least squares of eqs. (14a), (14b), (15) on every row of ``rows``. An axis never
+def batch_theta(sums: BatchSums, p: ObserverParams, theta0_mgauss: ArrayLike | None = None) -> BatchTheta:
+    """theta by the least squares of eqs. (14a), (14b), (15) on every row gathered in ``sums``. An axis never
     observable in the log keeps ``theta0_mgauss`` (default 0) and is left out of the solve; theta is clipped
     to ``+-theta_max_mgauss``. Converged per axis as the online rule says (excited at least
     ``converge_min_excited_s`` and 1-sigma below ``converge_std_mgauss + converge_rel |theta|``)."""
     theta0 = np.zeros(3) if theta0_mgauss is None else np.asarray(theta0_mgauss, dtype=float).reshape(3)
-    excited = (rows.observable * rows.dt_s[:, None]).sum(axis=0) if rows.dt_s.size else np.zeros(3)
+    excited = sums.excited_s
     free = excited > 0.0
     n_free = int(free.sum())
     theta = theta0.copy()
     std = np.full(3, math.inf)
-    n = rows.y_mgauss.shape[0]
-    if n_free == 0 or 3 * n <= n_free + 3 * rows.n_windows:
-        return BatchTheta(theta, std, excited, (False, False, False), n)
-    x = rows.x[:, :, free].reshape(-1, n_free)
-    y = (rows.y_mgauss - np.einsum("mij,j->mi", rows.x[:, :, ~free], theta0[~free])).reshape(-1)
-    fit = least_squares(x, y, eliminated=3 * rows.n_windows)  # eqs. (14a), (14b), (15)
+    if n_free == 0 or sums.n_obs <= n_free + 3 * sums.n_windows:
+        return BatchTheta(theta, std, excited, (False, False, False), sums.n_samples)
+    xs, ys = sums.r[:, :3], sums.r[:, 3]
+    y = ys - xs[:, ~free] @ theta0[~free]  # a column operation: the compressed rows stay exact
+    fit = least_squares(xs[:, free], y, eliminated=3 * sums.n_windows, n_obs=sums.n_obs)  # (14a), (14b), (15)
     theta[free] = np.clip(fit.beta, -p.theta_max_mgauss, p.theta_max_mgauss)
     std[free] = np.sqrt(np.diag(fit.covariance))
     tol = p.converge_std_mgauss + p.converge_rel * float(np.linalg.norm(theta))
     conv = (excited >= p.converge_min_excited_s) & (std <= tol)
-    return BatchTheta(theta, std, excited, (bool(conv[0]), bool(conv[1]), bool(conv[2])), n)
+    return BatchTheta(theta, std, excited, (bool(conv[0]), bool(conv[1]), bool(conv[2])), sums.n_samples)

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
 from magcomp.core import observer_batch
+from magcomp.core.observer import ObserverParams
 from magcomp.core.types import FLAG_OBSERVER_RESET, FLAG_SATURATED, FLAG_THETA_CONVERGED, FLAG_Z_UNOBSERVABLE
 from magcomp.service import estimators as est_core
 from magcomp.service.align import Counts, ThrottleTrack
@@ -48,16 +49,25 @@ class Queued(NamedTuple):
     skip: bool = False
 
 
+#: samples an observer's log holds before they are reduced to their least-squares sums (~22 min at 50 Hz;
+#: ~5 MB of samples, ~60 MB while they are reduced)
+ROW_LOG_CHUNK = 65536
+
+
 class ObserverRowLog:
     """The samples an observer would step on (time, gyro, calibrated field, the throttle at the sample's time)
     and what precedes each (a reset of its filters, samples skipped), for the batch solve of a learn-only
-    pass (core/observer_batch.py)."""
+    pass (core/observer_batch.py); reduced to their sums every ``chunk`` samples (bounded memory; a window
+    of the solve ends there)."""
 
-    __slots__ = ("buf", "pending")
+    __slots__ = ("buf", "chunk", "params", "pending", "sums")
 
-    def __init__(self) -> None:
+    def __init__(self, params: ObserverParams, chunk: int = ROW_LOG_CHUNK) -> None:
         self.buf = array("d")
         self.pending = observer_batch.START_CONTINUE
+        self.params = params
+        self.chunk = chunk
+        self.sums = observer_batch.batch_init()
 
     def mark(self, start: int) -> None:
         """The next sample re-anchors: after a reset (``START_RESET``) or samples skipped (``START_SKIP``)."""
@@ -67,14 +77,22 @@ class ObserverRowLog:
     def add(self, t_s: float, gyro: Sequence[float], field: Float3, throttle_01: float) -> None:
         self.buf.extend((t_s, *gyro, *field, throttle_01, self.pending))
         self.pending = observer_batch.START_CONTINUE
+        if len(self.buf) >= 9 * self.chunk:
+            self._reduce()
 
-    def solve(self, est: est_core.ThetaEstimator) -> observer_batch.BatchTheta:
-        """theta by least squares over every logged sample, from ``est``'s theta as the prior of the axes the
-        log does not excite."""
+    def _reduce(self) -> None:
         a = np.frombuffer(self.buf, dtype=np.float64).reshape(-1, 9)
-        p = est.params
-        rows = observer_batch.model_rows(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8], p)
-        return observer_batch.batch_theta(rows, p, est.theta_mgauss)
+        rows = observer_batch.model_rows(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8], self.params,
+                                         excitation_carry=self.sums.excitation_carry)  # fmt: skip
+        self.sums = observer_batch.batch_add(self.sums, rows)
+        self.buf = array("d")
+
+    def solve(self, theta0_mgauss: F64) -> observer_batch.BatchTheta:
+        """theta by least squares over every logged sample, ``theta0_mgauss`` the prior of the axes the log
+        does not excite."""
+        if self.buf:
+            self._reduce()
+        return observer_batch.batch_theta(self.sums, self.params, theta0_mgauss)
 
 
 class ThetaTracker:
@@ -93,10 +111,10 @@ class ThetaTracker:
     def finish(self) -> None:
         """The batch solve of the logged samples (a learn-only pass's end): the estimator holds its theta."""
         rows = self.rows
-        if rows is None or not rows.buf:
+        if rows is None or not (rows.buf or rows.sums.n_samples):
             return
         self.rows = None
-        res = self.batch = rows.solve(self.est)
+        res = self.batch = rows.solve(self.est.theta_mgauss)
         self.est.hold(res.theta_mgauss, all(res.converged))
 
     def queue_reset(self, t_s: float, skip: bool = False) -> None:
@@ -211,7 +229,7 @@ class ThetaStage:
         sample's own time (queued until the throttle after it is known); theta-hat now."""
         tr = c.theta
         if self._batch and tr.rows is None and tr.batch is None:
-            tr.rows = ObserverRowLog()
+            tr.rows = ObserverRowLog(tr.est.params)
         if rec.obs_reset:
             tr.queue_reset(rec.t_s, rec.obs_skip)
             self.counts["observer_resets"] += 1

@@ -1,6 +1,7 @@
 """The pipeline's stages: the first pass of a replay (heading and publish left out) reaches the state of a
-full run (whose in-flight estimate is re-solved as often; theta of the observer solved in batch); the worker threads end with their owner; the
-service reads samples through the core types only; every function of the stages stays short (issue 13)."""
+full run (whose in-flight estimate is re-solved as often; the observer's theta solved in batch); the worker
+threads end with their owner; the service reads samples through the core types only; every function of the
+stages stays short (issue 13)."""
 
 from __future__ import annotations
 

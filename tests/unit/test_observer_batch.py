@@ -52,7 +52,7 @@ def test_standing_still_it_is_the_offline_fit_of_eq_14a() -> None:
     p = ObserverParams(excitation_min_rad2_s2=1e-12)  # the throttle sweep alone excites (barely)
     rows = ob.model_rows(t, np.zeros((n, 3)), field, thr, np.zeros(n), p)
     assert rows.n_windows == 1
-    got = ob.batch_theta(rows, p)
+    got = ob.batch_theta(ob.batch_add(ob.batch_init(), rows), p)
     ref = fit_bias_offline(thr, field, n_monte_carlo=0)
     np.testing.assert_allclose(got.theta_mgauss, ref.theta_mgauss, rtol=0.0, atol=1e-9)
     # eq. (15) pooled over the axes (one noise variance, 3n - 6 degrees of freedom; per axis: n - 2)
@@ -86,12 +86,44 @@ def test_stated_sigma_is_the_spread_of_the_error_on_the_models_own_data() -> Non
     p = ObserverParams()
     for _ in range(12):
         field = clean + rng.normal(0.0, 8.0, clean.shape)
-        got = ob.batch_theta(ob.model_rows(t, omega, field, thr, np.zeros(t.size), p), p)
+        rows = ob.model_rows(t, omega, field, thr, np.zeros(t.size), p)
+        got = ob.batch_theta(ob.batch_add(ob.batch_init(), rows), p)
         assert all(got.converged)
         z.append((got.theta_mgauss - THETA) / got.theta_std_mgauss)
     zz = np.concatenate(z)
     assert 0.6 < float(np.std(zz)) < 1.6  # 36 draws of N(0, 1), and the rotation's integration error
     assert float(np.abs(np.mean(zz))) < 0.7
+
+
+def test_compressed_parts_solve_as_the_rows_and_a_row_log_in_chunks_as_one() -> None:
+    """The rows reduced part by part (the R of their QR) give the rows' own least squares; a learn-only row
+    log reduced every few samples (a window ends at each cut, one step lost) gives nearly the same theta."""
+    from magcomp.service.theta import ObserverRowLog
+
+    rng = np.random.default_rng(6)
+    t, omega, clean, thr = _rotating_flight(1500)
+    field = clean + rng.normal(0.0, 8.0, clean.shape)
+    p = ObserverParams()
+    rows = ob.model_rows(t, omega, field, thr, np.zeros(t.size), p)
+    whole = ob.batch_theta(ob.batch_add(ob.batch_init(), rows), p)
+    k, m = 700, rows.dt_s.size // 2  # any cut: the rows' windows are solved out already
+    first = rows._replace(x=rows.x[:k], y_mgauss=rows.y_mgauss[:k], n_windows=2, dt_s=rows.dt_s[:m],
+                          observable=rows.observable[:m])  # fmt: skip
+    second = rows._replace(x=rows.x[k:], y_mgauss=rows.y_mgauss[k:], n_windows=rows.n_windows - 2,
+                           dt_s=rows.dt_s[m:], observable=rows.observable[m:])  # fmt: skip
+    parts = ob.batch_theta(ob.batch_add(ob.batch_add(ob.batch_init(), first), second), p)
+    np.testing.assert_allclose(parts.theta_mgauss, whole.theta_mgauss, rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(parts.theta_std_mgauss, whole.theta_std_mgauss, rtol=1e-9)
+    for chunk in (10_000, 400):
+        log = ObserverRowLog(p, chunk=chunk)
+        for i in range(t.size):
+            log.add(float(t[i]), tuple(omega[i]), tuple(field[i]), float(thr[i]))
+        got = log.solve(np.zeros(3))
+        assert got.n_samples == t.size
+        if chunk > t.size:  # one part: the rows themselves
+            np.testing.assert_allclose(got.theta_mgauss, whole.theta_mgauss, rtol=0.0, atol=1e-9)
+        else:  # other windows (cut at the chunks too): within the stated 1-sigma
+            assert np.all(np.abs(got.theta_mgauss - whole.theta_mgauss) < whole.theta_std_mgauss)
 
 
 def test_a_non_finite_sample_is_left_out_and_the_next_one_starts_a_window() -> None:
