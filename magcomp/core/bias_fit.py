@@ -57,6 +57,34 @@ class OfflineFit:
     n: int
 
 
+class LeastSquares(NamedTuple):
+    """What :func:`least_squares` returns (``k`` observation columns, ``p`` parameters)."""
+
+    beta: F64  # (p,) or (p, k), eq. (14a)
+    covariance: F64  # (p, p) or (k, p, p), eq. (14b)
+    sigma2: F64  # () or (k,), eq. (15)
+    residuals: F64  # y - X beta, the shape of y
+
+
+def least_squares(x: F64, y: F64, eliminated: int = 0, n_obs: int | None = None) -> LeastSquares:
+    """The least-squares estimator of ``y = X beta`` and its covariance, eqs. (14a), (14b), with the noise
+    variance of eq. (15); ``y`` (n,) or (n, k) (one fit per column, one X). ``eliminated``: parameters
+    solved out of ``X`` and ``y`` before the call (they count in eq. (15)'s ``p``). ``n_obs``: the number
+    of observations when ``[X y]`` is a compressed form of them with the same normal equations (the R of
+    their QR factorisation: the same beta, covariance and sum of squared residuals; the residuals returned
+    are then the compressed rows'). The one implementation of these equations: the offline fit on a
+    stationary sweep (:func:`fit_bias_offline`) and the batch solve of a whole log
+    (:mod:`magcomp.core.observer_batch`) both call it."""
+    n, n_params = x.shape
+    n = n if n_obs is None else n_obs
+    beta, *_ = np.linalg.lstsq(x, y, rcond=None)  # eq. (14a)
+    resid = y - x @ beta
+    sigma2 = np.sum(resid**2, axis=0) / (n - n_params - eliminated)  # eq. (15)
+    xtx_inv = np.linalg.inv(x.T @ x)
+    cov = xtx_inv * sigma2 if np.ndim(sigma2) == 0 else xtx_inv[None, :, :] * sigma2[:, None, None]  # (14b)
+    return LeastSquares(np.asarray(beta, dtype=np.float64), cov, np.asarray(sigma2, dtype=np.float64), resid)
+
+
 def design_matrix(throttle_01: F64) -> F64:
     """Regressor of eq. (12) per axis: rows ``[delta^2, 1]``, shape (n, 2)."""
     return np.column_stack([throttle_01**2, np.ones_like(throttle_01)])
@@ -155,14 +183,11 @@ def fit_bias_offline(
         raise FitError(
             f"throttle spans only {span:.2f} (need >= {min_throttle_span}): theta is not observable"
         )
-    x = design_matrix(d)
-    beta, *_ = np.linalg.lstsq(x, y, rcond=None)  # eq. (14a)
-    theta, u = unpack_beta(beta)
-    resid = y - x @ beta
-    sigma2 = np.sum(resid**2, axis=0) / (n - N_PARAMS)  # eq. (15)
-    xtx_inv = np.linalg.inv(x.T @ x)
-    cov = xtx_inv[None, :, :] * sigma2[:, None, None]  # eq. (14b)
-    sigma = np.sqrt(sigma2)
+    x = design_matrix(d)  # N_PARAMS columns, p of eq. (15)
+    fit = least_squares(x, y)  # eqs. (14a), (14b), (15)
+    theta, u = unpack_beta(fit.beta)
+    resid, cov = fit.residuals, fit.covariance
+    sigma = np.sqrt(fit.sigma2)
     r2 = _r2(y, resid)
     if n_monte_carlo > 0:
         bm_mean, bm_2sd = benchmark_r2(d, theta, sigma, rng or np.random.default_rng(0), n_monte_carlo)

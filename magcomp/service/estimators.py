@@ -130,6 +130,13 @@ class ThetaEstimator:
         (:func:`~magcomp.core.observer.observer_skip`)."""
         self.state = observer_skip(self.state)
 
+    def hold(self, theta_mgauss: F64, converged: bool) -> None:
+        """theta from elsewhere (the batch solve of a learn-only pass: service/theta.py), its filters as they
+        are."""
+        t = np.asarray(theta_mgauss, dtype=float).reshape(3)
+        self.state = self.state._replace(theta_hat_mgauss=(float(t[0]), float(t[1]), float(t[2])))
+        self.converged = converged
+
     def step(
         self,
         omega_b_rad_s: Vec3Like,

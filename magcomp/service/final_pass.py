@@ -1,8 +1,10 @@
 """The second pass of a two-pass replay, without the per-sample loop.
 
 The first pass (:func:`magcomp.service.replay.replay_log`, two passes) runs the pipeline over the whole log
-learning only, and records, per magnetometer sample that reaches the heading stage, what its heading needs
-(:class:`SampleLog`: time, raw field, throttle, the attitude's roll and pitch, the gyro, the sample's flags).
+learning only (theta of a hand-rotation or stored calibration solved in batch at its end, not by stepping the
+observer: :mod:`magcomp.service.theta`), and records, per magnetometer sample that reaches the heading stage,
+what its heading needs (:class:`SampleLog`: time, raw field, throttle, the attitude's roll and pitch, gyro,
+the sample's flags).
 The second pass then applies the *final* state of every compass (calibration of eq. (2), theta of eq. (11),
 the in-flight calibration; :class:`FinalCompass`) to all samples at once: eq. (2), eq. (11) and eq. (24)
 on numpy arrays through the same core functions the per-sample path calls with floats. Only the heading

@@ -21,9 +21,10 @@ backwards, gaps and clock resets are skipped or absorbed and counted in :attr:`P
 
 ``learn_only`` (the first pass of a two-pass replay): the heading and publish stages are left out, and the
 theta stage feeds the observers without reading theta back into the records, and the in-flight estimate is
-re-solved less often (``inflight_stage.learn_config``: only its final state is published); the states every
-stage reaches are the same as in a full run with those re-solve periods. With a ``recorder`` it also records
-what the second pass needs (:mod:`magcomp.service.final_pass`).
+re-solved less often (``inflight_stage.learn_config``: only its final state is published); theta of eq. (11)
+with a hand-rotation or stored calibration comes from the batch solve of the samples the observer would have
+stepped on (service/theta.py), made when the pipeline closes. With a ``recorder`` it also records what the
+second pass needs (:mod:`magcomp.service.final_pass`).
 """
 
 from __future__ import annotations
@@ -443,6 +444,7 @@ class Pipeline:
                 self.calibrate.refined(c, c.last_t)
             if c.theta.queue:
                 self.theta.drain(c, math.inf)
+            c.theta.finish()  # a learn-only pass: theta by the batch solve of what the observer was given
             if c.last_t is not None:
                 self.persist.save(c, c.last_t, final=True)
         self.persist.wait()

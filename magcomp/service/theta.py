@@ -8,12 +8,19 @@ is left out and the observer re-anchors after it (the instant of the step is unk
 not depend on the order in which a link delivers the messages of one instant; with the latest throttle
 instead, theta came out 8-15 % off on simulated flights (docs/benchmarks.md).
 
+A learn-only pass (the first of a two-pass replay, whose theta is read at its end only) does not step the
+observer: each tracker logs the samples it would step on, through the same queue and gates
+(:class:`ObserverRowLog`), and :meth:`ThetaTracker.finish` solves them at once by the least squares of
+eqs. (12)-(15) on the moving vehicle (core/observer_batch.py); the live path and ``--causal`` step the
+observer.
+
 With the in-flight calibration, theta and the bias come with its correction (calibrate stage).
 The bias ``theta * throttle^2`` (eq. (11)) uses the latest throttle: the published heading adds no latency.
 """
 
 from __future__ import annotations
 
+from array import array
 from collections import deque
 from collections.abc import Sequence
 from typing import NamedTuple, Protocol
@@ -22,6 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.adapters.config import Config
+from magcomp.core import observer_batch
+from magcomp.core.observer import ObserverParams
 from magcomp.core.types import FLAG_OBSERVER_RESET, FLAG_SATURATED, FLAG_THETA_CONVERGED, FLAG_Z_UNOBSERVABLE
 from magcomp.service import estimators as est_core
 from magcomp.service.align import Counts, ThrottleTrack
@@ -40,14 +49,73 @@ class Queued(NamedTuple):
     skip: bool = False
 
 
+#: samples an observer's log holds before they are reduced to their least-squares sums (~22 min at 50 Hz;
+#: ~5 MB of samples, ~60 MB while they are reduced)
+ROW_LOG_CHUNK = 65536
+
+
+class ObserverRowLog:
+    """The samples an observer would step on (time, gyro, calibrated field, the throttle at the sample's time)
+    and what precedes each (a reset of its filters, samples skipped), for the batch solve of a learn-only
+    pass (core/observer_batch.py); reduced to their sums every ``chunk`` samples (bounded memory; a window
+    of the solve ends there)."""
+
+    __slots__ = ("buf", "chunk", "params", "pending", "sums")
+
+    def __init__(self, params: ObserverParams, chunk: int = ROW_LOG_CHUNK) -> None:
+        self.buf = array("d")
+        self.pending = observer_batch.START_CONTINUE
+        self.params = params
+        self.chunk = chunk
+        self.sums = observer_batch.batch_init()
+
+    def mark(self, start: int) -> None:
+        """The next sample re-anchors: after a reset (``START_RESET``) or samples skipped (``START_SKIP``)."""
+        if start > self.pending:
+            self.pending = start
+
+    def add(self, t_s: float, gyro: Sequence[float], field: Float3, throttle_01: float) -> None:
+        self.buf.extend((t_s, *gyro, *field, throttle_01, self.pending))
+        self.pending = observer_batch.START_CONTINUE
+        if len(self.buf) >= 9 * self.chunk:
+            self._reduce()
+
+    def _reduce(self) -> None:
+        a = np.frombuffer(self.buf, dtype=np.float64).reshape(-1, 9)
+        rows = observer_batch.model_rows(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8], self.params,
+                                         excitation_carry=self.sums.excitation_carry)  # fmt: skip
+        self.sums = observer_batch.batch_add(self.sums, rows)
+        self.buf = array("d")
+
+    def solve(self, theta0_mgauss: F64) -> observer_batch.BatchTheta:
+        """theta by least squares over every logged sample, ``theta0_mgauss`` the prior of the axes the log
+        does not excite."""
+        if self.buf:
+            self._reduce()
+        return observer_batch.batch_theta(self.sums, self.params, theta0_mgauss)
+
+
 class ThetaTracker:
-    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue."""
+    """One compass's observer (:class:`~magcomp.service.estimators.ThetaEstimator`) and its input queue;
+    in a learn-only pass, with ``rows``, the log of what the observer would step on instead."""
 
     def __init__(self, cfg: Config, theta0_mgauss: F64) -> None:
         self.est = est_core.ThetaEstimator(cfg, theta0_mgauss)
         self.queue: deque[Queued] = deque()
         self.last_t: float | None = None
         self.last_info: est_core.ThetaStepInfo | None = None
+        self.rows: ObserverRowLog | None = None
+        #: the batch solve's result, once :meth:`finish` made it
+        self.batch: observer_batch.BatchTheta | None = None
+
+    def finish(self) -> None:
+        """The batch solve of the logged samples (a learn-only pass's end): the estimator holds its theta."""
+        rows = self.rows
+        if rows is None or not (rows.buf or rows.sums.n_samples):
+            return
+        self.rows = None
+        res = self.batch = rows.solve(self.est.theta_mgauss)
+        self.est.hold(res.theta_mgauss, all(res.converged))
 
     def queue_reset(self, t_s: float, skip: bool = False) -> None:
         """Reset the observer's filters (theta kept) once the samples queued before now are through; ``skip``:
@@ -61,12 +129,15 @@ class ThetaTracker:
         q = self.queue
         t_thr = throttle.t
         est = self.est
+        rows = self.rows
         stepped = False
         while q:
             t, omega, u, skip = q[0]
             if u is None:  # a reset or skip marker
                 q.popleft()
-                if skip:
+                if rows is not None:
+                    rows.mark(observer_batch.START_SKIP if skip else observer_batch.START_RESET)
+                elif skip:
                     est.skip()
                 else:
                     est.reset_filters()
@@ -81,12 +152,18 @@ class ThetaTracker:
                 # this instant is unknown, so this sample is not used and the observer re-anchors on
                 # the next one whose throttle is known
                 counts["throttle_jumps"] += 1
-                est.reset_filters()
+                if rows is not None:
+                    rows.mark(observer_batch.START_RESET)
+                else:
+                    est.reset_filters()
                 self.last_t = None
+                continue
+            assert omega is not None
+            if rows is not None:  # a learn-only pass: solved at its end (finish)
+                rows.add(t, omega, u, thr)
                 continue
             last = self.last_t
             self.last_t = t
-            assert omega is not None
             self.last_info = est.step(omega, u, thr, 0.0 if last is None else t - last)
             stepped = True
         return stepped
@@ -114,6 +191,8 @@ class ThetaStage:
         self._stale_s = cfg.input.stale_s
         self._learn = cfg.observer.learn
         self._outputs = outputs
+        #: a learn-only pass logs the observers' samples for the batch solve
+        self._batch = not outputs
 
     def drain(self, c: ThetaHost, t_now: float) -> None:
         """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""
@@ -149,6 +228,8 @@ class ThetaStage:
         """Low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated at the
         sample's own time (queued until the throttle after it is known); theta-hat now."""
         tr = c.theta
+        if self._batch and tr.rows is None and tr.batch is None:
+            tr.rows = ObserverRowLog(tr.est.params)
         if rec.obs_reset:
             tr.queue_reset(rec.t_s, rec.obs_skip)
             self.counts["observer_resets"] += 1

@@ -1,6 +1,7 @@
 """The pipeline's stages: the first pass of a replay (heading and publish left out) reaches the state of a
-full run (whose in-flight estimate is re-solved as often); the worker threads end with their owner; the
-service reads samples through the core types only; every function of the stages stays short (issue 13)."""
+full run (whose in-flight estimate is re-solved as often; the observer's theta solved in batch); the worker
+threads end with their owner; the service reads samples through the core types only; every function of the
+stages stays short (issue 13)."""
 
 from __future__ import annotations
 
@@ -61,7 +62,11 @@ def test_learn_only_pass_reaches_the_state_of_a_full_run(tlog: Path) -> None:
     assert full.states.keys() == learn.states.keys() and full.states
     for key, a in full.states.items():
         b = learn.states[key]
-        assert np.array_equal(a.theta_mgauss, b.theta_mgauss)
+        if a.calib_l is None:  # theta in flight: the same solve in both runs
+            assert np.array_equal(a.theta_mgauss, b.theta_mgauss)
+        else:  # theta of the observer: the learn-only pass solves its rows in batch (core/observer_batch.py;
+            # the two agree within their stated uncertainty: tests/unit/test_observer_batch.py)
+            assert np.linalg.norm(a.theta_mgauss - b.theta_mgauss) < 0.05 * np.linalg.norm(a.theta_mgauss)
         for x, y in ((a.calib_l, b.calib_l), (a.calib_d, b.calib_d)):
             assert (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
         assert a.inflight == b.inflight
