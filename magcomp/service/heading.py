@@ -149,6 +149,7 @@ class HeadingTrack:
         "raw",
         "raw_deg",
         "self_check",
+        "starts_published",
     )  # fmt: skip
 
     def __init__(self, tau_s: float, self_check: bool = True, hover: bool = True) -> None:
@@ -169,6 +170,9 @@ class HeadingTrack:
         self._last_rate = (math.nan, 0.0)
         self.gyro_yaw = math.nan
         self.gyro_epoch = -1.0
+        #: an in-flight correction warm-started from a state learned on this very log (a two-pass replay's
+        #: per-sample second pass) starts published; one from another flight's state does not
+        self.starts_published = False
 
     def reset(self) -> None:
         self.corrected.reset()
@@ -291,8 +295,10 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             # off until it beats the autopilot's own heading on this flight, also where it is carried over
             # from the vehicle's saved state: the vehicle may have changed since, and the relative form's
             # constant part settles again on the new flight (37-42 deg off for 5 s on a development log when
-            # a saved correction was published from the first window: test_warm_start_check.py)
+            # a saved correction was published from the first window: test_warm_start_check.py); one learned
+            # from this very log by a two-pass replay's first pass starts published
             chk = track.check = RunningSelfCheck()
+            chk.on = track.starts_published and rec.inflight is not None and rec.inflight.warm_started
         if judged:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN

@@ -122,9 +122,14 @@ class Pipeline:
         workers: Workers | None = None,
         learn_only: bool = False,
         recorder: SampleRecorder | None = None,
+        store_is_this_log: bool = False,
     ) -> None:
         self.cfg = cfg
         self.store = store
+        #: the stored states were learned from this very log (the per-sample second pass of a two-pass
+        #: replay): their in-flight corrections start published, as the whole-log second pass's do; one
+        #: carried over from another flight waits for the live check (service/heading.py)
+        self._store_is_this_log = store_is_this_log
         self.system_id = system_id
         #: the vehicle's unique hardware id (IdentitySample), None until (unless) the input names it
         self.vehicle_uid: str | None = None
@@ -356,6 +361,7 @@ class Pipeline:
                 if w not in self.warnings:
                     self.warnings.append(w)
         c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits)
+        c.heading.starts_published = self._store_is_this_log
         self.correctors[idx] = c
         return c
 

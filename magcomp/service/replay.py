@@ -336,7 +336,8 @@ def replay_log(
             if first is not None:
                 first.samples.close()
                 mem = first.store
-            pipeline = Pipeline(cfg, store=mem, on_text=on_text, workers=workers)
+            pipeline = Pipeline(cfg, store=mem, on_text=on_text, workers=workers,
+                                store_is_this_log=first is not None)  # fmt: skip
             report = _replay(path, cfg, pipeline, asked)
     report.wall_s = time.perf_counter() - t_wall
     report.summary["passes"] = 2 if first is not None else 1
