@@ -189,36 +189,36 @@ CASES: dict[str, tuple[str, str, float, float, int, dict[str, object]]] = {
 }
 
 
+def simulate_case(effect: str, seed: int, value: float) -> tuple[Any, Any]:
+    """The held-out log of ``effect`` at ``value`` with this seed: (the simulation, the log as read)."""
+    from magcomp.adapters.mavlink_emit import write_tlog
+    from magcomp.adapters.mavlink_source import load_log
+    from magcomp.sim import SimConfig, simulate
+    from magcomp.sim.config import apply_settings
+
+    scenario, vehicle, duration, _, _, settings = CASES[effect]
+    cfg = SimConfig(scenario=scenario, duration_s=duration, seed=seed, effects={effect: value},
+                    vehicle=vehicle, n_compasses=1)  # fmt: skip
+    res = simulate(apply_settings(cfg, dict(settings)))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "h.tlog"
+        write_tlog(res, path)
+        return res, load_log(path)
+
+
 def run_case(effect: str, seed: int | None = None, value_override: float | None = None) -> dict[str, Any]:
     """Simulate the held-out log of ``effect``, diagnose it, check the top finding and its interval
     (``seed``: another seed of the same held-out settings, for the coverage over seeds; ``value_override``:
     another size of the effect than the case's)."""
     import numpy as np
 
-    from magcomp.adapters.mavlink_emit import write_tlog
-    from magcomp.adapters.mavlink_source import load_log
     from magcomp.diagnosis.engine import diagnose
     from magcomp.diagnosis.gate import EarthReference
-    from magcomp.sim import SimConfig, simulate
-    from magcomp.sim.config import apply_settings
 
-    scenario, vehicle, duration, value, case_seed, settings = CASES[effect]
+    _, _, _, value, case_seed, _ = CASES[effect]
     seed = case_seed if seed is None else seed
     value = value if value_override is None else value_override
-    cfg = SimConfig(
-        scenario=scenario,
-        duration_s=duration,
-        seed=seed,
-        effects={effect: value},
-        vehicle=vehicle,
-        n_compasses=1,
-    )
-    cfg = apply_settings(cfg, dict(settings))
-    res = simulate(cfg)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "h.tlog"
-        write_tlog(res, path)
-        log = load_log(path)
+    res, log = simulate_case(effect, seed, value)
     earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
     c = diagnose(log, earth=earth).to_json()["compasses"][0]
     out: dict[str, Any] = {"effect": effect, "seed": seed, "value": value, "observable": c["observable"]}

@@ -13,7 +13,6 @@ that difference over seeds 3000-3003 (21.2-21.5 ms against 21.8).
 from __future__ import annotations
 
 import sys
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -86,21 +85,14 @@ def test_rotation_of_the_held_out_per_motor_log_is_near_the_truth() -> None:
     own error (an update placed halfway between two messages) and the tilt of the autopilot's attitude.
     Tolerance 1.11, between the two."""
     sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
-    from diagnosis_heldout import CASES
+    from diagnosis_heldout import simulate_case
 
     from magcomp.core.rotations import dcms_from_quats
     from magcomp.diagnosis.model import fit_model
 
-    scenario, vehicle, duration, _, _, settings = CASES["per_motor"]
     for seed in (5000, 5001):
-        cfg = SimConfig(scenario=scenario, duration_s=duration, seed=seed, effects={"per_motor": 0.01},
-                        vehicle=vehicle, n_compasses=1)  # fmt: skip
-        cfg = apply_settings(cfg, dict(settings))
-        res = simulate(cfg)
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "h.tlog"
-            write_tlog(res, path)
-            log = load_log(path)
+        res, log = simulate_case("per_motor", seed, 0.01)
+        cfg = res.config
         c = diagnose(log, earth=EarthReference(res.earth_field_ned_mgauss, "simulated place")).compasses[0]
         s, r = res.samples, cfg.rates
         rows = np.searchsorted(s.t_s, c.data.t_s - 1e-4)
