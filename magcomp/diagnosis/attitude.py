@@ -32,6 +32,7 @@ from magcomp.core.rotations import (
     euler_from_dcms,
     quat_from_dcm,
 )
+from magcomp.diagnosis.gps_tilt import aligned_gyro_rotation, gps_down_reference
 
 F64 = NDArray[np.float64]
 
@@ -94,15 +95,28 @@ def propagate_attitude(
     -------
     (n, 4) quaternions q_nb at the IMU times.
     """
+    return _propagate(imu_t_s, gyro_b_rad_s, ref_t_s, ref_down_b, q0_nb, p)[0]
+
+
+def _propagate(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    ref_t_s: F64,
+    ref_down_b: F64,
+    q0_nb: F64,
+    p: TiltFilterParams | None = None,
+    bias0: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> tuple[F64, tuple[float, float, float]]:
+    """:func:`propagate_attitude` starting from the gyro bias ``bias0``; also returns the final bias."""
     p = p or TiltFilterParams()
     n = imu_t_s.shape[0]
     ref = _interp_rows(imu_t_s, ref_t_s, ref_down_b)
     ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-9)
     out = np.empty((n, 4))
-    bias = (0.0, 0.0, 0.0)
+    bias = bias0
     for _ in range(max(1, p.passes)):
         bias = _tilt_pass(imu_t_s, gyro_b_rad_s, ref, q0_nb, p, bias, out)
-    return out
+    return out, bias
 
 
 _ROW_BLOCK = 1 << 16
@@ -256,9 +270,13 @@ def attitude_source(
     accel_b_m_s2: F64,
     att_t_s: F64,
     att_rad: F64,
+    gps_t_s: F64 | None = None,
+    gps_vel_ned_m_s: F64 | None = None,
 ) -> AttitudeSource:
     """Choose the rotation for the forward model and integrate the gyro when it is the source (see module
-    docstring); :meth:`AttitudeSource.at` takes it at a compass's times."""
+    docstring); :meth:`AttitudeSource.at` takes it at a compass's times. With the GNSS velocity
+    (``gps_t_s`` (k,), ``gps_vel_ned_m_s`` (k, 3) m/s) and the log's attitude, the tilt is pulled toward
+    the accelerometer minus the GNSS acceleration where that velocity is fresh (:mod:`.gps_tilt`)."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -308,7 +326,20 @@ def attitude_source(
             q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
             src = "gyro+tilt(accelerometer)"
             tilt = "the accelerometer's gravity direction"
-        q = propagate_attitude(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
+            r_gyro = aligned_gyro_rotation(imu_t_s, q, att_t_s, att_rad[:, 2])
+            got = gps_down_reference(imu_t_s, accel_b_m_s2, r_gyro, gps_t_s, gps_vel_ned_m_s)
+            if got is not None and got[1].any():
+                gps_ref, fresh = got
+                mixed = _interp_rows(imu_t_s, ref_t, ref)
+                mixed[fresh] = gps_ref[fresh]
+                q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
+                src = "gyro+tilt(gps)"
+                tilt = (
+                    "the accelerometer minus the GNSS acceleration (rotated with the gyro heading, not the "
+                    f"compass-steered one of the autopilot) on {np.mean(fresh):.0%} of the log, else {tilt}"
+                )
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
