@@ -333,6 +333,11 @@ def attitude_source(
             if got is not None and got[1].any():
                 gps_ref, fresh = got
                 mixed = _interp_rows(imu_t_s, ref_t, ref)
+                # a constant offset between the two (an accelerometer bias, which the autopilot estimates
+                # and this reference does not) is taken out: only the log's tilt on average is kept
+                w = np.mean(np.cross(gps_ref[fresh], mixed[fresh]), axis=0)
+                gps_ref = gps_ref + np.cross(w, gps_ref)
+                gps_ref /= np.linalg.norm(gps_ref, axis=1, keepdims=True)
                 mixed[fresh] = gps_ref[fresh]
                 q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
                 src = "gyro+tilt(gps)"
