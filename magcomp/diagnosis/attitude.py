@@ -8,7 +8,11 @@ accelerometer (gravity), not the compass.
 So the rotation ``R_nb`` used here is the strap-down integral of the gyro, eq. (18) ``R_dot = R [omega]_x``,
 with a Mahony-style complementary correction (proportional + integral, ref. [23]) that pulls only the
 *tilt* toward a compass-free "down" reference: the log's roll and pitch when it has an attitude, otherwise
-the accelerometer. The heading is then pure gyro integration: it is free of the compass, drifts only with the
+the accelerometer. When the log also has the GNSS velocity, the reference is the accelerometer minus the GNSS
+acceleration (:mod:`magcomp.diagnosis.gps_tilt`) wherever that velocity is fresh: a GPS-aided autopilot
+removes that acceleration with its compass-steered yaw, so its roll and pitch lean with the very bias
+diagnosed whenever the vehicle accelerates (docs/diagnosis.md). The heading is then pure gyro integration: it
+is free of the compass, drifts only with the
 gyro bias about the vertical, and that drift is a fitted nuisance parameter of the forward model
 (:mod:`magcomp.diagnosis.model`). Departure from the paper: the paper feeds the accelerometer to the Mahony
 filter and uses the full estimated attitude; here the filter never sees the compass.
@@ -211,7 +215,8 @@ def dcms_from_euler(att_rad: F64) -> F64:
 class AttitudeTrack:
     """Rotation used by the forward model at the compass sample times.
 
-    r_nb: (n, 3, 3); source: 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or 'autopilot';
+    r_nb: (n, 3, 3); source: 'gyro+tilt(gps)', 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or
+    'autopilot';
     note: one sentence for the JSON ``evidence`` and the report.
     """
 
