@@ -269,6 +269,24 @@ class AttitudeSource:
         return AttitudeTrack(r, self.source, self.note)
 
 
+GPS_TILT = (
+    "the accelerometer minus the GNSS acceleration (rotated with the gyro heading, not the compass-steered "
+    "one of the autopilot)"
+)
+
+
+def _with_gps_reference(gps_ref: F64, fresh: NDArray[np.bool_], log_ref: F64) -> F64:
+    """The down reference (n, 3): ``gps_ref`` where ``fresh``, else ``log_ref`` (the log's tilt). A constant
+    rotation between the two (an accelerometer bias, which the autopilot estimates and the GNSS subtraction
+    does not) is taken out of ``gps_ref`` first: only the log's tilt on average is kept."""
+    w = np.mean(np.cross(gps_ref[fresh], log_ref[fresh]), axis=0)
+    moved = gps_ref + np.cross(w, gps_ref)
+    moved /= np.linalg.norm(moved, axis=1, keepdims=True)
+    out = log_ref.copy()
+    out[fresh] = moved[fresh]
+    return out
+
+
 def attitude_source(
     imu_t_s: F64,
     gyro_b_rad_s: F64,
@@ -336,20 +354,9 @@ def attitude_source(
             r_gyro = aligned_gyro_rotation(imu_t_s, q, att_t_s, att_rad[:, 2])
             got = gps_down_reference(imu_t_s, accel_b_m_s2, r_gyro, gps_t_s, gps_vel_ned_m_s)
             if got is not None and got[1].any():
-                gps_ref, fresh = got
-                mixed = _interp_rows(imu_t_s, ref_t, ref)
-                # a constant offset between the two (an accelerometer bias, which the autopilot estimates
-                # and this reference does not) is taken out: only the log's tilt on average is kept
-                w = np.mean(np.cross(gps_ref[fresh], mixed[fresh]), axis=0)
-                gps_ref = gps_ref + np.cross(w, gps_ref)
-                gps_ref /= np.linalg.norm(gps_ref, axis=1, keepdims=True)
-                mixed[fresh] = gps_ref[fresh]
+                mixed = _with_gps_reference(*got, _interp_rows(imu_t_s, ref_t, ref))
                 q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
-                src = "gyro+tilt(gps)"
-                tilt = (
-                    "the accelerometer minus the GNSS acceleration (rotated with the gyro heading, not the "
-                    f"compass-steered one of the autopilot) on {np.mean(fresh):.0%} of the log, else {tilt}"
-                )
+                src, tilt = "gyro+tilt(gps)", f"{GPS_TILT} on {np.mean(got[1]):.0%} of the log, else {tilt}"
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
