@@ -330,8 +330,39 @@ def attitude_source(
                 r0_nb=dcm_from_euler(roll0, pitch0, 0.0),
             )
     if has_gyro:
-        return _gyro_source(imu_t_s, gyro_b_rad_s, accel_b_m_s2, att_t_s if has_att else None, att_rad,
-                            gps_t_s, gps_vel_ned_m_s)  # fmt: skip
+        if has_att:
+            ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
+            ref_t = att_t_s
+            d0 = _interp_rows(imu_t_s[:1], att_t_s, ref)[0]
+            roll0 = math.atan2(float(d0[1]), float(d0[2]))
+            pitch0 = -math.asin(float(np.clip(d0[0] / np.linalg.norm(d0), -1.0, 1.0)))
+            q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, float(att_rad[0, 2])))
+            src = "gyro+tilt(attitude)"
+            tilt = "the log's roll and pitch"
+        else:
+            a = accel_b_m_s2
+            ref = -a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+            ref_t = imu_t_s
+            d = ref[0]
+            roll0 = math.atan2(float(d[1]), float(d[2]))
+            pitch0 = -math.asin(float(np.clip(d[0], -1.0, 1.0)))
+            q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
+            src = "gyro+tilt(accelerometer)"
+            tilt = "the accelerometer's gravity direction"
+        q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
+            r_gyro = aligned_gyro_rotation(imu_t_s, q, att_t_s, att_rad[:, 2])
+            got = gps_down_reference(imu_t_s, accel_b_m_s2, r_gyro, gps_t_s, gps_vel_ned_m_s)
+            if got is not None and got[1].any():
+                mixed = _with_gps_reference(*got, _interp_rows(imu_t_s, ref_t, ref))
+                q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
+                src, tilt = "gyro+tilt(gps)", f"{GPS_TILT} on {np.mean(got[1]):.0%} of the log, else {tilt}"
+        note = (
+            "rotation from the gyro (eq. (18)) with tilt pulled toward "
+            f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
+            "because the autopilot's yaw is fused from the disturbed compass"
+        )
+        return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q)
     if has_att:
         return AttitudeSource(
             "autopilot",
@@ -347,53 +378,6 @@ def attitude_source(
         "no gyro and no attitude: the vehicle is assumed not to rotate",
         r0_nb=dcm_from_quat(np.array([1.0, 0.0, 0.0, 0.0])),
     )
-
-
-def _gyro_source(
-    imu_t_s: F64,
-    gyro_b_rad_s: F64,
-    accel_b_m_s2: F64,
-    att_t_s: F64 | None,
-    att_rad: F64,
-    gps_t_s: F64 | None,
-    gps_vel_ned_m_s: F64 | None,
-) -> AttitudeSource:
-    """The gyro integrated as the source (:func:`attitude_source`), its tilt pulled toward the log's roll and
-    pitch (``att_t_s`` not None), else the accelerometer's gravity direction; with the GNSS velocity toward
-    the accelerometer minus the GNSS acceleration where it is fresh."""
-    if att_t_s is not None:
-        ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
-        ref_t = att_t_s
-        d0 = _interp_rows(imu_t_s[:1], att_t_s, ref)[0]
-        roll0 = math.atan2(float(d0[1]), float(d0[2]))
-        pitch0 = -math.asin(float(np.clip(d0[0] / np.linalg.norm(d0), -1.0, 1.0)))
-        q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, float(att_rad[0, 2])))
-        src = "gyro+tilt(attitude)"
-        tilt = "the log's roll and pitch"
-    else:
-        a = accel_b_m_s2
-        ref = -a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
-        ref_t = imu_t_s
-        d = ref[0]
-        roll0 = math.atan2(float(d[1]), float(d[2]))
-        pitch0 = -math.asin(float(np.clip(d[0], -1.0, 1.0)))
-        q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
-        src = "gyro+tilt(accelerometer)"
-        tilt = "the accelerometer's gravity direction"
-    q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
-    if att_t_s is not None and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
-        r_gyro = aligned_gyro_rotation(imu_t_s, q, att_t_s, att_rad[:, 2])
-        got = gps_down_reference(imu_t_s, accel_b_m_s2, r_gyro, gps_t_s, gps_vel_ned_m_s)
-        if got is not None and got[1].any():
-            mixed = _with_gps_reference(*got, _interp_rows(imu_t_s, ref_t, ref))
-            q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
-            src, tilt = "gyro+tilt(gps)", f"{GPS_TILT} on {np.mean(got[1]):.0%} of the log, else {tilt}"
-    note = (
-        "rotation from the gyro (eq. (18)) with tilt pulled toward "
-        f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
-        "because the autopilot's yaw is fused from the disturbed compass"
-    )
-    return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q)
 
 
 def with_yaw_reference(r_nb: F64, yaw_ref_rad: F64) -> F64:
