@@ -394,6 +394,22 @@ def rotation_increment(
     return ix + k * (py * nz - pz * ny), iy + k * (pz * nx - px * nz), iz + k * (px * ny - py * nx)
 
 
+def rotation_increments(w0: F64, w1: F64, w2: F64, h0: F64, h1: F64, p: ObserverParams) -> F64:
+    """:func:`rotation_increment` over arrays (the batch solver, core/observer_batch.py): rows of
+    (omega_{k-1}, omega_k, omega_{k+1}) and the intervals before and of the step; (m, 3) rotation vectors,
+    rad."""
+    if p.rate_interp == "hold":
+        return w2 * h1[:, None]
+    quad = np.isfinite(h0) & (h0 > 0.0) if p.rate_interp == "quadratic" else np.zeros(h1.shape, dtype=bool)
+    hq = np.where(quad, h0, 1.0)[:, None]
+    hn = h1[:, None]
+    c = (hq * (w2 - w1) + hn * (w0 - w1)) / (hq * hn * (hq + hn))
+    integral_q = w1 * hn + ((w2 - w1) / hn - c * hn) * (hn * hn / 2.0) + c * (hn**3 / 3.0)
+    integral_t = 0.5 * hn * (w1 + w2)
+    integral = np.where(quad[:, None], integral_q, integral_t)
+    return integral + (hn * hn / 12.0) * np.cross(w1, w2)  # two-sample coning term
+
+
 def regressor(a_k: Sequence[float], d2_prev: float, d2_now: float, variant: Variant) -> Mat3:
     """Phi_k of ``y_k = v_{k+1} - A_k v_k = Phi_k theta`` (exact discrete eq. (16), or eq. (19)),
     row-major."""

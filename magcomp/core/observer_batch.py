@@ -44,7 +44,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcomp.core.bias_fit import least_squares
-from magcomp.core.observer import ObserverParams
+from magcomp.core.observer import ObserverParams, rotation_increments
+from magcomp.core.rotations import dcms_from_rotvecs
 
 F64 = NDArray[np.float64]
 
@@ -106,34 +107,6 @@ class BatchTheta(NamedTuple):
     excited_s: F64  # (3,) time each axis was observable
     converged: tuple[bool, bool, bool]
     n_samples: int
-
-
-def rotation_increments(w0: F64, w1: F64, w2: F64, h0: F64, h1: F64, p: ObserverParams) -> F64:
-    """:func:`magcomp.core.observer.rotation_increment` over arrays: rows of (omega_{k-1}, omega_k,
-    omega_{k+1}) and the intervals before and of the step; (m, 3) rotation vectors, rad."""
-    if p.rate_interp == "hold":
-        return w2 * h1[:, None]
-    quad = np.isfinite(h0) & (h0 > 0.0) if p.rate_interp == "quadratic" else np.zeros(h1.shape, dtype=bool)
-    hq = np.where(quad, h0, 1.0)[:, None]
-    hn = h1[:, None]
-    c = (hq * (w2 - w1) + hn * (w0 - w1)) / (hq * hn * (hq + hn))
-    integral_q = w1 * hn + ((w2 - w1) / hn - c * hn) * (hn * hn / 2.0) + c * (hn**3 / 3.0)
-    integral_t = 0.5 * hn * (w1 + w2)
-    integral = np.where(quad[:, None], integral_q, integral_t)
-    return integral + (hn * hn / 12.0) * np.cross(w1, w2)  # two-sample coning term
-
-
-def dcms_from_rotvecs(phi: F64) -> F64:
-    """:func:`magcomp.core.rotations.dcm_from_rotvec` over rows: (m, 3) -> (m, 3, 3)."""
-    ang = np.sqrt(np.einsum("ij,ij->i", phi, phi))
-    small = ang < 1e-8
-    a = np.where(small, 1.0, ang)
-    s1 = np.where(small, 1.0, np.sin(a) / a)
-    s2 = np.where(small, 0.5, (1.0 - np.cos(a)) / (a * a))
-    k = np.zeros((phi.shape[0], 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = phi[:, 2], -phi[:, 1], phi[:, 0]
-    return np.eye(3) + s1[:, None, None] * k + s2[:, None, None] * (k @ k)
 
 
 def _observable(phi: F64, dt: F64, carry: F64, p: ObserverParams) -> tuple[NDArray[np.bool_], F64]:

@@ -210,6 +210,19 @@ def dcm_from_rotvec(phi: FloatSeq) -> Mat3:
     )  # fmt: skip
 
 
+def dcms_from_rotvecs(phi: F64) -> F64:
+    """:func:`dcm_from_rotvec` over rows (the batch solver): (m, 3) -> (m, 3, 3)."""
+    ang = np.sqrt(np.einsum("ij,ij->i", phi, phi))
+    small = ang < 1e-8
+    a = np.where(small, 1.0, ang)
+    s1 = np.where(small, 1.0, np.sin(a) / a)
+    s2 = np.where(small, 0.5, (1.0 - np.cos(a)) / (a * a))
+    k = np.zeros((phi.shape[0], 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = phi[:, 2], -phi[:, 1], phi[:, 0]
+    return np.eye(3) + s1[:, None, None] * k + s2[:, None, None] * (k @ k)
+
+
 def so3_log(r: ArrayLike) -> F64:
     """Logarithm SO(3) -> so(3) as a rotation vector (inverse of :func:`so3_exp`; scipy's Rotation)."""
     return np.asarray(_rotation().from_matrix(np.asarray(r, dtype=float)).as_rotvec(), dtype=float)
@@ -236,6 +249,12 @@ def down_b_from_quat(q_nb: FloatSeq) -> Vec3:
     w, x, y, z = q_nb[0], q_nb[1], q_nb[2], q_nb[3]
     return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
+
+
+def roll_pitch_from_down(d: FloatSeq) -> tuple[float, float]:
+    """ZYX roll and pitch (rad) of a unit down vector in body axes (:func:`down_b_from_quat`'s output):
+    ``roll = atan2(d_y, d_z)``, ``pitch = -asin(d_x)`` (clipped); plain floats (per sample)."""
+    return math.atan2(d[1], d[2]), -math.asin(max(-1.0, min(1.0, d[0])))
 
 def euler_yaw_rate_coefs(roll_rad: float, pitch_rad: float) -> tuple[float, float]:
     """``(sin roll, cos roll) / cos pitch``: the ZYX Euler yaw rate is ``q c0 + r c1`` for the body rates

@@ -19,7 +19,13 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import Config
 from magcomp.core.inflight.yawframe import GyroYaw
 from magcomp.core.mahony import mahony_init
-from magcomp.core.rotations import dcm_from_euler, dcm_from_quat, euler_yaw_rate_coefs, quat_step_body_rate
+from magcomp.core.rotations import (
+    dcm_from_euler,
+    dcm_from_quat,
+    euler_yaw_rate_coefs,
+    quat_step_body_rate,
+    roll_pitch_from_down,
+)
 from magcomp.core.selfcheck import MAX_GYRO_DT_S
 from magcomp.core.types import FLAG_INPUTS_STALE, FLAG_SATURATED, STANDARD_GRAVITY_M_S2, AttitudeSample
 from magcomp.service.align import (
@@ -64,12 +70,6 @@ ACCEL_MAX_M_S2 = 2000.0
 ACCEL_LP_S = 1.0
 #: track that acceleration (for the tilt model: ``core.inflight.feed.FeedSwitches``)
 TRACK_ACCEL_H = True
-
-
-def _coefs_from_down(d: Float3) -> tuple[float, float]:
-    """:func:`euler_yaw_rate_coefs` of the roll and pitch of a down vector in body axes (as the view takes
-    them)."""
-    return euler_yaw_rate_coefs(math.atan2(d[1], d[2]), -math.asin(max(-1.0, min(1.0, d[0]))))
 
 
 class AttitudeView(NamedTuple):
@@ -212,7 +212,7 @@ class AttitudeStage:
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
             att_t = self.att_t  # the view's roll and pitch are the filter's: the integral follows them now
             if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
-                self._heading_coef = _coefs_from_down(m.down_b())
+                self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
             b = m.b
             self.gyro = (gx - b[0], gy - b[1], gz - b[2])
             self.qg = quat_step_body_rate(self.qg, self.gyro, t - prev_t)
@@ -288,8 +288,7 @@ class AttitudeStage:
         down: Float3 | None = None
         if self.mahony is not None and self._use_mahony:
             d = self.mahony.down_b()  # the down vector in body axes (sec. II-A); roll/pitch of ZYX Euler
-            roll = math.atan2(d[1], d[2])
-            pitch = -math.asin(max(-1.0, min(1.0, d[0])))
+            roll, pitch = roll_pitch_from_down(d)
             att_t, imu_t = self.att_t, self.imu_t
             fresh = att_t is not None and imu_t is not None and abs(imu_t - att_t) <= self._stale_s
             if self._auto and fresh:

@@ -35,7 +35,10 @@ class CompassCorrector:
         earth_ned_mgauss: F64,
         stored: CompassState | None,
         fits: Executor,
+        stored_from_this_log: bool = False,
     ) -> None:
+        """``stored_from_this_log``: ``stored`` was learned from the log now replayed (a two-pass replay's
+        per-sample second pass): its in-flight correction starts published (service/heading.py)."""
         self.mag_index = mag_index
         self.clock = CompassClock()
         mode = cfg.calibration.mode
@@ -45,7 +48,8 @@ class CompassCorrector:
         theta0 = stored.theta_mgauss if (stored is not None and mode != "learn") else np.zeros(3)
         self.theta = ThetaTracker(cfg, theta0)
         hover = cfg.inflight.enabled and cfg.observer.learn  # theta against the autopilot's calibration
-        self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check, hover)
+        self.heading = HeadingTrack(cfg.output.heading_tau_s, cfg.output.self_check, hover,
+                                    starts_published=stored_from_this_log)  # fmt: skip
         # in-flight calibration jointly with theta (no hand rotation): created at the first sample
         self.inflight: InflightStage | None = None
         self.rel_source: RotationSource = NO_ROTATION

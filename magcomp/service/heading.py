@@ -152,7 +152,8 @@ class HeadingTrack:
         "starts_published",
     )  # fmt: skip
 
-    def __init__(self, tau_s: float, self_check: bool = True, hover: bool = True) -> None:
+    def __init__(self, tau_s: float, self_check: bool = True, hover: bool = True,
+                 starts_published: bool = False) -> None:  # fmt: skip
         #: judge in-flight corrections before publishing them (``[output] self_check``)
         self.self_check = self_check
         #: learn theta against the autopilot's calibration live (``[inflight] enabled``)
@@ -172,7 +173,7 @@ class HeadingTrack:
         self.gyro_epoch = -1.0
         #: an in-flight correction warm-started from a state learned on this very log (a two-pass replay's
         #: per-sample second pass) starts published; one from another flight's state does not
-        self.starts_published = False
+        self.starts_published = starts_published
 
     def reset(self) -> None:
         self.corrected.reset()

@@ -360,8 +360,8 @@ class Pipeline:
             for w in store.warnings:
                 if w not in self.warnings:
                     self.warnings.append(w)
-        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits)
-        c.heading.starts_published = self._store_is_this_log
+        c = CompassCorrector(idx, self.cfg, self.calibrate.earth_ned, stored, self._workers.fits,
+                             self._store_is_this_log)  # fmt: skip
         self.correctors[idx] = c
         return c
 

@@ -191,8 +191,6 @@ class ThetaStage:
         self._stale_s = cfg.input.stale_s
         self._learn = cfg.observer.learn
         self._outputs = outputs
-        #: a learn-only pass logs the observers' samples for the batch solve
-        self._batch = not outputs
 
     def drain(self, c: ThetaHost, t_now: float) -> None:
         """Feed compass ``c``'s observer what its queue holds whose throttle is known by ``t_now``."""
@@ -228,7 +226,7 @@ class ThetaStage:
         """Low-pass + observer, eqs. (19)-(20), fed in time order with the throttle interpolated at the
         sample's own time (queued until the throttle after it is known); theta-hat now."""
         tr = c.theta
-        if self._batch and tr.rows is None and tr.batch is None:
+        if not self._outputs and tr.rows is None and tr.batch is None:  # learn-only: for the batch solve
             tr.rows = ObserverRowLog(tr.est.params)
         if rec.obs_reset:
             tr.queue_reset(rec.t_s, rec.obs_skip)

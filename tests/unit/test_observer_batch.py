@@ -17,8 +17,8 @@ from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.mavlink_source import open_source
 from magcomp.core import observer_batch as ob
 from magcomp.core.bias_fit import fit_bias_offline, least_squares
-from magcomp.core.observer import ObserverParams, rotation_increment
-from magcomp.core.rotations import dcm_from_rotvec
+from magcomp.core.observer import ObserverParams, rotation_increment, rotation_increments
+from magcomp.core.rotations import dcm_from_rotvec, dcms_from_rotvecs
 from magcomp.service.pipeline import Pipeline
 from magcomp.sim import SimConfig, simulate
 
@@ -33,8 +33,8 @@ def test_rotations_over_arrays_are_the_online_steps() -> None:
     dt = np.diff(t)
     h0 = np.concatenate([[math.nan], dt[:-1]])  # the first step has no interval before it: the trapezoid
     w0 = np.concatenate([w[:1], w[:-2]])
-    ph = ob.rotation_increments(w0, w[:-1], w[1:], h0, dt, ObserverParams())
-    a = ob.dcms_from_rotvecs(-ph)
+    ph = rotation_increments(w0, w[:-1], w[1:], h0, dt, ObserverParams())
+    a = dcms_from_rotvecs(-ph)
     for k in range(n - 1):
         ref = rotation_increment(tuple(w0[k]), tuple(w[k]), tuple(w[k + 1]), h0[k], dt[k], "quadratic")
         np.testing.assert_allclose(ph[k], ref, rtol=0.0, atol=1e-15)
