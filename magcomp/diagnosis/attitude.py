@@ -8,7 +8,11 @@ accelerometer (gravity), not the compass.
 So the rotation ``R_nb`` used here is the strap-down integral of the gyro, eq. (18) ``R_dot = R [omega]_x``,
 with a Mahony-style complementary correction (proportional + integral, ref. [23]) that pulls only the
 *tilt* toward a compass-free "down" reference: the log's roll and pitch when it has an attitude, otherwise
-the accelerometer. The heading is then pure gyro integration: it is free of the compass, drifts only with the
+the accelerometer. When the log also has the GNSS velocity, the reference is the accelerometer minus the GNSS
+acceleration (:mod:`magcomp.diagnosis.gps_tilt`) wherever that velocity is fresh: a GPS-aided autopilot
+removes that acceleration with its compass-steered yaw, so its roll and pitch lean with the very bias
+diagnosed whenever the vehicle accelerates (docs/diagnosis.md). The heading is then pure gyro integration: it
+is free of the compass, drifts only with the
 gyro bias about the vertical, and that drift is a fitted nuisance parameter of the forward model
 (:mod:`magcomp.diagnosis.model`). Departure from the paper: the paper feeds the accelerometer to the Mahony
 filter and uses the full estimated attitude; here the filter never sees the compass.
@@ -32,6 +36,7 @@ from magcomp.core.rotations import (
     euler_from_dcms,
     quat_from_dcm,
 )
+from magcomp.diagnosis.gps_tilt import aligned_gyro_rotation, gps_down_reference
 
 F64 = NDArray[np.float64]
 
@@ -94,15 +99,28 @@ def propagate_attitude(
     -------
     (n, 4) quaternions q_nb at the IMU times.
     """
+    return _propagate(imu_t_s, gyro_b_rad_s, ref_t_s, ref_down_b, q0_nb, p)[0]
+
+
+def _propagate(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    ref_t_s: F64,
+    ref_down_b: F64,
+    q0_nb: F64,
+    p: TiltFilterParams | None = None,
+    bias0: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> tuple[F64, tuple[float, float, float]]:
+    """:func:`propagate_attitude` starting from the gyro bias ``bias0``; also returns the final bias."""
     p = p or TiltFilterParams()
     n = imu_t_s.shape[0]
     ref = _interp_rows(imu_t_s, ref_t_s, ref_down_b)
     ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-9)
     out = np.empty((n, 4))
-    bias = (0.0, 0.0, 0.0)
+    bias = bias0
     for _ in range(max(1, p.passes)):
         bias = _tilt_pass(imu_t_s, gyro_b_rad_s, ref, q0_nb, p, bias, out)
-    return out
+    return out, bias
 
 
 _ROW_BLOCK = 1 << 16
@@ -197,7 +215,8 @@ def dcms_from_euler(att_rad: F64) -> F64:
 class AttitudeTrack:
     """Rotation used by the forward model at the compass sample times.
 
-    r_nb: (n, 3, 3); source: 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or 'autopilot';
+    r_nb: (n, 3, 3); source: 'gyro+tilt(gps)', 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or
+    'autopilot';
     note: one sentence for the JSON ``evidence`` and the report.
     """
 
@@ -250,15 +269,37 @@ class AttitudeSource:
         return AttitudeTrack(r, self.source, self.note)
 
 
+GPS_TILT = (
+    "the accelerometer minus the GNSS acceleration (rotated with the gyro heading, not the compass-steered "
+    "one of the autopilot)"
+)
+
+
+def _with_gps_reference(gps_ref: F64, fresh: NDArray[np.bool_], log_ref: F64) -> F64:
+    """The down reference (n, 3): ``gps_ref`` where ``fresh``, else ``log_ref`` (the log's tilt). A constant
+    rotation between the two (an accelerometer bias, which the autopilot estimates and the GNSS subtraction
+    does not) is taken out of ``gps_ref`` first: only the log's tilt on average is kept."""
+    w = np.mean(np.cross(gps_ref[fresh], log_ref[fresh]), axis=0)
+    moved = gps_ref + np.cross(w, gps_ref)
+    moved /= np.linalg.norm(moved, axis=1, keepdims=True)
+    out = log_ref.copy()
+    out[fresh] = moved[fresh]
+    return out
+
+
 def attitude_source(
     imu_t_s: F64,
     gyro_b_rad_s: F64,
     accel_b_m_s2: F64,
     att_t_s: F64,
     att_rad: F64,
+    gps_t_s: F64 | None = None,
+    gps_vel_ned_m_s: F64 | None = None,
 ) -> AttitudeSource:
     """Choose the rotation for the forward model and integrate the gyro when it is the source (see module
-    docstring); :meth:`AttitudeSource.at` takes it at a compass's times."""
+    docstring); :meth:`AttitudeSource.at` takes it at a compass's times. With the GNSS velocity
+    (``gps_t_s`` (k,), ``gps_vel_ned_m_s`` (k, 3) m/s) and the log's attitude, the tilt is pulled toward
+    the accelerometer minus the GNSS acceleration where that velocity is fresh (:mod:`.gps_tilt`)."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -308,7 +349,14 @@ def attitude_source(
             q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
             src = "gyro+tilt(accelerometer)"
             tilt = "the accelerometer's gravity direction"
-        q = propagate_attitude(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
+            r_gyro = aligned_gyro_rotation(imu_t_s, q, att_t_s, att_rad[:, 2])
+            got = gps_down_reference(imu_t_s, accel_b_m_s2, r_gyro, gps_t_s, gps_vel_ned_m_s)
+            if got is not None and got[1].any():
+                mixed = _with_gps_reference(*got, _interp_rows(imu_t_s, ref_t, ref))
+                q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
+                src, tilt = "gyro+tilt(gps)", f"{GPS_TILT} on {np.mean(got[1]):.0%} of the log, else {tilt}"
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "

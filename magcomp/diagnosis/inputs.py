@@ -124,6 +124,8 @@ def log_attitude(log: LogData) -> AttitudeSource:
         log.accel_m_s2 if imu_ok else np.zeros((0, 3)),
         att.t_s,
         att.values if len(att) else np.zeros((0, 3)),
+        log.gps_velocity_ned_m_s.t_s,
+        log.gps_velocity_ned_m_s.values,
     )
 
 
