@@ -36,7 +36,7 @@ from magcomp.core.rotations import (
     euler_from_dcms,
     quat_from_dcm,
 )
-from magcomp.diagnosis.gps_tilt import aligned_gyro_rotation, gps_down_reference
+from magcomp.diagnosis.gps_tilt import aligned_gyro_rotation, gps_tilt_reference
 
 F64 = NDArray[np.float64]
 
@@ -275,16 +275,28 @@ GPS_TILT = (
 )
 
 
-def _with_gps_reference(gps_ref: F64, fresh: NDArray[np.bool_], log_ref: F64) -> F64:
-    """The down reference (n, 3): ``gps_ref`` where ``fresh``, else ``log_ref`` (the log's tilt). A constant
-    rotation between the two (an accelerometer bias, which the autopilot estimates and the GNSS subtraction
-    does not) is taken out of ``gps_ref`` first: only the log's tilt on average is kept."""
-    w = np.mean(np.cross(gps_ref[fresh], log_ref[fresh]), axis=0)
-    moved = gps_ref + np.cross(w, gps_ref)
-    moved /= np.linalg.norm(moved, axis=1, keepdims=True)
-    out = log_ref.copy()
-    out[fresh] = moved[fresh]
-    return out
+def _gps_pass(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    accel_b_m_s2: F64,
+    q_nb: F64,
+    bias: tuple[float, float, float],
+    log_down: tuple[F64, F64],
+    att: tuple[F64, F64],
+    gps: tuple[F64, F64],
+) -> tuple[F64 | None, str]:
+    """The tilt filter's pass toward the GNSS reference (:func:`.gps_tilt.gps_tilt_reference`) after the
+    first pass ``q_nb`` (toward the log's tilt ``log_down`` = (t, (m, 3) down)), with the log's attitude
+    ``att`` = (t, (m, 3) roll/pitch/yaw) and the GNSS ``gps`` = (t, (k, 3) NED velocity): the new quaternions
+    and a clause for the note, or (None, why it is not used)."""
+    r_gyro = aligned_gyro_rotation(imu_t_s, q_nb, att[0], att[1][:, 2])
+    log_yaw = np.interp(imu_t_s, att[0], np.unwrap(att[1][:, 2]))
+    got = gps_tilt_reference(imu_t_s, accel_b_m_s2, r_gyro, *gps, _interp_rows(imu_t_s, *log_down), log_yaw)
+    if got.down_b is None:
+        return None, f"not toward the GNSS velocity: {got.note}"
+    q0 = q_nb[0]
+    q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, got.down_b, q0, TiltFilterParams(passes=1), bias)
+    return q, f"{GPS_TILT} on {got.fresh:.0%} of the log ({got.note})"
 
 
 def attitude_source(
@@ -351,12 +363,12 @@ def attitude_source(
             tilt = "the accelerometer's gravity direction"
         q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
         if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
-            r_gyro = aligned_gyro_rotation(imu_t_s, q, att_t_s, att_rad[:, 2])
-            got = gps_down_reference(imu_t_s, accel_b_m_s2, r_gyro, gps_t_s, gps_vel_ned_m_s)
-            if got is not None and got[1].any():
-                mixed = _with_gps_reference(*got, _interp_rows(imu_t_s, ref_t, ref))
-                q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, mixed, q0, TiltFilterParams(passes=1), bias)
-                src, tilt = "gyro+tilt(gps)", f"{GPS_TILT} on {np.mean(got[1]):.0%} of the log, else {tilt}"
+            args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s))
+            q_gps, why = _gps_pass(imu_t_s, gyro_b_rad_s, accel_b_m_s2, *args)
+            if q_gps is not None:
+                q, src, tilt = q_gps, "gyro+tilt(gps)", f"{why}, else {tilt}"
+            else:
+                tilt = f"{tilt} ({why})"
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "

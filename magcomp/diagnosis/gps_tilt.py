@@ -19,6 +19,9 @@ cannot follow the throttle-driven part of the compass's yaw error).
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,8 +33,19 @@ F64 = NDArray[np.float64]
 #: reference to the log's tilt there: across a longer gap the central difference is no acceleration.
 GPS_STALE_S = 1.0
 
+#: Window (s) over which the GNSS correction to the log's tilt is averaged (:func:`gps_tilt_reference`).
+SMOOTH_S = 2.0
+
+#: The GNSS latencies searched (s): a receiver's velocity solution reaches the log 0.1-0.3 s after the
+#: motion it describes (ArduPilot's GPS_DELAY_MS and PX4's EKF2_GPS_DELAY default to 0.2 s and 0.11 s;
+#: measured on the development logs: 0.27 s on log171, 0.13-0.19 s on the two peterbarker logs); a simulated
+#: log has none. A best shift at either end is taken as not found.
+DELAY_GRID_S = np.round(np.arange(-0.2, 0.6001, 0.01), 3)
+
 #: Fewer GNSS velocities than this and the reference is not built (a few seconds at the usual 5 Hz).
 MIN_GPS_SAMPLES = 10
+
+G = 9.80665
 
 
 def aligned_gyro_rotation(imu_t_s: F64, q_nb: F64, att_t_s: F64, yaw_rad: F64) -> F64:
@@ -51,21 +65,13 @@ def aligned_gyro_rotation(imu_t_s: F64, q_nb: F64, att_t_s: F64, yaw_rad: F64) -
     return np.matmul(rz, r)
 
 
-def gps_down_reference(
-    imu_t_s: F64, accel_b_m_s2: F64, r_nb: F64, gps_t_s: F64, gps_vel_ned_m_s: F64
-) -> tuple[F64, NDArray[np.bool_]] | None:
-    """Down in body axes (n, 3, unit) at ``imu_t_s`` from the specific force and the GNSS velocity (module
-    docstring), and where it is fresh (n,) bool; None when the log has too little GNSS velocity.
-
-    accel_b_m_s2 : (n, 3) specific force, body FRD. r_nb : (n, 3, 3) rotation at ``imu_t_s``.
-    gps_t_s, gps_vel_ned_m_s : (m,), (m, 3) m/s north, east, down (a NaN down is taken as no vertical
-    acceleration).
-    """
-    t_g = np.asarray(gps_t_s, dtype=np.float64)
+def _gnss_rows(imu_t_s: F64, gps_t_s: F64, gps_vel_ned_m_s: F64, delay_s: float) -> tuple[F64, F64] | None:
+    """The GNSS rows to use: finite, one per time stamp (the last), moved back by ``delay_s`` and inside
+    the IMU's span; a NaN down velocity set to 0. None when fewer than MIN_GPS_SAMPLES remain."""
+    t_g = np.asarray(gps_t_s, dtype=np.float64) - delay_s
     v = np.asarray(gps_vel_ned_m_s, dtype=np.float64).copy()
     ok = np.isfinite(t_g) & np.all(np.isfinite(v[:, :2]), axis=1)
     t_g, v = t_g[ok], v[ok]
-    # one row per time stamp (the last), inside the IMU's span
     keep = np.concatenate([np.diff(t_g) > 0, [True]]) if t_g.size else np.zeros(0, dtype=bool)
     t_g, v = t_g[keep], v[keep]
     inside = (t_g >= imu_t_s[0]) & (t_g <= imu_t_s[-1])
@@ -73,10 +79,62 @@ def gps_down_reference(
     if t_g.size < MIN_GPS_SAMPLES:
         return None
     v[~np.isfinite(v[:, 2]), 2] = 0.0
+    return t_g, v
+
+
+def _integrated_specific_force(imu_t_s: F64, accel_b_m_s2: F64, r_nb: F64) -> F64:
+    """``u_n`` (n, 3): the trapezoid integral of ``R_nb f_b`` from the first IMU sample (m/s)."""
     f_n = np.einsum("nij,nj->ni", r_nb, accel_b_m_s2)
-    dt = np.diff(imu_t_s)
     u_n = np.zeros_like(f_n)
-    u_n[1:] = np.cumsum(0.5 * (f_n[1:] + f_n[:-1]) * dt[:, None], axis=0)
+    u_n[1:] = np.cumsum(0.5 * (f_n[1:] + f_n[:-1]) * np.diff(imu_t_s)[:, None], axis=0)
+    return u_n
+
+
+def gnss_delay(
+    imu_t_s: F64, accel_b_m_s2: F64, r_nb: F64, gps_t_s: F64, gps_vel_ned_m_s: F64
+) -> float | None:
+    """The GNSS velocity's latency behind the IMU (s), measured on the log itself: the shift in
+    DELAY_GRID_S that makes the GNSS velocity's horizontal change over each sample interval agree best (least
+    median of squares: an impact or a glitch does not move it) with the kinematic acceleration
+    ``R_nb f_b + g_n`` integrated over the same interval. None when the best shift is at an end of the grid
+    (no latency a receiver has) or the log has too little GNSS velocity."""
+    got = _gnss_rows(imu_t_s, gps_t_s, gps_vel_ned_m_s, 0.0)
+    if got is None:
+        return None
+    t_g, v = got
+    u_n = _integrated_specific_force(imu_t_s, accel_b_m_s2, r_nb)[:, :2]
+    dt = np.diff(t_g)
+    ok = dt <= GPS_STALE_S
+    if not ok.any():
+        return None
+    dv = np.diff(v[:, :2], axis=0)[ok]
+    cost = np.empty(DELAY_GRID_S.shape[0])
+    for k, d in enumerate(DELAY_GRID_S):
+        u = np.column_stack([np.interp(t_g - d, imu_t_s, u_n[:, j]) for j in range(2)])
+        du = np.diff(u, axis=0)[ok]
+        cost[k] = float(np.median(np.sum(np.square(dv - du), axis=1) / np.square(dt[ok])))
+    best = int(np.argmin(cost))
+    if not np.isfinite(cost[best]) or best in (0, DELAY_GRID_S.shape[0] - 1):
+        return None
+    return float(DELAY_GRID_S[best])
+
+
+def gps_down_reference(
+    imu_t_s: F64, accel_b_m_s2: F64, r_nb: F64, gps_t_s: F64, gps_vel_ned_m_s: F64, delay_s: float = 0.0
+) -> tuple[F64, NDArray[np.bool_]] | None:
+    """Down in body axes (n, 3, unit) at ``imu_t_s`` from the specific force and the GNSS velocity (module
+    docstring), and where it is fresh (n,) bool; None when the log has too little GNSS velocity.
+
+    accel_b_m_s2 : (n, 3) specific force, body FRD. r_nb : (n, 3, 3) rotation at ``imu_t_s``.
+    gps_t_s, gps_vel_ned_m_s : (m,), (m, 3) m/s north, east, down (a NaN down is taken as no vertical
+    acceleration). delay_s : the GNSS velocity's latency behind the IMU (:func:`gnss_delay`): a velocity
+    stamped ``t`` is the vehicle's at ``t - delay_s``.
+    """
+    got = _gnss_rows(imu_t_s, gps_t_s, gps_vel_ned_m_s, delay_s)
+    if got is None:
+        return None
+    t_g, v = got
+    u_n = _integrated_specific_force(imu_t_s, accel_b_m_s2, r_nb)
     u_g = np.column_stack([np.interp(t_g, imu_t_s, u_n[:, j]) for j in range(3)])
     g_g = np.gradient(v - u_g, t_g, axis=0)  # a_n - R f_b = g_n, at the GNSS times
     g_n = np.column_stack([np.interp(imu_t_s, t_g, g_g[:, j]) for j in range(3)])
@@ -90,3 +148,108 @@ def gps_down_reference(
     fresh = (imu_t_s >= t_g[0]) & (imu_t_s <= t_g[-1]) & (gap <= stale_s)
     fresh &= (norm[:, 0] > 0.5 * 9.80665) & (norm[:, 0] < 1.5 * 9.80665)
     return ref, fresh
+
+
+def _window_mean(t_s: F64, x: F64, use: NDArray[np.bool_], half_s: float) -> F64:
+    """Mean of the rows of ``x`` (n, k) with ``use`` within ``half_s`` of each time of ``t_s`` (NaN rows where
+    none is)."""
+    w = use.astype(np.float64)
+    cs = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(np.where(use[:, None], x, 0.0), axis=0)])
+    cw = np.concatenate([[0.0], np.cumsum(w)])
+    lo = np.searchsorted(t_s, t_s - half_s, side="left")
+    hi = np.searchsorted(t_s, t_s + half_s, side="right")
+    den = (cw[hi] - cw[lo])[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, (cs[hi] - cs[lo]) / np.maximum(den, 1.0), np.nan)
+
+
+def _horizontal_acceleration(imu_t_s: F64, gps_t_s: F64, gps_vel_ned_m_s: F64, delay_s: float) -> F64:
+    """(n, 2) north, east m/s^2 at ``imu_t_s``: the GNSS velocity's horizontal derivative (0 without rows)."""
+    got = _gnss_rows(imu_t_s, gps_t_s, gps_vel_ned_m_s, delay_s)
+    if got is None:
+        return np.zeros((imu_t_s.shape[0], 2))
+    t_g, v = got
+    a = np.gradient(v[:, :2], t_g, axis=0)
+    return np.column_stack([np.interp(imu_t_s, t_g, a[:, j]) for j in range(2)])
+
+
+@dataclass(frozen=True)
+class GpsTilt:
+    """The GNSS tilt reference of one log, or why it is not used.
+
+    down_b: (n, 3) unit down reference at the IMU times (the log's tilt moved by the smoothed GNSS
+    correction where it is fresh), None when not used; fresh: fraction of the log it covers; delay_s: the
+    GNSS latency measured (None: not found); lean_deg: rms of the part of the GNSS-minus-log tilt that
+    grows with the horizontal acceleration (the lean it corrects); noise_deg: the part that does not (its
+    disagreement with the log's tilt where the vehicle does not accelerate); note: one clause for the report.
+    """
+
+    down_b: F64 | None
+    fresh: float
+    delay_s: float | None
+    lean_deg: float
+    noise_deg: float
+    note: str
+
+
+def gps_tilt_reference(
+    imu_t_s: F64,
+    accel_b_m_s2: F64,
+    r_nb: F64,
+    gps_t_s: F64,
+    gps_vel_ned_m_s: F64,
+    log_down_b: F64,
+    log_yaw_rad: F64,
+    smooth_s: float | None = None,
+) -> GpsTilt:
+    """The down reference for the tilt filter from the GNSS velocity, gated on the log itself.
+
+    1. The GNSS latency is measured (:func:`gnss_delay`); not found, the reference is not used.
+    2. The correction ``c = d_gnss - d_log`` (body axes, per IMU sample where the GNSS is fresh) has its
+       mean taken out (an accelerometer bias, which the autopilot estimates and the subtraction does not)
+       and is averaged over ``smooth_s`` (SMOOTH_S): a differentiated velocity and a logged accelerometer
+       are noisy at the GNSS rate (degrees on real logs), the lean they correct changes over seconds.
+    3. The gate: ``|c|^2`` is fitted as ``n^2 + k^2 |a_h|^2`` (``a_h`` the GNSS horizontal acceleration,
+       averaged alike). The lean of the log's tilt grows with ``|a_h|`` (``dpsi |a_h| / g``); ``n`` is the
+       reference's own error where the vehicle does not accelerate, where the log's tilt has no lean. The
+       reference is used only when the lean it corrects, ``k^2 mean(|a_h|^2)``, exceeds the error it adds,
+       ``n^2``: otherwise the log's tilt is kept and the note says why.
+    """
+    half = 0.5 * (SMOOTH_S if smooth_s is None else smooth_s)
+    delay = gnss_delay(imu_t_s, accel_b_m_s2, r_nb, gps_t_s, gps_vel_ned_m_s)
+    if delay is None:
+        return GpsTilt(None, 0.0, None, math.nan, math.nan, "its latency is not found in the log")
+    got = gps_down_reference(imu_t_s, accel_b_m_s2, r_nb, gps_t_s, gps_vel_ned_m_s, delay)
+    if got is None or not got[1].any():
+        return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
+    ref, fresh = got
+    c = ref - log_down_b
+    c -= np.mean(c[fresh], axis=0)
+    c_s = _window_mean(imu_t_s, c, fresh, half)
+    # the lean an autopilot steered by a yaw off by dpsi gives its down vector, seen from the GNSS reference:
+    # (dpsi / g) (-a_E, a_N) in NED (it removes R(psi + dpsi) f, not R(psi) f, from the GNSS acceleration)
+    gyro_yaw = np.arctan2(r_nb[:, 1, 0], r_nb[:, 0, 0])
+    dpsi = np.angle(np.exp(1j * (log_yaw_rad - gyro_yaw)))
+    a_h = _horizontal_acceleration(imu_t_s, gps_t_s, gps_vel_ned_m_s, delay)
+    lean_n = _window_mean(imu_t_s, dpsi[:, None] / G * np.column_stack([-a_h[:, 1], a_h[:, 0]]), fresh, half)
+    c_n = np.einsum("nij,nj->ni", r_nb, c_s)[:, :2]
+    use = fresh & np.all(np.isfinite(c_n), axis=1) & np.all(np.isfinite(lean_n), axis=1)
+    if np.count_nonzero(use) < 2:
+        return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
+    pp = float(np.sum(np.square(lean_n[use])))
+    beta = float(np.sum(c_n[use] * lean_n[use])) / pp if pp > 0 else 0.0
+    lean2 = beta * beta * pp / np.count_nonzero(use)
+    n2 = float(np.mean(np.sum(np.square(c_n[use] - beta * lean_n[use]), axis=1)))
+    lean_deg, noise_deg = math.degrees(math.sqrt(lean2)), math.degrees(math.sqrt(n2))
+    figures = (
+        f"the GNSS velocity {delay * 1e3:.0f} ms behind the IMU; the GNSS tilt differs from the log's by "
+        f"{lean_deg:.2f} deg rms as the autopilot's yaw error leans it ({beta:.2f} of that lean) and by "
+        f"{noise_deg:.2f} deg otherwise"
+    )
+    if beta <= 0.0 or lean2 <= n2:
+        note = f"{figures}, so it would add more error than it removes"
+        return GpsTilt(None, 0.0, delay, lean_deg, noise_deg, note)
+    down = log_down_b.copy()
+    down[use] += c_s[use]
+    down /= np.linalg.norm(down, axis=1, keepdims=True)
+    return GpsTilt(down, float(np.mean(use)), delay, lean_deg, noise_deg, figures)
