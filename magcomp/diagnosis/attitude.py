@@ -284,14 +284,16 @@ def _gps_pass(
     log_down: tuple[F64, F64],
     att: tuple[F64, F64],
     gps: tuple[F64, F64],
+    mask: NDArray[np.bool_] | None,
 ) -> tuple[F64 | None, str]:
     """The tilt filter's pass toward the GNSS reference (:func:`.gps_tilt.gps_tilt_reference`) after the
     first pass ``q_nb`` (toward the log's tilt ``log_down`` = (t, (m, 3) down)), with the log's attitude
     ``att`` = (t, (m, 3) roll/pitch/yaw) and the GNSS ``gps`` = (t, (k, 3) NED velocity): the new quaternions
     and a clause for the note, or (None, why it is not used)."""
-    r_gyro = aligned_gyro_rotation(imu_t_s, q_nb, att[0], att[1][:, 2])
+    r_gyro = aligned_gyro_rotation(imu_t_s, q_nb, att[0], att[1][:, 2], mask)
     log_yaw = np.interp(imu_t_s, att[0], np.unwrap(att[1][:, 2]))
-    got = gps_tilt_reference(imu_t_s, accel_b_m_s2, r_gyro, *gps, _interp_rows(imu_t_s, *log_down), log_yaw)
+    down = _interp_rows(imu_t_s, *log_down)
+    got = gps_tilt_reference(imu_t_s, accel_b_m_s2, r_gyro, *gps, down, log_yaw, mask)
     if got.down_b is None:
         return None, f"not toward the GNSS velocity: {got.note}"
     q0 = q_nb[0]
@@ -307,11 +309,13 @@ def attitude_source(
     att_rad: F64,
     gps_t_s: F64 | None = None,
     gps_vel_ned_m_s: F64 | None = None,
+    gps_mask: NDArray[np.bool_] | None = None,
 ) -> AttitudeSource:
     """Choose the rotation for the forward model and integrate the gyro when it is the source (see module
     docstring); :meth:`AttitudeSource.at` takes it at a compass's times. With the GNSS velocity
     (``gps_t_s`` (k,), ``gps_vel_ned_m_s`` (k, 3) m/s) and the log's attitude, the tilt is pulled toward
-    the accelerometer minus the GNSS acceleration where that velocity is fresh (:mod:`.gps_tilt`)."""
+    the accelerometer minus the GNSS acceleration where that velocity is fresh and ``gps_mask`` (n,) (at the
+    IMU times; None: everywhere) allows, if the log's own data show it worth it (:mod:`.gps_tilt`)."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -363,7 +367,7 @@ def attitude_source(
             tilt = "the accelerometer's gravity direction"
         q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
         if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
-            args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s))
+            args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s), gps_mask)
             q_gps, why = _gps_pass(imu_t_s, gyro_b_rad_s, accel_b_m_s2, *args)
             if q_gps is not None:
                 q, src, tilt = q_gps, "gyro+tilt(gps)", f"{why}, else {tilt}"

@@ -42,21 +42,32 @@ SMOOTH_S = 2.0
 #: log has none. A best shift at either end is taken as not found.
 DELAY_GRID_S = np.round(np.arange(-0.2, 0.6001, 0.01), 3)
 
+#: Fraction of the GNSS intervals (the best-agreeing) whose mean square mismatch the latency minimises: the
+#: rest (an impact: log171's GNSS reads ~0 while its accelerometer saturates) is left out. On simulated logs
+#: (no latency) the least median of squares scattered over -50..+10 ms, this over -10..+10 ms.
+DELAY_TRIM = 0.9
+
+D2 = math.degrees(1.0) ** 2  # rad^2 -> deg^2
+
 #: Fewer GNSS velocities than this and the reference is not built (a few seconds at the usual 5 Hz).
 MIN_GPS_SAMPLES = 10
 
 G = 9.80665
 
 
-def aligned_gyro_rotation(imu_t_s: F64, q_nb: F64, att_t_s: F64, yaw_rad: F64) -> F64:
+def aligned_gyro_rotation(
+    imu_t_s: F64, q_nb: F64, att_t_s: F64, yaw_rad: F64, mask: NDArray[np.bool_] | None = None
+) -> F64:
     """(n, 3, 3) rotation of the gyro integral ``q_nb`` at ``imu_t_s`` with its heading moved onto the log's
-    yaw ``yaw_rad`` (at ``att_t_s``) by the least-squares line ``a + b t`` of their difference."""
+    yaw ``yaw_rad`` (at ``att_t_s``) by the least-squares line ``a + b t`` of their difference, fitted where
+    ``mask`` (n,) is set (None: everywhere; an impact's gyro, saturated, would tilt the line)."""
     r = dcms_from_quats(q_nb)
     gyro_yaw = euler_from_dcms(r)[:, 2]
     log_yaw = np.interp(imu_t_s, att_t_s, np.unwrap(yaw_rad))
     diff = np.unwrap(np.angle(np.exp(1j * (log_yaw - gyro_yaw))))
     tc = imu_t_s - imu_t_s[0]
-    b, a = np.polyfit(tc, diff, 1) if tc[-1] > 0 else (0.0, float(np.mean(diff)))
+    m = mask if mask is not None and np.count_nonzero(mask) >= 2 else np.ones(tc.shape[0], dtype=bool)
+    b, a = np.polyfit(tc[m], diff[m], 1) if np.ptp(tc[m]) > 0 else (0.0, float(np.mean(diff[m])))
     # R_nb = Rz(yaw) Ry(pitch) Rx(roll): turning the heading by d is Rz(d) R_nb
     d = a + b * tc
     c, s = np.cos(d), np.sin(d)
@@ -94,10 +105,10 @@ def gnss_delay(
     imu_t_s: F64, accel_b_m_s2: F64, r_nb: F64, gps_t_s: F64, gps_vel_ned_m_s: F64
 ) -> float | None:
     """The GNSS velocity's latency behind the IMU (s), measured on the log itself: the shift in
-    DELAY_GRID_S that makes the GNSS velocity's horizontal change over each sample interval agree best (least
-    median of squares: an impact or a glitch does not move it) with the kinematic acceleration
-    ``R_nb f_b + g_n`` integrated over the same interval. None when the best shift is at an end of the grid
-    (no latency a receiver has) or the log has too little GNSS velocity."""
+    DELAY_GRID_S that makes the GNSS velocity's horizontal change over each sample interval agree best with
+    the kinematic acceleration ``R_nb f_b + g_n`` integrated over the same interval (mean square over the
+    best-agreeing DELAY_TRIM of the intervals: an impact or a glitch does not move it). None when the best
+    shift is at an end of the grid (no latency a receiver has) or the log has too little GNSS velocity."""
     got = _gnss_rows(imu_t_s, gps_t_s, gps_vel_ned_m_s, 0.0)
     if got is None:
         return None
@@ -108,11 +119,13 @@ def gnss_delay(
     if not ok.any():
         return None
     dv = np.diff(v[:, :2], axis=0)[ok]
+    keep = max(1, int(DELAY_TRIM * dv.shape[0]))
     cost = np.empty(DELAY_GRID_S.shape[0])
     for k, d in enumerate(DELAY_GRID_S):
         u = np.column_stack([np.interp(t_g - d, imu_t_s, u_n[:, j]) for j in range(2)])
         du = np.diff(u, axis=0)[ok]
-        cost[k] = float(np.median(np.sum(np.square(dv - du), axis=1) / np.square(dt[ok])))
+        e = np.sort(np.sum(np.square(dv - du), axis=1) / np.square(dt[ok]))
+        cost[k] = float(np.mean(e[:keep]))
     best = int(np.argmin(cost))
     if not np.isfinite(cost[best]) or best in (0, DELAY_GRID_S.shape[0] - 1):
         return None
@@ -200,6 +213,7 @@ def gps_tilt_reference(
     gps_vel_ned_m_s: F64,
     log_down_b: F64,
     log_yaw_rad: F64,
+    mask: NDArray[np.bool_] | None = None,
     smooth_s: float | None = None,
 ) -> GpsTilt:
     """The down reference for the tilt filter from the GNSS velocity, gated on the log itself.
@@ -223,6 +237,10 @@ def gps_tilt_reference(
     if got is None or not got[1].any():
         return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
     ref, fresh = got
+    if mask is not None:
+        fresh = fresh & mask
+        if not fresh.any():
+            return GpsTilt(None, 0.0, delay, math.nan, math.nan, "no fresh GNSS velocity in flight")
     c = ref - log_down_b
     c -= np.mean(c[fresh], axis=0)
     c_s = _window_mean(imu_t_s, c, fresh, half)
@@ -238,15 +256,22 @@ def gps_tilt_reference(
         return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
     pp = float(np.sum(np.square(lean_n[use])))
     beta = float(np.sum(c_n[use] * lean_n[use])) / pp if pp > 0 else 0.0
-    lean2 = beta * beta * pp / np.count_nonzero(use)
-    n2 = float(np.mean(np.sum(np.square(c_n[use] - beta * lean_n[use]), axis=1)))
-    lean_deg, noise_deg = math.degrees(math.sqrt(lean2)), math.degrees(math.sqrt(n2))
+    lean_sq = np.sum(np.square(beta * lean_n[use]), axis=1)
+    rest_sq = np.sum(np.square(c_n[use] - beta * lean_n[use]), axis=1)
+    lean_deg = math.degrees(math.sqrt(float(np.mean(lean_sq))))
+    noise_deg = math.degrees(math.sqrt(float(np.mean(rest_sq))))
+    # the gain (lean^2 - rest^2) per block of the smoothing window: its mean and standard error
+    block = np.floor((imu_t_s[use] - imu_t_s[0]) / max(2.0 * half, 1e-3)).astype(np.int64)
+    counts = np.bincount(block)
+    means = np.bincount(block, weights=lean_sq - rest_sq)[counts > 0] / counts[counts > 0]
+    gain = float(np.mean(means))
+    se = float(np.std(means, ddof=1) / math.sqrt(means.size)) if means.size > 1 else math.inf
     figures = (
         f"the GNSS velocity {delay * 1e3:.0f} ms behind the IMU; the GNSS tilt differs from the log's by "
         f"{lean_deg:.2f} deg rms as the autopilot's yaw error leans it ({beta:.2f} of that lean) and by "
-        f"{noise_deg:.2f} deg otherwise"
+        f"{noise_deg:.2f} deg otherwise (lean^2 - rest^2 {gain * D2:.2f} +- {se * D2:.2f} deg^2)"
     )
-    if beta <= 0.0 or lean2 <= n2:
+    if beta <= 0.0 or gain <= 0.0:
         note = f"{figures}, so it would add more error than it removes"
         return GpsTilt(None, 0.0, delay, lean_deg, noise_deg, note)
     down = log_down_b.copy()

@@ -13,7 +13,7 @@ from magcomp.adapters.mavlink_source import load_log
 from magcomp.cli import main as cli
 from magcomp.core.rotations import dcm_from_euler
 from magcomp.core.types import Series
-from magcomp.diagnosis.gps_tilt import gps_down_reference
+from magcomp.diagnosis.gps_tilt import gnss_delay, gps_down_reference, gps_tilt_reference
 from magcomp.diagnosis.gyro_heading import with_gyro_bias_heading
 from magcomp.diagnosis.inputs import compass_data
 from magcomp.diagnosis.search import fit_baseline
@@ -116,3 +116,49 @@ def test_the_gnss_reference_takes_the_theta_following_error_out(tmp_path: Path) 
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
     assert rms[False] > 6.0
     assert rms[True] < 4.0
+
+
+def test_the_gnss_latency_is_measured_from_the_log() -> None:
+    t, f_b, r_nb, t_g, v_g, _ = _accelerating_flight(0.0)
+    for delay in (0.0, 0.2):
+        got = gnss_delay(t, f_b, r_nb, t_g + delay, v_g)  # stamped `delay` after the motion it describes
+        assert got is not None and abs(got - delay) <= 0.02
+    # a shift at the end of the searched range is no receiver's latency: not found
+    assert gnss_delay(t, f_b, r_nb, t_g + 1.5, v_g) is None
+
+
+def _autopilot_down(
+    t: np.ndarray, r_true: np.ndarray, t_g: np.ndarray, v_g: np.ndarray, dpsi: np.ndarray, lean: bool
+) -> np.ndarray:
+    """The autopilot's down in body axes: leaned by its yaw error ``dpsi`` (n,) rad times the horizontal
+    acceleration over g, as a GPS-aided filter steered by that yaw leans (``lean``), or the true down."""
+    a = np.gradient(v_g[:, :2], t_g, axis=0)
+    a_n = np.column_stack([np.interp(t, t_g, a[:, j]) for j in range(2)])
+    d_n = np.column_stack([dpsi * a_n[:, 1] / G, -dpsi * a_n[:, 0] / G, np.ones(t.size)])
+    if not lean:
+        d_n[:, :2] = 0.0
+    d_n /= np.linalg.norm(d_n, axis=1, keepdims=True)
+    return np.einsum("nji,nj->ni", r_true, d_n)
+
+
+@pytest.mark.parametrize("lean", [True, False])
+def test_the_gnss_reference_is_used_only_where_the_log_tilt_leans_with_its_yaw(lean: bool) -> None:
+    """An autopilot whose yaw is 8 deg off and swings by 6: if its tilt leans with that yaw (the simulator's,
+    a DCM-like filter) the GNSS reference is used and brings the tilt closer to the truth; if its tilt is
+    right (an EKF that keeps tilt and yaw apart) and the GNSS velocity is noisy (5 cm/s), it is not."""
+    t, f_b, r_true, t_g, v_g, down = _accelerating_flight(0.0)
+    dpsi = np.radians(8.0 + 6.0 * np.sin(2 * np.pi * t / 17.0))
+    yaw = np.arctan2(r_true[:, 1, 0], r_true[:, 0, 0])
+    log_down = _autopilot_down(t, r_true, t_g, v_g, dpsi, lean)
+    if not lean:
+        v_g = v_g + np.random.default_rng(3).normal(0.0, 0.05, v_g.shape)
+    got = gps_tilt_reference(t, f_b, r_true, t_g, v_g, log_down, yaw + dpsi)
+    assert got.delay_s is not None and abs(got.delay_s) <= 0.02
+    if lean:
+        assert got.down_b is not None, got.note
+        inner = (t > 2.0) & (t < 28.0)
+        assert _lean_deg(got.down_b, down)[inner].mean() < 0.5 * _lean_deg(log_down, down)[inner].mean()
+        assert got.lean_deg > got.noise_deg
+    else:
+        assert got.down_b is None
+        assert "would add more error than it removes" in got.note
