@@ -254,6 +254,8 @@ class AttitudeSource:
     #: autopilot: its attitude's times (m,) and roll, pitch, yaw (m, 3)
     att_t_s: F64 | None = None
     att_rad: F64 | None = None
+    #: the GNSS tilt reference's verdict on this log (used or why not, with its figures); "" without GNSS
+    gnss_note: str = ""
 
     def at(self, t_s: F64) -> AttitudeTrack:
         """The rotation at the times ``t_s`` (n,) as an :class:`AttitudeTrack`."""
@@ -366,9 +368,11 @@ def attitude_source(
             src = "gyro+tilt(accelerometer)"
             tilt = "the accelerometer's gravity direction"
         q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        gnss_note = ""
         if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
             args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s), gps_mask)
             q_gps, why = _gps_pass(imu_t_s, gyro_b_rad_s, accel_b_m_s2, *args)
+            gnss_note = f"tilt pulled toward {why}" if q_gps is not None else f"tilt kept on the log's, {why}"
             if q_gps is not None:
                 q, src, tilt = q_gps, "gyro+tilt(gps)", f"{why}, else {tilt}"
             else:
@@ -378,7 +382,7 @@ def attitude_source(
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
             "because the autopilot's yaw is fused from the disturbed compass"
         )
-        return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q)
+        return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q, gnss_note=gnss_note)
     if has_att:
         return AttitudeSource(
             "autopilot",
