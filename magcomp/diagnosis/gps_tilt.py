@@ -15,6 +15,12 @@ the result is ``g_n`` averaged over the GNSS sample spacing, whatever that spaci
 the gyro integral's (a first pass of :func:`magcomp.diagnosis.attitude.propagate_attitude` with the log's
 tilt) with its heading aligned to the log's yaw by a line in time (offset and gyro drift only: a line
 cannot follow the throttle-driven part of the compass's yaw error).
+
+On real logs the GNSS velocity arrives 0.1-0.3 s after the motion it describes, and a logged accelerometer
+and a differentiated velocity are noisy by degrees of tilt at the GNSS rate: :func:`gps_tilt_reference`
+measures the latency on the log, averages the correction, and uses it only where the log's own data show
+the autopilot's tilt leaning with its yaw by more than the reference's own error (docs/diagnosis.md, "The
+GNSS tilt reference on real logs").
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.signal import lfilter
 
 from magcomp.core.rotations import dcms_from_quats, euler_from_dcms
 
@@ -46,6 +53,10 @@ DELAY_GRID_S = np.round(np.arange(-0.2, 0.6001, 0.01), 3)
 #: rest (an impact: log171's GNSS reads ~0 while its accelerometer saturates) is left out. On simulated logs
 #: (no latency) the least median of squares scattered over -50..+10 ms, this over -10..+10 ms.
 DELAY_TRIM = 0.9
+
+#: Time constants (s) tried for the autopilot's lean behind its cause: a tilt filter follows its reference
+#: with a lag (the best-explaining one is kept)
+LEAN_LAGS_S = (0.0, 1.0, 2.0, 4.0, 8.0)
 
 D2 = math.degrees(1.0) ** 2  # rad^2 -> deg^2
 
@@ -186,6 +197,15 @@ def _horizontal_acceleration(imu_t_s: F64, gps_t_s: F64, gps_vel_ned_m_s: F64, d
     return np.column_stack([np.interp(imu_t_s, t_g, a[:, j]) for j in range(2)])
 
 
+def _lagged(t_s: F64, x: F64, lag_s: float) -> F64:
+    """``x`` (n, k) through a first-order lag of time constant ``lag_s`` (0: none), on the median step."""
+    if lag_s <= 0.0:
+        return x
+    dt = float(np.median(np.diff(t_s)))
+    a = dt / (lag_s + dt)
+    return np.asarray(lfilter([a], [1.0, a - 1.0], x, axis=0, zi=np.zeros((1, x.shape[1])) + a * x[:1])[0])
+
+
 @dataclass(frozen=True)
 class GpsTilt:
     """The GNSS tilt reference of one log, or why it is not used.
@@ -219,15 +239,20 @@ def gps_tilt_reference(
     """The down reference for the tilt filter from the GNSS velocity, gated on the log itself.
 
     1. The GNSS latency is measured (:func:`gnss_delay`); not found, the reference is not used.
-    2. The correction ``c = d_gnss - d_log`` (body axes, per IMU sample where the GNSS is fresh) has its
-       mean taken out (an accelerometer bias, which the autopilot estimates and the subtraction does not)
-       and is averaged over ``smooth_s`` (SMOOTH_S): a differentiated velocity and a logged accelerometer
-       are noisy at the GNSS rate (degrees on real logs), the lean they correct changes over seconds.
-    3. The gate: ``|c|^2`` is fitted as ``n^2 + k^2 |a_h|^2`` (``a_h`` the GNSS horizontal acceleration,
-       averaged alike). The lean of the log's tilt grows with ``|a_h|`` (``dpsi |a_h| / g``); ``n`` is the
-       reference's own error where the vehicle does not accelerate, where the log's tilt has no lean. The
-       reference is used only when the lean it corrects, ``k^2 mean(|a_h|^2)``, exceeds the error it adds,
-       ``n^2``: otherwise the log's tilt is kept and the note says why.
+    2. The correction ``c = d_gnss - d_log`` (body axes, per IMU sample where the GNSS is fresh and ``mask``
+       (n,) allows: in flight, away from impacts) has its mean taken out (an accelerometer bias, which the
+       autopilot estimates and the subtraction does not) and is averaged over ``smooth_s`` (SMOOTH_S): a
+       differentiated velocity and a logged accelerometer are noisy at the GNSS rate (degrees on real logs),
+       the lean they correct changes over seconds.
+    3. The gate. An autopilot whose yaw is off by ``dpsi`` and which removes the GNSS acceleration with it
+       leans its down vector by ``(dpsi / g) (a_E, -a_N)`` in NED, so ``c`` (in NED) should hold
+       ``p = (dpsi / g) (-a_E, a_N)`` with ``dpsi`` = the log's yaw minus ``r_nb``'s, averaged alike and
+       behind by one of LEAN_LAGS_S (a tilt filter's lag). ``c`` is split into ``beta p`` (least squares,
+       the lag that explains most) and the rest. The reference is used only when ``beta > 0`` and the lean
+       it removes, ``|beta p|^2``, exceeds on average what it adds, ``|c - beta p|^2`` (its own error,
+       which is all of ``c`` where the vehicle does not accelerate). Otherwise the log's tilt is kept and
+       the note says why. The split cannot tell the autopilot's yaw error from that of ``r_nb``'s heading
+       line (both give ``p``'s shape); on the development logs every verdict is no (docs/diagnosis.md).
     """
     half = 0.5 * (SMOOTH_S if smooth_s is None else smooth_s)
     delay = gnss_delay(imu_t_s, accel_b_m_s2, r_nb, gps_t_s, gps_vel_ned_m_s)
@@ -249,13 +274,20 @@ def gps_tilt_reference(
     gyro_yaw = np.arctan2(r_nb[:, 1, 0], r_nb[:, 0, 0])
     dpsi = np.angle(np.exp(1j * (log_yaw_rad - gyro_yaw)))
     a_h = _horizontal_acceleration(imu_t_s, gps_t_s, gps_vel_ned_m_s, delay)
-    lean_n = _window_mean(imu_t_s, dpsi[:, None] / G * np.column_stack([-a_h[:, 1], a_h[:, 0]]), fresh, half)
+    raw = dpsi[:, None] / G * np.column_stack([-a_h[:, 1], a_h[:, 0]])
     c_n = np.einsum("nij,nj->ni", r_nb, c_s)[:, :2]
-    use = fresh & np.all(np.isfinite(c_n), axis=1) & np.all(np.isfinite(lean_n), axis=1)
-    if np.count_nonzero(use) < 2:
-        return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
-    pp = float(np.sum(np.square(lean_n[use])))
-    beta = float(np.sum(c_n[use] * lean_n[use])) / pp if pp > 0 else 0.0
+    best: tuple[float, float, float, F64] | None = None  # explained, beta, lag, lean (n, 2)
+    for lag in LEAN_LAGS_S:
+        lean_n = _window_mean(imu_t_s, _lagged(imu_t_s, raw, lag), fresh, half)
+        use = fresh & np.all(np.isfinite(c_n), axis=1) & np.all(np.isfinite(lean_n), axis=1)
+        if np.count_nonzero(use) < 2:
+            return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
+        pp = float(np.sum(np.square(lean_n[use])))
+        b = float(np.sum(c_n[use] * lean_n[use])) / pp if pp > 0 else 0.0
+        if best is None or b * b * pp > best[0]:
+            best = (b * b * pp, b, lag, lean_n)
+    assert best is not None
+    _, beta, lag, lean_n = best
     lean_sq = np.sum(np.square(beta * lean_n[use]), axis=1)
     rest_sq = np.sum(np.square(c_n[use] - beta * lean_n[use]), axis=1)
     lean_deg = math.degrees(math.sqrt(float(np.mean(lean_sq))))
@@ -268,7 +300,8 @@ def gps_tilt_reference(
     se = float(np.std(means, ddof=1) / math.sqrt(means.size)) if means.size > 1 else math.inf
     figures = (
         f"the GNSS velocity {delay * 1e3:.0f} ms behind the IMU; the GNSS tilt differs from the log's by "
-        f"{lean_deg:.2f} deg rms as the autopilot's yaw error leans it ({beta:.2f} of that lean) and by "
+        f"{lean_deg:.2f} deg rms as the autopilot's yaw error leans it ({beta:.2f} of that lean, {lag:.0f} s "
+        "behind) and by "
         f"{noise_deg:.2f} deg otherwise (lean^2 - rest^2 {gain * D2:.2f} +- {se * D2:.2f} deg^2)"
     )
     if beta <= 0.0 or gain <= 0.0:
