@@ -303,6 +303,28 @@ def _gps_pass(
     return q, f"{GPS_TILT} on {got.fresh:.0%} of the log ({got.note})"
 
 
+def _stationary_source(gyro_b_rad_s: F64, att_rad: F64 | None) -> AttitudeSource | None:
+    """The one rotation of a vehicle that does not rotate (tilt: the log's mean roll and pitch when it has an
+    attitude), or None when the gyro shows rotation."""
+    dev = np.linalg.norm(gyro_b_rad_s - np.median(gyro_b_rad_s, axis=0), axis=1)
+    if float(np.percentile(dev, 99)) < STATIONARY_RATE_RAD_S:
+        if att_rad is not None:
+            d = down_b_from_euler(att_rad[:, 0], att_rad[:, 1]).mean(axis=0)
+            roll0 = math.atan2(float(d[1]), float(d[2]))
+            pitch0 = -math.asin(float(np.clip(d[0] / np.linalg.norm(d), -1.0, 1.0)))
+        else:
+            roll0 = pitch0 = 0.0
+        return AttitudeSource(
+            "stationary",
+            "the vehicle does not rotate (gyro within "
+            f"{STATIONARY_RATE_RAD_S} rad/s of its median): the Earth field is constant in body axes, as "
+            "in the paper's offline fit (eqs. (14a), (15)); the calibration is neither "
+            "needed nor observable",
+            r0_nb=dcm_from_euler(roll0, pitch0, 0.0),
+        )
+    return None
+
+
 def attitude_source(
     imu_t_s: F64,
     gyro_b_rad_s: F64,
@@ -313,11 +335,9 @@ def attitude_source(
     gps_vel_ned_m_s: F64 | None = None,
     gps_mask: NDArray[np.bool_] | None = None,
 ) -> AttitudeSource:
-    """Choose the rotation for the forward model and integrate the gyro when it is the source (see module
-    docstring); :meth:`AttitudeSource.at` takes it at a compass's times. With the GNSS velocity
-    (``gps_t_s`` (k,), ``gps_vel_ned_m_s`` (k, 3) m/s) and the log's attitude, the tilt is pulled toward
-    the accelerometer minus the GNSS acceleration where that velocity is fresh and ``gps_mask`` (n,) (at the
-    IMU times; None: everywhere) allows, if the log's own data show it worth it (:mod:`.gps_tilt`)."""
+    """Choose the rotation for the forward model and integrate the gyro when it is the source (module
+    docstring); :meth:`AttitudeSource.at` takes it at a compass's times. GNSS velocity ``gps_t_s`` (k,),
+    ``gps_vel_ned_m_s`` (k, 3) m/s, usable where ``gps_mask`` (n,) allows: :func:`_gps_pass`."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -331,22 +351,9 @@ def attitude_source(
                 "rotation), so "
             )
     if has_gyro:
-        dev = np.linalg.norm(gyro_b_rad_s - np.median(gyro_b_rad_s, axis=0), axis=1)
-        if float(np.percentile(dev, 99)) < STATIONARY_RATE_RAD_S:
-            if has_att:
-                d = down_b_from_euler(att_rad[:, 0], att_rad[:, 1]).mean(axis=0)
-                roll0 = math.atan2(float(d[1]), float(d[2]))
-                pitch0 = -math.asin(float(np.clip(d[0] / np.linalg.norm(d), -1.0, 1.0)))
-            else:
-                roll0 = pitch0 = 0.0
-            return AttitudeSource(
-                "stationary",
-                "the vehicle does not rotate (gyro within "
-                f"{STATIONARY_RATE_RAD_S} rad/s of its median): the Earth field is constant in body axes, as "
-                "in the paper's offline fit (eqs. (14a), (15)); the calibration is neither "
-                "needed nor observable",
-                r0_nb=dcm_from_euler(roll0, pitch0, 0.0),
-            )
+        stationary = _stationary_source(gyro_b_rad_s, att_rad if has_att else None)
+        if stationary is not None:
+            return stationary
     if has_gyro:
         if has_att:
             ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
@@ -372,11 +379,11 @@ def attitude_source(
         if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
             args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s), gps_mask)
             q_gps, why = _gps_pass(imu_t_s, gyro_b_rad_s, accel_b_m_s2, *args)
-            gnss_note = f"tilt pulled toward {why}" if q_gps is not None else f"tilt kept on the log's, {why}"
             if q_gps is not None:
                 q, src, tilt = q_gps, "gyro+tilt(gps)", f"{why}, else {tilt}"
+                gnss_note = f"tilt pulled toward {why}"
             else:
-                tilt = f"{tilt} ({why})"
+                tilt, gnss_note = f"{tilt} ({why})", f"tilt from the log's roll and pitch, {why}"
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "

@@ -206,6 +206,25 @@ def _lagged(t_s: F64, x: F64, lag_s: float) -> F64:
     return np.asarray(lfilter([a], [1.0, a - 1.0], x, axis=0, zi=np.zeros((1, x.shape[1])) + a * x[:1])[0])
 
 
+def _lean_split(
+    t_s: F64, c_n: F64, raw: F64, fresh: NDArray[np.bool_], half_s: float
+) -> tuple[float, float, F64, NDArray[np.bool_]] | None:
+    """``c_n`` (n, 2) as ``beta`` times the lean ``raw`` (n, 2) behind by the one of LEAN_LAGS_S that explains
+    most, both averaged within ``half_s``: (beta, lag, the lean (n, 2), the samples used), None when fewer
+    than two are usable."""
+    best: tuple[float, float, float, F64, NDArray[np.bool_]] | None = None
+    for lag in LEAN_LAGS_S:
+        lean_n = _window_mean(t_s, _lagged(t_s, raw, lag), fresh, half_s)
+        use = fresh & np.all(np.isfinite(c_n), axis=1) & np.all(np.isfinite(lean_n), axis=1)
+        if np.count_nonzero(use) < 2:
+            return None
+        pp = float(np.sum(np.square(lean_n[use])))
+        b = float(np.sum(c_n[use] * lean_n[use])) / pp if pp > 0 else 0.0
+        if best is None or b * b * pp > best[0]:
+            best = (b * b * pp, b, lag, lean_n, use)
+    return None if best is None else best[1:]
+
+
 @dataclass(frozen=True)
 class GpsTilt:
     """The GNSS tilt reference of one log, or why it is not used.
@@ -276,18 +295,10 @@ def gps_tilt_reference(
     a_h = _horizontal_acceleration(imu_t_s, gps_t_s, gps_vel_ned_m_s, delay)
     raw = dpsi[:, None] / G * np.column_stack([-a_h[:, 1], a_h[:, 0]])
     c_n = np.einsum("nij,nj->ni", r_nb, c_s)[:, :2]
-    best: tuple[float, float, float, F64] | None = None  # explained, beta, lag, lean (n, 2)
-    for lag in LEAN_LAGS_S:
-        lean_n = _window_mean(imu_t_s, _lagged(imu_t_s, raw, lag), fresh, half)
-        use = fresh & np.all(np.isfinite(c_n), axis=1) & np.all(np.isfinite(lean_n), axis=1)
-        if np.count_nonzero(use) < 2:
-            return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
-        pp = float(np.sum(np.square(lean_n[use])))
-        b = float(np.sum(c_n[use] * lean_n[use])) / pp if pp > 0 else 0.0
-        if best is None or b * b * pp > best[0]:
-            best = (b * b * pp, b, lag, lean_n)
-    assert best is not None
-    _, beta, lag, lean_n = best
+    split = _lean_split(imu_t_s, c_n, raw, fresh, half)
+    if split is None:
+        return GpsTilt(None, 0.0, delay, math.nan, math.nan, "too little fresh GNSS velocity")
+    beta, lag, lean_n, use = split
     lean_sq = np.sum(np.square(beta * lean_n[use]), axis=1)
     rest_sq = np.sum(np.square(c_n[use] - beta * lean_n[use]), axis=1)
     lean_deg = math.degrees(math.sqrt(float(np.mean(lean_sq))))
@@ -299,7 +310,7 @@ def gps_tilt_reference(
     gain = float(np.mean(means))
     se = float(np.std(means, ddof=1) / math.sqrt(means.size)) if means.size > 1 else math.inf
     figures = (
-        f"the GNSS velocity {delay * 1e3:.0f} ms behind the IMU; the GNSS tilt differs from the log's by "
+        f"its latency {delay * 1e3:.0f} ms; the GNSS tilt differs from the log's by "
         f"{lean_deg:.2f} deg rms as the autopilot's yaw error leans it ({beta:.2f} of that lean, {lag:.0f} s "
         "behind) and by "
         f"{noise_deg:.2f} deg otherwise (lean^2 - rest^2 {gain * D2:.2f} +- {se * D2:.2f} deg^2)"

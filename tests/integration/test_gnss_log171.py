@@ -76,5 +76,5 @@ def test_log171_gnss_latency_is_measured_and_the_velocity_agrees_with_the_imu(lo
 def test_log171_keeps_the_log_tilt_and_says_why(log171: LogData) -> None:
     src = log_attitude(log171)
     assert src.source == "gyro+tilt(attitude)"
-    assert "not toward the GNSS velocity" in src.note and "ms behind the IMU" in src.note
+    assert "not toward the GNSS velocity" in src.note and "its latency" in src.note
     assert "would add more error than it removes" in src.note
