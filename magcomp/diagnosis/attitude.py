@@ -8,14 +8,15 @@ accelerometer (gravity), not the compass.
 So the rotation ``R_nb`` used here is the strap-down integral of the gyro, eq. (18) ``R_dot = R [omega]_x``,
 with a Mahony-style complementary correction (proportional + integral, ref. [23]) that pulls only the
 *tilt* toward a compass-free "down" reference: the log's roll and pitch when it has an attitude, otherwise
-the accelerometer. When the log also has the GNSS velocity, the reference is the accelerometer minus the GNSS
-acceleration (:mod:`magcomp.diagnosis.gps_tilt`) wherever that velocity is fresh: a GPS-aided autopilot
-removes that acceleration with its compass-steered yaw, so its roll and pitch lean with the very bias
-diagnosed whenever the vehicle accelerates (docs/diagnosis.md). The heading is then pure gyro integration: it
-is free of the compass, drifts only with the
-gyro bias about the vertical, and that drift is a fitted nuisance parameter of the forward model
-(:mod:`magcomp.diagnosis.model`). Departure from the paper: the paper feeds the accelerometer to the Mahony
-filter and uses the full estimated attitude; here the filter never sees the compass.
+the accelerometer. When the log also has the GNSS velocity, the reference may be the accelerometer minus the
+GNSS acceleration (:mod:`magcomp.diagnosis.gps_tilt`): a GPS-aided autopilot that removes that acceleration
+with its compass-steered yaw leans its roll and pitch with the very bias diagnosed whenever the vehicle
+accelerates. It is used only where the log's own data show that lean exceeding the GNSS reference's own error
+(on the simulator's autopilot, not on any development log: docs/diagnosis.md). The heading is then pure gyro
+integration: it is free of the compass, drifts only with the gyro bias about the vertical, and that drift
+is a fitted nuisance parameter of the forward model (:mod:`magcomp.diagnosis.model`). Departure from the
+paper: the paper feeds the accelerometer to the Mahony filter and uses the full estimated attitude; here the
+filter never sees the compass.
 
 Symbols: ``q_nb`` body FRD -> NED (w, x, y, z); ``down_b`` unit down vector in body axes (third row of R_nb).
 """
