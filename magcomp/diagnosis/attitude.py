@@ -100,22 +100,22 @@ def propagate_attitude(
     -------
     (n, 4) quaternions q_nb at the IMU times.
     """
-    return _propagate(imu_t_s, gyro_b_rad_s, ref_t_s, ref_down_b, q0_nb, p)[0]
+    return _propagate((imu_t_s, gyro_b_rad_s), (ref_t_s, ref_down_b), q0_nb, p)[0]
 
 
 def _propagate(
-    imu_t_s: F64,
-    gyro_b_rad_s: F64,
-    ref_t_s: F64,
-    ref_down_b: F64,
+    imu: tuple[F64, F64],
+    reference: tuple[F64, F64],
     q0_nb: F64,
     p: TiltFilterParams | None = None,
     bias0: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> tuple[F64, tuple[float, float, float]]:
-    """:func:`propagate_attitude` starting from the gyro bias ``bias0``; also returns the final bias."""
+    """:func:`propagate_attitude` with ``imu`` = (t, gyro) and ``reference`` = (t, down) paired, starting
+    from the gyro bias ``bias0``; also returns the final bias."""
     p = p or TiltFilterParams()
+    imu_t_s, gyro_b_rad_s = imu
     n = imu_t_s.shape[0]
-    ref = _interp_rows(imu_t_s, ref_t_s, ref_down_b)
+    ref = _interp_rows(imu_t_s, *reference)
     ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-9)
     out = np.empty((n, 4))
     bias = bias0
@@ -300,7 +300,7 @@ def _gps_pass(
     if got.down_b is None:
         return None, f"not toward the GNSS velocity: {got.note}"
     q0 = q_nb[0]
-    q, _ = _propagate(imu_t_s, gyro_b_rad_s, imu_t_s, got.down_b, q0, TiltFilterParams(passes=1), bias)
+    q, _ = _propagate((imu_t_s, gyro_b_rad_s), (imu_t_s, got.down_b), q0, TiltFilterParams(passes=1), bias)
     return q, f"{GPS_TILT} on {got.fresh:.0%} of the log ({got.note})"
 
 
@@ -375,7 +375,7 @@ def attitude_source(
             q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
             src = "gyro+tilt(accelerometer)"
             tilt = "the accelerometer's gravity direction"
-        q, bias = _propagate(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        q, bias = _propagate((imu_t_s, gyro_b_rad_s), (ref_t, ref), q0)
         gnss_note = ""
         if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
             args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s), gps_mask)
