@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from scipy.signal import lfilter
 
 from magcomp.core.rotations import dcms_from_quats, euler_from_dcms
+from magcomp.core.types import STANDARD_GRAVITY_M_S2
 
 F64 = NDArray[np.float64]
 
@@ -45,8 +46,8 @@ SMOOTH_S = 2.0
 
 #: The GNSS latencies searched (s): a receiver's velocity solution reaches the log 0.1-0.3 s after the
 #: motion it describes (ArduPilot's GPS_DELAY_MS and PX4's EKF2_GPS_DELAY default to 0.2 s and 0.11 s;
-#: measured on the development logs: 0.27 s on log171, 0.13-0.19 s on the two peterbarker logs); a simulated
-#: log has none. A best shift at either end is taken as not found.
+#: measured here on the development logs: 0.25 s on log171, 0.15-0.19 s on the peterbarker logs, 0.05-0.12 s
+#: on the PX4 ones at 2 Hz); a simulated log has none. A best shift at either end is taken as not found.
 DELAY_GRID_S = np.round(np.arange(-0.2, 0.6001, 0.01), 3)
 
 #: Fraction of the GNSS intervals (the best-agreeing) whose mean square mismatch the latency minimises: the
@@ -63,7 +64,7 @@ D2 = math.degrees(1.0) ** 2  # rad^2 -> deg^2
 #: Fewer GNSS velocities than this and the reference is not built (a few seconds at the usual 5 Hz).
 MIN_GPS_SAMPLES = 10
 
-G = 9.80665
+G = STANDARD_GRAVITY_M_S2
 
 
 def aligned_gyro_rotation(
@@ -170,7 +171,7 @@ def gps_down_reference(
     k = np.clip(np.searchsorted(t_g, imu_t_s), 1, t_g.size - 1)
     gap = t_g[k] - t_g[k - 1]
     fresh = (imu_t_s >= t_g[0]) & (imu_t_s <= t_g[-1]) & (gap <= stale_s)
-    fresh &= (norm[:, 0] > 0.5 * 9.80665) & (norm[:, 0] < 1.5 * 9.80665)
+    fresh &= (norm[:, 0] > 0.5 * G) & (norm[:, 0] < 1.5 * G)
     return ref, fresh
 
 
