@@ -182,6 +182,8 @@ class _GnssCollector:
 
     def __init__(self, window: Window | None = None) -> None:
         self.rows: dict[bool, Rows] = {True: Rows(3, window), False: Rows(3, window)}
+        self.velocity: dict[str, Rows] = {}
+        self.window = window
         self.years = array("d")
 
     def add(self, origin: str, rec: PositionSample | TimeSample) -> None:
@@ -190,12 +192,22 @@ class _GnssCollector:
             if not rec.fix_ok:
                 return
             self.rows[origin in self.RECEIVER].append(rec.t_s, (rec.lat_deg, rec.lon_deg, rec.alt_m))
+            if rec.vel_ned_m_s is not None:
+                rows = self.velocity.get(origin)
+                if rows is None:
+                    rows = self.velocity[origin] = Rows(3, self.window)
+                rows.append(rec.t_s, rec.vel_ned_m_s)
         if math.isfinite(year):
             self.years.append(year)
 
     def fill(self, data: LogData) -> None:
         rows = self.rows[True] if len(self.rows[True]) else self.rows[False]
         data.position = rows.series()
+        # the velocity with a vertical component first (GLOBAL_POSITION_INT, DataFlash GPS), then GPS_RAW_INT
+        for origin in ("GLOBAL_POSITION_INT", "GPS", "GPS_RAW_INT"):
+            if origin in self.velocity and len(self.velocity[origin]):
+                data.gps_velocity_ned_m_s = self.velocity[origin].series()
+                break
         if self.years:
             data.decimal_year = float(np.median(np.frombuffer(self.years, dtype=np.float64)))
 

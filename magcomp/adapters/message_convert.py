@@ -405,13 +405,19 @@ class MessageConverter:
         lat, lon = msg.lat * 1e-7, msg.lon * 1e-7  # degE7
         fix_ok = int(msg.fix_type) >= 3 and (msg.lat != 0 or msg.lon != 0) and abs(lat) <= 90.0
         year = decimal_year_from_unix(msg.time_usec * 1e-6)  # NaN for time since boot
-        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, year, fix_ok)  # alt mm MSL
+        vel: tuple[float, float, float] | None = None
+        if msg.vel != 65535 and msg.cog != 65535:  # UINT16_MAX: unknown; ground speed cm/s, course cdeg
+            course = math.radians(msg.cog * 1e-2)
+            ground = msg.vel * 1e-2
+            vel = (ground * math.cos(course), ground * math.sin(course), math.nan)
+        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, year, fix_ok, vel)  # alt mm MSL
         return [("GPS_RAW_INT", pos)]
 
     def _m_GLOBAL_POSITION_INT(self, msg: Any) -> list[tuple[str, Record]]:
         lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
         fix_ok = (msg.lat != 0 or msg.lon != 0) and abs(lat) <= 90.0  # (0, 0) before the EKF has an origin
-        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, fix_ok=fix_ok)  # alt mm MSL
+        vel = (msg.vx * 1e-2, msg.vy * 1e-2, msg.vz * 1e-2)  # cm/s north, east, down
+        pos = PositionSample(self.clock.last_t_s, lat, lon, msg.alt * 1e-3, fix_ok=fix_ok, vel_ned_m_s=vel)
         return [("GLOBAL_POSITION_INT", pos)]
 
     def _m_SYSTEM_TIME(self, msg: Any) -> list[tuple[str, Record]]:
@@ -546,7 +552,12 @@ class MessageConverter:
         else:
             year = math.nan
         fix_ok = known and int(getattr(v, "Status", 0)) >= 3
-        return [("GPS", PositionSample(self.clock.last_t_s, lat, lon, alt, year, fix_ok))]
+        vel: tuple[float, float, float] | None = None
+        spd, crs = float(getattr(v, "Spd", math.nan)), float(getattr(v, "GCrs", math.nan))
+        if _finite(spd, crs):  # ground speed m/s, course deg; VZ m/s down (absent in old logs)
+            c = math.radians(crs)
+            vel = (spd * math.cos(c), spd * math.sin(c), float(getattr(v, "VZ", math.nan)))
+        return [("GPS", PositionSample(self.clock.last_t_s, lat, lon, alt, year, fix_ok, vel))]
 
     def _df_msg(self, text: str) -> list[tuple[str, Record]]:
         uid = uid_from_board_msg(text)

@@ -115,6 +115,8 @@ class UlogTables:
     power: dict[int, tuple[F64, F64, F64]] = field(default_factory=dict)  # index -> t, volt, current
     # origin -> t, lat, lon, alt, decimal year, fix ok
     position: dict[str, tuple[F64, F64, F64, F64, F64, NDArray[np.bool_]]] = field(default_factory=dict)
+    # receiver velocity: t, north/east/down m/s (n, 3), 3D fixes only (vehicle_gps_position / sensor_gps)
+    gps_velocity: tuple[F64, F64] | None = None
     counts: Counter[str] = field(default_factory=Counter)
 
 
@@ -463,6 +465,15 @@ def _read_position(tables: UlogTables, topics: dict[str, dict[int, dict[str, Any
         year = np.array([decimal_year_from_unix(u) for u in utc])
         ok = fix & (np.abs(lat) <= 90) & (np.abs(lon) <= 180) & ((lat != 0) | (lon != 0))
         tables.position[name] = _sorted(_t(data), lat, lon, alt, year, ok)  # type: ignore[assignment]
+        if all(k in data for k in ("vel_n_m_s", "vel_e_m_s", "vel_d_m_s")):
+            vel = np.column_stack(
+                [np.asarray(data[k], dtype=np.float64) for k in ("vel_n_m_s", "vel_e_m_s", "vel_d_m_s")]
+            )
+            keep = fix & np.all(np.isfinite(vel), axis=1)
+            if "vel_ned_valid" in data:
+                keep &= np.asarray(data["vel_ned_valid"]) != 0
+            t_v, vel_v = _sorted(_t(data)[keep], vel[keep])
+            tables.gps_velocity = (t_v, vel_v)
         break
     gp = topics.get("vehicle_global_position", {}).get(0)
     if gp is not None and "lat" in gp and "lon" in gp:
@@ -640,6 +651,8 @@ def load_ulog(
         t, lat, lon, alt, year, ok = tb.position[origin]
         if ok.any():
             data.position = Series(t[ok], np.column_stack([lat[ok], lon[ok], alt[ok]]))
+    if tb.gps_velocity is not None:
+        data.gps_velocity_ned_m_s = Series(*tb.gps_velocity)
     for _, (_, _, _, _, year, ok) in tb.position.items():
         years.extend(year[ok & np.isfinite(year)].tolist())
     if years:

@@ -135,6 +135,8 @@ class PositionSample:
     alt_m: float
     decimal_year: float = float("nan")
     fix_ok: bool = True
+    #: velocity north, east, down in m/s when the source carries it (down NaN when it does not), else None
+    vel_ned_m_s: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,6 +220,8 @@ class LogData:
     # GNSS position: lat_deg, lon_deg, alt_m (n, 3); decimal_year of the log (NaN when unknown)
     position: Series = field(default_factory=lambda: Series.empty(3))
     decimal_year: float = float("nan")
+    # GNSS velocity north, east, down in m/s (n, 3), 3D fixes only; down NaN where the source has none
+    gps_velocity_ned_m_s: Series = field(default_factory=lambda: Series.empty(3))
 
 
 # Bits of HeadingEstimate.flags and of MAGCOMP_HEADING.flags

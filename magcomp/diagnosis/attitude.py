@@ -8,10 +8,15 @@ accelerometer (gravity), not the compass.
 So the rotation ``R_nb`` used here is the strap-down integral of the gyro, eq. (18) ``R_dot = R [omega]_x``,
 with a Mahony-style complementary correction (proportional + integral, ref. [23]) that pulls only the
 *tilt* toward a compass-free "down" reference: the log's roll and pitch when it has an attitude, otherwise
-the accelerometer. The heading is then pure gyro integration: it is free of the compass, drifts only with the
-gyro bias about the vertical, and that drift is a fitted nuisance parameter of the forward model
-(:mod:`magcomp.diagnosis.model`). Departure from the paper: the paper feeds the accelerometer to the Mahony
-filter and uses the full estimated attitude; here the filter never sees the compass.
+the accelerometer. When the log also has the GNSS velocity, the reference may be the accelerometer minus the
+GNSS acceleration (:mod:`magcomp.diagnosis.gps_tilt`): a GPS-aided autopilot that removes that acceleration
+with its compass-steered yaw leans its roll and pitch with the very bias diagnosed whenever the vehicle
+accelerates. It is used only where the log's own data show that lean exceeding the GNSS reference's own error
+(on the simulator's autopilot, not on any development log: docs/diagnosis.md). The heading is then pure gyro
+integration: it is free of the compass, drifts only with the gyro bias about the vertical, and that drift
+is a fitted nuisance parameter of the forward model (:mod:`magcomp.diagnosis.model`). Departure from the
+paper: the paper feeds the accelerometer to the Mahony filter and uses the full estimated attitude; here the
+filter never sees the compass.
 
 Symbols: ``q_nb`` body FRD -> NED (w, x, y, z); ``down_b`` unit down vector in body axes (third row of R_nb).
 """
@@ -32,6 +37,7 @@ from magcomp.core.rotations import (
     euler_from_dcms,
     quat_from_dcm,
 )
+from magcomp.diagnosis.gps_tilt import aligned_gyro_rotation, gps_tilt_reference
 
 F64 = NDArray[np.float64]
 
@@ -94,15 +100,28 @@ def propagate_attitude(
     -------
     (n, 4) quaternions q_nb at the IMU times.
     """
+    return _propagate((imu_t_s, gyro_b_rad_s), (ref_t_s, ref_down_b), q0_nb, p)[0]
+
+
+def _propagate(
+    imu: tuple[F64, F64],
+    reference: tuple[F64, F64],
+    q0_nb: F64,
+    p: TiltFilterParams | None = None,
+    bias0: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> tuple[F64, tuple[float, float, float]]:
+    """:func:`propagate_attitude` with ``imu`` = (t, gyro) and ``reference`` = (t, down) paired, starting
+    from the gyro bias ``bias0``; also returns the final bias."""
     p = p or TiltFilterParams()
+    imu_t_s, gyro_b_rad_s = imu
     n = imu_t_s.shape[0]
-    ref = _interp_rows(imu_t_s, ref_t_s, ref_down_b)
+    ref = _interp_rows(imu_t_s, *reference)
     ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-9)
     out = np.empty((n, 4))
-    bias = (0.0, 0.0, 0.0)
+    bias = bias0
     for _ in range(max(1, p.passes)):
         bias = _tilt_pass(imu_t_s, gyro_b_rad_s, ref, q0_nb, p, bias, out)
-    return out
+    return out, bias
 
 
 _ROW_BLOCK = 1 << 16
@@ -197,7 +216,8 @@ def dcms_from_euler(att_rad: F64) -> F64:
 class AttitudeTrack:
     """Rotation used by the forward model at the compass sample times.
 
-    r_nb: (n, 3, 3); source: 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or 'autopilot';
+    r_nb: (n, 3, 3); source: 'gyro+tilt(gps)', 'gyro+tilt(attitude)', 'gyro+tilt(accelerometer)' or
+    'autopilot';
     note: one sentence for the JSON ``evidence`` and the report.
     """
 
@@ -235,6 +255,8 @@ class AttitudeSource:
     #: autopilot: its attitude's times (m,) and roll, pitch, yaw (m, 3)
     att_t_s: F64 | None = None
     att_rad: F64 | None = None
+    #: the GNSS tilt reference's verdict on this log (used or why not, with its figures); "" without GNSS
+    gnss_note: str = ""
 
     def at(self, t_s: F64) -> AttitudeTrack:
         """The rotation at the times ``t_s`` (n,) as an :class:`AttitudeTrack`."""
@@ -250,15 +272,73 @@ class AttitudeSource:
         return AttitudeTrack(r, self.source, self.note)
 
 
+GPS_TILT = (
+    "the accelerometer minus the GNSS acceleration (rotated with the gyro heading, not the compass-steered "
+    "one of the autopilot)"
+)
+
+
+def _gps_pass(
+    imu_t_s: F64,
+    gyro_b_rad_s: F64,
+    accel_b_m_s2: F64,
+    q_nb: F64,
+    bias: tuple[float, float, float],
+    log_down: tuple[F64, F64],
+    att: tuple[F64, F64],
+    gps: tuple[F64, F64],
+    mask: NDArray[np.bool_] | None,
+) -> tuple[F64 | None, str]:
+    """The tilt filter's pass toward the GNSS reference (:func:`.gps_tilt.gps_tilt_reference`) after the
+    first pass ``q_nb`` (toward the log's tilt ``log_down`` = (t, (m, 3) down)), with the log's attitude
+    ``att`` = (t, (m, 3) roll/pitch/yaw) and the GNSS ``gps`` = (t, (k, 3) NED velocity): the new quaternions
+    and a clause for the note, or (None, why it is not used)."""
+    r_gyro = aligned_gyro_rotation(imu_t_s, q_nb, att[0], att[1][:, 2], mask)
+    log_yaw = np.interp(imu_t_s, att[0], np.unwrap(att[1][:, 2]))
+    down = _interp_rows(imu_t_s, *log_down)
+    got = gps_tilt_reference(imu_t_s, accel_b_m_s2, r_gyro, *gps, down, log_yaw, mask)
+    if got.down_b is None:
+        return None, f"not toward the GNSS velocity: {got.note}"
+    q0 = q_nb[0]
+    q, _ = _propagate((imu_t_s, gyro_b_rad_s), (imu_t_s, got.down_b), q0, TiltFilterParams(passes=1), bias)
+    return q, f"{GPS_TILT} on {got.fresh:.0%} of the log ({got.note})"
+
+
+def _stationary_source(gyro_b_rad_s: F64, att_rad: F64 | None) -> AttitudeSource | None:
+    """The one rotation of a vehicle that does not rotate (tilt: the log's mean roll and pitch when it has an
+    attitude), or None when the gyro shows rotation."""
+    dev = np.linalg.norm(gyro_b_rad_s - np.median(gyro_b_rad_s, axis=0), axis=1)
+    if float(np.percentile(dev, 99)) < STATIONARY_RATE_RAD_S:
+        if att_rad is not None:
+            d = down_b_from_euler(att_rad[:, 0], att_rad[:, 1]).mean(axis=0)
+            roll0 = math.atan2(float(d[1]), float(d[2]))
+            pitch0 = -math.asin(float(np.clip(d[0] / np.linalg.norm(d), -1.0, 1.0)))
+        else:
+            roll0 = pitch0 = 0.0
+        return AttitudeSource(
+            "stationary",
+            "the vehicle does not rotate (gyro within "
+            f"{STATIONARY_RATE_RAD_S} rad/s of its median): the Earth field is constant in body axes, as "
+            "in the paper's offline fit (eqs. (14a), (15)); the calibration is neither "
+            "needed nor observable",
+            r0_nb=dcm_from_euler(roll0, pitch0, 0.0),
+        )
+    return None
+
+
 def attitude_source(
     imu_t_s: F64,
     gyro_b_rad_s: F64,
     accel_b_m_s2: F64,
     att_t_s: F64,
     att_rad: F64,
+    gps_t_s: F64 | None = None,
+    gps_vel_ned_m_s: F64 | None = None,
+    gps_mask: NDArray[np.bool_] | None = None,
 ) -> AttitudeSource:
-    """Choose the rotation for the forward model and integrate the gyro when it is the source (see module
-    docstring); :meth:`AttitudeSource.at` takes it at a compass's times."""
+    """Choose the rotation for the forward model and integrate the gyro when it is the source (module
+    docstring); :meth:`AttitudeSource.at` takes it at a compass's times. GNSS velocity ``gps_t_s`` (k,),
+    ``gps_vel_ned_m_s`` (k, 3) m/s, usable where ``gps_mask`` (n,) allows: :func:`_gps_pass`."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -272,22 +352,9 @@ def attitude_source(
                 "rotation), so "
             )
     if has_gyro:
-        dev = np.linalg.norm(gyro_b_rad_s - np.median(gyro_b_rad_s, axis=0), axis=1)
-        if float(np.percentile(dev, 99)) < STATIONARY_RATE_RAD_S:
-            if has_att:
-                d = down_b_from_euler(att_rad[:, 0], att_rad[:, 1]).mean(axis=0)
-                roll0 = math.atan2(float(d[1]), float(d[2]))
-                pitch0 = -math.asin(float(np.clip(d[0] / np.linalg.norm(d), -1.0, 1.0)))
-            else:
-                roll0 = pitch0 = 0.0
-            return AttitudeSource(
-                "stationary",
-                "the vehicle does not rotate (gyro within "
-                f"{STATIONARY_RATE_RAD_S} rad/s of its median): the Earth field is constant in body axes, as "
-                "in the paper's offline fit (eqs. (14a), (15)); the calibration is neither "
-                "needed nor observable",
-                r0_nb=dcm_from_euler(roll0, pitch0, 0.0),
-            )
+        stationary = _stationary_source(gyro_b_rad_s, att_rad if has_att else None)
+        if stationary is not None:
+            return stationary
     if has_gyro:
         if has_att:
             ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
@@ -308,13 +375,22 @@ def attitude_source(
             q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
             src = "gyro+tilt(accelerometer)"
             tilt = "the accelerometer's gravity direction"
-        q = propagate_attitude(imu_t_s, gyro_b_rad_s, ref_t, ref, q0)
+        q, bias = _propagate((imu_t_s, gyro_b_rad_s), (ref_t, ref), q0)
+        gnss_note = ""
+        if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
+            args = (q, bias, (ref_t, ref), (att_t_s, att_rad), (gps_t_s, gps_vel_ned_m_s), gps_mask)
+            q_gps, why = _gps_pass(imu_t_s, gyro_b_rad_s, accel_b_m_s2, *args)
+            if q_gps is not None:
+                q, src, tilt = q_gps, "gyro+tilt(gps)", f"{why}, else {tilt}"
+                gnss_note = f"tilt pulled toward {why}"
+            else:
+                tilt, gnss_note = f"{tilt} ({why})", f"tilt from the log's roll and pitch, {why}"
         note = (
             "rotation from the gyro (eq. (18)) with tilt pulled toward "
             f"{tilt}; heading is gyro-only (no compass), its drift is a fitted nuisance term, "
             "because the autopilot's yaw is fused from the disturbed compass"
         )
-        return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q)
+        return AttitudeSource(src, note, imu_t_s=imu_t_s, q_nb=q, gnss_note=gnss_note)
     if has_att:
         return AttitudeSource(
             "autopilot",

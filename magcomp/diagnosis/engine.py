@@ -196,6 +196,8 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
     left_out: dict[str, list[int]] = {}  # the stretches left out (as printed) -> the compasses
     first = len(notes)
     attitude = cache(partial(log_attitude, log))  # one rotation for every compass (and latency) of the log
+    if len(log.gps_velocity_ned_m_s) and attitude().gnss_note:
+        notes.append(attitude().gnss_note)  # the GNSS tilt reference used, or why not
     for idx in sorted(log.mag):
         if idx in log.mag and len(log.mag[idx]) > 0:
             mag = finite_series(log.mag[idx])  # what compass_data decides on, at its decimation

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.rotations import euler_from_dcms
+from magcomp.core.selfcheck import MOTORS_RUNNING_01
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
 from magcomp.diagnosis.attitude import AttitudeSource, attitude_source
 from magcomp.diagnosis.effects import DriveInputs
@@ -124,7 +125,23 @@ def log_attitude(log: LogData) -> AttitudeSource:
         log.accel_m_s2 if imu_ok else np.zeros((0, 3)),
         att.t_s,
         att.values if len(att) else np.zeros((0, 3)),
+        log.gps_velocity_ned_m_s.t_s,
+        log.gps_velocity_ned_m_s.values,
+        gps_flight_mask(log) if imu_ok else None,
     )
+
+
+def gps_flight_mask(log: LogData) -> NDArray[np.bool_]:
+    """(n,) at the IMU times: where the GNSS tilt reference may be built and judged, i.e. the motors running
+    (the lean it corrects comes with manoeuvres; on the ground a motors-off accelerometer bias differs from
+    the flying one) and no impact (:func:`crash_mask`: there the GNSS reads ~0 while the accelerometer
+    saturates). All samples when the log has no throttle."""
+    t = log.imu_t_s
+    keep = ~crash_mask(log, t)
+    thr = finite_series(log.throttle_01)
+    if len(thr):
+        keep &= np.interp(t, thr.t_s, thr.values) > MOTORS_RUNNING_01
+    return np.asarray(keep)
 
 
 def compass_data(

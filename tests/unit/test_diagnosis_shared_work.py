@@ -37,13 +37,13 @@ def _two_compasses(log: LogData) -> LogData:
 def test_the_gyro_integral_is_built_once_per_log(monkeypatch: pytest.MonkeyPatch) -> None:
     log = _two_compasses(synth_log(11, duration_s=30.0)[0])
     calls: list[int] = []
-    real = attitude.propagate_attitude
+    real = attitude._propagate  # the integral behind propagate_attitude and attitude_source's passes
 
-    def counting(*args: object, **kw: object) -> np.ndarray:
+    def counting(*args: object, **kw: object) -> tuple[np.ndarray, tuple[float, float, float]]:
         calls.append(1)
         return real(*args, **kw)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(attitude, "propagate_attitude", counting)
+    monkeypatch.setattr(attitude, "_propagate", counting)
     d = engine.diagnose(log)
     assert [c.index for c in d.compasses] == [0, 1]
     assert len(calls) == 1  # one integral for both compasses (it was one per compass)
