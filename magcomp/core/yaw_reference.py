@@ -1,12 +1,12 @@
 """Whose slow error is it: the compass's or the autopilot's yaw's?
 
-The att metric (:func:`magcomp.core.selfcheck.offset_removed_rms_deg` of heading - autopilot yaw) charges to
-the compass every slow difference from the autopilot's yaw. Where that yaw is itself wrong for a while (an EKF yaw
-reset, a yaw fused from another compass that a current step bent) the compass is charged with the autopilot's
-error, and no correction of the compass can lower it. The gyro decides: over windows long enough for a slow
-error to show (30 s) and short enough for a rate bias to stay constant, each window's offset and linear drift
-(the gyro's rate bias) are removed from (compass - gyro yaw) and from (autopilot yaw - gyro yaw); whichever
-stays larger carries the slow error.
+The att metric (:func:`magcomp.core.selfcheck.offset_removed_rms_deg` of heading - autopilot yaw) charges
+to the compass every slow difference from the autopilot's yaw. Where that yaw is itself wrong for a while
+(an EKF yaw reset, a yaw fused from another compass that a current step bent) the compass is charged with
+the autopilot's error, and no correction of the compass can lower it. The gyro decides: over windows long
+enough for a slow error to show (30 s) and short enough for a rate bias to stay constant, each window's
+offset and linear drift (the gyro's rate bias) are removed from (compass - gyro yaw) and from (autopilot
+yaw - gyro yaw); whichever stays larger carries the slow error.
 
 Pure numpy; angles in rad, times in s, results in deg.
 """
