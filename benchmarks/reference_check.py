@@ -101,7 +101,7 @@ def main() -> None:
         resets = ulog_yaw_resets(path) if path.suffix.lower() == ".ulg" else []
         print(f"{path.name}  (gyro {rate:.0f} Hz)" + "".join(f"; yaw reset {dy:+.1f} deg at {tr:.1f} s"
                                                           for tr, dy in resets))
-        published = {}
+        published: dict[int, list[tuple[float, float]]] = {}
         if a.replay:
             from magcomp.adapters.config import load_config
             from magcomp.service.replay import replay_log
