@@ -1,13 +1,14 @@
 """Whose slow error: per compass, the autopilot's own heading and the autopilot's yaw against the gyro.
 
-    python benchmarks/reference_check.py DIR [--glob PATTERN] [--replay]
+    python benchmarks/reference_check.py DIR [--glob PATTERN] [--replay [--causal]]
 
 The att metric of ``benchmarks/real_corpus.py`` charges every slow difference between a heading and the
 autopilot's yaw to the heading. This prints, per compass, beside att and the 10 s gyro metric, the rms over
 30 s windows (each window's offset and gyro-drift ramp removed, :mod:`magcomp.core.yaw_reference`) of
 (heading - gyro yaw) and of (autopilot yaw - gyro yaw): where the second is the larger, the slow error is the
 autopilot's yaw's, and no correction of the compass can lower att. On PX4 ULogs the estimator's logged yaw
-resets (``vehicle_attitude.delta_q_reset``) are listed. ``--replay``: the same for magcomp's two-pass heading.
+resets (``vehicle_attitude.delta_q_reset``) are listed. ``--replay``: the same for magcomp's two-pass heading
+(``--causal``: replay --causal's).
 The gyro is integrated at whatever rate the log has (3-4 Hz RAW_IMU in telemetry: slow turns only).
 """
 
@@ -86,7 +87,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dir", type=Path)
     ap.add_argument("--glob", default="*")
-    ap.add_argument("--replay", action="store_true", help="also magcomp's two-pass published heading")
+    ap.add_argument("--replay", action="store_true", help="also magcomp's published heading")
+    ap.add_argument("--causal", action="store_true", help="with --replay: replay --causal, not two-pass")
     a = ap.parse_args()
     for path in sorted(p for p in a.dir.glob(a.glob) if p.suffix.lower() in rc.SUFFIXES):
         try:
@@ -106,7 +108,7 @@ def main() -> None:
             from magcomp.adapters.config import load_config
             from magcomp.service.replay import replay_log
 
-            rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=True)
+            rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not a.causal)
             for e in rep.estimates:
                 published.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg))
         for idx, s in sorted(data.mag.items()):
