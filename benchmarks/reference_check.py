@@ -3,7 +3,7 @@
     python benchmarks/reference_check.py DIR [--glob PATTERN] [--replay [--causal]]
 
 The att metric of ``benchmarks/real_corpus.py`` charges every slow difference between a heading and the
-autopilot's yaw to the heading. This prints, per compass, beside att and the 10 s gyro metric, the rms over
+autopilot's yaw to the heading. This prints, per compass, beside att, the rms over
 30 s windows (each window's offset and gyro-drift ramp removed, :mod:`magcomp.core.yaw_reference`) of
 (heading - gyro yaw) and of (autopilot yaw - gyro yaw): where the second is the larger, the slow error is the
 autopilot's yaw's, and no correction of the compass can lower att. On PX4 ULogs the estimator's logged yaw
