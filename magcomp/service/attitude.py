@@ -22,6 +22,7 @@ from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import (
     dcm_from_euler,
     dcm_from_quat,
+    euler_tilt_step,
     euler_yaw_rate_coefs,
     quat_step_body_rate,
     roll_pitch_from_down,
@@ -130,6 +131,11 @@ class AttitudeStage:
         #: the headings use it): the coefficients of that integral
         self._heading_coef = (0.0, 1.0)
         self._yaw_coef = (0.0, 1.0)  # (sin roll, cos roll) / cos pitch of the latest ATTITUDE
+        #: the latest ATTITUDE's roll and pitch carried to the current IMU sample by the gyro: the heading
+        #: integral's coefficients between two ATTITUDE messages (held, they lag a fast roll by up to one
+        #: interval: luk8426 log_66 lost 33 deg of yaw in a 0.5 s, 300 deg/s manoeuvre at 27 Hz ATTITUDE)
+        self._ap_tilt: tuple[float, float] | None = None
+        self._ap_tilt_t = 0.0  # the time it is at
         self._yaw_rate_prev = 0.0
         #: the horizontal kinematic acceleration in the gyro chain's yaw frame (north, east; m/s^2),
         #: low-passed (ACCEL_LP_S): what a GPS-aided autopilot subtracts from the specific force with its own
@@ -161,6 +167,7 @@ class AttitudeStage:
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
         self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
+        self._ap_tilt, self._ap_tilt_t = (s.roll_rad, s.pitch_rad), s.t_s
         if self._auto or not self._use_mahony:  # the view takes this roll and pitch (while it is fresh):
             self._heading_coef = self._yaw_coef  # the integral follows them now, not at the next view
         self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) and abs(s.yaw_rad) <= YAW_MAX_RAD else self.yaw
@@ -211,10 +218,15 @@ class AttitudeStage:
             self.imu_t = t
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
             att_t = self.att_t  # the view's roll and pitch are the filter's: the integral follows them now
-            if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
-                self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
             b = m.b
             self.gyro = (gx - b[0], gy - b[1], gz - b[2])
+            if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
+                self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
+            elif self._ap_tilt is not None:  # the autopilot's roll and pitch, carried to this sample
+                if t > self._ap_tilt_t:
+                    self._ap_tilt = euler_tilt_step(*self._ap_tilt, *self.gyro, t - self._ap_tilt_t)
+                    self._ap_tilt_t = t
+                self._heading_coef = euler_yaw_rate_coefs(*self._ap_tilt)
             self.qg = quat_step_body_rate(self.qg, self.gyro, t - prev_t)
             rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
             self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
