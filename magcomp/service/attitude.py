@@ -123,8 +123,12 @@ class AttitudeStage:
         # the filter (a new epoch)
         self.gyro_yaw_rad = 0.0
         self.gyro_yaw_epoch = 0
-        #: the same integral of the bias-corrected gyro (the attitude filter's bias removed): what the heading
-        #: filter propagates with and the self-check's reference (service/heading.py), same epochs
+        #: the same integral of the raw gyro with the heading's roll and pitch: what the heading filter
+        #: propagates with and the self-check's reference (service/heading.py), same epochs. Not the attitude
+        #: filter's bias-corrected gyro: in flight a multicopter's accelerometer measures thrust and drag, not
+        #: gravity, and the filter's bias adaptation learns that as a gyro bias (about z: log171 1.1 deg/s,
+        #: peterbarker 1.BIN 1.6, where the raw gyro's yaw drifts from the autopilot's by 0.07-0.11 and
+        #: 0.1-0.3 deg/s); the autopilot logs its gyro with its own calibration applied
         self.heading_yaw_rad = 0.0
         self._heading_rate_prev = 0.0
         #: (sin roll, cos roll) / cos pitch of the latest attitude view (the autopilot's or the filter's, as
@@ -224,14 +228,14 @@ class AttitudeStage:
                 self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
             elif self._ap_tilt is not None:  # the autopilot's roll and pitch, carried to this sample
                 if t > self._ap_tilt_t:
-                    self._ap_tilt = euler_tilt_step(*self._ap_tilt, *self.gyro, t - self._ap_tilt_t)
+                    self._ap_tilt = euler_tilt_step(*self._ap_tilt, gx, gy, gz, t - self._ap_tilt_t)
                     self._ap_tilt_t = t
                 self._heading_coef = euler_yaw_rate_coefs(*self._ap_tilt)
             self.qg = quat_step_body_rate(self.qg, self.gyro, t - prev_t)
             rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
             self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
             self._yaw_rate_prev = rate
-            rate_c = self._heading_coef[0] * self.gyro[1] + self._heading_coef[1] * self.gyro[2]
+            rate_c = self._heading_coef[0] * gy + self._heading_coef[1] * gz
             self.heading_yaw_rad += 0.5 * (rate_c + self._heading_rate_prev) * (t - prev_t)
             self._heading_rate_prev = rate_c
             if self._accel_wanted:
