@@ -264,6 +264,22 @@ def euler_yaw_rate_coefs(roll_rad: float, pitch_rad: float) -> tuple[float, floa
     return (math.sin(roll_rad) / cp, math.cos(roll_rad) / cp)
 
 
+def euler_tilt_step(
+    roll_rad: float, pitch_rad: float, p_rad_s: float, q_rad_s: float, r_rad_s: float, dt_s: float
+) -> tuple[float, float]:
+    """ZYX Euler roll and pitch advanced over ``dt_s`` by the body rates (p, q, r) (plain floats, one Euler
+    step): roll rate ``p + (q sin roll + r cos roll) tan pitch``, pitch rate ``q cos roll - r sin roll``.
+    Carries an attitude reported every few tens of ms across the IMU samples between (cos pitch floored at
+    0.1, as in :func:`euler_yaw_rate_coefs`)."""
+    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
+    cp = max(math.cos(pitch_rad), 0.1)
+    tp = math.sin(pitch_rad) / cp
+    return (
+        roll_rad + (p_rad_s + (q_rad_s * sr + r_rad_s * cr) * tp) * dt_s,
+        pitch_rad + (q_rad_s * cr - r_rad_s * sr) * dt_s,
+    )
+
+
 def quat_step_body_rate(
     q_nb: FloatSeq, omega_b_rad_s: FloatSeq, dt_s: float
 ) -> tuple[float, float, float, float]:

@@ -22,6 +22,7 @@ from magcomp.core.mahony import mahony_init
 from magcomp.core.rotations import (
     dcm_from_euler,
     dcm_from_quat,
+    euler_tilt_step,
     euler_yaw_rate_coefs,
     quat_step_body_rate,
     roll_pitch_from_down,
@@ -122,14 +123,23 @@ class AttitudeStage:
         # the filter (a new epoch)
         self.gyro_yaw_rad = 0.0
         self.gyro_yaw_epoch = 0
-        #: the same integral of the bias-corrected gyro (the attitude filter's bias removed): what the heading
-        #: filter propagates with and the self-check's reference (service/heading.py), same epochs
+        #: the same integral of the raw gyro with the heading's roll and pitch: what the heading filter
+        #: propagates with and the self-check's reference (service/heading.py), same epochs. Not the attitude
+        #: filter's bias-corrected gyro: in flight a multicopter's accelerometer measures thrust and drag, not
+        #: gravity, and the filter's bias adaptation learns that as a gyro bias (about z: log171 1.1 deg/s,
+        #: peterbarker 1.BIN 1.6, where the raw gyro's yaw drifts from the autopilot's by 0.07-0.11 and
+        #: 0.1-0.3 deg/s); the autopilot logs its gyro with its own calibration applied
         self.heading_yaw_rad = 0.0
         self._heading_rate_prev = 0.0
         #: (sin roll, cos roll) / cos pitch of the latest attitude view (the autopilot's or the filter's, as
         #: the headings use it): the coefficients of that integral
         self._heading_coef = (0.0, 1.0)
         self._yaw_coef = (0.0, 1.0)  # (sin roll, cos roll) / cos pitch of the latest ATTITUDE
+        #: the latest ATTITUDE's roll and pitch carried to the current IMU sample by the gyro: the heading
+        #: integral's coefficients between two ATTITUDE messages (held, they lag a fast roll by up to one
+        #: interval: luk8426 log_66 lost 33 deg of yaw in a 0.5 s, 300 deg/s manoeuvre at 27 Hz ATTITUDE)
+        self._ap_tilt: tuple[float, float] | None = None
+        self._ap_tilt_t = 0.0  # the time it is at
         self._yaw_rate_prev = 0.0
         #: the horizontal kinematic acceleration in the gyro chain's yaw frame (north, east; m/s^2),
         #: low-passed (ACCEL_LP_S): what a GPS-aided autopilot subtracts from the specific force with its own
@@ -161,6 +171,7 @@ class AttitudeStage:
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
         self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
+        self._ap_tilt, self._ap_tilt_t = (s.roll_rad, s.pitch_rad), s.t_s
         if self._auto or not self._use_mahony:  # the view takes this roll and pitch (while it is fresh):
             self._heading_coef = self._yaw_coef  # the integral follows them now, not at the next view
         self.yaw = s.yaw_rad if math.isfinite(s.yaw_rad) and abs(s.yaw_rad) <= YAW_MAX_RAD else self.yaw
@@ -211,15 +222,20 @@ class AttitudeStage:
             self.imu_t = t
             m.update(gx, gy, gz, ax, ay, az, t - prev_t)
             att_t = self.att_t  # the view's roll and pitch are the filter's: the integral follows them now
-            if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
-                self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
             b = m.b
             self.gyro = (gx - b[0], gy - b[1], gz - b[2])
+            if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
+                self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
+            elif self._ap_tilt is not None:  # the autopilot's roll and pitch, carried to this sample
+                if t > self._ap_tilt_t:
+                    self._ap_tilt = euler_tilt_step(*self._ap_tilt, gx, gy, gz, t - self._ap_tilt_t)
+                    self._ap_tilt_t = t
+                self._heading_coef = euler_yaw_rate_coefs(*self._ap_tilt)
             self.qg = quat_step_body_rate(self.qg, self.gyro, t - prev_t)
             rate = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
             self.gyro_yaw_rad += 0.5 * (rate + self._yaw_rate_prev) * (t - prev_t)
             self._yaw_rate_prev = rate
-            rate_c = self._heading_coef[0] * self.gyro[1] + self._heading_coef[1] * self.gyro[2]
+            rate_c = self._heading_coef[0] * gy + self._heading_coef[1] * gz
             self.heading_yaw_rad += 0.5 * (rate_c + self._heading_rate_prev) * (t - prev_t)
             self._heading_rate_prev = rate_c
             if self._accel_wanted:
