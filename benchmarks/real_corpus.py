@@ -131,6 +131,9 @@ def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]
 
 Scores = dict[int, dict[str, float]]
 
+#: ``--config``: a configuration to replay with (default: none, as a new user runs it)
+CONFIG_PATH: str | None = None
+
 
 def magcomp_scores(
     path: Path, ref: Reference, causal: bool, store: StateSink | None = None
@@ -139,7 +142,7 @@ def magcomp_scores(
     samples published as corrected, FLAG_CALIBRATED, which is what the printed +-sigma describes: before a
     live correction switches on, the autopilot's own heading is published), what replay said, the sigma.
     ``store``: the vehicle's saved state (``chained``), loaded at the start and saved at the end."""
-    rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not causal, store=store)
+    rep = replay_log(path, load_config(CONFIG_PATH), keep_estimates=True, two_pass=not causal, store=store)
     by: dict[int, list[tuple[float, float, float]]] = {}
     for e in rep.estimates:
         by.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg, float(e.flags & FLAG_CALIBRATED)))
@@ -269,7 +272,10 @@ def main() -> int:
     ap.add_argument("paths", nargs="+", help="log files or directories")
     ap.add_argument("--modes", default="two-pass,causal,chained")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--config", help="replay with this configuration (default: none)")
     args = ap.parse_args()
+    global CONFIG_PATH
+    CONFIG_PATH = args.config
     files: list[Path] = []
     for p in map(Path, args.paths):
         files += sorted(f for f in p.rglob("*") if f.suffix.lower() in SUFFIXES) if p.is_dir() else [p]
