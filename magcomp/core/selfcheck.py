@@ -36,6 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.dpi import apply_calibration
+from magcomp.core.heading import heading_from_trig_deg
+
 F64 = NDArray[np.float64]
 
 #: window over which a gyro's integral is a constant plus a small ramp (s). A rate bias b leaves a ramp of
@@ -114,6 +117,35 @@ def rms_upper_deg(rms_deg: float, n_windows: int) -> float:
     of n values scatters by 1/sqrt(2 n) of itself (as :func:`att_tolerance_deg`), taken t_critical(n)
     times (with 3 windows 2.8 times the rms, with 10 1.5 times)."""
     return rms_deg * (1.0 + t_critical(n_windows) / math.sqrt(2.0 * max(n_windows, 1)))
+
+
+def constant_change_rad(
+    raw_mgauss: F64,
+    throttle_01: F64,
+    tilt: F64,
+    old: tuple[tuple[float, ...], tuple[float, float, float]],
+    new: tuple[tuple[float, ...], tuple[float, float, float]],
+) -> float:
+    """How much a new estimate moves the corrected heading as a whole (rad): the circular mean over the
+    samples (the field as received (n, 3), the throttle (n,), cos / sin of roll and pitch (n, 4)) of the
+    heading with ``new`` minus the heading with ``old``, each an estimate's L and d of eq. (2) as 12 floats
+    and its theta, eq. (11) with theta * throttle^2 (per-motor terms, which sum to about zero over the
+    motors, left out), eq. (24). Taken over the samples flown lately rather than over every heading: what is
+    constant for this flight (a change of the hard iron at the headings flown) is what the published heading
+    must not jump by. NaN without samples."""
+    y = np.asarray(raw_mgauss, dtype=float)
+    if y.shape[0] == 0:
+        return math.nan
+    d2 = np.square(np.asarray(throttle_01, dtype=float))[:, None]
+    tr = np.asarray(tilt, dtype=float)
+    psi = []
+    for coeffs, theta in (old, new):
+        k = np.asarray(coeffs, dtype=float)
+        u = apply_calibration(k[:9].reshape(3, 3), k[9:12], y)  # eq. (2)
+        u = u - d2 * np.asarray(theta, dtype=float)  # eq. (11)
+        psi.append(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3]))
+    d = np.radians(psi[1] - psi[0])  # eq. (24) of each
+    return math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d))))
 
 
 def wrap_rad(a: F64) -> F64:
@@ -330,7 +362,9 @@ class RunningSelfCheck:
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
         self._offset_sums: list[tuple[float, float]] = []  # per window: sum sin, sum cos of (base - cand)
-        self._offset: float | None = None  # offset_rad of the current windows (None: not computed yet)
+        self._offset: float | None = None  # the windows' offset (None: not computed yet)
+        #: the offset held since the correction switched on (None: off, the windows' offset is used)
+        self._held: float | None = None
         self._off: tuple[float, float] | None = None
         self.verdict: SelfCheck | None = None
         #: the correction is published: switched on where the verdict applies, off only where it is worse
@@ -340,13 +374,36 @@ class RunningSelfCheck:
 
     @property
     def offset_rad(self) -> float:
-        """The circular mean of (baseline - candidate) over the windows the verdict was taken on (rad)."""
+        """The constant (rad) added to the candidate where it is published: while the correction is off, the
+        circular mean of (baseline - candidate) over the windows the verdict was taken on (so that it does
+        not jump when it switches on); from the switch on, that value held, moved only by :meth:`shift`.
+        The windows' mean would wander with the baseline's own error, which changes with the flight (the
+        throttle's bias at the throttle of the latest two minutes): on the development logs the windows'
+        offset moved over 6-24 deg while published (log171 compass 2: 5.8-20.0 deg; its published heading
+        5.1 deg att with it, 2.6 with one constant)."""
+        if self._held is not None:
+            return self._held
+        return self._windows_offset()
+
+    def _windows_offset(self) -> float:
         if not self._offset_sums:
             return 0.0
         if self._offset is None:  # computed once per window closed (read at every published sample)
             s = np.asarray(self._offset_sums)
             self._offset = math.atan2(float(s[:, 0].sum()), float(s[:, 1].sum()))
         return self._offset
+
+    @property
+    def holds(self) -> bool:
+        """The offset is held (the correction is on): the candidate's re-solves should :meth:`shift` it."""
+        return self._held is not None
+
+    def shift(self, change_rad: float) -> None:
+        """The candidate's constant part changed by ``change_rad`` (a re-solve of the estimate:
+        :func:`constant_change_rad`): the held offset takes it out, so that the published heading neither
+        jumps nor drifts with the re-solves."""
+        if self._held is not None:
+            self._held = float(wrap_rad(np.asarray(self._held - change_rad)))
 
     @property
     def baseline_deg(self) -> float:
@@ -418,7 +475,12 @@ class RunningSelfCheck:
             sums = (float(eb.size), float(eb.sum()), float(eb @ eb), float(ec.sum()), float(ec @ ec))
             self._att.append(sums)
         v = self.verdict = self._decide()
+        was = self.on
         self.on = v.applies or (self.on and not v.worse)
+        if not self.on:
+            self._held = None
+        elif not was:  # switched on: the windows' offset, held from here
+            self._held = self._windows_offset()
         return True
 
     def _decide(self) -> SelfCheck:

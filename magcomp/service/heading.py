@@ -10,13 +10,20 @@ same way, for comparison.
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
-from magcomp.core.selfcheck import LIVE_WINDOW_S, MAX_TILT_COS, MOTORS_RUNNING_01, RunningSelfCheck
+from magcomp.core.selfcheck import (
+    LIVE_WINDOW_S,
+    MAX_TILT_COS,
+    MOTORS_RUNNING_01,
+    RunningSelfCheck,
+    constant_change_rad,
+)
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
@@ -126,6 +133,11 @@ class HoverShadow:
         return (self.deg - math.degrees(math.atan2(sn, cs))) % 360.0
 
 
+#: the samples a re-solve's constant change is measured on: one every RECENT_EVERY_S (s), the latest RECENT_N
+#: (two minutes, the running check's RECENT_S)
+RECENT_EVERY_S = 0.2
+RECENT_N = 600
+
 #: the live hover model is solved again when a self-check window closes, or with this many new samples
 #: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
 #: has windows): more than twice its unknowns' count of 3-row samples
@@ -137,6 +149,8 @@ class HeadingTrack:
 
     __slots__ = (
         "_last_rate",
+        "_recent",
+        "_recent_t",
         "check",
         "corrected",
         "corrected_deg",
@@ -149,6 +163,7 @@ class HeadingTrack:
         "raw",
         "raw_deg",
         "self_check",
+        "solution",
         "starts_published",
     )  # fmt: skip
 
@@ -174,6 +189,28 @@ class HeadingTrack:
         #: an in-flight correction warm-started from a state learned on this very log (a two-pass replay's
         #: per-sample second pass) starts published; one from another flight's state does not
         self.starts_published = starts_published
+        #: the in-flight estimate published last (L and d as 12 floats, theta): a new one moves the check's
+        #: held offset by its constant part's change (RunningSelfCheck.shift)
+        self.solution: tuple[tuple[float, ...], tuple[float, float, float]] | None = None
+        #: the latest judged samples (field as received, throttle, cos / sin of roll and pitch), one every
+        #: RECENT_EVERY_S over RECENT_N: where that change is measured
+        self._recent: deque[tuple[float, ...]] = deque(maxlen=RECENT_N)
+        self._recent_t = -math.inf
+
+    def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...]) -> None:
+        """One judged sample for :meth:`constant_change_rad` (at most one every RECENT_EVERY_S)."""
+        if t_s - self._recent_t >= RECENT_EVERY_S or t_s < self._recent_t:
+            self._recent_t = t_s
+            self._recent.append((*raw, throttle_01, *tilt))
+
+    def constant_change_rad(self, old: tuple[tuple[float, ...], tuple[float, float, float]],
+                            new: tuple[tuple[float, ...], tuple[float, float, float]]) -> float:  # fmt: skip
+        """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
+        remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none)."""
+        if not self._recent:
+            return math.nan
+        a = np.asarray(self._recent, dtype=float)
+        return constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
 
     def reset(self) -> None:
         self.corrected.reset()
@@ -304,7 +341,17 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-    if rec.inflight is not None and chk is not None and chk.publishes(rec.inflight.heading_sigma_deg):
+            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt)
+    inf = rec.inflight
+    sol = (inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow  # the estimate judged
+    if sol is not None and chk is not None:
+        last = track.solution
+        if last is not None and last[0] is not sol[0] and chk.holds:  # re-solved while published
+            change = track.constant_change_rad(last, sol)
+            if change == change:
+                chk.shift(change)
+        track.solution = sol
+    if inf is not None and chk is not None and chk.publishes(inf.heading_sigma_deg):
         rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0  # see the doc
         return
     if rec.inflight is None and not rec.calibrated and hover is not None and hover.on_form is not None:

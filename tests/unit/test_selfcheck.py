@@ -127,6 +127,54 @@ def test_a_right_correction_is_published_once_its_windows_show_it_whatever_its_m
     assert equal <= 2
 
 
+def test_the_published_offset_is_held_from_the_switch_on() -> None:
+    """The constant part of the published heading (RunningSelfCheck.offset_rad) is taken from the autopilot's
+    own heading when the correction switches on and then held: the windows' mean of (own - correction)
+    follows the own heading's error, which here moves by 8 deg between the two halves of the flight (the
+    throttle's bias at a higher mean throttle). Held, the published heading's error against the true yaw
+    (constant removed) stays the correction's own; the windows' mean (before) added the own heading's
+    wander to it. A re-solve's change of the correction's constant part (``shift``) is taken out."""
+    t, yaw, gyro, thr, rng = _flight(7, n_s=240.0)
+    thr = np.where(t < 120.0, 0.3, 0.7) + 0.5 * (thr - 0.5)  # a second half at a higher throttle
+    base = yaw + np.radians(20.0) * thr**2 + rng.normal(0, np.radians(1.0), t.size)
+    cand = yaw + 0.4 + rng.normal(0, np.radians(1.0), t.size)
+    run = sc.RunningSelfCheck()
+    offsets, err = [], []
+    for i in range(t.size):
+        run.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, float(yaw[i]))
+        if run.on:
+            offsets.append(run.offset_rad)
+            err.append(cand[i] + run.offset_rad - yaw[i])
+    assert len(offsets) > 0.8 * t.size  # on from the first verdicts
+    assert np.ptp(np.degrees(offsets)) < 0.01, np.ptp(np.degrees(offsets))  # windows' mean: 8 deg apart
+    rms = sc.offset_removed_rms_deg(np.asarray(err))
+    assert rms < 1.2, rms  # the correction's own 1 deg of noise (1.0); the windows' mean: 2.8 deg
+    held = run.offset_rad
+    run.shift(0.1)
+    assert run.offset_rad == pytest.approx(held - 0.1, abs=1e-12)
+
+
+def test_constant_change_of_a_new_estimate() -> None:
+    """constant_change_rad: a new estimate whose L turns the horizontal field by 3 deg moves every
+    heading by -3 deg (eq. (24): heading = atan2(-y, x)); a new hard iron moves headings by amounts that
+    turn with the heading, nothing as a whole over a full turn, but a constant over one heading."""
+    psi = np.radians(np.arange(0.0, 360.0, 5.0))
+    field = np.stack((200 * np.cos(psi), -200 * np.sin(psi), np.full(psi.size, 400.0)), axis=1)
+    tilt = np.tile([1.0, 0.0, 1.0, 0.0], (psi.size, 1))
+    thr = np.full(psi.size, 0.5)
+    ident = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    a = math.radians(3.0)
+    turned = (math.cos(a), -math.sin(a), 0.0, math.sin(a), math.cos(a), 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    zero = (0.0, 0.0, 0.0)
+    got = sc.constant_change_rad(field, thr, tilt, (ident, zero), (turned, zero))
+    assert got == pytest.approx(-a, abs=1e-9)
+    hard = (*ident[:9], 0.0, 20.0, 0.0)
+    assert abs(sc.constant_change_rad(field, thr, tilt, (ident, zero), (hard, zero))) < math.radians(0.05)
+    one = sc.constant_change_rad(field[:1], thr[:1], tilt[:1], (ident, zero), (hard, zero))
+    assert abs(math.degrees(one)) > 3.0  # 20 mgauss across a 200 mgauss field at heading 0: 5.7 deg
+    assert math.isnan(sc.constant_change_rad(field[:0], thr[:0], tilt[:0], (ident, zero), (hard, zero)))
+
+
 #: the running check's first verdict: MIN_WINDOWS windows of LIVE_WINDOW_S
 MIN_WINDOWS_S = sc.MIN_WINDOWS * sc.LIVE_WINDOW_S
 
