@@ -287,11 +287,13 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
     flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be known
     at all: the mount's yaw), which no window of the check sees: the published heading takes its constant
-    part from the autopilot's own over the check's latest windows (their circular mean difference), so that
-    it neither jumps when the correction switches on or off nor drifts with the re-solves. The two-pass
-    replay, whose correction is fixed over the log, keeps its own. Theta against the autopilot's calibration
+    part from the autopilot's own over the check's windows when it switches on (their circular mean
+    difference) and holds it, moved at each re-solve by the estimate's own constant change over the samples
+    judged lately (:meth:`HeadingTrack.constant_change_rad`), so that it neither jumps when the correction
+    switches on nor drifts with the re-solves nor with the autopilot's own error. The two-pass replay, whose
+    correction is fixed over the log, keeps its own. Theta against the autopilot's calibration
     is published only where no in-flight correction applies: where one applies but is not published (its
-    check not on, or its heading sigma above the autopilot's own error:
+    check not on, or its own error possibly above the autopilot's:
     :meth:`~magcomp.core.selfcheck.RunningSelfCheck.publishes`), the autopilot's own heading is (publishing
     the hover theta there made two development compasses worse, docs/benchmarks.md)."""
     cr, sr, cp, sp = rec.tilt
