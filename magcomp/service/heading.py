@@ -212,6 +212,19 @@ class HeadingTrack:
         a = np.asarray(self._recent, dtype=float)
         return constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
 
+    def follow(self, sol: tuple[tuple[float, ...], tuple[float, float, float]] | None,
+               chk: RunningSelfCheck) -> None:  # fmt: skip
+        """The in-flight estimate judged at this sample (None: none); a new one (re-solved) while the check
+        holds its offset moves that offset by its constant change (:meth:`constant_change_rad`)."""
+        if sol is None:
+            return
+        last = self.solution
+        if last is not None and last[0] is not sol[0] and chk.holds:
+            change = self.constant_change_rad(last, sol)
+            if change == change:  # not NaN: samples to measure it on
+                chk.shift(change)
+        self.solution = sol
+
     def reset(self) -> None:
         self.corrected.reset()
         self.raw.reset()
@@ -345,14 +358,8 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
             track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt)
     inf = rec.inflight
-    sol = (inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow  # the estimate judged
-    if sol is not None and chk is not None:
-        last = track.solution
-        if last is not None and last[0] is not sol[0] and chk.holds:  # re-solved while published
-            change = track.constant_change_rad(last, sol)
-            if change == change:
-                chk.shift(change)
-        track.solution = sol
+    if chk is not None:
+        track.follow((inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow, chk)
     if inf is not None and chk is not None and chk.publishes(inf.heading_sigma_deg):
         rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0  # see the doc
         return
