@@ -119,33 +119,41 @@ def rms_upper_deg(rms_deg: float, n_windows: int) -> float:
     return rms_deg * (1.0 + t_critical(n_windows) / math.sqrt(2.0 * max(n_windows, 1)))
 
 
-def constant_change_rad(
-    raw_mgauss: F64,
-    throttle_01: F64,
-    tilt: F64,
-    old: tuple[tuple[float, ...], tuple[float, float, float]],
-    new: tuple[tuple[float, ...], tuple[float, float, float]],
-) -> float:
-    """How much a new estimate moves the corrected heading as a whole (rad): the circular mean over the
-    samples (the field as received (n, 3), the throttle (n,), cos / sin of roll and pitch (n, 4)) of the
-    heading with ``new`` minus the heading with ``old``, each an estimate's L and d of eq. (2) as 12 floats
-    and its theta, eq. (11) with theta * throttle^2 (per-motor terms, which sum to about zero over the
-    motors, left out), eq. (24). Taken over the samples flown lately rather than over every heading: what is
-    constant for this flight (a change of the hard iron at the headings flown) is what the published heading
-    must not jump by. NaN without samples."""
-    y = np.asarray(raw_mgauss, dtype=float)
-    if y.shape[0] == 0:
-        return math.nan
+Estimate = tuple[tuple[float, ...], tuple[float, float, float]]
+
+
+def corrected_heading_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64, estimate: Estimate) -> F64:
+    """The heading (deg) an in-flight estimate gives the samples (the field as received (n, 3), the throttle
+    (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats, eq. (11) with its theta
+    * throttle^2 (per-motor terms, which sum to about zero over the motors, left out), eq. (24)."""
+    coeffs, theta = estimate
+    k = np.asarray(coeffs, dtype=float)
+    u = apply_calibration(k[:9].reshape(3, 3), k[9:12], np.asarray(raw_mgauss, dtype=float))  # eq. (2)
     d2 = np.square(np.asarray(throttle_01, dtype=float))[:, None]
-    tr = np.asarray(tilt, dtype=float)
-    psi = []
-    for coeffs, theta in (old, new):
-        k = np.asarray(coeffs, dtype=float)
-        u = apply_calibration(k[:9].reshape(3, 3), k[9:12], y)  # eq. (2)
-        u = u - d2 * np.asarray(theta, dtype=float)  # eq. (11)
-        psi.append(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3]))
-    d = np.radians(psi[1] - psi[0])  # eq. (24) of each
-    return math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d))))
+    u = u - d2 * np.asarray(theta, dtype=float)  # eq. (11)
+    c = np.asarray(tilt, dtype=float)
+    return np.asarray(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], c[:, 0], c[:, 1], c[:, 2], c[:, 3]))
+
+
+def circular_mean_rad(a_rad: F64) -> float:
+    """The circular mean of angles (rad); NaN when empty."""
+    a = np.asarray(a_rad, dtype=float)
+    if a.size == 0:
+        return math.nan
+    return math.atan2(float(np.mean(np.sin(a))), float(np.mean(np.cos(a))))
+
+
+def constant_change_rad(raw_mgauss: F64, throttle_01: F64, tilt: F64, old: Estimate, new: Estimate) -> float:
+    """How much a new estimate moves the corrected heading as a whole (rad): the circular mean over the
+    samples of the heading with ``new`` minus the heading with ``old`` (:func:`corrected_heading_deg`).
+    Taken over the samples flown lately rather than over every heading: what is constant for this flight (a
+    change of the hard iron at the headings flown) is what the published heading must not jump by. NaN
+    without samples."""
+    if np.asarray(raw_mgauss).shape[0] == 0:
+        return math.nan
+    psi_old = corrected_heading_deg(raw_mgauss, throttle_01, tilt, old)
+    psi_new = corrected_heading_deg(raw_mgauss, throttle_01, tilt, new)
+    return circular_mean_rad(np.radians(psi_new - psi_old))
 
 
 def wrap_rad(a: F64) -> F64:
@@ -397,6 +405,12 @@ class RunningSelfCheck:
     def holds(self) -> bool:
         """The offset is held (the correction is on): the candidate's re-solves should :meth:`shift` it."""
         return self._held is not None
+
+    def hold(self, offset_rad: float) -> None:
+        """While on, hold ``offset_rad`` instead (NaN: keep the held one): the windows' offset mixes the
+        estimates each window was judged with, where the caller can measure it with the current one."""
+        if self._held is not None and offset_rad == offset_rad:
+            self._held = offset_rad
 
     def shift(self, change_rad: float) -> None:
         """The candidate's constant part changed by ``change_rad`` (a re-solve of the estimate:

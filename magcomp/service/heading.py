@@ -21,8 +21,11 @@ from magcomp.core.selfcheck import (
     LIVE_WINDOW_S,
     MAX_TILT_COS,
     MOTORS_RUNNING_01,
+    Estimate,
     RunningSelfCheck,
+    circular_mean_rad,
     constant_change_rad,
+    corrected_heading_deg,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
@@ -148,6 +151,7 @@ class HeadingTrack:
     """One compass's two heading filters (corrected, uncorrected) and their last outputs (deg)."""
 
     __slots__ = (
+        "_holding",
         "_last_rate",
         "_recent",
         "_recent_t",
@@ -191,20 +195,32 @@ class HeadingTrack:
         self.starts_published = starts_published
         #: the in-flight estimate published last (L and d as 12 floats, theta): a new one moves the check's
         #: held offset by its constant part's change (RunningSelfCheck.shift)
-        self.solution: tuple[tuple[float, ...], tuple[float, float, float]] | None = None
+        self.solution: Estimate | None = None
         #: the latest judged samples (field as received, throttle, cos / sin of roll and pitch), one every
         #: RECENT_EVERY_S over RECENT_N: where that change is measured
         self._recent: deque[tuple[float, ...]] = deque(maxlen=RECENT_N)
         self._recent_t = -math.inf
+        self._holding = False
 
-    def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...]) -> None:
-        """One judged sample for :meth:`constant_change_rad` (at most one every RECENT_EVERY_S)."""
+    def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...],
+                 psi_own_deg: float) -> None:  # fmt: skip
+        """One judged sample for :meth:`constant_change_rad` and :meth:`own_offset_rad` (at most one every
+        RECENT_EVERY_S): the field as received, the throttle, cos / sin of roll and pitch, the autopilot's
+        own heading (deg)."""
         if t_s - self._recent_t >= RECENT_EVERY_S or t_s < self._recent_t:
             self._recent_t = t_s
-            self._recent.append((*raw, throttle_01, *tilt))
+            self._recent.append((*raw, throttle_01, *tilt, psi_own_deg))
 
-    def constant_change_rad(self, old: tuple[tuple[float, ...], tuple[float, float, float]],
-                            new: tuple[tuple[float, ...], tuple[float, float, float]]) -> float:  # fmt: skip
+    def own_offset_rad(self, estimate: Estimate) -> float:
+        """The circular mean of (the autopilot's own heading - ``estimate``'s) over the samples remembered
+        (rad; NaN: none): the constant that puts the estimate's heading on the autopilot's own."""
+        if not self._recent:
+            return math.nan
+        a = np.asarray(self._recent, dtype=float)
+        psi = corrected_heading_deg(a[:, 0:3], a[:, 3], a[:, 4:8], estimate)
+        return circular_mean_rad(np.radians(a[:, 8] - psi))
+
+    def constant_change_rad(self, old: Estimate, new: Estimate) -> float:
         """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
         remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none)."""
         if not self._recent:
@@ -212,8 +228,7 @@ class HeadingTrack:
         a = np.asarray(self._recent, dtype=float)
         return constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
 
-    def follow(self, sol: tuple[tuple[float, ...], tuple[float, float, float]] | None,
-               chk: RunningSelfCheck) -> None:  # fmt: skip
+    def follow(self, sol: Estimate | None, chk: RunningSelfCheck) -> None:
         """The in-flight estimate judged at this sample (None: none); a new one (re-solved) while the check
         holds its offset moves that offset by its constant change (:meth:`constant_change_rad`)."""
         if sol is None:
@@ -223,6 +238,9 @@ class HeadingTrack:
             change = self.constant_change_rad(last, sol)
             if change == change:  # not NaN: samples to measure it on
                 chk.shift(change)
+        if chk.holds and not self._holding:  # switched on: the offset with this estimate on every sample
+            chk.hold(self.own_offset_rad(sol))
+        self._holding = chk.holds
         self.solution = sol
 
     def reset(self) -> None:
@@ -356,7 +374,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt)
+            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own)
     inf = rec.inflight
     if chk is not None:
         track.follow((inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow, chk)

@@ -175,6 +175,27 @@ def test_constant_change_of_a_new_estimate() -> None:
     assert math.isnan(sc.constant_change_rad(field[:0], thr[:0], tilt[:0], (ident, zero), (hard, zero)))
 
 
+def test_the_offset_at_the_switch_on_is_measured_with_the_current_estimate() -> None:
+    """HeadingTrack.own_offset_rad: over the judged samples remembered (one every RECENT_EVERY_S), the
+    circular mean of (the autopilot's own heading - the given estimate's heading), whatever estimates the
+    check's windows were judged with; and follow() holds it when the check switches on."""
+    rng = np.random.default_rng(3)
+    track = HeadingTrack(tau_s=1.0)
+    ident = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    est = (ident, (0.0, 40.0, 0.0))  # theta: 40 mgauss on y, the bias at throttle^2
+    for i in range(900):  # 180 s at 5 Hz: the last 600 are kept
+        psi = math.radians(i * 2.0)
+        raw = (200 * math.cos(psi), -200 * math.sin(psi) + 40.0 * 0.25, 400.0)  # at throttle 0.5
+        own = math.degrees(psi) + 5.0 + float(rng.normal(0, 0.5))  # the own heading, 5 deg off the truth
+        track.remember(i * 0.2, raw, 0.5, (1.0, 0.0, 1.0, 0.0), own % 360.0)
+    assert math.degrees(track.own_offset_rad(est)) == pytest.approx(5.0, abs=0.1)
+    run = sc.RunningSelfCheck()
+    run.on = True
+    run._held = 0.0  # switched on with the windows' offset (0 here)
+    track.follow(est, run)
+    assert math.degrees(run.offset_rad) == pytest.approx(5.0, abs=0.1)
+
+
 #: the running check's first verdict: MIN_WINDOWS windows of LIVE_WINDOW_S
 MIN_WINDOWS_S = sc.MIN_WINDOWS * sc.LIVE_WINDOW_S
 
