@@ -318,8 +318,8 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
     flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be known
     at all: the mount's yaw), which no window of the check sees: the published heading takes its constant
-    part from the autopilot's own over the check's windows when it switches on (their circular mean
-    difference) and holds it, moved at each re-solve by the estimate's own constant change over the samples
+    part from the autopilot's own when it switches on (the circular mean difference over the samples judged
+    lately, with the current estimate: :meth:`HeadingTrack.own_offset_rad`) and holds it, moved at each re-solve by the estimate's own constant change over the samples
     judged lately (:meth:`HeadingTrack.constant_change_rad`), so that it neither jumps when the correction
     switches on nor drifts with the re-solves nor with the autopilot's own error. The two-pass replay, whose
     correction is fixed over the log, keeps its own. Theta against the autopilot's calibration
