@@ -315,18 +315,19 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
     field through the same filter (its flags without FLAG_CALIBRATED) until the running self-check
-    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
-    flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be known
-    at all: the mount's yaw), which no window of the check sees: the published heading takes its constant
-    part from the autopilot's own when it switches on (the circular mean difference over the samples judged
-    lately, with the current estimate: :meth:`HeadingTrack.own_offset_rad`) and holds it, moved at each re-solve by the estimate's own constant change over the samples
-    judged lately (:meth:`HeadingTrack.constant_change_rad`), so that it neither jumps when the correction
-    switches on nor drifts with the re-solves nor with the autopilot's own error. The two-pass replay, whose
-    correction is fixed over the log, keeps its own. Theta against the autopilot's calibration
-    is published only where no in-flight correction applies: where one applies but is not published (its
+    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise.
+    In flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be
+    known at all: the mount's yaw), which no window of the check sees: the published heading takes its
+    constant part from the autopilot's own when it switches on (the circular mean difference over the
+    samples judged lately, with the current estimate: :meth:`HeadingTrack.own_offset_rad`) and holds it,
+    moved at each re-solve by the estimate's own constant change over the samples judged lately
+    (:meth:`HeadingTrack.constant_change_rad`), so that it neither jumps when the correction switches on
+    nor drifts with the re-solves nor with the autopilot's own error. The two-pass replay, whose
+    correction is fixed over the log, keeps its own. Theta against the autopilot's calibration is
+    published only where no in-flight correction applies: where one applies but is not published (its
     check not on, or its own error possibly above the autopilot's:
-    :meth:`~magcomp.core.selfcheck.RunningSelfCheck.publishes`), the autopilot's own heading is (publishing
-    the hover theta there made two development compasses worse, docs/benchmarks.md)."""
+    :meth:`~magcomp.core.selfcheck.RunningSelfCheck.publishes`), the autopilot's own heading is
+    (publishing the hover theta there made two development compasses worse, docs/benchmarks.md)."""
     cr, sr, cp, sp = rec.tilt
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
