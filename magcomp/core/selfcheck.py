@@ -36,6 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from magcomp.core.dpi import apply_calibration
+from magcomp.core.heading import heading_from_trig_deg
+
 F64 = NDArray[np.float64]
 
 #: window over which a gyro's integral is a constant plus a small ramp (s). A rate bias b leaves a ramp of
@@ -107,6 +110,50 @@ def att_tolerance_deg(att_deg: float, n_windows: int) -> float:
     it."""
     floor = math.sqrt(FLOOR_RAD2) * 180.0 / math.pi
     return max(floor, min(att_deg / math.sqrt(2.0 * max(n_windows, 1)), MAX_ATT_WORSE_FRACTION * att_deg))
+
+
+def rms_upper_deg(rms_deg: float, n_windows: int) -> float:
+    """The one-sided P_APPLY upper bound of an rms measured over ``n_windows`` independent windows: an rms
+    of n values scatters by 1/sqrt(2 n) of itself (as :func:`att_tolerance_deg`), taken t_critical(n)
+    times (with 3 windows 2.8 times the rms, with 10 1.5 times)."""
+    return rms_deg * (1.0 + t_critical(n_windows) / math.sqrt(2.0 * max(n_windows, 1)))
+
+
+Estimate = tuple[tuple[float, ...], tuple[float, float, float]]
+
+
+def corrected_heading_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64, estimate: Estimate) -> F64:
+    """The heading (deg) an in-flight estimate gives the samples (the field as received (n, 3), the throttle
+    (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats, eq. (11) with its theta
+    * throttle^2 (per-motor terms, which sum to about zero over the motors, left out), eq. (24)."""
+    coeffs, theta = estimate
+    k = np.asarray(coeffs, dtype=float)
+    u = apply_calibration(k[:9].reshape(3, 3), k[9:12], np.asarray(raw_mgauss, dtype=float))  # eq. (2)
+    d2 = np.square(np.asarray(throttle_01, dtype=float))[:, None]
+    u = u - d2 * np.asarray(theta, dtype=float)  # eq. (11)
+    c = np.asarray(tilt, dtype=float)
+    return np.asarray(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], c[:, 0], c[:, 1], c[:, 2], c[:, 3]))
+
+
+def circular_mean_rad(a_rad: F64) -> float:
+    """The circular mean of angles (rad); NaN when empty."""
+    a = np.asarray(a_rad, dtype=float)
+    if a.size == 0:
+        return math.nan
+    return math.atan2(float(np.mean(np.sin(a))), float(np.mean(np.cos(a))))
+
+
+def constant_change_rad(raw_mgauss: F64, throttle_01: F64, tilt: F64, old: Estimate, new: Estimate) -> float:
+    """How much a new estimate moves the corrected heading as a whole (rad): the circular mean over the
+    samples of the heading with ``new`` minus the heading with ``old`` (:func:`corrected_heading_deg`).
+    Taken over the samples flown lately rather than over every heading: what is constant for this flight (a
+    change of the hard iron at the headings flown) is what the published heading must not jump by. NaN
+    without samples."""
+    if np.asarray(raw_mgauss).shape[0] == 0:
+        return math.nan
+    psi_old = corrected_heading_deg(raw_mgauss, throttle_01, tilt, old)
+    psi_new = corrected_heading_deg(raw_mgauss, throttle_01, tilt, new)
+    return circular_mean_rad(np.radians(psi_new - psi_old))
 
 
 def wrap_rad(a: F64) -> F64:
@@ -323,7 +370,9 @@ class RunningSelfCheck:
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
         self._offset_sums: list[tuple[float, float]] = []  # per window: sum sin, sum cos of (base - cand)
-        self._offset: float | None = None  # offset_rad of the current windows (None: not computed yet)
+        self._offset: float | None = None  # the windows' offset (None: not computed yet)
+        #: the offset held since the correction switched on (None: off, the windows' offset is used)
+        self._held: float | None = None
         self._off: tuple[float, float] | None = None
         self.verdict: SelfCheck | None = None
         #: the correction is published: switched on where the verdict applies, off only where it is worse
@@ -333,13 +382,42 @@ class RunningSelfCheck:
 
     @property
     def offset_rad(self) -> float:
-        """The circular mean of (baseline - candidate) over the windows the verdict was taken on (rad)."""
+        """The constant (rad) added to the candidate where it is published: while the correction is off, the
+        circular mean of (baseline - candidate) over the windows the verdict was taken on (so that it does
+        not jump when it switches on); from the switch on, that value held, moved only by :meth:`shift`.
+        The windows' mean would wander with the baseline's own error, which changes with the flight (the
+        throttle's bias at the throttle of the latest two minutes): on the development logs the windows'
+        offset moved over 6-24 deg while published (log171 compass 2: 5.8-20.0 deg; its published heading
+        5.1 deg att with it, 2.6 with one constant)."""
+        if self._held is not None:
+            return self._held
+        return self._windows_offset()
+
+    def _windows_offset(self) -> float:
         if not self._offset_sums:
             return 0.0
         if self._offset is None:  # computed once per window closed (read at every published sample)
             s = np.asarray(self._offset_sums)
             self._offset = math.atan2(float(s[:, 0].sum()), float(s[:, 1].sum()))
         return self._offset
+
+    @property
+    def holds(self) -> bool:
+        """The offset is held (the correction is on): the candidate's re-solves should :meth:`shift` it."""
+        return self._held is not None
+
+    def hold(self, offset_rad: float) -> None:
+        """While on, hold ``offset_rad`` instead (NaN: keep the held one): the windows' offset mixes the
+        estimates each window was judged with, where the caller can measure it with the current one."""
+        if self._held is not None and offset_rad == offset_rad:
+            self._held = offset_rad
+
+    def shift(self, change_rad: float) -> None:
+        """The candidate's constant part changed by ``change_rad`` (a re-solve of the estimate:
+        :func:`constant_change_rad`): the held offset takes it out, so that the published heading neither
+        jumps nor drifts with the re-solves."""
+        if self._held is not None:
+            self._held = float(wrap_rad(np.asarray(self._held - change_rad)))
 
     @property
     def baseline_deg(self) -> float:
@@ -350,12 +428,30 @@ class RunningSelfCheck:
             return math.nan
         return v.baseline_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.baseline_gyro_deg
 
+    @property
+    def candidate_bound_deg(self) -> float:
+        """How far off the correction itself may be, as measured (deg): the upper P_APPLY bound of the
+        candidate's rms on the verdict's windows against the reference of :attr:`baseline_deg`
+        (:func:`rms_upper_deg`); inf before MIN_WINDOWS windows. Each window's samples were corrected with
+        an estimate solved before them (the live estimate is re-solved as the samples come), so this is the
+        realised error of the heading as it would have been published, on the headings and throttles flown;
+        it holds the reference's own error too, so it bounds the correction's from above."""
+        v = self.verdict
+        if v is None or v.n_windows < MIN_WINDOWS:
+            return math.inf
+        c = v.candidate_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.candidate_gyro_deg
+        return rms_upper_deg(c, v.n_windows) if c == c else math.inf
+
     def publishes(self, heading_sigma_deg: float) -> bool:
-        """The correction is published: the check is on and the estimate's own heading uncertainty (deg,
-        1 sigma) is within the error measured of the autopilot's own heading (:attr:`baseline_deg`): a
-        correction that may itself be off by more than what it corrects cannot be shown to help, whatever a
-        few windows say."""
-        return self.on and heading_sigma_deg <= self.baseline_deg
+        """The correction is published: the check is on and the correction's own error is within the error
+        measured of the autopilot's own heading (:attr:`baseline_deg`): a correction that may itself be off by
+        more than what it corrects cannot be shown to help, whatever a few windows say. Its own error is the
+        smaller of two bounds: the estimate's heading uncertainty (deg, 1 sigma, from its covariance: every
+        heading, the constant part included, which the live heading takes from the autopilot's own) and
+        the error measured on the check's windows (:attr:`candidate_bound_deg`). On the development logs the
+        first alone held log171's compasses back for 10 s after the check was on (heading uncertainty 13-46
+        deg while the windows measured 3-6 deg against 10-14 of the autopilot's own)."""
+        return self.on and min(heading_sigma_deg, self.candidate_bound_deg) <= self.baseline_deg
 
     def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
             ap_yaw_rad: float) -> bool:  # fmt: skip
@@ -393,7 +489,12 @@ class RunningSelfCheck:
             sums = (float(eb.size), float(eb.sum()), float(eb @ eb), float(ec.sum()), float(ec @ ec))
             self._att.append(sums)
         v = self.verdict = self._decide()
+        was = self.on
         self.on = v.applies or (self.on and not v.worse)
+        if not self.on:
+            self._held = None
+        elif not was:  # switched on: the windows' offset, held from here
+            self._held = self._windows_offset()
         return True
 
     def _decide(self) -> SelfCheck:

@@ -10,13 +10,23 @@ same way, for comparison.
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
-from magcomp.core.selfcheck import LIVE_WINDOW_S, MAX_TILT_COS, MOTORS_RUNNING_01, RunningSelfCheck
+from magcomp.core.selfcheck import (
+    LIVE_WINDOW_S,
+    MAX_TILT_COS,
+    MOTORS_RUNNING_01,
+    Estimate,
+    RunningSelfCheck,
+    circular_mean_rad,
+    constant_change_rad,
+    corrected_heading_deg,
+)
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
@@ -126,6 +136,11 @@ class HoverShadow:
         return (self.deg - math.degrees(math.atan2(sn, cs))) % 360.0
 
 
+#: the samples a re-solve's constant change is measured on: one every RECENT_EVERY_S (s), the latest RECENT_N
+#: (two minutes, the running check's RECENT_S)
+RECENT_EVERY_S = 0.2
+RECENT_N = 600
+
 #: the live hover model is solved again when a self-check window closes, or with this many new samples
 #: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
 #: has windows): more than twice its unknowns' count of 3-row samples
@@ -136,7 +151,10 @@ class HeadingTrack:
     """One compass's two heading filters (corrected, uncorrected) and their last outputs (deg)."""
 
     __slots__ = (
+        "_holding",
         "_last_rate",
+        "_recent",
+        "_recent_t",
         "check",
         "corrected",
         "corrected_deg",
@@ -149,6 +167,7 @@ class HeadingTrack:
         "raw",
         "raw_deg",
         "self_check",
+        "solution",
         "starts_published",
     )  # fmt: skip
 
@@ -174,6 +193,55 @@ class HeadingTrack:
         #: an in-flight correction warm-started from a state learned on this very log (a two-pass replay's
         #: per-sample second pass) starts published; one from another flight's state does not
         self.starts_published = starts_published
+        #: the in-flight estimate published last (L and d as 12 floats, theta): a new one moves the check's
+        #: held offset by its constant part's change (RunningSelfCheck.shift)
+        self.solution: Estimate | None = None
+        #: the latest judged samples (field as received, throttle, cos / sin of roll and pitch), one every
+        #: RECENT_EVERY_S over RECENT_N: where that change is measured
+        self._recent: deque[tuple[float, ...]] = deque(maxlen=RECENT_N)
+        self._recent_t = -math.inf
+        self._holding = False
+
+    def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...],
+                 psi_own_deg: float) -> None:  # fmt: skip
+        """One judged sample for :meth:`constant_change_rad` and :meth:`own_offset_rad` (at most one every
+        RECENT_EVERY_S): the field as received, the throttle, cos / sin of roll and pitch, the autopilot's
+        own heading (deg)."""
+        if t_s - self._recent_t >= RECENT_EVERY_S or t_s < self._recent_t:
+            self._recent_t = t_s
+            self._recent.append((*raw, throttle_01, *tilt, psi_own_deg))
+
+    def own_offset_rad(self, estimate: Estimate) -> float:
+        """The circular mean of (the autopilot's own heading - ``estimate``'s) over the samples remembered
+        (rad; NaN: none): the constant that puts the estimate's heading on the autopilot's own."""
+        if not self._recent:
+            return math.nan
+        a = np.asarray(self._recent, dtype=float)
+        psi = corrected_heading_deg(a[:, 0:3], a[:, 3], a[:, 4:8], estimate)
+        return circular_mean_rad(np.radians(a[:, 8] - psi))
+
+    def constant_change_rad(self, old: Estimate, new: Estimate) -> float:
+        """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
+        remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none)."""
+        if not self._recent:
+            return math.nan
+        a = np.asarray(self._recent, dtype=float)
+        return constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
+
+    def follow(self, sol: Estimate | None, chk: RunningSelfCheck) -> None:
+        """The in-flight estimate judged at this sample (None: none); a new one (re-solved) while the check
+        holds its offset moves that offset by its constant change (:meth:`constant_change_rad`)."""
+        if sol is None:
+            return
+        last = self.solution
+        if last is not None and last[0] is not sol[0] and chk.holds:
+            change = self.constant_change_rad(last, sol)
+            if change == change:  # not NaN: samples to measure it on
+                chk.shift(change)
+        if chk.holds and not self._holding:  # switched on: the offset with this estimate on every sample
+            chk.hold(self.own_offset_rad(sol))
+        self._holding = chk.holds
+        self.solution = sol
 
     def reset(self) -> None:
         self.corrected.reset()
@@ -247,16 +315,19 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
     field through the same filter (its flags without FLAG_CALIBRATED) until the running self-check
-    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise. In
-    flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be known
-    at all: the mount's yaw), which no window of the check sees: the published heading takes its constant
-    part from the autopilot's own over the check's latest windows (their circular mean difference), so that
-    it neither jumps when the correction switches on or off nor drifts with the re-solves. The two-pass
-    replay, whose correction is fixed over the log, keeps its own. Theta against the autopilot's calibration
-    is published only where no in-flight correction applies: where one applies but is not published (its
-    check not on, or its heading sigma above the autopilot's own error:
-    :meth:`~magcomp.core.selfcheck.RunningSelfCheck.publishes`), the autopilot's own heading is (publishing
-    the hover theta there made two development compasses worse, docs/benchmarks.md)."""
+    (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise.
+    In flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be
+    known at all: the mount's yaw), which no window of the check sees: the published heading takes its
+    constant part from the autopilot's own when it switches on (the circular mean difference over the
+    samples judged lately, with the current estimate: :meth:`HeadingTrack.own_offset_rad`) and holds it,
+    moved at each re-solve by the estimate's own constant change over the samples judged lately
+    (:meth:`HeadingTrack.constant_change_rad`), so that it neither jumps when the correction switches on
+    nor drifts with the re-solves nor with the autopilot's own error. The two-pass replay, whose
+    correction is fixed over the log, keeps its own. Theta against the autopilot's calibration is
+    published only where no in-flight correction applies: where one applies but is not published (its
+    check not on, or its own error possibly above the autopilot's:
+    :meth:`~magcomp.core.selfcheck.RunningSelfCheck.publishes`), the autopilot's own heading is
+    (publishing the hover theta there made two development compasses worse, docs/benchmarks.md)."""
     cr, sr, cp, sp = rec.tilt
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
@@ -304,7 +375,11 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-    if rec.inflight is not None and chk is not None and chk.publishes(rec.inflight.heading_sigma_deg):
+            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own)
+    inf = rec.inflight
+    if chk is not None:
+        track.follow((inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow, chk)
+    if inf is not None and chk is not None and chk.publishes(inf.heading_sigma_deg):
         rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0  # see the doc
         return
     if rec.inflight is None and not rec.calibrated and hover is not None and hover.on_form is not None:

@@ -501,9 +501,10 @@ class Pipeline:
         reason = chk.reason
         run, sol = c.heading.check, None if c.inflight is None else c.inflight.solution
         if run is not None and run.on and sol is not None:  # the live check's verdict applies; the sigma not
-            reason = (f"its heading uncertainty (+-{sol.heading_sigma_deg:.1f} deg) is above the error of "
-                      f"the autopilot's own heading on the check's windows ({run.baseline_deg:.1f} deg), so "
-                      f"a gain cannot be shown")  # fmt: skip
+            reason = (f"its heading uncertainty (+-{sol.heading_sigma_deg:.1f} deg) and the bound of its "
+                      f"error measured on the check's windows ({run.candidate_bound_deg:.1f} deg) are above "
+                      f"the error of the autopilot's own heading there ({run.baseline_deg:.1f} deg), so a "
+                      f"gain cannot be shown")  # fmt: skip
         return Status("uncorrected", f"publishing the autopilot's own heading (the correction learned in "
                                      f"flight: {reason}{self._tried(c)})")  # fmt: skip
 

@@ -86,6 +86,120 @@ def test_running_form_agrees_with_the_batch_form() -> None:
     assert v.candidate_att_deg == pytest.approx(batch.candidate_att_deg, rel=1e-6)
 
 
+def _running(seed: int, kind: str, sigma_deg: float) -> tuple[float, bool]:
+    """A 120 s flight through the running check: ``right``, a candidate without the throttle's bias (30 deg
+    at full throttle, log171 compass 2's size); ``wrong``, one with twice the bias; ``equal``, two headings of
+    the same quality. The first time the candidate is published with a model heading sigma of
+    ``sigma_deg`` (NaN: never), and whether it still is at the end."""
+    t, yaw, gyro, thr, rng = _flight(seed, n_s=120.0)
+    noise = np.radians(1.0)
+    base = yaw + np.radians(30.0) * thr**2 + rng.normal(0, noise, t.size)
+    if kind == "right":
+        cand = yaw + 0.4 + rng.normal(0, noise, t.size)
+    elif kind == "wrong":
+        cand = yaw + np.radians(60.0) * thr**2 + rng.normal(0, noise, t.size)
+    else:
+        base = yaw + rng.normal(0, np.radians(2.0), t.size)
+        cand = yaw + rng.normal(0, np.radians(2.0), t.size)
+    run = sc.RunningSelfCheck()
+    first = math.nan
+    for i in range(t.size):
+        run.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, float(yaw[i]))
+        if first != first and run.publishes(sigma_deg):
+            first = float(t[i])
+    return first, run.publishes(sigma_deg)
+
+
+def test_a_right_correction_is_published_once_its_windows_show_it_whatever_its_model_sigma() -> None:
+    """The live switch (RunningSelfCheck.publishes): a right correction whose estimate still reports a large
+    heading uncertainty (40 deg: log171 compass 2's when its check came on, its windows 5 deg against 10 of
+    the autopilot's own) is published once the check is on and its measured error's upper bound is within
+    the autopilot's own, within 25 s of the motors starting (the check's first verdict is at 15 s; measured
+    15-20 s), and stays so; a wrong one never is, whatever its sigma. Two headings of the same quality: the
+    check alone comes on in 29 of 200 such flights (repeated looks at a 2.3 % rule); with a large sigma the
+    measured bound lets through none (0 of 200), at most 2 of 40 here."""
+    for seed in range(20):
+        first, last = _running(200 + seed, "right", 40.0)
+        assert first <= MIN_WINDOWS_S + 10.0 and last, (seed, first)
+        first, _ = _running(300 + seed, "wrong", 0.0)
+        assert first != first, (seed, first)
+    equal = sum(not math.isnan(_running(400 + seed, "equal", 40.0)[0]) for seed in range(40))
+    assert equal <= 2
+
+
+def test_the_published_offset_is_held_from_the_switch_on() -> None:
+    """The constant part of the published heading (RunningSelfCheck.offset_rad) is taken from the autopilot's
+    own heading when the correction switches on and then held: the windows' mean of (own - correction)
+    follows the own heading's error, which here moves by 8 deg between the two halves of the flight (the
+    throttle's bias at a higher mean throttle). Held, the published heading's error against the true yaw
+    (constant removed) stays the correction's own; the windows' mean (before) added the own heading's
+    wander to it. A re-solve's change of the correction's constant part (``shift``) is taken out."""
+    t, yaw, gyro, thr, rng = _flight(7, n_s=240.0)
+    thr = np.where(t < 120.0, 0.3, 0.7) + 0.5 * (thr - 0.5)  # a second half at a higher throttle
+    base = yaw + np.radians(20.0) * thr**2 + rng.normal(0, np.radians(1.0), t.size)
+    cand = yaw + 0.4 + rng.normal(0, np.radians(1.0), t.size)
+    run = sc.RunningSelfCheck()
+    offsets, err = [], []
+    for i in range(t.size):
+        run.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, float(yaw[i]))
+        if run.on:
+            offsets.append(run.offset_rad)
+            err.append(cand[i] + run.offset_rad - yaw[i])
+    assert len(offsets) > 0.8 * t.size  # on from the first verdicts
+    assert np.ptp(np.degrees(offsets)) < 0.01, np.ptp(np.degrees(offsets))  # windows' mean: 8 deg apart
+    rms = sc.offset_removed_rms_deg(np.asarray(err))
+    assert rms < 1.2, rms  # the correction's own 1 deg of noise (1.0); the windows' mean: 2.8 deg
+    held = run.offset_rad
+    run.shift(0.1)
+    assert run.offset_rad == pytest.approx(held - 0.1, abs=1e-12)
+
+
+def test_constant_change_of_a_new_estimate() -> None:
+    """constant_change_rad: a new estimate whose L turns the horizontal field by 3 deg moves every
+    heading by -3 deg (eq. (24): heading = atan2(-y, x)); a new hard iron moves headings by amounts that
+    turn with the heading, nothing as a whole over a full turn, but a constant over one heading."""
+    psi = np.radians(np.arange(0.0, 360.0, 5.0))
+    field = np.stack((200 * np.cos(psi), -200 * np.sin(psi), np.full(psi.size, 400.0)), axis=1)
+    tilt = np.tile([1.0, 0.0, 1.0, 0.0], (psi.size, 1))
+    thr = np.full(psi.size, 0.5)
+    ident = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    a = math.radians(3.0)
+    turned = (math.cos(a), -math.sin(a), 0.0, math.sin(a), math.cos(a), 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    zero = (0.0, 0.0, 0.0)
+    got = sc.constant_change_rad(field, thr, tilt, (ident, zero), (turned, zero))
+    assert got == pytest.approx(-a, abs=1e-9)
+    hard = (*ident[:9], 0.0, 20.0, 0.0)
+    assert abs(sc.constant_change_rad(field, thr, tilt, (ident, zero), (hard, zero))) < math.radians(0.05)
+    one = sc.constant_change_rad(field[:1], thr[:1], tilt[:1], (ident, zero), (hard, zero))
+    assert abs(math.degrees(one)) > 3.0  # 20 mgauss across a 200 mgauss field at heading 0: 5.7 deg
+    assert math.isnan(sc.constant_change_rad(field[:0], thr[:0], tilt[:0], (ident, zero), (hard, zero)))
+
+
+def test_the_offset_at_the_switch_on_is_measured_with_the_current_estimate() -> None:
+    """HeadingTrack.own_offset_rad: over the judged samples remembered (one every RECENT_EVERY_S), the
+    circular mean of (the autopilot's own heading - the given estimate's heading), whatever estimates the
+    check's windows were judged with; and follow() holds it when the check switches on."""
+    rng = np.random.default_rng(3)
+    track = HeadingTrack(tau_s=1.0)
+    ident = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    est = (ident, (0.0, 40.0, 0.0))  # theta: 40 mgauss on y, the bias at throttle^2
+    for i in range(900):  # 180 s at 5 Hz: the last 600 are kept
+        psi = math.radians(i * 2.0)
+        raw = (200 * math.cos(psi), -200 * math.sin(psi) + 40.0 * 0.25, 400.0)  # at throttle 0.5
+        own = math.degrees(psi) + 5.0 + float(rng.normal(0, 0.5))  # the own heading, 5 deg off the truth
+        track.remember(i * 0.2, raw, 0.5, (1.0, 0.0, 1.0, 0.0), own % 360.0)
+    assert math.degrees(track.own_offset_rad(est)) == pytest.approx(5.0, abs=0.1)
+    run = sc.RunningSelfCheck()
+    run.on = True
+    run._held = 0.0  # switched on with the windows' offset (0 here)
+    track.follow(est, run)
+    assert math.degrees(run.offset_rad) == pytest.approx(5.0, abs=0.1)
+
+
+#: the running check's first verdict: MIN_WINDOWS windows of LIVE_WINDOW_S
+MIN_WINDOWS_S = sc.MIN_WINDOWS * sc.LIVE_WINDOW_S
+
+
 def test_gyro_integral_restarts_at_gaps() -> None:
     t = np.concatenate((np.arange(0, 10, 0.01), np.arange(12, 20, 0.01)))
     yaw, seg = sc.integrate_yaw_rad(t, np.full(t.size, 0.1))
