@@ -238,7 +238,11 @@ class HeadingFilter:
         self.psi_deg = None
         self._p = None
 
-    def update(self, psi_meas_deg: float, yaw_rate_rad_s: float, dt_s: float) -> float:
+    def update(
+        self, psi_meas_deg: float, yaw_rate_rad_s: float, dt_s: float, turn_rad_s: float = 0.0
+    ) -> float:
+        """One compass sample; ``turn_rad_s``: the body's rotation rate (norm of the gyro), when it is faster
+        than the yaw rate the gyro's error grows with it (the yaw integral's roll and pitch err with it)."""
         if self.tau_s <= 0.0 or self.psi_deg is None or not math.isfinite(yaw_rate_rad_s) or dt_s <= 0.0:
             self.psi_deg = psi_meas_deg
             self._p = None
@@ -246,7 +250,8 @@ class HeadingFilter:
         rate_deg_s = yaw_rate_rad_s * _DEG_PER_RAD  # as math.degrees
         pred = self.psi_deg + (rate_deg_s - self.bias_deg_s) * dt_s
         innov = (psi_meas_deg - pred + 180.0) % 360.0 - 180.0
-        slew = GYRO_SCALE_ERROR * rate_deg_s / RESIDUAL_BIAS_DEG_S
+        turn_deg_s = max(abs(rate_deg_s), turn_rad_s * _DEG_PER_RAD)
+        slew = GYRO_SCALE_ERROR * turn_deg_s / RESIDUAL_BIAS_DEG_S
         slew2 = slew * slew
         p = (1.0 / dt_s if self._p is None else self._p) + self._q * (1.0 + slew2) * dt_s
         gain = p * dt_s / (p * dt_s + 1.0)

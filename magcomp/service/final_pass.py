@@ -51,10 +51,10 @@ F64 = NDArray[np.float64]
 #: the sample log's columns (one row per magnetometer sample that reached the heading stage)
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
  SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
- IMU_DT, ONB_X, ONB_Y, ONB_Z) = range(27)  # fmt: skip
-N_COLS = 27
+ IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN) = range(28)  # fmt: skip
+N_COLS = 28
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
-#: 8192 rows of 20 float64 are 1.3 MB
+#: 8192 rows of 28 float64 are 1.8 MB
 CHUNK_ROWS = 8192
 
 
@@ -81,13 +81,13 @@ class SampleLog:
                 reboot = True
         prev = rec.prev_t
         vx, vy, vz = rec.raw
-        _, gy, gz = rec.gyro
+        gx, gy, gz = rec.gyro
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
         buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
                     rec.reset, math.nan if prev is None else prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh,
                     gy, gz, boot_offset_s, reboot, *yaws,
-                    imu_dt_s, *onb))  # fmt: skip
+                    imu_dt_s, *onb, math.sqrt(gx * gx + gy * gy + gz * gz)))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 
@@ -376,20 +376,20 @@ def filter_and_publish(
     cols = (rows[:, T], rows[:, MAG], rows[:, HAVE_THR], rows[:, RESET], rows[:, PREV_T], rows[:, GYRO_FRESH],
             rows[:, GYRO_Y], rows[:, GYRO_Z], rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
             rows[:, REBOOT], cor.psi_deg, cor.psi_raw_deg, cor.corrected, rows[:, GYRO_YAW],
-            rows[:, GYRO_EPOCH], rows[:, IMU_DT])  # fmt: skip
+            rows[:, GYRO_EPOCH], rows[:, IMU_DT], rows[:, TURN])  # fmt: skip
     lists = [c.tolist() for c in cols]
     rows_iter = enumerate(zip(*lists, strict=True))
     for i, row in rows_iter:
-        t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep, imu_dt = (
-            row
-        )
+        (t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep, imu_dt,
+         turn) = row  # fmt: skip
         idx = int(mf)
         c = correctors[idx]
         prev_t = None if prev != prev else prev  # NaN: no previous sample
         dt = 0.0 if prev_t is None or reset else t - prev_t
         track = c.heading
         restart = bool(reset or reboot or not fresh)
-        track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt, gyaw, gep, imu_dt)
+        track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt, gyaw, gep, imu_dt,
+                   turn)  # fmt: skip
         if have and idx in stages:
             st = stages[idx]
             assert st is not None

@@ -153,6 +153,7 @@ class HeadingTrack:
     __slots__ = (
         "_holding",
         "_last_rate",
+        "_last_turn",
         "_recent",
         "_recent_t",
         "check",
@@ -188,6 +189,7 @@ class HeadingTrack:
         self.hover: HoverShadow | None = None
         self.corrected_deg = self.raw_deg = math.nan
         self._last_rate = (math.nan, 0.0)
+        self._last_turn = 0.0
         self.gyro_yaw = math.nan
         self.gyro_epoch = -1.0
         #: an in-flight correction warm-started from a state learned on this very log (a two-pass replay's
@@ -261,6 +263,7 @@ class HeadingTrack:
         gyro_yaw: float = math.nan,
         gyro_epoch: float = -1.0,
         imu_dt: float = math.nan,
+        turn_rad_s: float = 0.0,
     ) -> None:
         """Both filters over one sample; the results in :attr:`corrected_deg` and :attr:`raw_deg`. ``psi`` /
         ``psi_raw``: eq. (24) of the corrected and the calibrated-only field; ``corrected``: the throttle is
@@ -279,9 +282,10 @@ class HeadingTrack:
             rate = (gyro_yaw - prev_yaw) / dt  # several IMU samples in the interval (NaN imu_dt: never)
         if restart:
             self.reset()
-        raw = self.raw_deg = self.raw.update(psi_raw, rate, dt)
-        self.corrected_deg = self.corrected.update(psi, rate, dt) if corrected else raw
+        raw = self.raw_deg = self.raw.update(psi_raw, rate, dt, turn_rad_s)
+        self.corrected_deg = self.corrected.update(psi, rate, dt, turn_rad_s) if corrected else raw
         self._last_rate = (rate, dt)
+        self._last_turn = turn_rad_s
 
     @property
     def last_rate(self) -> tuple[float, float]:
@@ -292,7 +296,7 @@ class HeadingTrack:
         """The autopilot's own heading through its filter, with the rate and interval of the last
         :meth:`step` (call right after it)."""
         rate, dt = self._last_rate
-        self.own_deg = self.own.update(psi_own, rate, dt)
+        self.own_deg = self.own.update(psi_own, rate, dt, self._last_turn)
         return self.own_deg
 
 
@@ -336,10 +340,10 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
     else:
         psi = psi_raw
-    _, gy, gz = rec.gyro
+    gx, gy, gz = rec.gyro
     track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, yaw_rate(gy, gz, cr, sr, cp),
                0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
-               rec.gyro_epoch, rec.imu_dt)  # fmt: skip
+               rec.gyro_epoch, rec.imu_dt, math.sqrt(gx * gx + gy * gy + gz * gz))  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
     if not track.self_check:
         return
