@@ -56,6 +56,11 @@ After the search limits became physical ceilings (this round; simulator maxima r
   skew >= 21.7, temperature >= 7.3, per_motor >= 3.5 mgauss. Slow (1-2 Hz) logs: lag >= 21 mgauss, skew >= 13,
   temperature never. Tables in docs/benchmarks.md.
 
+After the named causes' BIC became generalised least squares under an AR noise model (2026-11-28, branch
+permotor3, ``--effects`` none): **0 / 50** (seeds 10200-10259) and **1 / 112** on fresh seeds 10800-10919
+(0.9 %, 95 % upper bound 4.2 %: temperature_drift on a 25 Hz flight, seed 10807, found the same with the
+ordinary criterion); unexplained structure 0/50 and 2/112.
+
 What changed to get here (each measured): min_delta_bic 50 -> 30 (the clean-log tail at 10 ended at -27);
 rival sets compared fit against fit (a member's own delta BIC has its own effective sample size); the
 simulator's battery voltage / current fixed point converged (its four sweeps biased a sag by ~0.15).

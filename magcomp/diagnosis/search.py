@@ -489,7 +489,7 @@ def step_candidate(
         and effective_delta_bic(base, fs) <= -p.min_delta_bic_structure - extra_penalty
     ):
         return None
-    cmp = compare(data_s, base, fs, cv_base, p, folds)
+    cmp = compare(data_s, base, fs, cv_base, p, folds, gls=False)
     if not (
         cmp.cv_gain >= p.min_cv_gain
         and in_sample >= p.min_cv_gain
