@@ -39,7 +39,7 @@ from magcomp.core.correction import Applied, Correction, headings_deg
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
-from magcomp.service.heading import yaw_rate
+from magcomp.service.heading import turn_rate, yaw_rate
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
@@ -87,7 +87,7 @@ class SampleLog:
         buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
                     rec.reset, math.nan if prev is None else prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh,
                     gy, gz, boot_offset_s, reboot, *yaws,
-                    imu_dt_s, *onb, math.sqrt(gx * gx + gy * gy + gz * gz)))  # fmt: skip
+                    imu_dt_s, *onb, turn_rate(gx, gy, gz, rec.tilt[0] * rec.tilt[2])))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 

@@ -300,6 +300,19 @@ class HeadingTrack:
         return self.own_deg
 
 
+STEEP_COS_TILT = math.cos(math.radians(30.0))
+"""Beyond 30 deg of tilt the Euler yaw rate's coupling to roll and pitch (1 / cos(pitch), the roll's
+sine) makes the yaw integral err with the whole body rate, not only with the yaw rate."""
+
+
+def turn_rate(gx: float, gy: float, gz: float, cos_tilt: float) -> float:
+    """The rotation rate (rad/s) the heading filter's gyro error grows with besides the yaw rate
+    (:class:`~magcomp.service.estimators.HeadingFilter`): the body rate's norm where the vehicle is tilted
+    beyond 30 deg (``cos_tilt`` = cos(roll) cos(pitch)), else 0 (near level the attitude's errors make the
+    integral wander about zero as the vehicle rocks, not drift)."""
+    return math.sqrt(gx * gx + gy * gy + gz * gz) if cos_tilt < STEEP_COS_TILT else 0.0
+
+
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
     """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)``."""
     return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
@@ -343,7 +356,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     gx, gy, gz = rec.gyro
     track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, yaw_rate(gy, gz, cr, sr, cp),
                0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
-               rec.gyro_epoch, rec.imu_dt, math.sqrt(gx * gx + gy * gy + gz * gz))  # fmt: skip
+               rec.gyro_epoch, rec.imu_dt, turn_rate(gx, gy, gz, cr * cp))  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
     if not track.self_check:
         return
