@@ -21,7 +21,7 @@ from magcomp.core.inflight import (
     InflightMode,
     InflightParams,
     InflightSolution,
-    regressors,
+    regressor_values,
 )
 from magcomp.core.inflight.apply import (
     CORRECTED_FIELD_RANGE_MGAUSS,
@@ -66,7 +66,8 @@ def learn_config(cfg: InflightConfig) -> InflightConfig:
 STATES = ("corrected", "learning", "uncorrected")
 
 #: what a sample waiting for its attitude and throttle carries: field, motor outputs, Earth field, gyro yaw
-_Waiting = tuple[F64, tuple[float, ...] | None, F64 | None, GyroYaw | None]
+Field3 = F64 | tuple[float, float, float]
+_Waiting = tuple[Field3, tuple[float, ...] | None, F64 | None, GyroYaw | None]
 
 
 class InflightStage:
@@ -241,7 +242,7 @@ class InflightStage:
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
         self._last_fed = t_s
-        y = np.asarray(field_mgauss, dtype=float)
+        y = field_mgauss  # as it came: an array is made a block of samples at a time (core.inflight.feed)
         r_nb = r_abs_nb if self.mode == "absolute" else r_rel_nb
         if r_nb is None or (self.mode == "absolute" and field_ref_n_mgauss is None):
             if self.mode == "relative":
@@ -254,7 +255,7 @@ class InflightStage:
         if not (late_r or late_thr or self._matcher.waiting):
             if gyro:
                 r_nb = self._gyro_yaw(r_nb, gyro_yaw)
-            self._use(t_s, y, regressors(throttle_01, mot), r_nb, field_ref_n_mgauss)
+            self._use(t_s, y, regressor_values(throttle_01, mot), r_nb, field_ref_n_mgauss)
             return
         t_r = t_s if r_t_s is None else r_t_s
         t_thr = t_s if throttle_t_s is None else throttle_t_s
@@ -265,7 +266,7 @@ class InflightStage:
             if gyro:
                 # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
                 r_at = self._gyro_yaw(r_at, gy, matched=True)
-            self._use(tp, yp, regressors(thr_at, mp), r_at, ref)
+            self._use(tp, yp, regressor_values(thr_at, mp), r_at, ref)
 
     def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> F64:
         """``r_nb`` with the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.GyroYawFrame`); a new
@@ -275,7 +276,9 @@ class InflightStage:
             self._continuing = False
         return r
 
-    def _use(self, t_s: float, y: F64, x: F64, r_nb: F64, field_ref_n_mgauss: F64 | None) -> None:
+    def _use(
+        self, t_s: float, y: Field3, x: tuple[float, ...], r_nb: F64, field_ref_n_mgauss: F64 | None
+    ) -> None:
         """One sample with its attitude and regressors at its own time: absolute rows, or window-field
         rows."""
         assert self._est is not None
@@ -290,7 +293,7 @@ class InflightStage:
         else:
             self.n_motors_off += 1
 
-    def _window_row(self, t_s: float, r_nb: F64, y: F64, x: F64) -> None:
+    def _window_row(self, t_s: float, r_nb: F64, y: Field3, x: tuple[float, ...]) -> None:
         """One sample against its window's Earth field (``core.inflight.feed.WindowRowFeed``)."""
         assert self._rows is not None
         self._span.track(r_nb)
