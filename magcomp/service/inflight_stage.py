@@ -37,7 +37,7 @@ from magcomp.core.inflight.feed import (
     add_absolute_row,
 )
 from magcomp.core.inflight.matching import LateMatcher
-from magcomp.core.inflight.yawframe import GyroYaw, GyroYawFrame
+from magcomp.core.inflight.yawframe import GyroYaw, GyroYawFrame, YawTurn
 from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 
 F64 = NDArray[np.float64]
@@ -253,9 +253,8 @@ class InflightStage:
         late_thr = throttle_t_s is not None and throttle_t_s < t_s
         gyro = self.mode == "relative" and self.switches.gyro_yaw
         if not (late_r or late_thr or self._matcher.waiting):
-            if gyro:
-                r_nb = self._gyro_yaw(r_nb, gyro_yaw)
-            self._use(t_s, y, regressor_values(throttle_01, mot), r_nb, field_ref_n_mgauss)
+            turn = self._gyro_yaw(r_nb, gyro_yaw) if gyro else None
+            self._use(t_s, y, regressor_values(throttle_01, mot), r_nb, field_ref_n_mgauss, turn)
             return
         t_r = t_s if r_t_s is None else r_t_s
         t_thr = t_s if throttle_t_s is None else throttle_t_s
@@ -263,24 +262,30 @@ class InflightStage:
         for tp, (yp, mp, ref, gy), r_at, thr_at in self._matcher.push(
             t_s, waiting, r_nb, t_r, throttle_01, t_thr
         ):
-            if gyro:
-                # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
-                r_at = self._gyro_yaw(r_at, gy, matched=True)
-            self._use(tp, yp, regressor_values(thr_at, mp), r_at, ref)
+            # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
+            turn = self._gyro_yaw(r_at, gy, matched=True) if gyro else None
+            self._use(tp, yp, regressor_values(thr_at, mp), r_at, ref, turn)
 
-    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> F64:
-        """``r_nb`` with the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.GyroYawFrame`); a new
-        window sequence when the gyro yaw stops or its chain restarts."""
-        r, restart = self._frame.apply(r_nb, gyro_yaw, matched)
+    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> YawTurn | None:
+        """The yaw turn that gives ``r_nb`` the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.
+        GyroYawFrame`; None: no gyro yaw); a new window sequence when the gyro yaw stops or its chain
+        restarts."""
+        turn, restart = self._frame.turn(r_nb, gyro_yaw, matched)
         if restart:
             self._continuing = False
-        return r
+        return turn
 
     def _use(
-        self, t_s: float, y: Field3, x: tuple[float, ...], r_nb: F64, field_ref_n_mgauss: F64 | None
+        self,
+        t_s: float,
+        y: Field3,
+        x: tuple[float, ...],
+        r_nb: F64,
+        field_ref_n_mgauss: F64 | None,
+        turn: YawTurn | None = None,
     ) -> None:
         """One sample with its attitude and regressors at its own time: absolute rows, or window-field
-        rows."""
+        rows (``turn``: the yaw turn the attitude takes first, the gyro's yaw)."""
         assert self._est is not None
         if self.mode == "absolute":
             assert field_ref_n_mgauss is not None
@@ -289,18 +294,20 @@ class InflightStage:
             self.n_rows += 1
             return
         if x[0] > 0.0 or not self.switches.window_rows_motors_only:
-            self._window_row(t_s, r_nb, y, x)
+            self._window_row(t_s, r_nb, y, x, turn)
         else:
             self.n_motors_off += 1
 
-    def _window_row(self, t_s: float, r_nb: F64, y: Field3, x: tuple[float, ...]) -> None:
+    def _window_row(
+        self, t_s: float, r_nb: F64, y: Field3, x: tuple[float, ...], turn: YawTurn | None
+    ) -> None:
         """One sample against its window's Earth field (``core.inflight.feed.WindowRowFeed``)."""
         assert self._rows is not None
-        self._span.track(r_nb)
+        self._span.track(r_nb, turn)
         if not self._continuing:  # reset_pairs(): a window never spans a rotation-source restart
             self._epoch += 1
         self._continuing = True
-        self._rows.add(t_s, self._epoch, r_nb, y, x, self._frame, self._slow_link)
+        self._rows.add(t_s, self._epoch, r_nb, y, x, self._frame, self._slow_link, turn)
         self.n_rows += 1
 
     # ---------------------------------------------------------------------------------------- applying
