@@ -79,17 +79,14 @@ class HoverShadow:
              rate: float, dt: float) -> None:  # fmt: skip
         """One sample: ``own_field`` the field as the autopilot had it, ``psi_own`` its heading; ``judged``:
         the motors run and the tilt is within the check's bounds; ``shadow``: judge and filter the forms'
-        headings (False while the in-flight correction is published: the samples are only accumulated).
-        Where the in-flight correction applies (``rec.inflight``), published or not, the hover theta is never
-        published (``heading_stage``) nor reported (``Pipeline._hover``): its samples are only accumulated
-        there too (judging them cost ~5 us a sample, 0.2 s of a 10 min ``--causal`` replay)."""
+        headings (False where the in-flight correction applies: the samples are only accumulated)."""
         cr, sr, cp, sp = rec.tilt
         ok = judged and rec.ap_yaw == rec.ap_yaw
         if ok:
             roll, pitch = math.atan2(sr, cr), math.atan2(sp, cp)
             self._block.append((*own_field, roll, pitch, rec.ap_yaw, rec.throttle_01))
         refit = False
-        if shadow and rec.inflight is None:
+        if shadow:
             if not self._solved:
                 self._solve()
             thr = rec.throttle_01
@@ -304,9 +301,10 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         if hover is None:
             hover = track.hover = HoverShadow(track.own.tau_s)
         rate, dt = track.last_rate
-        run = track.check
-        published = rec.inflight is not None and run is not None and run.on  # the in-flight correction
-        hover.step(rec, (vx, vy, vz), psi_own, judged, not published, rate, dt)
+        # judged only where it could be published: where the in-flight correction applies, published or
+        # not, the hover theta is neither published (below) nor reported (``Pipeline._hover``); judging it
+        # there cost ~5 us a sample, 0.4 s of a 10 min ``--causal`` replay
+        hover.step(rec, (vx, vy, vz), psi_own, judged, rec.inflight is None, rate, dt)
     chk = track.check
     cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
     if cand is not None and rec.have_throttle:
