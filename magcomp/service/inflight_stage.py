@@ -358,15 +358,11 @@ class InflightStage:
                     self.first_applied_t = t_s
             if self.applied:
                 state = "corrected"
-                out = InflightOutput(
-                    coeffs=self._coeffs,
-                    theta_mgauss=self._theta3,
-                    bias_mgauss=bias3,
-                    converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
-                    warm_started=self.warm_started,
-                    relative=self.mode == "relative",
-                    heading_sigma_deg=sol.heading_sigma_deg,
-                )
+                sig = sol.heading_sigma_deg
+                out = InflightOutput(  # coeffs, theta, bias, converged, warm started, relative form, sigma
+                    self._coeffs, self._theta3, bias3, sig < self.params.heading_converged_deg,
+                    self.warm_started, self.mode == "relative", sig,
+                )  # fmt: skip
         self.account(t_s, state)
         return out
 

@@ -63,6 +63,7 @@ class GyroYawFrame:
         self.on = False
         self._epoch = -1
         self._offset = 0.0
+        self._offset_cs = (1.0, 0.0)  # its cosine and sine (it changes only where a chain starts)
         #: the autopilot's yaw minus the gyro frame's (rad) and the horizontal acceleration in the gyro
         #: frame (m/s^2), at the last sample (the tilt model's inputs)
         self.ap_yaw_dev = 0.0
@@ -82,12 +83,13 @@ class GyroYawFrame:
         if not self.on or epoch != self._epoch:
             self.on, self._epoch = True, epoch
             self._offset = yaw_ap - yaw_g
+            self._offset_cs = (math.cos(self._offset), math.sin(self._offset))
             restart = True
         a = yaw_g + self._offset - yaw_ap
         a_att = a + gyro_yaw.att_lead_rad if self.att_lead and not matched else a
         self.ap_yaw_dev = -_wrap(a_att)
         an, ae = gyro_yaw.accel_h_m_s2
-        co, so = math.cos(self._offset), math.sin(self._offset)
+        co, so = self._offset_cs
         self.accel_h = (co * an - so * ae, so * an + co * ae)
         return (math.cos(a), math.sin(a)), restart
 
