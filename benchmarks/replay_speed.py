@@ -149,7 +149,8 @@ def main() -> int:
           f"process and its children, median of {args.repeat} (wall median in brackets)")  # fmt: skip
     if args.compare is not None:
         print(f"{COMPARED.strip()}: the replays of {args.compare}, interleaved with these")
-    print(f"{'scenario':<9} {'messages':>8}  {'parse-only':>15}  {'replay (two passes)':>26}  "
+    w = 9 + (len(COMPARED) if args.compare is not None else 0)
+    print(f"{'scenario':<{w}} {'messages':>8}  {'parse-only':>15}  {'replay (two passes)':>26}  "
           f"{'replay --causal':>26}  {'forks':>5}")  # fmt: skip
     for scenario, m in rows:
         cpu, wall, kids = m["cpu"], m["wall"], m["kids"]
@@ -160,9 +161,9 @@ def main() -> int:
             for kind, target in zip(("two-pass", "causal"), TARGETS[scenario], strict=True):
                 c = med(cpu[kind + tag])
                 cells.append(f"{c:5.2f} s {c / base:4.2f}x (<= {target:.1f}) [{med(wall[kind + tag]):5.2f}]")
-            forked = max(max(v) for k, v in kids.items() if k.endswith(tag) == bool(tag))
+            forked = max(max(v) for k, v in kids.items() if k.endswith(COMPARED) == bool(tag))
             name = scenario + tag
-            print(f"{name:<9} {m['messages']:>8}  {cells[0]:>15}  {cells[1]:>26}  {cells[2]:>26}  "
+            print(f"{name:<{w}} {m['messages']:>8}  {cells[0]:>15}  {cells[1]:>26}  {cells[2]:>26}  "
                   f"{'none' if forked == 0.0 else f'{forked:.2f} s':>5}")  # fmt: skip
     return 0
 
