@@ -87,11 +87,13 @@ def _replays(tmp: Path, path: Path, tag: str = "") -> dict[str, list[str]]:
     return out
 
 
-def _run(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
-    """(CPU of the process and its children, wall) of one run."""
+def _run(cmd: list[str], env: dict[str, str], root: Path = ROOT) -> tuple[float, float]:
+    """(CPU of the process and its children, wall) of one run, in checkout ``root``: ``python -c`` puts the
+    working directory first on sys.path, so a process started elsewhere in a checkout would import that
+    checkout's magcomp, not PYTHONPATH's."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(cmd, check=True, env=env, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     return r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime, wall
@@ -110,19 +112,21 @@ def measure(
     parse = [sys.executable, "-c", _PARSE_SCRIPT, str(path)]
     kinds = {"parse": parse, **_replays(tmp, path)}
     envs = dict.fromkeys(kinds, _env())
+    roots = dict.fromkeys(kinds, ROOT)
     if compare is not None:
         other = _replays(tmp, path, COMPARED)
         kinds.update(other)
         envs.update(dict.fromkeys(other, _env(compare)))
+        roots.update(dict.fromkeys(other, compare))
     _run(parse, envs["parse"])  # once untimed: bytecode written, the file in the page cache
     if compare is not None:
-        _run(parse, _env(compare))  # the other checkout's generated dialect module too
+        _run(parse, _env(compare), compare)  # the other checkout's generated dialect module too
     cpu: dict[str, list[float]] = {k: [] for k in kinds}
     wall: dict[str, list[float]] = {k: [] for k in kinds}
     kids: dict[str, list[float]] = {k: [] for k in kinds if k != "parse"}
     for _ in range(repeat):
         for kind, cmd in kinds.items():
-            c, w = _run(cmd, envs[kind])
+            c, w = _run(cmd, envs[kind], roots[kind])
             cpu[kind].append(c)
             wall[kind].append(w)
             if kind in kids:
@@ -138,6 +142,8 @@ def main() -> int:
     ap.add_argument("--compare", type=Path, default=None, metavar="ROOT",
                     help="another checkout whose replays run interleaved with these (its ratios beside)")
     args = ap.parse_args()
+    if args.compare is not None:
+        args.compare = args.compare.resolve()
     if args.compare is not None and not (args.compare / "magcomp" / "__init__.py").is_file():
         ap.error(f"--compare {args.compare}: not a checkout of magcomp (no magcomp/__init__.py)")
     med = statistics.median
