@@ -22,7 +22,7 @@ range is the pilot's stick range, not the ESC range).
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from magcomp.errors import InputError
 
@@ -55,14 +55,17 @@ class ResolvedThrottle:
     channels: tuple[int, ...] = ()
     pwm_min: tuple[float, ...] = ()
     pwm_max: tuple[float, ...] = ()
+    #: what the throttle samples say they came from, made once (every throttle sample carries it)
+    label: str = field(init=False, compare=False, repr=False, default="")
 
-    @property
-    def label(self) -> str:
+    def __post_init__(self) -> None:
         if self.kind in ("servo", "rc"):
-            return f"{self.kind}:{self.channels[0]}"
-        if self.kind == "motors":
-            return "motors:" + ",".join(str(c) for c in self.channels)
-        return self.kind
+            label = f"{self.kind}:{self.channels[0]}"
+        elif self.kind == "motors":
+            label = "motors:" + ",".join(str(c) for c in self.channels)
+        else:
+            label = self.kind
+        object.__setattr__(self, "label", label)
 
 
 def parse_throttle_source(text: str | ThrottleSpec) -> ThrottleSpec:

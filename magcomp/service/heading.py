@@ -47,14 +47,16 @@ class HoverShadow:
     equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
-    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_offset", "checks", "deg", "filter", "fits",
-                 "normal", "on_form")  # fmt: skip
+    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_offset", "_solved", "checks", "deg", "filter",
+                 "fits", "normal", "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.normal = HoverNormal()
         self._fit_t = math.nan
         self._block: list[tuple[float, float, float, float, float, float, float]] = []
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
+        #: the fits are those of the normal equations as they are (False: solved when next needed)
+        self._solved = True
         #: per form, the sums (sin, cos) of the offsets' change's heading change over the samples
         self._anchor_sc = [[0.0, 0.0] for _ in HOVER_FORMS]
         #: the fits as core corrections, and which of them change the offsets
@@ -67,11 +69,18 @@ class HoverShadow:
         self.on_form: int | None = None
 
     def refit(self) -> None:
-        """The buffered samples into the normal equations, every form solved again."""
+        """The buffered samples into the normal equations; every form is solved again when next needed
+        (:meth:`_solve`; where the in-flight correction applies the forms are neither judged nor reported)."""
         a = np.asarray(self._block) if self._block else None
         if a is not None:
             self._block = []
             self.normal.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
+        self._solved = False
+
+    def _solve(self) -> None:
+        """Every form solved on the normal equations as the last :meth:`refit` left them (only it adds to
+        them: the same fits as solved there and then)."""
+        self._solved = True
         self.fits = [self.normal.fit(sd) for sd in HOVER_FORMS]
         self._cors = [None if f is None else f.correction() for f in self.fits]
         self._offset = [f is not None and offset_changed(f) for f in self.fits]
@@ -80,7 +89,7 @@ class HoverShadow:
              rate: float, dt: float) -> None:  # fmt: skip
         """One sample: ``own_field`` the field as the autopilot had it, ``psi_own`` its heading; ``judged``:
         the motors run and the tilt is within the check's bounds; ``shadow``: judge and filter the forms'
-        headings (False while the in-flight correction is published: the samples are only accumulated)."""
+        headings (False where the in-flight correction applies: the samples are only accumulated)."""
         cr, sr, cp, sp = rec.tilt
         ok = judged and rec.ap_yaw == rec.ap_yaw
         if ok:
@@ -88,6 +97,8 @@ class HoverShadow:
             self._block.append((*own_field, roll, pitch, rec.ap_yaw, rec.throttle_01))
         refit = False
         if shadow:
+            if not self._solved:
+                self._solve()
             thr = rec.throttle_01
             fx, fy, fz = own_field
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
@@ -124,11 +135,15 @@ class HoverShadow:
     @property
     def fit(self) -> HoverTheta | None:
         """The published form's fit (None: none is published)."""
+        if not self._solved:
+            self._solve()
         return None if self.on_form is None else self.fits[self.on_form]
 
     def published_deg(self) -> float:
         """The published form's filtered heading, the constant heading change of an offsets' change taken out
         (core/hover_theta.py ``anchored``; theta's own change at the mean throttle is the correction), deg."""
+        if not self._solved:
+            self._solve()
         k = self.on_form
         if k is None or self._cors[k] is None or not self._offset[k]:
             return self.deg % 360.0
@@ -374,9 +389,10 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         if hover is None:
             hover = track.hover = HoverShadow(track.own.tau_s)
         rate, dt = track.last_rate
-        run = track.check
-        published = rec.inflight is not None and run is not None and run.on  # the in-flight correction
-        hover.step(rec, (vx, vy, vz), psi_own, judged, not published, rate, dt)
+        # judged only where it could be published: where the in-flight correction applies, published or
+        # not, the hover theta is neither published (below) nor reported (``Pipeline._hover``); judging it
+        # there cost ~5 us a sample, 0.4 s of a 10 min ``--causal`` replay
+        hover.step(rec, (vx, vy, vz), psi_own, judged, rec.inflight is None, rate, dt)
     chk = track.check
     cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
     if cand is not None and rec.have_throttle:

@@ -21,7 +21,7 @@ from magcomp.core.inflight import (
     InflightMode,
     InflightParams,
     InflightSolution,
-    regressors,
+    regressor_values,
 )
 from magcomp.core.inflight.apply import (
     CORRECTED_FIELD_RANGE_MGAUSS,
@@ -37,7 +37,7 @@ from magcomp.core.inflight.feed import (
     add_absolute_row,
 )
 from magcomp.core.inflight.matching import LateMatcher
-from magcomp.core.inflight.yawframe import GyroYaw, GyroYawFrame
+from magcomp.core.inflight.yawframe import GyroYaw, GyroYawFrame, YawTurn
 from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 
 F64 = NDArray[np.float64]
@@ -66,7 +66,8 @@ def learn_config(cfg: InflightConfig) -> InflightConfig:
 STATES = ("corrected", "learning", "uncorrected")
 
 #: what a sample waiting for its attitude and throttle carries: field, motor outputs, Earth field, gyro yaw
-_Waiting = tuple[F64, tuple[float, ...] | None, F64 | None, GyroYaw | None]
+Field3 = F64 | tuple[float, float, float]
+_Waiting = tuple[Field3, tuple[float, ...] | None, F64 | None, GyroYaw | None]
 
 
 class InflightStage:
@@ -241,7 +242,7 @@ class InflightStage:
         if self.n_motors > 0 and mot is None:
             return  # the motor set changed: these regressors would not match
         self._last_fed = t_s
-        y = np.asarray(field_mgauss, dtype=float)
+        y = field_mgauss  # as it came: an array is made a block of samples at a time (core.inflight.feed)
         r_nb = r_abs_nb if self.mode == "absolute" else r_rel_nb
         if r_nb is None or (self.mode == "absolute" and field_ref_n_mgauss is None):
             if self.mode == "relative":
@@ -252,9 +253,8 @@ class InflightStage:
         late_thr = throttle_t_s is not None and throttle_t_s < t_s
         gyro = self.mode == "relative" and self.switches.gyro_yaw
         if not (late_r or late_thr or self._matcher.waiting):
-            if gyro:
-                r_nb = self._gyro_yaw(r_nb, gyro_yaw)
-            self._use(t_s, y, regressors(throttle_01, mot), r_nb, field_ref_n_mgauss)
+            turn = self._gyro_yaw(r_nb, gyro_yaw) if gyro else None
+            self._use(t_s, y, regressor_values(throttle_01, mot), r_nb, field_ref_n_mgauss, turn)
             return
         t_r = t_s if r_t_s is None else r_t_s
         t_thr = t_s if throttle_t_s is None else throttle_t_s
@@ -262,22 +262,30 @@ class InflightStage:
         for tp, (yp, mp, ref, gy), r_at, thr_at in self._matcher.push(
             t_s, waiting, r_nb, t_r, throttle_01, t_thr
         ):
-            if gyro:
-                # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
-                r_at = self._gyro_yaw(r_at, gy, matched=True)
-            self._use(tp, yp, regressors(thr_at, mp), r_at, ref)
+            # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
+            turn = self._gyro_yaw(r_at, gy, matched=True) if gyro else None
+            self._use(tp, yp, regressor_values(thr_at, mp), r_at, ref, turn)
 
-    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> F64:
-        """``r_nb`` with the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.GyroYawFrame`); a new
-        window sequence when the gyro yaw stops or its chain restarts."""
-        r, restart = self._frame.apply(r_nb, gyro_yaw, matched)
+    def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> YawTurn | None:
+        """The yaw turn that gives ``r_nb`` the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.
+        GyroYawFrame`; None: no gyro yaw); a new window sequence when the gyro yaw stops or its chain
+        restarts."""
+        turn, restart = self._frame.turn(r_nb, gyro_yaw, matched)
         if restart:
             self._continuing = False
-        return r
+        return turn
 
-    def _use(self, t_s: float, y: F64, x: F64, r_nb: F64, field_ref_n_mgauss: F64 | None) -> None:
+    def _use(
+        self,
+        t_s: float,
+        y: Field3,
+        x: tuple[float, ...],
+        r_nb: F64,
+        field_ref_n_mgauss: F64 | None,
+        turn: YawTurn | None = None,
+    ) -> None:
         """One sample with its attitude and regressors at its own time: absolute rows, or window-field
-        rows."""
+        rows (``turn``: the yaw turn the attitude takes first, the gyro's yaw)."""
         assert self._est is not None
         if self.mode == "absolute":
             assert field_ref_n_mgauss is not None
@@ -286,18 +294,20 @@ class InflightStage:
             self.n_rows += 1
             return
         if x[0] > 0.0 or not self.switches.window_rows_motors_only:
-            self._window_row(t_s, r_nb, y, x)
+            self._window_row(t_s, r_nb, y, x, turn)
         else:
             self.n_motors_off += 1
 
-    def _window_row(self, t_s: float, r_nb: F64, y: F64, x: F64) -> None:
+    def _window_row(
+        self, t_s: float, r_nb: F64, y: Field3, x: tuple[float, ...], turn: YawTurn | None
+    ) -> None:
         """One sample against its window's Earth field (``core.inflight.feed.WindowRowFeed``)."""
         assert self._rows is not None
-        self._span.track(r_nb)
+        self._span.track(r_nb, turn)
         if not self._continuing:  # reset_pairs(): a window never spans a rotation-source restart
             self._epoch += 1
         self._continuing = True
-        self._rows.add(t_s, self._epoch, r_nb, y, x, self._frame, self._slow_link)
+        self._rows.add(t_s, self._epoch, r_nb, y, x, self._frame, self._slow_link, turn)
         self.n_rows += 1
 
     # ---------------------------------------------------------------------------------------- applying
@@ -348,15 +358,11 @@ class InflightStage:
                     self.first_applied_t = t_s
             if self.applied:
                 state = "corrected"
-                out = InflightOutput(
-                    coeffs=self._coeffs,
-                    theta_mgauss=self._theta3,
-                    bias_mgauss=bias3,
-                    converged=sol.heading_sigma_deg < self.params.heading_converged_deg,
-                    warm_started=self.warm_started,
-                    relative=self.mode == "relative",
-                    heading_sigma_deg=sol.heading_sigma_deg,
-                )
+                sig = sol.heading_sigma_deg
+                out = InflightOutput(  # coeffs, theta, bias, converged, warm started, relative form, sigma
+                    self._coeffs, self._theta3, bias3, sig < self.params.heading_converged_deg,
+                    self.warm_started, self.mode == "relative", sig,
+                )  # fmt: skip
         self.account(t_s, state)
         return out
 

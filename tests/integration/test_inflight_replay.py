@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from magcomp.core.inflight.yawframe import yaw_turned
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_NO_THROTTLE
 from magcomp.service.console import summary_lines, write_json
 from magcomp.service.demo import oracle_replay, rms_after_learning
@@ -150,10 +151,11 @@ def test_four_hertz_telemetry_matches_attitude_and_throttle_to_the_field_time(
     used: list[tuple[float, Any, float]] = []
     orig = inflight_stage.InflightStage._use
 
-    def spy(self: Any, t_s: float, y: Any, x: Any, r_nb: Any, ref: Any) -> None:
-        if self.mag_index == 0:
-            used.append((t_s, np.array(r_nb), float(x[0])))
-        orig(self, t_s, y, x, r_nb, ref)
+    def spy(self: Any, t_s: float, y: Any, x: Any, r_nb: Any, ref: Any, turn: Any = None) -> None:
+        if self.mag_index == 0:  # the attitude the rows take: with the gyro's yaw turn, if it has one
+            r = r_nb if turn is None else yaw_turned(np.array([r_nb]), *np.array([turn]).T)[0]
+            used.append((t_s, np.array(r), float(x[0])))
+        orig(self, t_s, y, x, r_nb, ref, turn)
 
     monkeypatch.setattr(inflight_stage.InflightStage, "_use", spy)
     replay_log(path, ESTIMATOR_ONLY)

@@ -19,7 +19,7 @@ from magcomp.core.inflight import GyroYaw, InflightSolution
 from magcomp.core.inflight.apply import MAX_APPLY_HEADING_SIGMA_DEG, YawSpan, apply_decision
 from magcomp.core.inflight.matching import MAX_PAIR_S, LateMatcher
 from magcomp.core.inflight.rows import augmented
-from magcomp.core.inflight.yawframe import GyroYawFrame
+from magcomp.core.inflight.yawframe import GyroYawFrame, yaw_turned
 from magcomp.core.rotations import dcm_from_euler
 
 
@@ -56,23 +56,52 @@ def test_a_sample_whose_sources_stopped_is_dropped_not_held() -> None:
     assert not m.waiting
 
 
+def _turned(r: np.ndarray, turn: tuple[float, float] | None) -> np.ndarray:
+    return r if turn is None else yaw_turned(r[None], np.array([turn[0]]), np.array([turn[1]]))[0]
+
+
 def test_the_gyro_frame_carries_the_gyro_yaw_from_the_autopilot_yaw_at_the_chain_start() -> None:
     f = GyroYawFrame()
     r_ap = dcm_from_euler(0.1, -0.05, 1.0)
-    r, restart = f.apply(r_ap, GyroYaw(3, 5.0))
+    turn, restart = f.turn(r_ap, GyroYaw(3, 5.0))
     assert restart and f.on
-    assert _yaw_of(r) == pytest.approx(1.0, abs=1e-12)  # offset to the autopilot's yaw where it starts
+    assert _yaw_of(_turned(r_ap, turn)) == pytest.approx(1.0, abs=1e-12)  # offset to the autopilot's yaw
     # the gyro turns by 0.3 rad while the autopilot's yaw (following a compass) turns by 0.5
-    r, restart = f.apply(dcm_from_euler(0.1, -0.05, 1.5), GyroYaw(3, 5.3))
+    r_ap2 = dcm_from_euler(0.1, -0.05, 1.5)
+    turn, restart = f.turn(r_ap2, GyroYaw(3, 5.3))
     assert not restart
+    r = _turned(r_ap2, turn)
     assert _yaw_of(r) == pytest.approx(1.3, abs=1e-12)
     assert f.ap_yaw_dev == pytest.approx(0.2, abs=1e-12)  # the autopilot's yaw minus the gyro frame's
     # roll and pitch are the autopilot's
-    np.testing.assert_allclose(r[2], dcm_from_euler(0.1, -0.05, 1.5)[2], atol=1e-12)
+    np.testing.assert_allclose(r[2], r_ap2[2], atol=1e-12)
     # a new chain, or no gyro yaw: a new window sequence
-    assert f.apply(r_ap, GyroYaw(4, 0.0))[1]
-    assert f.apply(r_ap, None) == (r_ap, True)
-    assert f.apply(r_ap, None)[1] is False
+    assert f.turn(r_ap, GyroYaw(4, 0.0))[1]
+    assert f.turn(r_ap, None) == (None, True)
+    assert f.turn(r_ap, None)[1] is False
+
+
+def test_a_stack_of_yaw_turns_is_each_attitudes_own_product() -> None:
+    """``yaw_turned`` on N attitudes gives, bit for bit, each one's own 3 x 3 product ``Rz(a) R``, and the
+    yaw span of attitudes held with their turns (read now and then) is that of the turned attitudes."""
+    rng = np.random.default_rng(4)
+    n = 300
+    angles = np.column_stack([rng.uniform(-0.4, 0.4, (n, 2)), rng.uniform(-math.pi, math.pi, n)])
+    rs = np.array([dcm_from_euler(*e) for e in angles])
+    a = np.cumsum(rng.normal(0.0, 0.3, n))
+    c, s = np.cos(a), np.sin(a)
+    rz = [np.array([[c[i], -s[i], 0.0], [s[i], c[i], 0.0], [0.0, 0.0, 1.0]]) for i in range(n)]
+    each = np.array([rz[i] @ rs[i] for i in range(n)])
+    assert np.array_equal(yaw_turned(rs, c, s), each)
+    held, turned = YawSpan(), YawSpan()
+    spans = []
+    for i in range(n):
+        held.track(rs[i], (float(c[i]), float(s[i])))
+        turned.track(each[i])
+        if i % 7 == 0 or i > n - 20:  # read one sample at a time at the end, a block at a time before
+            spans.append((held.span_deg, turned.span_deg))
+    assert all(h == t for h, t in spans)
+    assert turned.span_deg > 90.0  # the attitudes turned through more than a quarter turn
 
 
 def _solution(d: tuple[float, float, float], sigma_deg: float, split_deg: float = 0.0) -> InflightSolution:

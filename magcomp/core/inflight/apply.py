@@ -6,12 +6,13 @@ correction value the pipeline applies (:class:`InflightOutput`). Pure; no I/O.""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from magcomp.core.inflight.base import F64, InflightMode, InflightSolution
 from magcomp.core.inflight.rows import regressors
+from magcomp.core.inflight.yawframe import YawTurn, yaw_turned
 from magcomp.core.types import EARTH_MAX_MGAUSS, EARTH_MIN_MGAUSS
 
 #: the correction is applied once its heading uncertainty is below half the heading change it makes (a
@@ -33,9 +34,9 @@ CORRECTED_FIELD_RANGE_MGAUSS = (0.65 * EARTH_MIN_MGAUSS, 1.35 * EARTH_MAX_MGAUSS
 Float3 = tuple[float, float, float]
 
 
-@dataclass(frozen=True, slots=True)
-class InflightOutput:
-    """What the pipeline applies: L and d of eq. (2) as 12 floats, theta and the bias at this sample."""
+class InflightOutput(NamedTuple):
+    """What the pipeline applies: L and d of eq. (2) as 12 floats, theta and the bias at this sample. A
+    named tuple, made once per magnetometer sample (a frozen dataclass took 1 us more)."""
 
     coeffs: tuple[float, ...]
     theta_mgauss: Float3
@@ -104,17 +105,49 @@ def apply_decision(
     return ok and turned and earthly and sig < MAX_APPLY_HEADING_SIGMA_DEG and sigma_checked, strength
 
 
+#: the most turned attitudes YawSpan holds before it takes them (a block's worth: memory stays small)
+_SPAN_PENDING_MAX = 256
+
+
 class YawSpan:
-    """The heading span covered by the samples used (unwrapped yaw of their attitudes)."""
+    """The heading span covered by the samples used (unwrapped yaw of their attitudes). An attitude that
+    takes a yaw turn first (the gyro's yaw, ``core.inflight.yawframe``) is held and turned with the others
+    held when the span is next read: one stacked product instead of one per sample."""
 
     def __init__(self) -> None:
         self.yaw_min = math.inf
         self.yaw_max = -math.inf
         self._prev: float | None = None
         self._unwrapped = 0.0
+        self._pending: list[tuple[F64, float, float]] = []
+        self._rz = np.eye(3)  # one held attitude's turn, rewritten in place
 
-    def track(self, r_nb: F64) -> None:
-        """One used sample's attitude."""
+    def track(self, r_nb: F64, turn: YawTurn | None = None) -> None:
+        """One used sample's attitude; ``turn``: the yaw turn it takes first (:func:`yaw_turned`)."""
+        if turn is not None:
+            self._pending.append((r_nb, turn[0], turn[1]))
+            if len(self._pending) >= _SPAN_PENDING_MAX:
+                self._take_pending()
+            return
+        if self._pending:
+            self._take_pending()
+        self._track(r_nb)
+
+    def _take_pending(self) -> None:
+        """The held attitudes turned and tracked, in their order."""
+        held, self._pending = self._pending, []
+        if len(held) == 1:  # a 3 x 3 product: the same numbers as a stack's slice, without the stack
+            r_nb, c, s = held[0]
+            rz = self._rz
+            rz[0, 0], rz[0, 1], rz[1, 0], rz[1, 1] = c, -s, s, c
+            self._track(rz @ r_nb)
+            return
+        turned = yaw_turned(np.array([h[0] for h in held]), np.array([h[1] for h in held]),
+                            np.array([h[2] for h in held]))  # fmt: skip
+        for r_nb in turned:
+            self._track(r_nb)
+
+    def _track(self, r_nb: F64) -> None:
         yaw = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
         if self._prev is not None:
             self._unwrapped += (yaw - self._prev + math.pi) % (2.0 * math.pi) - math.pi
@@ -125,4 +158,6 @@ class YawSpan:
     @property
     def span_deg(self) -> float:
         """Heading span covered so far (deg)."""
+        if self._pending:
+            self._take_pending()
         return math.degrees(self.yaw_max - self.yaw_min) if self.yaw_max > self.yaw_min else 0.0

@@ -22,7 +22,7 @@ from magcomp.core.inflight.rows import (
     window_nuisance_cols,
     window_nuisance_cols_block,
 )
-from magcomp.core.inflight.yawframe import GYRO_WINDOW_S, GyroYawFrame, YawErrorLine
+from magcomp.core.inflight.yawframe import GYRO_WINDOW_S, GyroYawFrame, YawErrorLine, YawTurn, yaw_turned
 from magcomp.core.linalg3 import Vec3Like
 
 #: the relative form's rotation-source yaw-rate error (InflightEstimator.add) is taken as constant over
@@ -121,7 +121,13 @@ def window_prior_sd(ap_yaw: bool) -> F64:
 
 
 def add_absolute_row(
-    est: InflightEstimator, t_s: float, epoch: int, r_nb: F64, field_ref_n_mgauss: F64, y: F64, x: F64
+    est: InflightEstimator,
+    t_s: float,
+    epoch: int,
+    r_nb: F64,
+    field_ref_n_mgauss: F64,
+    y: Vec3Like,
+    x: F64 | tuple[float, ...],
 ) -> None:
     """One sample's absolute rows (eqs. (1), (11), (13)) against the trusted attitude ``r_nb`` and the Earth
     field (NED), with the reference's own yaw error (its compass's calibration) as one nuisance value per
@@ -152,8 +158,11 @@ class _Block:
         self.t: list[float] = []
         self.tau: list[float] = []
         self.r: list[F64] = []
-        self.y: list[F64] = []
-        self.x: list[F64] = []
+        #: the yaw turns of the attitudes (a block of the gyro's frame: one per sample, else none)
+        self.cos: list[float] = []
+        self.sin: list[float] = []
+        self.y: list[Vec3Like] = []
+        self.x: list[F64 | tuple[float, ...]] = []
         self.ap_dev: list[float] = []
         self.accel: list[tuple[float, float]] = []
 
@@ -165,7 +174,7 @@ class _Block:
         return key == self.key and on == self.on and relin == self.relin and n_r == self.n_r
 
     def clear(self) -> None:
-        for a in (self.t, self.tau, self.r, self.y, self.x, self.ap_dev, self.accel):
+        for a in (self.t, self.tau, self.r, self.cos, self.sin, self.y, self.x, self.ap_dev, self.accel):
             a.clear()
 
 
@@ -199,14 +208,23 @@ class WindowRowFeed:
         return len(self._block)
 
     def add(
-        self, t_s: float, epoch: int, r_nb: F64, y: F64, x: F64, frame: GyroYawFrame, slow_link: bool
+        self,
+        t_s: float,
+        epoch: int,
+        r_nb: F64,
+        y: Vec3Like,
+        x: F64 | tuple[float, ...],
+        frame: GyroYawFrame,
+        slow_link: bool,
+        turn: YawTurn | None = None,
     ) -> None:
         """One sample against its window's Earth field (``window_field_rows``), with the window's horizontal
         field and the rotation source's yaw rate as the window's nuisance; with the tilt model the same
-        sample into its estimator too. ``epoch`` counts rotation-source restarts (a window never spans one);
-        ``frame``: the gyro yaw's frame (``on``: ``r_nb`` has the gyro's yaw); ``slow_link``: the attitude
-        is matched to the field's time. Held in the block until it is flushed (a new window, a full block,
-        :meth:`flush`)."""
+        sample into its estimator too (``y``, ``x``: the field (3) and regressors (n_r), floats or arrays).
+        ``epoch`` counts rotation-source restarts (a window never spans one); ``frame``: the gyro yaw's
+        frame (``on``: ``r_nb`` takes the gyro's yaw by the yaw ``turn``, made when the block becomes rows);
+        ``slow_link``: the attitude is matched to the field's time. Held in the block until it is flushed
+        (a new window, a full block, :meth:`flush`)."""
         w_s = GYRO_WINDOW_S if frame.on else ROTATION_WINDOW_S
         win = math.floor(t_s / w_s)
         tau = t_s - (win + 0.5) * w_s
@@ -214,16 +232,20 @@ class WindowRowFeed:
         relin = self.sw.relinearise_window and not frame.on and slow_link
         b = self._block
         held = b.t  # the block's samples (its length without a call: once per sample)
-        if held and (not b.fits(key, frame.on, relin, x.shape[0]) or len(held) >= BLOCK_MAX):
+        n_r = len(x)
+        if held and (not b.fits(key, frame.on, relin, n_r) or len(held) >= BLOCK_MAX):
             self.flush()
         if relin and key != self._rl_key:
             self._relinearise()
             self._rl_key = key
         if not held:
-            b.key, b.on, b.relin, b.n_r = key, frame.on, relin, x.shape[0]
+            b.key, b.on, b.relin, b.n_r = key, frame.on, relin, n_r
         b.t.append(t_s)
         b.tau.append(tau)
         b.r.append(r_nb)
+        if turn is not None:
+            b.cos.append(turn[0])
+            b.sin.append(turn[1])
         b.y.append(y)
         b.x.append(x)
         b.ap_dev.append(frame.ap_yaw_dev)
@@ -236,7 +258,11 @@ class WindowRowFeed:
         b = self._block
         if not len(b) or b.key is None:
             return
-        r_nb, y, x = np.array(b.r), np.array(b.y), np.array(b.x)
+        r_nb, y, x = np.array(b.r), np.array(b.y, dtype=float), np.array(b.x, dtype=float)
+        if b.cos:
+            if len(b.cos) != len(b.r):
+                raise AssertionError("a block mixes attitudes with and without the gyro's yaw")
+            r_nb = yaw_turned(r_nb, np.array(b.cos), np.array(b.sin))
         tau = np.array(b.tau)
         est, tilt = self.est, self.est_tilt
         self._field, w, used = self._add(est, self._field, b, r_nb, y, x, tau, self.sw.ap_yaw_tilt)

@@ -41,6 +41,10 @@ class WindowFields(Protocol):
     def window_nuisance(self, window: object) -> F64 | None: ...
 
 
+#: a yaw turn (cos a, sin a) that an attitude takes: ``Rz(a) R_nb`` (:func:`yaw_turned`)
+YawTurn = tuple[float, float]
+
+
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
@@ -59,37 +63,48 @@ class GyroYawFrame:
         self.on = False
         self._epoch = -1
         self._offset = 0.0
+        self._offset_cs = (1.0, 0.0)  # its cosine and sine (it changes only where a chain starts)
         #: the autopilot's yaw minus the gyro frame's (rad) and the horizontal acceleration in the gyro
         #: frame (m/s^2), at the last sample (the tilt model's inputs)
         self.ap_yaw_dev = 0.0
         self.accel_h = (0.0, 0.0)
-        #: the yaw rotation's matrix, rewritten in place at each sample (building it anew cost ~1 us)
-        self._rz = np.eye(3)
 
-    def apply(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> tuple[F64, bool]:
-        """``r_nb`` with the gyro's yaw (None: as it is), and whether a window sequence starts anew (the gyro
-        yaw stopped, or its chain restarted: a window never spans that)."""
+    def turn(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> tuple[YawTurn | None, bool]:
+        """The yaw turn that gives ``r_nb`` the gyro's yaw (None: no gyro yaw, ``r_nb`` as it is; the turned
+        attitude is :func:`yaw_turned`'s, made a block of samples at a time), and whether a window sequence
+        starts anew (the gyro yaw stopped, or its chain restarted: a window never spans that)."""
         if gyro_yaw is None:
             restart = self.on
             self.on = False
-            return r_nb, restart
+            return None, restart
         restart = False
         epoch, yaw_g = gyro_yaw.epoch, gyro_yaw.yaw_rad
         yaw_ap = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
         if not self.on or epoch != self._epoch:
             self.on, self._epoch = True, epoch
             self._offset = yaw_ap - yaw_g
+            self._offset_cs = (math.cos(self._offset), math.sin(self._offset))
             restart = True
         a = yaw_g + self._offset - yaw_ap
-        c, s = math.cos(a), math.sin(a)
         a_att = a + gyro_yaw.att_lead_rad if self.att_lead and not matched else a
         self.ap_yaw_dev = -_wrap(a_att)
         an, ae = gyro_yaw.accel_h_m_s2
-        co, so = math.cos(self._offset), math.sin(self._offset)
+        co, so = self._offset_cs
         self.accel_h = (co * an - so * ae, so * an + co * ae)
-        rz = self._rz  # [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-        rz[0, 0], rz[0, 1], rz[1, 0], rz[1, 1] = c, -s, s, c
-        return rz @ r_nb, restart
+        return (math.cos(a), math.sin(a)), restart
+
+
+def yaw_turned(r_nb: F64, cos_a: F64, sin_a: F64) -> F64:
+    """``Rz(a) R_nb`` of a stack of attitudes (N, 3, 3) and their turns' cosines and sines (N,), ``Rz(a) =
+    [[c, -s, 0], [s, c, 0], [0, 0, 1]]``: one stacked product, each slice the same numbers as its own
+    3 x 3 product (numpy multiplies a stack slice by slice)."""
+    rz = np.zeros((r_nb.shape[0], 3, 3))
+    rz[:, 0, 0] = cos_a
+    rz[:, 0, 1] = -sin_a
+    rz[:, 1, 0] = sin_a
+    rz[:, 1, 1] = cos_a
+    rz[:, 2, 2] = 1.0
+    return np.asarray(rz @ r_nb, dtype=np.float64)
 
 
 class YawErrorLine:
