@@ -232,7 +232,7 @@ class OutputConfig:
     """
 
     rate_hz: float = _ruled(0.0, _non_negative, "be >= 0 (0 = every magnetometer sample)")
-    heading_tau_s: float = _ruled(1.0, lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)")
+    heading_tau_s: float = _ruled(4.0, lambda v: 0.0 <= v <= 60.0, "be in [0, 60] s (0 = unfiltered)")
     #: publish a correction only where the self-check against the gyro and the autopilot's yaw finds it
     #: better than the autopilot's own heading (docs/real-flights.md); false: as soon as it is learned
     self_check: bool = True
