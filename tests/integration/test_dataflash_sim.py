@@ -79,8 +79,8 @@ def test_gps_week_and_time_of_week() -> None:
 def test_bin_replays_like_its_tlog_twin(ordinary: tuple[SimResult, Path, Path]) -> None:
     result, tlog, binf = ordinary
     # the readers' equivalence, through the 1 s heading filter: with the default 4 s one the tlog's gyro, one
-    # RAW_IMU sample per 10 Hz compass interval, integrates its sampling error for longer than the .bin's 50 Hz
-    # IMU (measured heading rms 1.12 / 1.12 against 0.77 / 0.67 deg; 0.95 / 0.78 and 0.97 / 0.78 at 1 s)
+    # RAW_IMU sample per 10 Hz compass interval, integrates its sampling error for longer than the .bin's
+    # 50 Hz IMU (measured heading rms 1.12 / 1.12 against 0.77 / 0.67 deg; 0.95 / 0.78 and 0.97 / 0.78 at 1 s)
     cfg = replace(ESTIMATOR_ONLY, output=replace(ESTIMATOR_ONLY.output, heading_tau_s=1.0))
     a = replay_log(tlog, cfg, keep_estimates=True)
     b = replay_log(binf, cfg, keep_estimates=True)
