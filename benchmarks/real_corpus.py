@@ -30,11 +30,13 @@ import json
 import math
 import statistics
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.adapters.config import load_config
 from magcomp.adapters.mavlink_source import load_log
@@ -47,6 +49,7 @@ from magcomp.service.persist import StateSink
 from magcomp.service.replay import replay_log
 
 SUFFIXES = {".tlog", ".bin", ".log", ".ulg"}
+F64 = NDArray[np.float64]
 MAX_TILT_RAD = math.radians(60.0)
 
 
@@ -114,8 +117,9 @@ def verdict(base: dict[str, float], new: dict[str, float]) -> str:
     return "worse" if worse else "better" if better else "same"
 
 
-def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]]:
-    out: dict[int, dict[str, float]] = {}
+def own_headings(data: LogData, ref: Reference) -> Iterator[tuple[int, F64, F64]]:
+    """Per compass with 20 samples or more: its index, sample times (s) and the autopilot's own heading (deg):
+    the field as logged, tilt-compensated (eq. (24)) with the autopilot's roll and pitch."""
     for idx, s in sorted(data.mag.items()):
         if len(s) < 20:
             continue
@@ -123,7 +127,13 @@ def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]
         p = np.interp(s.t_s, ref.att_t, ref.pitch)
         m = s.values
         h = heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], np.cos(r), np.sin(r), np.cos(p), np.sin(p))
-        got = score(ref, s.t_s, h)
+        yield idx, s.t_s, h
+
+
+def baseline_scores(data: LogData, ref: Reference) -> dict[int, dict[str, float]]:
+    out: dict[int, dict[str, float]] = {}
+    for idx, t_s, h in own_headings(data, ref):
+        got = score(ref, t_s, h)
         if got is not None:
             out[idx] = got
     return out

@@ -26,7 +26,6 @@ import real_corpus as rc
 
 from magcomp.adapters.mavlink_source import load_log
 from magcomp.core import selfcheck as sc
-from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.yaw_reference import slow_error_owner
 from magcomp.errors import InputError
 from magcomp.service.evaluate import FLYING_THROTTLE_01
@@ -111,14 +110,8 @@ def main() -> None:
             rep = replay_log(path, load_config(None), keep_estimates=True, two_pass=not a.causal)
             for e in rep.estimates:
                 published.setdefault(e.mag_index, []).append((e.t_s, e.heading_deg))
-        for idx, s in sorted(data.mag.items()):
-            if len(s) < 20:
-                continue
-            r = np.interp(s.t_s, ref.att_t, ref.roll)
-            p = np.interp(s.t_s, ref.att_t, ref.pitch)
-            m = s.values
-            h = heading_from_trig_deg(m[:, 0], m[:, 1], m[:, 2], np.cos(r), np.sin(r), np.cos(p), np.sin(p))
-            rows = heading_rows(data, ref, s.t_s, h)
+        for idx, t_s, h in rc.own_headings(data, ref):
+            rows = heading_rows(data, ref, t_s, h)
             if rows[0].size < 20:
                 continue
             print("  " + line(f"compass {idx} own     ", rows))
