@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcomp.diagnosis.effects import DriveInputs
 from magcomp.diagnosis.model import CompassData, fit_model
 from magcomp.diagnosis.search import diagnose_compass
 from magcomp.diagnosis.selection import (
@@ -26,6 +25,7 @@ from magcomp.diagnosis.selection import (
     design_folds,
     folds_for,
 )
+from tests.synthetic_compass import stationary_compass
 
 TRUE_EXPONENT = 2.8
 
@@ -44,19 +44,7 @@ def hover_with_one_climb(seed: int, exponent: float = TRUE_EXPONENT, noise: floa
     h /= np.linalg.norm(h)
     field = a @ h + np.array([40.0, -25.0, 60.0]) + np.outer(thr**exponent, theta)
     field = field + rng.normal(0.0, noise, (n, 3))
-    drive = DriveInputs(
-        t_s=t,
-        grid_t_s=t,
-        grid_dt_s=dt,
-        throttle_grid=thr,
-        motors_grid=None,
-        voltage_grid=None,
-        v_full_v=12.6,
-        temperature_degc=None,
-        throttle_dt_s=dt,
-    )
-    r = np.repeat(np.eye(3)[None], n, axis=0)
-    return CompassData(0, t, field, r, drive, "stationary", "the vehicle does not rotate (synthetic)")
+    return stationary_compass(t, field, dt, thr)
 
 
 def test_every_fold_trains_on_the_climb() -> None:

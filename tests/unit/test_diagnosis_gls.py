@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from magcomp.diagnosis.effects import DriveInputs
 from magcomp.diagnosis.model import CompassData, fit_model
 from magcomp.diagnosis.selection import (
     SelectionParams,
@@ -28,6 +27,7 @@ from magcomp.diagnosis.selection import (
     effective_delta_bic,
     folds_for,
 )
+from tests.synthetic_compass import stationary_compass
 
 DT_S, N = 0.025, 2400
 
@@ -53,19 +53,7 @@ def per_motor_log(seed: int, spread: float) -> CompassData:
     rho = np.exp(-DT_S / 3.0)
     slow = lfilter([np.sqrt(1.0 - rho**2)], [1.0, -rho], rng.normal(size=(N, 3)), axis=0)
     field = field + 8.0 * rng.normal(size=(N, 3)) + 3.0 * slow
-    drive = DriveInputs(
-        t_s=t,
-        grid_t_s=t,
-        grid_dt_s=DT_S,
-        throttle_grid=motors.mean(axis=1),
-        motors_grid=motors,
-        voltage_grid=None,
-        v_full_v=12.6,
-        temperature_degc=None,
-        throttle_dt_s=DT_S,
-    )
-    r = np.repeat(np.eye(3)[None], N, axis=0)
-    return CompassData(0, t, field, r, drive, "stationary", "the vehicle does not rotate (synthetic)")
+    return stationary_compass(t, field, DT_S, motors.mean(axis=1), motors)
 
 
 def per_motor_evidence(seed: int, spread: float) -> tuple[float, float]:

@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcomp.diagnosis.effects import DriveInputs
 from magcomp.diagnosis.model import CompassData
 from magcomp.diagnosis.search import diagnose_compass
+from tests.synthetic_compass import stationary_compass
 
 
 def per_motor_log(seed: int, second_half_scale: float, noise: float = 3.0) -> CompassData:
@@ -38,19 +38,7 @@ def per_motor_log(seed: int, second_half_scale: float, noise: float = 3.0) -> Co
     h /= np.linalg.norm(h)
     field = a @ h + np.array([40.0, -25.0, 60.0]) + mean_bias + scale[:, None] * split
     field = field + rng.normal(0.0, noise, (n, 3))
-    drive = DriveInputs(
-        t_s=t,
-        grid_t_s=t,
-        grid_dt_s=dt,
-        throttle_grid=motors.mean(axis=1),
-        motors_grid=motors,
-        voltage_grid=None,
-        v_full_v=12.6,
-        temperature_degc=None,
-        throttle_dt_s=dt,
-    )
-    r = np.repeat(np.eye(3)[None], n, axis=0)
-    return CompassData(0, t, field, r, drive, "stationary", "the vehicle does not rotate (synthetic)")
+    return stationary_compass(t, field, dt, motors.mean(axis=1), motors)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
