@@ -225,7 +225,7 @@ class OutputConfig:
     """What is published. rate_hz = 0: one MAGCOMP_HEADING per magnetometer sample.
 
     heading_tau_s: time constant of the gyro-aided complementary filter on both headings (0 = the raw
-    per-sample tilt-compensated eq. (24)); see :class:`magcomp.service.estimators.HeadingFilter`.
+    per-sample tilt-compensated eq. (24)); see :class:`magcomp.core.heading_filter.HeadingFilter`.
 
     named_values_hz: NAMED_VALUE_FLOAT values a pilot sees without the dialect (MC_HDG0, MC_THETA0,
     MC_STAT0 ...; docs/pilots.md) at most this often per compass, message time, on live links (0 = none).

@@ -37,9 +37,10 @@ from numpy.typing import NDArray
 from magcomp.core import selfcheck
 from magcomp.core.correction import Applied, Correction, headings_deg
 from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.heading_filter import turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
-from magcomp.service.heading import turn_rate, yaw_rate
+from magcomp.service.heading import yaw_rate
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
 

@@ -2,7 +2,7 @@
 
 The heading is tilt-compensated (roll and pitch from the attitude stage; departure from the paper, whose
 eq. (24) is for a level vehicle) and passes a gyro-aided complementary filter
-(:class:`~magcomp.service.estimators.HeadingFilter`, departure from the paper: what its Table III measured
+(:class:`~magcomp.core.heading_filter.HeadingFilter`, departure from the paper: what its Table III measured
 was an attitude estimator's yaw). The uncorrected heading (calibration only, no bias removed) goes the
 same way, for comparison.
 """
@@ -16,6 +16,7 @@ import numpy as np
 
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.heading_filter import HeadingFilter, turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
 from magcomp.core.selfcheck import (
     LIVE_WINDOW_S,
@@ -28,7 +29,6 @@ from magcomp.core.selfcheck import (
     corrected_heading_deg,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
-from magcomp.service import estimators as est_core
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
@@ -63,7 +63,7 @@ class HoverShadow:
         self._cors: list[Correction | None] = [None] * len(HOVER_FORMS)
         self._offset = [False] * len(HOVER_FORMS)
         self.checks = [RunningSelfCheck() for _ in HOVER_FORMS]
-        self.filter = est_core.HeadingFilter(tau_s)
+        self.filter = HeadingFilter(tau_s)
         self.deg = math.nan
         #: the form published (None: none is on)
         self.on_form: int | None = None
@@ -86,10 +86,11 @@ class HoverShadow:
         self._offset = [f is not None and offset_changed(f) for f in self.fits]
 
     def step(self, rec: MagRecord, own_field: Float3, psi_own: float, judged: bool, shadow: bool,
-             rate: float, dt: float) -> None:  # fmt: skip
+             rate: float, dt: float, turn_rad_s: float = 0.0) -> None:  # fmt: skip
         """One sample: ``own_field`` the field as the autopilot had it, ``psi_own`` its heading; ``judged``:
         the motors run and the tilt is within the check's bounds; ``shadow``: judge and filter the forms'
-        headings (False where the in-flight correction applies: the samples are only accumulated)."""
+        headings (False where the in-flight correction applies: the samples are only accumulated); ``rate``,
+        ``dt``, ``turn_rad_s``: the heading filter's propagation (:attr:`HeadingTrack.last_rate`)."""
         cr, sr, cp, sp = rec.tilt
         ok = judged and rec.ap_yaw == rec.ap_yaw
         if ok:
@@ -124,7 +125,8 @@ class HoverShadow:
                     on_form = k
                     break
             self.on_form = on_form
-            self.deg = self.filter.update(cands[self.on_form if self.on_form is not None else 0], rate, dt)
+            self.deg = self.filter.update(cands[self.on_form if self.on_form is not None else 0], rate, dt,
+                                          turn_rad_s)  # fmt: skip
         else:
             self.filter.reset()
         due = ok and len(self._block) >= MIN_HOVER_BLOCK and not rec.t_s - self._fit_t < LIVE_WINDOW_S
@@ -168,7 +170,6 @@ class HeadingTrack:
     __slots__ = (
         "_holding",
         "_last_rate",
-        "_last_turn",
         "_recent",
         "_recent_t",
         "check",
@@ -193,18 +194,17 @@ class HeadingTrack:
         self.self_check = self_check
         #: learn theta against the autopilot's calibration live (``[inflight] enabled``)
         self.hover_on = hover
-        self.corrected = est_core.HeadingFilter(tau_s)
-        self.raw = est_core.HeadingFilter(tau_s)
+        self.corrected = HeadingFilter(tau_s)
+        self.raw = HeadingFilter(tau_s)
         #: the autopilot's own field (as logged) through the same filter: what is published while the
         #: self-check has not found an in-flight correction better (the live form of the two-pass check)
-        self.own = est_core.HeadingFilter(tau_s)
+        self.own = HeadingFilter(tau_s)
         self.own_deg = math.nan
         self.check: RunningSelfCheck | None = None
         #: theta against the autopilot's calibration, live (created with the first throttle-known sample)
         self.hover: HoverShadow | None = None
         self.corrected_deg = self.raw_deg = math.nan
-        self._last_rate = (math.nan, 0.0)
-        self._last_turn = 0.0
+        self._last_rate = (math.nan, 0.0, 0.0)
         self.gyro_yaw = math.nan
         self.gyro_epoch = -1.0
         #: an in-flight correction warm-started from a state learned on this very log (a two-pass replay's
@@ -299,33 +299,19 @@ class HeadingTrack:
             self.reset()
         raw = self.raw_deg = self.raw.update(psi_raw, rate, dt, turn_rad_s)
         self.corrected_deg = self.corrected.update(psi, rate, dt, turn_rad_s) if corrected else raw
-        self._last_rate = (rate, dt)
-        self._last_turn = turn_rad_s
+        self._last_rate = (rate, dt, turn_rad_s)
 
     @property
-    def last_rate(self) -> tuple[float, float]:
-        """The Euler yaw rate (rad/s) and interval (s) the last :meth:`step` propagated with."""
+    def last_rate(self) -> tuple[float, float, float]:
+        """The Euler yaw rate (rad/s), interval (s) and turn rate (rad/s, :func:`turn_rate`) the last
+        :meth:`step` propagated with."""
         return self._last_rate
 
     def step_own(self, psi_own: float) -> float:
         """The autopilot's own heading through its filter, with the rate and interval of the last
         :meth:`step` (call right after it)."""
-        rate, dt = self._last_rate
-        self.own_deg = self.own.update(psi_own, rate, dt, self._last_turn)
+        self.own_deg = self.own.update(psi_own, *self._last_rate)
         return self.own_deg
-
-
-STEEP_COS_TILT = math.cos(math.radians(30.0))
-"""Beyond 30 deg of tilt the Euler yaw rate's coupling to roll and pitch (1 / cos(pitch), the roll's
-sine) makes the yaw integral err with the whole body rate, not only with the yaw rate."""
-
-
-def turn_rate(gx: float, gy: float, gz: float, cos_tilt: float) -> float:
-    """The rotation rate (rad/s) the heading filter's gyro error grows with besides the yaw rate
-    (:class:`~magcomp.service.estimators.HeadingFilter`): the body rate's norm where the vehicle is tilted
-    beyond 30 deg (``cos_tilt`` = cos(roll) cos(pitch)), else 0 (near level the attitude's errors make the
-    integral wander about zero as the vehicle rocks, not drift)."""
-    return math.sqrt(gx * gx + gy * gy + gz * gz) if cos_tilt < STEEP_COS_TILT else 0.0
 
 
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
@@ -388,11 +374,11 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     if track.hover_on and rec.have_throttle and (rec.inflight is not None or not rec.calibrated):
         if hover is None:
             hover = track.hover = HoverShadow(track.own.tau_s)
-        rate, dt = track.last_rate
+        rate, dt, turn = track.last_rate
         # judged only where it could be published: where the in-flight correction applies, published or
         # not, the hover theta is neither published (below) nor reported (``Pipeline._hover``); judging it
         # there cost ~5 us a sample, 0.4 s of a 10 min ``--causal`` replay
-        hover.step(rec, (vx, vy, vz), psi_own, judged, rec.inflight is None, rate, dt)
+        hover.step(rec, (vx, vy, vz), psi_own, judged, rec.inflight is None, rate, dt, turn)
     chk = track.check
     cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
     if cand is not None and rec.have_throttle:

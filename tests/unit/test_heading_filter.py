@@ -1,4 +1,4 @@
-"""The published heading's complementary filter (service/estimators.HeadingFilter): its yaw-rate bias loop and
+"""The published heading's filter (core/heading_filter.HeadingFilter): its yaw-rate bias loop and
 its time constant that shortens while the vehicle turns fast."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from magcomp.service.estimators import GYRO_SCALE_ERROR, HeadingFilter
+from magcomp.core.heading_filter import GYRO_SCALE_ERROR, HeadingFilter
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
