@@ -36,8 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.dpi import apply_calibration
-from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.correction import Correction, headings_deg
 
 F64 = NDArray[np.float64]
 
@@ -124,15 +123,14 @@ Estimate = tuple[tuple[float, ...], tuple[float, float, float]]
 
 def corrected_heading_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64, estimate: Estimate) -> F64:
     """The heading (deg) an in-flight estimate gives the samples (the field as received (n, 3), the throttle
-    (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats, eq. (11) with its theta
-    * throttle^2 (per-motor terms, which sum to about zero over the motors, left out), eq. (24)."""
+    (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats and its theta, applied as
+    :class:`~magcomp.core.correction.Correction` applies them (eqs. (2), (11); per-motor terms, which sum to
+    about zero over the motors, left out), then eq. (24)."""
     coeffs, theta = estimate
-    k = np.asarray(coeffs, dtype=float)
-    u = apply_calibration(k[:9].reshape(3, 3), k[9:12], np.asarray(raw_mgauss, dtype=float))  # eq. (2)
-    d2 = np.square(np.asarray(throttle_01, dtype=float))[:, None]
-    u = u - d2 * np.asarray(theta, dtype=float)  # eq. (11)
+    r = np.asarray(raw_mgauss, dtype=float)
     c = np.asarray(tilt, dtype=float)
-    return np.asarray(heading_from_trig_deg(u[:, 0], u[:, 1], u[:, 2], c[:, 0], c[:, 1], c[:, 2], c[:, 3]))
+    applied = Correction(coeffs, theta).apply(r[:, 0], r[:, 1], r[:, 2], np.asarray(throttle_01, dtype=float))
+    return np.asarray(headings_deg(applied, c[:, 0], c[:, 1], c[:, 2], c[:, 3])[0])
 
 
 def circular_mean_rad(a_rad: F64) -> float:
