@@ -25,6 +25,7 @@ from magcomp.core.types import (
 )
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.replay import replay_log
+from tests.faultgen import record_msgid
 
 REPO = Path(__file__).parents[2]
 
@@ -37,10 +38,6 @@ def cfg() -> Config:
 def no_magic(data: bytes) -> bytes:
     """Random bytes without MAVLink start bytes (a start byte could begin a false, valid-looking frame)."""
     return data.replace(b"\xfd", b"\x01").replace(b"\xfe", b"\x01")
-
-
-def msg_id(rec: bytes) -> int:
-    return rec[15] | (rec[16] << 8) | (rec[17] << 16)
 
 
 RAW_IMU, SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD = 27, 36, 65, 74
@@ -119,7 +116,7 @@ def test_bad_crc_packets_are_counted_and_the_rest_matches_the_log_without_them(
     clean: tuple[Path, list[bytes]], tmp_path: Path
 ) -> None:
     _, recs = clean
-    idx = [i for i, r in enumerate(recs) if msg_id(r) == RAW_IMU][200::97][:8]
+    idx = [i for i, r in enumerate(recs) if record_msgid(r) == RAW_IMU][200::97][:8]
     damaged = list(recs)
     for i in idx:
         r = bytearray(recs[i])
@@ -169,7 +166,7 @@ def test_no_throttle_source_headings_flow_flagged_uncorrected(
     clean: tuple[Path, list[bytes]], tmp_path: Path
 ) -> None:
     _, recs = clean
-    keep = [r for r in recs if msg_id(r) not in (SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD)]
+    keep = [r for r in recs if record_msgid(r) not in (SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD)]
     p = tmp_path / "nothr.tlog"
     p.write_bytes(b"".join(keep))
     rep = replay_log(p, cfg(), keep_estimates=True)

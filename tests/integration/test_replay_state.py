@@ -17,6 +17,7 @@ from magcomp.core.identity import SIM_UID
 from magcomp.core.types import FLAG_CALIBRATED
 from magcomp.service.demo import heading_errors
 from magcomp.service.replay import replay_log
+from tests.faultgen import record_msgid, record_time_s
 
 
 def cfg() -> Config:
@@ -41,11 +42,10 @@ def logs(
     t_unix0 = default_start_unix_s(result)
     recs = split_tlog(whole.read_bytes())
     tail = d / "tail.tlog"
-    stamps_s = [int.from_bytes(r[:8], "big") * 1e-6 for r in recs]
     # (and the AUTOPILOT_VERSION naming the board, as the autopilot answers a ground station at connect)
-    ident = [r[15] | r[16] << 8 | r[17] << 16 == 148 for r in recs]
-    tail.write_bytes(b"".join(r for t, r, i in zip(stamps_s, recs, ident, strict=True)
-                              if t - t_unix0 >= pan_start or i))  # fmt: skip
+    tail.write_bytes(
+        b"".join(r for r in recs if record_time_s(r) - t_unix0 >= pan_start or record_msgid(r) == 148)
+    )
     return whole, tail, result
 
 

@@ -5,6 +5,7 @@ the system id alone."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.service.replay import replay_log
+from tests.faultgen import record_msgid
 
 UID_A = "0033002b3139511134383233"
 UID_B = "0044002b3139511134383299"
@@ -24,21 +26,10 @@ def cfg() -> Config:
     return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
 
 
-def _tlog_records(data: bytes) -> list[bytes]:
-    out, p = [], 0
-    while p < len(data):
-        n = 8 + 12 + data[p + 9] + (13 if data[p + 10] & 1 else 0)
-        out.append(data[p : p + n])
-        p += n
-    return out
-
-
-def _msgid(rec: bytes) -> int:
-    return rec[15] | rec[16] << 8 | rec[17] << 16
-
-
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def logs(
+    tmp_path_factory: pytest.TempPathFactory, split_tlog: Callable[[bytes], list[bytes]]
+) -> dict[str, Path]:
     from magcomp.adapters.dataflash_writer import write_sim_dataflash
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.ulog_writer import write_sim_ulog
@@ -53,12 +44,12 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     write_tlog(b, paths["b"])
     write_sim_dataflash(a, paths["a_bin"])
     write_sim_ulog(a, paths["a_ulg"])
-    recs = _tlog_records(paths["a"].read_bytes())
+    recs = split_tlog(paths["a"].read_bytes())
     paths["a_anon"] = d / "a_anon.tlog"  # the same flight, no AUTOPILOT_VERSION in it
-    paths["a_anon"].write_bytes(b"".join(r for r in recs if _msgid(r) != 148))
-    recs_b = _tlog_records(paths["b"].read_bytes())
-    ident = [r for r in recs_b if _msgid(r) == 148]
-    rest = [r for r in recs_b if _msgid(r) != 148]
+    paths["a_anon"].write_bytes(b"".join(r for r in recs if record_msgid(r) != 148))
+    recs_b = split_tlog(paths["b"].read_bytes())
+    ident = [r for r in recs_b if record_msgid(r) == 148]
+    rest = [r for r in recs_b if record_msgid(r) != 148]
     paths["b_late"] = d / "b_late.tlog"  # vehicle B, its id answered after ~3 s of samples
     paths["b_late"].write_bytes(b"".join(rest[:3000] + ident + rest[3000:]))
     return paths
