@@ -25,14 +25,10 @@ from magcomp.core.types import (
 )
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.replay import replay_log
+from tests.configs import QUICK_CALIBRATION
 from tests.faultgen import record_msgid
 
 REPO = Path(__file__).parents[2]
-
-
-def cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
 
 
 def no_magic(data: bytes) -> bytes:
@@ -60,7 +56,7 @@ def replay_records(
 ) -> tuple[list[HeadingEstimate], dict[str, int]]:
     p = tmp / name
     p.write_bytes(recs if isinstance(recs, bytes) else b"".join(recs))
-    rep = replay_log(p, cfg(), keep_estimates=True)
+    rep = replay_log(p, QUICK_CALIBRATION, keep_estimates=True)
     return rep.estimates, rep.counts
 
 
@@ -169,7 +165,7 @@ def test_no_throttle_source_headings_flow_flagged_uncorrected(
     keep = [r for r in recs if record_msgid(r) not in (SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD)]
     p = tmp_path / "nothr.tlog"
     p.write_bytes(b"".join(keep))
-    rep = replay_log(p, cfg(), keep_estimates=True)
+    rep = replay_log(p, QUICK_CALIBRATION, keep_estimates=True)
     assert len(rep.estimates) > 1000
     assert all(e.flags & FLAG_NO_THROTTLE and e.heading_deg == e.heading_raw_deg for e in rep.estimates)
     assert any("no throttle source" in w for w in rep.summary["warnings"])
@@ -187,7 +183,7 @@ def samples(clean: tuple[Path, list[bytes]]) -> list[Sample]:
 
 
 def run(samples: list[Sample], config: Config | None = None) -> tuple[list[HeadingEstimate], Pipeline]:
-    p = Pipeline(config or cfg())
+    p = Pipeline(config or QUICK_CALIBRATION)
     return [e for e in map(p.process, samples) if e is not None], p
 
 
@@ -225,7 +221,7 @@ def test_clock_reset_is_absorbed_and_headings_continue(samples: list[Sample]) ->
 
 def test_observer_bounded_under_absurd_input() -> None:
     rng = np.random.default_rng(9)
-    c = cfg()
+    c = QUICK_CALIBRATION
     c = replace(c, calibration=replace(c.calibration, mode="none"))
     p = Pipeline(c)
     t = 0.0

@@ -7,18 +7,17 @@ from __future__ import annotations
 import itertools
 import socket
 import threading
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.publish import named_value_names
+from tests.configs import QUICK_CALIBRATION
 from tests.waiting import collect_mavlink, loopback_udp_socket, wait_for
 
 
@@ -40,8 +39,7 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
     stop = threading.Event()
     rx = threading.Thread(target=_listen, args=(sock, stop, got))
     rx.start()
-    c = Config()
-    cfg = replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
+    cfg = QUICK_CALIBRATION
     result = simulate(SimConfig(scenario="paper", duration_s=30.0, seed=3))
     n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
     port = free_udp_port()

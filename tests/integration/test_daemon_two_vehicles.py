@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import socket
 import threading
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
+from tests.configs import QUICK_CALIBRATION
 from tests.waiting import wait_for
 
 
@@ -48,8 +47,7 @@ def test_two_vehicles_on_one_link_are_kept_apart() -> None:
     stop = threading.Event()
     rx_thread = threading.Thread(target=_receiver, args=(rx, stop, got))
     rx_thread.start()
-    c = Config()
-    cfg = replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
+    cfg = QUICK_CALIBRATION
     port = free_udp_port()
     daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg, outs=[f"udpout:127.0.0.1:{rx.getsockname()[1]}"])
     worker = threading.Thread(target=daemon.run)

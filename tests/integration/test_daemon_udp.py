@@ -10,24 +10,18 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port, run_demo
+from tests.configs import QUICK_CALIBRATION
 
 REPO = Path(__file__).parents[2]
-
-
-def fast_cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
 
 
 def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
@@ -59,7 +53,7 @@ def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
         result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=3))
         port = free_udp_port()
         ests: list[object] = []
-        daemon = Daemon(f"udpin:127.0.0.1:{port}", fast_cfg(), outs=[f"udpout:127.0.0.1:{out_port}"],
+        daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, outs=[f"udpout:127.0.0.1:{out_port}"],
                         store=StateStore(tmp_path), on_estimate=ests.append)  # fmt: skip
         worker = threading.Thread(target=daemon.run)
         worker.start()

@@ -19,14 +19,13 @@ from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.replay import replay_log
+from tests.configs import QUICK_CALIBRATION
 from tests.faultgen import rewrite
 from tests.waiting import wait_for
 
 
 def _cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100),
-                   link=replace(c.link, heartbeat_hz=20.0))  # fmt: skip
+    return replace(QUICK_CALIBRATION, link=replace(QUICK_CALIBRATION.link, heartbeat_hz=20.0))
 
 
 def _key(e: HeadingEstimate) -> tuple[object, ...]:

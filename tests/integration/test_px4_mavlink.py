@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config, load_config
+from magcomp.adapters.config import load_config
 from magcomp.adapters.mavlink_emit import stream_to_link, write_tlog
 from magcomp.adapters.mavlink_source import load_log, open_source
 from magcomp.core.types import (
@@ -26,6 +25,7 @@ from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.replay import replay_log
 from magcomp.sim import SimConfig, simulate
+from tests.configs import QUICK_CALIBRATION
 from tests.unit.test_sources import TlogWriter
 
 
@@ -100,17 +100,12 @@ def test_highres_imu_fields_updated_and_shadowing(tmp_path: Path) -> None:
     assert later[0].field_b_mgauss == pytest.approx([220.0, -30.0, 440.0])  # type: ignore[union-attr]
 
 
-def fast_cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
-
-
 @pytest.mark.slow
 def test_live_px4_stream_over_loopback_udp_publishes_corrected_headings() -> None:
     result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=3))
     port = free_udp_port()
     ests: list[object] = []
-    daemon = Daemon(f"udpin:127.0.0.1:{port}", fast_cfg(), on_estimate=ests.append)
+    daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, on_estimate=ests.append)
     worker = threading.Thread(target=daemon.run)
     worker.start()
     try:

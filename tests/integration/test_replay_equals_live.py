@@ -5,22 +5,16 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.replay import replay_log
-
-
-def cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
+from tests.configs import QUICK_CALIBRATION
 
 
 def live(result: object, speed: float) -> list[HeadingEstimate]:
@@ -28,7 +22,7 @@ def live(result: object, speed: float) -> list[HeadingEstimate]:
 
     port = free_udp_port()
     ests: list[HeadingEstimate] = []
-    daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg(), on_estimate=ests.append)
+    daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, on_estimate=ests.append)
     worker = threading.Thread(target=daemon.run)
     worker.start()
     while daemon.connects == 0:
@@ -56,7 +50,7 @@ def test_replay_equals_live_at_two_speeds(tmp_path: Path) -> None:
     result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=5))
     path = tmp_path / "flight.tlog"
     write_tlog(result, path)
-    replayed = replay_log(path, cfg(), keep_estimates=True).estimates
+    replayed = replay_log(path, QUICK_CALIBRATION, keep_estimates=True).estimates
     n = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
     assert len(replayed) == n
     theta_last = replayed[-2].theta_mgauss
