@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from typing import IO, Any
 
 
@@ -78,3 +79,31 @@ def loopback_udp_socket(port: int = 0) -> socket.socket:
     sock.bind(("127.0.0.1", port))
     sock.settimeout(0.1)
     return sock
+
+
+@contextlib.contextmanager
+def running_daemon(daemon: Any, join_s: float = 30.0) -> Iterator[threading.Thread]:
+    """Run ``daemon`` (a :class:`~magcomp.service.daemon.Daemon`) in a thread for the block, which starts once
+    it listens (``connects`` > 0); stopped and joined (up to ``join_s``) when the block ends, also on failure.
+    Yields the thread (the caller may assert that it ended)."""
+    worker = threading.Thread(target=daemon.run)
+    worker.start()
+    try:
+        wait_for(lambda: daemon.connects > 0 or not worker.is_alive(), 60.0, "the daemon to listen")
+        yield worker
+    finally:
+        daemon.stop()
+        worker.join(timeout=join_s)
+
+
+def send_paced(packets: Sequence[bytes], port: int, every: int = 20, pause_s: float = 0.002) -> None:
+    """Send ``packets`` to 127.0.0.1:``port`` over UDP, pausing ``pause_s`` after each ``every`` of them
+    (pacing the sender so that loopback does not overrun the receiver's buffer; not waiting for anything)."""
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for i in range(0, len(packets), every):
+            for pkt in packets[i : i + every]:
+                tx.sendto(pkt, ("127.0.0.1", port))
+            threading.Event().wait(pause_s)
+    finally:
+        tx.close()

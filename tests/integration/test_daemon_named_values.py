@@ -18,7 +18,7 @@ from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.publish import named_value_names
 from tests.configs import QUICK_CALIBRATION
-from tests.waiting import collect_mavlink, loopback_udp_socket, wait_for
+from tests.waiting import collect_mavlink, loopback_udp_socket, running_daemon, wait_for
 
 
 def _listen(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
@@ -47,17 +47,13 @@ def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) ->
     powers: list[PowerSample] = []
     daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg, outs=[f"udpout:127.0.0.1:{sock.getsockname()[1]}"],
                     store=StateStore(tmp_path), on_estimate=ests.append, on_power=powers.append)  # fmt: skip
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
     try:
-        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        wait_for(lambda: len(ests) >= n_mag, 60.0, "every estimate")
-        last_ms = round(ests[-1].t_boot_s * 1000)
-        wait_for(lambda: any(m.time_boot_ms >= last_ms - 600 for m in list(got)), 60.0, "the last values")
+        with running_daemon(daemon):
+            link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+            wait_for(lambda: len(ests) >= n_mag, 60.0, "every estimate")
+            last_ms = round(ests[-1].t_boot_s * 1000)
+            wait_for(lambda: any(m.time_boot_ms >= last_ms - 600 for m in list(got)), 60.0, "the last values")
     finally:
-        daemon.stop()
-        worker.join(timeout=30)
         stop.set()
         rx.join()
         sock.close()

@@ -13,7 +13,7 @@ import pytest
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from tests.configs import QUICK_CALIBRATION
-from tests.waiting import wait_for
+from tests.waiting import running_daemon, send_paced, wait_for
 
 
 def _receiver(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
@@ -50,21 +50,12 @@ def test_two_vehicles_on_one_link_are_kept_apart() -> None:
     cfg = QUICK_CALIBRATION
     port = free_udp_port()
     daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg, outs=[f"udpout:127.0.0.1:{rx.getsockname()[1]}"])
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
     n_mag = {k: r.samples.t_s.shape[0] for k, r in sims.items()}
     try:
-        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        for i in range(0, len(merged), 20):
-            for _, _, pkt in merged[i : i + 20]:
-                tx.sendto(pkt, ("127.0.0.1", port))
-            threading.Event().wait(0.002)  # pacing the sender, not waiting for the daemon
-        tx.close()
-        wait_for(lambda: len(got) >= sum(n_mag.values()), 60.0, "every heading")
+        with running_daemon(daemon):
+            send_paced([pkt for _, _, pkt in merged], port)
+            wait_for(lambda: len(got) >= sum(n_mag.values()), 60.0, "every heading")
     finally:
-        daemon.stop()
-        worker.join(timeout=30)
         stop.set()
         rx_thread.join()
         rx.close()

@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port, run_demo
 from tests.configs import QUICK_CALIBRATION
+from tests.waiting import running_daemon, wait_for
 
 REPO = Path(__file__).parents[2]
 
@@ -55,17 +55,10 @@ def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
         ests: list[object] = []
         daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, outs=[f"udpout:127.0.0.1:{out_port}"],
                         store=StateStore(tmp_path), on_estimate=ests.append)  # fmt: skip
-        worker = threading.Thread(target=daemon.run)
-        worker.start()
-        while daemon.connects == 0:
-            time.sleep(0.01)
-        link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
-        t0 = time.monotonic()
-        while len(ests) < n_mag and time.monotonic() - t0 < 60.0:  # a condition, bounded
-            time.sleep(0.05)
-        daemon.stop()
-        worker.join(timeout=10)
+        with running_daemon(daemon, join_s=10.0) as worker:
+            link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+            n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
+            wait_for(lambda: len(ests) >= n_mag, 60.0, "every heading")
     finally:
         stop.set()
         rx.join()
@@ -107,7 +100,7 @@ def test_demo_reduces_heading_error_against_truth(tmp_path: Path) -> None:
 def test_magcomp_run_process_stops_on_sigterm_and_saves_state(tmp_path: Path) -> None:
     from magcomp.adapters.mavlink_emit import stream_to_link
     from magcomp.sim import SimConfig, simulate
-    from tests.waiting import LineReader, finish, wait_for
+    from tests.waiting import LineReader, finish
 
     port = free_udp_port()
     state = tmp_path / "state"

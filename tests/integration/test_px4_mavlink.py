@@ -3,7 +3,6 @@ BATTERY_STATUS, GPS_RAW_INT, SYSTEM_TIME; the autopilot is told by its HEARTBEAT
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from magcomp.service.replay import replay_log
 from magcomp.sim import SimConfig, simulate
 from tests.configs import QUICK_CALIBRATION
 from tests.unit.test_sources import TlogWriter
+from tests.waiting import running_daemon
 
 
 def _wrapped(a: np.ndarray) -> np.ndarray:
@@ -106,20 +106,12 @@ def test_live_px4_stream_over_loopback_udp_publishes_corrected_headings() -> Non
     port = free_udp_port()
     ests: list[object] = []
     daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, on_estimate=ests.append)
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
-    try:
-        deadline = time.monotonic() + 10.0
-        while daemon.connects == 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
+    with running_daemon(daemon, join_s=10.0) as worker:
         link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0, flavour="px4")
         n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + 10.0  # a loaded machine may drop a datagram: not all are awaited
         while len(ests) < n_mag and time.monotonic() < deadline:
             time.sleep(0.05)
-    finally:
-        daemon.stop()
-        worker.join(timeout=10)
     assert not worker.is_alive()
     # one corrected heading per compass sample, both compasses (a loaded machine may drop a datagram)
     assert 0.98 * n_mag <= len(ests) <= n_mag
