@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import IO, Any
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def wait_for(cond: Callable[[], object], timeout_s: float = 60.0, what: str = "condition") -> None:
@@ -44,6 +49,16 @@ class LineReader:
     def join(self, timeout_s: float = 10.0) -> str:
         self._thread.join(timeout_s)
         return self.text()
+
+
+def start_magcomp(*args: str) -> tuple[subprocess.Popen[str], LineReader, LineReader]:
+    """``python -m magcomp ARGS`` as a child process of this checkout (Rerun's analytics off), with its
+    stdout and stderr each read by a :class:`LineReader`."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "0"}
+    proc = subprocess.Popen([sys.executable, "-m", "magcomp", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env, cwd=REPO, text=True)  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    return proc, LineReader(proc.stdout), LineReader(proc.stderr)
 
 
 def finish(proc: subprocess.Popen[str], timeout_s: float = 60.0) -> int:

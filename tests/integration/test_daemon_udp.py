@@ -1,13 +1,10 @@
 """End to end over real UDP sockets on loopback: the simulator as the flight controller -> the daemon ->
 MAGCOMP_HEADING decoded by the flight controller (udpin: master, sent back to the sender) and by a
-second receiver on --out; and `magcomp run` as a process that stops cleanly on SIGTERM and saves state."""
+second receiver on --out. (`magcomp run` as a process stopped by signals: tests/integration/test_signals.py.)
+"""
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -20,8 +17,6 @@ from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port, run_demo
 from tests.configs import QUICK_CALIBRATION
 from tests.waiting import running_daemon, wait_for
-
-REPO = Path(__file__).parents[2]
 
 
 def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
@@ -94,36 +89,3 @@ def test_demo_reduces_heading_error_against_truth(tmp_path: Path) -> None:
     assert set(by_name) == {"pan", "ramp", "step"}
     for s in report.segments:
         assert s.max_corrected_deg * 3.0 < s.max_raw_deg, s
-
-
-@pytest.mark.slow
-def test_magcomp_run_process_stops_on_sigterm_and_saves_state(tmp_path: Path) -> None:
-    from magcomp.adapters.mavlink_emit import stream_to_link
-    from magcomp.sim import SimConfig, simulate
-    from tests.waiting import LineReader, finish
-
-    port = free_udp_port()
-    state = tmp_path / "state"
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
-         str(state), "--json", str(tmp_path / "sum.json")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=REPO, text=True,
-    )  # fmt: skip
-    assert proc.stdout is not None and proc.stderr is not None
-    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
-    try:
-        wait_for(lambda: err.has("listening on udpin:") or proc.poll() is not None, 60.0, "listening")
-        result = simulate(SimConfig(scenario="tumble", duration_s=15.0, seed=2))
-        stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        # the calibration learned on the stream is saved at once (in the background)
-        wait_for(lambda: StateStore(state).load(1, 0, SIM_UID) is not None or proc.poll() is not None, 60.0,
-                 "state")
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        code = finish(proc)
-    assert code == 0, err.join()
-    assert "listening on udpin:" in err.join()
-    assert "compass 0:" in out.join()
-    assert (tmp_path / "sum.json").exists()
-    assert StateStore(state).load(1, 0, SIM_UID) is not None
