@@ -85,6 +85,32 @@ def collect_mavlink(sock: Any, stop: threading.Event, out: list[Any], mav: Any,
                 out.append(m)
 
 
+@contextlib.contextmanager
+def receiving_mavlink(
+    types: tuple[str, ...] | None = None, mav: Any = None
+) -> Iterator[tuple[int, list[Any]]]:
+    """For the block, a thread collects the MAVLink messages (of ``types`` only, when given) that arrive on a
+    :func:`loopback_udp_socket`, parsed with ``mav`` (default: magcomp's dialect, robust parsing); yields the
+    socket's port and the list they are appended to. The thread is stopped and the socket closed when the
+    block ends, also on failure."""
+    if mav is None:
+        from magcomp.adapters.dialect import ensure_dialect
+
+        mav = ensure_dialect().MAVLink(None)
+        mav.robust_parsing = True
+    sock = loopback_udp_socket()
+    got: list[Any] = []
+    stop = threading.Event()
+    rx = threading.Thread(target=collect_mavlink, args=(sock, stop, got, mav, types))
+    rx.start()
+    try:
+        yield sock.getsockname()[1], got
+    finally:
+        stop.set()
+        rx.join()
+        sock.close()
+
+
 def loopback_udp_socket(port: int = 0) -> socket.socket:
     """A UDP socket bound on 127.0.0.1 (``port`` 0: any free one) with a 0.1 s timeout and a 4 MiB receive
     buffer: a listener thread sharing the interpreter can wait for the GIL longer than a default buffer

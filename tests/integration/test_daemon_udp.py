@@ -5,7 +5,6 @@ second receiver on --out. (`magcomp run` as a process stopped by signals: tests/
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -16,31 +15,12 @@ from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port, run_demo
 from tests.configs import QUICK_CALIBRATION
-from tests.waiting import running_daemon, wait_for
-
-
-def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
-    from magcomp.adapters.dialect import ensure_dialect
-    from tests.waiting import collect_mavlink, loopback_udp_socket
-
-    mod = ensure_dialect()
-    mav = mod.MAVLink(None)
-    mav.robust_parsing = True
-    sock = loopback_udp_socket(port)  # this thread shares the interpreter with the sender and the daemon
-    try:
-        collect_mavlink(sock, stop, out, mav)
-    finally:
-        sock.close()
+from tests.waiting import receiving_mavlink, running_daemon, wait_for
 
 
 @pytest.mark.slow
 def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
-    out_port = free_udp_port()
-    got: list[object] = []
-    stop = threading.Event()
-    rx = threading.Thread(target=_receiver, args=(out_port, stop, got))
-    rx.start()
-    try:
+    with receiving_mavlink() as (out_port, got):
         # --out is wired through the Daemon; run_demo builds the same daemon with outs=() so build one here
         from magcomp.adapters.mavlink_emit import stream_to_link
         from magcomp.sim import SimConfig, simulate
@@ -54,9 +34,6 @@ def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
             link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
             n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
             wait_for(lambda: len(ests) >= n_mag, 60.0, "every heading")
-    finally:
-        stop.set()
-        rx.join()
     assert not worker.is_alive()
     # one MAGCOMP_HEADING per magnetometer sample (both compasses), nothing lost on loopback
     assert len(ests) == n_mag
