@@ -232,6 +232,10 @@ def run_case(effect: str, seed: int | None = None, value_override: float | None 
     out: dict[str, Any] = {"effect": effect, "seed": seed, "value": value, "observable": c["observable"]}
     top = c["findings"][0] if c["findings"] else None
     out["findings"] = [f["effect"] for f in c["findings"]]
+    # what each finding explains: the residual rms (mgauss) without and with it, as the diagnosis reports
+    out["explained"] = {
+        f["effect"]: [f["evidence"].get("rms_without"), f["evidence"].get("rms_with")] for f in c["findings"]
+    }
     out["top"] = None if top is None else top.get("candidates", [top["effect"]])
     out["is_top"] = bool(top is not None and effect in out["top"])
     params: dict[str, Any] = {}

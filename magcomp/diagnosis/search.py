@@ -8,7 +8,7 @@ cannot tell apart, the greedy combination, and the open search for a step of the
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any, NamedTuple
@@ -213,13 +213,20 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         }
 
 
-def screen_effects(data: CompassData, base: ModelFit, p: SelectionParams) -> _Search:
-    """Every available extension on its own; the significant ones sorted by held-out gain."""
+def screen_effects(
+    data: CompassData, base: ModelFit, p: SelectionParams, exclude: Mapping[str, str] | None = None
+) -> _Search:
+    """Every available extension on its own; the significant ones sorted by held-out gain. ``exclude``: causes
+    ruled out before the search (name -> why, e.g. by a sibling compass: :mod:`magcomp.diagnosis.siblings`),
+    recorded as rejected with that reason."""
     s = _Search()
     for name in EFFECTS:
         why = effect_available(name, data.drive)
         if why is not None:
             s.unavailable[name] = why
+            continue
+        if exclude and name in exclude:
+            s.rejected[name] = {"why": exclude[name]}
             continue
         _test_single(name, data, base, p, s)
     s.singles.sort(key=lambda c: -c.cv_gain)
@@ -414,23 +421,27 @@ def diagnose_compass(
     events: Events | None = None,
     open_search: bool = True,
     opened: list[dict[str, Any]] | None = None,
+    exclude: Mapping[str, str] | None = None,
 ) -> CompassDiagnosis:
     """Baseline, every available extension, greedy combination; suspects on the final residual.
 
     open_search: after the selection, look for a step of the field in the residual; when one passes, it
     joins the nuisance model and the selection is run again, so a named cause that only soaked up the
     step is dropped (named causes get the first shot, so a fast warm-up is not mistaken for a step).
+    exclude: causes ruled out before the search (:func:`screen_effects`).
     """
     p = p or SelectionParams()
     bl = fit_baseline(data, p)
-    s = screen_effects(bl.data, bl.fit, p)
+    s = screen_effects(bl.data, bl.fit, p, exclude)
     group_rivals(bl.data, s)
     comb = combine(bl.data, bl.fit, p, s)
     comb, demoted = keep_repeatable(bl.data, bl.fit, comb, p, s)
     if open_search:
         st = open_step(bl.data, bl.fit, comb, p, s, log, events)
         if st is not None:
-            return diagnose_compass(st.data, source, p, log, events, open_search=False, opened=[st.info])
+            return diagnose_compass(
+                st.data, source, p, log, events, open_search=False, opened=[st.info], exclude=exclude
+            )
     return _result(bl, comb, s, source, log, events, [*(opened or []), *demoted])
 
 
