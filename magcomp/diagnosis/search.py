@@ -286,6 +286,15 @@ def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -
     return Combined(current, cv_current, kept)
 
 
+def reduced_fit(data: CompassData, current: ModelFit, name: str, max_nfev: int) -> ModelFit:
+    """``current`` refitted without the extension ``name`` (warm-started from ``current``). The start must not
+    list ``name``: :func:`fit_model` carries every nonlinear value of its start's effects over and holds the
+    ones it does not fit fixed (what a profile needs), so a start that still lists a nonlinear ``name`` would
+    keep it, at its fitted value, in the model meant to be without it."""
+    others = tuple(e for e in current.effects if e != name)
+    return fit_model(data, others, start=replace(current, effects=others), max_nfev=max_nfev)
+
+
 def keep_repeatable(
     data: CompassData, base: ModelFit, comb: Combined, p: SelectionParams, s: _Search
 ) -> tuple[Combined, list[dict[str, Any]]]:
@@ -298,7 +307,7 @@ def keep_repeatable(
     demoted: list[dict[str, Any]] = []
     for name, c in list(comb.kept):
         others = tuple(e for e in current.effects if e != name)
-        reduced = base if not others else fit_model(data, others, start=current, max_nfev=p.max_nfev)
+        reduced = base if not others else reduced_fit(data, current, name, p.max_nfev)
         rep = repeat_in_halves(data, reduced, current, name, p)
         if rep.repeats:
             continue
