@@ -182,12 +182,11 @@ class _Run:
     p: SelectionParams | None
     earth: gate_mod.EarthReference
     gate_params: gate_mod.GateParams | None
-    #: each compass's data as last given to :meth:`compass`, for a second search (:func:`_shared_clock`)
+    #: the data each kept diagnosis was searched with, for a second search (:func:`_shared_clock`)
     given: dict[int, CompassData] = field(default_factory=dict)
 
     def compass(self, data: CompassData, exclude: dict[str, str] | None = None) -> CompassDiagnosis:
         """One compass searched and gated (``exclude``: causes ruled out before the search, name -> why)."""
-        self.given[data.mag_index] = data
         data = with_gyro_bias_heading(data)  # the heading's wander through tilt, removed first
         cd = diagnose_compass(data, self.log.source, self.p, self.log, self.events, exclude=exclude)
         return with_gate(cd, self.log, self.earth, self.gate_params)
@@ -242,6 +241,7 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
                 f"logged time on average), then by {-1000 * latency:+.1f} ms, the compass's fitted latency"
             )
         comps.append(run.compass(data))
+        run.given[idx] = data
     notes[first:first] = [_left_out_note(ts, idxs) for ts, idxs in left_out.items()]
     if not comps:
         raise InputError("no compass has enough samples to diagnose")
@@ -270,8 +270,10 @@ def _prefer_compass_yaw(run: _Run, comps: list[CompassDiagnosis], notes: list[st
         if not others:
             continue
         ref = min(others, key=_rel_theta)
-        alt = run.compass(_with_compass_yaw(c, ref))
+        alt_data = _with_compass_yaw(c, ref)
+        alt = run.compass(alt_data)
         if alt.baseline.rms_mgauss < c.baseline.rms_mgauss:
+            run.given[c.index] = alt_data
             notes.append(
                 f"compass {c.index}: yaw from compass {ref.index} instead of the autopilot's "
                 f"(paper-model residual {c.baseline.rms_mgauss:.1f} -> {alt.baseline.rms_mgauss:.1f} mgauss)"
