@@ -22,7 +22,7 @@ the CLI live in :mod:`magcomp.diagnosis.report` and :mod:`magcomp.commands.diagn
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cache, partial
 
 import numpy as np
@@ -58,6 +58,7 @@ from magcomp.diagnosis.partial import theta_with_prior
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
 from magcomp.diagnosis.selection import SelectionParams
+from magcomp.diagnosis.siblings import clock_conflicts
 from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 from magcomp.errors import InputError
 
@@ -181,12 +182,26 @@ class _Run:
     p: SelectionParams | None
     earth: gate_mod.EarthReference
     gate_params: gate_mod.GateParams | None
+    #: the data each kept diagnosis was searched with, for a second search (:func:`_shared_clock`)
+    given: dict[int, CompassData] = field(default_factory=dict)
 
-    def compass(self, data: CompassData) -> CompassDiagnosis:
-        """One compass searched and gated."""
+    def compass(self, data: CompassData, exclude: dict[str, str] | None = None) -> CompassDiagnosis:
+        """One compass searched and gated (``exclude``: causes ruled out before the search, name -> why)."""
         data = with_gyro_bias_heading(data)  # the heading's wander through tilt, removed first
-        cd = diagnose_compass(data, self.log.source, self.p, self.log, self.events)
+        cd = diagnose_compass(data, self.log.source, self.p, self.log, self.events, exclude=exclude)
         return with_gate(cd, self.log, self.earth, self.gate_params)
+
+
+def _shared_clock(run: _Run, comps: list[CompassDiagnosis], notes: list[str]) -> list[CompassDiagnosis]:
+    """A time_skew that a sibling compass of the log contradicts with stronger evidence is refused and the
+    compass searched again without it (:mod:`magcomp.diagnosis.siblings`)."""
+    conflicts = clock_conflicts(comps)
+    out = list(comps)
+    for i, c in enumerate(comps):
+        if c.index in conflicts:
+            notes.append(f"compass {c.index}: time_skew refused: {conflicts[c.index]}")
+            out[i] = run.compass(run.given[c.index], exclude={"time_skew": conflicts[c.index]})
+    return out
 
 
 def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
@@ -226,6 +241,7 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
                 f"logged time on average), then by {-1000 * latency:+.1f} ms, the compass's fitted latency"
             )
         comps.append(run.compass(data))
+        run.given[idx] = data
     notes[first:first] = [_left_out_note(ts, idxs) for ts, idxs in left_out.items()]
     if not comps:
         raise InputError("no compass has enough samples to diagnose")
@@ -254,8 +270,10 @@ def _prefer_compass_yaw(run: _Run, comps: list[CompassDiagnosis], notes: list[st
         if not others:
             continue
         ref = min(others, key=_rel_theta)
-        alt = run.compass(_with_compass_yaw(c, ref))
+        alt_data = _with_compass_yaw(c, ref)
+        alt = run.compass(alt_data)
         if alt.baseline.rms_mgauss < c.baseline.rms_mgauss:
+            run.given[c.index] = alt_data
             notes.append(
                 f"compass {c.index}: yaw from compass {ref.index} instead of the autopilot's "
                 f"(paper-model residual {c.baseline.rms_mgauss:.1f} -> {alt.baseline.rms_mgauss:.1f} mgauss)"
@@ -310,7 +328,7 @@ def diagnose(
     earth = earth or gate_mod.NO_POSITION
     notes: list[str] = [f"Earth field reference: {earth.source}"]
     run = _Run(log, events, p, earth, gate_params)
-    comps = _prefer_compass_yaw(run, _each_compass(run, notes), notes)
+    comps = _shared_clock(run, _prefer_compass_yaw(run, _each_compass(run, notes), notes), notes)
     prim = primary if primary is not None else comps[0].index
     if prim not in [c.index for c in comps]:
         raise InputError(f"compass {prim} is not in the log or has too few samples")

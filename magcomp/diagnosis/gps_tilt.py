@@ -47,7 +47,8 @@ SMOOTH_S = 2.0
 #: The GNSS latencies searched (s): a receiver's velocity solution reaches the log 0.1-0.3 s after the
 #: motion it describes (ArduPilot's GPS_DELAY_MS and PX4's EKF2_GPS_DELAY default to 0.2 s and 0.11 s;
 #: measured here on the development logs: 0.25 s on log171, 0.15-0.19 s on the peterbarker logs, 0.05-0.12 s
-#: on the PX4 ones at 2 Hz); a simulated log has none. A best shift at either end is taken as not found.
+#: on the PX4 ones at 2 Hz); a simulated log has none. A best shift at either end is taken as not found; one
+#: below 0 as 0 (:func:`gnss_delay`).
 DELAY_GRID_S = np.round(np.arange(-0.2, 0.6001, 0.01), 3)
 
 #: Fraction of the GNSS intervals (the best-agreeing) whose mean square mismatch the latency minimises: the
@@ -141,7 +142,10 @@ def gnss_delay(
     best = int(np.argmin(cost))
     if not np.isfinite(cost[best]) or best in (0, DELAY_GRID_S.shape[0] - 1):
         return None
-    return float(DELAY_GRID_S[best])
+    # a receiver's velocity describes motion that has already happened: a latency is >= 0, and a best shift
+    # below 0 (simulated logs, which have none: -20..+20 ms) is the estimate's scatter about none; the grid
+    # reaches below 0 only so that a best shift at 0 is not taken for one at the grid's end
+    return max(float(DELAY_GRID_S[best]), 0.0)
 
 
 def gps_down_reference(

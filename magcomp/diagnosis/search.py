@@ -8,7 +8,7 @@ cannot tell apart, the greedy combination, and the open search for a step of the
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any, NamedTuple
@@ -213,13 +213,20 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         }
 
 
-def screen_effects(data: CompassData, base: ModelFit, p: SelectionParams) -> _Search:
-    """Every available extension on its own; the significant ones sorted by held-out gain."""
+def screen_effects(
+    data: CompassData, base: ModelFit, p: SelectionParams, exclude: Mapping[str, str] | None = None
+) -> _Search:
+    """Every available extension on its own; the significant ones sorted by held-out gain. ``exclude``: causes
+    ruled out before the search (name -> why, e.g. by a sibling compass: :mod:`magcomp.diagnosis.siblings`),
+    recorded as rejected with that reason."""
     s = _Search()
     for name in EFFECTS:
         why = effect_available(name, data.drive)
         if why is not None:
             s.unavailable[name] = why
+            continue
+        if exclude and name in exclude:
+            s.rejected[name] = {"why": exclude[name]}
             continue
         _test_single(name, data, base, p, s)
     s.singles.sort(key=lambda c: -c.cv_gain)
@@ -279,6 +286,15 @@ def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -
     return Combined(current, cv_current, kept)
 
 
+def reduced_fit(data: CompassData, current: ModelFit, name: str, max_nfev: int) -> ModelFit:
+    """``current`` refitted without the extension ``name`` (warm-started from ``current``). The start must not
+    list ``name``: :func:`fit_model` carries every nonlinear value of its start's effects over and holds the
+    ones it does not fit fixed (what a profile needs), so a start that still lists a nonlinear ``name`` would
+    keep it, at its fitted value, in the model meant to be without it."""
+    others = tuple(e for e in current.effects if e != name)
+    return fit_model(data, others, start=replace(current, effects=others), max_nfev=max_nfev)
+
+
 def keep_repeatable(
     data: CompassData, base: ModelFit, comb: Combined, p: SelectionParams, s: _Search
 ) -> tuple[Combined, list[dict[str, Any]]]:
@@ -291,7 +307,7 @@ def keep_repeatable(
     demoted: list[dict[str, Any]] = []
     for name, c in list(comb.kept):
         others = tuple(e for e in current.effects if e != name)
-        reduced = base if not others else fit_model(data, others, start=current, max_nfev=p.max_nfev)
+        reduced = base if not others else reduced_fit(data, current, name, p.max_nfev)
         rep = repeat_in_halves(data, reduced, current, name, p)
         if rep.repeats:
             continue
@@ -414,23 +430,27 @@ def diagnose_compass(
     events: Events | None = None,
     open_search: bool = True,
     opened: list[dict[str, Any]] | None = None,
+    exclude: Mapping[str, str] | None = None,
 ) -> CompassDiagnosis:
     """Baseline, every available extension, greedy combination; suspects on the final residual.
 
     open_search: after the selection, look for a step of the field in the residual; when one passes, it
     joins the nuisance model and the selection is run again, so a named cause that only soaked up the
     step is dropped (named causes get the first shot, so a fast warm-up is not mistaken for a step).
+    exclude: causes ruled out before the search (:func:`screen_effects`).
     """
     p = p or SelectionParams()
     bl = fit_baseline(data, p)
-    s = screen_effects(bl.data, bl.fit, p)
+    s = screen_effects(bl.data, bl.fit, p, exclude)
     group_rivals(bl.data, s)
     comb = combine(bl.data, bl.fit, p, s)
     comb, demoted = keep_repeatable(bl.data, bl.fit, comb, p, s)
     if open_search:
         st = open_step(bl.data, bl.fit, comb, p, s, log, events)
         if st is not None:
-            return diagnose_compass(st.data, source, p, log, events, open_search=False, opened=[st.info])
+            return diagnose_compass(
+                st.data, source, p, log, events, open_search=False, opened=[st.info], exclude=exclude
+            )
     return _result(bl, comb, s, source, log, events, [*(opened or []), *demoted])
 
 
