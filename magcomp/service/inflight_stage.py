@@ -93,6 +93,10 @@ class InflightStage:
         self.why = why
         self.calibrated_by_autopilot = calibrated
         self.switches = switches or FeedSwitches()
+        self._relative = mode == "relative"
+        # the relative form's compass-free yaw (FeedSwitches.gyro_yaw), its rows with the motors running only
+        self._gyro_on = self._relative and self.switches.gyro_yaw
+        self._motors_only = self.switches.window_rows_motors_only
         cal = calibrated is True
         self.params = InflightParams(
             sigma_a=cfg.sigma_a_calibrated if cal else cfg.sigma_a_uncalibrated,
@@ -108,6 +112,7 @@ class InflightStage:
         self._rows: WindowRowFeed | None = None  # the relative form's window-field rows into both
         self.n_motors = -1  # decided at the first sample
         self._period = 1.0 / cfg.max_rate_hz
+        self._min_gap = 0.9 * self._period  # a sample closer than this to the last one fed is left out
         self._solve_period = cfg.solve_period_s
         #: the tilt model's estimator is re-solved at every this many solutions of the published one
         self._tilt_every = max(1, round(cfg.tilt_solve_period_s / cfg.solve_period_s))
@@ -224,37 +229,58 @@ class InflightStage:
         (``AttitudeStage.gyro_yaw_at``) for the relative form's compass-free yaw (None: the rotation
         source's own yaw).
         """
-        if self._last_fed is not None and t_s - self._last_fed < 0.9 * self._period and t_s > self._last_fed:
+        last = self._last_fed
+        if last is not None and t_s - last < self._min_gap and t_s > last:
             return
-        if self.n_motors < 0:
+        n_motors = self.n_motors
+        if n_motors < 0:
             use = self.cfg.per_motor == "auto" and 2 <= len(motors_01) <= 8
-            self.n_motors = len(motors_01) if use else 0
-        if self._est is None:
+            n_motors = self.n_motors = len(motors_01) if use else 0
+        est = self._est
+        if est is None:
             self._new_estimators()
-        assert self._est is not None
+            est = self._est
+        assert est is not None
         if field_ref_n_mgauss is not None and field_ref_n_mgauss is not self._earth_given:
             # the pipeline hands the same read-only array until the Earth field changes
             self._earth_given = field_ref_n_mgauss
-            self._est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
+            est.set_earth_field(np.asarray(field_ref_n_mgauss, dtype=float))
             if self.est_tilt is not None:
-                self.est_tilt.set_earth_field(self._est.field_ned_mgauss)
-        mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
-        if self.n_motors > 0 and mot is None:
-            return  # the motor set changed: these regressors would not match
+                self.est_tilt.set_earth_field(est.field_ned_mgauss)
+        mot = None
+        if n_motors > 0:
+            if len(motors_01) != n_motors:
+                return  # the motor set changed: these regressors would not match
+            mot = motors_01
         self._last_fed = t_s
         y = field_mgauss  # as it came: an array is made a block of samples at a time (core.inflight.feed)
-        r_nb = r_abs_nb if self.mode == "absolute" else r_rel_nb
-        if r_nb is None or (self.mode == "absolute" and field_ref_n_mgauss is None):
-            if self.mode == "relative":
+        relative = self._relative
+        r_nb = r_rel_nb if relative else r_abs_nb
+        if r_nb is None or (not relative and field_ref_n_mgauss is None):
+            if relative:
                 self.reset_pairs()
             return
         self._slow_link = r_t_s is not None
         late_r = r_t_s is not None and r_t_s < t_s
         late_thr = throttle_t_s is not None and throttle_t_s < t_s
-        gyro = self.mode == "relative" and self.switches.gyro_yaw
+        gyro = self._gyro_on
         if not (late_r or late_thr or self._matcher.waiting):
-            turn = self._gyro_yaw(r_nb, gyro_yaw) if gyro else None
-            self._use(t_s, y, regressor_values(throttle_01, mot), r_nb, field_ref_n_mgauss, turn)
+            x = regressor_values(throttle_01, mot)
+            if not relative:
+                self._use(t_s, y, x, r_nb, field_ref_n_mgauss)
+            elif x[0] > 0.0 or not self._motors_only:
+                # the relative form's window-field rows, inline (_use, _gyro_yaw, _window_row: one sample's
+                # calls are ~10 % of the stage)
+                turn = None
+                if gyro:
+                    turn, restart = self._frame.turn(r_nb, gyro_yaw)
+                    if restart:
+                        self._continuing = False
+                self._window_row(t_s, r_nb, y, x, turn)
+            else:
+                if gyro:
+                    self._gyro_yaw(r_nb, gyro_yaw)
+                self.n_motors_off += 1
             return
         t_r = t_s if r_t_s is None else r_t_s
         t_thr = t_s if throttle_t_s is None else throttle_t_s
@@ -493,5 +519,3 @@ class InflightStage:
             else sol.motor_theta_mgauss.tolist(),
             "time_s": dict(self.time_s),
         }
-
-
