@@ -25,6 +25,7 @@ the log's length; the second pass reads it back a chunk at a time.
 from __future__ import annotations
 
 import math
+import struct
 import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
@@ -57,6 +58,9 @@ N_COLS = 28
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
 #: 8192 rows of 28 float64 are 1.8 MB
 CHUNK_ROWS = 8192
+#: one row packed as the array's doubles (native order; the same values as ``array.extend``, which converts
+#: each item as this does, in ~40 % of its time)
+_ROW = struct.Struct(f"{N_COLS}d")
 
 
 class SampleLog:
@@ -81,14 +85,16 @@ class SampleLog:
                 self._rebooted.discard(idx)
                 reboot = True
         prev = rec.prev_t
+        prev = math.nan if prev is None else prev
         vx, vy, vz = rec.raw
         gx, gy, gz = rec.gyro
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
-        buf.extend((rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle, rec.flags,
-                    rec.reset, math.nan if prev is None else prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh,
-                    gy, gz, boot_offset_s, reboot, *yaws,
-                    imu_dt_s, *onb, turn_rate(gx, gy, gz, rec.tilt[0] * rec.tilt[2])))  # fmt: skip
+        tilt = rec.tilt
+        buf.frombytes(_ROW.pack(rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle,
+                                rec.flags, rec.reset, prev, rec.obs_reset, *tilt,
+                                rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws, imu_dt_s, *onb,
+                                turn_rate(gx, gy, gz, tilt[0] * tilt[2])))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 

@@ -62,6 +62,8 @@ def learn_config(cfg: InflightConfig) -> InflightConfig:
                    tilt_solve_period_s=max(cfg.tilt_solve_period_s, LEARN_TILT_SOLVE_PERIOD_S))  # fmt: skip
 
 
+_new_output = tuple.__new__
+
 #: states a compass spends time in (summary)
 STATES = ("corrected", "learning", "uncorrected")
 
@@ -357,7 +359,8 @@ class InflightStage:
         state = "uncorrected"
         out: InflightOutput | None = None
         sol = self.solution
-        due = sol is None or self._solved_t is None or not 0.0 <= t_s - self._solved_t < self._solve_period
+        solved_t = self._solved_t
+        due = sol is None or solved_t is None or not 0.0 <= t_s - solved_t < self._solve_period
         if due:
             self.flush()
         if est is not None and (est.n >= 10 or self.warm_started):
@@ -372,7 +375,8 @@ class InflightStage:
                 th = sol.theta_mgauss.tolist()
                 self._theta3 = (th[0], th[1], th[2])
             state = "learning"
-            mot = motors_01 if self.n_motors > 0 and len(motors_01) == self.n_motors else None
+            n_motors = self.n_motors
+            mot = motors_01 if n_motors > 0 and len(motors_01) == n_motors else None
             bias3 = bias_at(sol, self._theta3, throttle_01, mot)
             if not self.applied:
                 ok, self.corrected_field_mgauss = apply_decision(
@@ -385,11 +389,16 @@ class InflightStage:
             if self.applied:
                 state = "corrected"
                 sig = sol.heading_sigma_deg
-                out = InflightOutput(  # coeffs, theta, bias, converged, warm started, relative form, sigma
-                    self._coeffs, self._theta3, bias3, sig < self.params.heading_converged_deg,
-                    self.warm_started, self.mode == "relative", sig,
-                )  # fmt: skip
-        self.account(t_s, state)
+                # coeffs, theta, bias, converged, warm started, relative form, sigma (tuple.__new__: the named
+                # tuple's own constructor without its keyword handling, ~0.3 us a sample less)
+                out = _new_output(InflightOutput, (self._coeffs, self._theta3, bias3,
+                                                   sig < self.params.heading_converged_deg, self.warm_started,
+                                                   self._relative, sig))  # fmt: skip
+        # account(), inline: one call a sample less
+        last = self._last_t
+        if last is not None and 0.0 < t_s - last <= 5.0:
+            self.time_s[state] += t_s - last
+        self._last_t = t_s
         return out
 
     def flush(self) -> None:
