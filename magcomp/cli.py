@@ -24,7 +24,7 @@ from magcomp.errors import MagcompError
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The command line's parser. ``only``: the command given, whose module alone is imported and whose
     arguments alone are declared (the others are named, without arguments: a command line that names
-    ``only`` is parsed the same; ~17 ms of CPU less at each start, the other command modules' imports)."""
+    ``only`` is parsed the same; ~15 ms of CPU less at each start, the other command modules' imports)."""
     parser = argparse.ArgumentParser(
         prog="magcomp",
         description="Online compensation of throttle-driven magnetometer bias for MAVLink vehicles.",

@@ -157,11 +157,8 @@ def iter_mavlink_frames(
     ``reference_mav`` (tests): pymavlink's ``MAVLink.decode`` instead. ``rx_into``: gets ``rx_s`` and
     ``rx_src`` (the tlog receive stamp in s, the sender's system id) before each message is yielded."""
     mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
-    view, n, p = memoryview(data), len(data), 0
-    magics = (MAGIC_V1, MAGIC_V2)
-    get = decoders.get
-    stamp_rx = rx_into is not None and ts_len == 8
-    unpack_stamp = _TLOG_STAMP.unpack_from
+    view, n, p, magics, get = memoryview(data), len(data), 0, (MAGIC_V1, MAGIC_V2), decoders.get
+    stamp_rx, unpack_stamp = rx_into is not None and ts_len == 8, _TLOG_STAMP.unpack_from  # the tlog's stamps
     # a chunk: stop while a whole frame, its timestamp and the next frame's magic may still be missing
     limit = n - ts_len - 8 if final else n - 2 * ts_len - _MAX_FRAME - 1
     while p <= limit:

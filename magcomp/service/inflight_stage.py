@@ -268,21 +268,10 @@ class InflightStage:
         gyro = self._gyro_on
         if not (late_r or late_thr or self._matcher.waiting):
             x = regressor_values(throttle_01, mot)
-            if not relative:
-                self._use(t_s, y, x, r_nb, field_ref_n_mgauss)
-            elif x[0] > 0.0 or not self._motors_only:
-                # the relative form's window-field rows, inline (_use, _gyro_yaw, _window_row: one sample's
-                # calls are ~10 % of the stage)
-                turn = None
-                if gyro:
-                    turn, restart = self._frame.turn(r_nb, gyro_yaw)
-                    if restart:
-                        self._continuing = False
-                self._window_row(t_s, r_nb, y, x, turn)
+            if relative:
+                self._relative_row(t_s, y, x, r_nb, gyro_yaw)
             else:
-                if gyro:
-                    self._gyro_yaw(r_nb, gyro_yaw)
-                self.n_motors_off += 1
+                self._use(t_s, y, x, r_nb, field_ref_n_mgauss)
             return
         t_r = t_s if r_t_s is None else r_t_s
         t_thr = t_s if throttle_t_s is None else throttle_t_s
@@ -293,6 +282,21 @@ class InflightStage:
             # the gyro's yaw came with the field (the same RAW_IMU): the attitude now matches its time
             turn = self._gyro_yaw(r_at, gy, matched=True) if gyro else None
             self._use(tp, yp, regressor_values(thr_at, mp), r_at, ref, turn)
+
+    def _relative_row(
+        self, t_s: float, y: Field3, x: tuple[float, ...], r_nb: F64, gyro_yaw: GyroYaw | None
+    ) -> None:
+        """:meth:`_use` of the relative form for a sample at its own time, with :meth:`_gyro_yaw` inline
+        (one call a sample instead of three)."""
+        turn = None
+        if self._gyro_on:
+            turn, restart = self._frame.turn(r_nb, gyro_yaw)
+            if restart:
+                self._continuing = False
+        if x[0] > 0.0 or not self._motors_only:
+            self._window_row(t_s, r_nb, y, x, turn)
+        else:
+            self.n_motors_off += 1
 
     def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> YawTurn | None:
         """The yaw turn that gives ``r_nb`` the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.
