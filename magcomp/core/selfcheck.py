@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.correction import Correction, headings_deg
+from magcomp.core.yaw_follow import YawFollow, fit_follow_gain, follows_within, window_follow_terms
 
 F64 = NDArray[np.float64]
 
@@ -84,6 +85,9 @@ MAX_TILT_COS = 0.5
 
 #: the largest relative increase of the rms against the autopilot's yaw still "no worse" (att_tolerance_deg)
 MAX_ATT_WORSE_FRACTION = 0.1
+#: the windows (s) on which the autopilot's yaw-follow gain is measured (core/yaw_follow.py): short against
+#: the time constants that matter here (a window's WINDOW_S), long against a 10 Hz stream's interval
+FOLLOW_WINDOW_S = 2.0
 
 
 @functools.lru_cache(maxsize=256)
@@ -277,6 +281,9 @@ class SelfCheck:
     #: worse than the baseline (less consistent with the gyro, or further from the autopilot's yaw than its
     #: tolerance): what switches a running correction off again; "not better beyond the noise" does not
     worse: bool = False
+    #: the autopilot's yaw follows the compass judged within a window (:func:`att_is_circular`): the rms
+    #: against it is reported, not used
+    att_circular: bool = False
 
     def describe(self) -> str:
         """One line for the console: "heading vs gyro: 6.2 -> 2.5 deg (z 4.1, 23 windows)"."""
@@ -285,6 +292,8 @@ class SelfCheck:
             g += f" (gain {self.z:.1f} sigma over {self.n_windows} windows)"
         if math.isfinite(self.baseline_att_deg) and math.isfinite(self.candidate_att_deg):
             g += f"; vs autopilot yaw {self.baseline_att_deg:.1f} -> {self.candidate_att_deg:.1f} deg"
+            if self.att_circular:
+                g += " (not used: that yaw follows this compass within seconds)"
         return g
 
 
@@ -294,6 +303,7 @@ def compare(
     reference_rad: F64,
     ids: NDArray[np.int64],
     autopilot_yaw_rad: F64 | None = None,
+    att_circular: bool = False,
 ) -> SelfCheck:
     """Judge ``candidate_rad`` against ``baseline_rad`` (headings of the same samples) with the windowed
     reference (gyro yaw, or the autopilot's yaw where the gyro is slow; ``ids`` from :func:`window_ids`)
@@ -318,26 +328,54 @@ def compare(
         ap_ok = ap[ok]
         att_b, att_c = offset_removed_rms_deg(b - ap_ok), offset_removed_rms_deg(c - ap_ok)
         z_att = paired_z(window_ms_about_mean(b - ap_ok, ids_ok), window_ms_about_mean(c - ap_ok, ids_ok))
-    return decide(n_b, mse_b, mse_c, att_b, att_c, z_att)
+    return decide(n_b, mse_b, mse_c, att_b, att_c, z_att, att_circular)
 
 
-def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: float) -> SelfCheck:
+def autopilot_follows(t_s: F64, baseline_rad: F64, autopilot_yaw_rad: F64, gyro_yaw_rad: F64,
+                      segment: F64) -> YawFollow | None:  # fmt: skip
+    """How fast the autopilot's yaw follows the baseline (the compass's heading as the autopilot has it),
+    measured on the check's own samples (core/yaw_follow.py, FOLLOW_WINDOW_S windows within the gyro's
+    segments); None where it cannot be measured."""
+    t = np.asarray(t_s, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(baseline_rad) & np.isfinite(autopilot_yaw_rad)
+    ok &= np.isfinite(gyro_yaw_rad)
+    if int(ok.sum()) < 3:
+        return None
+    ids = window_ids(t[ok], np.asarray(segment, dtype=float)[ok], FOLLOW_WINDOW_S)
+    rates, offs = window_follow_terms(t[ok], np.asarray(baseline_rad)[ok], np.asarray(autopilot_yaw_rad)[ok],
+                                      np.asarray(gyro_yaw_rad)[ok], ids)  # fmt: skip
+    return fit_follow_gain(rates, offs)
+
+
+def att_is_circular(follow: YawFollow | None) -> bool:
+    """The autopilot's yaw follows the compass judged with a time constant shorter than the check's window
+    (WINDOW_S): it then holds that compass's error on every time scale the windows do not see already, and
+    a candidate that removes the error moves away from it (the simulator's complementary filter, 0.5 /s); a
+    real EKF's 0.01-0.05 /s leaves it a reference over tens of seconds."""
+    return follows_within(follow, WINDOW_S)
+
+
+def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: float,
+           att_circular: bool = False) -> SelfCheck:  # fmt: skip
     """The rule of :func:`compare` on its window statistics: per window the samples and the mean squared
     residuals against the windowed reference (rad^2), the rms against the autopilot's yaw (deg) and the paired
-    gain against it in standard errors (NaN: that yaw is not independent evidence)."""
+    gain against it in standard errors (NaN: that yaw is not independent evidence). ``att_circular``: that
+    yaw follows the compass judged (:func:`att_is_circular`): neither a veto nor a gain."""
     tot = float(np.sum(n_w))
     gyro_b = math.degrees(math.sqrt(float(np.sum(n_w * mse_b)) / tot)) if n_w.size else math.nan
     gyro_c = math.degrees(math.sqrt(float(np.sum(n_w * mse_c)) / tot)) if n_w.size else math.nan
     nw = int(n_w.size)
     if nw < MIN_WINDOWS:
-        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False,
-                         f"only {nw} usable windows with the motors running")  # fmt: skip
+        why = f"only {nw} usable windows with the motors running"
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, math.nan, False, why, att_circular=att_circular)
+    if att_circular:
+        z_att = math.nan
     z = paired_z(mse_b, mse_c)
     crit = t_critical(nw)
     if gyro_c > gyro_b:
         why = f"less consistent with the gyro than the autopilot's own ({gyro_b:.1f} -> {gyro_c:.1f} deg)"
-        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=True)
-    if math.isfinite(att_c) and att_c > att_b + att_tolerance_deg(att_b, nw):
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, True, att_circular)
+    if not att_circular and math.isfinite(att_c) and att_c > att_b + att_tolerance_deg(att_b, nw):
         why = f"in less agreement with the autopilot's yaw than its own ({att_b:.1f} -> {att_c:.1f} deg)"
         return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, worse=True)
     if not (z >= crit or z_att >= crit):
@@ -347,9 +385,9 @@ def decide(n_w: F64, mse_b: F64, mse_c: F64, att_b: float, att_c: float, z_att: 
             + (f"; against its yaw {att_b:.1f} -> {att_c:.1f} deg, {z_att:+.1f} sigma)"
                if math.isfinite(z_att) else ")")
         )
-        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why)
+        return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, z, False, why, att_circular=att_circular)
     return SelfCheck(gyro_b, gyro_c, att_b, att_c, nw, max(z, z_att) if math.isfinite(z_att) else z, True,
-                     "better than the autopilot's own heading")  # fmt: skip
+                     "better than the autopilot's own heading", att_circular=att_circular)  # fmt: skip
 
 
 class RunningSelfCheck:
@@ -362,12 +400,14 @@ class RunningSelfCheck:
         self.window_s = window_s
         self._key: tuple[int, float] | None = None
         self._t0 = math.nan
-        self._rows: list[tuple[float, float, float, float]] = []
+        self._rows: list[tuple[float, float, float, float, float]] = []  # t, base, cand, ref, autopilot yaw
         self._n: list[float] = []
         self._mse_b: list[float] = []
         self._mse_c: list[float] = []
         self._att: list[tuple[float, float, float, float, float]] = []  # n, sum b, sum b^2, sum c, sum c^2
         self._offset_sums: list[tuple[float, float]] = []  # per window: sum sin, sum cos of (base - cand)
+        #: per window: the autopilot's yaw-follow terms (core/yaw_follow.py: rate of D, mean offset)
+        self._follow: list[tuple[float, float]] = []
         self._offset: float | None = None  # the windows' offset (None: not computed yet)
         #: the offset held since the correction switched on (None: off, the windows' offset is used)
         self._held: float | None = None
@@ -424,7 +464,9 @@ class RunningSelfCheck:
         v = self.verdict
         if v is None:
             return math.nan
-        return v.baseline_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.baseline_gyro_deg
+        if v.baseline_att_deg == v.baseline_att_deg and not v.att_circular:
+            return v.baseline_att_deg
+        return v.baseline_gyro_deg
 
     @property
     def candidate_bound_deg(self) -> float:
@@ -437,7 +479,8 @@ class RunningSelfCheck:
         v = self.verdict
         if v is None or v.n_windows < MIN_WINDOWS:
             return math.inf
-        c = v.candidate_att_deg if v.baseline_att_deg == v.baseline_att_deg else v.candidate_gyro_deg
+        att = v.baseline_att_deg == v.baseline_att_deg and not v.att_circular
+        c = v.candidate_att_deg if att else v.candidate_gyro_deg
         return rms_upper_deg(c, v.n_windows) if c == c else math.inf
 
     def publishes(self, heading_sigma_deg: float) -> bool:
@@ -461,7 +504,7 @@ class RunningSelfCheck:
         if key != self._key:
             closed = self._close()
             self._key = key
-        self._rows.append((base_rad, cand_rad, ref_rad, ap_yaw_rad))
+        self._rows.append((t_s, base_rad, cand_rad, ref_rad, ap_yaw_rad))
         return closed
 
     def _close(self) -> bool:
@@ -469,6 +512,7 @@ class RunningSelfCheck:
         if len(rows) < MIN_PER_WINDOW:
             return False
         a = np.asarray(rows, dtype=float)
+        t, a = a[:, 0], a[:, 1:]
         ids = np.zeros(a.shape[0], dtype=np.int64)
         n, mb = window_mse(a[:, 0] - a[:, 2], ids)
         _, mc = window_mse(a[:, 1] - a[:, 2], ids)
@@ -486,6 +530,9 @@ class RunningSelfCheck:
             ec = wrap_rad(a[:, 1] - ap - self._off[1])
             sums = (float(eb.size), float(eb.sum()), float(eb @ eb), float(ec.sum()), float(ec @ ec))
             self._att.append(sums)
+            rate, off = window_follow_terms(t, a[:, 0], ap, a[:, 2], ids)
+            if rate.size:
+                self._follow.append((float(rate[0]), float(off[0])))
         v = self.verdict = self._decide()
         was = self.on
         self.on = v.applies or (self.on and not v.worse)
@@ -499,7 +546,9 @@ class RunningSelfCheck:
         k = max(MIN_WINDOWS, int(RECENT_S / self.window_s))
         del self._n[:-k], self._mse_b[:-k], self._mse_c[:-k], self._offset_sums[:-k]
         att_b = att_c = z_att = math.nan
-        del self._att[:-k]
+        del self._att[:-k], self._follow[:-k]
+        f = np.asarray(self._follow, dtype=float).reshape(-1, 2)
+        circular = att_is_circular(fit_follow_gain(f[:, 0], f[:, 1]))
         if self._att:
             s = np.asarray(self._att)
             n = s[:, 0]
@@ -511,4 +560,4 @@ class RunningSelfCheck:
             ms_c = (s[:, 4] - 2.0 * mc * s[:, 3]) / n + mc * mc
             z_att = paired_z(ms_b, ms_c)
         n_w, mse_b, mse_c = np.asarray(self._n), np.asarray(self._mse_b), np.asarray(self._mse_c)
-        return decide(n_w, mse_b, mse_c, att_b, att_c, z_att)
+        return decide(n_w, mse_b, mse_c, att_b, att_c, z_att, circular)

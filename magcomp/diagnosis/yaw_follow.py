@@ -17,13 +17,13 @@ Pure, no I/O: arrays in, a :class:`YawFollow` out. Frames: body FRD, NED; angles
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.heading import tilt_compensated_heading_deg
 from magcomp.core.rotations import euler_yaw_rate_coefs
+from magcomp.core.yaw_follow import YawFollow, fit_follow_gain
 
 F64 = NDArray[np.float64]
 
@@ -34,26 +34,6 @@ WINDOW_S = 2.0
 MIN_SAMPLES_PER_WINDOW = 3
 #: tilt (rad) above which the tilt-compensated compass heading is left out (near 90 deg it is undefined)
 MAX_TILT_RAD = math.radians(45.0)
-#: windows whose rate lies beyond this many robust (median-absolute) sigmas of the line are left out: for
-#: Gaussian scatter one window in 16,000 would be, a yaw reset or a gyro glitch always is
-OUTLIER_Z = 4.0
-
-
-@dataclass(frozen=True)
-class YawFollow:
-    """gain_per_s: k of the model above, 1/s, with its standard error; bias_rad_s: b; n_windows used;
-    spread_rad: rms of the compass's heading minus the autopilot's yaw over the windows (what k is
-    measured against: with a spread of a fraction of a degree, k is not determined); n_left_out: windows
-    left out as jumps (OUTLIER_Z)."""
-
-    gain_per_s: float
-    gain_sigma_per_s: float
-    bias_rad_s: float
-    n_windows: int
-    spread_rad: float
-    n_left_out: int = 0
-
-
 def gyro_yaw_integral(t_imu_s: F64, gyro_rad_s: F64, t_att_s: F64, attitude_rad: F64) -> F64:
     """The gyro's yaw (rad, 0 at the first IMU sample) as the pipeline integrates it
     (service/attitude.py): the Euler yaw rate ``q c0 + r c1`` with the coefficients of the latest attitude
@@ -123,27 +103,4 @@ def yaw_follow_gain(
         tw, dw = t_att_s[sel], d[sel]
         rates.append(float((dw[-1] - dw[0]) / (tw[-1] - tw[0])))
         offs.append(float(np.mean(dc[sel])))
-    if len(rates) < 5:
-        return None
-    y = np.array(rates)
-    x = np.column_stack([np.ones(len(offs)), np.array(offs)])
-    sol, *_ = np.linalg.lstsq(x, y, rcond=None)
-    e = y - x @ sol
-    # a yaw reset (an EKF realigning its yaw at take-off: 15.6 deg in one window on log171) or a gyro
-    # glitch is a jump in one window, not a pull: windows beyond OUTLIER_Z robust sigmas are left out once
-    scale = 1.4826 * float(np.median(np.abs(e)))
-    keep = np.abs(e) <= OUTLIER_Z * scale if scale > 0.0 else np.ones(len(y), dtype=bool)
-    if int(keep.sum()) >= 5 and not bool(keep.all()):
-        x, y = x[keep], y[keep]
-        sol, *_ = np.linalg.lstsq(x, y, rcond=None)
-        e = y - x @ sol
-    dof = max(1, len(y) - 2)
-    cov = float(e @ e) / dof * np.linalg.pinv(x.T @ x)
-    return YawFollow(
-        gain_per_s=float(sol[1]),
-        gain_sigma_per_s=float(math.sqrt(max(0.0, cov[1, 1]))),
-        bias_rad_s=float(sol[0]),
-        n_windows=len(y),
-        spread_rad=float(np.std(x[:, 1])),
-        n_left_out=len(rates) - len(y),
-    )
+    return fit_follow_gain(np.array(rates), np.array(offs))

@@ -102,6 +102,7 @@ class AttitudeStage:
         self.imu_dt: float | None = None
         #: bias-corrected body rate of the latest IMU sample, rad/s
         self.gyro: Float3 = (0.0, 0.0, 0.0)
+        self.gyro_raw: Float3 = (0.0, 0.0, 0.0)
         # the gyro gate (GYRO_HOLDOFF_S): raw rate and time of the previous IMU sample, end of the bad spell
         self._gyro_raw: Float3 | None = None
         self._gyro_raw_t = -math.inf
@@ -224,6 +225,7 @@ class AttitudeStage:
             att_t = self.att_t  # the view's roll and pitch are the filter's: the integral follows them now
             b = m.b
             self.gyro = (gx - b[0], gy - b[1], gz - b[2])
+            self.gyro_raw = (gx, gy, gz)
             if self._use_mahony and (not self._auto or att_t is None or abs(t - att_t) > self._stale_s):
                 self._heading_coef = euler_yaw_rate_coefs(*roll_pitch_from_down(m.down_b()))
             elif self._ap_tilt is not None:  # the autopilot's roll and pitch, carried to this sample
@@ -278,7 +280,8 @@ class AttitudeStage:
         self._yaw_rate_prev = self._yaw_coef[0] * gy + self._yaw_coef[1] * gz
         self.imu_t = t
         self.gyro = (gx - float(bias[0]), gy - float(bias[1]), gz - float(bias[2]))
-        self._heading_rate_prev = self._heading_coef[0] * self.gyro[1] + self._heading_coef[1] * self.gyro[2]
+        self.gyro_raw = (gx, gy, gz)
+        self._heading_rate_prev = self._heading_coef[0] * gy + self._heading_coef[1] * gz
 
     def _gate_gyro(self, t: float) -> bool:
         """A saturated or jumping gyro sample at ``t``: gyro and attitude untrusted until GYRO_HOLDOFF_S
@@ -323,6 +326,7 @@ class AttitudeStage:
         rec.down, rec.tilt = self.view()
         t = rec.t_s
         rec.gyro = self.gyro
+        rec.gyro_raw = self.gyro_raw
         rec.gyro_yaw, rec.gyro_epoch = self.heading_yaw_rad, float(self.gyro_yaw_epoch)
         rec.ap_yaw = self.yaw if self.att_t is not None else math.nan
         rec.imu_fast = self.imu_dt is not None and self.imu_dt <= MAX_GYRO_DT_S

@@ -41,7 +41,7 @@ from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
-from magcomp.service.heading import yaw_rate
+from magcomp.service.heading import gyro_bias_rad_s, yaw_rate
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
@@ -53,10 +53,10 @@ F64 = NDArray[np.float64]
 #: the sample log's columns (one row per magnetometer sample that reached the heading stage)
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
  SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
- IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN) = range(28)  # fmt: skip
-N_COLS = 28
+ IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN, GYRO_BIAS) = range(29)  # fmt: skip
+N_COLS = 29
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
-#: 8192 rows of 28 float64 are 1.8 MB
+#: 8192 rows of 29 float64 are 1.9 MB
 CHUNK_ROWS = 8192
 #: one row packed as the array's doubles (native order; the same values as ``array.extend``, which converts
 #: each item as this does, in ~40 % of its time)
@@ -87,14 +87,15 @@ class SampleLog:
         prev = rec.prev_t
         prev = math.nan if prev is None else prev
         vx, vy, vz = rec.raw
-        gx, gy, gz = rec.gyro
+        gx, gy, gz = rec.gyro_raw
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
         tilt = rec.tilt
         buf.frombytes(_ROW.pack(rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle,
                                 rec.flags, rec.reset, prev, rec.obs_reset, *tilt,
                                 rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws, imu_dt_s, *onb,
-                                turn_rate(gx, gy, gz, tilt[0] * tilt[2])))  # fmt: skip
+                                turn_rate(gx, gy, gz, tilt[0] * tilt[2]),
+                                gyro_bias_rad_s(rec, yaw_rate(gy, gz, *tilt[:3]))))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 
@@ -260,14 +261,18 @@ def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
 def self_check(cols: F64) -> selfcheck.SelfCheck:
     """The verdict of :func:`magcomp.core.selfcheck.compare` on :func:`_check_rows`' columns: the gyro's
     integrated yaw is the windowed reference where the IMU comes at least every MAX_GYRO_DT_S, else the
-    autopilot's yaw."""
+    autopilot's yaw, which is then also no second reference where it follows this compass within the
+    check's window (:func:`magcomp.core.selfcheck.att_is_circular`, measured on these samples)."""
     t, base, cand, ap, gyaw, epoch, imu_dt = cols.T
     fast = np.isfinite(imu_dt) & (imu_dt <= selfcheck.MAX_GYRO_DT_S)
     has_ap = bool(np.isfinite(ap).any())
     if fast.size and float(np.mean(fast)) >= 0.5:
         keep = fast & np.isfinite(gyaw)
         ids = selfcheck.window_ids(t[keep], epoch[keep])
-        return selfcheck.compare(base[keep], cand[keep], gyaw[keep], ids, ap[keep] if has_ap else None)
+        circular = has_ap and selfcheck.att_is_circular(
+            selfcheck.autopilot_follows(t[keep], base[keep], ap[keep], gyaw[keep], epoch[keep]))
+        return selfcheck.compare(base[keep], cand[keep], gyaw[keep], ids, ap[keep] if has_ap else None,
+                                 circular)  # fmt: skip
     return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None)
 
 
@@ -383,12 +388,12 @@ def filter_and_publish(
     cols = (rows[:, T], rows[:, MAG], rows[:, HAVE_THR], rows[:, RESET], rows[:, PREV_T], rows[:, GYRO_FRESH],
             rows[:, GYRO_Y], rows[:, GYRO_Z], rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH],
             rows[:, REBOOT], cor.psi_deg, cor.psi_raw_deg, cor.corrected, rows[:, GYRO_YAW],
-            rows[:, GYRO_EPOCH], rows[:, IMU_DT], rows[:, TURN])  # fmt: skip
+            rows[:, GYRO_EPOCH], rows[:, IMU_DT], rows[:, TURN], rows[:, GYRO_BIAS])  # fmt: skip
     lists = [c.tolist() for c in cols]
     rows_iter = enumerate(zip(*lists, strict=True))
     for i, row in rows_iter:
         (t, mf, have, reset, prev, fresh, gy, gz, cr, sr, cp, reboot, psi, psi_raw, corr, gyaw, gep, imu_dt,
-         turn) = row  # fmt: skip
+         turn, bias) = row  # fmt: skip
         idx = int(mf)
         c = correctors[idx]
         prev_t = None if prev != prev else prev  # NaN: no previous sample
@@ -396,7 +401,7 @@ def filter_and_publish(
         track = c.heading
         restart = bool(reset or reboot or not fresh)
         track.step(psi, psi_raw, bool(have), restart, yaw_rate(gy, gz, cr, sr, cp), dt, gyaw, gep, imu_dt,
-                   turn)  # fmt: skip
+                   turn, bias)  # fmt: skip
         if have and idx in stages:
             st = stages[idx]
             assert st is not None

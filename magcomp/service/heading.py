@@ -32,6 +32,8 @@ from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
+_DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
+
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
 MIN_COS_PITCH = 0.25
 
@@ -279,6 +281,7 @@ class HeadingTrack:
         gyro_epoch: float = -1.0,
         imu_dt: float = math.nan,
         turn_rad_s: float = 0.0,
+        bias_rad_s: float = math.nan,
     ) -> None:
         """Both filters over one sample; the results in :attr:`corrected_deg` and :attr:`raw_deg`. ``psi`` /
         ``psi_raw``: eq. (24) of the corrected and the calibrated-only field; ``corrected``: the throttle is
@@ -297,6 +300,9 @@ class HeadingTrack:
             rate = (gyro_yaw - prev_yaw) / dt  # several IMU samples in the interval (NaN imu_dt: never)
         if restart:
             self.reset()
+        if bias_rad_s == bias_rad_s:  # not NaN: the attitude filter's bias, where it can be trusted
+            b = bias_rad_s * _DEG_PER_RAD
+            self.raw.bias_deg_s = self.corrected.bias_deg_s = self.own.bias_deg_s = b
         raw = self.raw_deg = self.raw.update(psi_raw, rate, dt, turn_rad_s)
         self.corrected_deg = self.corrected.update(psi, rate, dt, turn_rad_s) if corrected else raw
         self._last_rate = (rate, dt, turn_rad_s)
@@ -312,6 +318,18 @@ class HeadingTrack:
         :meth:`step` (call right after it)."""
         self.own_deg = self.own.update(psi_own, *self._last_rate)
         return self.own_deg
+
+
+def gyro_bias_rad_s(rec: MagRecord, raw_rate_rad_s: float) -> float:
+    """The attitude filter's gyro bias as a yaw-rate bias (rad/s) where it can be trusted: with the motors
+    off (no throttle, or the throttle below MOTORS_RUNNING_01) and the filter settled, the accelerometer
+    reads gravity alone and the filter's bias is the gyro's; NaN elsewhere (in flight it learns thrust,
+    drag and a turn's centripetal acceleration as bias: 1.1-1.6 deg/s on log171 and 1.BIN, up to 0.9
+    deg/s of yaw rate in the simulator's banked turns), where the heading filter learns its own."""
+    if rec.down is None or (rec.have_throttle and rec.throttle_01 > MOTORS_RUNNING_01):
+        return math.nan
+    cr, sr, cp, _ = rec.tilt
+    return raw_rate_rad_s - yaw_rate(rec.gyro[1], rec.gyro[2], cr, sr, cp)
 
 
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
@@ -354,10 +372,12 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
     else:
         psi = psi_raw
-    gx, gy, gz = rec.gyro
-    track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, yaw_rate(gy, gz, cr, sr, cp),
-               0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t, rec.gyro_yaw,
-               rec.gyro_epoch, rec.imu_dt, turn_rate(gx, gy, gz, cr * cp))  # fmt: skip
+    gx, gy, gz = rec.gyro_raw
+    rate = yaw_rate(gy, gz, cr, sr, cp)
+    dt = 0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t
+    turn = turn_rate(gx, gy, gz, cr * cp)
+    track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, rate, dt, rec.gyro_yaw,
+               rec.gyro_epoch, rec.imu_dt, turn, gyro_bias_rad_s(rec, rate))  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
     if not track.self_check:
         return

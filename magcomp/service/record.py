@@ -67,7 +67,10 @@ class MagRecord:
     gyro_fresh: bool = False
     #: the bias-corrected body rate of the latest IMU sample (rad/s)
     gyro: Float3 = ZERO3
-    #: the bias-corrected gyro's yaw integrated at the IMU's rate up to the latest IMU sample (rad), its epoch
+    #: the gyro as logged (rad/s, body), without the attitude filter's bias: what the published heading's
+    #: filter propagates with (core/heading_filter.py learns its own yaw-rate bias)
+    gyro_raw: Float3 = ZERO3
+    #: the raw gyro's yaw integrated at the IMU's rate up to the latest IMU sample (rad), its epoch
     #: (restarts of the integral); the heading filter propagates with its change between two samples
     gyro_yaw: float = math.nan
     gyro_epoch: float = -1.0

@@ -254,10 +254,11 @@ def test_a_stuck_compass_is_not_corrected_and_says_why(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_the_relative_forms_excess_over_the_oracle_is_the_unobservable_mount_yaw(tmp_path: Path) -> None:
     """Internal primary, 10 Hz, seed 4 (its compass mounted 1.95 deg rotated about body z, the largest of
-    seeds 0-5): the two-pass heading is 2.2x the oracle's rms, but what it lacks is a constant of about the
-    mount's yaw, which a compass that is its own yaw reference cannot see (a declination error looks the
-    same; the oracle is handed it). With the constant removed it is within 1.5x the oracle's; the summary
-    says the mount's yaw is not counted (docs/inflight.md, tenth pass)."""
+    seeds 0-5): the two-pass heading's rms is above the oracle's (1.4x; 2.2x before the heading filter
+    propagated with the raw gyro), but what it lacks is a constant of about the mount's yaw, which a compass
+    that is its own yaw reference cannot see (a declination error looks the same; the oracle is handed it).
+    With the constant removed it is within 1.5x the oracle's; the summary says the mount's yaw is not counted
+    (docs/inflight.md, tenth pass)."""
     from magcomp.core.rotations import so3_log
     from magcomp.service.demo import errors_after_learning, offset_split
 
@@ -274,7 +275,8 @@ def test_the_relative_forms_excess_over_the_oracle_is_the_unobservable_mount_yaw
     u, _, vt = np.linalg.svd(result.true_calibration(0)[0])
     mount_z_deg = float(np.degrees(so3_log(u @ vt))[2])
     assert abs(mount_z_deg) > 1.5  # the case the test is about
-    assert math.hypot(offset, rest) > 1.5 * math.hypot(o_offset, o_rest)  # fails 1.5x with the constant
+    assert math.hypot(offset, rest) > 1.2 * math.hypot(o_offset, o_rest)  # the constant makes it worse
+    assert abs(offset) > rest  # and is the larger part of its error
     assert rest < 1.5 * o_rest, (rest, o_rest)
     assert abs(offset - mount_z_deg) < 0.6 * abs(mount_z_deg), (offset, mount_z_deg)
 

@@ -422,3 +422,48 @@ def test_uncorrected_status_says_what_became_of_theta_against_the_autopilots_cal
     assert "gyro" in why.split(tried)[1]  # the check's reason, with its figures
     status, why = whys[0]
     assert status == "corrected" and tried not in why, why
+
+
+def _following_autopilot(t: np.ndarray, yaw: np.ndarray, base: np.ndarray, k_per_s: float) -> np.ndarray:
+    """An autopilot's yaw propagated with the true rate and pulled toward the compass's heading ``base``
+    at ``k_per_s`` (a complementary filter; core/yaw_follow.py's model with no gyro bias)."""
+    ap = np.empty_like(yaw)
+    ap[0] = base[0]
+    for i in range(1, t.size):
+        dt = t[i] - t[i - 1]
+        ap[i] = ap[i - 1] + (yaw[i] - yaw[i - 1]) + k_per_s * (base[i - 1] - ap[i - 1]) * dt
+    return ap
+
+
+@pytest.mark.parametrize(("k_per_s", "circular"), [(0.5, True), (0.02, False)])
+def test_an_autopilot_yaw_that_follows_the_compass_within_a_window_is_no_second_reference(
+    k_per_s: float, circular: bool
+) -> None:
+    """The autopilot's yaw pulled toward the uncorrected compass at 0.5 /s (the simulator's complementary
+    filter) carries its throttle error on every time scale beyond 2 s, so a right correction comes out
+    further from it; measured on the check's own samples, that follow rate makes the rule judge by the gyro
+    alone. At a real EKF's 0.02 /s the yaw stays a reference (and the same correction is then closer to it).
+    Without the measured rate (``att_circular`` False) the right correction is refused at 0.5 /s."""
+    t, yaw, gyro, thr, rng = _flight(21)
+    noise = np.radians(1.0)
+    climbs = 0.5 + 0.25 * np.sin(2 * math.pi * t / 40.0)  # the throttle of climbs and cruise, over tens of s
+    base = yaw + np.radians(12.0) * thr**2 + np.radians(25.0) * climbs**2 + rng.normal(0, noise, t.size)
+    cand = yaw + rng.normal(0, noise, t.size)
+    ap = _following_autopilot(t, yaw, base, k_per_s)
+    seg = np.zeros_like(t)
+    follow = sc.autopilot_follows(t, base, ap, gyro, seg)
+    assert follow is not None
+    assert abs(follow.gain_per_s - k_per_s) < 0.25 * k_per_s + 3.0 * follow.gain_sigma_per_s
+    assert sc.att_is_circular(follow) == circular
+    chk = sc.compare(base, cand, gyro, sc.window_ids(t), ap, sc.att_is_circular(follow))
+    assert chk.applies, chk.reason
+    assert chk.att_circular == circular
+    if circular:
+        assert chk.candidate_att_deg > chk.baseline_att_deg  # what the att rule alone would refuse
+        blind = sc.compare(base, cand, gyro, sc.window_ids(t), ap)
+        assert not blind.applies and "autopilot's yaw" in blind.reason
+        run = sc.RunningSelfCheck()
+        for i in range(t.size):
+            run.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, float(ap[i]))
+        assert run.verdict is not None and run.verdict.att_circular and run.on
+        assert run.baseline_deg == pytest.approx(run.verdict.baseline_gyro_deg)
