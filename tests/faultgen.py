@@ -46,6 +46,11 @@ def record_time_s(rec: bytes) -> float:
     return int.from_bytes(rec[:8], "big") * 1e-6
 
 
+def record_msgid(rec: bytes) -> int:
+    """The MAVLink 2 message id of a record (24 bits, little-endian, after the stamp and 7 header bytes)."""
+    return rec[15] | rec[16] << 8 | rec[17] << 16
+
+
 def rebooted_copy(records: list[bytes], t0_s: float, reboot_after_s: float) -> list[bytes]:
     """``records`` with the autopilot rebooting ``reboot_after_s`` into the log: from there its clock restarts
     at 0.3 s (``t0_s``: the simulated log's boot time, so that message times before the reboot stay)."""

@@ -45,7 +45,7 @@ import sys
 import time
 import uuid
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 
@@ -533,24 +533,13 @@ class EstimateColumns:
 
     @classmethod
     def from_estimates(cls, estimates: Sequence[HeadingEstimate]) -> EstimateColumns:
-        n = len(estimates)
-        t = np.fromiter((e.t_s for e in estimates), dtype=float, count=n)
-        return cls(
-            t_s=t,
-            heading_deg=np.fromiter((e.heading_deg for e in estimates), dtype=float, count=n),
-            heading_raw_deg=np.fromiter((e.heading_raw_deg for e in estimates), dtype=float, count=n),
-            theta_mgauss=np.array([e.theta_mgauss for e in estimates], dtype=float).reshape(n, 3),
-            bias_mgauss=np.array([e.bias_mgauss for e in estimates], dtype=float).reshape(n, 3),
-            throttle_01=np.fromiter((e.throttle_01 for e in estimates), dtype=float, count=n),
-            flags=np.fromiter((e.flags for e in estimates), dtype=np.int64, count=n),
-            field_raw_mgauss=np.array([e.field_raw_mgauss for e in estimates], dtype=float).reshape(n, 3),
-            field_cal_mgauss=np.array([e.field_cal_mgauss for e in estimates], dtype=float).reshape(n, 3),
-            residual_norm_mgauss=np.fromiter(
-                (e.residual_norm_mgauss for e in estimates), dtype=float, count=n
-            ),
-            excitation=np.fromiter((e.excitation for e in estimates), dtype=float, count=n),
-            theta_sigma_mgauss=np.array([e.theta_sigma_mgauss for e in estimates], dtype=float).reshape(n, 3),
-        )
+        """The columns of a non-empty list: each field stacked from the HeadingEstimate field of its name
+        (vectors as (n, 3)); ``flags`` as int64, the rest as float64."""
+        cols: dict[str, NDArray[Any]] = {}
+        for f in fields(cls):
+            dtype = np.int64 if f.name == "flags" else np.float64
+            cols[f.name] = np.array([getattr(e, f.name) for e in estimates], dtype=dtype)
+        return cls(**cols)
 
 
 THETA_BAND_LIMIT_MGAUSS = 1e5

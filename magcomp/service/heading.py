@@ -320,13 +320,23 @@ class HeadingTrack:
         return self.own_deg
 
 
+#: a body rate (rad/s) above which the vehicle is moving, not resting: five times the largest gyro bias seen
+#: (0.07-0.3 deg/s on the development logs, the simulator's uncalibrated 0.57 deg/s: ~0.01 rad/s)
+STILL_RATE_RAD_S = 0.05
+
+
 def gyro_bias_rad_s(rec: MagRecord, raw_rate_rad_s: float) -> float:
     """The attitude filter's gyro bias as a yaw-rate bias (rad/s) where it can be trusted: with the motors
-    off (no throttle, or the throttle below MOTORS_RUNNING_01) and the filter settled, the accelerometer
-    reads gravity alone and the filter's bias is the gyro's; NaN elsewhere (in flight it learns thrust,
-    drag and a turn's centripetal acceleration as bias: 1.1-1.6 deg/s on log171 and 1.BIN, up to 0.9
-    deg/s of yaw rate in the simulator's banked turns), where the heading filter learns its own."""
+    off (no throttle, or the throttle below MOTORS_RUNNING_01), the vehicle at rest (its body rate below
+    STILL_RATE_RAD_S) and the filter settled, the accelerometer reads gravity alone and the filter's bias
+    is the gyro's; NaN elsewhere, where the heading filter learns its own: in flight the attitude filter
+    learns thrust, drag and a turn's centripetal acceleration as bias (1.1-1.6 deg/s on log171 and 1.BIN,
+    up to 0.9 deg/s of yaw rate in the simulator's banked turns), and a hand carrying the vehicle moves it
+    (the paper's log: 1.96 deg max in its pan with the motors-off rule alone, 1.70 with rest)."""
     if rec.down is None or (rec.have_throttle and rec.throttle_01 > MOTORS_RUNNING_01):
+        return math.nan
+    gx, gy, gz = rec.gyro_raw
+    if gx * gx + gy * gy + gz * gz > STILL_RATE_RAD_S * STILL_RATE_RAD_S:
         return math.nan
     cr, sr, cp, _ = rec.tilt
     return raw_rate_rad_s - yaw_rate(rec.gyro[1], rec.gyro[2], cr, sr, cp)
@@ -367,11 +377,8 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     cr, sr, cp, sp = rec.tilt
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
-    if rec.have_throttle:
-        cx, cy, cz = rec.field_corrected
-        psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
-    else:
-        psi = psi_raw
+    cx, cy, cz = rec.field_corrected
+    psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp) if rec.have_throttle else psi_raw
     gx, gy, gz = rec.gyro_raw
     rate = yaw_rate(gy, gz, cr, sr, cp)
     dt = 0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t

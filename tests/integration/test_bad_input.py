@@ -25,22 +25,15 @@ from magcomp.core.types import (
 )
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.replay import replay_log
+from tests.configs import QUICK_CALIBRATION
+from tests.faultgen import record_msgid
 
 REPO = Path(__file__).parents[2]
-
-
-def cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
 
 
 def no_magic(data: bytes) -> bytes:
     """Random bytes without MAVLink start bytes (a start byte could begin a false, valid-looking frame)."""
     return data.replace(b"\xfd", b"\x01").replace(b"\xfe", b"\x01")
-
-
-def msg_id(rec: bytes) -> int:
-    return rec[15] | (rec[16] << 8) | (rec[17] << 16)
 
 
 RAW_IMU, SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD = 27, 36, 65, 74
@@ -63,7 +56,7 @@ def replay_records(
 ) -> tuple[list[HeadingEstimate], dict[str, int]]:
     p = tmp / name
     p.write_bytes(recs if isinstance(recs, bytes) else b"".join(recs))
-    rep = replay_log(p, cfg(), keep_estimates=True)
+    rep = replay_log(p, QUICK_CALIBRATION, keep_estimates=True)
     return rep.estimates, rep.counts
 
 
@@ -119,7 +112,7 @@ def test_bad_crc_packets_are_counted_and_the_rest_matches_the_log_without_them(
     clean: tuple[Path, list[bytes]], tmp_path: Path
 ) -> None:
     _, recs = clean
-    idx = [i for i, r in enumerate(recs) if msg_id(r) == RAW_IMU][200::97][:8]
+    idx = [i for i, r in enumerate(recs) if record_msgid(r) == RAW_IMU][200::97][:8]
     damaged = list(recs)
     for i in idx:
         r = bytearray(recs[i])
@@ -169,10 +162,10 @@ def test_no_throttle_source_headings_flow_flagged_uncorrected(
     clean: tuple[Path, list[bytes]], tmp_path: Path
 ) -> None:
     _, recs = clean
-    keep = [r for r in recs if msg_id(r) not in (SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD)]
+    keep = [r for r in recs if record_msgid(r) not in (SERVO_OUTPUT_RAW, RC_CHANNELS, VFR_HUD)]
     p = tmp_path / "nothr.tlog"
     p.write_bytes(b"".join(keep))
-    rep = replay_log(p, cfg(), keep_estimates=True)
+    rep = replay_log(p, QUICK_CALIBRATION, keep_estimates=True)
     assert len(rep.estimates) > 1000
     assert all(e.flags & FLAG_NO_THROTTLE and e.heading_deg == e.heading_raw_deg for e in rep.estimates)
     assert any("no throttle source" in w for w in rep.summary["warnings"])
@@ -190,7 +183,7 @@ def samples(clean: tuple[Path, list[bytes]]) -> list[Sample]:
 
 
 def run(samples: list[Sample], config: Config | None = None) -> tuple[list[HeadingEstimate], Pipeline]:
-    p = Pipeline(config or cfg())
+    p = Pipeline(config or QUICK_CALIBRATION)
     return [e for e in map(p.process, samples) if e is not None], p
 
 
@@ -228,7 +221,7 @@ def test_clock_reset_is_absorbed_and_headings_continue(samples: list[Sample]) ->
 
 def test_observer_bounded_under_absurd_input() -> None:
     rng = np.random.default_rng(9)
-    c = cfg()
+    c = QUICK_CALIBRATION
     c = replace(c, calibration=replace(c.calibration, mode="none"))
     p = Pipeline(c)
     t = 0.0

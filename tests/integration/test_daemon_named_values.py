@@ -5,64 +5,42 @@ NAMED_VALUE_FLOAT names for every compass, decimated, carrying the daemon's corr
 from __future__ import annotations
 
 import itertools
-import socket
-import threading
-from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.publish import named_value_names
-from tests.waiting import collect_mavlink, loopback_udp_socket, wait_for
-
-
-def _listen(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
-    from pymavlink.dialects.v20 import common
-
-    mav = common.MAVLink(None)
-    mav.robust_parsing = True  # MAGCOMP_HEADING is unknown to this dialect: skipped as bad data
-    collect_mavlink(sock, stop, out, mav, ("NAMED_VALUE_FLOAT",))
+from tests.configs import QUICK_CALIBRATION
+from tests.waiting import receiving_mavlink, running_daemon, wait_for
 
 
 @pytest.mark.slow
 def test_named_value_float_listener_sees_the_documented_names(tmp_path: Path) -> None:
+    from pymavlink.dialects.v20 import common
+
     from magcomp.adapters.mavlink_emit import stream_to_link
     from magcomp.sim import SimConfig, simulate
 
-    sock = loopback_udp_socket()
-    got: list[Any] = []
-    stop = threading.Event()
-    rx = threading.Thread(target=_listen, args=(sock, stop, got))
-    rx.start()
-    c = Config()
-    cfg = replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
+    mav = common.MAVLink(None)
+    mav.robust_parsing = True  # MAGCOMP_HEADING is unknown to this dialect: skipped as bad data
     result = simulate(SimConfig(scenario="paper", duration_s=30.0, seed=3))
     n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
     port = free_udp_port()
     ests: list[HeadingEstimate] = []
     powers: list[PowerSample] = []
-    daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg, outs=[f"udpout:127.0.0.1:{sock.getsockname()[1]}"],
-                    store=StateStore(tmp_path), on_estimate=ests.append, on_power=powers.append)  # fmt: skip
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
-    try:
-        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        wait_for(lambda: len(ests) >= n_mag, 60.0, "every estimate")
-        last_ms = round(ests[-1].t_boot_s * 1000)
-        wait_for(lambda: any(m.time_boot_ms >= last_ms - 600 for m in list(got)), 60.0, "the last values")
-    finally:
-        daemon.stop()
-        worker.join(timeout=30)
-        stop.set()
-        rx.join()
-        sock.close()
+    with receiving_mavlink(("NAMED_VALUE_FLOAT",), mav) as (out_port, got):
+        daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, outs=[f"udpout:127.0.0.1:{out_port}"],
+                        store=StateStore(tmp_path), on_estimate=ests.append,
+                        on_power=powers.append)  # fmt: skip
+        with running_daemon(daemon):
+            link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+            wait_for(lambda: len(ests) >= n_mag, 60.0, "every estimate")
+            last_ms = round(ests[-1].t_boot_s * 1000)
+            wait_for(lambda: any(m.time_boot_ms >= last_ms - 600 for m in list(got)), 60.0, "the last values")
     # the battery samples reach the viewer's hook (run's current and voltage plots)
     assert len(powers) > 10 and all(8.0 < p.voltage_v < 30.0 for p in powers if p.voltage_v == p.voltage_v)
     # the daemon asked the flight controller for its unique id (AUTOPILOT_VERSION: the key of its state)

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon
+from tests.configs import QUICK_CALIBRATION
 
 
 @pytest.mark.slow
@@ -52,9 +52,7 @@ def test_tcp_link_loss_reconnects_and_keeps_state(
 
     fc = threading.Thread(target=flight_controller)
     fc.start()
-    c = Config()
-    c = replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100),
-                link=replace(c.link, silence_s=0.4, reconnect_s=0.2))  # fmt: skip
+    c = replace(QUICK_CALIBRATION, link=replace(QUICK_CALIBRATION.link, silence_s=0.4, reconnect_s=0.2))
     ests: list[HeadingEstimate] = []
     daemon = Daemon(f"tcp:127.0.0.1:{port}", c, on_estimate=ests.append)
     with caplog.at_level(logging.INFO, logger="magcomp"):

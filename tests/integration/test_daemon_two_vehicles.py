@@ -3,32 +3,13 @@ out as that vehicle with its own clock, nothing is dropped as "time going backwa
 
 from __future__ import annotations
 
-import socket
-import threading
-from dataclasses import replace
-from typing import Any
-
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
-from tests.waiting import wait_for
-
-
-def _receiver(sock: socket.socket, stop: threading.Event, out: list[Any]) -> None:
-    from magcomp.adapters.dialect import ensure_dialect
-
-    mav = ensure_dialect().MAVLink(None)
-    mav.robust_parsing = True
-    sock.settimeout(0.1)
-    while not stop.is_set():
-        try:
-            data = sock.recv(65536)
-        except TimeoutError:
-            continue
-        out.extend(m for m in mav.parse_buffer(data) or [] if m.get_type() == "MAGCOMP_HEADING")
+from tests.configs import QUICK_CALIBRATION
+from tests.waiting import receiving_mavlink, running_daemon, send_paced, wait_for
 
 
 @pytest.mark.slow
@@ -42,34 +23,13 @@ def test_two_vehicles_on_one_link_are_kept_apart() -> None:
     streams = {k: encode_stream(r, src_system=k) for k, r in sims.items()}
     merged = sorted(((t - streams[k][0][0], k, pkt) for k in streams for t, pkt in streams[k]),
                     key=lambda x: (x[0], x[1]))  # fmt: skip
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.bind(("127.0.0.1", 0))
-    got: list[Any] = []
-    stop = threading.Event()
-    rx_thread = threading.Thread(target=_receiver, args=(rx, stop, got))
-    rx_thread.start()
-    c = Config()
-    cfg = replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
     port = free_udp_port()
-    daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg, outs=[f"udpout:127.0.0.1:{rx.getsockname()[1]}"])
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
     n_mag = {k: r.samples.t_s.shape[0] for k, r in sims.items()}
-    try:
-        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        for i in range(0, len(merged), 20):
-            for _, _, pkt in merged[i : i + 20]:
-                tx.sendto(pkt, ("127.0.0.1", port))
-            threading.Event().wait(0.002)  # pacing the sender, not waiting for the daemon
-        tx.close()
-        wait_for(lambda: len(got) >= sum(n_mag.values()), 60.0, "every heading")
-    finally:
-        daemon.stop()
-        worker.join(timeout=30)
-        stop.set()
-        rx_thread.join()
-        rx.close()
+    with receiving_mavlink(("MAGCOMP_HEADING",)) as (out_port, got):
+        daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, outs=[f"udpout:127.0.0.1:{out_port}"])
+        with running_daemon(daemon):
+            send_paced([pkt for _, _, pkt in merged], port)
+            wait_for(lambda: len(got) >= sum(n_mag.values()), 60.0, "every heading")
     report = daemon.report().to_json()
     by_sys = {k: [m for m in got if m.get_srcSystem() == k] for k in sims}
     for k, r in sims.items():

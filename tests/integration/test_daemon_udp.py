@@ -1,57 +1,26 @@
 """End to end over real UDP sockets on loopback: the simulator as the flight controller -> the daemon ->
 MAGCOMP_HEADING decoded by the flight controller (udpin: master, sent back to the sender) and by a
-second receiver on --out; and `magcomp run` as a process that stops cleanly on SIGTERM and saves state."""
+second receiver on --out. (`magcomp run` as a process stopped by signals: tests/integration/test_signals.py.)
+"""
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import threading
-import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port, run_demo
-
-REPO = Path(__file__).parents[2]
-
-
-def fast_cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
-
-
-def _receiver(port: int, stop: threading.Event, out: list[object]) -> None:
-    from magcomp.adapters.dialect import ensure_dialect
-    from tests.waiting import collect_mavlink, loopback_udp_socket
-
-    mod = ensure_dialect()
-    mav = mod.MAVLink(None)
-    mav.robust_parsing = True
-    sock = loopback_udp_socket(port)  # this thread shares the interpreter with the sender and the daemon
-    try:
-        collect_mavlink(sock, stop, out, mav)
-    finally:
-        sock.close()
+from tests.configs import QUICK_CALIBRATION
+from tests.waiting import receiving_mavlink, running_daemon, wait_for
 
 
 @pytest.mark.slow
 def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
-    out_port = free_udp_port()
-    got: list[object] = []
-    stop = threading.Event()
-    rx = threading.Thread(target=_receiver, args=(out_port, stop, got))
-    rx.start()
-    try:
+    with receiving_mavlink() as (out_port, got):
         # --out is wired through the Daemon; run_demo builds the same daemon with outs=() so build one here
         from magcomp.adapters.mavlink_emit import stream_to_link
         from magcomp.sim import SimConfig, simulate
@@ -59,22 +28,12 @@ def test_sim_to_daemon_to_receivers_over_loopback_udp(tmp_path: Path) -> None:
         result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=3))
         port = free_udp_port()
         ests: list[object] = []
-        daemon = Daemon(f"udpin:127.0.0.1:{port}", fast_cfg(), outs=[f"udpout:127.0.0.1:{out_port}"],
+        daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, outs=[f"udpout:127.0.0.1:{out_port}"],
                         store=StateStore(tmp_path), on_estimate=ests.append)  # fmt: skip
-        worker = threading.Thread(target=daemon.run)
-        worker.start()
-        while daemon.connects == 0:
-            time.sleep(0.01)
-        link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
-        t0 = time.monotonic()
-        while len(ests) < n_mag and time.monotonic() - t0 < 60.0:  # a condition, bounded
-            time.sleep(0.05)
-        daemon.stop()
-        worker.join(timeout=10)
-    finally:
-        stop.set()
-        rx.join()
+        with running_daemon(daemon, join_s=10.0) as worker:
+            link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+            n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
+            wait_for(lambda: len(ests) >= n_mag, 60.0, "every heading")
     assert not worker.is_alive()
     # one MAGCOMP_HEADING per magnetometer sample (both compasses), nothing lost on loopback
     assert len(ests) == n_mag
@@ -107,36 +66,3 @@ def test_demo_reduces_heading_error_against_truth(tmp_path: Path) -> None:
     assert set(by_name) == {"pan", "ramp", "step"}
     for s in report.segments:
         assert s.max_corrected_deg * 3.0 < s.max_raw_deg, s
-
-
-@pytest.mark.slow
-def test_magcomp_run_process_stops_on_sigterm_and_saves_state(tmp_path: Path) -> None:
-    from magcomp.adapters.mavlink_emit import stream_to_link
-    from magcomp.sim import SimConfig, simulate
-    from tests.waiting import LineReader, finish, wait_for
-
-    port = free_udp_port()
-    state = tmp_path / "state"
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
-         str(state), "--json", str(tmp_path / "sum.json")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=REPO, text=True,
-    )  # fmt: skip
-    assert proc.stdout is not None and proc.stderr is not None
-    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
-    try:
-        wait_for(lambda: err.has("listening on udpin:") or proc.poll() is not None, 60.0, "listening")
-        result = simulate(SimConfig(scenario="tumble", duration_s=15.0, seed=2))
-        stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
-        # the calibration learned on the stream is saved at once (in the background)
-        wait_for(lambda: StateStore(state).load(1, 0, SIM_UID) is not None or proc.poll() is not None, 60.0,
-                 "state")
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        code = finish(proc)
-    assert code == 0, err.join()
-    assert "listening on udpin:" in err.join()
-    assert "compass 0:" in out.join()
-    assert (tmp_path / "sum.json").exists()
-    assert StateStore(state).load(1, 0, SIM_UID) is not None

@@ -7,7 +7,6 @@ import fcntl
 import logging
 import os
 import pty
-import socket
 import struct
 import subprocess
 import sys
@@ -23,7 +22,7 @@ from magcomp.cli import main
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from tests.conftest import split_tlog_records
-from tests.waiting import finish, wait_for
+from tests.waiting import finish, running_daemon, send_paced, wait_for
 
 REPO = Path(__file__).parents[2]
 
@@ -90,21 +89,9 @@ def test_lost_messages_on_a_live_link_are_counted_and_warned(
     kept = [p for i, p in enumerate(packets) if i % 5 != 3]  # 20 % lost on the way
     port = free_udp_port()
     daemon = Daemon(f"udpin:127.0.0.1:{port}", Config())
-    with caplog.at_level(logging.WARNING, logger="magcomp"):
-        worker = threading.Thread(target=daemon.run)
-        worker.start()
-        try:
-            wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            for i in range(0, len(kept), 20):
-                for p in kept[i : i + 20]:
-                    sock.sendto(p, ("127.0.0.1", port))
-                threading.Event().wait(0.002)  # pacing the sender, not waiting for the daemon
-            sock.close()
-            wait_for(lambda: "lost" in caplog.text, 60.0, "the loss warning")
-        finally:
-            daemon.stop()
-            worker.join(timeout=30)
+    with caplog.at_level(logging.WARNING, logger="magcomp"), running_daemon(daemon):
+        send_paced(kept, port)
+        wait_for(lambda: "lost" in caplog.text, 60.0, "the loss warning")
     report = daemon.report().to_json()
     lost = report["source_counts"]["lost_messages"]
     got = report["source_counts"]["link_messages"]

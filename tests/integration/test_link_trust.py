@@ -19,14 +19,13 @@ from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.replay import replay_log
+from tests.configs import QUICK_CALIBRATION
 from tests.faultgen import rewrite
-from tests.waiting import wait_for
+from tests.waiting import running_daemon, send_paced, wait_for
 
 
 def _cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100),
-                   link=replace(c.link, heartbeat_hz=20.0))  # fmt: skip
+    return replace(QUICK_CALIBRATION, link=replace(QUICK_CALIBRATION.link, heartbeat_hz=20.0))
 
 
 def _key(e: HeadingEstimate) -> tuple[object, ...]:
@@ -80,8 +79,6 @@ def test_forged_vehicle_data_from_another_socket_changes_nothing(
     port = free_udp_port()
     ests: list[HeadingEstimate] = []
     daemon = Daemon(f"udpin:127.0.0.1:{port}", _cfg(), on_estimate=ests.append)
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
     forger = Forger(port, forged)
     started = threading.Event()
 
@@ -92,13 +89,13 @@ def test_forged_vehicle_data_from_another_socket_changes_nothing(
         return False
 
     try:
-        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=10.0, stop=fc_stop)
-        wait_for(lambda: len(ests) >= len(clean), 60.0, "every heading")
+        with running_daemon(daemon):
+            try:
+                stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=10.0, stop=fc_stop)
+                wait_for(lambda: len(ests) >= len(clean), 60.0, "every heading")
+            finally:
+                forger.stop.set()
     finally:
-        forger.stop.set()
-        daemon.stop()
-        worker.join(timeout=30)
         if forger.thread.is_alive() or started.is_set():
             forger.thread.join(timeout=10)
     assert started.is_set() and forger.sent > 100
@@ -220,22 +217,14 @@ def test_a_signed_link_interoperates_with_pymavlink_signing_and_refuses_unsigned
     ests: list[HeadingEstimate] = []
     daemon = Daemon(f"udpin:127.0.0.1:{port}", _cfg(), outs=[f"udpout:127.0.0.1:{rx.getsockname()[1]}"],
                     on_estimate=ests.append, signing_key=key)  # fmt: skip
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
     try:
-        wait_for(lambda: daemon.connects > 0, 60.0, "the daemon to listen")
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        for i in range(0, len(signed), 20):
-            for s_pkt, p_pkt in zip(signed[i : i + 20], plain[i : i + 20], strict=True):
-                tx.sendto(s_pkt, ("127.0.0.1", port))
-                tx.sendto(p_pkt, ("127.0.0.1", port))  # the same frame unsigned, from the same socket
-            threading.Event().wait(0.003)  # pacing the sender, not waiting for the daemon
-        tx.close()
-        wait_for(lambda: len(ests) >= len(clean), 60.0, "every heading")
-        wait_for(lambda: len(got) > 0, 30.0, "a heading on the --out link")
+        with running_daemon(daemon):
+            # each frame signed, then the same frame unsigned, from the same socket
+            both = [pkt for pair in zip(signed, plain, strict=True) for pkt in pair]
+            send_paced(both, port, every=40, pause_s=0.003)
+            wait_for(lambda: len(ests) >= len(clean), 60.0, "every heading")
+            wait_for(lambda: len(got) > 0, 30.0, "a heading on the --out link")
     finally:
-        daemon.stop()
-        worker.join(timeout=30)
         stop.set()
         rx_thread.join()
         rx.close()

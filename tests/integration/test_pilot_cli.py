@@ -16,7 +16,7 @@ import pytest
 from magcomp.adapters.rerun_viz import listening_hosts, serve_notice
 from magcomp.cli import main
 from magcomp.commands.run import feed_hint
-from tests.waiting import LineReader, finish, wait_for
+from tests.waiting import finish, start_magcomp, wait_for
 
 REPO = Path(__file__).parents[2]
 
@@ -64,14 +64,9 @@ def test_run_says_how_to_feed_it_and_that_command_works(tmp_path: Path) -> None:
     port = free_udp_port()
     summary = tmp_path / "sum.json"
     rrd = tmp_path / "run.rrd"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "RERUN_ANALYTICS": "0"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
-         str(tmp_path / "state"), "--json", str(summary), "--rerun", f"save={rrd}"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=REPO, text=True,
-    )  # fmt: skip
-    assert proc.stdout is not None and proc.stderr is not None
-    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
+    proc, out, err = start_magcomp("run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
+                                   str(tmp_path / "state"), "--json", str(summary), "--rerun",
+                                   f"save={rrd}")  # fmt: skip
     try:
         wait_for(lambda: out.has("magcomp simulate --link") or proc.poll() is not None, 60.0, "the hint")
         hint = next(ln for ln in out.lines if "magcomp simulate --link" in ln)

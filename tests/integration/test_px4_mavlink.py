@@ -3,15 +3,13 @@ BATTERY_STATUS, GPS_RAW_INT, SYSTEM_TIME; the autopilot is told by its HEARTBEAT
 
 from __future__ import annotations
 
-import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config, load_config
+from magcomp.adapters.config import load_config
 from magcomp.adapters.mavlink_emit import stream_to_link, write_tlog
 from magcomp.adapters.mavlink_source import load_log, open_source
 from magcomp.core.types import (
@@ -26,7 +24,9 @@ from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.replay import replay_log
 from magcomp.sim import SimConfig, simulate
+from tests.configs import QUICK_CALIBRATION
 from tests.unit.test_sources import TlogWriter
+from tests.waiting import running_daemon
 
 
 def _wrapped(a: np.ndarray) -> np.ndarray:
@@ -100,31 +100,18 @@ def test_highres_imu_fields_updated_and_shadowing(tmp_path: Path) -> None:
     assert later[0].field_b_mgauss == pytest.approx([220.0, -30.0, 440.0])  # type: ignore[union-attr]
 
 
-def fast_cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
-
-
 @pytest.mark.slow
 def test_live_px4_stream_over_loopback_udp_publishes_corrected_headings() -> None:
     result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=3))
     port = free_udp_port()
     ests: list[object] = []
-    daemon = Daemon(f"udpin:127.0.0.1:{port}", fast_cfg(), on_estimate=ests.append)
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
-    try:
-        deadline = time.monotonic() + 10.0
-        while daemon.connects == 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
+    daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, on_estimate=ests.append)
+    with running_daemon(daemon, join_s=10.0) as worker:
         link = stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0, flavour="px4")
         n_mag = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + 10.0  # a loaded machine may drop a datagram: not all are awaited
         while len(ests) < n_mag and time.monotonic() < deadline:
             time.sleep(0.05)
-    finally:
-        daemon.stop()
-        worker.join(timeout=10)
     assert not worker.is_alive()
     # one corrected heading per compass sample, both compasses (a loaded machine may drop a datagram)
     assert 0.98 * n_mag <= len(ests) <= n_mag

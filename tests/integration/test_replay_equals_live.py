@@ -3,24 +3,17 @@ speeds) and replayed from its tlog gives bit-identical headings, theta and flags
 
 from __future__ import annotations
 
-import threading
-import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.core.types import HeadingEstimate
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
 from magcomp.service.replay import replay_log
-
-
-def cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
+from tests.configs import QUICK_CALIBRATION
+from tests.waiting import running_daemon, wait_for
 
 
 def live(result: object, speed: float) -> list[HeadingEstimate]:
@@ -28,18 +21,11 @@ def live(result: object, speed: float) -> list[HeadingEstimate]:
 
     port = free_udp_port()
     ests: list[HeadingEstimate] = []
-    daemon = Daemon(f"udpin:127.0.0.1:{port}", cfg(), on_estimate=ests.append)
-    worker = threading.Thread(target=daemon.run)
-    worker.start()
-    while daemon.connects == 0:
-        time.sleep(0.01)
-    stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=speed)  # type: ignore[arg-type]
-    n = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]  # type: ignore[attr-defined]
-    t0 = time.monotonic()
-    while len(ests) < n and time.monotonic() - t0 < 60.0:  # a condition, bounded; normally < 2 s
-        time.sleep(0.02)
-    daemon.stop()
-    worker.join(timeout=10)
+    daemon = Daemon(f"udpin:127.0.0.1:{port}", QUICK_CALIBRATION, on_estimate=ests.append)
+    with running_daemon(daemon, join_s=10.0):
+        stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=speed)  # type: ignore[arg-type]
+        n = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]  # type: ignore[attr-defined]
+        wait_for(lambda: len(ests) >= n, 60.0, "every heading")  # normally < 2 s
     return ests
 
 
@@ -56,7 +42,7 @@ def test_replay_equals_live_at_two_speeds(tmp_path: Path) -> None:
     result = simulate(SimConfig(scenario="paper", duration_s=40.0, seed=5))
     path = tmp_path / "flight.tlog"
     write_tlog(result, path)
-    replayed = replay_log(path, cfg(), keep_estimates=True).estimates
+    replayed = replay_log(path, QUICK_CALIBRATION, keep_estimates=True).estimates
     n = result.samples.t_s.shape[0] * result.samples.mag_mgauss.shape[0]
     assert len(replayed) == n
     theta_last = replayed[-2].theta_mgauss

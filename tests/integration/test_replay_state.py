@@ -5,23 +5,18 @@ gives a warning and a fresh start."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.identity import SIM_UID
 from magcomp.core.types import FLAG_CALIBRATED
 from magcomp.service.demo import heading_errors
 from magcomp.service.replay import replay_log
-
-
-def cfg() -> Config:
-    c = Config()
-    return replace(c, calibration=replace(c.calibration, min_samples=200, check_every=100))
+from tests.configs import QUICK_CALIBRATION
+from tests.faultgen import record_msgid, record_time_s
 
 
 @pytest.fixture(scope="module")
@@ -41,11 +36,10 @@ def logs(
     t_unix0 = default_start_unix_s(result)
     recs = split_tlog(whole.read_bytes())
     tail = d / "tail.tlog"
-    stamps_s = [int.from_bytes(r[:8], "big") * 1e-6 for r in recs]
     # (and the AUTOPILOT_VERSION naming the board, as the autopilot answers a ground station at connect)
-    ident = [r[15] | r[16] << 8 | r[17] << 16 == 148 for r in recs]
-    tail.write_bytes(b"".join(r for t, r, i in zip(stamps_s, recs, ident, strict=True)
-                              if t - t_unix0 >= pan_start or i))  # fmt: skip
+    tail.write_bytes(
+        b"".join(r for r in recs if record_time_s(r) - t_unix0 >= pan_start or record_msgid(r) == 148)
+    )
     return whole, tail, result
 
 
@@ -53,13 +47,13 @@ def test_state_survives_restart_and_corrects_from_the_first_sample(
     logs: tuple[Path, Path, object], tmp_path: Path
 ) -> None:
     whole, tail, result = logs
-    first = replay_log(whole, cfg(), store=StateStore(tmp_path))
+    first = replay_log(whole, QUICK_CALIBRATION, store=StateStore(tmp_path))
     assert {c["calibration"]["source"] for c in first.summary["compasses"]} == {"learned"}
     stored = StateStore(tmp_path).load(1, 0, SIM_UID)
     assert stored is not None and stored.calib_l is not None
     np.testing.assert_allclose(stored.theta_mgauss, first.summary["compasses"][0]["theta_mgauss"])
 
-    again = replay_log(tail, cfg(), store=StateStore(tmp_path), keep_estimates=True)
+    again = replay_log(tail, QUICK_CALIBRATION, store=StateStore(tmp_path), keep_estimates=True)
     assert {c["calibration"]["source"] for c in again.summary["compasses"]} == {"stored"}
     assert again.estimates[0].flags & FLAG_CALIBRATED
     np.testing.assert_allclose(again.estimates[0].theta_mgauss, stored.theta_mgauss)
@@ -67,7 +61,7 @@ def test_state_survives_restart_and_corrects_from_the_first_sample(
     assert errs["pan"].max_corrected_deg * 2.0 < errs["pan"].max_raw_deg
 
     # no state and no hand rotation in the tail: whatever calibration there is was learned in flight
-    fresh = replay_log(tail, cfg(), keep_estimates=True)
+    fresh = replay_log(tail, QUICK_CALIBRATION, keep_estimates=True)
     for c in fresh.summary["compasses"]:
         assert c["calibration"] is None or c["calibration"]["source"] == "in-flight"
         assert (c["status"] == "corrected") == (c["calibration"] is not None)
@@ -78,7 +72,7 @@ def test_damaged_state_warns_and_starts_fresh(logs: tuple[Path, Path, object], t
     store = StateStore(tmp_path)
     bad = '{"format": "magcomp-state", "version": 1, "sha256": "00", "state": {}}'
     store.path_for(1, 0, SIM_UID).write_text(bad)
-    rep = replay_log(tail, cfg(), store=store, keep_estimates=True)
+    rep = replay_log(tail, QUICK_CALIBRATION, store=store, keep_estimates=True)
     assert any("damaged" in w and f"vehicle-1-{SIM_UID}-compass-0" in w for w in rep.summary["warnings"])
     assert rep.n_estimates > 0
     assert StateStore(tmp_path).load(1, 0, SIM_UID) is not None  # rewritten, readable again

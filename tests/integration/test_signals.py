@@ -5,10 +5,7 @@ writes the partial summary like ^C."""
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -19,10 +16,7 @@ from magcomp.adapters.state_store import StateStore
 from magcomp.core.identity import SIM_UID
 from magcomp.service.daemon import Daemon
 from magcomp.service.demo import free_udp_port
-from tests.waiting import LineReader, finish, wait_for
-
-REPO = Path(__file__).parents[2]
-ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+from tests.waiting import finish, start_magcomp, wait_for
 
 
 def test_stop_request_from_a_signal_handler_takes_no_lock() -> None:
@@ -46,29 +40,29 @@ def test_stop_request_from_a_signal_handler_takes_no_lock() -> None:
 
 
 @pytest.mark.slow
-def test_run_two_signals_in_quick_succession_still_saves_state_and_summary(tmp_path: Path) -> None:
+@pytest.mark.parametrize("signals", [(signal.SIGTERM,), (signal.SIGTERM, signal.SIGINT, signal.SIGTERM)])
+def test_run_stopped_by_signals_saves_state_and_summary(
+    tmp_path: Path, signals: tuple[signal.Signals, ...]
+) -> None:
+    """`magcomp run` stops on SIGTERM, and on three signals in quick succession, and still saves the state
+    learned on the stream and writes the --json summary."""
     from magcomp.adapters.mavlink_emit import stream_to_link
     from magcomp.sim import SimConfig, simulate
 
     port = free_udp_port()
     state, summary = tmp_path / "state", tmp_path / "sum.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "magcomp", "run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir",
-         str(state), "--json", str(summary)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, cwd=REPO, text=True,
-    )  # fmt: skip
-    assert proc.stdout is not None and proc.stderr is not None
-    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
+    proc, out, err = start_magcomp("run", "--master", f"udpin:127.0.0.1:{port}", "--state-dir", str(state),
+                                   "--json", str(summary))  # fmt: skip
     try:
-        wait_for(lambda: err.has("listening on") or proc.poll() is not None, 60.0, "listening")
+        wait_for(lambda: err.has("listening on udpin:") or proc.poll() is not None, 60.0, "listening")
         result = simulate(SimConfig(scenario="tumble", duration_s=15.0, seed=2, n_compasses=1))
         stream_to_link(result, f"udpout:127.0.0.1:{port}", speed=20.0)
+        # the calibration learned on the stream is saved at once (in the background)
         wait_for(lambda: StateStore(state).load(1, 0, SIM_UID) is not None or proc.poll() is not None, 60.0,
                  "state")
     finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.send_signal(signal.SIGINT)
-        proc.send_signal(signal.SIGTERM)
+        for s in signals:
+            proc.send_signal(s)
         code = finish(proc, 60.0)
     assert code == 0, err.join()
     assert "Traceback" not in err.join()
@@ -91,12 +85,7 @@ def test_replay_stopped_by_a_signal_writes_the_partial_summary(
     long_log = tmp_path / "long.tlog"
     long_log.write_bytes(one.read_bytes() * 200)  # ~2 h of log: minutes to replay, stopped long before
     summary = tmp_path / "sum.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "magcomp", "replay", str(long_log), "--json", str(summary), "-v"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, cwd=REPO, text=True,
-    )  # fmt: skip
-    assert proc.stdout is not None and proc.stderr is not None
-    out, err = LineReader(proc.stdout), LineReader(proc.stderr)
+    proc, out, err = start_magcomp("replay", str(long_log), "--json", str(summary), "-v")
     try:
         wait_for(lambda: err.has("replaying") or proc.poll() is not None, 60.0, "the replay to start")
     finally:
