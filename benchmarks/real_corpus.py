@@ -108,7 +108,10 @@ def score(ref: Reference, t: np.ndarray, heading_deg: np.ndarray) -> dict[str, f
         gyro = sc.windowed_rms_deg(h - gy, sc.window_ids(t, seg))
     else:
         gyro = sc.windowed_rms_deg(h - yaw, sc.window_ids(t))
-    return {"att": att, "gyro": gyro, "att_top": att_top, "n": float(t.size)}
+    # the constant att removes (deg): where the autopilot's yaw is independent of the compass (another
+    # compass's, the absolute form) the published heading's constant can be compared with the two-pass's
+    mean = math.degrees(sc.circular_mean_rad(h - yaw))
+    return {"att": att, "gyro": gyro, "att_top": att_top, "n": float(t.size), "mean_deg": mean}
 
 
 def verdict(base: dict[str, float], new: dict[str, float]) -> str:
@@ -250,6 +253,26 @@ def line(row: dict[str, Any], modes: list[str]) -> str:
     return "  ".join(parts)
 
 
+def constant_line(rows: list[dict[str, Any]], mode: str) -> list[str]:
+    """What att cannot see: the published heading's constant. Where the two-pass replay learned the
+    compass in the absolute form (the autopilot's yaw from another compass: the constant is observable),
+    the median |constant - the two-pass one| of the heading published in ``mode`` and of the autopilot's
+    own heading (deg)."""
+    if mode == "two-pass":
+        return []
+    got = [(r[mode]["mean_deg"], r["autopilot"]["mean_deg"], r["two-pass"]["mean_deg"]) for r in rows
+           if "absolute form" in r.get("two-pass_said", "") and r.get(mode) and r.get("two-pass")
+           and r["two-pass_verdict"] == "better"]  # fmt: skip
+    if not got:
+        return []
+    a = np.asarray(got)
+    pub = np.abs((a[:, 0] - a[:, 2] + 180.0) % 360.0 - 180.0)
+    own = np.abs((a[:, 1] - a[:, 2] + 180.0) % 360.0 - 180.0)
+    return [f"{mode}: constant vs the two-pass replay's where it is observable (absolute form, {len(a)} "
+            f"compasses): median |difference| {np.median(pub):.1f} deg (the autopilot's own heading's "
+            f"{np.median(own):.1f})"]  # fmt: skip
+
+
 def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
     out = []
     for m in modes:
@@ -269,6 +292,7 @@ def summary(rows: list[dict[str, Any]], modes: list[str]) -> list[str]:
                 f"{m}: printed +-sigma of {len(cov)} corrected compasses vs their realised error (gyro, "
                 f"{what}): within 1 sigma {in1}/{len(cov)}, within 2 sigma {in2}/{len(cov)}"
             )  # fmt: skip
+        out += constant_line(rows, m)
         out.append(
             f"{m}: {len(rows)} compasses: worse {v.count('worse')}, better {v.count('better')}, "
             f"same {v.count('same')}, missing {v.count('missing')}; own heading >= 8 deg att: "

@@ -14,7 +14,7 @@ from collections import deque
 
 import numpy as np
 
-from magcomp.core.correction import Correction
+from magcomp.core.correction import IDENTITY_COEFFS, Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import HeadingFilter, turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
@@ -159,6 +159,11 @@ class HoverShadow:
 #: (two minutes, the running check's RECENT_S)
 RECENT_EVERY_S = 0.2
 RECENT_N = 600
+#: the published constant takes theta's bias out (:meth:`HeadingTrack.own_offset_rad`) where the throttle^2
+#: flown lately spans at least 1 / MAX_BIAS_EXTRAPOLATION of its distance from zero (5th to 95th
+#: percentile): theta is measured by how the field moves with the throttle^2 flown, and its bias at that
+#: throttle is then read off within twice that span of the zero-throttle calibration
+MAX_BIAS_EXTRAPOLATION = 2.0
 
 #: the live hover model is solved again when a self-check window closes, or with this many new samples
 #: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
@@ -174,6 +179,7 @@ class HeadingTrack:
         "_last_rate",
         "_recent",
         "_recent_t",
+        "_theta_anchored",
         "check",
         "corrected",
         "corrected_deg",
@@ -220,6 +226,8 @@ class HeadingTrack:
         self._recent: deque[tuple[float, ...]] = deque(maxlen=RECENT_N)
         self._recent_t = -math.inf
         self._holding = False
+        #: the held constant was taken with theta's bias out (:meth:`own_offset_rad`)
+        self._theta_anchored = False
 
     def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...],
                  psi_own_deg: float) -> None:  # fmt: skip
@@ -231,21 +239,41 @@ class HeadingTrack:
             self._recent.append((*raw, throttle_01, *tilt, psi_own_deg))
 
     def own_offset_rad(self, estimate: Estimate) -> float:
-        """The circular mean of (the autopilot's own heading - ``estimate``'s) over the samples remembered
-        (rad; NaN: none): the constant that puts the estimate's heading on the autopilot's own."""
+        """The constant that puts ``estimate``'s heading on the autopilot's calibration (rad; NaN: no samples
+        remembered), whose constant part (declination, the mount's yaw) the relative form cannot know: the
+        circular mean over the samples remembered of (the autopilot's calibration with ``estimate``'s
+        theta removed - ``estimate``'s heading). Not of the autopilot's own heading: its constant part
+        holds theta's bias at the throttle flown (eq. (11)), the error the correction removes (log171,
+        against its external compass: the live corrected headings of compasses 1 and 2 were +12.8 and +8.5
+        deg off on average with that constant, -4.4 and +1.4 with this one, the two-pass replay's -1.2 and
+        -1.6; the simulated ordinary flight at a realistic theta 15-26 deg rms, 3-5). Where the throttle flown does not measure that bias (MAX_BIAS_EXTRAPOLATION: a hover),
+        the autopilot's own heading's constant is kept, theta's bias in it."""
         if not self._recent:
             return math.nan
         a = np.asarray(self._recent, dtype=float)
         psi = corrected_heading_deg(a[:, 0:3], a[:, 3], a[:, 4:8], estimate)
-        return circular_mean_rad(np.radians(a[:, 8] - psi))
+        d2 = a[:, 3] * a[:, 3]
+        lo, hi = np.percentile(d2, (5.0, 95.0))
+        self._theta_anchored = bool(lo <= MAX_BIAS_EXTRAPOLATION * (hi - lo))
+        if not self._theta_anchored:
+            return circular_mean_rad(np.radians(a[:, 8] - psi))
+        anchor = corrected_heading_deg(a[:, 0:3], a[:, 3], a[:, 4:8], (IDENTITY_COEFFS, estimate[1]))
+        return circular_mean_rad(np.radians(anchor - psi))
 
     def constant_change_rad(self, old: Estimate, new: Estimate) -> float:
         """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
-        remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none)."""
+        remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none),
+        less that of their thetas alone where the held constant has theta's bias out (a new theta's bias at
+        the throttle flown is a correction, not a constant to hold away)."""
         if not self._recent:
             return math.nan
         a = np.asarray(self._recent, dtype=float)
-        return constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
+        whole = constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
+        if not self._theta_anchored:
+            return whole
+        theta = constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], (IDENTITY_COEFFS, old[1]),
+                                    (IDENTITY_COEFFS, new[1]))  # fmt: skip
+        return whole - theta
 
     def follow(self, sol: Estimate | None, chk: RunningSelfCheck) -> None:
         """The in-flight estimate judged at this sample (None: none); a new one (re-solved) while the check

@@ -197,6 +197,28 @@ def test_the_offset_at_the_switch_on_is_measured_with_the_current_estimate() -> 
     assert math.degrees(run.offset_rad) == pytest.approx(5.0, abs=0.1)
 
 
+def test_the_switch_on_constant_has_thetas_bias_out_where_the_throttle_measures_it() -> None:
+    """HeadingTrack.own_offset_rad where the throttle flown varies (0.3-0.8): the constant puts the estimate
+    on the autopilot's calibration with theta's bias removed, not on the autopilot's own heading, whose
+    mean holds that bias at the headings flown (here -12 deg); at a constant throttle (the test above) the
+    own heading's is kept."""
+    track = HeadingTrack(tau_s=1.0)
+    ident = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    theta = (0.0, 150.0, 0.0)
+    est = (ident, theta)  # the autopilot's calibration right, theta right: its heading is the truth
+    own_err = []
+    for i in range(900):
+        psi = math.radians(30.0 + 40.0 * math.sin(i * 0.013))  # legs over 80 deg of heading, not circles
+        thr = 0.55 + 0.25 * math.sin(i * 0.05)
+        raw = (200 * math.cos(psi), -200 * math.sin(psi) + theta[1] * thr * thr, 400.0)
+        own = math.degrees(math.atan2(-raw[1], raw[0]))  # eq. (24) level: the autopilot's own, bias in it
+        own_err.append((own - math.degrees(psi) + 180.0) % 360.0 - 180.0)
+        track.remember(i * 0.2, raw, thr, (1.0, 0.0, 1.0, 0.0), own % 360.0)
+    mean_bias = float(np.mean(own_err[-600:]))
+    assert abs(mean_bias) > 5.0  # what the own heading's constant would carry
+    assert math.degrees(track.own_offset_rad(est)) == pytest.approx(0.0, abs=0.2)
+
+
 #: the running check's first verdict: MIN_WINDOWS windows of LIVE_WINDOW_S
 MIN_WINDOWS_S = sc.MIN_WINDOWS * sc.LIVE_WINDOW_S
 
