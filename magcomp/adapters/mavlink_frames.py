@@ -157,9 +157,8 @@ def iter_mavlink_frames(
     ``reference_mav`` (tests): pymavlink's ``MAVLink.decode`` instead. ``rx_into``: gets ``rx_s`` and
     ``rx_src`` (the tlog receive stamp in s, the sender's system id) before each message is yielded."""
     mav_error = sys.modules[type(reference_mav).__module__].MAVError if reference_mav is not None else None
-    view, n, p = memoryview(data), len(data), 0
-    magics = (MAGIC_V1, MAGIC_V2)
-    get = decoders.get
+    view, n, p, magics, get = memoryview(data), len(data), 0, (MAGIC_V1, MAGIC_V2), decoders.get
+    stamp_rx, unpack_stamp = rx_into is not None and ts_len == 8, _TLOG_STAMP.unpack_from  # the tlog's stamps
     # a chunk: stop while a whole frame, its timestamp and the next frame's magic may still be missing
     limit = n - ts_len - 8 if final else n - 2 * ts_len - _MAX_FRAME - 1
     while p <= limit:
@@ -174,12 +173,14 @@ def iter_mavlink_frames(
             crc_at = start + mlen
             end = crc_at + (15 if data[h + 2] & 1 else 2)
             msgid = data[h + 7] | (data[h + 8] << 8) | (data[h + 9] << 16)
+            src = data[h + 5]
         elif magic == MAGIC_V1:
             mlen = data[h + 1]
             start = h + 6
             crc_at = start + mlen
             end = crc_at + 2
             msgid = data[h + 5]
+            src = data[h + 3]
         else:
             q = _resync(data, h, p, n, ts_len, final)
             counts["garbage_bytes"] += q - p
@@ -188,7 +189,6 @@ def iter_mavlink_frames(
         if end > n:
             counts["truncated"] += 1
             break
-        next_ok = end + ts_len >= n or data[end + ts_len] in magics
         dec = get(msgid)
         if dec is not None:
             st, size, extra, build, handler = dec
@@ -201,23 +201,29 @@ def iter_mavlink_frames(
                     fields = st.unpack_from(data, start)
                 else:  # MAVLink 2 zero-truncation: the missing tail is zeros
                     fields = st.unpack(data[start:crc_at] + bytes(size - mlen))
-                msg = build(fields, data[start - 5] if magic == MAGIC_V2 else data[h + 3])
+                msg = build(fields, src)
             else:
                 msg = None
             if msg is None:
-                p = _after_bad_frame(counts, p, end, next_ok)
+                p = _after_bad_frame(counts, p, end, _next_ok(data, end, ts_len, n, magics))
                 continue
             counts["messages"] += 1
-            if rx_into is not None and ts_len == 8:
-                rx_into.rx_s = _TLOG_STAMP.unpack_from(data, p)[0] * 1e-6
-                rx_into.rx_src = data[h + 5] if magic == MAGIC_V2 else data[h + 3]
+            if stamp_rx:
+                rx_into.rx_s = unpack_stamp(data, p)[0] * 1e-6
+                rx_into.rx_src = src
             yield handler, msg
-        elif not next_ok:  # framing of an unchecked packet is doubtful: resynchronise byte by byte
+        elif end + ts_len < n and data[end + ts_len] not in magics:  # not _next_ok(), inline
+            # framing of an unchecked packet is doubtful: resynchronise byte by byte
             counts["garbage_bytes"] += 1
             p += 1
             continue
         p = end
     return p
+
+
+def _next_ok(data: bytes, end: int, ts_len: int, n: int, magics: tuple[int, int]) -> bool:
+    """The next frame's magic byte follows a frame that ends at ``end`` (or the input ends there)."""
+    return end + ts_len >= n or data[end + ts_len] in magics
 
 
 def _resync(data: bytes, h: int, p: int, n: int, ts_len: int, final: bool) -> int:

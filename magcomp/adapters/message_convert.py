@@ -167,10 +167,10 @@ class MessageConverter:
         return handler(msg) if handler is not None else []
 
     def _imu_mag(self, origin: str, t_s: float, msg: Any, index: int) -> list[tuple[str, Record]]:
-        gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)  # mrad/s -> rad/s
-        accel = (msg.xacc * _MG_TO_M_S2, msg.yacc * _MG_TO_M_S2, msg.zacc * _MG_TO_M_S2)  # mG
         out: list[tuple[str, Record]] = []
-        if index == 0 or self._keep():
+        if index == 0 or self._keep():  # (a left-out IMU's vectors are not even scaled)
+            gyro = (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3)  # mrad/s -> rad/s
+            accel = (msg.xacc * _MG_TO_M_S2, msg.yacc * _MG_TO_M_S2, msg.zacc * _MG_TO_M_S2)  # mG
             out.append((origin, WireImuSample(t_s, gyro, accel, index)))
         xmag, ymag, zmag = msg.xmag, msg.ymag, msg.zmag
         if not (xmag or ymag or zmag):  # (0, 0, 0): no compass data in this message

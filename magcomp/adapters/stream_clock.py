@@ -78,14 +78,17 @@ class StreamOffsets:
         """One message's stream, raw stamp (s), receive time (s) and sender (system id)."""
         last = self._last
         self._last = (stream, raw_s, rx_s, src)
-        if last is None or abs(rx_s - last[2]) > PAIR_RX_S or src != last[3]:
+        if last is None:
+            return
+        last_stream, last_raw, last_rx, last_src = last
+        if abs(rx_s - last_rx) > PAIR_RX_S or src != last_src:
             return
         if stream in USEC_STREAMS:
-            if last[0] not in MS_STREAMS:
+            if last_stream not in MS_STREAMS:
                 return
-            key, diff = (stream, last[0], -1), last[1] - raw_s
-        elif stream in MS_STREAMS and last[0] in USEC_STREAMS:
-            key, diff = (last[0], stream, 1), raw_s - last[1]
+            key, diff = (stream, last_stream, -1), last_raw - raw_s
+        elif stream in MS_STREAMS and last_stream in USEC_STREAMS:
+            key, diff = (last_stream, stream, 1), raw_s - last_raw
         else:
             return
         pairs = self._pairs.get(key)
@@ -93,7 +96,8 @@ class StreamOffsets:
             pairs = self._pairs[key] = deque(maxlen=OFFSET_WINDOW)
         pairs.append(diff)
         n_new = self._new.get(key, 0) + 1
-        if len(pairs) >= OFFSET_MIN_PAIRS and (n_new >= OFFSET_EVAL_EVERY or len(pairs) == OFFSET_MIN_PAIRS):
+        n_pairs = len(pairs)
+        if n_pairs >= OFFSET_MIN_PAIRS and (n_new >= OFFSET_EVAL_EVERY or n_pairs == OFFSET_MIN_PAIRS):
             n_new = 0
             self._evaluate(key[0])
         self._new[key] = n_new

@@ -335,6 +335,8 @@ class CalibrateStage(Generic[H]):
         #: the count in ``_decided``
         self.params_version = 0
         self._decided: dict[int, int] = {}
+        #: per compass, what its parameters say at params_version: (version, external, rotation source)
+        self._facts: dict[int, tuple[int, bool | None, str]] = {}
 
     def run(self, rec: MagRecord, c: H) -> None:
         """Fills ``rec.field_cal`` (eq. (2)), ``rec.calibrated`` and ``rec.inflight``."""
@@ -460,12 +462,23 @@ class CalibrateStage(Generic[H]):
             # then follows a compass the currents hardly disturb (log171 compass 1 / 2 against compass 0:
             # 2.42 / 2.93 deg with the gyro's yaw for compass 0, 2.14 / 2.62 with the autopilot's)
             gyro_yaw = None
-            if r_rel is not None and external_compass(self.params, c.mag_index) is not True:
+            if r_rel is not None and self._param_facts(c.mag_index)[1] is not True:
                 gyro_yaw = self.attitude.gyro_yaw_at(t, GYRO_MATCH_S, GYRO_YAW_MAX_DT_S)
             st.feed(t, rec.raw, thr, self.throttle.motors, r_abs, self.earth_ned, r_rel,
                     r_t_s=r_t, throttle_t_s=thr_t, gyro_yaw=gyro_yaw)  # fmt: skip
             c.dirty = True
         return st.output(t, rec.raw, self.throttle.value, self.throttle.motors)
+
+    def _param_facts(self, idx: int) -> tuple[int, bool | None, str]:
+        """(params_version, external, rotation source) of compass ``idx``: what the parameters say, read
+        again only when they change (per sample it was two dictionary reads and three calls)."""
+        got = self._facts.get(idx)
+        if got is None or got[0] != self.params_version:
+            rot = self.cfg.inflight.rotation
+            if rot == "auto":
+                rot = relative_rotation_source(self.params, idx)[0]
+            got = self._facts[idx] = (self.params_version, external_compass(self.params, idx), rot)
+        return got
 
     def _rotations(self, c: H, st: InflightStage, t: float) -> tuple[F64 | None, F64 | None]:
         """(absolute attitude, relative-form rotation) for this sample, each None when it cannot be used."""
@@ -482,9 +495,7 @@ class CalibrateStage(Generic[H]):
             return r_abs, None
         r_rel = None
         src: RotationSource
-        rot = self.cfg.inflight.rotation
-        if rot == "auto":
-            rot = relative_rotation_source(self.params, c.mag_index)[0]
+        rot = self._param_facts(c.mag_index)[2]
         # the integrated gyro only while it is fast; the autopilot's attitude when it is too slow
         use_gyro = (rot == "gyro" and att.gyro_fast()) or not att_fresh
         if use_gyro and att.gyro_usable(t):

@@ -210,6 +210,22 @@ class Pipeline:
             handler = self._handlers[cls] = self._handler_for(cls)
         return handler(sample)
 
+    def feed_all(self, samples: Iterable[Sample]) -> None:
+        """:meth:`feed` of each of ``samples`` in order, for a caller that reads none of the results (a
+        learn-only pass): one call for a batch instead of one a sample."""
+        handlers = self._handlers
+        n = 0
+        try:
+            for sample in samples:
+                n += 1
+                cls = type(sample)
+                handler = handlers.get(cls)
+                if handler is None:
+                    handler = handlers[cls] = self._handler_for(cls)
+                handler(sample)
+        finally:
+            self.counts["samples"] += n
+
     def _handler_for(self, cls: type) -> Callable[[Any], bool]:
         """The handler of a sample class (sources may pass subclasses); temperature and power samples
         are not used here. Looked up by class once, not tested against each kind per sample (0.1-0.5 us

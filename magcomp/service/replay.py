@@ -140,14 +140,13 @@ def _learn(
     from magcomp.adapters.mavlink_source import open_source
 
     source = open_source(path, throttle_source=source_throttle(cfg), pipeline_only=True)
-    feed = pipeline.feed
+    feed_all = pipeline.feed_all
     samples = source.samples()
     try:
         while batch := list(islice(samples, REPLAY_BATCH)):
             if should_stop is not None and should_stop():
                 return None
-            for sample in batch:
-                feed(sample)
+            feed_all(batch)
             if on_progress is not None:
                 on_progress(batch[-1].t_s)
     finally:

@@ -6,6 +6,7 @@ correction value the pipeline applies (:class:`InflightOutput`). Pure; no I/O.""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -105,6 +106,7 @@ def apply_decision(
     return ok and turned and earthly and sig < MAX_APPLY_HEADING_SIGMA_DEG and sigma_checked, strength
 
 
+_TWO_PI = 2.0 * math.pi
 #: the most turned attitudes YawSpan holds before it takes them (a block's worth: memory stays small)
 _SPAN_PENDING_MAX = 256
 
@@ -144,16 +146,24 @@ class YawSpan:
             return
         turned = yaw_turned(np.array([h[0] for h in held]), np.array([h[1] for h in held]),
                             np.array([h[2] for h in held]))  # fmt: skip
-        for r_nb in turned:
-            self._track(r_nb)
+        # _track's steps over the block's yaws (the same floats as indexing each attitude)
+        self._track_yaws(map(math.atan2, turned[:, 1, 0].tolist(), turned[:, 0, 0].tolist()))
 
     def _track(self, r_nb: F64) -> None:
-        yaw = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
-        if self._prev is not None:
-            self._unwrapped += (yaw - self._prev + math.pi) % (2.0 * math.pi) - math.pi
-        self._prev = yaw
-        self.yaw_min = min(self.yaw_min, self._unwrapped)
-        self.yaw_max = max(self.yaw_max, self._unwrapped)
+        self._track_yaws((math.atan2(r_nb.item(1, 0), r_nb.item(0, 0)),))
+
+    def _track_yaws(self, yaws: Iterable[float]) -> None:
+        """Unwrap ``yaws`` (rad) onto the span, in order."""
+        prev, unwrapped, lo, hi = self._prev, self._unwrapped, self.yaw_min, self.yaw_max
+        for yaw in yaws:
+            if prev is not None:
+                unwrapped += (yaw - prev + math.pi) % _TWO_PI - math.pi
+            prev = yaw
+            if unwrapped < lo:  # min() and max() as they were, without the calls
+                lo = unwrapped
+            if unwrapped > hi:
+                hi = unwrapped
+        self._prev, self._unwrapped, self.yaw_min, self.yaw_max = prev, unwrapped, lo, hi
 
     @property
     def span_deg(self) -> float:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -146,36 +147,47 @@ OWN_FIELD_MIN = 5
 BLOCK_MAX = 128
 
 
+#: one held sample: time, time from its window's middle, attitude, yaw turn (None: none), field, regressors,
+#: the gyro frame's tilt-model inputs (the autopilot's yaw deviation, the horizontal acceleration)
+_Held = tuple[
+    float, float, F64, "YawTurn | None", Vec3Like, "F64 | tuple[float, ...]", float, tuple[float, float]
+]
+
+
 class _Block:
-    """Samples of one nuisance window waiting to become rows (:class:`WindowRowFeed`): their times, times from
-    the window's middle, attitudes, fields, regressors and the gyro frame's tilt-model inputs."""
+    """Samples of one nuisance window waiting to become rows (:class:`WindowRowFeed`), one tuple each
+    (:data:`_Held`; one append a sample, the columns made once at the flush)."""
 
     def __init__(self) -> None:
         self.key: tuple[int, int] | None = None
         self.on = False
         self.relin = False
         self.n_r = 0
-        self.t: list[float] = []
-        self.tau: list[float] = []
-        self.r: list[F64] = []
-        #: the yaw turns of the attitudes (a block of the gyro's frame: one per sample, else none)
-        self.cos: list[float] = []
-        self.sin: list[float] = []
-        self.y: list[Vec3Like] = []
-        self.x: list[F64 | tuple[float, ...]] = []
-        self.ap_dev: list[float] = []
-        self.accel: list[tuple[float, float]] = []
+        self.held: list[_Held] = []
 
     def __len__(self) -> int:
-        return len(self.t)
+        return len(self.held)
 
-    def fits(self, key: tuple[int, int], on: bool, relin: bool, n_r: int) -> bool:
-        """A sample of this window, frame and form joins the block."""
-        return key == self.key and on == self.on and relin == self.relin and n_r == self.n_r
+    def columns(self) -> _Columns:
+        """The held samples by column (each a tuple, in the samples' order)."""
+        t, tau, r, turns, y, x, ap_dev, accel = zip(*self.held, strict=True)
+        return _Columns(t, tau, r, turns, y, x, ap_dev, accel)
 
     def clear(self) -> None:
-        for a in (self.t, self.tau, self.r, self.cos, self.sin, self.y, self.x, self.ap_dev, self.accel):
-            a.clear()
+        self.held.clear()
+
+
+class _Columns(NamedTuple):
+    """A block's samples by column (:meth:`_Block.columns`)."""
+
+    t: tuple[float, ...]
+    tau: tuple[float, ...]
+    r: tuple[F64, ...]
+    turns: tuple[YawTurn | None, ...]
+    y: tuple[Vec3Like, ...]
+    x: tuple[F64 | tuple[float, ...], ...]
+    ap_dev: tuple[float, ...]
+    accel: tuple[tuple[float, float], ...]
 
 
 class WindowRowFeed:
@@ -225,53 +237,49 @@ class WindowRowFeed:
         frame (``on``: ``r_nb`` takes the gyro's yaw by the yaw ``turn``, made when the block becomes rows);
         ``slow_link``: the attitude is matched to the field's time. Held in the block until it is flushed
         (a new window, a full block, :meth:`flush`)."""
-        w_s = GYRO_WINDOW_S if frame.on else ROTATION_WINDOW_S
+        on = frame.on
+        w_s = GYRO_WINDOW_S if on else ROTATION_WINDOW_S
         win = math.floor(t_s / w_s)
         tau = t_s - (win + 0.5) * w_s
         key = (epoch, win)
-        relin = self.sw.relinearise_window and not frame.on and slow_link
+        relin = self.sw.relinearise_window and not on and slow_link
         b = self._block
-        held = b.t  # the block's samples (its length without a call: once per sample)
+        held = b.held  # cleared in place by a flush
         n_r = len(x)
-        if held and (not b.fits(key, frame.on, relin, n_r) or len(held) >= BLOCK_MAX):
+        if held and (
+            key != b.key or on != b.on or relin != b.relin or n_r != b.n_r or len(held) >= BLOCK_MAX
+        ):
             self.flush()
         if relin and key != self._rl_key:
             self._relinearise()
             self._rl_key = key
         if not held:
-            b.key, b.on, b.relin, b.n_r = key, frame.on, relin, n_r
-        b.t.append(t_s)
-        b.tau.append(tau)
-        b.r.append(r_nb)
-        if turn is not None:
-            b.cos.append(turn[0])
-            b.sin.append(turn[1])
-        b.y.append(y)
-        b.x.append(x)
-        b.ap_dev.append(frame.ap_yaw_dev)
-        b.accel.append(frame.accel_h)
+            b.key, b.on, b.relin, b.n_r = key, on, relin, n_r
+        held.append((t_s, tau, r_nb, turn, y, x, frame.ap_yaw_dev, frame.accel_h))
 
     def flush(self) -> None:
         """The block's samples into the estimators: the ordinary one's rows (gated), and the tilt model's for
         the samples with a raw gyro's yaw that the ordinary one's gate passed (the same glitches). Only
         those: its windows carry one more nuisance column, and a window never mixes the two."""
         b = self._block
-        if not len(b) or b.key is None:
+        if not b.held or b.key is None:
             return
-        r_nb, y, x = np.array(b.r), np.array(b.y, dtype=float), np.array(b.x, dtype=float)
-        if b.cos:
-            if len(b.cos) != len(b.r):
+        cols = b.columns()
+        r_nb, y, x = np.array(cols.r), np.array(cols.y, dtype=float), np.array(cols.x, dtype=float)
+        turns = [u for u in cols.turns if u is not None]
+        if turns:
+            if len(turns) != len(cols.r):
                 raise AssertionError("a block mixes attitudes with and without the gyro's yaw")
-            r_nb = yaw_turned(r_nb, np.array(b.cos), np.array(b.sin))
-        tau = np.array(b.tau)
+            r_nb = yaw_turned(r_nb, np.array([u[0] for u in turns]), np.array([u[1] for u in turns]))
+        tau = np.array(cols.tau)
         est, tilt = self.est, self.est_tilt
-        self._field, w, used = self._add(est, self._field, b, r_nb, y, x, tau, self.sw.ap_yaw_tilt)
+        self._field, w, used = self._add(est, self._field, b, cols, r_nb, y, x, tau, self.sw.ap_yaw_tilt)
         if b.on and tilt is not None and used.any():
             sel = None if used.all() else np.flatnonzero(used)
             if sel is not None:
                 r_nb, y, x, tau = r_nb[sel], y[sel], x[sel], tau[sel]
                 w = WindowFieldRows(w.rows[sel], w.z[sel], w.field_cols[sel], w.common[sel])
-            self._field_tilt, _, _ = self._add(tilt, self._field_tilt, b, r_nb, y, x, tau, True, w, sel)
+            self._field_tilt, _, _ = self._add(tilt, self._field_tilt, b, cols, r_nb, y, x, tau, True, w, sel)
         b.clear()
 
     def _add(
@@ -279,6 +287,7 @@ class WindowRowFeed:
         est: InflightEstimator,
         win_field: tuple[float, float, float] | None,
         b: _Block,
+        cols: _Columns,
         r_nb: F64,
         y: F64,
         x: F64,
@@ -312,7 +321,7 @@ class WindowRowFeed:
         ap_yaw = tilt_model and b.on and self.sw.ap_yaw_nuisance
         z = w.z
         if tilt_model and b.on:
-            t_s, ap_dev, accel = np.array(b.t), np.array(b.ap_dev), np.array(b.accel)
+            t_s, ap_dev, accel = np.array(cols.t), np.array(cols.ap_dev), np.array(cols.accel)
             if sel is not None:
                 t_s, ap_dev, accel = t_s[sel], ap_dev[sel], accel[sel]
             psi, vh = self._line.tilt(est, t_s, key, h_w, ap_dev, accel)
@@ -325,8 +334,17 @@ class WindowRowFeed:
                 nuis = nuis[:, :, :-1]
         else:
             nuis = window_nuisance_cols_block(r_nb, h_w, tau, TILT_PRIOR_RAD > 0.0)
-        used = est.add_block(w.rows, z, x[:, 0], nuis, key, w.common, gate=est is not self.est_tilt,
-                             prior_sd=window_prior_sd(ap_yaw), batch_windows=_BATCH_WINDOWS[b.on])
+        used = est.add_block(
+            w.rows,
+            z,
+            x[:, 0],
+            nuis,
+            key,
+            w.common,
+            gate=est is not self.est_tilt,
+            prior_sd=window_prior_sd(ap_yaw),
+            batch_windows=_BATCH_WINDOWS[b.on],
+        )
         if b.relin and est is self.est:
             for i in np.flatnonzero(used).tolist():
                 self._rl_rows.append((w.rows[i], z[i], w.field_cols[i], r_nb[i], float(tau[i]), w.common[i]))

@@ -45,8 +45,7 @@ class WindowFields(Protocol):
 YawTurn = tuple[float, float]
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
+_TWO_PI = 2.0 * math.pi
 
 
 class GyroYawFrame:
@@ -79,7 +78,7 @@ class GyroYawFrame:
             return None, restart
         restart = False
         epoch, yaw_g = gyro_yaw.epoch, gyro_yaw.yaw_rad
-        yaw_ap = math.atan2(float(r_nb[1, 0]), float(r_nb[0, 0]))
+        yaw_ap = math.atan2(r_nb.item(1, 0), r_nb.item(0, 0))  # (item: the element as a float, no scalar)
         if not self.on or epoch != self._epoch:
             self.on, self._epoch = True, epoch
             self._offset = yaw_ap - yaw_g
@@ -87,7 +86,7 @@ class GyroYawFrame:
             restart = True
         a = yaw_g + self._offset - yaw_ap
         a_att = a + gyro_yaw.att_lead_rad if self.att_lead and not matched else a
-        self.ap_yaw_dev = -_wrap(a_att)
+        self.ap_yaw_dev = -((a_att + math.pi) % _TWO_PI - math.pi)  # wrapped to [-pi, pi)
         an, ae = gyro_yaw.accel_h_m_s2
         co, so = self._offset_cs
         self.accel_h = (co * an - so * ae, so * an + co * ae)
