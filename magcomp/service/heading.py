@@ -246,8 +246,9 @@ class HeadingTrack:
         holds theta's bias at the throttle flown (eq. (11)), the error the correction removes (log171,
         against its external compass: the live corrected headings of compasses 1 and 2 were +12.8 and +8.5
         deg off on average with that constant, -4.4 and +1.4 with this one, the two-pass replay's -1.2 and
-        -1.6; the simulated ordinary flight at a realistic theta 15-26 deg rms, 3-5). Where the throttle flown does not measure that bias (MAX_BIAS_EXTRAPOLATION: a hover),
-        the autopilot's own heading's constant is kept, theta's bias in it."""
+        -1.6; the simulated ordinary flight at a realistic theta 15-26 deg rms, 3-5). Where the throttle
+        flown does not measure that bias (MAX_BIAS_EXTRAPOLATION: a hover), the autopilot's own heading's
+        constant is kept, theta's bias in it."""
         if not self._recent:
             return math.nan
         a = np.asarray(self._recent, dtype=float)
