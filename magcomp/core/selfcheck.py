@@ -31,12 +31,14 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.correction import Correction, headings_deg
+from magcomp.core.correction import Correction
+from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.yaw_follow import YawFollow, fit_follow_gain, follows_within, window_follow_terms
 
 F64 = NDArray[np.float64]
@@ -125,16 +127,28 @@ def rms_upper_deg(rms_deg: float, n_windows: int) -> float:
 Estimate = tuple[tuple[float, ...], tuple[float, float, float]]
 
 
-def corrected_heading_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64, estimate: Estimate) -> F64:
-    """The heading (deg) an in-flight estimate gives the samples (the field as received (n, 3), the throttle
-    (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats and its theta, applied as
-    :class:`~magcomp.core.correction.Correction` applies them (eqs. (2), (11); per-motor terms, which sum to
-    about zero over the motors, left out), then eq. (24)."""
-    coeffs, theta = estimate
+def corrected_headings_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64,
+                           estimates: Sequence[Estimate]) -> list[F64]:  # fmt: skip
+    """The heading (deg) each of ``estimates`` gives the same samples (the field as received (n, 3), the
+    throttle (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats and its theta,
+    applied as :class:`~magcomp.core.correction.Correction` applies them (eqs. (2), (11); per-motor terms,
+    which sum to about zero over the motors, left out), then eq. (24) of the corrected field. The samples'
+    columns are taken once for all the estimates."""
     r = np.asarray(raw_mgauss, dtype=float)
     c = np.asarray(tilt, dtype=float)
-    applied = Correction(coeffs, theta).apply(r[:, 0], r[:, 1], r[:, 2], np.asarray(throttle_01, dtype=float))
-    return np.asarray(headings_deg(applied, c[:, 0], c[:, 1], c[:, 2], c[:, 3])[0])
+    thr = np.asarray(throttle_01, dtype=float)
+    vx, vy, vz = r[:, 0], r[:, 1], r[:, 2]
+    cr, sr, cp, sp = c[:, 0], c[:, 1], c[:, 2], c[:, 3]
+    out = []
+    for coeffs, theta in estimates:
+        mx, my, mz = Correction(coeffs, theta).apply(vx, vy, vz, thr).corrected
+        out.append(np.asarray(heading_from_trig_deg(mx, my, mz, cr, sr, cp, sp)))  # eq. (24)
+    return out
+
+
+def corrected_heading_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64, estimate: Estimate) -> F64:
+    """The heading (deg) an in-flight estimate gives the samples (:func:`corrected_headings_deg`)."""
+    return corrected_headings_deg(raw_mgauss, throttle_01, tilt, (estimate,))[0]
 
 
 def circular_mean_rad(a_rad: F64) -> float:
@@ -145,17 +159,21 @@ def circular_mean_rad(a_rad: F64) -> float:
     return math.atan2(float(np.mean(np.sin(a))), float(np.mean(np.cos(a))))
 
 
+def mean_change_rad(psi_old_deg: F64, psi_new_deg: F64) -> float:
+    """The circular mean (rad) of ``psi_new_deg - psi_old_deg``, headings of the same samples (deg)."""
+    return circular_mean_rad(np.radians(psi_new_deg - psi_old_deg))
+
+
 def constant_change_rad(raw_mgauss: F64, throttle_01: F64, tilt: F64, old: Estimate, new: Estimate) -> float:
     """How much a new estimate moves the corrected heading as a whole (rad): the circular mean over the
-    samples of the heading with ``new`` minus the heading with ``old`` (:func:`corrected_heading_deg`).
+    samples of the heading with ``new`` minus the heading with ``old`` (:func:`corrected_headings_deg`).
     Taken over the samples flown lately rather than over every heading: what is constant for this flight (a
     change of the hard iron at the headings flown) is what the published heading must not jump by. NaN
     without samples."""
     if np.asarray(raw_mgauss).shape[0] == 0:
         return math.nan
-    psi_old = corrected_heading_deg(raw_mgauss, throttle_01, tilt, old)
-    psi_new = corrected_heading_deg(raw_mgauss, throttle_01, tilt, new)
-    return circular_mean_rad(np.radians(psi_new - psi_old))
+    psi_old, psi_new = corrected_headings_deg(raw_mgauss, throttle_01, tilt, (old, new))
+    return mean_change_rad(psi_old, psi_new)
 
 
 def wrap_rad(a: F64) -> F64:

@@ -10,9 +10,9 @@ same way, for comparison.
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcomp.core.correction import IDENTITY_COEFFS, Correction
 from magcomp.core.heading import heading_from_trig_deg
@@ -24,9 +24,8 @@ from magcomp.core.selfcheck import (
     MOTORS_RUNNING_01,
     Estimate,
     RunningSelfCheck,
-    circular_mean_rad,
-    constant_change_rad,
-    corrected_heading_deg,
+    corrected_headings_deg,
+    mean_change_rad,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service.calibrate import apply_eq2
@@ -159,6 +158,9 @@ class HoverShadow:
 #: (two minutes, the running check's RECENT_S)
 RECENT_EVERY_S = 0.2
 RECENT_N = 600
+#: what is remembered of each: the field as received (3), the throttle, cos / sin of roll and pitch (4), the
+#: autopilot's own heading
+RECENT_FIELDS = 9
 #: the published constant takes theta's bias out (:meth:`HeadingTrack.own_offset_rad`) where the throttle^2
 #: flown lately spans at least 1 / MAX_BIAS_EXTRAPOLATION of its distance from zero (5th to 95th
 #: percentile): theta is measured by how the field moves with the throttle^2 flown, and its bias at that
@@ -178,6 +180,9 @@ class HeadingTrack:
         "_holding",
         "_last_rate",
         "_recent",
+        "_recent_a",
+        "_recent_i",
+        "_recent_n",
         "_recent_t",
         "_theta_anchored",
         "check",
@@ -221,9 +226,13 @@ class HeadingTrack:
         #: the in-flight estimate published last (L and d as 12 floats, theta): a new one moves the check's
         #: held offset by its constant part's change (RunningSelfCheck.shift)
         self.solution: Estimate | None = None
-        #: the latest judged samples (field as received, throttle, cos / sin of roll and pitch), one every
-        #: RECENT_EVERY_S over RECENT_N: where that change is measured
-        self._recent: deque[tuple[float, ...]] = deque(maxlen=RECENT_N)
+        #: the latest judged samples (field as received, throttle, cos / sin of roll and pitch, the
+        #: autopilot's own heading), one every RECENT_EVERY_S over RECENT_N: where that change is measured.
+        #: A ring of columns (row k: the k-th quantity), ``_recent_i`` the next column written, ``_recent_n``
+        #: those held; ``_recent_a`` the held ones oldest first (None: taken again when next needed)
+        self._recent = np.empty((RECENT_FIELDS, RECENT_N))
+        self._recent_i = self._recent_n = 0
+        self._recent_a: NDArray[np.float64] | None = None
         self._recent_t = -math.inf
         self._holding = False
         #: the held constant was taken with theta's bias out (:meth:`own_offset_rad`)
@@ -236,7 +245,20 @@ class HeadingTrack:
         own heading (deg)."""
         if t_s - self._recent_t >= RECENT_EVERY_S or t_s < self._recent_t:
             self._recent_t = t_s
-            self._recent.append((*raw, throttle_01, *tilt, psi_own_deg))
+            i = self._recent_i
+            self._recent[:, i] = (*raw, throttle_01, *tilt, psi_own_deg)
+            self._recent_i = (i + 1) % RECENT_N
+            self._recent_n = min(self._recent_n + 1, RECENT_N)
+            self._recent_a = None
+
+    def _remembered(self) -> NDArray[np.float64] | None:
+        """The samples remembered, oldest first, as columns (RECENT_FIELDS, n) (None: none)."""
+        a = self._recent_a
+        if a is None and self._recent_n:
+            r, i = self._recent, self._recent_i
+            a = r[:, :i].copy() if self._recent_n < RECENT_N else np.concatenate((r[:, i:], r[:, :i]), axis=1)
+            self._recent_a = a
+        return a
 
     def own_offset_rad(self, estimate: Estimate) -> float:
         """The constant that puts ``estimate``'s heading on the autopilot's calibration (rad; NaN: no samples
@@ -249,32 +271,35 @@ class HeadingTrack:
         -1.6; the simulated ordinary flight at a realistic theta 15-26 deg rms, 3-5). Where the throttle
         flown does not measure that bias (MAX_BIAS_EXTRAPOLATION: a hover), the autopilot's own heading's
         constant is kept, theta's bias in it."""
-        if not self._recent:
+        a = self._remembered()
+        if a is None:
             return math.nan
-        a = np.asarray(self._recent, dtype=float)
-        psi = corrected_heading_deg(a[:, 0:3], a[:, 3], a[:, 4:8], estimate)
-        d2 = a[:, 3] * a[:, 3]
+        raw, thr, tilt = a[0:3].T, a[3], a[4:8].T
+        d2 = thr * thr
         lo, hi = np.percentile(d2, (5.0, 95.0))
         self._theta_anchored = bool(lo <= MAX_BIAS_EXTRAPOLATION * (hi - lo))
         if not self._theta_anchored:
-            return circular_mean_rad(np.radians(a[:, 8] - psi))
-        anchor = corrected_heading_deg(a[:, 0:3], a[:, 3], a[:, 4:8], (IDENTITY_COEFFS, estimate[1]))
-        return circular_mean_rad(np.radians(anchor - psi))
+            (psi,) = corrected_headings_deg(raw, thr, tilt, (estimate,))
+            return mean_change_rad(psi, a[8])
+        psi, anchor = corrected_headings_deg(raw, thr, tilt, (estimate, (IDENTITY_COEFFS, estimate[1])))
+        return mean_change_rad(psi, anchor)
 
     def constant_change_rad(self, old: Estimate, new: Estimate) -> float:
         """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
         remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none),
         less that of their thetas alone where the held constant has theta's bias out (a new theta's bias at
         the throttle flown is a correction, not a constant to hold away)."""
-        if not self._recent:
+        a = self._remembered()
+        if a is None:
             return math.nan
-        a = np.asarray(self._recent, dtype=float)
-        whole = constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], old, new)
+        raw, thr, tilt = a[0:3].T, a[3], a[4:8].T
         if not self._theta_anchored:
-            return whole
-        theta = constant_change_rad(a[:, 0:3], a[:, 3], a[:, 4:8], (IDENTITY_COEFFS, old[1]),
-                                    (IDENTITY_COEFFS, new[1]))  # fmt: skip
-        return whole - theta
+            psi_old, psi_new = corrected_headings_deg(raw, thr, tilt, (old, new))
+            return mean_change_rad(psi_old, psi_new)
+        # the four headings from one set of columns (core/selfcheck.py constant_change_rad, twice)
+        psi = corrected_headings_deg(raw, thr, tilt, (old, new, (IDENTITY_COEFFS, old[1]),
+                                                      (IDENTITY_COEFFS, new[1])))  # fmt: skip
+        return mean_change_rad(psi[0], psi[1]) - mean_change_rad(psi[2], psi[3])
 
     def follow(self, sol: Estimate | None, chk: RunningSelfCheck) -> None:
         """The in-flight estimate judged at this sample (None: none); a new one (re-solved) while the check
