@@ -219,6 +219,61 @@ def test_the_switch_on_constant_has_thetas_bias_out_where_the_throttle_measures_
     assert math.degrees(track.own_offset_rad(est)) == pytest.approx(0.0, abs=0.2)
 
 
+def test_the_constant_change_over_the_remembered_samples_is_the_batch_ones() -> None:
+    """HeadingTrack.constant_change_rad (its ring of the latest RECENT_N samples, the four headings of one
+    call from one set of columns) gives bit for bit core/selfcheck.py constant_change_rad's over the same
+    samples oldest first: the whole estimate's change, less that of theta alone where the held constant has
+    theta's bias out; the ring keeps the latest samples in order past its wrap."""
+    from magcomp.core.correction import IDENTITY_COEFFS
+    from magcomp.service.heading import MAX_BIAS_EXTRAPOLATION, RECENT_N
+
+    rng = np.random.default_rng(11)
+    track = HeadingTrack(tau_s=1.0)
+    rows: list[tuple[float, ...]] = []
+    old = ((1.0, 0.01, 0.0, -0.02, 0.98, 0.0, 0.0, 0.0, 1.01, 3.0, -4.0, 1.0), (10.0, 60.0, -5.0))
+    new = ((0.99, 0.02, 0.0, -0.01, 1.0, 0.01, 0.0, 0.0, 1.0, 2.0, -1.0, 0.0), (12.0, 75.0, -2.0))
+    for i in range(RECENT_N + 137):
+        psi = math.radians(i * 1.3)
+        thr = 0.55 + 0.25 * math.sin(i * 0.05)
+        raw = (200 * math.cos(psi) + float(rng.normal(0, 2)), -200 * math.sin(psi) + 60 * thr * thr, 400.0)
+        roll, pitch = float(rng.normal(0, 0.1)), float(rng.normal(0, 0.1))
+        tilt = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch))
+        own = math.degrees(psi) % 360.0
+        track.remember(i * 0.25, raw, thr, tilt, own)  # one every RECENT_EVERY_S or more: all kept
+        rows.append((*raw, thr, *tilt, own))
+        if i in (5, RECENT_N - 1, RECENT_N + 136):
+            a = np.asarray(rows[-RECENT_N:])
+            raw_a, thr_a, tilt_a = a[:, 0:3], a[:, 3], a[:, 4:8]
+            whole = sc.constant_change_rad(raw_a, thr_a, tilt_a, old, new)
+            theta = sc.constant_change_rad(raw_a, thr_a, tilt_a, (IDENTITY_COEFFS, old[1]),
+                                           (IDENTITY_COEFFS, new[1]))  # fmt: skip
+            psi_new = sc.corrected_heading_deg(raw_a, thr_a, tilt_a, new)
+            lo, hi = np.percentile(thr_a * thr_a, (5.0, 95.0))
+            anchored = bool(lo <= MAX_BIAS_EXTRAPOLATION * (hi - lo))
+            assert anchored == (i > 5)  # the first six samples: too little throttle span
+            anchor = sc.corrected_heading_deg(raw_a, thr_a, tilt_a, (IDENTITY_COEFFS, new[1]))
+            own_off = sc.circular_mean_rad(np.radians((anchor if anchored else a[:, 8]) - psi_new))
+            assert track.own_offset_rad(new) == own_off
+            assert track.constant_change_rad(old, new) == (whole - theta if anchored else whole)
+            assert abs(math.degrees(theta)) > 0.1  # the two parts differ: the test can tell them apart
+
+
+def test_t_critical_is_scipys_student_t_quantile() -> None:
+    """t_critical's table (T_CRITICAL) holds the exact floats scipy's Student-t quantile returns for every
+    n = 2..T_CRITICAL_MAX_N (benchmarks/t_critical_table.py prints it); beyond it scipy is asked; the
+    bound falls with the windows towards its large-sample limit Z_APPLY."""
+    from scipy.special import stdtrit
+
+    assert len(sc.T_CRITICAL) == sc.T_CRITICAL_MAX_N - 1
+    for n in range(2, sc.T_CRITICAL_MAX_N + 3):
+        want = float(stdtrit(n - 1, sc.P_APPLY))
+        assert sc.t_critical(n) == want, (n, sc.t_critical(n), want)
+        assert type(sc.t_critical(n)) is float
+    assert math.isinf(sc.t_critical(1)) and math.isinf(sc.t_critical(0))
+    assert all(a > b for a, b in zip(sc.T_CRITICAL, sc.T_CRITICAL[1:], strict=False))
+    assert sc.Z_APPLY < sc.T_CRITICAL[-1] < 1.01 * sc.Z_APPLY
+
+
 #: the running check's first verdict: MIN_WINDOWS windows of LIVE_WINDOW_S
 MIN_WINDOWS_S = sc.MIN_WINDOWS * sc.LIVE_WINDOW_S
 
