@@ -471,6 +471,9 @@ class RunningSelfCheck:
         self._held: float | None = None
         self._off: tuple[float, float] | None = None
         self.verdict: SelfCheck | None = None
+        #: :meth:`publishes`'s two bounds (deg) and the verdict they were taken from (read at every sample,
+        #: changed only with the verdict)
+        self._bounds: tuple[SelfCheck | None, float, float] | None = None
         #: the correction is published: switched on where the verdict applies, off only where it is worse
         #: beyond the noise (hysteresis: a verdict near its bound does not make the heading flip back and
         #: forth between two headings whose constant parts differ)
@@ -550,7 +553,12 @@ class RunningSelfCheck:
         the error measured on the check's windows (:attr:`candidate_bound_deg`). On the development logs the
         first alone held log171's compasses back for 10 s after the check was on (heading uncertainty 13-46
         deg while the windows measured 3-6 deg against 10-14 of the autopilot's own)."""
-        return self.on and min(heading_sigma_deg, self.candidate_bound_deg) <= self.baseline_deg
+        if not self.on:
+            return False
+        b = self._bounds
+        if b is None or b[0] is not self.verdict:
+            b = self._bounds = (self.verdict, self.candidate_bound_deg, self.baseline_deg)
+        return min(heading_sigma_deg, b[1]) <= b[2]
 
     def add(self, t_s: float, base_rad: float, cand_rad: float, ref_rad: float, segment: float,
             ap_yaw_rad: float) -> bool:  # fmt: skip
