@@ -17,7 +17,7 @@ Pure numpy; angles in rad, times in s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,8 +31,7 @@ OUTLIER_Z = 4.0
 MIN_WINDOWS = 5
 
 
-@dataclass(frozen=True)
-class YawFollow:
+class YawFollow(NamedTuple):
     """gain_per_s: k of the model above, 1/s, with its standard error; bias_rad_s: b; n_windows used;
     spread_rad: rms of the compass's heading minus the autopilot's yaw over the windows (what k is
     measured against: with a spread of a fraction of a degree, k is not determined); n_left_out: windows
