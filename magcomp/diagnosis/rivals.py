@@ -9,10 +9,12 @@
   partly collinear (each has one nonlinear parameter); ``current_lag`` and ``time_skew`` both delay it. When
   several members of a group pass on their own and their fits differ by less than ``RIVAL_DELTA_BIC``, the
   data cannot tell them apart: the finding names the set, not one of them. The difference is the effective
-  BIC of one member's fit against the other's (:func:`rival_set`), with the Bartlett factor of what separates
+  BIC of one member's fit against the other's (:func:`rival_gap`), with the Bartlett factor of what separates
   the two: each member's own delta BIC against the paper's model has its own effective sample size, so their
   difference is no comparison (measured: a sag of 0.8 under AR(1) noise lost to an exponent of 1.57 by
-  31 in those terms while the two fits differ by 3 when compared directly).
+  31 in those terms while the two fits differ by 3 when compared directly). A member refused on its own
+  only by the margin or the held-out test joins the set of one that passed when it is as close
+  (``search.group_rivals``): the log does not tell it from the named one either.
 - ``per_motor``'s vectors are reported one by one only when each is identified: its 95 % interval narrower
   than half of |theta| (the scale of the differences it is meant to show); otherwise only the spread and the
   mean theta.
