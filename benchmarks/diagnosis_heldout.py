@@ -55,6 +55,13 @@ and what the spread's interval leaves out (the rotation's error aligned with the
 docs/diagnosis.md ("per_motor's interval, one clock per log, the GNSS latency"). Each record now carries what
 every finding explains (``explained``: the residual rms without and with it, mgauss).
 
+Measured 2026-11-28 (helper sag; ``--effects voltage_sag --value voltage_sag=V``, named alone or in a set):
+seeds 5000-5019 / fresh 5100-5119 at 0.8 16/20 / 15/20, 0.9 18/20 / 16/20, 1.0 20/20 / 16/20. The misses
+but one (1.0 and 0.9 on 5114: the interval below the truth) have no finding: at 0.8 the sag's GLS evidence is
+-9 to -30, short of the -30 margin under the AR(1) noise, on the same flight on every seed
+(docs/diagnosis.md, "voltage_sag at 0.8 on other seeds"). All seven: 67/70 on 5000-5009, 64/70 on
+5010-5019 (a sag refused only by the margin now joins the exponent's set).
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
 """
 

@@ -120,3 +120,35 @@ def test_heldout_per_motor_spread_interval_brackets_the_drawn_spread(tmp_path: P
     lo, hi = params["spread_ci95"]
     assert lo <= truth <= hi, (params["spread"], lo, hi, truth)
     assert params["spread"] < params["spread_raw"]
+
+
+@pytest.mark.slow
+def test_heldout_sag_named_in_a_set_with_the_exponent_it_cannot_be_told_from(tmp_path: Path) -> None:
+    """The benchmark's sag case (VALUE 0.8) on seed 5018: the throttle exponent passes on its own (effective
+    delta BIC -56), the sag only just misses the margin (-25), and the two fits differ directly by 7.7-10.9
+    effective BIC depending on whose residual is taken as the noise. The data do not tell them apart, so the
+    finding is the set, with the sag's interval bracketing the simulated 0.8 (before: the exponent alone)."""
+    sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
+    from diagnosis_heldout import CASES as HELD_OUT  # the benchmark's case, one definition
+
+    scenario, vehicle, duration_s, value, _, settings = HELD_OUT["voltage_sag"]
+    cfg = SimConfig(
+        scenario=scenario,
+        duration_s=duration_s,
+        seed=5018,
+        effects={"voltage_sag": value},
+        vehicle=vehicle,
+        n_compasses=1,
+    )
+    res = simulate(apply_settings(cfg, settings))
+    path = tmp_path / "heldout.tlog"
+    write_tlog(res, path)
+    earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
+    c = diagnose(load_log(path), earth=earth).to_json()["compasses"][0]
+    assert c["findings"], c["rejected"]
+    top = c["findings"][0]
+    assert set(top.get("candidates", [top["effect"]])) == {"throttle_exponent", "voltage_sag"}, top
+    sag = top["candidate_params"]["voltage_sag"]
+    lo, hi = sag["sag_ci95"]
+    assert lo <= value <= hi, sag
+    assert "reported as a set" in c["rejected"]["voltage_sag"]["why"]
