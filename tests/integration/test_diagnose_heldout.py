@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -87,21 +87,21 @@ def test_heldout_effect_is_top_finding_inside_its_interval(tmp_path: Path, effec
     assert lo <= value <= hi, f"{param} {params[param]} [{lo}, {hi}] does not bracket {value}"
 
 
-@pytest.mark.slow
-def test_heldout_per_motor_spread_interval_brackets_the_drawn_spread(tmp_path: Path) -> None:
-    """The benchmark's per-motor case (60 s quad, compass 20 Hz held in 40 Hz RAW_IMU, AR(1) noise, the
-    autopilot's calibration): the spread the seed drew, in the logged field's frame, lies inside the
-    reported 95 % interval, and the reported spread is below the plain mean of norms (noise bias removed,
-    :mod:`magcomp.diagnosis.spread`)."""
+
+def _heldout_case(
+    tmp_path: Path, effect: str, seed: int | None = None
+) -> tuple[Any, dict[str, Any], float]:
+    """The held-out benchmark's case for ``effect`` (its own seed unless ``seed``): the simulation,
+    diagnose's JSON of its one compass and the effect's simulated value."""
     sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
     from diagnosis_heldout import CASES as HELD_OUT  # the benchmark's case, one definition
 
-    scenario, vehicle, duration_s, value, seed, settings = HELD_OUT["per_motor"]
+    scenario, vehicle, duration_s, value, case_seed, settings = HELD_OUT[effect]
     cfg = SimConfig(
         scenario=scenario,
         duration_s=duration_s,
-        seed=seed,
-        effects={"per_motor": value},
+        seed=case_seed if seed is None else seed,
+        effects={effect: value},
         vehicle=vehicle,
         n_compasses=1,
     )
@@ -109,7 +109,15 @@ def test_heldout_per_motor_spread_interval_brackets_the_drawn_spread(tmp_path: P
     path = tmp_path / "heldout.tlog"
     write_tlog(res, path)
     earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
-    c = diagnose(load_log(path), earth=earth).to_json()["compasses"][0]
+    return res, diagnose(load_log(path), earth=earth).to_json()["compasses"][0], float(value)
+
+@pytest.mark.slow
+def test_heldout_per_motor_spread_interval_brackets_the_drawn_spread(tmp_path: Path) -> None:
+    """The benchmark's per-motor case (60 s quad, compass 20 Hz held in 40 Hz RAW_IMU, AR(1) noise, the
+    autopilot's calibration): the spread the seed drew, in the logged field's frame, lies inside the
+    reported 95 % interval, and the reported spread is below the plain mean of norms (noise bias removed,
+    :mod:`magcomp.diagnosis.spread`)."""
+    res, c, _ = _heldout_case(tmp_path, "per_motor")
     assert c["findings"] and c["findings"][0]["effect"] == "per_motor", c["rejected"]
     params = c["findings"][0]["params"]
     l_matrix, _ = res.true_calibration(0)
@@ -128,23 +136,7 @@ def test_heldout_sag_named_in_a_set_with_the_exponent_it_cannot_be_told_from(tmp
     delta BIC -56), the sag only just misses the margin (-25), and the two fits differ directly by 7.7-10.9
     effective BIC depending on whose residual is taken as the noise. The data do not tell them apart, so the
     finding is the set, with the sag's interval bracketing the simulated 0.8 (before: the exponent alone)."""
-    sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
-    from diagnosis_heldout import CASES as HELD_OUT  # the benchmark's case, one definition
-
-    scenario, vehicle, duration_s, value, _, settings = HELD_OUT["voltage_sag"]
-    cfg = SimConfig(
-        scenario=scenario,
-        duration_s=duration_s,
-        seed=5018,
-        effects={"voltage_sag": value},
-        vehicle=vehicle,
-        n_compasses=1,
-    )
-    res = simulate(apply_settings(cfg, settings))
-    path = tmp_path / "heldout.tlog"
-    write_tlog(res, path)
-    earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
-    c = diagnose(load_log(path), earth=earth).to_json()["compasses"][0]
+    _, c, value = _heldout_case(tmp_path, "voltage_sag", seed=5018)
     assert c["findings"], c["rejected"]
     top = c["findings"][0]
     assert set(top.get("candidates", [top["effect"]])) == {"throttle_exponent", "voltage_sag"}, top
