@@ -89,14 +89,15 @@ def test_heldout_effect_is_top_finding_inside_its_interval(tmp_path: Path, effec
 
 
 def _heldout_case(
-    tmp_path: Path, effect: str, seed: int | None = None
+    tmp_path: Path, effect: str, seed: int | None = None, value: float | None = None
 ) -> tuple[Any, dict[str, Any], float]:
-    """The held-out benchmark's case for ``effect`` (its own seed unless ``seed``): the simulation,
+    """The held-out benchmark's case for ``effect`` (its own seed and value unless given): the simulation,
     diagnose's JSON of its one compass and the effect's simulated value."""
     sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
     from diagnosis_heldout import CASES as HELD_OUT  # the benchmark's case, one definition
 
-    scenario, vehicle, duration_s, value, case_seed, settings = HELD_OUT[effect]
+    scenario, vehicle, duration_s, case_value, case_seed, settings = HELD_OUT[effect]
+    value = case_value if value is None else value
     cfg = SimConfig(
         scenario=scenario,
         duration_s=duration_s,
@@ -132,11 +133,12 @@ def test_heldout_per_motor_spread_interval_brackets_the_drawn_spread(tmp_path: P
 
 @pytest.mark.slow
 def test_heldout_sag_named_in_a_set_with_the_exponent_it_cannot_be_told_from(tmp_path: Path) -> None:
-    """The benchmark's sag case (VALUE 0.8) on seed 5018: the throttle exponent passes on its own (effective
-    delta BIC -56), the sag only just misses the margin (-25), and the two fits differ directly by 7.7-10.9
-    effective BIC depending on whose residual is taken as the noise. The data do not tell them apart, so the
-    finding is the set, with the sag's interval bracketing the simulated 0.8 (before: the exponent alone)."""
-    _, c, value = _heldout_case(tmp_path, "voltage_sag", seed=5018)
+    """The sag case at 0.8 (the benchmark's until 2026-11-28) on seed 5018: the throttle exponent passes on
+    its own (effective delta BIC -56), the sag only just misses the margin (-25), and the two fits differ
+    directly by 7.7-10.9 effective BIC depending on whose residual is taken as the noise. The data do not tell
+    them apart, so the finding is the set, with the sag's interval bracketing the simulated 0.8 (before: the
+    exponent alone)."""
+    _, c, value = _heldout_case(tmp_path, "voltage_sag", seed=5018, value=0.8)
     assert c["findings"], c["rejected"]
     top = c["findings"][0]
     assert set(top.get("candidates", [top["effect"]])) == {"throttle_exponent", "voltage_sag"}, top
