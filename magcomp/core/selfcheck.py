@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.correction import Correction
+from magcomp.core.correction import IDENTITY_COEFFS, Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.yaw_follow import YawFollow, fit_follow_gain, follows_within, window_follow_terms
 
@@ -186,11 +186,6 @@ def corrected_headings_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64,
     return out
 
 
-def corrected_heading_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64, estimate: Estimate) -> F64:
-    """The heading (deg) an in-flight estimate gives the samples (:func:`corrected_headings_deg`)."""
-    return corrected_headings_deg(raw_mgauss, throttle_01, tilt, (estimate,))[0]
-
-
 def circular_mean_rad(a_rad: F64) -> float:
     """The circular mean of angles (rad); NaN when empty."""
     a = np.asarray(a_rad, dtype=float)
@@ -204,16 +199,53 @@ def mean_change_rad(psi_old_deg: F64, psi_new_deg: F64) -> float:
     return circular_mean_rad(np.radians(psi_new_deg - psi_old_deg))
 
 
-def constant_change_rad(raw_mgauss: F64, throttle_01: F64, tilt: F64, old: Estimate, new: Estimate) -> float:
+#: the published constant takes theta's bias out (:func:`switch_on_offset_rad`) where the throttle^2 flown
+#: lately spans at least 1 / MAX_BIAS_EXTRAPOLATION of its distance from zero (5th to 95th percentile):
+#: theta is measured by how the field moves with the throttle^2 flown, and its bias at that throttle is then
+#: read off within twice that span of the zero-throttle calibration
+MAX_BIAS_EXTRAPOLATION = 2.0
+
+
+def theta_bias_measured(throttle_01: F64) -> bool:
+    """The throttle flown measures theta's bias at that throttle (MAX_BIAS_EXTRAPOLATION), rather than
+    extrapolating it to zero throttle from a narrow span (a hover)."""
+    d2 = np.asarray(throttle_01, dtype=float) ** 2
+    lo, hi = np.percentile(d2, (5.0, 95.0))
+    return bool(lo <= MAX_BIAS_EXTRAPOLATION * (hi - lo))
+
+
+def switch_on_offset_rad(raw_mgauss: F64, throttle_01: F64, tilt: F64, own_deg: F64,
+                         estimate: Estimate) -> tuple[float, bool]:  # fmt: skip
+    """The constant (rad) that puts ``estimate``'s heading on the autopilot's calibration over the samples
+    (the field as received, the throttle, cos / sin of roll and pitch, the autopilot's own heading
+    ``own_deg``), and whether it has theta's bias out: the circular mean of (the field as received with the
+    estimate's theta removed, eq. (11), then eq. (24)) - the estimate's heading, where
+    :func:`theta_bias_measured`; else of the autopilot's own heading - the estimate's (theta's bias at the
+    throttle flown in it). The relative form cannot know the constant (declination, the mount's yaw); the
+    autopilot's own heading's holds eq. (11)'s bias at the throttle flown, the error the correction removes
+    (docs/real-flights.md)."""
+    if not theta_bias_measured(throttle_01):
+        (psi,) = corrected_headings_deg(raw_mgauss, throttle_01, tilt, (estimate,))
+        return mean_change_rad(psi, own_deg), False
+    psi, anchor = corrected_headings_deg(raw_mgauss, throttle_01, tilt,
+                                         (estimate, (IDENTITY_COEFFS, estimate[1])))  # fmt: skip
+    return mean_change_rad(psi, anchor), True
+
+
+def constant_change_rad(raw_mgauss: F64, throttle_01: F64, tilt: F64, old: Estimate, new: Estimate,
+                        theta_out: bool = False) -> float:  # fmt: skip
     """How much a new estimate moves the corrected heading as a whole (rad): the circular mean over the
-    samples of the heading with ``new`` minus the heading with ``old`` (:func:`corrected_headings_deg`).
-    Taken over the samples flown lately rather than over every heading: what is constant for this flight (a
-    change of the hard iron at the headings flown) is what the published heading must not jump by. NaN
-    without samples."""
+    samples of the heading with ``new`` minus the heading with ``old`` (:func:`corrected_headings_deg`);
+    ``theta_out``: less that of their thetas alone (the held constant has theta's bias out, and a new
+    theta's bias at the throttle flown is a correction, not a constant to hold away). Taken over the
+    samples flown lately rather than over every heading: what is constant for this flight (a change of the
+    hard iron at the headings flown) is what the published heading must not jump by. NaN without samples."""
     if np.asarray(raw_mgauss).shape[0] == 0:
         return math.nan
-    psi_old, psi_new = corrected_headings_deg(raw_mgauss, throttle_01, tilt, (old, new))
-    return mean_change_rad(psi_old, psi_new)
+    ests = (old, new, (IDENTITY_COEFFS, old[1]), (IDENTITY_COEFFS, new[1])) if theta_out else (old, new)
+    psi = corrected_headings_deg(raw_mgauss, throttle_01, tilt, ests)
+    whole = mean_change_rad(psi[0], psi[1])
+    return whole - mean_change_rad(psi[2], psi[3]) if theta_out else whole
 
 
 def wrap_rad(a: F64) -> F64:

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.correction import IDENTITY_COEFFS, Correction
+from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import HeadingFilter, turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
@@ -24,8 +24,8 @@ from magcomp.core.selfcheck import (
     MOTORS_RUNNING_01,
     Estimate,
     RunningSelfCheck,
-    corrected_headings_deg,
-    mean_change_rad,
+    constant_change_rad,
+    switch_on_offset_rad,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service.calibrate import apply_eq2
@@ -161,11 +161,6 @@ RECENT_N = 600
 #: what is remembered of each: the field as received (3), the throttle, cos / sin of roll and pitch (4), the
 #: autopilot's own heading
 RECENT_FIELDS = 9
-#: the published constant takes theta's bias out (:meth:`HeadingTrack.own_offset_rad`) where the throttle^2
-#: flown lately spans at least 1 / MAX_BIAS_EXTRAPOLATION of its distance from zero (5th to 95th
-#: percentile): theta is measured by how the field moves with the throttle^2 flown, and its bias at that
-#: throttle is then read off within twice that span of the zero-throttle calibration
-MAX_BIAS_EXTRAPOLATION = 2.0
 
 #: the live hover model is solved again when a self-check window closes, or with this many new samples
 #: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
@@ -261,45 +256,26 @@ class HeadingTrack:
         return a
 
     def own_offset_rad(self, estimate: Estimate) -> float:
-        """The constant that puts ``estimate``'s heading on the autopilot's calibration (rad; NaN: no samples
-        remembered), whose constant part (declination, the mount's yaw) the relative form cannot know: the
-        circular mean over the samples remembered of (the autopilot's calibration with ``estimate``'s
-        theta removed - ``estimate``'s heading). Not of the autopilot's own heading: its constant part
-        holds theta's bias at the throttle flown (eq. (11)), the error the correction removes (log171,
-        against its external compass: the live corrected headings of compasses 1 and 2 were +12.8 and +8.5
-        deg off on average with that constant, -4.4 and +1.4 with this one, the two-pass replay's -1.2 and
-        -1.6; the simulated ordinary flight at a realistic theta 15-26 deg rms, 3-5). Where the throttle
-        flown does not measure that bias (MAX_BIAS_EXTRAPOLATION: a hover), the autopilot's own heading's
-        constant is kept, theta's bias in it."""
+        """The constant that puts ``estimate``'s heading on the autopilot's calibration over the samples
+        remembered (rad; NaN: none): core/selfcheck.py :func:`~magcomp.core.selfcheck.switch_on_offset_rad`,
+        theta's bias out where the throttle flown measures it (log171, against its external compass: the
+        live corrected headings of compasses 1 and 2 were +12.8 and +8.5 deg off on average with the
+        autopilot's own heading's constant, -4.4 and +1.4 with this one, the two-pass replay's -1.2 and
+        -1.6)."""
         a = self._remembered()
         if a is None:
             return math.nan
-        raw, thr, tilt = a[0:3].T, a[3], a[4:8].T
-        d2 = thr * thr
-        lo, hi = np.percentile(d2, (5.0, 95.0))
-        self._theta_anchored = bool(lo <= MAX_BIAS_EXTRAPOLATION * (hi - lo))
-        if not self._theta_anchored:
-            (psi,) = corrected_headings_deg(raw, thr, tilt, (estimate,))
-            return mean_change_rad(psi, a[8])
-        psi, anchor = corrected_headings_deg(raw, thr, tilt, (estimate, (IDENTITY_COEFFS, estimate[1])))
-        return mean_change_rad(psi, anchor)
+        offset, self._theta_anchored = switch_on_offset_rad(a[0:3].T, a[3], a[4:8].T, a[8], estimate)
+        return offset
 
     def constant_change_rad(self, old: Estimate, new: Estimate) -> float:
         """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
-        remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`; NaN: none),
-        less that of their thetas alone where the held constant has theta's bias out (a new theta's bias at
-        the throttle flown is a correction, not a constant to hold away)."""
+        remembered (core/selfcheck.py :func:`~magcomp.core.selfcheck.constant_change_rad`, theta's part out
+        where the held constant has it out; NaN: none)."""
         a = self._remembered()
         if a is None:
             return math.nan
-        raw, thr, tilt = a[0:3].T, a[3], a[4:8].T
-        if not self._theta_anchored:
-            psi_old, psi_new = corrected_headings_deg(raw, thr, tilt, (old, new))
-            return mean_change_rad(psi_old, psi_new)
-        # the four headings from one set of columns (core/selfcheck.py constant_change_rad, twice)
-        psi = corrected_headings_deg(raw, thr, tilt, (old, new, (IDENTITY_COEFFS, old[1]),
-                                                      (IDENTITY_COEFFS, new[1])))  # fmt: skip
-        return mean_change_rad(psi[0], psi[1]) - mean_change_rad(psi[2], psi[3])
+        return constant_change_rad(a[0:3].T, a[3], a[4:8].T, old, new, self._theta_anchored)
 
     def follow(self, sol: Estimate | None, chk: RunningSelfCheck) -> None:
         """The in-flight estimate judged at this sample (None: none); a new one (re-solved) while the check
@@ -418,8 +394,9 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     (:class:`~magcomp.core.selfcheck.RunningSelfCheck`) finds the corrected one better beyond the noise.
     In flight the estimate's constant part moves as it is re-solved (and in the relative form it cannot be
     known at all: the mount's yaw), which no window of the check sees: the published heading takes its
-    constant part from the autopilot's own when it switches on (the circular mean difference over the
-    samples judged lately, with the current estimate: :meth:`HeadingTrack.own_offset_rad`) and holds it,
+    constant part from the autopilot's calibration, theta's bias out where the throttle flown measures it,
+    when it switches on (over the samples judged lately, with the current estimate:
+    :meth:`HeadingTrack.own_offset_rad`) and holds it,
     moved at each re-solve by the estimate's own constant change over the samples judged lately
     (:meth:`HeadingTrack.constant_change_rad`), so that it neither jumps when the correction switches on
     nor drifts with the re-solves nor with the autopilot's own error. The two-pass replay, whose

@@ -225,7 +225,7 @@ def test_the_constant_change_over_the_remembered_samples_is_the_batch_ones() -> 
     samples oldest first: the whole estimate's change, less that of theta alone where the held constant has
     theta's bias out; the ring keeps the latest samples in order past its wrap."""
     from magcomp.core.correction import IDENTITY_COEFFS
-    from magcomp.service.heading import MAX_BIAS_EXTRAPOLATION, RECENT_N
+    from magcomp.service.heading import RECENT_N
 
     rng = np.random.default_rng(11)
     track = HeadingTrack(tau_s=1.0)
@@ -247,11 +247,11 @@ def test_the_constant_change_over_the_remembered_samples_is_the_batch_ones() -> 
             whole = sc.constant_change_rad(raw_a, thr_a, tilt_a, old, new)
             theta = sc.constant_change_rad(raw_a, thr_a, tilt_a, (IDENTITY_COEFFS, old[1]),
                                            (IDENTITY_COEFFS, new[1]))  # fmt: skip
-            psi_new = sc.corrected_heading_deg(raw_a, thr_a, tilt_a, new)
+            (psi_new,) = sc.corrected_headings_deg(raw_a, thr_a, tilt_a, (new,))
             lo, hi = np.percentile(thr_a * thr_a, (5.0, 95.0))
-            anchored = bool(lo <= MAX_BIAS_EXTRAPOLATION * (hi - lo))
+            anchored = bool(lo <= sc.MAX_BIAS_EXTRAPOLATION * (hi - lo))
             assert anchored == (i > 5)  # the first six samples: too little throttle span
-            anchor = sc.corrected_heading_deg(raw_a, thr_a, tilt_a, (IDENTITY_COEFFS, new[1]))
+            (anchor,) = sc.corrected_headings_deg(raw_a, thr_a, tilt_a, ((IDENTITY_COEFFS, new[1]),))
             own_off = sc.circular_mean_rad(np.radians((anchor if anchored else a[:, 8]) - psi_new))
             assert track.own_offset_rad(new) == own_off
             assert track.constant_change_rad(old, new) == (whole - theta if anchored else whole)
