@@ -375,6 +375,11 @@ class SelfCheck:
     #: against it is reported, not used
     att_circular: bool = False
 
+    @property
+    def att_used(self) -> bool:
+        """The rms against the autopilot's yaw was measured and is a reference (not :attr:`att_circular`)."""
+        return self.baseline_att_deg == self.baseline_att_deg and not self.att_circular
+
     def describe(self) -> str:
         """One line for the console: "heading vs gyro: 6.2 -> 2.5 deg (z 4.1, 23 windows)"."""
         g = f"heading vs gyro: {self.baseline_gyro_deg:.1f} -> {self.candidate_gyro_deg:.1f} deg"
@@ -552,14 +557,12 @@ class RunningSelfCheck:
 
     @property
     def baseline_deg(self) -> float:
-        """The error measured of the autopilot's own heading on the verdict's windows (deg): against its yaw,
-        else the gyro; NaN before a verdict."""
+        """The error measured of the autopilot's own heading on the verdict's windows (deg): against its yaw
+        where that is a reference (:attr:`SelfCheck.att_used`), else the gyro; NaN before a verdict."""
         v = self.verdict
         if v is None:
             return math.nan
-        if v.baseline_att_deg == v.baseline_att_deg and not v.att_circular:
-            return v.baseline_att_deg
-        return v.baseline_gyro_deg
+        return v.baseline_att_deg if v.att_used else v.baseline_gyro_deg
 
     @property
     def candidate_bound_deg(self) -> float:
@@ -572,8 +575,7 @@ class RunningSelfCheck:
         v = self.verdict
         if v is None or v.n_windows < MIN_WINDOWS:
             return math.inf
-        att = v.baseline_att_deg == v.baseline_att_deg and not v.att_circular
-        c = v.candidate_att_deg if att else v.candidate_gyro_deg
+        c = v.candidate_att_deg if v.att_used else v.candidate_gyro_deg
         return rms_upper_deg(c, v.n_windows) if c == c else math.inf
 
     def publishes(self, heading_sigma_deg: float) -> bool:
@@ -581,7 +583,7 @@ class RunningSelfCheck:
         measured of the autopilot's own heading (:attr:`baseline_deg`): a correction that may itself be off by
         more than what it corrects cannot be shown to help, whatever a few windows say. Its own error is the
         smaller of two bounds: the estimate's heading uncertainty (deg, 1 sigma, from its covariance: every
-        heading, the constant part included, which the live heading takes from the autopilot's own) and
+        heading, the constant part included, which live comes from the autopilot's calibration) and
         the error measured on the check's windows (:attr:`candidate_bound_deg`). On the development logs the
         first alone held log171's compasses back for 10 s after the check was on (heading uncertainty 13-46
         deg while the windows measured 3-6 deg against 10-14 of the autopilot's own)."""
