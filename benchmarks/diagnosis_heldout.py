@@ -277,7 +277,19 @@ def run_case(effect: str, seed: int | None = None, value_override: float | None 
             out["inside_nominal"] = bool(ci is not None and ci[0] <= value <= ci[1])
             out["within_40pct"] = abs(float(params["spread"]) - truth) <= 0.4 * truth
     out["inside"] = parameter_inside(effect, truth, params)
+    out["ci_width"] = interval_width(effect, params)
     return out
+
+
+def interval_width(effect: str, params: dict[str, Any]) -> float | None:
+    """Width of the finding's 95 % interval of its scalar parameter (per_motor: the spread's), None for
+    temperature_drift (a vector) or no finding: coverage near 95 % should not come from wide intervals."""
+    from magcomp.diagnosis.effects import EFFECTS
+
+    p = EFFECTS[effect].param
+    key = f"{p}_ci95" if p is not None else ("spread_ci95" if effect == "per_motor" else None)
+    ci = params.get(key) if key is not None else None
+    return None if ci is None else round(float(ci[1]) - float(ci[0]), 4)
 
 
 def realised_spread(res: Any) -> float:
@@ -376,6 +388,11 @@ def main() -> int:
             per_axis = [sum(a[i] for a in axes) for i in range(3)]
             cov = "/".join(str(c) for c in per_axis)
             line += f", per-axis coverage (each at 95 %) {cov} of {len(axes)}"
+        widths = sorted(r["ci_width"] for r in mine if r["is_top"] and r.get("ci_width") is not None)
+        if widths:
+            mid = len(widths) // 2
+            median = widths[mid] if len(widths) % 2 else 0.5 * (widths[mid - 1] + widths[mid])
+            line += f", median interval width {median:.3f}"
         print(line)
     ok = sum(r["is_top"] and r["inside"] for r in rows)
     print(f"top finding with the value inside its interval: {ok}/{len(rows)}")
