@@ -6,7 +6,9 @@ is stamped by the autopilot's one clock (DataFlash ``TimeUS``, ULog timestamps) 
 receipt of one link (a tlog), and its throttle is the same signal for all of them, so a clock or transport
 skew is one number per log: buses and drivers differ by milliseconds, not tenths of a second. Two compasses
 of one log whose named skews have disjoint 95 % intervals cannot both be describing that delay: at most one
-of them is, and the one with the weaker evidence is refused (the other keeps it), with the reason.
+of them is, and the one with the weaker evidence is refused (the other keeps it), with the reason. A set of
+rivals that holds a skew (the data cannot tell it from a current lag) is held to the same rule: refused, the
+skew leaves the set, and what is left is named only where it stands on its own.
 
 Seen on log171 (ArduCopter 3.3, DataFlash; docs/diagnosis.md, 2026-11-28): compass 0 named a skew of
 0.337 s [0.311, 0.371] (effective delta BIC -37, residual 8.83 -> 8.76 mgauss) while compass 2 of the same
@@ -34,13 +36,17 @@ def _named_skews(comps: list[CompassDiagnosis]) -> list[_Skew]:
         if not c.observable:
             continue
         for f in c.findings:
-            if f.effect != "time_skew" or len(f.candidates) > 1:  # a set of rivals claims no one delay
+            # a set of rivals ("time_skew or current_lag") names the skew as one of its explanations: that
+            # member is held to the one clock too (log171 compass 0's 0.337 s came back that way)
+            rivals = len(f.candidates) > 1
+            if "time_skew" not in (f.candidates if rivals else [f.effect]):
                 continue
-            ci = f.params.get("skew_s_ci95")
-            if ci is None:
+            params = f.candidate_params.get("time_skew", {}) if rivals else f.params
+            ci = params.get("skew_s_ci95")
+            if ci is None or "skew_s" not in params:
                 continue
             dbic = float(f.evidence.get("delta_bic", 0.0))
-            out.append(_Skew(c.index, float(f.params["skew_s"]), (float(ci[0]), float(ci[1])), dbic))
+            out.append(_Skew(c.index, float(params["skew_s"]), (float(ci[0]), float(ci[1])), dbic))
     return out
 
 
