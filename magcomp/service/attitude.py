@@ -387,7 +387,7 @@ class AttitudeStage:
         q = self.qg
         cached = self._gyro_dcm
         if cached is None or cached[0] is not q:
-            r = dcm_from_quat(np.asarray(q, dtype=float))
+            r = dcm_from_quat(q)
             r.flags.writeable = False
             cached = self._gyro_dcm = (q, r)
         return cached[1]
