@@ -481,8 +481,9 @@ def _block(
     flags = cor.flags[sel].tolist()
     if writer is not None:  # the live path's framer, one MAGCOMP_HEADING at a time
         encode, write = encoder.encode_values, writer.write_packet
-        for j, t in enumerate(t_s):
-            write(t, encode(t_boot[j], head[j], head_raw[j], theta[j], bias[j], thr[j], mag[j], flags[j]))
+        values = zip(t_boot, head, head_raw, theta, bias, thr, mag, flags, strict=True)
+        for t, (tb, h, h_raw, th, b, th01, m, fl) in zip(t_s, values, strict=True):
+            write(t, encode(tb, h, h_raw, th, b, th01, m, fl))
     if on_estimate is not None:
         nan = float("nan")
         raw = pub[:, RAW_X:RAW_Z + 1]
