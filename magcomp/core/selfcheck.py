@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -426,6 +426,23 @@ def compare(
     return decide(n_b, mse_b, mse_c, att_b, att_c, z_att, att_circular)
 
 
+def judge_estimate(t_s: F64, raw_mgauss: F64, throttle_01: F64, tilt: F64, own_deg: F64, reference_rad: F64,
+                   segment: F64, autopilot_yaw_rad: F64, estimate: Estimate, att_circular: bool,
+                   window_s: float = LIVE_WINDOW_S) -> SelfCheck:  # fmt: skip
+    """:func:`compare` of ``estimate``'s heading (:func:`corrected_headings_deg`) with the autopilot's own
+    (``own_deg``) on samples already judged: the field as received (n, 3), the throttle, cos / sin of roll and
+    pitch (n, 4), the windowed reference and its segment, the autopilot's yaw (NaN where not known: then
+    not used), windows of ``window_s``. The estimate was solved on these samples among others, as the
+    two-pass replay's check judges the whole log's estimate on the whole log; the running check judges
+    each window with the estimate solved before it, which keeps a correction that was poor early in the
+    flight off long after it has become good (the simulated ordinary flight: 70 s)."""
+    (psi,) = corrected_headings_deg(raw_mgauss, throttle_01, tilt, (estimate,))
+    ap = np.asarray(autopilot_yaw_rad, dtype=float)
+    ids = window_ids(t_s, segment, window_s)
+    return compare(np.radians(own_deg), np.radians(psi), reference_rad, ids,
+                   ap if np.isfinite(ap).all() else None, att_circular)  # fmt: skip
+
+
 def autopilot_follows(t_s: F64, baseline_rad: F64, autopilot_yaw_rad: F64, gyro_yaw_rad: F64,
                       segment: F64) -> YawFollow | None:  # fmt: skip
     """How fast the autopilot's yaw follows the baseline (the compass's heading as the autopilot has it),
@@ -508,6 +525,13 @@ class RunningSelfCheck:
         self._held: float | None = None
         self._off: tuple[float, float] | None = None
         self.verdict: SelfCheck | None = None
+        #: the current estimate judged again on the samples of the latest RECENT_S (the argument: whether the
+        #: autopilot's yaw follows the compass judged; None: not measurable): while off, where the windows as
+        #: they were judged neither apply nor find the correction worse and it applies, it is the verdict
+        #: (:func:`judge_estimate`; consulted only there: on the development logs, consulted also where the
+        #: windows found the correction worse, it switched on yladzislay sample-1's compass 1, whose
+        #: correction then stood 3.5 deg off the gyro against the autopilot's own heading's 2.1)
+        self.rejudge: Callable[[bool], SelfCheck | None] | None = None
         #: :meth:`publishes`'s two bounds (deg) and the verdict they were taken from (read at every sample,
         #: changed only with the verdict)
         self._bounds: tuple[SelfCheck | None, float, float] | None = None
@@ -633,7 +657,12 @@ class RunningSelfCheck:
             rate, off = window_follow_terms(t, a[:, 0], ap, a[:, 2], ids)
             if rate.size:
                 self._follow.append((float(rate[0]), float(off[0])))
-        v = self.verdict = self._decide()
+        v = self._decide()
+        if self.rejudge is not None and not self.on and not v.applies and not v.worse:
+            r = self.rejudge(v.att_circular)
+            if r is not None and r.applies:
+                v = r
+        self.verdict = v
         was = self.on
         self.on = v.applies or (self.on and not v.worse)
         if not self.on:

@@ -21,10 +21,14 @@ from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverT
 from magcomp.core.selfcheck import (
     LIVE_WINDOW_S,
     MAX_TILT_COS,
+    MIN_PER_WINDOW,
+    MIN_WINDOWS,
     MOTORS_RUNNING_01,
     Estimate,
     RunningSelfCheck,
+    SelfCheck,
     constant_change_rad,
+    judge_estimate,
     switch_on_offset_rad,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
@@ -159,8 +163,8 @@ class HoverShadow:
 RECENT_EVERY_S = 0.2
 RECENT_N = 600
 #: what is remembered of each: the field as received (3), the throttle, cos / sin of roll and pitch (4), the
-#: autopilot's own heading
-RECENT_FIELDS = 9
+#: autopilot's own heading, the time, the check's reference and its segment, the autopilot's yaw
+RECENT_FIELDS = 13
 
 #: the live hover model is solved again when a self-check window closes, or with this many new samples
 #: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
@@ -234,14 +238,16 @@ class HeadingTrack:
         self._theta_anchored = False
 
     def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...],
-                 psi_own_deg: float) -> None:  # fmt: skip
-        """One judged sample for :meth:`constant_change_rad` and :meth:`own_offset_rad` (at most one every
-        RECENT_EVERY_S): the field as received, the throttle, cos / sin of roll and pitch, the autopilot's
-        own heading (deg)."""
+                 psi_own_deg: float, ref_rad: float = math.nan, segment: float = 0.0,
+                 ap_yaw_rad: float = math.nan) -> None:  # fmt: skip
+        """One judged sample for :meth:`constant_change_rad`, :meth:`own_offset_rad` and :meth:`rejudge` (at
+        most one every RECENT_EVERY_S): the field as received, the throttle, cos / sin of roll and pitch, the
+        autopilot's own heading (deg), the check's reference (rad) and its segment, the autopilot's yaw
+        (rad)."""
         if t_s - self._recent_t >= RECENT_EVERY_S or t_s < self._recent_t:
             self._recent_t = t_s
             i = self._recent_i
-            self._recent[:, i] = (*raw, throttle_01, *tilt, psi_own_deg)
+            self._recent[:, i] = (*raw, throttle_01, *tilt, psi_own_deg, t_s, ref_rad, segment, ap_yaw_rad)
             self._recent_i = (i + 1) % RECENT_N
             self._recent_n = min(self._recent_n + 1, RECENT_N)
             self._recent_a = None
@@ -267,6 +273,15 @@ class HeadingTrack:
             return math.nan
         offset, self._theta_anchored = switch_on_offset_rad(a[0:3].T, a[3], a[4:8].T, a[8], estimate)
         return offset
+
+    def rejudge(self, att_circular: bool) -> SelfCheck | None:
+        """The estimate published last judged again on the samples remembered
+        (:func:`~magcomp.core.selfcheck.judge_estimate`; None: no estimate or samples yet)."""
+        a = self._remembered()
+        sol = self.solution
+        if a is None or sol is None or a.shape[1] < MIN_WINDOWS * MIN_PER_WINDOW:
+            return None
+        return judge_estimate(a[9], a[0:3].T, a[3], a[4:8].T, a[8], a[10], a[11], a[12], sol, att_circular)
 
     def constant_change_rad(self, old: Estimate, new: Estimate) -> float:
         """The corrected heading's change as a whole from estimate ``old`` to ``new`` over the samples
@@ -448,11 +463,12 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             # from this very log by a two-pass replay's first pass starts published
             chk = track.check = RunningSelfCheck()
             chk.on = track.starts_published and rec.inflight is not None and rec.inflight.warm_started
+            chk.rejudge = track.rejudge
         if judged:
             ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own)
+            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own, ref, seg, rec.ap_yaw)
     inf = rec.inflight
     if chk is not None:
         track.follow((inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow, chk)
