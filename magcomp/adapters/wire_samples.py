@@ -58,7 +58,7 @@ class WireImuSample(ImuSample):
         return (*self.gyro_xyz, *self.accel_xyz)
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return ImuSample, (self.t_s, self.gyro_b_rad_s, self.accel_b_m_s2, self.imu_index)
+        return _as_plain(self, ImuSample)
 
 
 class WireMagSample(MagSample):
@@ -88,7 +88,7 @@ class WireMagSample(MagSample):
         return self.field_xyz
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return MagSample, (self.t_s, self.field_b_mgauss, self.mag_index, self.onboard_mgauss)
+        return _as_plain(self, MagSample)
 
 
 class WireAttitudeSample(AttitudeSample):
@@ -101,18 +101,24 @@ class WireAttitudeSample(AttitudeSample):
     def __init__(
         self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float, rates_b_rad_s: Float3 | Vec3
     ) -> None:
+        _set(self, "rates_xyz", _floats(rates_b_rad_s))
         _ATT_T.__set__(self, t_s)
         _ATT_ROLL.__set__(self, roll_rad)
         _ATT_PITCH.__set__(self, pitch_rad)
         _ATT_YAW.__set__(self, yaw_rad)
-        _set(self, "rates_xyz", _floats(rates_b_rad_s))
 
     @property  # type: ignore[override]
     def rates_b_rad_s(self) -> np.ndarray:
         return _lazy_vec(self, _ATT_RATES, self.rates_xyz)
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return AttitudeSample, (self.t_s, self.roll_rad, self.pitch_rad, self.yaw_rad, self.rates_b_rad_s)
+        return _as_plain(self, AttitudeSample)
+
+
+def _as_plain(sample: Any, cls: Any) -> tuple[Any, ...]:
+    """A wire sample's ``__reduce__``: it pickles and copies as the public dataclass ``cls`` with the same
+    field values (arrays built)."""
+    return cls, tuple(getattr(sample, name) for name in cls.__dataclass_fields__)
 
 
 def _floats(v: Float3 | Vec3) -> Float3:
