@@ -544,3 +544,32 @@ def test_an_autopilot_yaw_that_follows_the_compass_within_a_window_is_no_second_
             run.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, float(ap[i]))
         assert run.verdict is not None and run.verdict.att_circular and run.on
         assert run.baseline_deg == pytest.approx(run.verdict.baseline_gyro_deg)
+
+
+def test_the_current_estimate_judged_again_switches_on_only_where_the_windows_do_not_find_it_worse() -> None:
+    """RunningSelfCheck.rejudge (judge_estimate on the samples remembered): where the windows as they were
+    judged are not better beyond the noise (here the candidate they saw was as noisy as the autopilot's own
+    heading), a current estimate that is (the truth) switches the correction on; where the windows found
+    the correction worse, it does not (yladzislay sample-1's compass 1 was switched on that way and stood
+    3.5 deg off the gyro against the autopilot's own 2.1)."""
+    t, yaw, gyro, _, rng = _flight(5, n_s=60.0)
+    base = yaw + rng.normal(0, np.radians(1.5), t.size)
+    asked: list[bool] = []
+
+    def judged(att_circular: bool) -> sc.SelfCheck:
+        asked.append(att_circular)
+        ids = sc.window_ids(t, None, sc.LIVE_WINDOW_S)
+        return sc.compare(base, yaw + rng.normal(0, np.radians(0.2), t.size), gyro, ids, None)
+
+    for noise_deg, expect_on in ((1.45, True), (3.0, False)):
+        cand = yaw + rng.normal(0, np.radians(noise_deg), t.size)
+        run = sc.RunningSelfCheck()
+        run.rejudge = judged
+        plain = sc.RunningSelfCheck()
+        for i in range(t.size):
+            for r in (run, plain):
+                r.add(float(t[i]), float(base[i]), float(cand[i]), float(gyro[i]), 0.0, math.nan)
+        assert not plain.on and plain.verdict is not None
+        assert plain.verdict.worse != expect_on, plain.verdict.reason  # not better beyond the noise / worse
+        assert run.on == expect_on
+    assert asked  # consulted
