@@ -185,8 +185,9 @@ class MavSource(contextlib.AbstractContextManager["MavSource"]):
         self.params: dict[str, float] = {}
         self.connection: Any = None
         self._conv = MessageConverter(
-            self.counts, mag_index=mag_index, undo_motor_comp=undo_motor_comp, pipeline_only=pipeline_only
-        )
+            self.counts, mag_index=mag_index, undo_motor_comp=undo_motor_comp, pipeline_only=pipeline_only,
+            rc_pwm=not pipeline_only or self.spec.kind == "rc",
+        )  # fmt: skip
         self._closed = False
         self._live_timeout_s = live_timeout_s
         self._baud = baud
@@ -405,7 +406,8 @@ class SenderStream:
     """The samples of one sender, from its records: the one loop of the sources (:meth:`MavSource.samples`
     over a log or link, :meth:`MavSource.vehicle_samples` per sender of a shared link, :func:`sender_stream`
     for a host that owns the link). Throttle records become ThrottleSample per the configured source,
-    re-resolved when a new kind of throttle record, a parameter or a HEARTBEAT arrives."""
+    re-resolved when a new kind of throttle record, a parameter or a HEARTBEAT of another vehicle type
+    arrives."""
 
     def __init__(self, spec: ThrottleSpec, conv: MessageConverter, params: dict[str, float]) -> None:
         self.spec = spec
@@ -414,6 +416,9 @@ class SenderStream:
         self.available: set[str] = set()
         self.resolved: ResolvedThrottle | None = None
         self.stale = True
+        #: the vehicle type :attr:`resolved` was decided for (a HEARTBEAT re-decides only when it changes:
+        #: the decision is a function of the spec, the vehicle type, the parameters and the kinds seen)
+        self._resolved_type: int | None = None
 
     def push(self, msg: Any) -> list[Sample]:
         """One MAVLink message's samples."""
@@ -435,8 +440,8 @@ class SenderStream:
                     self.available.add(rec.kind)
                     self.stale = True
                 if self.stale:
-                    self.resolved = resolve_throttle(self.spec, self.conv.vehicle_type, self.params,
-                                                     frozenset(self.available))  # fmt: skip
+                    vtype = self._resolved_type = self.conv.vehicle_type
+                    self.resolved = resolve_throttle(self.spec, vtype, self.params, frozenset(self.available))
                     self.stale = False
                 thr = throttle_sample(self.resolved, rec)
                 if thr is not None:
@@ -446,7 +451,7 @@ class SenderStream:
                 assert isinstance(rec, ParamSample)
                 self.params[rec.name] = rec.value
                 self.stale = True
-            elif cls is HeartbeatSample:
+            elif cls is HeartbeatSample and self.conv.vehicle_type != self._resolved_type:
                 self.stale = True
             out.append(rec)  # type: ignore[arg-type]
         return out
@@ -500,7 +505,7 @@ def open_source(
     :class:`~magcomp.adapters.ulog_source.UlogSource` (same interface, no link; ``throttle_source`` and
     ``mag_index`` only). ``pipeline_only``: leave out what :class:`~magcomp.service.pipeline.Pipeline`
     ignores (temperature and power samples, IMUs other than IMU 0; MAVLink and DataFlash), counted in
-    ``skipped_samples``.
+    ``skipped_samples``, and the PWM of MAVLink RC inputs unless the throttle source is ``rc``.
     """
     target = os.fspath(url_or_path)
     if is_ulog(target):

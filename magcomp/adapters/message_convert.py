@@ -19,7 +19,7 @@ from magcomp.adapters.dataflash_read import DATAFLASH_MAX_INSTANCES
 from magcomp.adapters.gnss_time import decimal_year_from_gps, decimal_year_from_unix
 from magcomp.adapters.param_values import param_value
 from magcomp.adapters.stream_clock import SourceClock
-from magcomp.adapters.wire_samples import Float3, WireImuSample, WireMagSample
+from magcomp.adapters.wire_samples import Float3, WireAttitudeSample, WireImuSample, WireMagSample
 from magcomp.core.autopilot_params import motor_comp_known_off
 from magcomp.core.identity import uid_from_autopilot_version, uid_from_board_msg
 from magcomp.core.types import (
@@ -122,11 +122,15 @@ class MessageConverter:
         mag_index: int | None,
         undo_motor_comp: bool,
         pipeline_only: bool = False,
+        rc_pwm: bool = True,
     ) -> None:
         self.counts = counts
         # pipeline_only: leave out the samples the heading pipeline ignores (temperature, power, IMUs other
         # than IMU 0), counted in ``skipped`` instead: a replay built and dispatched ~96k of them per 10 min
         self.pipeline_only = pipeline_only
+        # rc_pwm: RC_CHANNELS become PWM records (False: only their clock is read; for a source whose
+        # throttle can never be the RC inputs', i.e. not ``--throttle-source rc``: "auto" never picks them)
+        self.rc_pwm = rc_pwm
         self.skipped = 0
         self.clock = SourceClock(counts)
         self.mag_index = mag_index
@@ -223,8 +227,9 @@ class MessageConverter:
         if t_s is None:
             return []
         self.seen_attitude = True
-        rates = _vec(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
-        return [("ATTITUDE", AttitudeSample(t_s, float(msg.roll), float(msg.pitch), float(msg.yaw), rates))]
+        rates = (float(msg.rollspeed), float(msg.pitchspeed), float(msg.yawspeed))
+        att = WireAttitudeSample(t_s, float(msg.roll), float(msg.pitch), float(msg.yaw), rates)
+        return [("ATTITUDE", att)]
 
     def _m_SERVO_OUTPUT_RAW(self, msg: Any) -> list[tuple[str, Record]]:
         self.seen_servo_output = True
@@ -237,17 +242,14 @@ class MessageConverter:
         except AttributeError:  # a message class without the servo9..16 extension
             values = tuple(getattr(msg, name, 0) for name in _SERVO_FIELDS)
         pwm = self.servo_pwm
-        for channel, value in enumerate(values[:8], start=base + 1):
-            pwm[channel] = float(value)
-        if base == 0:
-            for channel, value in enumerate(values[8:], start=9):
-                if value:  # servo9..16 are an extension: 0 when the sender does not fill them
-                    pwm[channel] = float(value)
+        pwm.update(zip(range(base + 1, base + 9), map(float, values[:8]), strict=False))
+        if base == 0 and any(values[8:]):  # servo9..16 are an extension: 0 when the sender does not fill them
+            pwm.update((channel, float(value)) for channel, value in enumerate(values[8:], start=9) if value)
         return [("SERVO_OUTPUT_RAW", PwmRecord(t_s, "servo", dict(self.servo_pwm)))]
 
     def _m_RC_CHANNELS(self, msg: Any) -> list[tuple[str, Record]]:
         t_s = self.clock.stamp("RC_CHANNELS", msg.time_boot_ms * 1e-3)
-        if t_s is None:
+        if t_s is None or not self.rc_pwm:
             return []
         pwm = {}
         for i, name in enumerate(_RC_FIELDS[: min(int(msg.chancount), 18)], start=1):
@@ -279,12 +281,12 @@ class MessageConverter:
         index = int(msg.id)
         if index == 0 and self.sys_status_current:
             return []
+        if not self._keep():
+            return []
         cells = [v for v in msg.voltages if v != 0xFFFF]
         cells += [v for v in getattr(msg, "voltages_ext", ()) if v not in (0, 0xFFFF)]
         volt = sum(cells) * 1e-3 if cells else math.nan
         curr = msg.current_battery * 0.01 if msg.current_battery >= 0 else math.nan
-        if not self._keep():
-            return []
         return [("BATTERY_STATUS", PowerSample(self.clock.last_t_s, volt, curr, index))]
 
     def _m_SCALED_PRESSURE(self, msg: Any) -> list[tuple[str, Record]]:

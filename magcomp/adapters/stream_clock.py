@@ -28,6 +28,9 @@ U32_WRAP_S = 4294.967296  # SERVO_OUTPUT_RAW.time_usec is uint32
 USEC_STREAMS = frozenset({"RAW_IMU", "SERVO_OUTPUT_RAW", "HIGHRES_IMU", "ACTUATOR_OUTPUT_STATUS"})
 MS_STREAMS = frozenset({"SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "ATTITUDE", "ATTITUDE_QUATERNION",
                         "RC_CHANNELS", "RC_CHANNELS_RAW", "SCALED_PRESSURE"})  # fmt: skip
+#: the side of a pair a stream is on (-1: ``time_usec``, +1: ``time_boot_ms``, 0: neither): a pair is two
+#: consecutive messages of opposite sides
+_SIDE = dict.fromkeys(USEC_STREAMS, -1) | dict.fromkeys(MS_STREAMS, 1)
 #: two messages received this close together (s) were sent together, in one burst: at 57600 baud one
 #: 40-byte message takes 7 ms on the wire, so 20 ms is two or three messages apart (measured on the squilter
 #: tlogs: 91-98 % of the RAW_IMU -> SCALED_IMU2 pairs arrive within it)
@@ -66,7 +69,7 @@ class StreamOffsets:
         self.offset_s: dict[str, float] = {}
         self._pairs: dict[tuple[str, str, int], deque[float]] = {}
         self._new: dict[tuple[str, str, int], int] = {}
-        self._last: tuple[str, float, float, int] | None = None
+        self._last: tuple[str, float, float, int, int] | None = None  # stream, raw, rx, sender, side
         self._said: set[str] = set()
 
     def reset(self) -> None:
@@ -77,20 +80,17 @@ class StreamOffsets:
     def observe(self, stream: str, raw_s: float, rx_s: float, src: int = -1) -> None:
         """One message's stream, raw stamp (s), receive time (s) and sender (system id)."""
         last = self._last
-        self._last = (stream, raw_s, rx_s, src)
+        side = _SIDE.get(stream, 0)
+        self._last = (stream, raw_s, rx_s, src, side)
         if last is None:
             return
-        last_stream, last_raw, last_rx, last_src = last
-        if abs(rx_s - last_rx) > PAIR_RX_S or src != last_src:
+        last_stream, last_raw, last_rx, last_src, last_side = last
+        if side * last_side != -1 or abs(rx_s - last_rx) > PAIR_RX_S or src != last_src:
             return
-        if stream in USEC_STREAMS:
-            if last_stream not in MS_STREAMS:
-                return
+        if side < 0:
             key, diff = (stream, last_stream, -1), last_raw - raw_s
-        elif stream in MS_STREAMS and last_stream in USEC_STREAMS:
-            key, diff = (last_stream, stream, 1), raw_s - last_raw
         else:
-            return
+            key, diff = (last_stream, stream, 1), raw_s - last_raw
         pairs = self._pairs.get(key)
         if pairs is None:
             pairs = self._pairs[key] = deque(maxlen=OFFSET_WINDOW)

@@ -1,4 +1,4 @@
-"""IMU and compass samples decoded from a message, whose vectors stay three floats until first read.
+"""IMU, compass and attitude samples decoded from a message, whose vectors stay three floats until first read.
 
 Used by every source (:mod:`magcomp.adapters.mavlink_source`, :mod:`magcomp.adapters.ulog_source`).
 """
@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from magcomp.core.types import ImuSample, MagSample, Vec3
+from magcomp.core.types import AttitudeSample, ImuSample, MagSample, Vec3
 
 #: the dataclass slots behind the public vector fields (set directly: the classes are frozen)
 _IMU_T, _IMU_GYRO, _IMU_ACCEL, _IMU_INDEX = (
@@ -17,6 +17,9 @@ _IMU_T, _IMU_GYRO, _IMU_ACCEL, _IMU_INDEX = (
 )
 _MAG_T, _MAG_FIELD, _MAG_INDEX, _MAG_ONBOARD = (
     MagSample.__dict__[name] for name in ("t_s", "field_b_mgauss", "mag_index", "onboard_mgauss")
+)
+_ATT_T, _ATT_ROLL, _ATT_PITCH, _ATT_YAW, _ATT_RATES = (
+    AttitudeSample.__dict__[name] for name in ("t_s", "roll_rad", "pitch_rad", "yaw_rad", "rates_b_rad_s")
 )
 _set = object.__setattr__  # the frozen dataclasses' __setattr__ refuses every attribute
 Float3 = tuple[float, float, float]
@@ -55,7 +58,7 @@ class WireImuSample(ImuSample):
         return (*self.gyro_xyz, *self.accel_xyz)
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return ImuSample, (self.t_s, self.gyro_b_rad_s, self.accel_b_m_s2, self.imu_index)
+        return _as_plain(self, ImuSample)
 
 
 class WireMagSample(MagSample):
@@ -85,7 +88,37 @@ class WireMagSample(MagSample):
         return self.field_xyz
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return MagSample, (self.t_s, self.field_b_mgauss, self.mag_index, self.onboard_mgauss)
+        return _as_plain(self, MagSample)
+
+
+class WireAttitudeSample(AttitudeSample):
+    """An :class:`AttitudeSample` decoded from a message, whose body rates stay three floats (``rates_xyz``)
+    until ``rates_b_rad_s`` is first read (see :class:`WireImuSample`; the pipeline reads only the angles)."""
+
+    __slots__ = ("rates_xyz",)
+    rates_xyz: Float3
+
+    def __init__(
+        self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float, rates_b_rad_s: Float3 | Vec3
+    ) -> None:
+        _set(self, "rates_xyz", _floats(rates_b_rad_s))
+        _ATT_T.__set__(self, t_s)
+        _ATT_ROLL.__set__(self, roll_rad)
+        _ATT_PITCH.__set__(self, pitch_rad)
+        _ATT_YAW.__set__(self, yaw_rad)
+
+    @property  # type: ignore[override]
+    def rates_b_rad_s(self) -> np.ndarray:
+        return _lazy_vec(self, _ATT_RATES, self.rates_xyz)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return _as_plain(self, AttitudeSample)
+
+
+def _as_plain(sample: Any, cls: Any) -> tuple[Any, ...]:
+    """A wire sample's ``__reduce__``: it pickles and copies as the public dataclass ``cls`` with the same
+    field values (arrays built)."""
+    return cls, tuple(getattr(sample, name) for name in cls.__dataclass_fields__)
 
 
 def _floats(v: Float3 | Vec3) -> Float3:

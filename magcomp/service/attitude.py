@@ -40,7 +40,7 @@ from magcomp.service.align import (
 )
 from magcomp.service.estimators import mahony_params
 from magcomp.service.fastpath import FastMahony
-from magcomp.service.record import Float3, MagRecord, Tilt
+from magcomp.service.record import LEVEL, Float3, MagRecord, Tilt
 
 F64 = NDArray[np.float64]
 
@@ -136,6 +136,7 @@ class AttitudeStage:
         #: the headings use it): the coefficients of that integral
         self._heading_coef = (0.0, 1.0)
         self._yaw_coef = (0.0, 1.0)  # (sin roll, cos roll) / cos pitch of the latest ATTITUDE
+        self._ap_trig: Tilt | None = LEVEL  # cos / sin of its roll and pitch (None: not yet taken)
         #: the latest ATTITUDE's roll and pitch carried to the current IMU sample by the gyro: the heading
         #: integral's coefficients between two ATTITUDE messages (held, they lag a fast roll by up to one
         #: interval: luk8426 log_66 lost 33 deg of yaw in a 0.5 s, 300 deg/s manoeuvre at 27 Hz ATTITUDE)
@@ -172,6 +173,7 @@ class AttitudeStage:
         self.att_t = s.t_s
         self.roll, self.pitch = s.roll_rad, s.pitch_rad
         self._yaw_coef = euler_yaw_rate_coefs(s.roll_rad, s.pitch_rad)
+        self._ap_trig = None
         self._ap_tilt, self._ap_tilt_t = (s.roll_rad, s.pitch_rad), s.t_s
         if self._auto or not self._use_mahony:  # the view takes this roll and pitch (while it is fresh):
             self._heading_coef = self._yaw_coef  # the integral follows them now, not at the next view
@@ -249,8 +251,7 @@ class AttitudeStage:
     def _track_accel(self, ax: float, ay: float, az: float, dt: float) -> None:
         """Low-pass the horizontal kinematic acceleration ``R f + g e_3`` (FRD / NED; R from the autopilot's
         roll and pitch and the gyro chain's yaw) with ACCEL_LP_S."""
-        sr, cr = math.sin(self.roll), math.cos(self.roll)
-        sp, cp = math.sin(self.pitch), math.cos(self.pitch)
+        cr, sr, cp, sp = self._autopilot_tilt()
         sy, cy = math.sin(self.gyro_yaw_rad), math.cos(self.gyro_yaw_rad)
         # the first two rows of Rz(yaw) Ry(pitch) Rx(roll) applied to f (gravity has no horizontal part)
         fx = cp * ax + sp * sr * ay + sp * cr * az
@@ -305,21 +306,31 @@ class AttitudeStage:
         if a is not None:
             return a
         down: Float3 | None = None
+        # the autopilot's roll and pitch (taken once per ATTITUDE), unless the filter's are used
+        tilt: Tilt | None = None
+        coef = self._yaw_coef
         if self.mahony is not None and self._use_mahony:
             d = self.mahony.down_b()  # the down vector in body axes (sec. II-A); roll/pitch of ZYX Euler
-            roll, pitch = roll_pitch_from_down(d)
             att_t, imu_t = self.att_t, self.imu_t
             fresh = att_t is not None and imu_t is not None and abs(imu_t - att_t) <= self._stale_s
-            if self._auto and fresh:
-                roll, pitch = self.roll, self.pitch
+            if not (self._auto and fresh):
+                roll, pitch = roll_pitch_from_down(d)
+                tilt = Tilt(math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch))
+                coef = euler_yaw_rate_coefs(roll, pitch)
             if self.imu_t is not None and self.imu_t - self.mahony_t0 >= MAHONY_SETTLE_S:
                 down = d
-        else:
-            roll, pitch = self.roll, self.pitch
-        a = AttitudeView(down, Tilt(math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)))
+        a = AttitudeView(down, self._autopilot_tilt() if tilt is None else tilt)
         self._view = a
-        self._heading_coef = euler_yaw_rate_coefs(roll, pitch)
+        self._heading_coef = coef
         return a
+
+    def _autopilot_tilt(self) -> Tilt:
+        """cos / sin of the latest ATTITUDE's roll and pitch (computed once per ATTITUDE)."""
+        got = self._ap_trig
+        if got is None:
+            roll, pitch = self.roll, self.pitch
+            got = self._ap_trig = Tilt(math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch))
+        return got
 
     def stamp(self, rec: MagRecord) -> None:
         """The attitude and gyro of a magnetometer sample: those of the latest IMU sample."""
@@ -387,7 +398,7 @@ class AttitudeStage:
         q = self.qg
         cached = self._gyro_dcm
         if cached is None or cached[0] is not q:
-            r = dcm_from_quat(np.asarray(q, dtype=float))
+            r = dcm_from_quat(q)
             r.flags.writeable = False
             cached = self._gyro_dcm = (q, r)
         return cached[1]

@@ -494,21 +494,21 @@ class CalibrateStage(Generic[H]):
         if st.mode != "relative":
             return r_abs, None
         r_rel = None
-        src: RotationSource
         rot = self._param_facts(c.mag_index)[2]
         # the integrated gyro only while it is fast; the autopilot's attitude when it is too slow
         use_gyro = (rot == "gyro" and att.gyro_fast()) or not att_fresh
         if use_gyro and att.gyro_usable(t):
             r_rel = att.gyro_dcm()
-            src = RotationSource("gyro", att.mahony_t0)
+            kind, epoch_s = "gyro", att.mahony_t0
         elif att_fresh:
             r_rel = att.autopilot_dcm()
-            src = RotationSource("attitude", 0.0)
+            kind, epoch_s = "attitude", 0.0
         else:
-            src = NO_ROTATION
-        if src != c.rel_source:
+            kind, epoch_s = NO_ROTATION
+        old = c.rel_source  # (compared by its fields: a RotationSource is made only where it changes)
+        if kind != old.kind or epoch_s != old.epoch_s:
             st.reset_pairs()
-            c.rel_source = src
-        if r_rel is not None and float(r_rel[2, 2]) < COS_MAX_TILT:
+            c.rel_source = RotationSource(kind, epoch_s)
+        if r_rel is not None and r_rel.item(2, 2) < COS_MAX_TILT:
             r_rel = None  # acrobatics or a crash: no pair across it
         return r_abs, r_rel

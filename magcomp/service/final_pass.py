@@ -3,8 +3,8 @@
 The first pass (:func:`magcomp.service.replay.replay_log`, two passes) runs the pipeline over the whole log
 learning only (theta of a hand-rotation or stored calibration solved in batch at its end, not by stepping the
 observer: :mod:`magcomp.service.theta`), and records, per magnetometer sample that reaches the heading stage,
-what its heading needs (:class:`SampleLog`: time, raw field, throttle, the attitude's roll and pitch, gyro,
-the sample's flags).
+what its heading needs (:class:`SampleLog`: time, raw field, throttle, the attitude's roll and pitch, the raw
+gyro's yaw rate, the sample's flags).
 The second pass then applies the *final* state of every compass (calibration of eq. (2), theta of eq. (11),
 the in-flight calibration; :class:`FinalCompass`) to all samples at once: eq. (2), eq. (11) and eq. (24)
 on numpy arrays through the same core functions the per-sample path calls with floats. Only the heading
@@ -52,9 +52,9 @@ F64 = NDArray[np.float64]
 
 #: the sample log's columns (one row per magnetometer sample that reached the heading stage)
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
- SIN_PITCH, GYRO_FRESH, GYRO_Y, GYRO_Z, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
- IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN, GYRO_BIAS) = range(29)  # fmt: skip
-N_COLS = 29
+ SIN_PITCH, GYRO_FRESH, YAW_RATE, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
+ IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN, GYRO_BIAS) = range(28)  # fmt: skip
+N_COLS = 28
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
 #: 8192 rows of 29 float64 are 1.9 MB
 CHUNK_ROWS = 8192
@@ -91,11 +91,13 @@ class SampleLog:
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
         tilt = rec.tilt
+        # the raw gyro's Euler yaw rate (what the heading filter propagates with), once for both passes
+        rate = yaw_rate(gy, gz, tilt[0], tilt[1], tilt[2])
         buf.frombytes(_ROW.pack(rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle,
-                                rec.flags, rec.reset, prev, rec.obs_reset, *tilt,
-                                rec.gyro_fresh, gy, gz, boot_offset_s, reboot, *yaws, imu_dt_s, *onb,
+                                rec.flags, rec.reset, prev, rec.obs_reset, *tilt, rec.gyro_fresh, rate,
+                                boot_offset_s, reboot, *yaws, imu_dt_s, *onb,
                                 turn_rate(gx, gy, gz, tilt[0] * tilt[2]),
-                                gyro_bias_rad_s(rec, yaw_rate(gy, gz, *tilt[:3]))))  # fmt: skip
+                                gyro_bias_rad_s(rec, rate)))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 
@@ -389,22 +391,19 @@ def filter_and_publish(
     # bool() of each float, the same index as int())
     mags = rows[:, MAG].astype(np.int64).tolist()
     flags = [(rows[:, k] != 0.0).tolist() for k in (HAVE_THR, RESET, GYRO_FRESH, REBOOT)]
-    cols = (rows[:, T], rows[:, PREV_T], rows[:, GYRO_Y], rows[:, GYRO_Z], rows[:, COS_ROLL],
-            rows[:, SIN_ROLL], rows[:, COS_PITCH], cor.psi_deg, cor.psi_raw_deg, cor.corrected,
-            rows[:, GYRO_YAW], rows[:, GYRO_EPOCH], rows[:, IMU_DT], rows[:, TURN],
-            rows[:, GYRO_BIAS])  # fmt: skip
+    cols = (rows[:, T], rows[:, PREV_T], rows[:, YAW_RATE], cor.psi_deg, cor.psi_raw_deg, cor.corrected,
+            rows[:, GYRO_YAW], rows[:, GYRO_EPOCH], rows[:, IMU_DT], rows[:, TURN], rows[:, GYRO_BIAS])
     lists = [mags, *flags, *(c.tolist() for c in cols)]
     # per compass: its state, its in-flight stage whose time is accounted (None: none) and the state counted
     per = {i: (correctors[i], stages.get(i), accounts.get(i) or "uncorrected") for i in set(mags)}
     for i, row in enumerate(zip(*lists, strict=True)):
-        (idx, have, reset, fresh, reboot, t, prev, gy, gz, cr, sr, cp, psi, psi_raw, corr, gyaw, gep, imu_dt,
-         turn, bias) = row  # fmt: skip
+        (idx, have, reset, fresh, reboot, t, prev, rate, psi, psi_raw, corr, gyaw, gep, imu_dt, turn,
+         bias) = row  # fmt: skip
         c, st, acc = per[idx]
         prev_t = None if prev != prev else prev  # NaN: no previous sample
         dt = 0.0 if prev_t is None or reset else t - prev_t
         track = c.heading
-        track.step(psi, psi_raw, have, reset or reboot or not fresh, yaw_rate(gy, gz, cr, sr, cp), dt, gyaw,
-                   gep, imu_dt, turn, bias)  # fmt: skip
+        track.step(psi, psi_raw, have, reset or reboot or not fresh, rate, dt, gyaw, gep, imu_dt, turn, bias)
         if have and st is not None:
             st.account(t, acc)
         if due(c, t, prev_t, reset, corr):
@@ -481,8 +480,9 @@ def _block(
     flags = cor.flags[sel].tolist()
     if writer is not None:  # the live path's framer, one MAGCOMP_HEADING at a time
         encode, write = encoder.encode_values, writer.write_packet
-        for j, t in enumerate(t_s):
-            write(t, encode(t_boot[j], head[j], head_raw[j], theta[j], bias[j], thr[j], mag[j], flags[j]))
+        values = zip(t_boot, head, head_raw, theta, bias, thr, mag, flags, strict=True)
+        for t, (tb, h, h_raw, th, b, th01, m, fl) in zip(t_s, values, strict=True):
+            write(t, encode(tb, h, h_raw, th, b, th01, m, fl))
     if on_estimate is not None:
         nan = float("nan")
         raw = pub[:, RAW_X:RAW_Z + 1]

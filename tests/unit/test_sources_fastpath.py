@@ -339,6 +339,51 @@ def test_pipeline_only_source_leaves_out_exactly_what_the_pipeline_ignores(
     assert lean_counts == full_counts
 
 
+def test_pipeline_only_source_reads_rc_inputs_only_for_an_rc_throttle(
+    stream: tuple[Frames, list[bytes]], tmp_path: Path
+) -> None:
+    """A ``pipeline_only`` source skips the RC inputs' PWM unless the throttle is read from them: with
+    ``rc:3`` its throttle samples are the full source's (and come from the RC inputs), with ``auto`` they
+    are the full source's too (auto never picks the RC inputs)."""
+    _, records = stream
+    path = tmp_path / "all.tlog"
+    path.write_bytes(b"".join(records))
+    for spec in ("rc:3", "auto"):
+        got = []
+        for lean in (False, True):
+            with open_source(path, throttle_source=spec, pipeline_only=lean) as src:
+                got.append([_key(s) for s in src.samples() if isinstance(s, ThrottleSample)])
+        assert got[0] == got[1]
+        assert len(got[0]) > 100
+        from_rc = {k[3].startswith("rc") for k in got[0]}  # k[3]: the sample's source field
+        assert from_rc == ({True} if spec == "rc:3" else {False})
+
+
+def test_attitude_rates_read_as_arrays_and_pickled_as_a_plain_sample(
+    stream: tuple[Frames, list[bytes]], tmp_path: Path
+) -> None:
+    """ATTITUDE's body rates stay floats until read; read, they are the message's (float64 array), and a
+    pickled sample is a plain AttitudeSample with the same fields."""
+    import pickle
+
+    from magcomp.adapters.wire_samples import WireAttitudeSample
+    from magcomp.core.types import AttitudeSample
+
+    _, records = stream
+    path = tmp_path / "all.tlog"
+    path.write_bytes(b"".join(records))
+    with open_source(path) as src:
+        atts = [s for s in src.samples() if isinstance(s, WireAttitudeSample)]
+    assert len(atts) > 100
+    s = atts[len(atts) // 2]
+    rates = s.rates_b_rad_s
+    assert rates.dtype == np.float64 and rates.shape == (3,)
+    assert rates.tolist() == list(s.rates_xyz) and s.rates_b_rad_s is rates  # built once
+    assert np.abs(np.array([a.rates_xyz for a in atts])).max() > 0.01  # the simulated flight turns
+    back = pickle.loads(pickle.dumps(s))
+    assert type(back) is AttitudeSample and _key(back) == _key(s)
+
+
 def test_replay_counts_every_sample_of_the_log_with_the_pipeline_only_source(tmp_path: Path) -> None:
     """The replay reads its log ``pipeline_only``; its summary still counts every sample the log holds."""
     from magcomp.adapters.config import Config
