@@ -235,8 +235,20 @@ def _corrected_line(c: dict[str, Any], cal_txt: str, sig: list[float], conv: str
     return (
         f"compass {c['index']}: {c['estimates']} headings, corrected, {cal_txt}, "
         f"theta = ({th[0]:.1f}, {th[1]:.1f}, {th[2]:.1f}) "
-        f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss{conv}{gain}{_time_text(c)}"
+        f"+- ({sig[0]:.1f}, {sig[1]:.1f}, {sig[2]:.1f}) mgauss{conv}{_bias_text(c)}{gain}{_time_text(c)}"
     )
+
+
+def _bias_text(c: dict[str, Any]) -> str:
+    """theta's bias at the throttle flown (eq. (11): |theta| times the mean throttle^2 of the samples judged):
+    what the compass sees, where theta itself is large because the throttle flown is low (0.15-0.25 on a
+    development log: theta ~3 gauss, its bias 70-190 mgauss)."""
+    t2 = c.get("throttle2_flown")
+    if t2 is None:
+        return ""
+    th = c["theta_mgauss"]
+    bias = math.sqrt(th[0] * th[0] + th[1] * th[1] + th[2] * th[2]) * float(t2)
+    return f"; its bias at the throttle flown {bias:.0f} mgauss (rms throttle {math.sqrt(float(t2)):.2f})"
 
 
 def _gain_text(chk: dict[str, Any]) -> str:

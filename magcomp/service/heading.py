@@ -187,6 +187,9 @@ class HeadingTrack:
         "check",
         "corrected",
         "corrected_deg",
+        "flown_d2",
+        "flown_n",
+        "flown_t",
         "gyro_epoch",
         "gyro_yaw",
         "hover",
@@ -236,6 +239,10 @@ class HeadingTrack:
         self._holding = False
         #: the held constant was taken with theta's bias out (:meth:`own_offset_rad`)
         self._theta_anchored = False
+        #: the samples :func:`count_flown` counted, the sum of their throttle^2 and the last one's time
+        self.flown_n = 0
+        self.flown_d2 = 0.0
+        self.flown_t = -math.inf
 
     def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...],
                  psi_own_deg: float, ref_rad: float = math.nan, segment: float = 0.0,
@@ -251,6 +258,12 @@ class HeadingTrack:
             self._recent_i = (i + 1) % RECENT_N
             self._recent_n = min(self._recent_n + 1, RECENT_N)
             self._recent_a = None
+
+    @property
+    def throttle2_flown(self) -> float:
+        """The mean throttle^2 over the flight (:func:`count_flown`; NaN before any sample): theta times it is
+        the bias eq. (11) puts on the field at the throttle flown."""
+        return self.flown_d2 / self.flown_n if self.flown_n else math.nan
 
     def _remembered(self) -> NDArray[np.float64] | None:
         """The samples remembered, oldest first, as columns (RECENT_FIELDS, n) (None: none)."""
@@ -402,6 +415,21 @@ def _shadow_heading_deg(rec: MagRecord) -> float | None:
     return heading_from_trig_deg(ux - theta[0] * d2, uy - theta[1] * d2, uz - theta[2] * d2, *rec.tilt)
 
 
+def count_flown(rec: MagRecord, track: HeadingTrack) -> bool:
+    """Whether the self-check judges this sample (the throttle known, the motors running, roll and pitch
+    within MAX_TILT_COS); such samples, one every RECENT_EVERY_S, count towards
+    :attr:`HeadingTrack.throttle2_flown`. Called by :func:`heading_stage`, and by the learn-only first pass
+    of a two-pass replay, which has no heading stage."""
+    cr, _, cp, _ = rec.tilt
+    judged = rec.have_throttle and rec.throttle_01 > MOTORS_RUNNING_01
+    judged = judged and cr > MAX_TILT_COS and cp > MAX_TILT_COS
+    if judged and (rec.t_s - track.flown_t >= RECENT_EVERY_S or rec.t_s < track.flown_t):
+        track.flown_t = rec.t_s
+        track.flown_n += 1
+        track.flown_d2 += rec.throttle_01 * rec.throttle_01
+    return judged
+
+
 def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
@@ -442,7 +470,7 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     own = track.step_own(psi_own)  # every sample: the filter's state stays current
     if not rec.calibrated:  # nothing of magcomp's applies: the autopilot's own heading
         rec.heading_deg = own
-    judged = rec.throttle_01 > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS
+    judged = count_flown(rec, track)  # the throttle known, the motors running, the tilt within bounds
     hover = track.hover
     if track.hover_on and rec.have_throttle and (rec.inflight is not None or not rec.calibrated):
         if hover is None:

@@ -73,6 +73,7 @@ def compass_summary(
         "status": status.status,
         "why": status.why,
         "time_s": dict(c.time_s),
+        "throttle2_flown": None if math.isnan(t2 := c.heading.throttle2_flown) else t2,
         "inflight": None if st is None else {**st.summary(), "rotation": c.rel_source.kind},
         "self_check": None if check is None else asdict(check),
     }
