@@ -67,17 +67,22 @@ class HeadingFilter:
     ) -> float:
         """One compass sample; ``turn_rad_s``: the body's rotation rate (norm of the gyro), when it is faster
         than the yaw rate the gyro's error grows with it (the yaw integral's roll and pitch err with it)."""
-        if self.tau_s <= 0.0 or self.psi_deg is None or not math.isfinite(yaw_rate_rad_s) or dt_s <= 0.0:
+        psi0 = self.psi_deg
+        if psi0 is None or dt_s <= 0.0 or self.tau_s <= 0.0 or not math.isfinite(yaw_rate_rad_s):
             self.psi_deg = psi_meas_deg
             self._p = None
             return psi_meas_deg
         rate_deg_s = yaw_rate_rad_s * _DEG_PER_RAD  # as math.degrees
-        pred = self.psi_deg + (rate_deg_s - self.bias_deg_s) * dt_s
+        pred = psi0 + (rate_deg_s - self.bias_deg_s) * dt_s
         innov = (psi_meas_deg - pred + 180.0) % 360.0 - 180.0
-        turn_deg_s = max(abs(rate_deg_s), turn_rad_s * _DEG_PER_RAD)
+        turn_deg_s = turn_rad_s * _DEG_PER_RAD
+        abs_rate = abs(rate_deg_s)
+        if not turn_deg_s > abs_rate:  # max(|rate|, turn), as max() picks (the first of equals)
+            turn_deg_s = abs_rate
         slew = GYRO_SCALE_ERROR * turn_deg_s / RESIDUAL_BIAS_DEG_S
         slew2 = slew * slew
-        p = (1.0 / dt_s if self._p is None else self._p) + self._q * (1.0 + slew2) * dt_s
+        p0 = self._p
+        p = (1.0 / dt_s if p0 is None else p0) + self._q * (1.0 + slew2) * dt_s
         gain = p * dt_s / (p * dt_s + 1.0)
         self._p = p * (1.0 - gain)
         if self._ki and slew2 < 1.0:

@@ -311,13 +311,14 @@ class HeadingTrack:
         if sol is None:
             return
         last = self.solution
-        if last is not None and last[0] is not sol[0] and chk.holds:
+        holds = chk.holds  # neither shift nor hold changes it
+        if holds and last is not None and last[0] is not sol[0]:
             change = self.constant_change_rad(last, sol)
             if change == change:  # not NaN: samples to measure it on
                 chk.shift(change)
-        if chk.holds and not self._holding:  # switched on: the offset with this estimate on every sample
+        if holds and not self._holding:  # switched on: the offset with this estimate on every sample
             chk.hold(self.own_offset_rad(sol))
-        self._holding = chk.holds
+        self._holding = holds
         self.solution = sol
 
     def reset(self) -> None:
@@ -340,6 +341,7 @@ class HeadingTrack:
         imu_dt: float = math.nan,
         turn_rad_s: float = 0.0,
         bias_rad_s: float = math.nan,
+        psi_own: float | None = None,
     ) -> None:
         """Both filters over one sample; the results in :attr:`corrected_deg` and :attr:`raw_deg`. ``psi`` /
         ``psi_raw``: eq. (24) of the corrected and the calibrated-only field; ``corrected``: the throttle is
@@ -350,8 +352,9 @@ class HeadingTrack:
         (the mean rate) rather than the latest IMU sample's rate times the interval, which at 2-4 Hz
         telemetry or ULog compass rates misses most of a turn. Only where the interval holds several IMU
         samples (``imu_dt``): where the gyro comes with the field (RAW_IMU), one sample per interval, its own
-        rate is kept (the paper's pan: 1.66 deg max error that way, 2.97 with the trapezoid). Used by the
-        per-sample stage and by the two-pass replay's second pass."""
+        rate is kept (the paper's pan: 1.66 deg max error that way, 2.97 with the trapezoid). ``psi_own``:
+        the autopilot's own heading, through its filter with the same rate and interval (:attr:`own_deg`;
+        None: not this track's). Used by the per-sample stage and by the two-pass replay's second pass."""
         prev_yaw, prev_epoch = self.gyro_yaw, self.gyro_epoch
         self.gyro_yaw, self.gyro_epoch = gyro_yaw, gyro_epoch
         if dt > 1.5 * imu_dt and prev_epoch == gyro_epoch and gyro_yaw - prev_yaw == gyro_yaw - prev_yaw:
@@ -363,6 +366,8 @@ class HeadingTrack:
             self.raw.bias_deg_s = self.corrected.bias_deg_s = self.own.bias_deg_s = b
         raw = self.raw_deg = self.raw.update(psi_raw, rate, dt, turn_rad_s)
         self.corrected_deg = self.corrected.update(psi, rate, dt, turn_rad_s) if corrected else raw
+        if psi_own is not None:
+            self.own_deg = self.own.update(psi_own, rate, dt, turn_rad_s)
         self._last_rate = (rate, dt, turn_rad_s)
 
     @property
@@ -370,12 +375,6 @@ class HeadingTrack:
         """The Euler yaw rate (rad/s), interval (s) and turn rate (rad/s, :func:`turn_rate`) the last
         :meth:`step` propagated with."""
         return self._last_rate
-
-    def step_own(self, psi_own: float) -> float:
-        """The autopilot's own heading through its filter, with the rate and interval of the last
-        :meth:`step` (call right after it)."""
-        self.own_deg = self.own.update(psi_own, *self._last_rate)
-        return self.own_deg
 
 
 #: a body rate (rad/s) above which the vehicle is moving, not resting: five times the largest gyro bias seen
@@ -451,23 +450,31 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     cr, sr, cp, sp = rec.tilt
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
-    cx, cy, cz = rec.field_corrected
-    psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp) if rec.have_throttle else psi_raw
+    have_throttle = rec.have_throttle
+    if have_throttle:
+        cx, cy, cz = rec.field_corrected
+        psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
+    else:
+        psi = psi_raw
+    self_check = track.self_check
+    psi_own: float | None = None
+    if self_check:
+        vx, vy, vz = rec.raw
+        onb = rec.sample.onboard_mgauss
+        if onb is not None:  # the autopilot's own motor compensation, which the source removed, put back
+            vx, vy, vz = vx + onb[0], vy + onb[1], vz + onb[2]
+        psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
     gx, gy, gz = rec.gyro_raw
     rate = yaw_rate(gy, gz, cr, sr, cp)
     dt = 0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t
     turn = turn_rate(gx, gy, gz, cr * cp)
-    track.step(psi, psi_raw, rec.have_throttle, rec.reset or not rec.gyro_fresh, rate, dt, rec.gyro_yaw,
-               rec.gyro_epoch, rec.imu_dt, turn, gyro_bias_rad_s(rec, rate))  # fmt: skip
+    # the own heading's filter at every sample: its state stays current
+    track.step(psi, psi_raw, have_throttle, rec.reset or not rec.gyro_fresh, rate, dt, rec.gyro_yaw,
+               rec.gyro_epoch, rec.imu_dt, turn, gyro_bias_rad_s(rec, rate), psi_own)  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
-    if not track.self_check:
+    if psi_own is None:
         return
-    vx, vy, vz = rec.raw
-    onb = rec.sample.onboard_mgauss
-    if onb is not None:  # the autopilot's own motor compensation, which the source removed, put back
-        vx, vy, vz = vx + onb[0], vy + onb[1], vz + onb[2]
-    psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
-    own = track.step_own(psi_own)  # every sample: the filter's state stays current
+    own = track.own_deg
     if not rec.calibrated:  # nothing of magcomp's applies: the autopilot's own heading
         rec.heading_deg = own
     judged = count_flown(rec, track)  # the throttle known, the motors running, the tilt within bounds
