@@ -33,11 +33,12 @@ import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from magcomp.core.correction import IDENTITY_COEFFS, Correction
+from magcomp.core.correction import IDENTITY_COEFFS, Correction, Float3
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.yaw_follow import YawFollow, fit_follow_gain, follows_within, window_follow_terms
 
@@ -172,26 +173,28 @@ def corrected_headings_deg(raw_mgauss: F64, throttle_01: F64, tilt: F64,
     """The heading (deg) each of ``estimates`` gives the same samples (the field as received (n, 3), the
     throttle (n,), cos / sin of roll and pitch (n, 4)): its L and d of eq. (2) as 12 floats and its theta,
     applied as :class:`~magcomp.core.correction.Correction` applies them (eqs. (2), (11); per-motor terms,
-    which sum to about zero over the motors, left out), then eq. (24) of the corrected field. The samples'
-    columns are taken once for all the estimates."""
+    which sum to about zero over the motors, left out), then eq. (24) of the corrected field. All the
+    estimates at once: one correction whose coefficients are columns (one row per estimate), so that each
+    sample gets a float correction's arithmetic and each operation is one numpy call for all of them."""
     r = np.asarray(raw_mgauss, dtype=float)
     c = np.asarray(tilt, dtype=float)
     thr = np.asarray(throttle_01, dtype=float)
     vx, vy, vz = r[:, 0], r[:, 1], r[:, 2]
     cr, sr, cp, sp = c[:, 0], c[:, 1], c[:, 2], c[:, 3]
-    out = []
-    for coeffs, theta in estimates:
-        mx, my, mz = Correction(coeffs, theta).apply(vx, vy, vz, thr).corrected
-        out.append(np.asarray(heading_from_trig_deg(mx, my, mz, cr, sr, cp, sp)))  # eq. (24)
-    return out
+    coeffs = np.array([e[0] for e in estimates], dtype=float).T[:, :, None]  # (12, m, 1)
+    theta = np.array([e[1] for e in estimates], dtype=float).T[:, :, None]  # (3, m, 1)
+    columns = Correction(cast("tuple[float, ...]", tuple(coeffs)), cast("Float3", tuple(theta)))
+    mx, my, mz = columns.apply(vx, vy, vz, thr).corrected
+    return list(heading_from_trig_deg(mx, my, mz, cr, sr, cp, sp))  # eq. (24), one row per estimate
 
 
 def circular_mean_rad(a_rad: F64) -> float:
     """The circular mean of angles (rad); NaN when empty."""
     a = np.asarray(a_rad, dtype=float)
-    if a.size == 0:
+    n = a.size
+    if n == 0:
         return math.nan
-    return math.atan2(float(np.mean(np.sin(a))), float(np.mean(np.cos(a))))
+    return math.atan2(float(np.sin(a).sum()) / n, float(np.cos(a).sum()) / n)  # the means, as np.mean
 
 
 def mean_change_rad(psi_old_deg: F64, psi_new_deg: F64) -> float:
