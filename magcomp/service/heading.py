@@ -132,7 +132,7 @@ class HoverShadow:
             self.on_form = on_form
             self.deg = self.filter.update(cands[self.on_form if self.on_form is not None else 0], rate, dt,
                                           turn_rad_s)  # fmt: skip
-        else:
+        elif self.filter.psi_deg is not None:  # (already reset: nothing to do, at every such sample)
             self.filter.reset()
         due = ok and len(self._block) >= MIN_HOVER_BLOCK and not rec.t_s - self._fit_t < LIVE_WINDOW_S
         if refit or due:
@@ -475,21 +475,23 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     if psi_own is None:
         return
     own = track.own_deg
-    if not rec.calibrated:  # nothing of magcomp's applies: the autopilot's own heading
+    inf = rec.inflight
+    calibrated = rec.calibrated
+    if not calibrated:  # nothing of magcomp's applies: the autopilot's own heading
         rec.heading_deg = own
     judged = count_flown(rec, track)  # the throttle known, the motors running, the tilt within bounds
     hover = track.hover
-    if track.hover_on and rec.have_throttle and (rec.inflight is not None or not rec.calibrated):
+    if have_throttle and track.hover_on and (inf is not None or not calibrated):
         if hover is None:
             hover = track.hover = HoverShadow(track.own.tau_s)
         rate, dt, turn = track.last_rate
         # judged only where it could be published: where the in-flight correction applies, published or
         # not, the hover theta is neither published (below) nor reported (``Pipeline._hover``); judging it
         # there cost ~5 us a sample, 0.4 s of a 10 min ``--causal`` replay
-        hover.step(rec, (vx, vy, vz), psi_own, judged, rec.inflight is None, rate, dt, turn)
+        hover.step(rec, (vx, vy, vz), psi_own, judged, inf is None, rate, dt, turn)
     chk = track.check
-    cand = psi if rec.inflight is not None else _shadow_heading_deg(rec)
-    if cand is not None and rec.have_throttle:
+    cand = psi if inf is not None else _shadow_heading_deg(rec)
+    if cand is not None and have_throttle:
         if chk is None:
             # off until it beats the autopilot's own heading on this flight, also where it is carried over
             # from the vehicle's saved state: the vehicle may have changed since, and the relative form's
@@ -497,20 +499,23 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
             # a saved correction was published from the first window: test_warm_start_check.py); one learned
             # from this very log by a two-pass replay's first pass starts published
             chk = track.check = RunningSelfCheck()
-            chk.on = track.starts_published and rec.inflight is not None and rec.inflight.warm_started
+            chk.on = track.starts_published and inf is not None and inf.warm_started
             chk.rejudge = track.rejudge
         if judged:
-            ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (rec.ap_yaw, 0.0)
+            t_s, ap_yaw = rec.t_s, rec.ap_yaw
+            if rec.imu_fast:
+                ref, seg = rec.gyro_yaw, rec.gyro_epoch
+            else:
+                ref, seg = ap_yaw, 0.0
             if ref == ref:  # not NaN
-                chk.add(rec.t_s, math.radians(psi_own), math.radians(cand), ref, seg, rec.ap_yaw)
-            track.remember(rec.t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own, ref, seg, rec.ap_yaw)
-    inf = rec.inflight
+                chk.add(t_s, math.radians(psi_own), math.radians(cand), ref, seg, ap_yaw)
+            track.remember(t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own, ref, seg, ap_yaw)
     if chk is not None:
         track.follow((inf.coeffs, inf.theta_mgauss) if inf is not None else rec.shadow, chk)
     if inf is not None and chk is not None and chk.publishes(inf.heading_sigma_deg):
         rec.heading_deg = (track.corrected_deg + math.degrees(chk.offset_rad)) % 360.0  # see the doc
         return
-    if rec.inflight is None and not rec.calibrated and hover is not None and hover.on_form is not None:
+    if inf is None and not calibrated and hover is not None and hover.on_form is not None:
         rec.heading_deg = hover.published_deg()  # theta against the autopilot's calibration
         rec.flags = (rec.flags | FLAG_CALIBRATED) & ~FLAG_THETA_CONVERGED
         return
