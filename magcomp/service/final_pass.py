@@ -471,6 +471,13 @@ def _block(
         return
     sel = np.asarray(idx, dtype=np.int64)
     pub = rows[sel]
+    block = None if writer is None else encoder.encode_block(
+        pub[:, T] - pub[:, BOOT_OFFSET], np.asarray(head), np.asarray(head_raw), cor.theta[sel],
+        cor.bias[sel], pub[:, THR], pub[:, MAG].astype(np.int64), cor.flags[sel])  # fmt: skip
+    if block is not None and writer is not None:  # the live path's framer on the block at once
+        writer.write_frames(pub[:, T], *block)
+        if on_estimate is None:
+            return
     t_s = pub[:, T].tolist()
     t_boot = (pub[:, T] - pub[:, BOOT_OFFSET]).tolist()
     theta = [(a, b, c) for a, b, c in cor.theta[sel].tolist()]
@@ -478,7 +485,7 @@ def _block(
     thr = pub[:, THR].tolist()
     mag = pub[:, MAG].astype(np.int64).tolist()
     flags = cor.flags[sel].tolist()
-    if writer is not None:  # the live path's framer, one MAGCOMP_HEADING at a time
+    if writer is not None and block is None:  # one MAGCOMP_HEADING at a time (a signed link)
         encode, write = encoder.encode_values, writer.write_packet
         values = zip(t_boot, head, head_raw, theta, bias, thr, mag, flags, strict=True)
         for t, (tb, h, h_raw, th, b, th01, m, fl) in zip(t_s, values, strict=True):

@@ -31,11 +31,16 @@ from magcomp.errors import InputError
 
 log = logging.getLogger("magcomp.publish")
 
+F64 = NDArray[np.float64]
+
 _TLOG_STAMP = struct.Struct(">Q")
 #: MAVLink 2 header: magic, payload length, incompat and compat flags, sequence, system, component, message
 #: id (24 bits, little-endian); then the payload and the CRC-16/MCRF4XX
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
+#: a block's frames are packed at full length (10 header bytes, the payload, the CRC), its times below this
+#: (ms, us: the integers a float holds exactly); beyond it (or non-finite), one frame at a time
+_BLOCK_MAX_INT = 2.0**52
 
 
 class ByteSink(Protocol):
@@ -117,6 +122,64 @@ class HeadingEncoder:
         frame = self._header.pack(0xFD, len(payload), 0, 0, seq, mav.srcSystem, mav.srcComponent,
                                   self._id_lo, self._id_hi) + payload  # fmt: skip
         return frame + _CRC.pack(self._crc(frame[1:] + self._crc_extra))
+
+    def encode_block(
+        self,
+        t_boot_s: F64,
+        heading_deg: F64,
+        heading_raw_deg: F64,
+        theta: F64,
+        bias: F64,
+        throttle_01: F64,
+        mag_index: NDArray[np.int64],
+        flags: NDArray[np.int64],
+    ) -> tuple[NDArray[np.uint8], NDArray[np.int64]] | None:
+        """:meth:`encode_values` of n frames at once (theta and bias (n, 3), the rest (n,)), on consecutive
+        sequence numbers: each frame's bytes left-aligned in a row of (n, full frame length) and each
+        frame's length (the same bytes as :meth:`encode_values`, tested against it). None (nothing
+        packed, the counter untouched): a signed link, or a time a frame at a time handles
+        (:data:`_BLOCK_MAX_INT`)."""
+        mav = self.mav
+        n = len(heading_deg)
+        t_ms = np.rint(np.asarray(t_boot_s, dtype=float) * 1000.0)  # round(): half to even, as np.rint
+        if mav.signing.sign_outgoing or not bool(np.all(np.abs(t_ms) < _BLOCK_MAX_INT)):
+            return None
+        plen = self._payload.size
+        hlen = _V2_HEADER.size
+        out = np.zeros((n, hlen + plen + _CRC.size), dtype=np.uint8)
+
+        def put(col: int, values: Any, dtype: str) -> None:
+            v = np.ascontiguousarray(np.asarray(values).astype(dtype).reshape(n, -1))
+            out[:, col : col + v.shape[1] * v.itemsize] = v.view(np.uint8)
+
+        seq0 = mav.seq
+        out[:, 0] = 0xFD
+        put(4, (seq0 + np.arange(n)) & 0xFF, "u1")
+        out[:, 5], out[:, 6] = mav.srcSystem, mav.srcComponent
+        put(7, np.full(n, self._id_lo), "<u2")
+        out[:, 9] = self._id_hi
+        # the payload in its fields' order (self._payload: "<Iff3f3ffBB")
+        put(hlen, t_ms.astype(np.int64) & 0xFFFFFFFF, "<u4")
+        put(hlen + 4, np.column_stack((heading_deg, heading_raw_deg, theta, bias, throttle_01)), "<f4")
+        put(hlen + plen - 2, np.asarray(mag_index) & 0xFF, "u1")
+        put(hlen + plen - 1, np.asarray(flags) & 0xFF, "u1")
+        # MAVLink 2 drops the payload's trailing zero bytes (not the first)
+        nonzero = out[:, hlen : hlen + plen] != 0
+        last = plen - np.argmax(nonzero[:, ::-1], axis=1)
+        payload_len = np.where(nonzero.any(axis=1), last, 1)
+        out[:, 1] = payload_len
+        sizes = hlen + payload_len + _CRC.size
+        buf = out.tobytes()
+        width = out.shape[1]
+        crc, extra = self._crc, self._crc_extra
+        crcs = np.array([crc(buf[k * width + 1 : k * width + hlen + m] + extra)
+                         for k, m in enumerate(payload_len.tolist())], dtype="<u2")  # fmt: skip
+        rows = np.arange(n)
+        crc_bytes = crcs.reshape(n, 1).view(np.uint8)
+        out[rows, hlen + payload_len] = crc_bytes[:, 0]
+        out[rows, hlen + payload_len + 1] = crc_bytes[:, 1]
+        mav.seq = (seq0 + n) & 0xFF  # as n calls of encode_values count
+        return out, sizes.astype(np.int64)
 
     def named_value(self, t_boot_s: float, name: str, value: float) -> bytes:
         """One NAMED_VALUE_FLOAT (``name`` at most 10 characters) on this encoder's link sequence."""
@@ -252,6 +315,29 @@ class TlogWriter:
             self._abandon()
             raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
         self.packets += 1
+
+    def write_frames(self, t_s: F64, frames: NDArray[np.uint8], sizes: NDArray[np.int64]) -> None:
+        """:meth:`write_packet` of each of :meth:`HeadingEncoder.encode_block`'s frames (the first ``sizes``
+        bytes of each row of ``frames``) at its time, in one write (a time beyond :data:`_BLOCK_MAX_INT`:
+        one packet at a time)."""
+        us = np.maximum(np.rint(np.asarray(t_s, dtype=float) * 1e6), 0.0)  # max(0, round()), as np.rint
+        if not bool(np.all(us < _BLOCK_MAX_INT)):
+            times, lengths = np.asarray(t_s).tolist(), np.asarray(sizes).tolist()
+            for t, row, size in zip(times, frames, lengths, strict=True):
+                self.write_packet(t, row[:size].tobytes())
+            return
+        n, width = frames.shape
+        stamp = _TLOG_STAMP.size
+        rec = np.empty((n, stamp + width), dtype=np.uint8)
+        rec[:, :stamp] = us.astype(">u8").reshape(n, 1).view(np.uint8)
+        rec[:, stamp:] = frames
+        keep = np.arange(stamp + width) < (stamp + np.asarray(sizes)).reshape(n, 1)
+        try:
+            self._f.write(rec[keep].tobytes())
+        except OSError as exc:  # as write_packet
+            self._abandon()
+            raise InputError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+        self.packets += n
 
     def _abandon(self) -> None:
         """After a failed write: close without flushing again (the flush would fail the same way) and

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from magcomp.adapters.dialect import ensure_dialect
 from magcomp.core.types import HeadingEstimate
-from magcomp.service.publish import HeadingEncoder
+from magcomp.service.publish import HeadingEncoder, TlogWriter
 
 
 def _pymavlink_bytes(enc: HeadingEncoder, est: HeadingEstimate) -> bytes:
@@ -65,3 +67,41 @@ def test_sequence_numbers_count_up_and_wrap() -> None:
         (msg,) = mav.parse_buffer(frame)
         seqs.append(msg.get_seq())
     assert seqs == [k % 256 for k in range(300)]
+
+
+def test_block_writes_the_bytes_of_one_frame_at_a_time(tmp_path: Path) -> None:
+    """HeadingEncoder.encode_block + TlogWriter.write_frames (the two-pass replay's writer) give the tlog of
+    encode_values + write_packet byte for byte: trailing zero bytes dropped (flags, mag index, throttle and
+    bias zero), sequence numbers wrapping, negative times; a time beyond a block's falls back per packet."""
+    rng = np.random.default_rng(3)
+    for trial in range(12):
+        n = int(rng.integers(1, 400))
+        t_boot = rng.uniform(-10.0, 5e6, n)
+        t_s = rng.uniform(-5.0, 5e6, n)
+        if trial == 11:
+            t_s[n // 2] = 1e11  # 1e17 us: beyond a block's exact integers
+        head, head_raw = rng.uniform(0.0, 360.0, n), rng.uniform(0.0, 360.0, n)
+        theta, bias = rng.normal(0.0, 200.0, (n, 3)), rng.normal(0.0, 50.0, (n, 3))
+        thr = rng.uniform(0.0, 1.0, n)
+        mag, flags = rng.integers(0, 3, n), rng.integers(0, 300, n)
+        zero = rng.uniform(size=n) < 0.3
+        flags[zero] = 0
+        mag[zero & (rng.uniform(size=n) < 0.5)] = 0
+        zeros = zero & (rng.uniform(size=n) < 0.5)
+        thr[zeros], bias[zeros] = 0.0, 0.0
+        one, block = HeadingEncoder(0, 191), HeadingEncoder(0, 191)
+        one.set_system(42)
+        block.set_system(42)
+        one.mav.seq = block.mav.seq = int(rng.integers(0, 256))
+        w_one, w_block = TlogWriter(tmp_path / "one.tlog"), TlogWriter(tmp_path / "block.tlog")
+        for k in range(n):
+            w_one.write_packet(float(t_s[k]), one.encode_values(
+                float(t_boot[k]), float(head[k]), float(head_raw[k]), tuple(theta[k].tolist()),
+                tuple(bias[k].tolist()), float(thr[k]), int(mag[k]), int(flags[k])))  # fmt: skip
+        packed = block.encode_block(t_boot, head, head_raw, theta, bias, thr, mag, flags)
+        assert packed is not None
+        w_block.write_frames(t_s, *packed)
+        w_one.close()
+        w_block.close()
+        assert block.mav.seq == one.mav.seq and w_block.packets == w_one.packets == n
+        assert (tmp_path / "block.tlog").read_bytes() == (tmp_path / "one.tlog").read_bytes()
