@@ -31,13 +31,14 @@ from magcomp.errors import InputError
 
 log = logging.getLogger("magcomp.publish")
 
-F64 = NDArray[np.float64]
-
 _TLOG_STAMP = struct.Struct(">Q")
 #: MAVLink 2 header: magic, payload length, incompat and compat flags, sequence, system, component, message
 #: id (24 bits, little-endian); then the payload and the CRC-16/MCRF4XX
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
+
+F64 = NDArray[np.float64]
+
 #: a block's frames are packed at full length (10 header bytes, the payload, the CRC), its times below this
 #: (ms, us: the integers a float holds exactly); beyond it (or non-finite), one frame at a time
 _BLOCK_MAX_INT = 2.0**52
