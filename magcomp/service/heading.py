@@ -18,6 +18,7 @@ from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import HeadingFilter, turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
+from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import (
     LIVE_WINDOW_S,
     MAX_TILT_COS,
@@ -429,6 +430,19 @@ def count_flown(rec: MagRecord, track: HeadingTrack) -> bool:
     return judged
 
 
+def _start_check(track: HeadingTrack, inf: InflightOutput | None) -> RunningSelfCheck:
+    """A compass's running self-check, at its first sample with a candidate: off until it beats the
+    autopilot's own heading on this flight, also where the correction is carried over from the vehicle's
+    saved state: the vehicle may have changed since, and the relative form's constant part settles again
+    on the new flight (37-42 deg off for 5 s on a development log when a saved correction was published
+    from the first window: test_warm_start_check.py); one learned from this very log by a two-pass
+    replay's first pass starts published."""
+    chk = RunningSelfCheck()
+    chk.on = track.starts_published and inf is not None and inf.warm_started
+    chk.rejudge = track.rejudge
+    return chk
+
+
 def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     """Fills ``rec.heading_deg`` and ``rec.heading_raw_deg`` (deg, [0, 360)). Where the correction is the
     in-flight calibration (it replaces the autopilot's own), the published heading is the autopilot's own
@@ -451,14 +465,9 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     ux, uy, uz = rec.field_cal
     psi_raw = heading_from_trig_deg(ux, uy, uz, cr, sr, cp, sp)  # eq. (24)
     have_throttle = rec.have_throttle
-    if have_throttle:
-        cx, cy, cz = rec.field_corrected
-        psi = heading_from_trig_deg(cx, cy, cz, cr, sr, cp, sp)
-    else:
-        psi = psi_raw
-    self_check = track.self_check
+    psi = heading_from_trig_deg(*rec.field_corrected, cr, sr, cp, sp) if have_throttle else psi_raw
     psi_own: float | None = None
-    if self_check:
+    if track.self_check:
         vx, vy, vz = rec.raw
         onb = rec.sample.onboard_mgauss
         if onb is not None:  # the autopilot's own motor compensation, which the source removed, put back
@@ -493,20 +502,10 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
     cand = psi if inf is not None else _shadow_heading_deg(rec)
     if cand is not None and have_throttle:
         if chk is None:
-            # off until it beats the autopilot's own heading on this flight, also where it is carried over
-            # from the vehicle's saved state: the vehicle may have changed since, and the relative form's
-            # constant part settles again on the new flight (37-42 deg off for 5 s on a development log when
-            # a saved correction was published from the first window: test_warm_start_check.py); one learned
-            # from this very log by a two-pass replay's first pass starts published
-            chk = track.check = RunningSelfCheck()
-            chk.on = track.starts_published and inf is not None and inf.warm_started
-            chk.rejudge = track.rejudge
+            chk = track.check = _start_check(track, inf)
         if judged:
             t_s, ap_yaw = rec.t_s, rec.ap_yaw
-            if rec.imu_fast:
-                ref, seg = rec.gyro_yaw, rec.gyro_epoch
-            else:
-                ref, seg = ap_yaw, 0.0
+            ref, seg = (rec.gyro_yaw, rec.gyro_epoch) if rec.imu_fast else (ap_yaw, 0.0)
             if ref == ref:  # not NaN
                 chk.add(t_s, math.radians(psi_own), math.radians(cand), ref, seg, ap_yaw)
             track.remember(t_s, rec.raw, rec.throttle_01, rec.tilt, psi_own, ref, seg, ap_yaw)
