@@ -303,6 +303,7 @@ def _vec1(v: list[float] | None, ci95: list[float] | None) -> str:
 
 def _summary(j: dict[str, Any]) -> list[str]:
     from magcomp.diagnosis.export import finding_text
+    from magcomp.service.console import bias_at_flown_text
 
     lines = []
     for c in j["compasses"]:
@@ -311,14 +312,16 @@ def _summary(j: dict[str, Any]) -> list[str]:
             pt = c.get("theta_given_prior")
             if pt:  # the calibration is refused, theta is not (diagnosis.partial)
                 theta = _vec1(pt["theta"], pt["theta_ci95_halfwidth"])
+                bias = bias_at_flown_text(pt["theta"], c.get("throttle2_flown"))
                 lines.append(
-                    f"  theta {theta} mgauss with the autopilot's calibration as prior; {pt['note']}"
+                    f"  theta {theta} mgauss with the autopilot's calibration as prior{bias}; {pt['note']}"
                 )
             continue
         names = ", ".join(finding_text(f) for f in c["findings"]) or "no finding"
         theta = _vec1(c["theta"], c.get("theta_ci95_halfwidth"))
+        bias = bias_at_flown_text(c["theta"], c.get("throttle2_flown"))
         lines.append(
-            f"compass {c['index']}: theta {theta} mgauss; residual "
+            f"compass {c['index']}: theta {theta} mgauss{bias}; residual "
             f"{_g3(c['residual_rms_baseline'])} -> {_g3(c['residual_rms_extended'])} mgauss; {names}"
         )
         why = (c.get("gate") or {}).get("theta_consistency_why")

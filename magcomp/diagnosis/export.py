@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.px4 import px4_calibration_matrix
+from magcomp.core.selfcheck import MOTORS_RUNNING_01
 from magcomp.core.types import LogData
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
@@ -88,8 +89,17 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
         out["linearisation"] = ""
         out["heading_drift_deg_per_min"] = None
     out["theta_given_prior"] = prior_theta_json(cd)
+    out["throttle2_flown"] = throttle2_flown(cd.data.throttle_01)
     out["sensor"] = sensor_json(cd.sensor)
     return out
+
+
+def throttle2_flown(throttle_01: F64) -> float | None:
+    """The mean throttle^2 with the motors running (None: never): theta times it is eq. (11)'s bias at the
+    throttle flown, what the compass saw (the console prints it beside theta)."""
+    thr = np.asarray(throttle_01, dtype=float)
+    run = thr[np.isfinite(thr) & (thr > MOTORS_RUNNING_01)]
+    return r4(float(np.mean(run * run))) if run.size else None
 
 
 def sensor_json(s: SensorIdentity | None) -> dict[str, Any] | None:

@@ -240,15 +240,21 @@ def _corrected_line(c: dict[str, Any], cal_txt: str, sig: list[float], conv: str
 
 
 def _bias_text(c: dict[str, Any]) -> str:
-    """theta's bias at the throttle flown (eq. (11): |theta| times the mean throttle^2 of the samples judged):
-    what the compass sees, where theta itself is large because the throttle flown is low (0.15-0.25 on a
-    development log: theta ~3 gauss, its bias 70-190 mgauss)."""
-    t2 = c.get("throttle2_flown")
-    if t2 is None:
+    """:func:`bias_at_flown_text` of a replay summary's compass."""
+    return bias_at_flown_text(c["theta_mgauss"], c.get("throttle2_flown"))
+
+
+def bias_at_flown_text(theta_mgauss: list[float] | None, throttle2: float | None) -> str:
+    """theta's bias at the throttle flown (eq. (11): |theta| times the mean throttle^2 flown), as "; its bias
+    at the throttle flown N mgauss (rms throttle X)" ("" where either is unknown): what the compass sees,
+    where theta itself is large because the throttle flown is low (0.15-0.25 on a development log: theta ~3
+    gauss, its bias 70-190 mgauss)."""
+    if theta_mgauss is None or throttle2 is None:
         return ""
-    th = c["theta_mgauss"]
-    bias = math.sqrt(th[0] * th[0] + th[1] * th[1] + th[2] * th[2]) * float(t2)
-    return f"; its bias at the throttle flown {bias:.0f} mgauss (rms throttle {math.sqrt(float(t2)):.2f})"
+    th = [float(x) for x in theta_mgauss]
+    bias = math.sqrt(th[0] * th[0] + th[1] * th[1] + th[2] * th[2]) * float(throttle2)
+    rms = math.sqrt(float(throttle2))
+    return f"; its bias at the throttle flown {bias:.0f} mgauss (rms throttle {rms:.2f})"
 
 
 def _gain_text(chk: dict[str, Any]) -> str:

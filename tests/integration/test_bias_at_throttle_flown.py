@@ -38,3 +38,22 @@ def test_the_summary_has_the_throttle_flown_and_the_console_its_bias(two_pass: b
     want = float(np.linalg.norm(th)) * comp["throttle2_flown"]
     assert f"its bias at the throttle flown {want:.0f} mgauss" in line, line
     assert f"rms throttle {math.sqrt(comp['throttle2_flown']):.2f}" in line
+
+
+def test_diagnose_gives_the_bias_at_the_throttle_flown_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """diagnose's JSON carries the mean throttle^2 with the motors running and its console line the bias."""
+    import json
+
+    from magcomp.cli import main
+
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(LOG), "--json", str(out)]) == 0
+    comp = json.loads(out.read_text())["compasses"][0]
+    thr = np.array([e.throttle_01 for e in replay_log(LOG, Config(), keep_estimates=True).estimates])
+    run = thr[thr > MOTORS_RUNNING_01]
+    assert comp["throttle2_flown"] == pytest.approx(float(np.mean(run**2)), rel=0.1)
+    theta = comp["theta"] if comp["observable"] else comp["theta_given_prior"]["theta"]
+    want = float(np.linalg.norm(theta)) * comp["throttle2_flown"]
+    assert f"its bias at the throttle flown {want:.0f} mgauss" in capsys.readouterr().out
