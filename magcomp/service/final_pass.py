@@ -245,12 +245,32 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
 
 
 
+def _judged(rows: F64) -> NDArray[np.bool_]:
+    """The rows the self-check judges: the throttle known, the motors running, the tilt below 60 deg (what
+    service/heading.py :func:`~magcomp.service.heading.count_flown` decides per sample)."""
+    m = (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > selfcheck.MOTORS_RUNNING_01)
+    m &= (rows[:, COS_ROLL] > selfcheck.MAX_TILT_COS) & (rows[:, COS_PITCH] > selfcheck.MAX_TILT_COS)
+    return m
+
+
+def throttle2_flown(samples: SampleLog) -> dict[int, tuple[int, float]]:
+    """Per compass: the samples the self-check judges and the sum of their throttle^2 (the summary's
+    ``throttle2_flown``: theta times their mean is eq. (11)'s bias at the throttle flown), counted from the
+    first pass's sample log rather than per sample in a pass that has no heading stage."""
+    out: dict[int, tuple[int, float]] = {}
+    for rows in samples.chunks():
+        r = rows[_judged(rows)]
+        for idx in np.unique(r[:, MAG]):
+            thr = r[r[:, MAG] == idx, THR]
+            n, d2 = out.get(int(idx), (0, 0.0))
+            out[int(idx)] = (n + thr.size, d2 + float(thr @ thr))
+    return out
+
+
 def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
     """(t, baseline heading, candidate heading, autopilot yaw, gyro yaw, gyro epoch, IMU dt) of compass
     ``idx``'s samples with the motors running and the tilt below 60 deg, from one chunk (rad)."""
-    m = rows[:, MAG] == idx
-    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > selfcheck.MOTORS_RUNNING_01)
-    m &= (rows[:, COS_ROLL] > selfcheck.MAX_TILT_COS) & (rows[:, COS_PITCH] > selfcheck.MAX_TILT_COS)
+    m = (rows[:, MAG] == idx) & _judged(rows)
     r = rows[m]
     trig = (r[:, COS_ROLL], r[:, SIN_ROLL], r[:, COS_PITCH], r[:, SIN_PITCH])
     own = r[:, RAW_X:RAW_Z + 1] + r[:, ONB_X:ONB_Z + 1]  # the field as the autopilot had it
@@ -281,10 +301,7 @@ def self_check(cols: F64) -> selfcheck.SelfCheck:
 def _hover_rows(rows: F64, idx: int) -> F64:
     """(t, field as logged xyz, roll, pitch, autopilot yaw, throttle, and the self-check's gyro yaw, epoch,
     IMU dt) of compass ``idx``'s samples with the motors running and the tilt below 60 deg."""
-    m = rows[:, MAG] == idx
-    m &= (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > selfcheck.MOTORS_RUNNING_01)
-    m &= (rows[:, COS_ROLL] > selfcheck.MAX_TILT_COS) & (rows[:, COS_PITCH] > selfcheck.MAX_TILT_COS)
-    r = rows[m]
+    r = rows[(rows[:, MAG] == idx) & _judged(rows)]
     roll = np.arctan2(r[:, SIN_ROLL], r[:, COS_ROLL])
     pitch = np.arctan2(r[:, SIN_PITCH], r[:, COS_PITCH])
     own = r[:, RAW_X:RAW_Z + 1] + r[:, ONB_X:ONB_Z + 1]  # the field as the autopilot had it

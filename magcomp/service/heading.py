@@ -190,7 +190,6 @@ class HeadingTrack:
         "corrected_deg",
         "flown_d2",
         "flown_n",
-        "flown_t",
         "gyro_epoch",
         "gyro_yaw",
         "hover",
@@ -240,10 +239,9 @@ class HeadingTrack:
         self._holding = False
         #: the held constant was taken with theta's bias out (:meth:`own_offset_rad`)
         self._theta_anchored = False
-        #: the samples :func:`count_flown` counted, the sum of their throttle^2 and the last one's time
+        #: the samples judged so far (:func:`count_flown`) and the sum of their throttle^2
         self.flown_n = 0
         self.flown_d2 = 0.0
-        self.flown_t = -math.inf
 
     def remember(self, t_s: float, raw: Float3, throttle_01: float, tilt: tuple[float, ...],
                  psi_own_deg: float, ref_rad: float = math.nan, segment: float = 0.0,
@@ -259,6 +257,11 @@ class HeadingTrack:
             self._recent_i = (i + 1) % RECENT_N
             self._recent_n = min(self._recent_n + 1, RECENT_N)
             self._recent_a = None
+
+    def add_flown(self, n: int, sum_throttle2: float) -> None:
+        """``n`` more samples judged, the sum of their throttle^2 (:attr:`throttle2_flown`)."""
+        self.flown_n += n
+        self.flown_d2 += sum_throttle2
 
     @property
     def throttle2_flown(self) -> float:
@@ -417,16 +420,14 @@ def _shadow_heading_deg(rec: MagRecord) -> float | None:
 
 def count_flown(rec: MagRecord, track: HeadingTrack) -> bool:
     """Whether the self-check judges this sample (the throttle known, the motors running, roll and pitch
-    within MAX_TILT_COS); such samples, one every RECENT_EVERY_S, count towards
-    :attr:`HeadingTrack.throttle2_flown`. Called by :func:`heading_stage`, and by the learn-only first pass
-    of a two-pass replay, which has no heading stage."""
+    within MAX_TILT_COS); each such sample counts towards :attr:`HeadingTrack.throttle2_flown` (a two-pass
+    replay's first pass, which has no heading stage, counts them from its sample log:
+    service/final_pass.py :func:`~magcomp.service.final_pass.throttle2_flown`)."""
     cr, _, cp, _ = rec.tilt
-    judged = rec.have_throttle and rec.throttle_01 > MOTORS_RUNNING_01
-    judged = judged and cr > MAX_TILT_COS and cp > MAX_TILT_COS
-    if judged and (rec.t_s - track.flown_t >= RECENT_EVERY_S or rec.t_s < track.flown_t):
-        track.flown_t = rec.t_s
-        track.flown_n += 1
-        track.flown_d2 += rec.throttle_01 * rec.throttle_01
+    thr = rec.throttle_01
+    judged = rec.have_throttle and thr > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS
+    if judged:
+        track.add_flown(1, thr * thr)
     return judged
 
 

@@ -61,7 +61,7 @@ from magcomp.service.attitude import AttitudeStage
 from magcomp.service.calibrate import CalibrateStage, CalibrationSummary
 from magcomp.service.compass import CompassCorrector
 from magcomp.service.console import json_safe
-from magcomp.service.heading import count_flown, heading_stage
+from magcomp.service.heading import heading_stage
 from magcomp.service.inflight_stage import learn_config
 from magcomp.service.output import PublishStage, estimate
 from magcomp.service.persist import PersistStage, StateSink
@@ -360,7 +360,6 @@ class Pipeline:
         self.calibrate.run(rec, c)
         self.theta.run(rec, c)
         if self._learn_only:
-            count_flown(rec, c.heading)  # the throttle flown, for the summary
             self.persist.run(c, rec.t_s)
             return False
         heading_stage(rec, c.heading)

@@ -22,6 +22,7 @@ from magcomp.service.final_pass import (
     final_compasses,
     final_pass,
     self_check_finals,
+    throttle2_flown,
 )
 from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
@@ -324,6 +325,9 @@ def replay_log(
             if first is not None and finals is not None and cfg.output.self_check:  # never worse than its own
                 hover_on = cfg.inflight.enabled and cfg.observer.learn  # theta is learned in flight
                 finals, checks, hovers, refused = self_check_finals(first.samples, finals, hover_on)
+                for idx, (n, d2) in throttle2_flown(first.samples).items():
+                    if idx in first.pipeline.correctors:
+                        first.pipeline.correctors[idx].heading.add_flown(n, d2)
                 first.pipeline.self_checks.update(checks)
                 first.pipeline.hover_thetas.update(hovers)
                 first.pipeline.hover_refused.update(refused)
