@@ -86,6 +86,13 @@ MOTORS_RUNNING_01 = 0.05
 #: tilt-compensated heading is dominated by the tilt's own error
 MAX_TILT_COS = 0.5
 
+def judged(throttle_01: F64 | float, cos_roll: F64 | float,
+           cos_pitch: F64 | float) -> NDArray[np.bool_] | bool:  # fmt: skip
+    """The samples the self-check judges (floats or arrays): the motors running (MOTORS_RUNNING_01), roll and
+    pitch within MAX_TILT_COS; where the throttle is known."""
+    return (throttle_01 > MOTORS_RUNNING_01) & (cos_roll > MAX_TILT_COS) & (cos_pitch > MAX_TILT_COS)
+
+
 #: the largest relative increase of the rms against the autopilot's yaw still "no worse" (att_tolerance_deg)
 MAX_ATT_WORSE_FRACTION = 0.1
 #: the windows (s) on which the autopilot's yaw-follow gain is measured (core/yaw_follow.py): short against

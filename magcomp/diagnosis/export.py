@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.px4 import px4_calibration_matrix
-from magcomp.core.selfcheck import MOTORS_RUNNING_01
+from magcomp.core.rotations import euler_from_dcms
+from magcomp.core.selfcheck import judged
 from magcomp.core.types import LogData
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
@@ -89,16 +90,19 @@ def compass_json(cd: CompassDiagnosis) -> dict[str, Any]:
         out["linearisation"] = ""
         out["heading_drift_deg_per_min"] = None
     out["theta_given_prior"] = prior_theta_json(cd)
-    out["throttle2_flown"] = throttle2_flown(cd.data.throttle_01)
+    out["throttle2_flown"] = throttle2_flown(cd.data.throttle_01, cd.data.r_nb)
     out["sensor"] = sensor_json(cd.sensor)
     return out
 
 
-def throttle2_flown(throttle_01: F64) -> float | None:
-    """The mean throttle^2 with the motors running (None: never): theta times it is eq. (11)'s bias at the
-    throttle flown, what the compass saw (the console prints it beside theta)."""
+def throttle2_flown(throttle_01: F64, r_nb: F64) -> float | None:
+    """The mean throttle^2 over the samples the self-check would judge (core/selfcheck.py
+    :func:`~magcomp.core.selfcheck.judged`: the motors running, roll and pitch within bounds; None: none), as
+    replay counts it: theta times it is eq. (11)'s bias at the throttle flown, what the compass saw (the
+    console prints it beside theta)."""
     thr = np.asarray(throttle_01, dtype=float)
-    run = thr[np.isfinite(thr) & (thr > MOTORS_RUNNING_01)]
+    roll, pitch = euler_from_dcms(r_nb)[:, :2].T
+    run = thr[np.isfinite(thr) & np.asarray(judged(thr, np.cos(roll), np.cos(pitch)), dtype=bool)]
     return r4(float(np.mean(run * run))) if run.size else None
 
 

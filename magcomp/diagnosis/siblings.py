@@ -45,7 +45,8 @@ def _named_skews(comps: list[CompassDiagnosis]) -> list[_Skew]:
             ci = params.get("skew_s_ci95")
             if ci is None or "skew_s" not in params:
                 continue
-            dbic = float(f.evidence.get("delta_bic", 0.0))
+            # the skew's own evidence: a set's is its best member's, the skew's behind it by its delta
+            dbic = float(f.evidence.get("delta_bic", 0.0)) + float(params.get("delta_bic_vs_best", 0.0))
             out.append(_Skew(c.index, float(params["skew_s"]), (float(ci[0]), float(ci[1])), dbic))
     return out
 

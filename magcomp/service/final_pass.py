@@ -54,9 +54,9 @@ F64 = NDArray[np.float64]
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
  SIN_PITCH, GYRO_FRESH, YAW_RATE, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
  IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN, GYRO_BIAS) = range(28)  # fmt: skip
-N_COLS = 28
+N_COLS = GYRO_BIAS + 1
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
-#: 8192 rows of 29 float64 are 1.9 MB
+#: 8192 rows of 28 float64 are 1.8 MB
 CHUNK_ROWS = 8192
 #: one row packed as the array's doubles (native order; the same values as ``array.extend``, which converts
 #: each item as this does, in ~40 % of its time)
@@ -243,14 +243,11 @@ def correct(rows: F64, finals: dict[int, FinalCompass]) -> Corrected:
     return Corrected(psi, psi_raw, theta, bias, fc, flags, calibrated & have)
 
 
-
-
 def _judged(rows: F64) -> NDArray[np.bool_]:
     """The rows the self-check judges: the throttle known, the motors running, the tilt below 60 deg (what
     service/heading.py :func:`~magcomp.service.heading.count_flown` decides per sample)."""
-    m = (rows[:, HAVE_THR] != 0.0) & (rows[:, THR] > selfcheck.MOTORS_RUNNING_01)
-    m &= (rows[:, COS_ROLL] > selfcheck.MAX_TILT_COS) & (rows[:, COS_PITCH] > selfcheck.MAX_TILT_COS)
-    return m
+    ok = selfcheck.judged(rows[:, THR], rows[:, COS_ROLL], rows[:, COS_PITCH])
+    return np.asarray(ok, dtype=bool) & (rows[:, HAVE_THR] != 0.0)
 
 
 def throttle2_flown(samples: SampleLog) -> dict[int, tuple[int, float]]:

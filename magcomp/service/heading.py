@@ -21,7 +21,6 @@ from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverT
 from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import (
     LIVE_WINDOW_S,
-    MAX_TILT_COS,
     MIN_PER_WINDOW,
     MIN_WINDOWS,
     MOTORS_RUNNING_01,
@@ -30,6 +29,7 @@ from magcomp.core.selfcheck import (
     SelfCheck,
     constant_change_rad,
     judge_estimate,
+    judged,
     switch_on_offset_rad,
 )
 from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
@@ -425,10 +425,10 @@ def count_flown(rec: MagRecord, track: HeadingTrack) -> bool:
     service/final_pass.py :func:`~magcomp.service.final_pass.throttle2_flown`)."""
     cr, _, cp, _ = rec.tilt
     thr = rec.throttle_01
-    judged = rec.have_throttle and thr > MOTORS_RUNNING_01 and cr > MAX_TILT_COS and cp > MAX_TILT_COS
-    if judged:
+    if rec.have_throttle and judged(thr, cr, cp):
         track.add_flown(1, thr * thr)
-    return judged
+        return True
+    return False
 
 
 def _start_check(track: HeadingTrack, inf: InflightOutput | None) -> RunningSelfCheck:

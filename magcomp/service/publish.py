@@ -138,13 +138,18 @@ class HeadingEncoder:
         """:meth:`encode_values` of n frames at once (theta and bias (n, 3), the rest (n,)), on consecutive
         sequence numbers: each frame's bytes left-aligned in a row of (n, full frame length) and each
         frame's length (the same bytes as :meth:`encode_values`, tested against it). None (nothing
-        packed, the counter untouched): a signed link, or a time a frame at a time handles
-        (:data:`_BLOCK_MAX_INT`)."""
+        packed, the counter untouched): a signed link, a time a frame at a time handles
+        (:data:`_BLOCK_MAX_INT`), or a value beyond float32 (a frame at a time refuses it)."""
         mav = self.mav
         n = len(heading_deg)
         t_ms = np.rint(np.asarray(t_boot_s, dtype=float) * 1000.0)  # round(): half to even, as np.rint
         if mav.signing.sign_outgoing or not bool(np.all(np.abs(t_ms) < _BLOCK_MAX_INT)):
             return None
+        floats = np.column_stack((heading_deg, heading_raw_deg, theta, bias, throttle_01))
+        with np.errstate(over="ignore"):  # an overflow is looked for just below
+            f32 = floats.astype("<f4")
+        if bool(np.any(np.isinf(f32) & ~np.isinf(floats))):
+            return None  # beyond float32: struct refuses it a frame at a time, astype would write inf
         plen = self._payload.size
         hlen = _V2_HEADER.size
         out = np.zeros((n, hlen + plen + _CRC.size), dtype=np.uint8)
@@ -161,7 +166,7 @@ class HeadingEncoder:
         out[:, 9] = self._id_hi
         # the payload in its fields' order (self._payload: "<Iff3f3ffBB")
         put(hlen, t_ms.astype(np.int64) & 0xFFFFFFFF, "<u4")
-        put(hlen + 4, np.column_stack((heading_deg, heading_raw_deg, theta, bias, throttle_01)), "<f4")
+        put(hlen + 4, f32, "<f4")
         put(hlen + plen - 2, np.asarray(mag_index) & 0xFF, "u1")
         put(hlen + plen - 1, np.asarray(flags) & 0xFF, "u1")
         # MAVLink 2 drops the payload's trailing zero bytes (not the first)

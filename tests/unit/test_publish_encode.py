@@ -105,3 +105,21 @@ def test_block_writes_the_bytes_of_one_frame_at_a_time(tmp_path: Path) -> None:
         w_block.close()
         assert block.mav.seq == one.mav.seq and w_block.packets == w_one.packets == n
         assert (tmp_path / "block.tlog").read_bytes() == (tmp_path / "one.tlog").read_bytes()
+
+
+def test_a_block_with_a_value_beyond_float32_is_left_to_one_frame_at_a_time() -> None:
+    """encode_block returns None (counter untouched) where a value would overflow float32: struct refuses it
+    a frame at a time (OverflowError), where numpy's cast would write inf into the packet."""
+    n = 4
+    enc = HeadingEncoder(0, 191)
+    seq = enc.mav.seq
+    theta = np.zeros((n, 3))
+    t, zero, idx = np.arange(n, dtype=float), np.zeros(n), np.zeros(n, dtype=np.int64)
+
+    def block() -> object:
+        return enc.encode_block(t, zero, zero, theta, np.zeros((n, 3)), np.full(n, 0.5), idx, idx)
+
+    theta[2, 1] = 1e39
+    assert block() is None and enc.mav.seq == seq
+    theta[2, 1] = np.inf  # inf packs the same both ways
+    assert block() is not None
