@@ -541,7 +541,7 @@ def add_heading_checks(j: dict[str, Any], d: Any, log: Any) -> None:
     (its calibration too) as ``heading_vs_gyro_model`` (null where there is nothing to judge)."""
     from magcomp.diagnosis.gyro_check import heading_check, model_check, references
 
-    refs = references(log, d.yaw_follow_per_s)  # once per log
+    refs = references(log, d.yaw_follow)  # once per log
     for cj, c in zip(j["compasses"], d.compasses, strict=True):
         cj["heading_vs_gyro"] = None if refs is None else _check_json(heading_check(c, refs))
         cj["heading_vs_gyro_model"] = None if refs is None else _check_json(model_check(c, refs))

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.types import LogData
+from magcomp.core.yaw_follow import FOLLOW_Z, YawFollow
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.attitude import with_yaw_reference
 from magcomp.diagnosis.consistency import consistency_checks
@@ -336,50 +337,52 @@ def diagnose(
     comps = [replace(c, sensor=sensor_identity(log.params, c.index)) for c in comps]
     if heading_reference is None and all(c.heading is None for c in comps):
         notes.append("no heading reference (no truth, no compass far from the wires): heading errors omitted")
-    follow, rate = _yaw_follow(log, prim)
-    if follow:
-        notes.append(follow)
-    return Diagnosis(log.source, prim, comps, notes, autopilot=int(log.autopilot), yaw_follow_per_s=rate)
+    note, fit = _yaw_follow(log, prim)
+    if note:
+        notes.append(note)
+    return Diagnosis(log.source, prim, comps, notes, autopilot=int(log.autopilot), yaw_follow=fit)
 
 
-def _yaw_follow(log: LogData, compass: int) -> tuple[str | None, float]:
+def _yaw_follow(log: LogData, compass: int) -> tuple[str | None, YawFollow | None]:
     """How fast the autopilot's yaw follows compass ``compass`` with the motors running (yaw_follow.py), as
-    a note and as the rate (1/s; NaN where it cannot be measured): a real EKF's pull is slow (log171:
+    a note and as the fit (None where it cannot be measured): a real EKF's pull is slow (log171:
     0.02 /s), a complementary filter's ~0.5 /s; how long the autopilot keeps a compass error in its yaw, and
-    so in its GPS-aided tilt. The check against the gyro (gyro_check.py) decides on the rate whether that
-    yaw is a second reference."""
+    so in its GPS-aided tilt. The check against the gyro (gyro_check.py) decides on the fit, by the
+    product's rule (core/selfcheck.py :func:`~magcomp.core.selfcheck.att_is_circular`), whether that yaw is
+    a second reference."""
     mag, att, thr = log.mag.get(compass), log.attitude_rad, log.throttle_01
     if mag is None or len(att) < 2 or log.imu_t_s.size < 2 or len(thr) < 2:
-        return None, math.nan
+        return None, None
     on = thr.t_s[thr.values > 0.1]
     if on.size < 2:
-        return None, math.nan
+        return None, None
     try:
         fit = yaw_follow_gain(
             att.t_s, att.values, log.imu_t_s, log.gyro_rad_s, mag.t_s, mag.values,
             t_start_s=float(on[0]) + 5.0, t_end_s=float(on[-1]),
         )  # fmt: skip
     except (np.linalg.LinAlgError, ValueError):  # a note, never a reason for diagnose to fail
-        return None, math.nan
+        return None, None
     if fit is None or not math.isfinite(fit.gain_per_s) or not math.isfinite(fit.gain_sigma_per_s):
-        return None, math.nan
+        return None, None
     note = (
         f"the autopilot's yaw follows compass {compass}'s heading at {fit.gain_per_s:.3f} +- "
         f"{fit.gain_sigma_per_s:.3f} /s with the motors running ({fit.n_windows} windows of 2 s; the yaw "
         f"minus the gyro's integral against the compass's heading)"
         + yaw_follow_comment(fit.gain_per_s, fit.gain_sigma_per_s)
     )
-    return note, float(fit.gain_per_s)
+    return note, fit
 
 
 def yaw_follow_comment(gain: float, sigma: float) -> str:
-    """What a measured follow rate means when it is not a plain pull toward the compass (2 sigma, ~95 %)."""
-    if gain < -2.0 * sigma:
+    """What a measured follow rate means when it is not a plain pull toward the compass (FOLLOW_Z sigma,
+    ~95 %)."""
+    if gain < -FOLLOW_Z * sigma:
         return (
             ": negative, so the yaw moves *away* from this compass's heading: the autopilot does not "
             "fuse this compass (it uses another compass, GPS yaw or none), or its yaw error is driven by "
             "something the compass does not see; not a filter gain"
         )
-    if abs(gain) <= 2.0 * sigma:
+    if abs(gain) <= FOLLOW_Z * sigma:
         return ": not distinguishable from zero, the autopilot's yaw does not measurably follow this compass"
     return ""

@@ -17,6 +17,7 @@ from magcomp.core.px4 import px4_calibration_matrix
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.selfcheck import judged
 from magcomp.core.types import LogData
+from magcomp.core.yaw_follow import YawFollow
 from magcomp.diagnosis import gate as gate_mod
 from magcomp.diagnosis.compensation import ardupilot_params, linearise, px4_params
 from magcomp.diagnosis.effects import EFFECTS, drive_columns
@@ -515,9 +516,14 @@ class Diagnosis:
     notes: list[str]
     #: MAV_AUTOPILOT of the log (3 ArduPilot, 12 PX4, -1 unknown): whose parameters the report prints
     autopilot: int = -1
-    #: how fast the autopilot's yaw follows the primary compass with the motors running (1/s; NaN: not
-    #: measured), as the yaw-follow note says
-    yaw_follow_per_s: float = math.nan
+    #: how fast the autopilot's yaw follows the primary compass with the motors running (core/yaw_follow.py;
+    #: None: not measured), as the yaw-follow note says
+    yaw_follow: YawFollow | None = None
+
+    @property
+    def yaw_follow_per_s(self) -> float:
+        """The follow gain (1/s; NaN: not measured)."""
+        return math.nan if self.yaw_follow is None else self.yaw_follow.gain_per_s
 
     def compass(self, index: int) -> CompassDiagnosis:
         for c in self.compasses:

@@ -30,17 +30,12 @@ from magcomp.core import selfcheck
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.types import LogData
+from magcomp.core.yaw_follow import YawFollow
 from magcomp.diagnosis.export import CompassDiagnosis
 from magcomp.diagnosis.heading import compass_yaw_rad
 from magcomp.diagnosis.inputs import finite_series
 from magcomp.diagnosis.model import F64
 
-#: the autopilot's yaw is no second reference where it follows the compass it fuses this fast or faster
-#: (1/s): within the check's own window (WINDOW_S) it then carries that compass's throttle-driven error (a
-#: complementary filter's ~0.5 /s), and the other compasses' errors follow the same throttle; a real EKF's
-#: pull of 0.01-0.05 /s leaves it an independent reference over the window (the diagnosis measures the rate
-#: for its yaw-follow note, ``Diagnosis.yaw_follow_per_s``)
-CIRCULAR_FOLLOW_PER_S = 1.0 / selfcheck.WINDOW_S
 #: "helps" also asks for a gain a pilot sees: the rms against the gyro down to this fraction or below (the
 #: real-flight benchmark's "better": down 10 % or more); a gain beyond the noise but smaller is no clear gain
 MATERIAL_GAIN = 0.9
@@ -71,15 +66,17 @@ class References:
     ap_yaw_second: bool
 
 
-def references(log: LogData, yaw_follow_per_s: float) -> References | None:
-    """The log's references; ``yaw_follow_per_s``: how fast the autopilot's yaw follows its primary compass
-    (the diagnosis's ``yaw_follow_per_s``; NaN, not measured, keeps that yaw as a second reference). None
-    without an attitude."""
+def references(log: LogData, yaw_follow: YawFollow | None) -> References | None:
+    """The log's references; ``yaw_follow``: how fast the autopilot's yaw follows its primary compass (the
+    diagnosis's; None, not measured, keeps that yaw as a second reference): the replay's rule
+    (core/selfcheck.py :func:`~magcomp.core.selfcheck.att_is_circular`: the gain 2 sigma above 1 / WINDOW_S,
+    a real EKF's 0.01-0.05 /s far below, the simulator's complementary filter's ~0.5 /s above) decides
+    whether it is a second reference. None without an attitude."""
     att = finite_series(log.attitude_rad)  # a damaged record's NaN would end an unwrapped yaw
     if len(att) < 10:
         return None
     roll, pitch, yaw = att.values[:, 0], att.values[:, 1], np.unwrap(att.values[:, 2])
-    second = not yaw_follow_per_s >= CIRCULAR_FOLLOW_PER_S
+    second = not selfcheck.att_is_circular(yaw_follow)
     gt = log.imu_t_s
     if gt.size > 10 and float(np.median(np.diff(gt))) <= selfcheck.MAX_GYRO_DT_S:
         rate = selfcheck.euler_yaw_rate_rad_s(log.gyro_rad_s, np.interp(gt, att.t_s, roll),

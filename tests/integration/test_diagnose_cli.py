@@ -165,13 +165,13 @@ def test_check_against_the_gyro_survives_a_nan_attitude(tmp_path: Path) -> None:
     d, log = diagnose_file(str(path))
     # the IMU as 2.5 Hz telemetry: the autopilot's yaw is then the check's windowed reference
     log = replace(log, imu_t_s=log.imu_t_s[::20], gyro_rad_s=log.gyro_rad_s[::20])
-    refs = references(log, d.yaw_follow_per_s)
+    refs = references(log, d.yaw_follow)
     assert refs is not None
     clean = heading_check(d.compasses[0], refs)
     v = log.attitude_rad.values.copy()
     v[50:53] = np.nan
     damaged_log = replace(log, attitude_rad=Series(log.attitude_rad.t_s, v))
-    damaged_refs = references(damaged_log, d.yaw_follow_per_s)
+    damaged_refs = references(damaged_log, d.yaw_follow)
     assert damaged_refs is not None
     damaged = heading_check(d.compasses[0], damaged_refs)
     assert clean is not None and damaged is not None

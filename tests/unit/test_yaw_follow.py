@@ -90,11 +90,12 @@ def test_diagnose_notes_log171s_yaw_follow_gain_with_the_motors_running() -> Non
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.diagnosis.engine import _yaw_follow
 
-    note, rate = _yaw_follow(load_log(LOG171), 0)
+    note, fit = _yaw_follow(load_log(LOG171), 0)
     assert note is not None and note.startswith("the autopilot's yaw follows compass 0's heading at ")
     gain, sigma = (float(x) for x in note.split(" at ")[1].split(" /s")[0].split(" +- "))
     assert abs(gain) < 3.0 * sigma + 0.02 and sigma < 0.05
-    assert abs(rate - gain) < 5e-4  # the rate the check against the gyro decides on, as the note prints it
+    assert fit is not None
+    assert abs(fit.gain_per_s - gain) < 5e-4  # the fit the gyro check decides on, as the note prints it
 
 
 def test_nan_rows_and_disorder_are_left_out_not_a_crash() -> None:
