@@ -75,12 +75,17 @@ def fit_follow_gain(rates_rad_s: F64, offsets_rad: F64) -> YawFollow | None:
     )
 
 
+#: the fewest samples a window needs to give a rate of D
+MIN_SAMPLES_PER_WINDOW = 3
+
+
 def window_follow_terms(
     t_s: F64, compass_rad: F64, autopilot_yaw_rad: F64, gyro_yaw_rad: F64, ids: NDArray[np.int64]
 ) -> tuple[F64, F64]:
     """Per window (``ids``: consecutive samples of one window share an id; one gyro segment each): the rate
     of D = autopilot yaw - gyro yaw from its first to its last sample (rad/s) and the circular mean of
-    (compass heading - autopilot yaw) (rad). Windows of fewer than 3 samples or no time span are left out."""
+    (compass heading - autopilot yaw) (rad). Windows of fewer than MIN_SAMPLES_PER_WINDOW samples or no time
+    span are left out."""
     t = np.asarray(t_s, dtype=float)
     if t.size == 0:
         return np.zeros(0), np.zeros(0)
@@ -93,7 +98,7 @@ def window_follow_terms(
     np.minimum.at(first, idv, np.arange(t.size))
     last = np.full(nw, -1, dtype=np.int64)
     np.maximum.at(last, idv, np.arange(t.size))
-    keep = n >= 3
+    keep = n >= MIN_SAMPLES_PER_WINDOW
     first, last = first[keep], last[keep]
     span = t[last] - t[first]
     ok = span > 0.0

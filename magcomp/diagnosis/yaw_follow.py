@@ -23,15 +23,18 @@ from numpy.typing import NDArray
 
 from magcomp.core.heading import tilt_compensated_heading_deg
 from magcomp.core.rotations import euler_yaw_rate_coefs
-from magcomp.core.yaw_follow import YawFollow, fit_follow_gain
+from magcomp.core.yaw_follow import (
+    MIN_SAMPLES_PER_WINDOW,
+    YawFollow,
+    fit_follow_gain,
+    window_follow_terms,
+)
 
 F64 = NDArray[np.float64]
 
 #: the window (s) over which the yaw-rate difference is taken: short against the time constants sought
 #: (seconds to minutes), long against the attitude's message interval (0.02-0.1 s)
 WINDOW_S = 2.0
-#: windows need at least this many attitude samples
-MIN_SAMPLES_PER_WINDOW = 3
 #: tilt (rad) above which the tilt-compensated compass heading is left out (near 90 deg it is undefined)
 MAX_TILT_RAD = math.radians(45.0)
 def gyro_yaw_integral(t_imu_s: F64, gyro_rad_s: F64, t_att_s: F64, attitude_rad: F64) -> F64:
@@ -82,25 +85,22 @@ def yaw_follow_gain(
         return None
     g = np.interp(t_att_s, t_imu_s, gyro_yaw_integral(t_imu_s, gyro_rad_s, t_att_s, attitude_rad))
     psi_ap = np.unwrap(attitude_rad[:, 2])
-    d = psi_ap - g
     m = np.column_stack([np.interp(t_att_s, t_mag_s, field_b_mgauss[:, k]) for k in range(3)])
     # eq. (24), tilt-compensated: the one implementation in core
     psi_c = np.radians(tilt_compensated_heading_deg(m, attitude_rad[:, 0], attitude_rad[:, 1]))
-    dc = np.angle(np.exp(1j * (psi_c - psi_ap)))
     level = np.hypot(attitude_rad[:, 0], attitude_rad[:, 1]) < MAX_TILT_RAD
     lo = max(t_start_s, float(t_att_s[0]), float(t_imu_s[0]), float(t_mag_s[0]))
     hi = min(t_end_s, float(t_att_s[-1]), float(t_imu_s[-1]), float(t_mag_s[-1]))
-    rates: list[float] = []
-    offs: list[float] = []
     starts = np.arange(lo, hi - window_s, window_s)
-    # each window's samples t in [a, a + window_s): one slice of the increasing times
+    # each window's samples t in [a, a + window_s): a slice of the increasing times; the level ones get an id
     first = np.searchsorted(t_att_s, starts, side="left")
     end = np.searchsorted(t_att_s, starts + window_s, side="left")
+    ids = np.full(t_att_s.size, -1, dtype=np.int64)
+    k = 0
     for i0, i1 in zip(first.tolist(), end.tolist(), strict=True):
-        sel = slice(i0, i1)
-        if i1 - i0 < MIN_SAMPLES_PER_WINDOW or not bool(level[sel].all()):
-            continue
-        tw, dw = t_att_s[sel], d[sel]
-        rates.append(float((dw[-1] - dw[0]) / (tw[-1] - tw[0])))
-        offs.append(float(np.mean(dc[sel])))
-    return fit_follow_gain(np.array(rates), np.array(offs))
+        if i1 - i0 >= MIN_SAMPLES_PER_WINDOW and bool(level[i0:i1].all()):
+            ids[i0:i1] = k
+            k += 1
+    sel = ids >= 0
+    rates, offs = window_follow_terms(t_att_s[sel], psi_c[sel], psi_ap[sel], g[sel], ids[sel])
+    return fit_follow_gain(rates, offs)
