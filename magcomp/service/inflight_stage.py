@@ -113,8 +113,7 @@ class InflightStage:
         self.est_tilt: InflightEstimator | None = None
         self._rows: WindowRowFeed | None = None  # the relative form's window-field rows into both
         self.n_motors = -1  # decided at the first sample
-        self._period = 1.0 / cfg.max_rate_hz
-        self._min_gap = 0.9 * self._period  # a sample closer than this to the last one fed is left out
+        self._min_gap = 0.9 * (1.0 / cfg.max_rate_hz)  # a sample closer than this to the last one fed: out
         self._solve_period = cfg.solve_period_s
         #: the tilt model's estimator is re-solved at every this many solutions of the published one
         self._tilt_every = max(1, round(cfg.tilt_solve_period_s / cfg.solve_period_s))
@@ -286,17 +285,8 @@ class InflightStage:
     def _relative_row(
         self, t_s: float, y: Field3, x: tuple[float, ...], r_nb: F64, gyro_yaw: GyroYaw | None
     ) -> None:
-        """:meth:`_use` of the relative form for a sample at its own time, with :meth:`_gyro_yaw` inline
-        (one call a sample instead of three)."""
-        turn = None
-        if self._gyro_on:
-            turn, restart = self._frame.turn(r_nb, gyro_yaw)
-            if restart:
-                self._continuing = False
-        if x[0] > 0.0 or not self._motors_only:
-            self._window_row(t_s, r_nb, y, x, turn)
-        else:
-            self.n_motors_off += 1
+        """:meth:`_use` of the relative form for a sample at its own time."""
+        self._window_or_off(t_s, r_nb, y, x, self._gyro_yaw(r_nb, gyro_yaw) if self._gyro_on else None)
 
     def _gyro_yaw(self, r_nb: F64, gyro_yaw: GyroYaw | None, matched: bool = False) -> YawTurn | None:
         """The yaw turn that gives ``r_nb`` the raw gyro's yaw (:class:`~magcomp.core.inflight.yawframe.
@@ -325,7 +315,13 @@ class InflightStage:
             add_absolute_row(self._est, t_s, self._epoch, r_nb, field_ref_n_mgauss, y, x)
             self.n_rows += 1
             return
-        if x[0] > 0.0 or not self.switches.window_rows_motors_only:
+        self._window_or_off(t_s, r_nb, y, x, turn)
+
+    def _window_or_off(
+        self, t_s: float, r_nb: F64, y: Field3, x: tuple[float, ...], turn: YawTurn | None
+    ) -> None:
+        """A window-field row, or with the motors off (``window_rows_motors_only``) only counted."""
+        if x[0] > 0.0 or not self._motors_only:
             self._window_row(t_s, r_nb, y, x, turn)
         else:
             self.n_motors_off += 1
@@ -398,11 +394,7 @@ class InflightStage:
                 out = _new_output(InflightOutput, (self._coeffs, self._theta3, bias3,
                                                    sig < self.params.heading_converged_deg, self.warm_started,
                                                    self._relative, sig))  # fmt: skip
-        # account(), inline: one call a sample less
-        last = self._last_t
-        if last is not None and 0.0 < t_s - last <= 5.0:
-            self.time_s[state] += t_s - last
-        self._last_t = t_s
+        self.account(t_s, state)
         return out
 
     def flush(self) -> None:
