@@ -38,10 +38,9 @@ from numpy.typing import NDArray
 from magcomp.core import selfcheck
 from magcomp.core.correction import Applied, Correction, headings_deg
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.heading_filter import turn_rate
 from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
-from magcomp.service.heading import gyro_bias_rad_s, yaw_rate
+from magcomp.service.heading import filter_rates
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
@@ -87,17 +86,12 @@ class SampleLog:
         prev = rec.prev_t
         prev = math.nan if prev is None else prev
         vx, vy, vz = rec.raw
-        gx, gy, gz = rec.gyro_raw
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
-        tilt = rec.tilt
-        # the raw gyro's Euler yaw rate (what the heading filter propagates with), once for both passes
-        rate = yaw_rate(gy, gz, tilt[0], tilt[1], tilt[2])
+        rate, turn, bias = filter_rates(rec)  # what the heading filters propagate with, as live
         buf.frombytes(_ROW.pack(rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle,
-                                rec.flags, rec.reset, prev, rec.obs_reset, *tilt, rec.gyro_fresh, rate,
-                                boot_offset_s, reboot, *yaws, imu_dt_s, *onb,
-                                turn_rate(gx, gy, gz, tilt[0] * tilt[2]),
-                                gyro_bias_rad_s(rec, rate)))  # fmt: skip
+                                rec.flags, rec.reset, prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh, rate,
+                                boot_offset_s, reboot, *yaws, imu_dt_s, *onb, turn, bias))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 

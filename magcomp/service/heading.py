@@ -403,6 +403,17 @@ def gyro_bias_rad_s(rec: MagRecord, raw_rate_rad_s: float) -> float:
     return raw_rate_rad_s - yaw_rate(rec.gyro[1], rec.gyro[2], cr, sr, cp)
 
 
+def filter_rates(rec: MagRecord) -> tuple[float, float, float]:
+    """What the heading filters propagate with at this sample, from the raw gyro: the Euler yaw rate
+    (:func:`yaw_rate`, rad/s), the turn rate (core/heading_filter.py :func:`turn_rate`, rad/s) and the
+    attitude filter's bias where it can be trusted (:func:`gyro_bias_rad_s`; NaN elsewhere). The live stage
+    and the two-pass replay's sample log (which its second pass replays) take them here."""
+    gx, gy, gz = rec.gyro_raw
+    cr, sr, cp, _ = rec.tilt
+    rate = yaw_rate(gy, gz, cr, sr, cp)
+    return rate, turn_rate(gx, gy, gz, cr * cp), gyro_bias_rad_s(rec, rate)
+
+
 def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
     """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)``."""
     return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
@@ -474,13 +485,11 @@ def heading_stage(rec: MagRecord, track: HeadingTrack) -> None:
         if onb is not None:  # the autopilot's own motor compensation, which the source removed, put back
             vx, vy, vz = vx + onb[0], vy + onb[1], vz + onb[2]
         psi_own = heading_from_trig_deg(vx, vy, vz, cr, sr, cp, sp)  # eq. (24) of the field as logged
-    gx, gy, gz = rec.gyro_raw
-    rate = yaw_rate(gy, gz, cr, sr, cp)
+    rate, turn, bias = filter_rates(rec)
     dt = 0.0 if rec.prev_t is None or rec.reset else rec.t_s - rec.prev_t
-    turn = turn_rate(gx, gy, gz, cr * cp)
     # the own heading's filter at every sample: its state stays current
     track.step(psi, psi_raw, have_throttle, rec.reset or not rec.gyro_fresh, rate, dt, rec.gyro_yaw,
-               rec.gyro_epoch, rec.imu_dt, turn, gyro_bias_rad_s(rec, rate), psi_own)  # fmt: skip
+               rec.gyro_epoch, rec.imu_dt, turn, bias, psi_own)  # fmt: skip
     rec.heading_deg, rec.heading_raw_deg = track.corrected_deg, track.raw_deg
     if psi_own is None:
         return
