@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from magcomp.adapters.config import load_config
 from magcomp.adapters.mavlink_source import load_log
 from magcomp.core import selfcheck as sc
-from magcomp.core.heading import heading_from_trig_deg
+from magcomp.core.heading import heading_from_trig_deg, wrap_deg_180
 from magcomp.core.types import FLAG_CALIBRATED, LogData
 from magcomp.errors import InputError
 from magcomp.service.evaluate import FLYING_THROTTLE_01
@@ -255,9 +255,9 @@ def line(row: dict[str, Any], modes: list[str]) -> str:
 
 def constant_line(rows: list[dict[str, Any]], mode: str) -> list[str]:
     """What att cannot see: the published heading's constant. Where the two-pass replay learned the
-    compass in the absolute form (the autopilot's yaw from another compass: the constant is observable),
-    the median |constant - the two-pass one| of the heading published in ``mode`` and of the autopilot's
-    own heading (deg)."""
+    compass in the absolute form (the autopilot's yaw from another compass: the constant is observable) and
+    its heading is better than the autopilot's own, the median |constant - the two-pass one| of the heading
+    published in ``mode`` and of the autopilot's own heading (deg)."""
     if mode == "two-pass":
         return []
     got = [(r[mode]["mean_deg"], r["autopilot"]["mean_deg"], r["two-pass"]["mean_deg"]) for r in rows
@@ -266,8 +266,8 @@ def constant_line(rows: list[dict[str, Any]], mode: str) -> list[str]:
     if not got:
         return []
     a = np.asarray(got)
-    pub = np.abs((a[:, 0] - a[:, 2] + 180.0) % 360.0 - 180.0)
-    own = np.abs((a[:, 1] - a[:, 2] + 180.0) % 360.0 - 180.0)
+    pub = np.abs(wrap_deg_180(a[:, 0] - a[:, 2]))
+    own = np.abs(wrap_deg_180(a[:, 1] - a[:, 2]))
     return [f"{mode}: constant vs the two-pass replay's where it is observable (absolute form, {len(a)} "
             f"compasses): median |difference| {np.median(pub):.1f} deg (the autopilot's own heading's "
             f"{np.median(own):.1f})"]  # fmt: skip
