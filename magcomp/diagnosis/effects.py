@@ -200,6 +200,9 @@ class DriveInputs:
     # nuisance columns found by the open search (:mod:`magcomp.diagnosis.structure`), e.g. a step: (n, k)
     extra: F64 | None = None
     extra_names: tuple[str, ...] = ()
+    # the logged battery current (times, A), a second witness of the load (:mod:`magcomp.diagnosis.current`)
+    current_t_s: F64 | None = None
+    current_a: F64 | None = None
 
 
 def _speed(x: F64, d: DriveInputs, p: ExtensionParams) -> F64:

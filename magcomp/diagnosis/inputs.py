@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -61,7 +62,11 @@ def drive_inputs(log: LogData, t_s: F64) -> DriveInputs:
     temp = finite_series(log.temperature_degc)
     temp_m = np.interp(t_s, temp.t_s, temp.values) if len(temp) >= 2 else None
     thr_dt = float(np.median(np.diff(thr.t_s))) if len(thr) >= 2 else GRID_DT_S
-    return DriveInputs(t_s, grid, GRID_DT_S, thr_g, mot_g, v_g, v_full, temp_m, thr_dt)
+    cur = finite_series(log.current_a)
+    cur_t, cur_a = (cur.t_s, np.asarray(cur.values, dtype=float)) if len(cur) >= 2 else (None, None)
+    return DriveInputs(
+        t_s, grid, GRID_DT_S, thr_g, mot_g, v_g, v_full, temp_m, thr_dt, current_t_s=cur_t, current_a=cur_a
+    )
 
 
 IMPACT_M_S2 = 2.5 * STANDARD_GRAVITY_M_S2
@@ -254,18 +259,11 @@ def subset(data: CompassData, keep: NDArray[np.bool_]) -> CompassData:
     """``data`` restricted to the samples ``keep`` (the drive grid is kept whole: lags need the history)."""
     d = data.drive
     temp = d.temperature_degc[keep] if d.temperature_degc is not None else None
-    drive = DriveInputs(
-        d.t_s[keep],
-        d.grid_t_s,
-        d.grid_dt_s,
-        d.throttle_grid,
-        d.motors_grid,
-        d.voltage_grid,
-        d.v_full_v,
-        temp,
-        d.throttle_dt_s,
-        d.extra[keep] if d.extra is not None else None,
-        d.extra_names,
+    drive = replace(
+        d,
+        t_s=d.t_s[keep],
+        temperature_degc=temp,
+        extra=d.extra[keep] if d.extra is not None else None,
     )
     return CompassData(
         data.mag_index,

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.types import LogData
+from magcomp.diagnosis.current import CurrentFit, corroborates, current_fits
 from magcomp.diagnosis.effects import EFFECTS, effect_available, negligible
 from magcomp.diagnosis.export import autopilot_export, evidence_json, params_json, r4
 from magcomp.diagnosis.inputs import inlier_mask, signals_at, spans, subset
@@ -75,6 +76,9 @@ class _Search:
     intervals: dict[str, tuple[ModelFit, tuple[float, float] | None]] = field(default_factory=dict)
     #: fits of group members refused by the margin or the held-out test alone (:func:`group_rivals`)
     near: dict[str, ModelFit] = field(default_factory=dict)
+    #: the throttle shapes fitted to the logged current (None: not yet computed) and the effects it witnessed
+    current: dict[str, CurrentFit] | None = None
+    witnessed: dict[str, CurrentFit] = field(default_factory=dict)
 
     def interval(self, name: str, fit: ModelFit) -> tuple[float, float] | None:
         """The profile interval of ``name`` already computed for this very ``fit``, or None."""
@@ -179,6 +183,9 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
     if s.folds is None:
         s.folds = folds_for(data, base, p)
     c = compare(data, base, f, s.base_cv(data, base, p), p, s.folds)
+    short = not c.significant and c.cv_extended is None and c.delta_bic < 0.0
+    if short and group_of(name) == "throttle_shape":
+        c = _witnessed(name, data, base, f, c, p, s)
     if c.significant and name == "temperature_drift":
         wins, shape, vs_time = temperature_beats_time(data, base, f, RIVAL_DELTA_BIC, p.max_nfev)
         if not wins:
@@ -216,6 +223,29 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
             "cv_t": r4(c.cv_t) if math.isfinite(c.cv_t) else None,
             "why": why,
         }
+
+
+def _witnessed(
+    name: str, data: CompassData, base: ModelFit, f: ModelFit, c: Comparison, p: SelectionParams, s: _Search
+) -> Comparison:
+    """``c`` again with the held-out test run, when the logged current witnesses throttle shape ``name``
+    that the compass prefers (generalised-least-squares delta BIC below 0) but leaves short of the margin
+    (:mod:`magcomp.diagnosis.current`): the current's own evidence passes the margin, it prefers ``name``
+    among the throttle shapes and its value lies inside the compass's 95 % interval. The compass must still
+    pass its held-out test. Otherwise ``c`` unchanged."""
+    if s.current is None:
+        s.current = current_fits(data.drive)
+    if corroborates(name, s.current, (-math.inf, math.inf), p.min_delta_bic) is None:
+        return c
+    ci = profile_interval(data, f, name)
+    s.intervals[name] = (f, ci)
+    w = corroborates(name, s.current, ci, p.min_delta_bic)
+    if w is None:
+        return c
+    cw = compare(data, base, f, s.base_cv(data, base, p), replace(p, min_delta_bic=0.0), s.folds)
+    if cw.significant:
+        s.witnessed[name] = w
+    return cw
 
 
 def screen_effects(
@@ -300,7 +330,8 @@ def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -
         init = {name: float(getattr(c.fit.ext, param))} if param is not None else None
         trial = fit_model(data, (*current.effects, name), start=current, init=init, max_nfev=p.max_nfev)
         cv_ref = cv_current or partial(cv_score, data, current, p, s.folds)
-        ct = compare(data, current, trial, cv_ref, p, s.folds)
+        pw = replace(p, min_delta_bic=0.0) if name in s.witnessed else p
+        ct = compare(data, current, trial, cv_ref, pw, s.folds)
         if ct.significant:
             current, cv_current = trial, ct.cv_extended
             kept.append((name, ct))
@@ -394,6 +425,19 @@ def open_step(
     return st
 
 
+def _witness_json(w: CurrentFit, fits: dict[str, CurrentFit] | None) -> dict[str, Any]:
+    """The current's testimony for a cause the compass alone left short of the margin."""
+    return {
+        "witnessed_by_current": {
+            "value": r4(w.value),
+            "delta_bic": r4(w.delta_bic),
+            "delta_bic_per_shape": {k: r4(v.delta_bic) for k, v in (fits or {}).items()},
+            "note": "the compass's evidence is short of the margin; the logged battery current shows the "
+            "same load shape on its own, with its value inside the compass's 95 % interval",
+        }
+    }
+
+
 def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
     return [
         Finding(
@@ -401,7 +445,8 @@ def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
             EFFECTS[name].cause,
             params_json(comb.fit, name, data, s.interval(name, comb.fit)),
             evidence_json(c, data)
-            | ({"delta_bic_vs_time_shapes": s.temp_vs_time[name]} if name in s.temp_vs_time else {}),
+            | ({"delta_bic_vs_time_shapes": s.temp_vs_time[name]} if name in s.temp_vs_time else {})
+            | (_witness_json(s.witnessed[name], s.current) if name in s.witnessed else {}),
             c.fit.rms_mgauss,
             s.candidates.get(name, []),
             s.candidate_params.get(name, {}),
