@@ -290,6 +290,54 @@ def _rss_rows(x: F64, v: F64) -> F64:
     return np.asarray(v - x @ beta)
 
 
+class _HalfWhitener:
+    """Residuals of per-axis least squares within one half of a log, after the AR prediction-error filter of
+    the full model's residual (:func:`ar_prediction_filter`, as :func:`gls_delta_bic`) is applied to the
+    half's field and design, each half on its own (the filter does not reach across the boundary) and
+    without its first ``skip`` rows; ``skip`` 0 with no filters is ordinary least squares."""
+
+    def __init__(self, filters: list[F64], skip: int) -> None:
+        self.filters = filters
+        self.skip = skip
+
+    def _kernel(self, k: int) -> F64:
+        a = self.filters[k] if self.filters else np.zeros(0)
+        return np.concatenate([[1.0], -a])
+
+    def __call__(self, x: F64, v: F64) -> F64:
+        if not self.filters:
+            return _rss_rows(x, v)
+        out = np.empty((v.shape[0] - self.skip, 3))
+        for k in range(3):
+            b = self._kernel(k)
+            out[:, k] = _rss_rows(_whiten(b, x, self.skip), _whiten(b, v[:, k], self.skip))
+        return out
+
+    def joint(self, xs: list[F64], vs: list[F64]) -> F64:
+        """One least-squares fit over the stacked halves (each filtered on its own)."""
+        if not self.filters:
+            return _rss_rows(np.vstack(xs), np.vstack(vs))
+        out = []
+        for k in range(3):
+            b = self._kernel(k)
+            xw = np.vstack([_whiten(b, x, self.skip) for x in xs])
+            vw = np.concatenate([_whiten(b, v[:, k], self.skip) for v in vs])
+            out.append(_rss_rows(xw, vw))
+        return np.column_stack(out)
+
+
+def _half_whitener(data: CompassData, full: ModelFit, half_n: int) -> _HalfWhitener:
+    """The whitening of :func:`repeat_in_halves`: the AR filter of :func:`gls_delta_bic`, or none (ordinary
+    least squares) when a half is too short for it."""
+    dt = float(np.median(np.diff(data.t_s))) if data.n > 1 else 0.0
+    order = math.ceil(AR_SPAN_S / dt) if dt > 0.0 else 0
+    filters = [ar_prediction_filter(full.residual_mgauss[:, k], order) for k in range(3)]
+    skip = max(a.size for a in filters)
+    if half_n - skip < 10 * (full.n_params // 3 + 1):
+        return _HalfWhitener([], 0)
+    return _HalfWhitener(filters, skip)
+
+
 def repeat_in_halves(
     data: CompassData, reduced: ModelFit, full: ModelFit, name: str, p: SelectionParams
 ) -> Repeat:
@@ -301,7 +349,12 @@ def repeat_in_halves(
     shared or separate. A constant physical cause needs no second set; a chance description of one stretch
     of the log (a per-motor split whose vectors differ between the halves) does. Statistic: n_eff
     ln(RSS_shared / RSS_separate), chi-square with as many degrees of freedom as the extension has
-    parameters when the cause repeats; n_eff as in :func:`effective_delta_bic`. A half whose throttle range
+    parameters when the cause repeats; n_eff as in :func:`effective_delta_bic`. Both fits are generalised
+    least squares under the AR noise model of :func:`gls_delta_bic` (each half prewhitened on its own by the
+    full model's residual filter): with ordinary least squares and one Bartlett factor the test counted the
+    slow AR(1) compass noise as independent samples, as the raw BIC did, and demoted constant causes (held-out
+    voltage sag 1.0, fresh seeds 5100-5139: 3 of 40 logs refused at the nominal level 0.001,
+    docs/diagnosis.md 2026-11-28 "diag9"). A half whose throttle range
     cannot fix the parameter has a flat profile and so costs the shared fit nothing: the test does not
     demote a cause for the log's excitation, only for a contradiction (a parameter carried from one half to
     the other, instead, measured a true offset of 0.45 as not repeating on a fixed-wing flight whose second
@@ -316,7 +369,8 @@ def repeat_in_halves(
     base_cols = set(reduced.columns)
     eff = EFFECTS[name]
     pairs = list(zip(halves, fits, strict=True))
-    sep = np.concatenate([_rss_rows(_half_solve(data, h, f, f.ext)[0], v[h]) for h, f in pairs])
+    white = _half_whitener(data, full, min(int(np.count_nonzero(h)) for h in halves))
+    sep = np.concatenate([white(_half_solve(data, h, f, f.ext)[0], v[h]) for h, f in pairs])
     vals: tuple[float, float] | None = None
     if eff.param is not None:
         param = eff.param
@@ -324,10 +378,7 @@ def repeat_in_halves(
 
         def shared(value: float) -> F64:
             return np.concatenate(
-                [
-                    _rss_rows(_half_solve(data, h, f, set_value(f.ext, param, value))[0], v[h])
-                    for h, f in pairs
-                ]
+                [white(_half_solve(data, h, f, set_value(f.ext, param, value))[0], v[h]) for h, f in pairs]
             )
 
         lo, hi = min(vals), max(vals)
@@ -346,16 +397,16 @@ def repeat_in_halves(
         names = xs[0][1]
         added = [4 + j for j, nm in enumerate(names) if nm not in base_cols]
         own = [j for j in range(xs[0][0].shape[1]) if j not in added]
-        na = int(np.count_nonzero(first))
-        big = np.zeros((data.n, 2 * len(own) + len(added)))
-        big[:na, : len(own)] = xs[0][0][:, own]
-        big[na:, len(own) : 2 * len(own)] = xs[1][0][:, own]
-        big[:na, 2 * len(own) :] = xs[0][0][:, added]
-        big[na:, 2 * len(own) :] = xs[1][0][:, added]
-        common = _rss_rows(big, np.concatenate([v[first], v[~first]]))
+        blocks = []
+        for i, (x, _) in enumerate(xs):
+            big = np.zeros((x.shape[0], 2 * len(own) + len(added)))
+            big[:, i * len(own) : (i + 1) * len(own)] = x[:, own]
+            big[:, 2 * len(own) :] = x[:, added]
+            blocks.append(big)
+        common = white.joint(blocks, [v[first], v[~first]])
         dof = 3 * len(added)
     rss_s, rss_c = float(np.sum(sep**2)), float(np.sum(common**2))
-    n_eff = 3.0 * data.n / bartlett_factor(sep, common - sep)
+    n_eff = float(sep.size) / bartlett_factor(sep, common - sep)
     stat = n_eff * math.log(max(rss_c, 1e-300) / max(rss_s, 1e-300))
     crit = float(chi2.ppf(1.0 - p.repeat_alpha, max(dof, 1)))
     explained = float(np.sum(reduced.residual_mgauss**2) - np.sum(full.residual_mgauss**2))
