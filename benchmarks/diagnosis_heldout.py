@@ -218,14 +218,38 @@ CASES: dict[str, tuple[str, str, float, float, int, dict[str, object]]] = {
 }
 
 
-def simulate_case(effect: str, seed: int, value: float) -> tuple[Any, Any]:
-    """The held-out log of ``effect`` at ``value`` with this seed: (the simulation, the log as read)."""
+def drawn_rates(seed: int) -> dict[str, object]:
+    """Message rates drawn for ``seed`` (``--rates``), in place of the case's: a third of the logs as a
+    telemetry link streams them (RAW_IMU with the compass, ATTITUDE and SERVO_OUTPUT_RAW at 4 or 10 Hz, the
+    battery's SYS_STATUS at the same rate), the rest as an onboard stream (RAW_IMU 20-100 Hz, the compass
+    updated at 10 Hz up to that rate and held in between, ATTITUDE 5-50 Hz, SYS_STATUS at the simulator's
+    default). Seeded by ``seed`` alone, so each seed keeps its rates whatever else is run."""
+    import math
+
+    import numpy as np
+
+    rng = np.random.default_rng([seed, 26])
+    if rng.random() < 1.0 / 3.0:
+        return {"telemetry_hz": float(rng.choice([4.0, 10.0]))}
+    raw = float(rng.choice([20.0, 25.0, 50.0, 100.0]))
+    mag = round(float(np.exp(rng.uniform(math.log(10.0), math.log(raw)))), 1)
+    return {"raw_imu_hz": raw, "mag_hz": mag, "attitude_hz": float(rng.choice([5.0, 10.0, 25.0, 50.0]))}
+
+
+def simulate_case(
+    effect: str, seed: int, value: float, rates: dict[str, object] | None = None
+) -> tuple[Any, Any]:
+    """The held-out log of ``effect`` at ``value`` with this seed: (the simulation, the log as read);
+    ``rates``: message rates in place of the case's (:func:`drawn_rates`)."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.sim import SimConfig, simulate
     from magcomp.sim.config import apply_settings
 
     scenario, vehicle, duration, _, _, settings = CASES[effect]
+    if rates is not None:
+        rate_keys = ("mag_hz", "raw_imu_hz", "attitude_hz", "telemetry_hz")
+        settings = {k: v for k, v in settings.items() if k not in rate_keys} | rates
     cfg = SimConfig(scenario=scenario, duration_s=duration, seed=seed, effects={effect: value},
                     vehicle=vehicle, n_compasses=1)  # fmt: skip
     res = simulate(apply_settings(cfg, dict(settings)))
@@ -235,10 +259,13 @@ def simulate_case(effect: str, seed: int, value: float) -> tuple[Any, Any]:
         return res, load_log(path)
 
 
-def run_case(effect: str, seed: int | None = None, value_override: float | None = None) -> dict[str, Any]:
+def run_case(
+    effect: str, seed: int | None = None, value_override: float | None = None, draw_rates: bool = False
+) -> dict[str, Any]:
     """Simulate the held-out log of ``effect``, diagnose it, check the top finding and its interval
     (``seed``: another seed of the same held-out settings, for the coverage over seeds; ``value_override``:
-    another size of the effect than the case's)."""
+    another size of the effect than the case's; ``draw_rates``: the seed's :func:`drawn_rates` in place of
+    the case's message rates)."""
     import numpy as np
 
     from magcomp.diagnosis.engine import diagnose
@@ -247,10 +274,13 @@ def run_case(effect: str, seed: int | None = None, value_override: float | None 
     _, _, _, value, case_seed, _ = CASES[effect]
     seed = case_seed if seed is None else seed
     value = value if value_override is None else value_override
-    res, log = simulate_case(effect, seed, value)
+    rates = drawn_rates(seed) if draw_rates else None
+    res, log = simulate_case(effect, seed, value, rates)
     earth = EarthReference(res.earth_field_ned_mgauss, "simulated place")
     c = diagnose(log, earth=earth).to_json()["compasses"][0]
     out: dict[str, Any] = {"effect": effect, "seed": seed, "value": value, "observable": c["observable"]}
+    if rates is not None:
+        out["rates"] = rates
     top = c["findings"][0] if c["findings"] else None
     out["findings"] = [f["effect"] for f in c["findings"]]
     # what each finding explains: the residual rms (mgauss) without and with it, as the diagnosis reports
@@ -370,14 +400,21 @@ def main() -> int:
         metavar="EFFECT=V",
         help="another size of an effect than its case's (e.g. throttle_exponent=2.8); repeatable",
     )
+    ap.add_argument(
+        "--rates",
+        action="store_true",
+        help="message rates drawn per seed (drawn_rates) in place of each case's (default: the case's)",
+    )
     args = ap.parse_args()
     from multiprocessing import Pool
 
     values = {k: float(v) for k, v in (a.split("=", 1) for a in args.value)}
-    jobs: list[tuple[str, int | None, float | None]] = [(e, None, values.get(e)) for e in args.effects]
+    jobs: list[tuple[str, int | None, float | None, bool]] = [
+        (e, None, values.get(e), args.rates) for e in args.effects
+    ]
     if args.seeds:
         jobs = [
-            (e, s, values.get(e))
+            (e, s, values.get(e), args.rates)
             for e in args.effects
             for s in range(args.first_seed, args.first_seed + args.seeds)
         ]
