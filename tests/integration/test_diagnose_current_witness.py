@@ -2,7 +2,7 @@
 
 The held-out sag case (``benchmarks/diagnosis_heldout.py``: a 60 s quad sweep, compass 20 Hz held in a
 40 Hz RAW_IMU, AR(1) compass noise 3 mgauss / 4 s, the autopilot's calibration) at the simulator's largest
-sag, 1.0, on fresh seeds: the compass's own generalised-least-squares evidence for the sag is -16 to -30
+sag, 1.0, on fresh seeds: the compass's own generalised-least-squares evidence for the sag is -14 to -30
 against the -30 margin on some seeds, while the logged current shows the sag at delta BIC about -1600
 (:mod:`magcomp.diagnosis.current`); and the halves test, in ordinary least squares with one Bartlett factor,
 refused a constant sag of 1.0 on 3 of 40 logs at its nominal level 0.001 (docs/diagnosis.md, 2026-11-28
