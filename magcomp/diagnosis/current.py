@@ -10,8 +10,8 @@ sensor's zero offset, i1 the current at full load. Pure, no I/O.
 Why a second witness: on a 60 s flight what tells a sag from a rescaled throttle^2 in the field is ~2 % of
 the load, ~4 mgauss on a 200 mgauss theta, against 3 mgauss of slow AR(1) compass noise; the compass's
 generalised-least-squares evidence then straddles the -30 margin (measured on held-out logs: -14 to -30 on
-the five of 40 fresh logs, seeds 5100-5139, at sag 1.0 that named nothing). The current carries the same 2 % against a sensor noise
-of tens of mA on tens of A: the same sag gives delta BIC about -1600 on the current (exponent about -115,
+the five of 40 fresh logs, seeds 5100-5139, at sag 1.0 that named nothing). The current carries the same
+2 % against a sensor noise of tens of mA on tens of A: the same sag gives delta BIC about -1600 on the current (exponent about -115,
 offset none), and on clean logs no shape improves it (+6, the BIC's penalty). So a throttle-shape effect
 that the compass's own evidence prefers but leaves short of the margin is named when the current record
 independently shows that same effect (:func:`corroborates`): both witnesses agree on the cause and the
