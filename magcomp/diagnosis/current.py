@@ -11,12 +11,13 @@ Why a second witness: on a 60 s flight what tells a sag from a rescaled throttle
 the load, ~4 mgauss on a 200 mgauss theta, against 3 mgauss of slow AR(1) compass noise; the compass's
 generalised-least-squares evidence then straddles the -30 margin (measured on held-out logs: -14 to -30 on
 the five of 40 fresh logs, seeds 5100-5139, at sag 1.0 that named nothing). The current carries the same
-2 % against a sensor noise of tens of mA on tens of A: the same sag gives delta BIC about -1600 on the current (exponent about -115,
-offset none), and on clean logs no shape improves it (+6, the BIC's penalty). So a throttle-shape effect
-that the compass's own evidence prefers but leaves short of the margin is named when the current record
-independently shows that same effect (:func:`corroborates`): both witnesses agree on the cause and the
-current's value lies inside the compass's own 95 % interval. The interval reported stays the compass's:
-the current's model (the throttle interpolated between its samples, the total of the motors' currents
+2 % against a sensor noise of tens of mA on tens of A: the same sag gives delta BIC about -1600 on the
+current (exponent about -115, offset none), and on clean logs no shape improves it (+6, the BIC's penalty).
+So a throttle-shape effect that the compass's own evidence prefers but leaves short of the margin is named
+when the current record independently shows that same effect (:func:`corroborates`): both witnesses agree
+on the cause and the current's value lies inside the compass's own 95 % interval. The interval reported
+stays the compass's: the current's model (the throttle interpolated between its samples, the total of the
+motors' currents
 taken as the mean throttle's load) has errors of its own that are not the field's.
 """
 
