@@ -17,8 +17,7 @@ So a throttle-shape effect that the compass's own evidence prefers but leaves sh
 when the current record independently shows that same effect (:func:`corroborates`): both witnesses agree
 on the cause and the current's value lies inside the compass's own 95 % interval. The interval reported
 stays the compass's: the current's model (the throttle interpolated between its samples, the total of the
-motors' currents
-taken as the mean throttle's load) has errors of its own that are not the field's.
+motors' currents taken as the mean throttle's load) has errors of its own that are not the field's.
 """
 
 from __future__ import annotations
