@@ -352,6 +352,7 @@ def _findings_lines(c: CompassDiagnosis, cj: dict[str, Any]) -> list[str]:
                 f"{ev['cv_rms_without']} -> {ev['cv_rms_with']} mgauss "
                 f"({ev['cv_gain_pct']} %{_cv_t_text(ev)}), "
                 f"delta BIC {ev['delta_bic']}; residual after: {f.residual_rms_after:.2f} mgauss."
+                + _witness_text(ev)
             )
         out.append("")
     else:
@@ -448,6 +449,18 @@ def write_report(
     path.write_text(markdown(d, figs, rel, checks), encoding="utf-8")
     written = [path] + [img_dir / f for fl in figs.values() for f, _ in fl]
     return written
+
+
+def _witness_text(ev: dict[str, Any]) -> str:
+    """The logged current's testimony (:mod:`magcomp.diagnosis.current`) as a sentence, or ""."""
+    w = ev.get("witnessed_by_current")
+    if not w:
+        return ""
+    return (
+        " The compass alone leaves it short of the BIC margin; the logged battery current shows the same "
+        f"load shape on its own (value {w['value']}, delta BIC {w['delta_bic']}), inside the compass's "
+        "interval."
+    )
 
 
 def _cv_t_text(ev: dict[str, Any]) -> str:

@@ -24,6 +24,7 @@ from magcomp.diagnosis.current import current_fits
 from magcomp.diagnosis.engine import compass_data, diagnose
 from magcomp.diagnosis.gate import EarthReference
 from magcomp.diagnosis.model import fit_model
+from magcomp.diagnosis.report import markdown
 from magcomp.diagnosis.search import fit_baseline
 from magcomp.diagnosis.selection import SelectionParams, repeat_in_halves
 from magcomp.sim import SimConfig, simulate
@@ -65,10 +66,11 @@ def test_current_record_shows_the_sag_and_nothing_on_a_clean_log(tmp_path: Path,
 def test_heldout_sag_short_of_the_margin_named_when_the_current_witnesses_it(tmp_path: Path) -> None:
     """Seed 5105 at sag 1.0: the compass alone gave the sag an effective delta BIC short of the -30 margin
     and the log no finding (before); the current witnesses the sag, the compass's held-out test passes, and
-    the finding names the sag (with the exponent it cannot tell it from) with 1.0 inside its interval."""
+    the finding names the sag (with the exponent it cannot tell it from) with 1.0 inside its interval, and
+    the report says so."""
     res, log = _sag_log(tmp_path, 5105, 1.0)
-    c = diagnose(log, earth=EarthReference(res.earth_field_ned_mgauss, "simulated place")).to_json()
-    comp = c["compasses"][0]
+    d = diagnose(log, earth=EarthReference(res.earth_field_ned_mgauss, "simulated place"))
+    comp = d.to_json()["compasses"][0]
     assert comp["findings"], comp["rejected"]
     top = comp["findings"][0]
     assert "voltage_sag" in top.get("candidates", [top["effect"]]), top["effect"]
@@ -78,6 +80,8 @@ def test_heldout_sag_short_of_the_margin_named_when_the_current_witnesses_it(tmp
     witness = top["evidence"]["witnessed_by_current"]
     assert witness["delta_bic"] < -30.0 and lo <= witness["value"] <= hi, witness
     assert -30.0 < top["evidence"]["delta_bic"] < 0.0, top["evidence"]
+    # the report says why a finding short of the compass's margin is named
+    assert "the logged battery current shows the same load shape" in markdown(d)
 
 
 @pytest.mark.slow
