@@ -177,6 +177,8 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
     f = fit_model(data, (name,), start=base, max_nfev=p.max_nfev)
     dbic = f.bic - base.bic
     why = _cheap_rejection(name, f, dbic, data, p)
+    if why == "BIC" and dbic < 0.0 and _current_shows(name, data, p, s):
+        why = _cheap_rejection(name, f, -math.inf, data, p)  # the current may witness it; the rest holds
     if why is not None:
         s.rejected[name] = {"delta_bic": r4(dbic), "rms_with": r4(f.rms_mgauss), "why": why}
         return
@@ -225,21 +227,29 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         }
 
 
+def _current_shows(name: str, data: CompassData, p: SelectionParams, s: _Search) -> bool:
+    """Does the logged current show throttle shape ``name`` on its own (:func:`~.current.corroborates` before
+    the compass's interval is asked)? The current's fits are made once per compass."""
+    if group_of(name) != "throttle_shape":
+        return False
+    if s.current is None:
+        s.current = current_fits(data.drive)
+    return corroborates(name, s.current, (-math.inf, math.inf), p.min_delta_bic) is not None
+
+
 def _witnessed(
     name: str, data: CompassData, base: ModelFit, f: ModelFit, c: Comparison, p: SelectionParams, s: _Search
 ) -> Comparison:
     """``c`` again with the held-out test run, when the logged current witnesses throttle shape ``name``
-    that the compass prefers (generalised-least-squares delta BIC below 0) but leaves short of the margin
+    that the compass prefers (its delta BIC below 0, raw and generalised) but leaves short of the margin
     (:mod:`magcomp.diagnosis.current`): the current's own evidence passes the margin, it prefers ``name``
     among the throttle shapes and its value lies inside the compass's 95 % interval. The compass must still
     pass its held-out test. Otherwise ``c`` unchanged."""
-    if s.current is None:
-        s.current = current_fits(data.drive)
-    if corroborates(name, s.current, (-math.inf, math.inf), p.min_delta_bic) is None:
+    if not _current_shows(name, data, p, s):
         return c
     ci = profile_interval(data, f, name)
     s.intervals[name] = (f, ci)
-    w = corroborates(name, s.current, ci, p.min_delta_bic)
+    w = corroborates(name, s.current or {}, ci, p.min_delta_bic)
     if w is None:
         return c
     cw = compare(data, base, f, s.base_cv(data, base, p), replace(p, min_delta_bic=0.0), s.folds)
