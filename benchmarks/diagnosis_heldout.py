@@ -70,7 +70,13 @@ fresh misses and 5012 have no finding: GLS evidence short of the -30 margin); at
 three misses the same seeds at both sizes (5014, 5101, 5114, all above the truth). Each record carries
 ``ci_width``; the summary the median over the named.
 
+Measured 2026-11-28 (helper diag9): ``--rates`` draws each seed's message rates (:func:`drawn_rates`) in
+place of the case's; figures for voltage_sag and throttle_offset on fresh seeds and drawn rates, before and
+after the logged current became a second witness of the throttle shapes and the halves test generalised least
+squares: docs/diagnosis.md ("voltage_sag and throttle_offset on fresh seeds and other rates").
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
+    [--rates]
 """
 
 from __future__ import annotations
