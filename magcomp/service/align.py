@@ -196,7 +196,8 @@ class AlignStage:
         t = s.t_s
         pv = clock.prev_raw
         clock.prev_raw = (vx, vy, vz)
-        if pv is not None and max(abs(vx - pv[0]), abs(vy - pv[1]), abs(vz - pv[2])) > MAG_JUMP_MGAUSS:
+        lim = MAG_JUMP_MGAUSS  # (admitted samples are finite: the largest step above it, as max() took it)
+        if pv is not None and (abs(vx - pv[0]) > lim or abs(vy - pv[1]) > lim or abs(vz - pv[2]) > lim):
             self.counts["mag_jumps"] += 1
             return None
         prev_t = clock.last_t

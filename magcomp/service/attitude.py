@@ -334,15 +334,17 @@ class AttitudeStage:
 
     def stamp(self, rec: MagRecord) -> None:
         """The attitude and gyro of a magnetometer sample: those of the latest IMU sample."""
-        rec.down, rec.tilt = self.view()
+        view = self._view
+        rec.down, rec.tilt = view if view is not None else self.view()
         t = rec.t_s
         rec.gyro = self.gyro
         rec.gyro_raw = self.gyro_raw
         rec.gyro_yaw, rec.gyro_epoch = self.heading_yaw_rad, float(self.gyro_yaw_epoch)
         rec.ap_yaw = self.yaw if self.att_t is not None else math.nan
-        rec.imu_fast = self.imu_dt is not None and self.imu_dt <= MAX_GYRO_DT_S
-        rec.imu_dt = math.nan if self.imu_dt is None else self.imu_dt
-        fresh = self.imu_t is not None and abs(t - self.imu_t) <= self._stale_s
+        imu_dt, imu_t = self.imu_dt, self.imu_t
+        rec.imu_fast = imu_dt is not None and imu_dt <= MAX_GYRO_DT_S
+        rec.imu_dt = math.nan if imu_dt is None else imu_dt
+        fresh = imu_t is not None and abs(t - imu_t) <= self._stale_s
         if t <= self.gyro_bad_until:  # the gyro gate: no observer, no calibration
             fresh = False
             rec.flags |= FLAG_SATURATED
