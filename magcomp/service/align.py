@@ -215,7 +215,9 @@ class AlignStage:
             dt = t - prev_t
             nominal = clock.dt_nominal
             # the first interval (up to 10 s) sets the compass's usual one
-            gap_s = max(self._dt_max, 10.0 if nominal is None else GAP_FACTOR * nominal)
+            gap_s = 10.0 if nominal is None else GAP_FACTOR * nominal
+            if not gap_s > self._dt_max:  # max(dt_max, gap_s), as max() picks
+                gap_s = self._dt_max
             if dt > gap_s:
                 self.counts["gaps"] += 1
                 reset = obs_reset = True

@@ -184,7 +184,10 @@ class AttitudeStage:
         """A sample of the primary IMU: body rate (rad/s) and specific force (m/s^2). True when a bad gyro
         spell starts (the caller resets the observers' filters)."""
         self.counts["imu"] += 1
-        if not all(map(math.isfinite, (t, gx, gy, gz, ax, ay, az))):
+        # (the sum is finite only where every term is; a finite sum that overflows is tested term by term)
+        if not math.isfinite(t + gx + gy + gz + ax + ay + az) and not all(
+            map(math.isfinite, (t, gx, gy, gz, ax, ay, az))
+        ):
             self.counts["non_finite"] += 1
             return False
         accel_norm = math.sqrt(ax * ax + ay * ay + az * az)
