@@ -38,6 +38,7 @@ _V2_HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
 
 F64 = NDArray[np.float64]
+Float3 = tuple[float, float, float]
 
 #: a block's frames are packed at full length (10 header bytes, the payload, the CRC), its times below this
 #: (ms, us: the integers a float holds exactly); beyond it (or non-finite), one frame at a time
@@ -217,6 +218,9 @@ class HeadingEncoder:
         return out
 
 
+#: the arguments of :meth:`HeadingEncoder.encode_values`: time since boot (s), heading and uncorrected heading
+#: (deg), theta and bias (mgauss), throttle (0..1), compass index, flags
+HeadingValues = tuple[float, float, float, Float3, Float3, float, int, int]
 #: MAGCOMP_HEADING frames a :class:`FrameQueue` holds before it packs and writes them
 QUEUE_FRAMES = 2048
 
@@ -231,23 +235,13 @@ class FrameQueue:
     def __init__(self, encoder: HeadingEncoder, writer: TlogWriter, size: int = QUEUE_FRAMES) -> None:
         self.encoder, self.writer = encoder, writer
         self._size = size
-        self._rows: list[tuple[Any, ...]] = []
+        self._rows: list[tuple[float, HeadingValues]] = []
 
-    def add(
-        self,
-        t_s: float,
-        t_boot_s: float,
-        heading_deg: float,
-        heading_raw_deg: float,
-        theta: tuple[float, float, float],
-        bias: tuple[float, float, float],
-        throttle_01: float,
-        mag_index: int,
-        flags: int,
-    ) -> None:
-        """One frame at ``t_s`` (the tlog's time), its fields as :meth:`HeadingEncoder.encode_values`'s."""
+    def add(self, t_s: float, values: HeadingValues) -> None:
+        """One frame at ``t_s`` (the tlog's time), ``values`` the arguments of
+        :meth:`HeadingEncoder.encode_values`."""
         rows = self._rows
-        rows.append((t_s, t_boot_s, heading_deg, heading_raw_deg, theta, bias, throttle_01, mag_index, flags))
+        rows.append((t_s, values))
         if len(rows) >= self._size:
             self.flush()
 
@@ -256,7 +250,8 @@ class FrameQueue:
         rows, self._rows = self._rows, []
         if not rows:
             return
-        t_s, t_boot, head, head_raw, theta, bias, thr, mag, flags = zip(*rows, strict=True)
+        t_s, values = zip(*rows, strict=True)
+        t_boot, head, head_raw, theta, bias, thr, mag, flags = zip(*values, strict=True)
         f, i = float, np.int64
         block = self.encoder.encode_block(
             np.array(t_boot, dtype=f), np.array(head, dtype=f), np.array(head_raw, dtype=f),
@@ -266,8 +261,8 @@ class FrameQueue:
             self.writer.write_frames(np.array(t_s, dtype=float), *block)
             return
         encode, write = self.encoder.encode_values, self.writer.write_packet
-        for row in rows:
-            write(row[0], encode(*row[1:]))
+        for t, v in rows:
+            write(t, encode(*v))
 
 
 #: NAMED_VALUE_FLOAT names (the compass index appended; at most 10 characters): corrected heading (deg),

@@ -223,8 +223,9 @@ class _Outputs:
             self._sysid_set = True
         if queue is not None:
             r = pipeline.last_record()
-            queue.add(r.t_s, r.t_s - pipeline.boot_offset_s, r.heading_deg, r.heading_raw_deg, r.theta,
-                      r.bias, r.throttle_01, r.mag_index, r.flags)  # fmt: skip
+            t_boot = r.t_s - pipeline.boot_offset_s
+            queue.add(r.t_s, (t_boot, r.heading_deg, r.heading_raw_deg, r.theta, r.bias, r.throttle_01,
+                              r.mag_index, r.flags))  # fmt: skip
             return
         est = pipeline.last_estimate()
         if self._keep:

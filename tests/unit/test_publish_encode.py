@@ -146,7 +146,7 @@ def test_frame_queue_writes_the_tlog_of_one_frame_at_a_time(tmp_path: Path) -> N
     queue = FrameQueue(queued, w_queue, size=64)
     for row in rows:
         w_one.write_packet(row[0], one.encode_values(*row[1:]))
-        queue.add(*row)
+        queue.add(row[0], row[1:])
     assert w_queue.packets == 256  # four full blocks written, the rest queued
     queue.flush()
     w_one.close()
