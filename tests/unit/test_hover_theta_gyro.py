@@ -24,7 +24,8 @@ DT_S = 0.1
 def _hover(seed: int, n: int = 6000) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     t = np.arange(n) * DT_S
-    yaw = np.radians(50.0) * np.sin(2 * math.pi * t / 170.0) + np.radians(20.0) * np.sin(2 * math.pi * t / 47.0)
+    w = 2 * math.pi * t
+    yaw = np.radians(50.0) * np.sin(w / 170.0) + np.radians(20.0) * np.sin(w / 47.0)
     roll = np.radians(2.0) * np.sin(2 * math.pi * t / 13.0) + rng.normal(0.0, 0.004, n)
     pitch = np.radians(2.0) * np.cos(2 * math.pi * t / 17.0) + rng.normal(0.0, 0.004, n)
     # the throttle swings over seconds about a hover at 0.5
@@ -56,7 +57,8 @@ def test_theta_fitted_with_the_gyros_yaw_where_the_autopilots_follows_the_compas
         err_ap = float(np.linalg.norm(ap_fit.theta_mgauss - THETA))
         # recovered within 10 % of |theta| and within 4 of its stated sigmas
         assert err_gy < 0.1 * float(np.linalg.norm(THETA)), (seed, gy_fit.theta_mgauss)
-        assert err_gy < 4.0 * float(np.linalg.norm(gy_fit.theta_sigma_mgauss)), (seed, gy_fit.theta_sigma_mgauss)
+        sigma = float(np.linalg.norm(gy_fit.theta_sigma_mgauss))
+        assert err_gy < 4.0 * sigma, (seed, gy_fit.theta_sigma_mgauss)
         # the autopilot's yaw, following the compass, takes part of the bias for attitude
         assert err_ap > 3.0 * err_gy, (seed, ap_fit.theta_mgauss, gy_fit.theta_mgauss)
 
