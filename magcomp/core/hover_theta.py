@@ -114,22 +114,44 @@ def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:
     return np.asarray(dcms_from_quats(quats_from_euler(roll_rad, pitch_rad, yaw_rad)).transpose(0, 2, 1))
 
 
-class HoverNormal:
+class _ThrottleSums:
+    """The count of samples added and the sums of their throttle^2 and throttle^4 (how much eq. (11)'s bias
+    varies over them: MIN_THROTTLE2_STD)."""
+
+    __slots__ = ("_d2", "_d4", "n")
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._d2 = 0.0
+        self._d4 = 0.0
+
+    def _count(self, d2: F64) -> None:
+        self._d2 += float(d2.sum())
+        self._d4 += float(d2 @ d2)
+        self.n += int(d2.shape[0])
+
+    def throttle2_std(self) -> float:
+        """Standard deviation of throttle^2 over the samples added."""
+        if self.n == 0:
+            return 0.0
+        mean = self._d2 / self.n
+        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
+
+
+class HoverNormal(_ThrottleSums):
     """The normal equations of the module's model, unknowns x = (e_n, theta, d) (9), accumulated one block
     of samples at a time: the batch fit (:func:`fit_hover_theta`) adds a whole log at once, the live path
     (service/heading.py) blocks of samples as they come; both solve with :meth:`fit`. A sample's rows are
     ``A_i = [R_nb^T, throttle^2 I, I]`` (3 x 9), so ``sum A_i^T A_i`` needs only the sums of R_nb, of
     throttle^2 R_nb, of throttle^2 and throttle^4 and the count (R_nb R_nb^T = I)."""
 
-    __slots__ = ("_ata", "_aty", "_d2", "_d4", "_yty", "n")
+    __slots__ = ("_ata", "_aty", "_yty")
 
     def __init__(self) -> None:
-        self.n = 0
+        super().__init__()
         self._ata = np.zeros((9, 9))
         self._aty = np.zeros(9)
         self._yty = 0.0
-        self._d2 = 0.0
-        self._d4 = 0.0
 
     def add(self, field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_rad: F64, throttle_01: F64) -> None:
         """A block of samples ((n, 3) field as the autopilot had it, attitude and throttle (n,)); samples
@@ -162,16 +184,7 @@ class HoverNormal:
         self._aty[3:6] += d2 @ m
         self._aty[6:9] += m.sum(axis=0)
         self._yty += float(np.einsum("ni,ni->", m, m))
-        self._d2 += s_d2
-        self._d4 += s_d4
-        self.n += k
-
-    def throttle2_std(self) -> float:
-        """Standard deviation of throttle^2 over the samples added."""
-        if self.n == 0:
-            return 0.0
-        mean = self._d2 / self.n
-        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
+        self._count(d2)
 
     def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
         """The least-squares theta (see :func:`fit_hover_theta`); None where throttle^2 hardly varies (see
@@ -201,7 +214,7 @@ PIECE_S = 60.0
 _SHARED = 7
 
 
-class GyroYawNormal:
+class GyroYawNormal(_ThrottleSums):
     """The module's model with the yaw from the gyro, not from the autopilot (whose yaw, fused from this
     compass, follows the compass's error: on one development log at 0.045 /s, so a fit against it takes part
     of theta's bias for attitude). The yaw is the gyro's integral, known up to an offset and a drift, so per
@@ -217,17 +230,15 @@ class GyroYawNormal:
     theta is seen only through the field's change within each piece (the throttle's swings at near-constant
     attitude)."""
 
-    __slots__ = ("_bs", "_d2", "_d4", "_key", "_loc", "_ns", "_t0", "_yty", "n", "piece_s", "pieces")
+    __slots__ = ("_bs", "_key", "_loc", "_ns", "_t0", "_yty", "piece_s", "pieces")
 
     def __init__(self, piece_s: float = PIECE_S) -> None:
+        super().__init__()
         self.piece_s = piece_s
-        self.n = 0
         self.pieces = 0
         self._ns = np.zeros((_SHARED, _SHARED))  # the shared unknowns' normal matrix, closed pieces folded
         self._bs = np.zeros(_SHARED)
         self._yty = 0.0
-        self._d2 = 0.0
-        self._d4 = 0.0
         self._key: tuple[float, float] | None = None
         self._t0 = 0.0
         #: the open piece's sums: N_ll (4, 4), N_ls (4, 7), N_ss (7, 7), b_l (4), b_s (7), y'y
@@ -278,9 +289,7 @@ class GyroYawNormal:
         loc[3] += np.einsum("nij,ni->j", a_l, m)
         loc[4] += np.einsum("nij,ni->j", a_s, m)
         loc[5] += float(np.einsum("ni,ni->", m, m))
-        self._d2 += float(d2.sum())
-        self._d4 += float(d2 @ d2)
-        self.n += k
+        self._count(d2)
 
     @staticmethod
     def _folded(loc: list[Any]) -> tuple[F64, F64, float]:
@@ -298,13 +307,6 @@ class GyroYawNormal:
         self._yty += y_
         self.pieces += 1
         self._loc = self._empty()
-
-    def throttle2_std(self) -> float:
-        """Standard deviation of throttle^2 over the samples added."""
-        if self.n == 0:
-            return 0.0
-        mean = self._d2 / self.n
-        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
 
     def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
         """The least-squares theta, the open piece included (not closed: more samples may join it); None
