@@ -85,3 +85,20 @@ def test_a_constant_throttle_gives_no_theta() -> None:
     thr = np.full_like(h["thr"], 0.5)
     got = fit_hover_theta_gyro(h["field"], h["roll"], h["pitch"], h["gyro"], np.zeros_like(thr), h["t"], thr)
     assert got is None
+
+
+def test_the_two_pass_hover_candidate_takes_the_gyros_yaw() -> None:
+    """service/final_pass.py ``hover_candidate`` on the hover's columns (the gyro logged at 10 Hz, the
+    autopilot's yaw following the compass): the form published is fitted with the gyro's yaw, passes the
+    held-out check and has theta within 10 %."""
+    from magcomp.service.final_pass import hover_candidate
+
+    h = _hover(7)
+    n = h["t"].size
+    cols = np.column_stack((h["t"], h["field"], h["roll"], h["pitch"], h["ap"], h["thr"], h["gyro"],
+                            np.zeros(n), np.full(n, DT_S)))  # fmt: skip
+    got = hover_candidate(cols)
+    assert got is not None
+    fit, chk = got
+    assert chk.applies and fit.yaw_source == "gyro", (chk.reason, fit.yaw_source)
+    assert float(np.linalg.norm(fit.theta_mgauss - THETA)) < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
