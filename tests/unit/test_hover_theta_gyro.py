@@ -101,4 +101,5 @@ def test_the_two_pass_hover_candidate_takes_the_gyros_yaw() -> None:
     assert got is not None
     fit, chk = got
     assert chk.applies and fit.yaw_source == "gyro", (chk.reason, fit.yaw_source)
-    assert float(np.linalg.norm(fit.theta_mgauss - THETA)) < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
+    err = float(np.linalg.norm(fit.theta_mgauss - THETA))
+    assert err < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
