@@ -390,13 +390,14 @@ class AttitudeStage:
         """(epoch, raw gyro yaw in rad) when the last IMU sample is within ``tol_s`` of ``t``, the IMU comes
         at least every ``max_dt_s`` and the gyro is not gated, else None."""
         self._accel_wanted = TRACK_ACCEL_H
-        if self.imu_t is None or abs(t - self.imu_t) > tol_s or t <= self.gyro_bad_until or self.restart:
+        imu_t, imu_dt, att_t = self.imu_t, self.imu_dt, self.att_t
+        if imu_t is None or abs(t - imu_t) > tol_s or t <= self.gyro_bad_until or self.restart:
             return None
-        if self.imu_dt is None or self.imu_dt > max_dt_s:
+        if imu_dt is None or imu_dt > max_dt_s:
             return None
         lead = 0.0
-        if self.att_t is not None and abs(self.att_t - self.imu_t) <= 0.5:
-            lead = self._yaw_rate_prev * (self.att_t - self.imu_t)
+        if att_t is not None and abs(att_t - imu_t) <= 0.5:
+            lead = self._yaw_rate_prev * (att_t - imu_t)
         return _new_tuple(GyroYaw, (self.gyro_yaw_epoch, self.gyro_yaw_rad, self.accel_h, lead))
 
     def gyro_fast(self) -> bool:
