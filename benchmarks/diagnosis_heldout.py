@@ -70,6 +70,12 @@ fresh misses and 5012 have no finding: GLS evidence short of the -30 margin); at
 three misses the same seeds at both sizes (5014, 5101, 5114, all above the truth). Each record carries
 ``ci_width``; the summary the median over the named.
 
+Measured 2026-11-28 (helper diag8; ``--effects temperature_drift --seeds 20``): with the temperature
+interval at least the variance under a random walk fitted to the residual
+(:func:`magcomp.diagnosis.intervals.walk_variance`) the joint box holds the logged-frame coefficient in
+20/20 (5000-5019; 19/20 before), 19/20 (5100-5119; 15/20 before) and 20/20 (fresh 5200-5219). ``--set
+SETTING=V`` replaces a held-out setting of every case (other rates).
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
 """
 
