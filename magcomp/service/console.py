@@ -208,8 +208,7 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                     f"calibration of its own)"
                 )
             if cal.get("yaw_source") == "gyro":  # inside the parenthesis that closes kept's text
-                kept = kept[:-1] + "; theta fitted with the gyro's yaw: the autopilot's is fused from the " \
-                    "compasses)"
+                kept = kept[:-1] + "; theta fitted with the gyro's yaw, which no compass steers)"
             lines.append(_corrected_line(c, kept, sig, ""))
             continue
         if cal is not None and cal["source"] == "in-flight":

@@ -46,6 +46,7 @@ from magcomp.core.hover_theta import (
     fit_hover_theta_gyro,
 )
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
+from magcomp.core.yaw_follow import follows_within
 from magcomp.service.heading import filter_rates
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
@@ -309,16 +310,17 @@ def _hover_rows(rows: F64, idx: int) -> F64:
 
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and the
-    self-check of the heading it gives. Per yaw source the first form that passes, and of the two sources the
-    one closer to the gyro (the check's candidate rms): where the gyro is the check's reference, the yaw from
-    the gyro (:class:`~magcomp.core.hover_theta.GyroYawNormal`: the autopilot's yaw, fused from this compass,
-    follows its error and takes part of theta's bias for attitude), then the autopilot's yaw (one Earth field
-    over the whole log: where that yaw does not follow this compass it also fixes the field's horizontal part
-    across the pieces the gyro form leaves free); each the theta-only form, then with a change of the
-    hard-iron offsets, the constant heading change of the offsets' change taken out again (``anchored``). The
-    check judges each sample with the fit of the other half of the log (alternate 10 s windows, two folds): a
-    fit judged on its own samples against the yaw it was fitted with would pass by construction. None where
-    theta cannot be fitted."""
+    self-check of the heading it gives: the first form that passes, in this order. Where the gyro is the
+    check's reference and the autopilot's yaw is not shown to be independent of this compass (its measured
+    follow rate, core/yaw_follow.py, within the flight's span), the yaw from the gyro first
+    (:class:`~magcomp.core.hover_theta.GyroYawNormal`: a yaw that follows this compass takes part of theta's
+    bias for attitude), then the autopilot's; where that yaw is measured not to follow it, the autopilot's
+    first (one Earth field over the whole log, where the gyro form leaves the field's horizontal part free per
+    piece). Each source: the theta-only form, then with a change of the hard-iron offsets, the constant
+    heading change of the offsets' change taken out again (``anchored``). The check judges each sample with
+    the fit of the other half of the log (alternate 10 s windows, two folds): a fit judged on its own samples
+    against the yaw it was fitted with would pass by construction. None where theta cannot be fitted; where no
+    form passes, the last one tried."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
@@ -327,7 +329,11 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
     fold = selfcheck.window_ids(t) % 2 == 1
     fast = np.isfinite(imu_dt) & (imu_dt <= selfcheck.MAX_GYRO_DT_S) & np.isfinite(gyaw)
-    yaws = ("gyro", "autopilot") if fast.size and float(np.mean(fast)) >= 0.5 else ("autopilot",)
+    yaws: tuple[str, ...] = ("autopilot",)
+    if fast.size and float(np.mean(fast)) >= 0.5:  # the self-check's rule for the gyro as its reference
+        follow = selfcheck.autopilot_follows(t[fast], base[fast], yaw[fast], gyaw[fast], epoch[fast])
+        independent = follow is not None and not follows_within(follow, float(t[-1] - t[0]))
+        yaws = ("autopilot", "gyro") if independent else ("gyro", "autopilot")
 
     def fit_on(source: str, m: NDArray[np.bool_], sd: float | None) -> HoverTheta | None:
         if source == "gyro":
@@ -336,7 +342,6 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
         return fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd)
 
     got: tuple[HoverTheta, selfcheck.SelfCheck] | None = None
-    passed: list[tuple[HoverTheta, selfcheck.SelfCheck]] = []
     every = np.ones(t.shape, dtype=bool)
     for source in yaws:
         for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
@@ -350,9 +355,8 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
             chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
             got = anchored(fit, field, thr, *trig), chk
             if chk.applies:
-                passed.append(got)
-                break
-    return min(passed, key=lambda fc: fc[1].candidate_gyro_deg) if passed else got
+                return got
+    return got
 
 
 def self_check_finals(

@@ -21,7 +21,7 @@ FOLLOW_PER_S = 0.05
 DT_S = 0.1
 
 
-def _hover(seed: int, n: int = 6000) -> dict[str, np.ndarray]:
+def _hover(seed: int, n: int = 6000, follow_per_s: float = FOLLOW_PER_S) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     t = np.arange(n) * DT_S
     w = 2 * math.pi * t
@@ -40,7 +40,7 @@ def _hover(seed: int, n: int = 6000) -> dict[str, np.ndarray]:
     rate = np.gradient(yaw, DT_S)
     for i in range(1, n):
         err = math.remainder(psi[i - 1] + decl - ap[i - 1], 2 * math.pi)
-        ap[i] = ap[i - 1] + (rate[i - 1] + FOLLOW_PER_S * err) * DT_S
+        ap[i] = ap[i - 1] + (rate[i - 1] + follow_per_s * err) * DT_S
     gyro = yaw + math.radians(0.01) * t + rng.normal(0.0, 0.002, n)  # a bias drift of 0.01 deg/s
     return {"t": t, "field": field, "roll": roll, "pitch": pitch, "ap": ap, "gyro": gyro, "thr": thr}
 
@@ -101,5 +101,23 @@ def test_the_two_pass_hover_candidate_takes_the_gyros_yaw() -> None:
     assert got is not None
     fit, chk = got
     assert chk.applies and fit.yaw_source == "gyro", (chk.reason, fit.yaw_source)
+    err = float(np.linalg.norm(fit.theta_mgauss - THETA))
+    assert err < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
+
+
+def test_where_the_autopilots_yaw_does_not_follow_the_compass_its_form_comes_first() -> None:
+    """The same hover with the autopilot's yaw the true one (it follows no compass: its measured follow rate
+    is below one over the flight's span): ``hover_candidate`` tries the autopilot's yaw first and publishes
+    it, with theta within 10 % (with one Earth field over the whole log it is the stronger fit)."""
+    from magcomp.service.final_pass import hover_candidate
+
+    h = _hover(8, follow_per_s=0.0)
+    n = h["t"].size
+    cols = np.column_stack((h["t"], h["field"], h["roll"], h["pitch"], h["ap"], h["thr"], h["gyro"],
+                            np.zeros(n), np.full(n, DT_S)))  # fmt: skip
+    got = hover_candidate(cols)
+    assert got is not None
+    fit, chk = got
+    assert chk.applies and fit.yaw_source == "autopilot", (chk.reason, fit.yaw_source)
     err = float(np.linalg.norm(fit.theta_mgauss - THETA))
     assert err < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
