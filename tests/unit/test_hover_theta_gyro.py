@@ -121,3 +121,19 @@ def test_where_the_autopilots_yaw_does_not_follow_the_compass_its_form_comes_fir
     assert chk.applies and fit.yaw_source == "autopilot", (chk.reason, fit.yaw_source)
     err = float(np.linalg.norm(fit.theta_mgauss - THETA))
     assert err < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
+
+
+def test_a_piece_of_zero_field_still_closes() -> None:
+    """A piece is closed by its samples, not by its field's energy: a stretch of exactly zero field (a
+    sensor that reads nothing) is its own piece, and theta is what the same log gives with a field of 1e-100."""
+    h = _hover(3)
+    fits = []
+    for tiny in (0.0, 1e-100):
+        field = h["field"].copy()
+        field[:600] = tiny
+        acc = GyroYawNormal()
+        acc.add(field, h["roll"], h["pitch"], h["gyro"], np.zeros_like(h["t"]), h["t"], h["thr"])
+        fits.append((acc.pieces, acc.fit()))
+    (p0, f0), (p1, f1) = fits
+    assert f0 is not None and f1 is not None and p0 == p1
+    np.testing.assert_allclose(f0.theta_mgauss, f1.theta_mgauss, rtol=1e-9, atol=1e-6)
