@@ -125,7 +125,8 @@ def test_where_the_autopilots_yaw_does_not_follow_the_compass_its_form_comes_fir
 
 def test_a_piece_of_zero_field_still_closes() -> None:
     """A piece is closed by its samples, not by its field's energy: a stretch of exactly zero field (a
-    sensor that reads nothing) is its own piece, and theta is what the same log gives with a field of 1e-100."""
+    sensor that reads nothing) is its own piece, and theta is what the same log gives with a field of
+    1e-100."""
     h = _hover(3)
     fits = []
     for tiny in (0.0, 1e-100):
