@@ -14,7 +14,8 @@ times so that load from other processes hits all alike:
 CPU is user + system time of the process and of any process it started (RUSAGE_CHILDREN around it); the
 replay reports its own CPU and its children's apart, and the table shows the children's (0: one process,
 no forks). Printed: CPU medians, the ratios to the parse-only process and the targets (two passes <= 1.5x on
-the ordinary flight and <= 1.0x on the paper log, ``--causal`` <= 2.0x), and wall medians.
+the ordinary flight and <= 1.0x on the paper log, ``--causal`` <= 2.0x), and wall medians; below the table,
+each kind's CPU from its fastest to its slowest run (the scatter a median is taken over).
 
 ``--compare ROOT``: the replays of another checkout of magcomp (e.g. ``/work/main``, or a commit exported with
 ``git archive``) run in the same interleaving, their ratios printed beside: the load of other processes
@@ -171,6 +172,12 @@ def main() -> int:
             name = scenario + tag
             print(f"{name:<{w}} {m['messages']:>8}  {cells[0]:>15}  {cells[1]:>26}  {cells[2]:>26}  "
                   f"{'none' if forked == 0.0 else f'{forked:.2f} s':>5}")  # fmt: skip
+    print("CPU of each run, fastest to slowest (s):")
+    for scenario, m in rows:
+        cpu = m["cpu"]
+        assert isinstance(cpu, dict)
+        spread = ", ".join(f"{k} {min(v):.2f}-{max(v):.2f}" for k, v in cpu.items())
+        print(f"  {scenario}: {spread}")
     return 0
 
 

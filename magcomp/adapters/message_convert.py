@@ -104,7 +104,7 @@ class Counts(dict[str, int]):
 
 
 def _finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)
+    return all(map(math.isfinite, values))
 
 
 def _vec(x: float, y: float, z: float, scale: float = 1.0) -> np.ndarray:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,6 +65,8 @@ class HoverTheta:
     #: subtracted from the heading of the corrected field (rad): the constant heading change of the
     #: offsets' change taken out again (:func:`anchored`)
     anchor_rad: float = 0.0
+    #: where the fit's yaw came from: "autopilot" (:class:`HoverNormal`) or "gyro" (:class:`GyroYawNormal`)
+    yaw_source: str = "autopilot"
 
     def correction(self) -> Correction:
         """The fit as a core correction (eq. (2) with L = I and d the offsets' change, eq. (11) with theta),
@@ -111,22 +114,47 @@ def body_from_nav(roll_rad: F64, pitch_rad: F64, yaw_rad: F64) -> F64:
     return np.asarray(dcms_from_quats(quats_from_euler(roll_rad, pitch_rad, yaw_rad)).transpose(0, 2, 1))
 
 
-class HoverNormal:
+class _ThrottleSums:
+    """The count of samples added and the sums of their throttle^2 and throttle^4 (how much eq. (11)'s bias
+    varies over them: MIN_THROTTLE2_STD)."""
+
+    __slots__ = ("_d2", "_d4", "n")
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._d2 = 0.0
+        self._d4 = 0.0
+
+    def _count(self, d2: F64) -> tuple[float, float]:
+        """``d2`` (throttle^2 of the samples added) counted; returns its sum and its sum of squares."""
+        sums = float(d2.sum()), float(d2 @ d2)
+        self._d2 += sums[0]
+        self._d4 += sums[1]
+        self.n += int(d2.shape[0])
+        return sums
+
+    def throttle2_std(self) -> float:
+        """Standard deviation of throttle^2 over the samples added."""
+        if self.n == 0:
+            return 0.0
+        mean = self._d2 / self.n
+        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
+
+
+class HoverNormal(_ThrottleSums):
     """The normal equations of the module's model, unknowns x = (e_n, theta, d) (9), accumulated one block
     of samples at a time: the batch fit (:func:`fit_hover_theta`) adds a whole log at once, the live path
     (service/heading.py) blocks of samples as they come; both solve with :meth:`fit`. A sample's rows are
     ``A_i = [R_nb^T, throttle^2 I, I]`` (3 x 9), so ``sum A_i^T A_i`` needs only the sums of R_nb, of
     throttle^2 R_nb, of throttle^2 and throttle^4 and the count (R_nb R_nb^T = I)."""
 
-    __slots__ = ("_ata", "_aty", "_d2", "_d4", "_yty", "n")
+    __slots__ = ("_ata", "_aty", "_yty")
 
     def __init__(self) -> None:
-        self.n = 0
+        super().__init__()
         self._ata = np.zeros((9, 9))
         self._aty = np.zeros(9)
         self._yty = 0.0
-        self._d2 = 0.0
-        self._d4 = 0.0
 
     def add(self, field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_rad: F64, throttle_01: F64) -> None:
         """A block of samples ((n, 3) field as the autopilot had it, attitude and throttle (n,)); samples
@@ -143,7 +171,7 @@ class HoverNormal:
         k = int(ok.sum())
         s_r = r_nb.sum(axis=0)
         s_dr = np.einsum("n,nij->ij", d2, r_nb)
-        s_d2, s_d4 = float(d2.sum()), float(d2 @ d2)
+        s_d2, s_d4 = self._count(d2)
         eye = np.eye(3)
         n_ = self._ata
         n_[0:3, 0:3] += k * eye
@@ -159,16 +187,6 @@ class HoverNormal:
         self._aty[3:6] += d2 @ m
         self._aty[6:9] += m.sum(axis=0)
         self._yty += float(np.einsum("ni,ni->", m, m))
-        self._d2 += s_d2
-        self._d4 += s_d4
-        self.n += k
-
-    def throttle2_std(self) -> float:
-        """Standard deviation of throttle^2 over the samples added."""
-        if self.n == 0:
-            return 0.0
-        mean = self._d2 / self.n
-        return math.sqrt(max(self._d4 / self.n - mean * mean, 0.0))
 
     def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
         """The least-squares theta (see :func:`fit_hover_theta`); None where throttle^2 hardly varies (see
@@ -176,15 +194,158 @@ class HoverNormal:
         n = self.n
         if n < 12 or self.throttle2_std() < MIN_THROTTLE2_STD:
             return None
-        a6, b6 = self._ata[:6, :6], self._aty[:6]
-        x6, s2, cov6 = _solve(a6, b6, self._yty, 3 * n - 6)
-        if offset_sd_mgauss is None:
-            return HoverTheta(x6[3:].copy(), np.sqrt(np.maximum(np.diag(cov6)[3:], 0.0)), math.sqrt(s2), n)
-        prior = np.zeros((9, 9))
-        prior[6:, 6:] = np.eye(3) * (s2 / offset_sd_mgauss**2)  # weighed by the theta-only residual's scale
-        x9, s29, cov9 = _solve(self._ata + prior, self._aty, self._yty, 3 * n - 9, self._ata)
-        sd9 = np.sqrt(np.maximum(np.diag(cov9)[3:6], 0.0))
-        return HoverTheta(x9[3:6].copy(), sd9, math.sqrt(s29), n, x9[6:9].copy())
+        return _theta_forms(self._ata, self._aty, self._yty, 3 * n, 3, n, offset_sd_mgauss, "autopilot")
+
+
+#: the compass-free yaw's pieces (s): the gyro's integrated yaw (core/selfcheck.py) drifts with the part of
+#: the gyro's bias the attitude filter has not taken out; within a piece the yaw's offset and a constant drift
+#: are free (as the Earth field's horizontal part and its turn), so only the bias' change over a piece errs.
+#: A MEMS gyro's bias after the filter's estimate changes by well under 0.01 deg/s in a minute (the filters'
+#: own bias time constants are minutes): under 0.3 deg of yaw over a piece, against the degrees a motor bias
+#: turns the heading
+PIECE_S = 60.0
+#: the unknowns shared by every piece: the Earth field's down component, theta, the offsets' change
+_SHARED = 7
+
+
+class GyroYawNormal(_ThrottleSums):
+    """The module's model with the yaw from the gyro, not from the autopilot (whose yaw, fused from this
+    compass, can follow the compass's error: on one development log at 0.045 /s, so a fit against it takes
+    part of theta's bias for attitude). The yaw is the gyro's integral, known up to an offset and a drift, so
+    per piece of PIECE_S (and per restart of the integral) the Earth field's horizontal part (2) and a linear
+    change of it in time (2) are unknowns of their own:
+
+        m_b(t) = R_nb(t)^T (e_p + (t - t_p) w_p) + theta * throttle(t)^2 + d + noise
+
+    with e_p = (e_x,p, e_y,p, e_z) and w_p horizontal. A drift of the yaw turns e_p at a constant rate, which
+    to first order is such a w_p (one unknown would do; the second also takes a slow change of the horizontal
+    field's size). Each piece's four unknowns are eliminated from the normal equations when the piece closes
+    (a Schur complement; exact for least squares, the pseudo-inverse where a piece has a single time), so the
+    batch fit (a whole log) and the live fit (blocks as they come) solve the same equations. Departure from
+    :class:`HoverNormal`: the Earth field's horizontal part is local to a piece, so theta is seen only through
+    the field's change within each piece (the throttle's swings at near-constant attitude)."""
+
+    __slots__ = ("_bs", "_key", "_loc", "_ns", "_t0", "_yty", "piece_s", "pieces")
+
+    def __init__(self, piece_s: float = PIECE_S) -> None:
+        super().__init__()
+        self.piece_s = piece_s
+        self.pieces = 0
+        self._ns = np.zeros((_SHARED, _SHARED))  # the shared unknowns' normal matrix, closed pieces folded
+        self._bs = np.zeros(_SHARED)
+        self._yty = 0.0
+        self._key: tuple[float, float] | None = None
+        self._t0 = 0.0
+        #: the open piece's sums: N_ll (4, 4), N_ls (4, 7), N_ss (7, 7), b_l (4), b_s (7), y'y, its samples
+        self._loc = self._empty()
+
+    @staticmethod
+    def _empty() -> list[Any]:
+        return [np.zeros((4, 4)), np.zeros((4, _SHARED)), np.zeros((_SHARED, _SHARED)), np.zeros(4),
+                np.zeros(_SHARED), 0.0, 0]  # fmt: skip
+
+    def add(self, field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_gyro_rad: F64, epoch: F64,
+            t_s: F64, throttle_01: F64) -> None:  # fmt: skip
+        """A block of samples in time order ((n, 3) field as the autopilot had it; roll, pitch, the gyro's
+        integrated yaw and its restart count, time, throttle (n,)); non-finite samples are left out."""
+        m = np.asarray(field_b_mgauss, dtype=float).reshape(-1, 3)
+        given = (roll_rad, pitch_rad, yaw_gyro_rad, epoch, t_s, throttle_01)
+        cols = [np.asarray(v, dtype=float) for v in given]
+        ok = np.isfinite(m).all(axis=1)
+        for c in cols:
+            ok &= np.isfinite(c)
+        if not ok.any():
+            return
+        roll, pitch, yaw, ep, t, thr = (c[ok] for c in cols)
+        m = m[ok]
+        slot = np.floor(t / self.piece_s)
+        change = np.flatnonzero((np.diff(ep) != 0) | (np.diff(slot) != 0)) + 1
+        for lo, hi in zip(np.r_[0, change], np.r_[change, t.size], strict=True):
+            key = (float(ep[lo]), float(slot[lo]))
+            if key != self._key:
+                self._close()
+                self._key, self._t0 = key, (key[1] + 0.5) * self.piece_s
+            self._accumulate(m[lo:hi], roll[lo:hi], pitch[lo:hi], yaw[lo:hi], t[lo:hi], thr[lo:hi])
+
+    def _accumulate(self, m: F64, roll: F64, pitch: F64, yaw: F64, t: F64, thr: F64) -> None:
+        r_bn = body_from_nav(roll, pitch, yaw)  # (n, 3, 3): nav to body
+        d2 = thr * thr
+        tau = (t - self._t0)[:, None]
+        k = m.shape[0]
+        a_l = np.concatenate((r_bn[:, :, 0:2], r_bn[:, :, 0:2] * tau[:, :, None]), axis=2)  # (n, 3, 4)
+        a_s = np.zeros((k, 3, _SHARED))
+        a_s[:, :, 0] = r_bn[:, :, 2]
+        a_s[:, :, 1:4] = np.eye(3)[None] * d2[:, None, None]
+        a_s[:, :, 4:7] = np.eye(3)[None]
+        loc = self._loc
+        loc[0] += np.einsum("nij,nik->jk", a_l, a_l)
+        loc[1] += np.einsum("nij,nik->jk", a_l, a_s)
+        loc[2] += np.einsum("nij,nik->jk", a_s, a_s)
+        loc[3] += np.einsum("nij,ni->j", a_l, m)
+        loc[4] += np.einsum("nij,ni->j", a_s, m)
+        loc[5] += float(np.einsum("ni,ni->", m, m))
+        loc[6] += k
+        self._count(d2)
+
+    @staticmethod
+    def _folded(loc: list[Any]) -> tuple[F64, F64, float]:
+        """The open piece's contribution with its own unknowns eliminated: (N, b, y'y)."""
+        n_ll, n_ls, n_ss, b_l, b_s, yty, _ = loc
+        inv = np.linalg.pinv(n_ll)
+        return n_ss - n_ls.T @ inv @ n_ls, b_s - n_ls.T @ inv @ b_l, yty - float(b_l @ inv @ b_l)
+
+    def _close(self) -> None:
+        if self._key is None or not self._loc[6]:
+            return
+        n_, b_, y_ = self._folded(self._loc)
+        self._ns += n_
+        self._bs += b_
+        self._yty += y_
+        self.pieces += 1
+        self._loc = self._empty()
+
+    def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
+        """The least-squares theta, the open piece included (not closed: more samples may join it); None
+        where throttle^2 hardly varies (MIN_THROTTLE2_STD) or there are fewer rows (3 a sample) than twice the
+        unknowns, the pieces' own included."""
+        n_, b_, y_ = self._ns.copy(), self._bs.copy(), self._yty
+        pieces = self.pieces
+        if self._loc[6]:
+            fn, fb, fy = self._folded(self._loc)
+            n_, b_, y_ = n_ + fn, b_ + fb, y_ + fy
+            pieces += 1
+        n = self.n
+        local = 4 * pieces
+        if 3 * n < 2 * (local + _SHARED) or self.throttle2_std() < MIN_THROTTLE2_STD:
+            return None
+        return _theta_forms(n_, b_, y_, 3 * n - local, 1, n, offset_sd_mgauss, "gyro")
+
+
+def fit_hover_theta_gyro(field_b_mgauss: F64, roll_rad: F64, pitch_rad: F64, yaw_gyro_rad: F64, epoch: F64,
+                         t_s: F64, throttle_01: F64, offset_sd_mgauss: float | None = None,
+                         ) -> HoverTheta | None:  # fmt: skip
+    """:class:`GyroYawNormal`'s fit over a whole log (samples in time order); see :func:`fit_hover_theta`."""
+    acc = GyroYawNormal()
+    acc.add(field_b_mgauss, roll_rad, pitch_rad, yaw_gyro_rad, epoch, t_s, throttle_01)
+    return acc.fit(offset_sd_mgauss)
+
+
+def _theta_forms(ata: F64, aty: F64, yty: float, dof_rows: int, n_e: int, n: int,
+                 offset_sd_mgauss: float | None, yaw_source: str) -> HoverTheta:  # fmt: skip
+    """The fit of either normal equations whose unknowns are the Earth field's shared components (``n_e``),
+    theta (3) and the offsets' change d (3): the theta-only form (d left out), or with d under a prior of
+    ``offset_sd_mgauss`` per axis, weighed by the theta-only residual's scale. ``dof_rows``: the data rows
+    less the unknowns already eliminated."""
+    k = n_e + 3
+    x, s2, cov = _solve(ata[:k, :k], aty[:k], yty, dof_rows - k)
+    if offset_sd_mgauss is None:
+        sd = np.sqrt(np.maximum(np.diag(cov)[n_e:], 0.0))
+        return HoverTheta(x[n_e:].copy(), sd, math.sqrt(s2), n, yaw_source=yaw_source)
+    prior = np.zeros(ata.shape)
+    prior[k:, k:] = np.eye(3) * (s2 / offset_sd_mgauss**2)
+    xd, s2d, covd = _solve(ata + prior, aty, yty, dof_rows - k - 3, ata)
+    sd = np.sqrt(np.maximum(np.diag(covd)[n_e:k], 0.0))
+    return HoverTheta(xd[n_e:k].copy(), sd, math.sqrt(s2d), n, xd[k:k + 3].copy(), yaw_source=yaw_source)
 
 
 def _solve(ata: F64, aty: F64, yty: float, dof: int, data_ata: F64 | None = None) -> tuple[F64, float, F64]:

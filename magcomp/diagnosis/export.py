@@ -157,12 +157,18 @@ def nuisances_at_bound(cd: CompassDiagnosis) -> list[str]:
 
 
 def vector_halfwidths(
-    data: CompassData, fit: ModelFit, weights: dict[str, float], blocks: bool, coordinates: int = 3
+    data: CompassData,
+    fit: ModelFit,
+    weights: dict[str, float],
+    blocks: bool,
+    coordinates: int = 3,
+    walk: bool = False,
 ) -> tuple[F64, F64]:
     """(per-axis 95 % half-widths, the joint 95 % box's over ``coordinates``) of a vector parameter: the
     per-axis ones are each 95 %, the box holds the whole vector with 95 % (Bonferroni,
-    :mod:`magcomp.diagnosis.intervals`)."""
-    per_axis, joint = column_halfwidths(data, fit, weights, blocks, (1, coordinates))
+    :mod:`magcomp.diagnosis.intervals`); ``walk``: at least the random-walk model's
+    (:func:`magcomp.diagnosis.intervals.walk_variance`)."""
+    per_axis, joint = column_halfwidths(data, fit, weights, blocks, (1, coordinates), walk)
     return per_axis, joint
 
 
@@ -285,8 +291,10 @@ def _temperature_json(fit: ModelFit, data: CompassData) -> dict[str, Any]:
     k = fit.coefs[list(fit.columns).index("temperature")]
     mag = float(np.linalg.norm(k))
     # at least the block jackknife's, as theta's: a slow column absorbs slow model error the HAC variance
-    # cannot see (measured coverage: magcomp.diagnosis.intervals)
-    hw, hw_joint = vector_halfwidths(data, fit, {"temperature": 1.0}, blocks=True)
+    # cannot see (measured coverage: magcomp.diagnosis.intervals); and at least the variance under a random
+    # walk fitted to the residual: the temperature rises through the whole log, so it takes up the wander of
+    # the compass and of the gyro-integrated heading beyond the HAC's lags (intervals.walk_variance)
+    hw, hw_joint = vector_halfwidths(data, fit, {"temperature": 1.0}, blocks=True, walk=True)
     return {
         "mgauss_per_degc": r4(mag),
         "mgauss_per_degc_ci95_halfwidth_per_axis": r4(hw),

@@ -196,7 +196,8 @@ class AlignStage:
         t = s.t_s
         pv = clock.prev_raw
         clock.prev_raw = (vx, vy, vz)
-        if pv is not None and max(abs(vx - pv[0]), abs(vy - pv[1]), abs(vz - pv[2])) > MAG_JUMP_MGAUSS:
+        lim = MAG_JUMP_MGAUSS  # (admitted samples are finite: the largest step above it, as max() took it)
+        if pv is not None and (abs(vx - pv[0]) > lim or abs(vy - pv[1]) > lim or abs(vz - pv[2]) > lim):
             self.counts["mag_jumps"] += 1
             return None
         prev_t = clock.last_t
@@ -214,7 +215,9 @@ class AlignStage:
             dt = t - prev_t
             nominal = clock.dt_nominal
             # the first interval (up to 10 s) sets the compass's usual one
-            gap_s = max(self._dt_max, 10.0 if nominal is None else GAP_FACTOR * nominal)
+            gap_s = 10.0 if nominal is None else GAP_FACTOR * nominal
+            if not gap_s > self._dt_max:  # max(dt_max, gap_s), as max() picks
+                gap_s = self._dt_max
             if dt > gap_s:
                 self.counts["gaps"] += 1
                 reset = obs_reset = True

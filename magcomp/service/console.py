@@ -207,6 +207,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                     f"{off[2]:.0f}) mgauss, their constant heading change left out (the flight determines no "
                     f"calibration of its own)"
                 )
+            if cal.get("yaw_source") == "gyro":  # inside the parenthesis that closes kept's text
+                kept = kept[:-1] + "; theta fitted with the gyro's yaw, which no compass steers)"
             lines.append(_corrected_line(c, kept, sig, ""))
             continue
         if cal is not None and cal["source"] == "in-flight":

@@ -38,8 +38,15 @@ from numpy.typing import NDArray
 from magcomp.core import selfcheck
 from magcomp.core.correction import Applied, Correction, headings_deg
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverTheta, anchored, fit_hover_theta
+from magcomp.core.hover_theta import (
+    OFFSET_PRIOR_SD_MGAUSS,
+    HoverTheta,
+    anchored,
+    fit_hover_theta,
+    fit_hover_theta_gyro,
+)
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
+from magcomp.core.yaw_follow import follows_within
 from magcomp.service.heading import filter_rates
 from magcomp.service.publish import HeadingEncoder, TlogWriter
 from magcomp.service.record import ZERO3, Float3, MagRecord
@@ -302,13 +309,18 @@ def _hover_rows(rows: F64, idx: int) -> F64:
 
 
 def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
-    """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and
-    the self-check of the heading it gives: the theta-only form, else the form with a change of the hard-iron
-    offsets (the simpler form first: a second form is tried only where the first does not pass), the constant
+    """Theta against the autopilot's calibration (core/hover_theta.py) on :func:`_hover_rows`' columns and the
+    self-check of the heading it gives: the first form that passes, in this order. Where the gyro is the
+    check's reference and the autopilot's yaw is not shown to be independent of this compass (its measured
+    follow rate, core/yaw_follow.py, within the flight's span), the yaw from the gyro first
+    (:class:`~magcomp.core.hover_theta.GyroYawNormal`: a yaw that follows this compass takes part of theta's
+    bias for attitude), then the autopilot's; where that yaw is measured not to follow it, the autopilot's
+    first (one Earth field over the whole log, where the gyro form leaves the field's horizontal part free per
+    piece). Each source: the theta-only form, then with a change of the hard-iron offsets, the constant
     heading change of the offsets' change taken out again (``anchored``). The check judges each sample with
-    the fit of the other half of the log (alternate 10 s windows, two folds): the fit takes its attitude from
-    the autopilot's yaw, so judged on its own samples against that yaw (the reference where the gyro is slow)
-    it would pass by construction. None where theta cannot be fitted."""
+    the fit of the other half of the log (alternate 10 s windows, two folds): a fit judged on its own samples
+    against the yaw it was fitted with would pass by construction. None where theta cannot be fitted; where no
+    form passes, the last one tried."""
     if cols.shape[0] == 0 or not np.isfinite(cols[:, 6]).any():
         return None
     t, mx, my, mz, roll, pitch, yaw, thr, gyaw, epoch, imu_dt = cols.T
@@ -316,19 +328,34 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
     base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
     fold = selfcheck.window_ids(t) % 2 == 1
+    fast = np.isfinite(imu_dt) & (imu_dt <= selfcheck.MAX_GYRO_DT_S) & np.isfinite(gyaw)
+    yaws: tuple[str, ...] = ("autopilot",)
+    if fast.size and float(np.mean(fast)) >= 0.5:  # the self-check's rule for the gyro as its reference
+        follow = selfcheck.autopilot_follows(t[fast], base[fast], yaw[fast], gyaw[fast], epoch[fast])
+        independent = follow is not None and not follows_within(follow, float(t[-1] - t[0]))
+        yaws = ("autopilot", "gyro") if independent else ("gyro", "autopilot")
+
+    def fit_on(source: str, m: NDArray[np.bool_], sd: float | None) -> HoverTheta | None:
+        if source == "gyro":
+            k = m & fast
+            return fit_hover_theta_gyro(field[k], roll[k], pitch[k], gyaw[k], epoch[k], t[k], thr[k], sd)
+        return fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd)
+
     got: tuple[HoverTheta, selfcheck.SelfCheck] | None = None
-    for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
-        fit = fit_hover_theta(field, roll, pitch, yaw, thr, sd)
-        halves = [fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd) for m in (~fold, fold)]
-        if fit is None or halves[0] is None or halves[1] is None:
-            return got
-        held = np.where(fold[:, None], halves[0].corrected_mgauss(field, thr),
-                        halves[1].corrected_mgauss(field, thr))  # fmt: skip
-        cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # eq. (11), (24)
-        chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
-        got = anchored(fit, field, thr, *trig), chk
-        if chk.applies:
-            break
+    every = np.ones(t.shape, dtype=bool)
+    for source in yaws:
+        for sd in (None, OFFSET_PRIOR_SD_MGAUSS):
+            fit = fit_on(source, every, sd)
+            halves = [fit_on(source, m, sd) for m in (~fold, fold)]
+            if fit is None or halves[0] is None or halves[1] is None:
+                break
+            held = np.where(fold[:, None], halves[0].corrected_mgauss(field, thr),
+                            halves[1].corrected_mgauss(field, thr))  # fmt: skip
+            cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # (11), (24)
+            chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
+            got = anchored(fit, field, thr, *trig), chk
+            if chk.applies:
+                return got
     return got
 
 

@@ -505,7 +505,9 @@ class Pipeline:
         hov = self._hover(c)
         if hov is not None and chk is not None and on:
             what = "theta" if not hov.offset_mgauss.any() else "theta and a change of its offsets"
-            why = f"{what} against the autopilot's calibration (none determined by the flight: {st.why})"
+            yaw = "the gyro's yaw" if hov.yaw_source == "gyro" else "the autopilot's yaw"
+            why = (f"{what} against the autopilot's calibration, fitted with {yaw} (none determined by the "
+                   f"flight: {st.why})")  # fmt: skip
             return Status("corrected", f"{why}; {chk.describe()}")
         if chk is None or st.status != "corrected":
             if st.status == "uncorrected" and self.cfg.output.self_check and self.throttle.t is not None:

@@ -14,6 +14,7 @@ from typing import Any
 from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
+from magcomp.errors import InputError
 from magcomp.service.final_pass import (
     FinalCompass,
     PassOutputs,
@@ -26,7 +27,7 @@ from magcomp.service.final_pass import (
 )
 from magcomp.service.persist import StateSink
 from magcomp.service.pipeline import Pipeline, json_safe
-from magcomp.service.publish import HeadingEncoder, TlogWriter
+from magcomp.service.publish import FrameQueue, HeadingEncoder, TlogWriter
 from magcomp.service.workers import Workers
 
 log = logging.getLogger("magcomp.replay")
@@ -208,19 +209,23 @@ class _Outputs:
         self._on_estimate = on_estimate
         self.wanted = keep or on_estimate is not None or self.writer is not None
         self._sysid_set = False
+        #: --emit alone: the frames packed from the records a block at a time, no estimate object built
+        self._queue = None if self.writer is None or keep or on_estimate is not None else (
+            FrameQueue(self.encoder, self.writer))  # fmt: skip
 
     def take(self, pipeline: Pipeline) -> None:
         writer = self.writer
+        queue = self._queue
         if writer is not None and not self._sysid_set and pipeline.system_id is not None:
+            if queue is not None:
+                queue.flush()  # the frames queued so far carry the system id they were made under
             self.encoder.set_system(pipeline.system_id)
             self._sysid_set = True
-        if not (self._keep or self._on_estimate is not None):
-            if writer is not None:  # --emit alone: packed from the record, no estimate object built
-                r = pipeline.last_record()
-                packet = self.encoder.encode_values(r.t_s - pipeline.boot_offset_s, r.heading_deg,
-                                                    r.heading_raw_deg, r.theta, r.bias, r.throttle_01,
-                                                    r.mag_index, r.flags)  # fmt: skip
-                writer.write_packet(r.t_s, packet)
+        if queue is not None:
+            r = pipeline.last_record()
+            t_boot = r.t_s - pipeline.boot_offset_s
+            queue.add(r.t_s, (t_boot, r.heading_deg, r.heading_raw_deg, r.theta, r.bias, r.throttle_01,
+                              r.mag_index, r.flags))  # fmt: skip
             return
         est = pipeline.last_estimate()
         if self._keep:
@@ -237,7 +242,14 @@ class _Outputs:
         writer = self.writer
         if writer is None:
             return
-        writer.close()
+        try:
+            if self._queue is not None:
+                self._queue.flush()
+        except InputError:
+            if not failed:  # (after a failure, that failure is the one reported)
+                raise
+        finally:
+            writer.close()
 
     @property
     def emitted(self) -> int:

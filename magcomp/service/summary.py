@@ -62,6 +62,7 @@ def compass_summary(
             "theta_sigma_mgauss": hover.theta_sigma_mgauss.tolist(),
             "offset_change_mgauss": hover.offset_mgauss.tolist(),
             "heading_anchor_deg": math.degrees(hover.anchor_rad),
+            "yaw_source": hover.yaw_source,
         }
     return {
         "index": c.mag_index,

@@ -20,6 +20,7 @@ The bias ``theta * throttle^2`` (eq. (11)) uses the latest throttle: the publish
 
 from __future__ import annotations
 
+import struct
 from array import array
 from collections import deque
 from collections.abc import Sequence
@@ -52,6 +53,9 @@ class Queued(NamedTuple):
 #: samples an observer's log holds before they are reduced to their least-squares sums (~22 min at 50 Hz;
 #: ~5 MB of samples, ~60 MB while they are reduced)
 ROW_LOG_CHUNK = 65536
+#: one row of the observer's row log packed as the array's doubles (the values ``array.extend`` would store,
+#: in ~60 % of its time)
+_ROW = struct.Struct("9d")
 
 
 class ObserverRowLog:
@@ -75,7 +79,7 @@ class ObserverRowLog:
             self.pending = start
 
     def add(self, t_s: float, gyro: Sequence[float], field: Float3, throttle_01: float) -> None:
-        self.buf.extend((t_s, *gyro, *field, throttle_01, self.pending))
+        self.buf.frombytes(_ROW.pack(t_s, *gyro, *field, throttle_01, self.pending))
         self.pending = observer_batch.START_CONTINUE
         if len(self.buf) >= 9 * self.chunk:
             self._reduce()

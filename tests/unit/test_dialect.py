@@ -135,3 +135,13 @@ def test_mavutil_connection_with_magcomp_dialect_decodes_heading(tmp_path: Path)
     finally:
         conn.close()
     assert [m.time_boot_ms for m in got] == [10000, 11000, 12000]
+
+
+def test_bindings_are_keyed_by_the_installed_pymavlink_version() -> None:
+    """The bindings' cache key takes pymavlink's version from the package (no importlib.metadata at start-up):
+    the same key as the installed distribution's version gives, so the cached bindings are found again."""
+    import hashlib
+    from importlib.metadata import version
+
+    key = hashlib.sha256(dialect.XML_PATH.read_bytes() + version("pymavlink").encode()).hexdigest()[:16]
+    assert dialect.bindings_path().parent.name == f"dialect-{key}"

@@ -8,7 +8,7 @@ import numpy as np
 
 from magcomp.adapters.dialect import ensure_dialect
 from magcomp.core.types import HeadingEstimate
-from magcomp.service.publish import HeadingEncoder, TlogWriter
+from magcomp.service.publish import FrameQueue, HeadingEncoder, TlogWriter
 
 
 def _pymavlink_bytes(enc: HeadingEncoder, est: HeadingEstimate) -> bytes:
@@ -123,3 +123,33 @@ def test_a_block_with_a_value_beyond_float32_is_left_to_one_frame_at_a_time() ->
     assert block() is None and enc.mav.seq == seq
     theta[2, 1] = np.inf  # inf packs the same both ways
     assert block() is not None
+
+
+def test_frame_queue_writes_the_tlog_of_one_frame_at_a_time(tmp_path: Path) -> None:
+    """FrameQueue (``replay --causal --emit``'s writer): queued values packed a block at a time, flushed when
+    full and at the end, give the tlog of encode_values + write_packet in turn, byte for byte; a block holding
+    a time beyond a block's exact integers goes one frame at a time, the sequence numbers still counting."""
+    rng = np.random.default_rng(11)
+    n = 300
+    rows = []
+    for k in range(n):
+        zero = k % 7 == 0  # trailing zero bytes dropped
+        t_s = 1e11 if k == 250 else float(rng.uniform(0.0, 5e4))  # 1e17 us: beyond a block's integers
+        rows.append((t_s, float(rng.uniform(-1.0, 5e4)), float(rng.uniform(0.0, 360.0)),
+                     float(rng.uniform(0.0, 360.0)), tuple(rng.normal(0.0, 200.0, 3).tolist()),
+                     (0.0, 0.0, 0.0) if zero else tuple(rng.normal(0.0, 50.0, 3).tolist()),
+                     0.0 if zero else float(rng.uniform()), int(rng.integers(0, 3)),
+                     0 if zero else int(rng.integers(0, 300))))  # fmt: skip
+    one, queued = HeadingEncoder(0, 191), HeadingEncoder(0, 191)
+    one.mav.seq = queued.mav.seq = 200  # wraps within the log
+    w_one, w_queue = TlogWriter(tmp_path / "one.tlog"), TlogWriter(tmp_path / "queue.tlog")
+    queue = FrameQueue(queued, w_queue, size=64)
+    for row in rows:
+        w_one.write_packet(row[0], one.encode_values(*row[1:]))
+        queue.add(row[0], row[1:])
+    assert w_queue.packets == 256  # four full blocks written, the rest queued
+    queue.flush()
+    w_one.close()
+    w_queue.close()
+    assert queued.mav.seq == one.mav.seq and w_queue.packets == w_one.packets == n
+    assert (tmp_path / "queue.tlog").read_bytes() == (tmp_path / "one.tlog").read_bytes()
