@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.hover_theta import GyroYawNormal, body_from_nav, fit_hover_theta, fit_hover_theta_gyro
@@ -87,38 +88,26 @@ def test_a_constant_throttle_gives_no_theta() -> None:
     assert got is None
 
 
-def test_the_two_pass_hover_candidate_takes_the_gyros_yaw() -> None:
-    """service/final_pass.py ``hover_candidate`` on the hover's columns (the gyro logged at 10 Hz, the
-    autopilot's yaw following the compass): the form published is fitted with the gyro's yaw, passes the
-    held-out check and has theta within 10 %."""
+@pytest.mark.parametrize(
+    ("seed", "follow_per_s", "source"), [(7, FOLLOW_PER_S, "gyro"), (8, 0.0, "autopilot")]
+)
+def test_the_two_pass_hover_candidate_takes_the_yaw_that_does_not_follow_the_compass(
+        seed: int, follow_per_s: float, source: str) -> None:  # fmt: skip
+    """service/final_pass.py ``hover_candidate`` on the hover's columns (the gyro logged at 10 Hz). Where the
+    autopilot's yaw follows the compass, the form published is fitted with the gyro's yaw; where it is the
+    true yaw (its measured follow rate below one over the flight's span), with the autopilot's, whose one
+    Earth field over the whole log makes the stronger fit. Either passes the held-out check with theta within
+    10 %."""
     from magcomp.service.final_pass import hover_candidate
 
-    h = _hover(7)
+    h = _hover(seed, follow_per_s=follow_per_s)
     n = h["t"].size
     cols = np.column_stack((h["t"], h["field"], h["roll"], h["pitch"], h["ap"], h["thr"], h["gyro"],
                             np.zeros(n), np.full(n, DT_S)))  # fmt: skip
     got = hover_candidate(cols)
     assert got is not None
     fit, chk = got
-    assert chk.applies and fit.yaw_source == "gyro", (chk.reason, fit.yaw_source)
-    err = float(np.linalg.norm(fit.theta_mgauss - THETA))
-    assert err < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
-
-
-def test_where_the_autopilots_yaw_does_not_follow_the_compass_its_form_comes_first() -> None:
-    """The same hover with the autopilot's yaw the true one (it follows no compass: its measured follow rate
-    is below one over the flight's span): ``hover_candidate`` tries the autopilot's yaw first and publishes
-    it, with theta within 10 % (with one Earth field over the whole log it is the stronger fit)."""
-    from magcomp.service.final_pass import hover_candidate
-
-    h = _hover(8, follow_per_s=0.0)
-    n = h["t"].size
-    cols = np.column_stack((h["t"], h["field"], h["roll"], h["pitch"], h["ap"], h["thr"], h["gyro"],
-                            np.zeros(n), np.full(n, DT_S)))  # fmt: skip
-    got = hover_candidate(cols)
-    assert got is not None
-    fit, chk = got
-    assert chk.applies and fit.yaw_source == "autopilot", (chk.reason, fit.yaw_source)
+    assert chk.applies and fit.yaw_source == source, (chk.reason, fit.yaw_source)
     err = float(np.linalg.norm(fit.theta_mgauss - THETA))
     assert err < 0.1 * float(np.linalg.norm(THETA)), fit.theta_mgauss
 
