@@ -199,16 +199,18 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
             continue
         if cal is not None and cal["source"] == "autopilot" and status == "corrected":
             sig = cal.get("theta_sigma_mgauss") or [math.nan] * 3
-            kept = "the autopilot's calibration kept (the flight determines none of its own)"
+            why = "the flight determines none of its own"
+            kept = "the autopilot's calibration kept"
             off = cal.get("offset_change_mgauss") or [0.0, 0.0, 0.0]
             if any(off):
+                why = "the flight determines no calibration of its own"
                 kept = (
                     f"the autopilot's calibration with its offsets changed by ({off[0]:.0f}, {off[1]:.0f}, "
-                    f"{off[2]:.0f}) mgauss, their constant heading change left out (the flight determines no "
-                    f"calibration of its own)"
+                    f"{off[2]:.0f}) mgauss, their constant heading change left out"
                 )
-            if cal.get("yaw_source") == "gyro":  # inside the parenthesis that closes kept's text
-                kept = kept[:-1] + "; theta fitted with the gyro's yaw, which no compass steers)"
+            if cal.get("yaw_source") == "gyro":
+                why += "; theta fitted with the gyro's yaw, which no compass steers"
+            kept += f" ({why})"
             lines.append(_corrected_line(c, kept, sig, ""))
             continue
         if cal is not None and cal["source"] == "in-flight":

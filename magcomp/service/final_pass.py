@@ -278,19 +278,29 @@ def _check_rows(rows: F64, cor: Corrected, idx: int) -> F64:
                             r[:, GYRO_EPOCH], r[:, IMU_DT]))  # fmt: skip
 
 
-def self_check(cols: F64) -> selfcheck.SelfCheck:
-    """The verdict of :func:`magcomp.core.selfcheck.compare` on :func:`_check_rows`' columns: the gyro's
-    integrated yaw is the windowed reference where the IMU comes at least every MAX_GYRO_DT_S, else the
-    autopilot's yaw, which is then also no second reference where it follows this compass within the
-    check's window (:func:`magcomp.core.selfcheck.att_is_circular`, measured on these samples)."""
-    t, base, cand, ap, gyaw, epoch, imu_dt = cols.T
+def _gyro_rows(imu_dt: F64, gyro_yaw: F64) -> NDArray[np.bool_] | None:
+    """The samples the gyro's integrated yaw judges where it is the check's reference (the IMU comes at least
+    every MAX_GYRO_DT_S on half the samples or more); None: the autopilot's yaw is the reference."""
     fast = np.isfinite(imu_dt) & (imu_dt <= selfcheck.MAX_GYRO_DT_S)
-    has_ap = bool(np.isfinite(ap).any())
     if fast.size and float(np.mean(fast)) >= 0.5:
-        keep = fast & np.isfinite(gyaw)
+        return fast & np.isfinite(gyro_yaw)
+    return None
+
+
+def self_check(cols: F64, circular: bool | None = None) -> selfcheck.SelfCheck:
+    """The verdict of :func:`magcomp.core.selfcheck.compare` on :func:`_check_rows`' columns: the gyro's
+    integrated yaw is the windowed reference where :func:`_gyro_rows`, else the autopilot's yaw, which is
+    then also no second reference where it follows this compass within the check's window
+    (:func:`magcomp.core.selfcheck.att_is_circular`, measured on these samples unless ``circular`` is given:
+    candidates for the same compass share their baseline, so it is measured once for them)."""
+    t, base, cand, ap, gyaw, epoch, imu_dt = cols.T
+    has_ap = bool(np.isfinite(ap).any())
+    keep = _gyro_rows(imu_dt, gyaw)
+    if keep is not None:
         ids = selfcheck.window_ids(t[keep], epoch[keep])
-        circular = has_ap and selfcheck.att_is_circular(
-            selfcheck.autopilot_follows(t[keep], base[keep], ap[keep], gyaw[keep], epoch[keep]))
+        if circular is None:
+            circular = has_ap and selfcheck.att_is_circular(
+                selfcheck.autopilot_follows(t[keep], base[keep], ap[keep], gyaw[keep], epoch[keep]))
         return selfcheck.compare(base[keep], cand[keep], gyaw[keep], ids, ap[keep] if has_ap else None,
                                  circular)  # fmt: skip
     return selfcheck.compare(base, cand, ap, selfcheck.window_ids(t), ap if has_ap else None)
@@ -328,15 +338,17 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
     trig = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch))
     base = np.radians(heading_from_trig_deg(mx, my, mz, *trig))
     fold = selfcheck.window_ids(t) % 2 == 1
-    fast = np.isfinite(imu_dt) & (imu_dt <= selfcheck.MAX_GYRO_DT_S) & np.isfinite(gyaw)
+    fast = _gyro_rows(imu_dt, gyaw)
     yaws: tuple[str, ...] = ("autopilot",)
-    if fast.size and float(np.mean(fast)) >= 0.5:  # the self-check's rule for the gyro as its reference
+    circular: bool | None = None
+    if fast is not None:  # the gyro is the check's reference: the autopilot's yaw-follow, measured once
         follow = selfcheck.autopilot_follows(t[fast], base[fast], yaw[fast], gyaw[fast], epoch[fast])
+        circular = selfcheck.att_is_circular(follow)
         independent = follow is not None and not follows_within(follow, float(t[-1] - t[0]))
         yaws = ("autopilot", "gyro") if independent else ("gyro", "autopilot")
 
     def fit_on(source: str, m: NDArray[np.bool_], sd: float | None) -> HoverTheta | None:
-        if source == "gyro":
+        if source == "gyro" and fast is not None:
             k = m & fast
             return fit_hover_theta_gyro(field[k], roll[k], pitch[k], gyaw[k], epoch[k], t[k], thr[k], sd)
         return fit_hover_theta(field[m], roll[m], pitch[m], yaw[m], thr[m], sd)
@@ -352,7 +364,7 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
             held = np.where(fold[:, None], halves[0].corrected_mgauss(field, thr),
                             halves[1].corrected_mgauss(field, thr))  # fmt: skip
             cand = np.radians(heading_from_trig_deg(held[:, 0], held[:, 1], held[:, 2], *trig))  # (11), (24)
-            chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)))
+            chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)), circular)
             got = anchored(fit, field, thr, *trig), chk
             if chk.applies:
                 return got
