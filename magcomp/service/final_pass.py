@@ -48,7 +48,7 @@ from magcomp.core.hover_theta import (
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.core.yaw_follow import follows_within
 from magcomp.service.heading import filter_rates
-from magcomp.service.publish import HeadingEncoder, TlogWriter
+from magcomp.service.publish import HeadingEncoder, TlogWriter, write_headings
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
 if TYPE_CHECKING:
@@ -518,26 +518,18 @@ def _block(
         return
     sel = np.asarray(idx, dtype=np.int64)
     pub = rows[sel]
-    block = None if writer is None else encoder.encode_block(
-        pub[:, T] - pub[:, BOOT_OFFSET], np.asarray(head), np.asarray(head_raw), cor.theta[sel],
-        cor.bias[sel], pub[:, THR], pub[:, MAG].astype(np.int64), cor.flags[sel])  # fmt: skip
-    if block is not None and writer is not None:  # the live path's framer on the block at once
-        writer.write_frames(pub[:, T], *block)
-        if on_estimate is None:
-            return
-    t_s = pub[:, T].tolist()
-    t_boot = (pub[:, T] - pub[:, BOOT_OFFSET]).tolist()
-    theta = [(a, b, c) for a, b, c in cor.theta[sel].tolist()]
-    bias = [(a, b, c) for a, b, c in cor.bias[sel].tolist()]
-    thr = pub[:, THR].tolist()
-    mag = pub[:, MAG].astype(np.int64).tolist()
-    flags = cor.flags[sel].tolist()
-    if writer is not None and block is None:  # one MAGCOMP_HEADING at a time (a signed link)
-        encode, write = encoder.encode_values, writer.write_packet
-        values = zip(t_boot, head, head_raw, theta, bias, thr, mag, flags, strict=True)
-        for t, (tb, h, h_raw, th, b, th01, m, fl) in zip(t_s, values, strict=True):
-            write(t, encode(tb, h, h_raw, th, b, th01, m, fl))
+    if writer is not None:  # the live path's framer on the block at once
+        write_headings(encoder, writer, pub[:, T], pub[:, T] - pub[:, BOOT_OFFSET], np.asarray(head),
+                       np.asarray(head_raw), cor.theta[sel], cor.bias[sel], pub[:, THR],
+                       pub[:, MAG].astype(np.int64), cor.flags[sel])  # fmt: skip
     if on_estimate is not None:
+        t_s = pub[:, T].tolist()
+        t_boot = (pub[:, T] - pub[:, BOOT_OFFSET]).tolist()
+        theta = [(a, b, c) for a, b, c in cor.theta[sel].tolist()]
+        bias = [(a, b, c) for a, b, c in cor.bias[sel].tolist()]
+        thr = pub[:, THR].tolist()
+        mag = pub[:, MAG].astype(np.int64).tolist()
+        flags = cor.flags[sel].tolist()
         nan = float("nan")
         raw = pub[:, RAW_X:RAW_Z + 1]
         fc = cor.field_corrected[sel]

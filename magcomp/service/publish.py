@@ -225,12 +225,33 @@ HeadingValues = tuple[float, float, float, Float3, Float3, float, int, int]
 QUEUE_FRAMES = 2048
 
 
+def write_headings(encoder: HeadingEncoder, writer: TlogWriter, t_s: F64, t_boot_s: F64, heading_deg: F64,
+                   heading_raw_deg: F64, theta_mgauss: F64, bias_mgauss: F64, throttle_01: F64,
+                   mag_index: NDArray[np.int64], flags: NDArray[np.int64]) -> None:  # fmt: skip
+    """MAGCOMP_HEADING of a block of samples (columns; theta and bias (n, 3)) into the tlog at times ``t_s``:
+    packed at once (:meth:`HeadingEncoder.encode_block`, :meth:`TlogWriter.write_frames`), or, where the
+    block framer refuses the block (a signed link, a value beyond float32), one frame at a time
+    (:meth:`HeadingEncoder.encode_values`, :meth:`TlogWriter.write_packet`): the same bytes either way."""
+    block = encoder.encode_block(t_boot_s, heading_deg, heading_raw_deg, theta_mgauss, bias_mgauss,
+                                 throttle_01, mag_index, flags)  # fmt: skip
+    if block is not None:
+        writer.write_frames(t_s, *block)
+        return
+    encode, write = encoder.encode_values, writer.write_packet
+    theta = [(a, b, c) for a, b, c in np.asarray(theta_mgauss).tolist()]
+    bias = [(a, b, c) for a, b, c in np.asarray(bias_mgauss).tolist()]
+    lists = [np.asarray(c).tolist() for c in (t_boot_s, heading_deg, heading_raw_deg, throttle_01, mag_index,
+                                               flags)]  # fmt: skip
+    cols = (*lists[:3], theta, bias, *lists[3:])
+    for t, v in zip(np.asarray(t_s).tolist(), zip(*cols, strict=True), strict=True):
+        write(t, encode(*v))
+
+
 class FrameQueue:
-    """MAGCOMP_HEADING for a tlog, queued and packed a block at a time (:meth:`HeadingEncoder.encode_block`,
-    :meth:`TlogWriter.write_frames`): the same bytes, sequence numbers and times as
-    :meth:`HeadingEncoder.encode_values` then :meth:`TlogWriter.write_packet` of each frame in turn (a block
-    the block framer refuses goes that way), at a third of the cost. The encoder is this queue's alone
-    until :meth:`flush` (it numbers the frames when it packs them)."""
+    """MAGCOMP_HEADING for a tlog, queued and packed a block at a time (:func:`write_headings`): the same
+    bytes, sequence numbers and times as :meth:`HeadingEncoder.encode_values` then
+    :meth:`TlogWriter.write_packet` of each frame in turn, at a third less of the cost. The encoder is this
+    queue's alone until :meth:`flush` (it numbers the frames when it packs them)."""
 
     def __init__(self, encoder: HeadingEncoder, writer: TlogWriter, size: int = QUEUE_FRAMES) -> None:
         self.encoder, self.writer = encoder, writer
@@ -246,23 +267,19 @@ class FrameQueue:
             self.flush()
 
     def flush(self) -> None:
-        """Pack and write every frame queued."""
-        rows, self._rows = self._rows, []
+        """Pack and write every frame queued. The frames stay queued until written: a ^C or an error while
+        they are packed leaves them for the next flush (the one at close)."""
+        rows = self._rows
         if not rows:
             return
         t_s, values = zip(*rows, strict=True)
         t_boot, head, head_raw, theta, bias, thr, mag, flags = zip(*values, strict=True)
         f, i = float, np.int64
-        block = self.encoder.encode_block(
-            np.array(t_boot, dtype=f), np.array(head, dtype=f), np.array(head_raw, dtype=f),
-            np.array(theta, dtype=f).reshape(-1, 3), np.array(bias, dtype=f).reshape(-1, 3),
-            np.array(thr, dtype=f), np.array(mag, dtype=i), np.array(flags, dtype=i))  # fmt: skip
-        if block is not None:
-            self.writer.write_frames(np.array(t_s, dtype=float), *block)
-            return
-        encode, write = self.encoder.encode_values, self.writer.write_packet
-        for t, v in rows:
-            write(t, encode(*v))
+        write_headings(self.encoder, self.writer, np.array(t_s, dtype=f), np.array(t_boot, dtype=f),
+                       np.array(head, dtype=f), np.array(head_raw, dtype=f),
+                       np.array(theta, dtype=f).reshape(-1, 3), np.array(bias, dtype=f).reshape(-1, 3),
+                       np.array(thr, dtype=f), np.array(mag, dtype=i), np.array(flags, dtype=i))  # fmt: skip
+        self._rows = []
 
 
 #: NAMED_VALUE_FLOAT names (the compass index appended; at most 10 characters): corrected heading (deg),

@@ -235,6 +235,11 @@ class _Outputs:
         if writer is not None:
             writer.write_packet(est.t_s, self.encoder.encode(est))
 
+    def flush(self) -> None:
+        """Write the frames queued (``--emit``)."""
+        if self._queue is not None:
+            self._queue.flush()
+
     def close(self, failed: bool = False) -> None:
         """Close the tlog (idempotent). A tlog with no heading in it is not written (the ``--emit`` path
         is left as it was: nothing magcomp did not create is ever removed); after a failure, what was
@@ -453,14 +458,17 @@ def _replay(path: str | Path, cfg: Config, pipeline: Pipeline, asked: _Asked) ->
         raise
     try:
         prog = _replay_loop(source, pipeline, outputs, asked.should_stop, asked.on_progress)
+        outputs.flush()  # a write that fails here is a failure of the run: the state is still saved below
     except BaseException:
         outputs.close(failed=True)
         raise
     finally:
         pipeline.counts["samples"] += source.skipped_samples  # as in _learn
         source.close()
-        outputs.close()
-        pipeline.close()
+        try:
+            outputs.close()
+        finally:
+            pipeline.close()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}
     summary = _with_onboard(pipeline.summary(), onboard, _clock_offsets(source))
     return _report(path, summary, dict(source.counts), outputs, prog)

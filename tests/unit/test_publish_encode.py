@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from magcomp.adapters.dialect import ensure_dialect
 from magcomp.core.types import HeadingEstimate
@@ -153,3 +154,31 @@ def test_frame_queue_writes_the_tlog_of_one_frame_at_a_time(tmp_path: Path) -> N
     w_queue.close()
     assert queued.mav.seq == one.mav.seq and w_queue.packets == w_one.packets == n
     assert (tmp_path / "queue.tlog").read_bytes() == (tmp_path / "one.tlog").read_bytes()
+
+
+def test_frame_queue_keeps_its_frames_when_packing_is_interrupted(tmp_path: Path) -> None:
+    """A ^C while a block is packed (``encode_block``) loses none of the frames queued: the next flush (the
+    one at close) writes them, and the tlog is byte for byte that of one frame at a time."""
+    rng = np.random.default_rng(3)
+    rows = [(float(t), float(t) - 1.0, float(rng.uniform(0.0, 360.0)), float(rng.uniform(0.0, 360.0)),
+             (1.0, 2.0, 3.0), (0.5, 0.25, 0.125), 0.5, 0, 3) for t in np.sort(rng.uniform(1.0, 50.0, 40))]
+    one, queued = HeadingEncoder(0, 191), HeadingEncoder(0, 191)
+    w_one, w_queue = TlogWriter(tmp_path / "one.tlog"), TlogWriter(tmp_path / "queue.tlog")
+    queue = FrameQueue(queued, w_queue, size=1000)
+    for row in rows:
+        w_one.write_packet(row[0], one.encode_values(*row[1:]))
+        queue.add(row[0], row[1:])
+    packed = queued.encode_block
+
+    def interrupted(*args: object) -> None:
+        raise KeyboardInterrupt
+
+    queued.encode_block = interrupted  # type: ignore[method-assign,assignment]
+    with pytest.raises(KeyboardInterrupt):
+        queue.flush()
+    queued.encode_block = packed  # type: ignore[method-assign]
+    queue.flush()
+    w_one.close()
+    w_queue.close()
+    assert (tmp_path / "queue.tlog").read_bytes() == (tmp_path / "one.tlog").read_bytes()
+    assert w_queue.packets == len(rows)
