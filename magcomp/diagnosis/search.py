@@ -200,7 +200,9 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
             return
         s.temp_vs_time[name] = vs_time
     if c.significant and EFFECTS[name].param is not None:
-        ci = profile_interval(data, f, name)
+        ci = s.interval(name, f)  # a witnessed shape's was profiled already (_witnessed)
+        if ci is None:
+            ci = profile_interval(data, f, name)
         s.intervals[name] = (f, ci)
         why_edge = interval_at_edge(name, data, f, ci)
         if why_edge is not None:
@@ -340,8 +342,7 @@ def combine(data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -
         init = {name: float(getattr(c.fit.ext, param))} if param is not None else None
         trial = fit_model(data, (*current.effects, name), start=current, init=init, max_nfev=p.max_nfev)
         cv_ref = cv_current or partial(cv_score, data, current, p, s.folds)
-        pw = replace(p, min_delta_bic=0.0) if name in s.witnessed else p
-        ct = compare(data, current, trial, cv_ref, pw, s.folds)
+        ct = compare(data, current, trial, cv_ref, p, s.folds)  # the current testified to this shape alone
         if ct.significant:
             current, cv_current = trial, ct.cv_extended
             kept.append((name, ct))
@@ -448,7 +449,9 @@ def _witness_json(w: CurrentFit, fits: dict[str, CurrentFit] | None) -> dict[str
     }
 
 
-def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
+def _findings(data: CompassData, comb: Combined, s: _Search, margin: float) -> list[Finding]:
+    """The kept causes as findings; the current's testimony is attached where the compass's own evidence
+    kept for a cause is short of the BIC ``margin`` (the one case it named the cause)."""
     return [
         Finding(
             name,
@@ -456,7 +459,8 @@ def _findings(data: CompassData, comb: Combined, s: _Search) -> list[Finding]:
             params_json(comb.fit, name, data, s.interval(name, comb.fit)),
             evidence_json(c, data)
             | ({"delta_bic_vs_time_shapes": s.temp_vs_time[name]} if name in s.temp_vs_time else {})
-            | (_witness_json(s.witnessed[name], s.current) if name in s.witnessed else {}),
+            | (_witness_json(s.witnessed[name], s.current)
+               if name in s.witnessed and c.delta_bic > -margin else {}),
             c.fit.rms_mgauss,
             s.candidates.get(name, []),
             s.candidate_params.get(name, {}),
@@ -473,10 +477,11 @@ def _result(
     log: LogData | None,
     events: Events | None,
     opened: list[dict[str, Any]] | None,
+    margin: float,
 ) -> CompassDiagnosis:
-    """The complete diagnosis of one compass from the search's outcome."""
+    """The complete diagnosis of one compass from the search's outcome (``margin``: the BIC margin)."""
     data, extended = bl.data, comb.fit
-    findings = _findings(data, comb, s)
+    findings = _findings(data, comb, s, margin)
     sig = signals_at(data, log)
     suspects = relate(data.t_s, extended.residual_mgauss, sig)
     step = find_step(data.t_s, extended.residual_mgauss, sig, events)
@@ -533,7 +538,7 @@ def diagnose_compass(
             return diagnose_compass(
                 st.data, source, p, log, events, open_search=False, opened=[st.info], exclude=exclude
             )
-    return _result(bl, comb, s, source, log, events, [*(opened or []), *demoted])
+    return _result(bl, comb, s, source, log, events, [*(opened or []), *demoted], p.min_delta_bic)
 
 
 def step_gain(data: CompassData, base: ModelFit) -> F64:
