@@ -58,6 +58,8 @@ from magcomp.errors import MagcompError
 if TYPE_CHECKING:  # pragma: no cover
     import rerun as rr_types
 
+F64 = NDArray[np.float64]
+
 TIMELINE = "msg_time"
 """Timeline of every logged row: seconds on the message's own clock (a Rerun duration timeline).
 
@@ -87,7 +89,7 @@ COLOR_CORRECTION = (170, 120, 230)
 COLOR_AXES = ((235, 70, 70), (90, 205, 90), (95, 125, 245))
 
 
-def wrap_deg(angle_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+def wrap_deg(angle_deg: F64) -> F64:
     """Wrap angles to [-180, 180) degrees."""
     return np.asarray((np.asarray(angle_deg, dtype=float) + 180.0) % 360.0 - 180.0, dtype=float)
 
@@ -432,7 +434,7 @@ class StreamDecimator:
         return take
 
 
-def thin_rows(rows: NDArray[np.float64], cap: int) -> NDArray[np.float64]:
+def thin_rows(rows: F64, cap: int) -> F64:
     """Every k-th row so that at most ``cap`` remain (the whole array when it is already small)."""
     n = rows.shape[0]
     if n <= cap:
@@ -448,13 +450,13 @@ class TruthHeading:
     adding and querying stay cheap over a long run; out-of-order samples re-sort and unwrap everything."""
 
     def __init__(self) -> None:
-        self._t: NDArray[np.float64] = np.zeros(0)
-        self._deg: NDArray[np.float64] = np.zeros(0)
-        self._unwrapped: NDArray[np.float64] = np.zeros(0)
+        self._t: F64 = np.zeros(0)
+        self._deg: F64 = np.zeros(0)
+        self._unwrapped: F64 = np.zeros(0)
         self._pending_t: list[float] = []
         self._pending_deg: list[float] = []
 
-    def add(self, t_s: NDArray[np.float64], heading_deg: NDArray[np.float64]) -> None:
+    def add(self, t_s: F64, heading_deg: F64) -> None:
         self._pending_t.extend(np.asarray(t_s, dtype=float).tolist())
         self._pending_deg.extend(np.asarray(heading_deg, dtype=float).tolist())
 
@@ -490,7 +492,7 @@ class TruthHeading:
         self._merge()
         return int(self._t.shape[0])
 
-    def at(self, t_s: NDArray[np.float64]) -> NDArray[np.float64]:
+    def at(self, t_s: F64) -> F64:
         """Truth heading (deg, 0..360) at ``t_s``; NaN outside the truth's time span (no extrapolation)."""
         self._merge()
         t_q = np.asarray(t_s, dtype=float)
@@ -501,11 +503,11 @@ class TruthHeading:
         return np.where(inside, value % 360.0, np.nan)
 
 
-def _as_1d(x: ArrayLike) -> NDArray[np.float64]:
+def _as_1d(x: ArrayLike) -> F64:
     return np.atleast_1d(np.asarray(x, dtype=float)).reshape(-1)
 
 
-def _as_rows3(x: ArrayLike, name: str) -> NDArray[np.float64]:
+def _as_rows3(x: ArrayLike, name: str) -> F64:
     arr = np.asarray(x, dtype=float)
     if arr.ndim == 1 and arr.shape[0] == 3:
         arr = arr.reshape(1, 3)
@@ -518,18 +520,18 @@ def _as_rows3(x: ArrayLike, name: str) -> NDArray[np.float64]:
 class EstimateColumns:
     """A list of HeadingEstimate as columns (what replay sends)."""
 
-    t_s: NDArray[np.float64]
-    heading_deg: NDArray[np.float64]
-    heading_raw_deg: NDArray[np.float64]
-    theta_mgauss: NDArray[np.float64]
-    bias_mgauss: NDArray[np.float64]
-    throttle_01: NDArray[np.float64]
+    t_s: F64
+    heading_deg: F64
+    heading_raw_deg: F64
+    theta_mgauss: F64
+    bias_mgauss: F64
+    throttle_01: F64
     flags: NDArray[np.int64]
-    field_raw_mgauss: NDArray[np.float64]
-    field_cal_mgauss: NDArray[np.float64]
-    residual_norm_mgauss: NDArray[np.float64]
-    excitation: NDArray[np.float64]
-    theta_sigma_mgauss: NDArray[np.float64]
+    field_raw_mgauss: F64
+    field_cal_mgauss: F64
+    residual_norm_mgauss: F64
+    excitation: F64
+    theta_sigma_mgauss: F64
 
     @classmethod
     def from_estimates(cls, estimates: Sequence[HeadingEstimate]) -> EstimateColumns:
@@ -547,8 +549,8 @@ THETA_BAND_LIMIT_MGAUSS = 1e5
 
 
 def theta_band(
-    theta_mgauss: NDArray[np.float64], sigma_mgauss: NDArray[np.float64]
-) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    theta_mgauss: F64, sigma_mgauss: F64
+) -> tuple[NDArray[np.bool_], F64]:
     """The +-1 sigma band of theta-hat per axis: ``(rows, edges)`` with ``rows`` (n, 3) True where the band is
     drawn (finite theta and sigma >= 0) and ``edges`` (n, 3, 2) = (theta - sigma, theta + sigma), clamped to
     +-:data:`THETA_BAND_LIMIT_MGAUSS`."""
@@ -594,12 +596,12 @@ class BiasFitCanvas:
     at the canvas's top edge."""
 
     range_mgauss: float
-    points: NDArray[np.float64]
-    lines: NDArray[np.float64] | None
+    points: F64
+    lines: F64 | None
 
     def to_canvas(
-        self, throttle2: NDArray[np.float64], bias_mgauss: NDArray[np.float64]
-    ) -> NDArray[np.float64]:
+        self, throttle2: F64, bias_mgauss: F64
+    ) -> F64:
         """(x, y) canvas coordinates of (throttle^2, bias)."""
         x = np.asarray(throttle2, dtype=float) * BIAS_CANVAS_X
         y = -np.asarray(bias_mgauss, dtype=float) / self.range_mgauss * BIAS_CANVAS_Y
@@ -607,7 +609,7 @@ class BiasFitCanvas:
 
 
 def bias_fit_canvas(
-    throttle2: NDArray[np.float64], bias_mgauss: NDArray[np.float64], theta_line: NDArray[np.float64] | None
+    throttle2: F64, bias_mgauss: F64, theta_line: F64 | None
 ) -> BiasFitCanvas:
     """Place measured bias (n, 3) against throttle^2 (n,) and the fitted lines on the Fig. 7 canvas."""
     values = [np.abs(bias_mgauss[np.isfinite(bias_mgauss)])]
@@ -815,11 +817,11 @@ class RerunViz:
         # state
         self._t_min = math.inf
         self._t_max = -math.inf
-        self._theta_refs: dict[str, NDArray[np.float64]] = {}
+        self._theta_refs: dict[str, F64] = {}
         self._ref_sent_t = -math.inf
         self._truth = TruthHeading()
         # heading rows whose errors against the truth are not sent yet (the truth came later or not at all)
-        self._err_pending: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
+        self._err_pending: list[tuple[F64, F64, F64]] = []
         self._last_flags: int | None = None
         self._live_buffer: list[HeadingEstimate] = []
         self._live_flushed_t = -math.inf
@@ -828,14 +830,14 @@ class RerunViz:
         self._theta_hi = -math.inf
         self._theta_range: tuple[float, float] | None = None
         self._bias_fit_shown = False
-        self._power_buffer: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        self._power_buffer: list[tuple[F64, F64]] = []
         self._bias_lo = math.inf
         self._bias_hi = -math.inf
         self._bias_range: tuple[float, float] | None = None
         self._origin_radius = 0.0
         self._cloud_pick = StreamDecimator(CLOUD_MAX_POINTS)
-        self._cloud_raw: list[NDArray[np.float64]] = []
-        self._cloud_cal: list[NDArray[np.float64]] = []
+        self._cloud_raw: list[F64] = []
+        self._cloud_cal: list[F64] = []
         self._cloud_sent_t = -math.inf
 
     def _serve(
@@ -912,11 +914,11 @@ class RerunViz:
         self._series_style("observer/excitation", (150, 220, 150), "lambda_min")
 
     # -- time helpers --------------------------------------------------------------------------------------
-    def _time_col(self, t_s: NDArray[np.float64]) -> Any:
+    def _time_col(self, t_s: F64) -> Any:
         return self._rr.TimeColumn(TIMELINE, duration=np.asarray(t_s, dtype=float))
 
     def _send_scalars(
-        self, path: str, t_s: NDArray[np.float64], values: NDArray[np.float64], drop_nan: bool
+        self, path: str, t_s: F64, values: F64, drop_nan: bool
     ) -> None:
         if drop_nan:
             ok = np.isfinite(values)
@@ -927,7 +929,7 @@ class RerunViz:
             path, indexes=[self._time_col(t_s)], columns=self._rr.Scalars.columns(scalars=values)
         )
 
-    def _see_times(self, t_s: NDArray[np.float64]) -> None:
+    def _see_times(self, t_s: F64) -> None:
         finite = t_s[np.isfinite(t_s)]
         if finite.size:
             self._t_min = min(self._t_min, float(finite.min()))
@@ -955,7 +957,7 @@ class RerunViz:
         self._live_flushed_t = float(block[-1].t_s)
         self._send_estimate_block(EstimateColumns.from_estimates(block), live=True)
 
-    def _slow_rows(self, key: str, t_s: NDArray[np.float64]) -> NDArray[np.bool_]:
+    def _slow_rows(self, key: str, t_s: F64) -> NDArray[np.bool_]:
         """Live: rows to keep so that entity group ``key`` gets at most one row per 1/LIVE_SLOW_HZ s of
         message time (the first row of each new time bucket)."""
         if not self.live:
@@ -1045,7 +1047,7 @@ class RerunViz:
         self._update_axes()
 
     def _send_theta_band(
-        self, t_s: NDArray[np.float64], theta_mgauss: NDArray[np.float64], sigma_mgauss: NDArray[np.float64]
+        self, t_s: F64, theta_mgauss: F64, sigma_mgauss: F64
     ) -> None:
         """theta-hat +- its 1-sigma per axis (entity ``theta/band/{x,y,z}``, two scalars a row: lower, upper),
         where the estimate carries a sigma; live: thinned to LIVE_SLOW_HZ of message time."""
@@ -1086,7 +1088,7 @@ class RerunViz:
         truth's span stay pending until more truth arrives."""
         if not len(self._truth) or not self._err_pending:
             return
-        still: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
+        still: list[tuple[F64, F64, F64]] = []
         for t, raw, cor in self._err_pending:
             truth = self._truth.at(t)
             ok = np.isfinite(truth)
@@ -1108,7 +1110,7 @@ class RerunViz:
             self._cloud_raw.clear()
             self._cloud_cal.clear()
 
-    def _send_flight_clouds(self, raw: NDArray[np.float64], cal: NDArray[np.float64], t_s: float) -> None:
+    def _send_flight_clouds(self, raw: F64, cal: F64, t_s: float) -> None:
         rr, rec = self._rr, self._rec
         rec.set_time(TIMELINE, duration=float(t_s))
         for path, pts, color in (
@@ -1121,7 +1123,7 @@ class RerunViz:
             rec.log(path, rr.Points3D(pts, radii=_cloud_radius(pts), colors=[list(color)]))
         self._log_origin_axes(cal)
 
-    def _log_origin_axes(self, calibrated: NDArray[np.float64]) -> None:
+    def _log_origin_axes(self, calibrated: F64) -> None:
         """Fig. 5: axes through the origin, +-1.3x the calibrated radius, in both 3D views, so the raw
         ellipsoid's offset from 0 (hard iron) and the calibrated sphere's centring show."""
         pts = calibrated[np.isfinite(calibrated).all(axis=1)]
@@ -1230,7 +1232,7 @@ class RerunViz:
             self._power_buffer.clear()
             self._send_power(t, values)
 
-    def _send_power(self, t: NDArray[np.float64], values: NDArray[np.float64]) -> None:
+    def _send_power(self, t: F64, values: F64) -> None:
         """``values`` (3, n): throttle, current, voltage at ``t``."""
         for path, v in zip(("power/throttle", "power/current", "power/voltage"), values, strict=True):
             self._send_scalars(path, t, v, drop_nan=True)
@@ -1364,7 +1366,7 @@ def band_color(rgb: Sequence[int]) -> list[int]:
     return [round(c + 0.6 * (255 - c)) for c in rgb]
 
 
-def _cloud_radius(pts: NDArray[np.float64]) -> float:
+def _cloud_radius(pts: F64) -> float:
     """Point radius ~1/80 of the typical field magnitude, so every batch of a cloud draws alike."""
     if pts.shape[0] == 0:
         return 1.0

@@ -33,7 +33,9 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class ExtensionParams:
-    """Values of every extension; the defaults are "off" (the paper's model)."""
+    """Values of every extension; the defaults are "off" (the paper's model): the nonlinear parameters
+    (``offset`` to ``sag``, see :func:`set_value`) at the values that leave eq. (11) as it is, and the linear
+    effects (``temperature``, ``per_motor``) off."""
 
     offset: float = 0.0
     exponent: float = 2.0

@@ -60,6 +60,9 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class GateParams:
+    """Thresholds of :func:`check`; the module docstring says where each one comes from. ``max_condition``
+    and ``max_inclination_error_deg`` are not set: they follow from ``max_scale_error``."""
+
     max_scale_error: float = 0.35
     max_residual_fraction: float = 0.05
     min_yaw_span_deg: float = 90.0

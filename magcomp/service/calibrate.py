@@ -129,6 +129,26 @@ class PendingFit:
     n: int
 
 
+def _starting_calibration(
+    cfg: Config, stored: CompassState | None
+) -> tuple[F64 | None, F64 | None, CalibrationSummary | None]:
+    """L, d of eq. (2) and their summary to start from: the identity with ``[calibration] mode = none``, the
+    stored ones unless the mode learns afresh, else none yet."""
+    mode = cfg.calibration.mode
+    if mode == "none":
+        return np.eye(3), np.zeros(3), CalibrationSummary("identity", float("nan"), float("nan"), 0)
+    if mode != "learn" and stored is not None and stored.calib_l is not None:
+        info = stored.calib_info or {}
+        summary = CalibrationSummary(
+            "stored",
+            float(info.get("residual_rms_mgauss", float("nan"))),
+            float(info.get("coverage", float("nan"))),
+            int(info.get("n", 0)),
+        )
+        return stored.calib_l, stored.calib_d, summary
+    return None, None, None
+
+
 class HandCalibration:
     """One compass's eq. (2) calibration: stored, identity, or learned from a motors-off hand rotation.
     ``on_adopt`` is called whenever a new calibration is adopted."""
@@ -145,22 +165,8 @@ class HandCalibration:
         self.earth_ned = earth_ned
         self._fits = fits
         self._on_adopt = on_adopt
-        self.calib_l: F64 | None = None
-        self.calib_d: F64 | None = None
-        self.summary: CalibrationSummary | None = None
+        self.calib_l, self.calib_d, self.summary = _starting_calibration(cfg, stored)
         mode = cfg.calibration.mode
-        if mode == "none":
-            self.calib_l, self.calib_d = np.eye(3), np.zeros(3)
-            self.summary = CalibrationSummary("identity", float("nan"), float("nan"), 0)
-        elif mode != "learn" and stored is not None and stored.calib_l is not None:
-            self.calib_l, self.calib_d = stored.calib_l, stored.calib_d
-            info = stored.calib_info or {}
-            self.summary = CalibrationSummary(
-                "stored",
-                float(info.get("residual_rms_mgauss", float("nan"))),
-                float(info.get("coverage", float("nan"))),
-                int(info.get("n", 0)),
-            )
         # calibration data (down_b, raw field) at zero throttle
         n_max = cfg.calibration.max_samples
         self._down = np.empty((n_max, 3))
