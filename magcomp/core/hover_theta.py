@@ -29,6 +29,7 @@ Pure numpy; fields in mgauss, angles in rad.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -67,6 +68,9 @@ class HoverTheta:
     anchor_rad: float = 0.0
     #: where the fit's yaw came from: "autopilot" (:class:`HoverNormal`) or "gyro" (:class:`GyroYawNormal`)
     yaw_source: str = "autopilot"
+    #: what ``theta_sigma_mgauss`` rests on: the number of blocks of the jackknife over time
+    #: (:func:`with_block_sigma`; 0: the fit's own covariance, which takes the residuals as white)
+    sigma_blocks: int = 0
 
     def correction(self) -> Correction:
         """The fit as a core correction (eq. (2) with L = I and d the offsets' change, eq. (11) with theta),
@@ -374,3 +378,64 @@ def fit_hover_theta(
     acc = HoverNormal()
     acc.add(field_b_mgauss, roll_rad, pitch_rad, yaw_rad, throttle_01)
     return acc.fit(offset_sd_mgauss)
+
+
+#: the jackknife's blocks of time (s): long against the residual's correlation (on the development logs'
+#: hover fits its lag-1 autocorrelation is 0.57-0.83 between samples, and the autopilot's yaw wanders 7-15 deg
+#: over 30-120 s against the gyro's), short enough that a few minutes of hover give several
+JACKKNIFE_BLOCK_S = 30.0
+#: no block shorter than the self-check's window (core/selfcheck.py WINDOW_S, 10 s)
+MIN_JACKKNIFE_BLOCK_S = 10.0
+#: fewer blocks than this give a variance with too few degrees of freedom to replace the fit's own
+MIN_JACKKNIFE_BLOCKS = 4
+#: at most this many refits: the blocks lengthen on a long log
+MAX_JACKKNIFE_BLOCKS = 12
+
+
+def jackknife_blocks(t_s: F64) -> NDArray[np.int64] | None:
+    """A block index per sample for :func:`block_jackknife_sd` (samples in time order): contiguous runs of
+    equal sample counts, as many as the time the samples cover holds of JACKKNIFE_BLOCK_S (gaps longer than
+    MIN_JACKKNIFE_BLOCK_S not counted: the motors stopped, the vehicle out of the fit's bounds), at least
+    MIN_JACKKNIFE_BLOCKS of no less than MIN_JACKKNIFE_BLOCK_S each, at most MAX_JACKKNIFE_BLOCKS; None
+    where the time covered holds fewer."""
+    t = np.asarray(t_s, dtype=float)
+    if t.size < 2:
+        return None
+    dt = np.diff(t)
+    covered = float(dt[(dt > 0.0) & (dt <= MIN_JACKKNIFE_BLOCK_S)].sum())
+    j = min(max(int(covered // JACKKNIFE_BLOCK_S), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
+    if covered < j * MIN_JACKKNIFE_BLOCK_S:
+        return None
+    return np.asarray(np.arange(t.size) * j // t.size, dtype=np.int64)
+
+
+FitOnMask = Callable[[NDArray[np.bool_]], "HoverTheta | None"]
+
+
+def block_jackknife_sd(blocks: NDArray[np.int64], fit_without: FitOnMask) -> tuple[F64, int] | None:
+    """theta's standard deviation (mgauss, per axis) by the delete-one-block jackknife: theta refitted with
+    each block of time left out (``fit_without(mask of the samples kept)``), sd = sqrt((J - 1) / J * sum of
+    the squared deviations from their mean). Residuals correlated in time (a yaw reference that wanders, a
+    field that changes along the path) make the fit's own covariance, which takes them as white, too small;
+    blocks long against that correlation carry it into the spread of the refits. Returns (sd, J), None
+    where fewer than MIN_JACKKNIFE_BLOCKS refits succeed."""
+    thetas = [f.theta_mgauss for b in np.unique(blocks) if (f := fit_without(blocks != b)) is not None]
+    j = len(thetas)
+    if j < MIN_JACKKNIFE_BLOCKS:
+        return None
+    th = np.asarray(thetas, dtype=float)
+    return np.sqrt((j - 1) / j * ((th - th.mean(axis=0)) ** 2).sum(axis=0)), j
+
+
+def with_block_sigma(fit: HoverTheta, t_s: F64, fit_on: FitOnMask) -> HoverTheta:
+    """``fit`` with theta's sigma the larger, per axis, of its own and :func:`block_jackknife_sd`'s
+    (``fit_on``: the same form fitted on a mask of the samples ``t_s``); unchanged where the span holds too
+    few blocks. Departure from the paper, whose eq. (15) covariance takes the noise as white: on the
+    development logs' hover fits the jackknife's sd is 3-13x the white one, and near the spread of the
+    diagnosis's independent fits (docs/real-flights.md)."""
+    blocks = jackknife_blocks(t_s)
+    got = None if blocks is None else block_jackknife_sd(blocks, fit_on)
+    if got is None:
+        return fit
+    sd, j = got
+    return replace(fit, theta_sigma_mgauss=np.maximum(fit.theta_sigma_mgauss, sd), sigma_blocks=j)

@@ -30,6 +30,7 @@ import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from typing import IO, TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -44,6 +45,7 @@ from magcomp.core.hover_theta import (
     anchored,
     fit_hover_theta,
     fit_hover_theta_gyro,
+    with_block_sigma,
 )
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.core.yaw_follow import follows_within
@@ -367,7 +369,7 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
             chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)), circular)
             got = anchored(fit, field, thr, *trig), chk
             if chk.applies:
-                return got
+                return with_block_sigma(got[0], t, partial(fit_on, source, sd=sd)), chk
     return got
 
 
