@@ -192,6 +192,27 @@ class HoverNormal(_ThrottleSums):
         self._aty[6:9] += m.sum(axis=0)
         self._yty += float(np.einsum("ni,ni->", m, m))
 
+    def merge(self, other: HoverNormal) -> None:
+        """``other``'s samples added to these (the sums are additive)."""
+        self._ata += other._ata
+        self._aty += other._aty
+        self._yty += other._yty
+        self.n += other.n
+        self._d2 += other._d2
+        self._d4 += other._d4
+
+    def without(self, other: HoverNormal) -> HoverNormal:
+        """These normal equations less ``other``'s samples (a part of them): the fit with them left out."""
+        out = HoverNormal()
+        out.merge(self)
+        out._ata -= other._ata
+        out._aty -= other._aty
+        out._yty -= other._yty
+        out.n -= other.n
+        out._d2 -= other._d2
+        out._d4 -= other._d4
+        return out
+
     def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
         """The least-squares theta (see :func:`fit_hover_theta`); None where throttle^2 hardly varies (see
         MIN_THROTTLE2_STD) or there are fewer samples than twice the unknowns."""
@@ -419,7 +440,13 @@ def block_jackknife_sd(blocks: NDArray[np.int64], fit_without: FitOnMask) -> tup
     field that changes along the path) make the fit's own covariance, which takes them as white, too small;
     blocks long against that correlation carry it into the spread of the refits. Returns (sd, J), None
     where fewer than MIN_JACKKNIFE_BLOCKS refits succeed."""
-    thetas = [f.theta_mgauss for b in np.unique(blocks) if (f := fit_without(blocks != b)) is not None]
+    return jackknife_sd([fit_without(blocks != b) for b in np.unique(blocks)])
+
+
+def jackknife_sd(fits_without: list[HoverTheta | None]) -> tuple[F64, int] | None:
+    """The delete-one-block jackknife's sd of theta (mgauss, per axis) from the refits with each block left
+    out (None: that refit failed, not counted), and their count; None below MIN_JACKKNIFE_BLOCKS."""
+    thetas = [f.theta_mgauss for f in fits_without if f is not None]
     j = len(thetas)
     if j < MIN_JACKKNIFE_BLOCKS:
         return None
@@ -427,15 +454,36 @@ def block_jackknife_sd(blocks: NDArray[np.int64], fit_without: FitOnMask) -> tup
     return np.sqrt((j - 1) / j * ((th - th.mean(axis=0)) ** 2).sum(axis=0)), j
 
 
-def with_block_sigma(fit: HoverTheta, t_s: F64, fit_on: FitOnMask) -> HoverTheta:
-    """``fit`` with theta's sigma the larger, per axis, of its own and :func:`block_jackknife_sd`'s
-    (``fit_on``: the same form fitted on a mask of the samples ``t_s``); unchanged where the span holds too
-    few blocks. Departure from the paper, whose eq. (15) covariance takes the noise as white: on the
-    development logs' hover fits the jackknife's sd is 3-13x the white one, and near the spread of the
-    diagnosis's independent fits (docs/real-flights.md)."""
-    blocks = jackknife_blocks(t_s)
-    got = None if blocks is None else block_jackknife_sd(blocks, fit_on)
+def with_jackknife(fit: HoverTheta, got: tuple[F64, int] | None) -> HoverTheta:
+    """``fit`` with theta's sigma the larger, per axis, of its own and the jackknife's ``got``."""
     if got is None:
         return fit
     sd, j = got
     return replace(fit, theta_sigma_mgauss=np.maximum(fit.theta_sigma_mgauss, sd), sigma_blocks=j)
+
+
+def grouped_jackknife(total: HoverNormal, groups: list[HoverNormal], fit: HoverTheta,
+                      offset_sd_mgauss: float | None) -> HoverTheta:  # fmt: skip
+    """:func:`with_block_sigma` on normal equations kept per MIN_JACKKNIFE_BLOCK_S of time (the live fit's
+    ``groups``, whose sum is ``total``): adjacent groups merged into as many blocks as
+    :func:`jackknife_blocks` takes for that time, each left out by subtraction."""
+    if len(groups) < MIN_JACKKNIFE_BLOCKS:
+        return fit
+    per_block = JACKKNIFE_BLOCK_S / MIN_JACKKNIFE_BLOCK_S
+    j = min(max(int(len(groups) // per_block), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
+    merged: list[HoverNormal] = []
+    for chunk in np.array_split(np.arange(len(groups)), j):
+        g = HoverNormal()
+        for i in chunk.tolist():
+            g.merge(groups[i])
+        merged.append(g)
+    return with_jackknife(fit, jackknife_sd([total.without(g).fit(offset_sd_mgauss) for g in merged]))
+
+
+def with_block_sigma(fit: HoverTheta, t_s: F64, fit_on: FitOnMask) -> HoverTheta:
+    """``fit`` with theta's sigma the larger, per axis, of its own and :func:`block_jackknife_sd`'s
+    (``fit_on``: the same form fitted on a mask of the samples ``t_s``); unchanged where the span holds too
+    few blocks. Departure from the paper, whose eq. (15) covariance takes the noise as white: on the
+    development logs' hover fits the jackknife's sd is 1-45x the white one (docs/real-flights.md)."""
+    blocks = jackknife_blocks(t_s)
+    return with_jackknife(fit, None if blocks is None else block_jackknife_sd(blocks, fit_on))

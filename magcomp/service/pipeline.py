@@ -551,7 +551,7 @@ class Pipeline:
             return None
         if st is not None and st.applied:
             return None  # the in-flight correction applies (published or not: service/heading.py)
-        return live.fit
+        return live.stated_fit()
 
     def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
         """A compass's self-check and whether its correction is published: the two-pass replay's over the

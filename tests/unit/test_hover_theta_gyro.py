@@ -177,3 +177,44 @@ def test_thetas_sigma_from_the_block_jackknife_covers_the_error_under_correlated
     # 60 axis-errors at a 2-sigma (95 %) level: the white sigma covers far fewer, the jackknife's about that
     assert cover_white < 0.75, cover_white
     assert cover_jk >= 0.85, (cover_jk, cover_white)
+
+
+def test_the_live_fits_jackknife_leaves_each_block_out_by_subtraction_and_covers_the_error() -> None:
+    """The live hover fit (service/heading.py HoverShadow) keeps its normal equations per 10 s as well;
+    a block left out by subtraction (``HoverNormal.without``) is the fit on the other samples, and the
+    jackknife over those blocks (``grouped_jackknife``) covers theta's error under the same correlated
+    disturbance as above, where the fit's own sigma does not."""
+    from magcomp.core.hover_theta import HoverNormal, grouped_jackknife
+
+    z_white, z_jk = [], []
+    for seed in range(20):
+        h = _hover(200 + seed, n=6000, follow_per_s=0.0)  # the autopilot's yaw: the true one
+        field = h["field"] + _ar1(np.random.default_rng(2000 + seed), h["t"].size, 4.0, 6.0)
+        total, groups = HoverNormal(), []
+        group_of = (h["t"] // 10.0).astype(int)
+        for g in np.unique(group_of):
+            m = group_of == g
+            part = HoverNormal()
+            for lo in range(0, int(m.sum()), 97):  # blocks as the live path adds them
+                sl = np.flatnonzero(m)[lo:lo + 97]
+                part.add(field[sl], h["roll"][sl], h["pitch"][sl], h["ap"][sl], h["thr"][sl])
+            total.merge(part)
+            groups.append(part)
+        fit = total.fit()
+        assert fit is not None
+        if seed == 0:  # one block left out by subtraction: the fit on the other samples
+            keep = group_of != 13
+            direct = fit_hover_theta(field[keep], h["roll"][keep], h["pitch"][keep], h["ap"][keep],
+                                     h["thr"][keep])  # fmt: skip
+            left = total.without(groups[13]).fit()
+            assert direct is not None and left is not None
+            np.testing.assert_allclose(left.theta_mgauss, direct.theta_mgauss, rtol=1e-7, atol=1e-5)
+        jk = grouped_jackknife(total, groups, fit, None)
+        assert jk.sigma_blocks == 12  # 60 groups of 10 s merged into at most 12 blocks
+        err = fit.theta_mgauss - THETA
+        z_white.extend(np.abs(err) / fit.theta_sigma_mgauss)
+        z_jk.extend(np.abs(err) / jk.theta_sigma_mgauss)
+    cover_white = float(np.mean(np.asarray(z_white) < 2.0))
+    cover_jk = float(np.mean(np.asarray(z_jk) < 2.0))
+    assert cover_white < 0.75, cover_white
+    assert cover_jk >= 0.85, (cover_jk, cover_white)
