@@ -29,6 +29,7 @@ Pure numpy; fields in mgauss, angles in rad.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -67,6 +68,9 @@ class HoverTheta:
     anchor_rad: float = 0.0
     #: where the fit's yaw came from: "autopilot" (:class:`HoverNormal`) or "gyro" (:class:`GyroYawNormal`)
     yaw_source: str = "autopilot"
+    #: what ``theta_sigma_mgauss`` rests on: the number of blocks of the jackknife over time
+    #: (:func:`with_block_sigma`; 0: the fit's own covariance, which takes the residuals as white)
+    sigma_blocks: int = 0
 
     def correction(self) -> Correction:
         """The fit as a core correction (eq. (2) with L = I and d the offsets' change, eq. (11) with theta),
@@ -187,6 +191,27 @@ class HoverNormal(_ThrottleSums):
         self._aty[3:6] += d2 @ m
         self._aty[6:9] += m.sum(axis=0)
         self._yty += float(np.einsum("ni,ni->", m, m))
+
+    def merge(self, other: HoverNormal) -> None:
+        """``other``'s samples added to these (the sums are additive)."""
+        self._ata += other._ata
+        self._aty += other._aty
+        self._yty += other._yty
+        self.n += other.n
+        self._d2 += other._d2
+        self._d4 += other._d4
+
+    def without(self, other: HoverNormal) -> HoverNormal:
+        """These normal equations less ``other``'s samples (a part of them): the fit with them left out."""
+        out = HoverNormal()
+        out.merge(self)
+        out._ata -= other._ata
+        out._aty -= other._aty
+        out._yty -= other._yty
+        out.n -= other.n
+        out._d2 -= other._d2
+        out._d4 -= other._d4
+        return out
 
     def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:
         """The least-squares theta (see :func:`fit_hover_theta`); None where throttle^2 hardly varies (see
@@ -374,3 +399,91 @@ def fit_hover_theta(
     acc = HoverNormal()
     acc.add(field_b_mgauss, roll_rad, pitch_rad, yaw_rad, throttle_01)
     return acc.fit(offset_sd_mgauss)
+
+
+#: the jackknife's blocks of time (s): long against the residual's correlation (on the development logs'
+#: hover fits its lag-1 autocorrelation is 0.57-0.83 between samples, and the autopilot's yaw wanders 7-15 deg
+#: over 30-120 s against the gyro's), short enough that a few minutes of hover give several
+JACKKNIFE_BLOCK_S = 30.0
+#: no block shorter than the self-check's window (core/selfcheck.py WINDOW_S, 10 s)
+MIN_JACKKNIFE_BLOCK_S = 10.0
+#: fewer blocks than this give a variance with too few degrees of freedom to replace the fit's own
+MIN_JACKKNIFE_BLOCKS = 4
+#: at most this many refits: the blocks lengthen on a long log
+MAX_JACKKNIFE_BLOCKS = 12
+
+
+def jackknife_blocks(t_s: F64) -> NDArray[np.int64] | None:
+    """A block index per sample for :func:`block_jackknife_sd` (samples in time order): contiguous runs of
+    equal sample counts, as many as the time the samples cover holds of JACKKNIFE_BLOCK_S (gaps longer than
+    MIN_JACKKNIFE_BLOCK_S not counted: the motors stopped, the vehicle out of the fit's bounds), at least
+    MIN_JACKKNIFE_BLOCKS of no less than MIN_JACKKNIFE_BLOCK_S each, at most MAX_JACKKNIFE_BLOCKS; None
+    where the time covered holds fewer."""
+    t = np.asarray(t_s, dtype=float)
+    if t.size < 2:
+        return None
+    dt = np.diff(t)
+    covered = float(dt[(dt > 0.0) & (dt <= MIN_JACKKNIFE_BLOCK_S)].sum())
+    j = min(max(int(covered // JACKKNIFE_BLOCK_S), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
+    if covered < j * MIN_JACKKNIFE_BLOCK_S:
+        return None
+    return np.asarray(np.arange(t.size) * j // t.size, dtype=np.int64)
+
+
+FitOnMask = Callable[[NDArray[np.bool_]], "HoverTheta | None"]
+
+
+def block_jackknife_sd(blocks: NDArray[np.int64], fit_without: FitOnMask) -> tuple[F64, int] | None:
+    """theta's standard deviation (mgauss, per axis) by the delete-one-block jackknife: theta refitted with
+    each block of time left out (``fit_without(mask of the samples kept)``), sd = sqrt((J - 1) / J * sum of
+    the squared deviations from their mean). Residuals correlated in time (a yaw reference that wanders, a
+    field that changes along the path) make the fit's own covariance, which takes them as white, too small;
+    blocks long against that correlation carry it into the spread of the refits. Returns (sd, J), None
+    where fewer than MIN_JACKKNIFE_BLOCKS refits succeed."""
+    return jackknife_sd([fit_without(blocks != b) for b in np.unique(blocks)])
+
+
+def jackknife_sd(fits_without: list[HoverTheta | None]) -> tuple[F64, int] | None:
+    """The delete-one-block jackknife's sd of theta (mgauss, per axis) from the refits with each block left
+    out (None: that refit failed, not counted), and their count; None below MIN_JACKKNIFE_BLOCKS."""
+    thetas = [f.theta_mgauss for f in fits_without if f is not None]
+    j = len(thetas)
+    if j < MIN_JACKKNIFE_BLOCKS:
+        return None
+    th = np.asarray(thetas, dtype=float)
+    return np.sqrt((j - 1) / j * ((th - th.mean(axis=0)) ** 2).sum(axis=0)), j
+
+
+def with_jackknife(fit: HoverTheta, got: tuple[F64, int] | None) -> HoverTheta:
+    """``fit`` with theta's sigma the larger, per axis, of its own and the jackknife's ``got``."""
+    if got is None:
+        return fit
+    sd, j = got
+    return replace(fit, theta_sigma_mgauss=np.maximum(fit.theta_sigma_mgauss, sd), sigma_blocks=j)
+
+
+def grouped_jackknife(total: HoverNormal, groups: list[HoverNormal], fit: HoverTheta,
+                      offset_sd_mgauss: float | None) -> HoverTheta:  # fmt: skip
+    """:func:`with_block_sigma` on normal equations kept per MIN_JACKKNIFE_BLOCK_S of time (the live fit's
+    ``groups``, whose sum is ``total``): adjacent groups merged into as many blocks as
+    :func:`jackknife_blocks` takes for that time, each left out by subtraction."""
+    if len(groups) < MIN_JACKKNIFE_BLOCKS:
+        return fit
+    per_block = JACKKNIFE_BLOCK_S / MIN_JACKKNIFE_BLOCK_S
+    j = min(max(int(len(groups) // per_block), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
+    merged: list[HoverNormal] = []
+    for chunk in np.array_split(np.arange(len(groups)), j):
+        g = HoverNormal()
+        for i in chunk.tolist():
+            g.merge(groups[i])
+        merged.append(g)
+    return with_jackknife(fit, jackknife_sd([total.without(g).fit(offset_sd_mgauss) for g in merged]))
+
+
+def with_block_sigma(fit: HoverTheta, t_s: F64, fit_on: FitOnMask) -> HoverTheta:
+    """``fit`` with theta's sigma the larger, per axis, of its own and :func:`block_jackknife_sd`'s
+    (``fit_on``: the same form fitted on a mask of the samples ``t_s``); unchanged where the span holds too
+    few blocks. Departure from the paper, whose eq. (15) covariance takes the noise as white: on the
+    development logs' hover fits the jackknife's sd is 1-45x the white one (docs/real-flights.md)."""
+    blocks = jackknife_blocks(t_s)
+    return with_jackknife(fit, None if blocks is None else block_jackknife_sd(blocks, fit_on))

@@ -30,6 +30,7 @@ import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from typing import IO, TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -44,6 +45,7 @@ from magcomp.core.hover_theta import (
     anchored,
     fit_hover_theta,
     fit_hover_theta_gyro,
+    with_block_sigma,
 )
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.core.yaw_follow import follows_within
@@ -369,14 +371,14 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
             chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)), circular)
             got = anchored(fit, field, thr, *trig), chk
             if chk.applies:
-                return got
+                return with_block_sigma(got[0], t, partial(fit_on, source, sd=sd)), chk
     return got
 
 
 def self_check_finals(
     samples: SampleLog, finals: dict[int, FinalCompass], hover_on: bool = True
 ) -> tuple[dict[int, FinalCompass], dict[int, selfcheck.SelfCheck], dict[int, HoverTheta],
-           dict[int, selfcheck.SelfCheck]]:  # fmt: skip
+           dict[int, tuple[HoverTheta, selfcheck.SelfCheck]]]:  # fmt: skip
     """The self-check over the whole log (:mod:`magcomp.core.selfcheck`) of every compass corrected in
     flight (a hand rotation's calibration is judged by eq. (3) instead): where the corrected heading is
     not better than the autopilot's own beyond the noise, or worse against the gyro or the autopilot's yaw,
@@ -384,8 +386,8 @@ def self_check_finals(
     the same heading filter. Every compass left uncorrected then gets theta against the autopilot's own
     calibration (core/hover_theta.py: a hover determines theta, not a calibration), published where that
     passes the same check (``hover_on``: theta may be learned in flight, ``[inflight] enabled``). Returns the
-    final states, the checks of what each compass publishes, the hover thetas published and the checks of
-    those tried and not published (the console says why)."""
+    final states, the checks of what each compass publishes, the hover thetas published and, for those
+    tried and not published, the last form tried with its check (the console says why, and with which yaw)."""
     judged = [i for i, f in finals.items() if f.correction.source == "in flight"]
     hover = [i for i, f in finals.items() if hover_on and (not f.correction.calibrated or i in judged)]
     parts: dict[int, list[F64]] = {i: [] for i in judged}
@@ -399,7 +401,7 @@ def self_check_finals(
     out = dict(finals)
     checks: dict[int, selfcheck.SelfCheck] = {}
     hovers: dict[int, HoverTheta] = {}
-    refused: dict[int, selfcheck.SelfCheck] = {}
+    refused: dict[int, tuple[HoverTheta, selfcheck.SelfCheck]] = {}
     for i in judged:
         cols = np.concatenate(parts[i]) if parts[i] else np.zeros((0, 7))
         chk = checks[i] = self_check(cols)
@@ -412,7 +414,7 @@ def self_check_finals(
         got = hover_candidate(np.concatenate(hparts[i]) if hparts[i] else np.zeros((0, 11)))
         if got is None or not got[1].applies:
             if got is not None:
-                refused[i] = got[1]
+                refused[i] = got
             continue
         fit, chk = got
         f = finals[i]

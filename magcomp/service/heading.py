@@ -19,7 +19,14 @@ from numpy.typing import NDArray
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import HeadingFilter, turn_rate
-from magcomp.core.hover_theta import OFFSET_PRIOR_SD_MGAUSS, HoverNormal, HoverTheta, offset_changed
+from magcomp.core.hover_theta import (
+    MIN_JACKKNIFE_BLOCK_S,
+    OFFSET_PRIOR_SD_MGAUSS,
+    HoverNormal,
+    HoverTheta,
+    grouped_jackknife,
+    offset_changed,
+)
 from magcomp.core.inflight import InflightOutput
 from magcomp.core.selfcheck import (
     LIVE_WINDOW_S,
@@ -57,11 +64,14 @@ class HoverShadow:
     equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
-    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_offset", "_solved", "checks", "deg", "filter",
-                 "fits", "normal", "on_form")  # fmt: skip
+    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_group_t", "_groups", "_offset", "_solved",
+                 "checks", "deg", "filter", "fits", "normal", "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.normal = HoverNormal()
+        #: the same normal equations per MIN_JACKKNIFE_BLOCK_S of time (theta's sigma: :meth:`stated_fit`)
+        self._groups: list[HoverNormal] = []
+        self._group_t = -math.inf
         self._fit_t = math.nan
         self._block: list[tuple[float, float, float, float, float, float, float]] = []
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
@@ -78,14 +88,21 @@ class HoverShadow:
         #: the form published (None: none is on)
         self.on_form: int | None = None
 
-    def refit(self) -> None:
-        """The buffered samples into the normal equations; every form is solved again when next needed
-        (:meth:`_solve`; where the in-flight correction applies the forms are neither judged nor reported)."""
+    def refit(self, t_s: float) -> None:
+        """The buffered samples (the latest at ``t_s``) into the normal equations and into those of their
+        block of time; every form is solved again when next needed (:meth:`_solve`; where the in-flight
+        correction applies the forms are neither judged nor reported)."""
         block = self._block
         if block:  # (the rows' floats one by one: half the time of np.asarray on the list of tuples)
             a = np.fromiter(chain.from_iterable(block), float, HOVER_ROW * len(block)).reshape(-1, HOVER_ROW)
             self._block = []
-            self.normal.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
+            part = HoverNormal()
+            part.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
+            self.normal.merge(part)
+            if not t_s - self._group_t < MIN_JACKKNIFE_BLOCK_S:
+                self._groups.append(HoverNormal())
+                self._group_t = t_s
+            self._groups[-1].merge(part)
         self._solved = False
 
     def _solve(self) -> None:
@@ -142,7 +159,7 @@ class HoverShadow:
             self.filter.reset()
         due = ok and len(self._block) >= MIN_HOVER_BLOCK and not rec.t_s - self._fit_t < LIVE_WINDOW_S
         if refit or due:
-            self.refit()
+            self.refit(rec.t_s)
             self._fit_t = rec.t_s
 
     @property
@@ -151,6 +168,14 @@ class HoverShadow:
         if not self._solved:
             self._solve()
         return None if self.on_form is None else self.fits[self.on_form]
+
+    def stated_fit(self) -> HoverTheta | None:
+        """:attr:`fit` with theta's sigma the larger of its own and the jackknife's over the blocks of time
+        (core/hover_theta.py :func:`~magcomp.core.hover_theta.grouped_jackknife`), for the summary."""
+        fit = self.fit
+        if fit is None or self.on_form is None:
+            return fit
+        return grouped_jackknife(self.normal, self._groups, fit, HOVER_FORMS[self.on_form])
 
     def published_deg(self) -> float:
         """The published form's filtered heading, the constant heading change of an offsets' change taken out

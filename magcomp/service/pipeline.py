@@ -95,6 +95,11 @@ class SampleRecorder(Protocol):
     def reboot(self, compasses: Iterable[int]) -> None: ...
 
 
+def _yaw_words(hov: HoverTheta) -> str:
+    """The yaw a theta against the autopilot's calibration was fitted with, in the console's words."""
+    return "the gyro's yaw" if hov.yaw_source == "gyro" else "the autopilot's yaw"
+
+
 def _ignored(sample: object) -> bool:
     """Samples the pipeline does not use (temperature, power)."""
     return False
@@ -146,7 +151,8 @@ class Pipeline:
         #: where it passed the self-check (the two-pass replay's; service/final_pass.py)
         self.hover_thetas: dict[int, HoverTheta] = {}
         #: the two-pass replay's checks of theta against the autopilot's calibration, tried and not published
-        self.hover_refused: dict[int, SelfCheck] = {}
+        #: (the last form tried, with its check)
+        self.hover_refused: dict[int, tuple[HoverTheta, SelfCheck]] = {}
         self._earth_ned = est_core.earth_field(cfg)
         self._earth_ned.flags.writeable = False  # shared by every stage
         self._params: dict[str, float] = {}  # the autopilot's parameters (in-flight calibration)
@@ -505,7 +511,7 @@ class Pipeline:
         hov = self._hover(c)
         if hov is not None and chk is not None and on:
             what = "theta" if not hov.offset_mgauss.any() else "theta and a change of its offsets"
-            yaw = "the gyro's yaw" if hov.yaw_source == "gyro" else "the autopilot's yaw"
+            yaw = _yaw_words(hov)
             why = (f"{what} against the autopilot's calibration, fitted with {yaw} (none determined by the "
                    f"flight: {st.why})")  # fmt: skip
             return Status("corrected", f"{why}; {chk.describe()}")
@@ -529,10 +535,11 @@ class Pipeline:
     def _tried(self, c: CompassCorrector) -> str:
         """What became of theta against the autopilot's calibration where it was tried and not published
         (the two-pass replay's check), as a clause of the uncorrected status; empty where not tried."""
-        chk = self.hover_refused.get(c.mag_index)
-        if chk is None:
+        got = self.hover_refused.get(c.mag_index)
+        if got is None:
             return ""
-        return f"; theta against the autopilot's calibration, tried: {chk.reason}"
+        hov, chk = got
+        return f"; theta against the autopilot's calibration, tried with {_yaw_words(hov)}: {chk.reason}"
 
     def _hover(self, c: CompassCorrector) -> HoverTheta | None:
         """The theta against the autopilot's calibration a compass publishes: the two-pass replay's, else the
@@ -544,7 +551,7 @@ class Pipeline:
             return None
         if st is not None and st.applied:
             return None  # the in-flight correction applies (published or not: service/heading.py)
-        return live.fit
+        return live.stated_fit()
 
     def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
         """A compass's self-check and whether its correction is published: the two-pass replay's over the

@@ -60,6 +60,8 @@ def compass_summary(
             "residual_rms_mgauss": hover.residual_rms_mgauss,
             "n": hover.n,
             "theta_sigma_mgauss": hover.theta_sigma_mgauss.tolist(),
+            # blocks of the jackknife the sigma rests on (0: the fit's own, white-residual covariance)
+            "theta_sigma_blocks": hover.sigma_blocks,
             "offset_change_mgauss": hover.offset_mgauss.tolist(),
             "heading_anchor_deg": math.degrees(hover.anchor_rad),
             "yaw_source": hover.yaw_source,

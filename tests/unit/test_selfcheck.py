@@ -484,7 +484,8 @@ def test_uncorrected_status_says_what_became_of_theta_against_the_autopilots_cal
     """Where the two-pass replay tried theta against the autopilot's calibration and its held-out check
     refused it, the compass's status says so with the check's reason (a pilot reading "not observable"
     alone would not know the fallback was tried); where it was published, no such clause. The simulated
-    fixed-wing bench log: compass 0's hover theta passes, compass 1's (its yaw span 14 deg) does not."""
+    fixed-wing bench log: compass 0's hover theta passes, compass 1's (its yaw span 14 deg) does not. The
+    clause names the yaw the refused fit took (the gyro's or the autopilot's)."""
     from pathlib import Path
 
     from magcomp.adapters.config import load_config
@@ -493,10 +494,12 @@ def test_uncorrected_status_says_what_became_of_theta_against_the_autopilots_cal
     log = Path(__file__).resolve().parents[2] / "replay_logs" / "bench_clean.tlog"
     rep = replay_log(log, load_config(None), two_pass=True)
     whys = {int(c["index"]): (c["status"], c["why"]) for c in rep.summary["compasses"]}
-    tried = "theta against the autopilot's calibration, tried: "
+    tried = "theta against the autopilot's calibration, tried with "
     status, why = whys[1]
     assert status == "uncorrected" and tried in why, why
-    assert "gyro" in why.split(tried)[1]  # the check's reason, with its figures
+    rest = why.split(tried)[1]
+    assert rest.startswith(("the gyro's yaw: ", "the autopilot's yaw: ")), rest
+    assert "gyro" in rest.split(": ", 1)[1]  # the check's reason, with its figures
     status, why = whys[0]
     assert status == "corrected" and tried not in why, why
 
