@@ -30,7 +30,6 @@ import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from functools import partial
 from typing import IO, TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -371,8 +370,28 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
             chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)), circular)
             got = anchored(fit, field, thr, *trig), chk
             if chk.applies:
-                return with_block_sigma(got[0], t, partial(fit_on, source, sd=sd)), chk
+                return _stated(got[0], source, sd, fit_on, cols, fast), chk
     return got
+
+
+def _stated(fit: HoverTheta, source: str, sd: float | None,
+            fit_on: Callable[[str, NDArray[np.bool_], float | None], HoverTheta | None], cols: F64,
+            fast: NDArray[np.bool_] | None) -> HoverTheta:  # fmt: skip
+    """``fit`` with theta's sigma from the jackknife over blocks of time (core/hover_theta.py
+    :func:`~magcomp.core.hover_theta.with_block_sigma`), the blocks counted over the rows its form fits."""
+    t, roll, pitch, yaw, thr, gyaw, epoch = (cols[:, i] for i in (0, 4, 5, 6, 7, 8, 9))
+    use = np.isfinite(cols[:, 1:4]).all(axis=1) & np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(thr)
+    if source == "gyro" and fast is not None:
+        use &= fast & np.isfinite(gyaw) & np.isfinite(epoch) & np.isfinite(t)
+    else:
+        use &= np.isfinite(yaw)
+
+    def on_used(kept: NDArray[np.bool_]) -> HoverTheta | None:
+        m = np.zeros(use.shape, dtype=bool)
+        m[use] = kept
+        return fit_on(source, m, sd)
+
+    return with_block_sigma(fit, t[use], on_used)
 
 
 def self_check_finals(

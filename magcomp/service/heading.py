@@ -20,8 +20,8 @@ from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import HeadingFilter, turn_rate
 from magcomp.core.hover_theta import (
-    MIN_JACKKNIFE_BLOCK_S,
     OFFSET_PRIOR_SD_MGAUSS,
+    HoverGroups,
     HoverNormal,
     HoverTheta,
     grouped_jackknife,
@@ -64,14 +64,13 @@ class HoverShadow:
     equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
-    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_group_t", "_groups", "_offset", "_solved",
-                 "checks", "deg", "filter", "fits", "normal", "on_form")  # fmt: skip
+    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_groups", "_offset", "_solved", "checks", "deg",
+                 "filter", "fits", "normal", "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.normal = HoverNormal()
-        #: the same normal equations per MIN_JACKKNIFE_BLOCK_S of time (theta's sigma: :meth:`stated_fit`)
-        self._groups: list[HoverNormal] = []
-        self._group_t = -math.inf
+        #: the same normal equations per stretch of time (theta's sigma: :meth:`stated_fit`)
+        self._groups = HoverGroups()
         self._fit_t = math.nan
         self._block: list[tuple[float, float, float, float, float, float, float]] = []
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
@@ -99,10 +98,7 @@ class HoverShadow:
             part = HoverNormal()
             part.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
             self.normal.merge(part)
-            if not t_s - self._group_t < MIN_JACKKNIFE_BLOCK_S:
-                self._groups.append(HoverNormal())
-                self._group_t = t_s
-            self._groups[-1].merge(part)
+            self._groups.add(part, t_s)
         self._solved = False
 
     def _solve(self) -> None:
