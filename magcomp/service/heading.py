@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from itertools import chain
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +45,8 @@ from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
+F64 = NDArray[np.float64]
+FloatOrArray = TypeVar("FloatOrArray", float, F64)
 _DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
 
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
@@ -432,16 +435,44 @@ def filter_rates(rec: MagRecord) -> tuple[float, float, float]:
     """What the heading filters propagate with at this sample, from the raw gyro: the Euler yaw rate
     (:func:`yaw_rate`, rad/s), the turn rate (core/heading_filter.py :func:`turn_rate`, rad/s) and the
     attitude filter's bias where it can be trusted (:func:`gyro_bias_rad_s`; NaN elsewhere). The live stage
-    and the two-pass replay's sample log (which its second pass replays) take them here."""
+    takes them here; the two-pass replay's second pass takes the same numbers a block at a time
+    (:func:`filter_rates_block`)."""
     gx, gy, gz = rec.gyro_raw
     cr, sr, cp, _ = rec.tilt
     rate = yaw_rate(gy, gz, cr, sr, cp)
     return rate, turn_rate(gx, gy, gz, cr * cp), gyro_bias_rad_s(rec, rate)
 
 
-def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
-    """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)``."""
-    return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
+def filter_rates_block(
+    gyro_raw: tuple[F64, F64, F64],
+    gyro_yz: tuple[F64, F64],
+    tilt: tuple[F64, F64, F64],
+    settled: NDArray[np.bool_],
+    have_throttle: NDArray[np.bool_],
+    throttle_01: F64,
+) -> tuple[F64, F64, F64]:
+    """:func:`filter_rates` of a block of samples (the same numbers: the same operations, element by element)
+    from their columns: the gyro as logged (x, y, z), the bias-corrected gyro's y and z, cos / sin of roll and
+    cos of pitch, whether the attitude filter had settled (``MagRecord.down`` not None), the throttle."""
+    gx, gy, gz = gyro_raw
+    cr, sr, cp = tilt
+    rate = yaw_rate(gy, gz, cr, sr, cp)
+    # gyro_bias_rad_s's rule: settled, the motors off, the vehicle at rest
+    trusted = settled & ~(have_throttle & (throttle_01 > MOTORS_RUNNING_01))
+    trusted &= ~(gx * gx + gy * gy + gz * gz > STILL_RATE_RAD_S * STILL_RATE_RAD_S)
+    bias = np.where(trusted, rate - yaw_rate(gyro_yz[0], gyro_yz[1], cr, sr, cp), np.nan)
+    return rate, turn_rate(gx, gy, gz, cr * cp), bias
+
+
+def yaw_rate(gy: FloatOrArray, gz: FloatOrArray, cos_roll: FloatOrArray, sin_roll: FloatOrArray,
+             cos_pitch: FloatOrArray) -> FloatOrArray:  # fmt: skip
+    """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)`` (NaN where
+    ``|cos(pitch)| < MIN_COS_PITCH``); floats, or arrays of a block of samples."""
+    if not isinstance(cos_pitch, np.ndarray):
+        return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = (gy * sin_roll + gz * cos_roll) / cos_pitch
+        return np.where(np.abs(cos_pitch) < MIN_COS_PITCH, np.nan, rate)
 
 
 def _shadow_heading_deg(rec: MagRecord) -> float | None:

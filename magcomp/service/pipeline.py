@@ -170,7 +170,7 @@ class Pipeline:
         # the first pass of a two-pass replay publishes only its final estimate: re-solved less often
         cal_cfg = replace(cfg, inflight=learn_config(cfg.inflight)) if learn_only else cfg
         self.calibrate = CalibrateStage(cal_cfg, self.attitude, self.throttle, self._params, self._earth_ned,
-                                        self.persist.save, self._text)  # fmt: skip
+                                        self.persist.save, self._text, outputs=not learn_only)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
         self.publish = PublishStage(cfg, self.counts)
         #: sample class -> its handler (:meth:`feed`)
