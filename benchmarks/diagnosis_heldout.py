@@ -314,6 +314,10 @@ def run_case(
     if top is not None and effect in out["top"]:
         params = top["params"] if effect == top["effect"] else top.get("candidate_params", {}).get(effect, {})
     out["params"] = params
+    if value == 0.0:  # a clean log (``--clean``): any finding is a false alarm, there is no truth to hold
+        out["inside"] = False
+        out["ci_width"] = None
+        return out
     truth = value
     if effect == "temperature_drift":
         truth = logged_temperature_coefficient(res)
@@ -433,10 +437,18 @@ def main() -> int:
         action="store_true",
         help="message rates drawn per seed (drawn_rates) in place of each case's (default: the case's)",
     )
+    ap.add_argument(
+        "--clean",
+        action="store_true",
+        help="each case's log with its effect off (value 0): logs with any finding are false alarms at the "
+        "case's settings (and --rates)",
+    )
     args = ap.parse_args()
     from multiprocessing import Pool
 
     values = {k: float(v) for k, v in (a.split("=", 1) for a in args.value)}
+    if args.clean:
+        values = {e: 0.0 for e in args.effects}
     overrides: dict[str, object] = dict(a.split("=", 1) for a in args.set)  # parsed as the simulator's --set
     jobs: list[tuple[str, int | None, float | None, dict[str, object], bool]] = [
         (e, None, values.get(e), overrides, args.rates) for e in args.effects
@@ -451,6 +463,16 @@ def main() -> int:
         rows = pool.starmap(run_case, jobs, chunksize=1)
     for r in rows:
         print(json.dumps(r))
+    if args.clean:
+        for e in args.effects:
+            mine = [r for r in rows if r["effect"] == e]
+            alarms = [f"{r['seed']} {'+'.join(r['findings'])}" for r in mine if r["findings"]]
+            n = len(mine)
+            seen = sum(r["observable"] for r in mine)
+            print(f"{e} case, effect off: {len(alarms)}/{n} with a finding ({seen} observable): {alarms}")
+        alarms_all = sum(bool(r["findings"]) for r in rows)
+        print(f"clean logs with a finding: {alarms_all}/{len(rows)}")
+        return 0
     for e in args.effects:
         mine = [r for r in rows if r["effect"] == e]
         ok = sum(r["is_top"] and r["inside"] for r in mine)

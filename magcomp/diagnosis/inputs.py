@@ -154,6 +154,7 @@ def compass_data(
     index: int,
     latency_s: float = 0.0,
     attitude: Callable[[], AttitudeSource] | None = None,
+    age_s: float = 0.0,
 ) -> CompassData:
     """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES).
 
@@ -191,7 +192,7 @@ def compass_data(
     t, v = t[keep], v[keep]
     # a held compass (updated slower than its messages) measured each sample when its value first appeared:
     # the powertrain that biased it is taken then, not at the logged time (measured_times_s)
-    t_drive = t
+    t_drive = t - age_s
     if held_fraction(mag.values) >= MIN_HELD_FRACTION:
         t_drive = measured_times_s(mag.t_s, mag.values)[::step][keep]
     track = (attitude() if attitude is not None else log_attitude(log)).at(t_drive - latency_s)

@@ -82,18 +82,34 @@ def latency_step_s(data: CompassData) -> tuple[float, float]:
     return tau, se
 
 
-def compass_latency_s(data: CompassData, retime: Callable[[float], CompassData]) -> tuple[float, CompassData]:
+def compass_latency_s(
+    data: CompassData,
+    retime: Callable[[float], CompassData],
+    bounds_s: tuple[float, float] = (-MAX_LATENCY_S, MAX_LATENCY_S),
+) -> tuple[float, CompassData]:
     """The fitted latency (s) and the data with the attitude taken that much earlier; ``retime(latency_s) ->
-    CompassData`` builds that data from the log. The estimate is clipped to +-MAX_LATENCY_S."""
+    CompassData`` builds that data from the log. The estimate is clipped to ``bounds_s`` (default
+    +-MAX_LATENCY_S; an unheld compass: :func:`unheld_age_bounds_s`)."""
     total = 0.0
     out = data
     for _ in range(PASSES):
         tau, se = latency_step_s(out)
         if not math.isfinite(se) or tau == 0.0:
             break
-        total = float(np.clip(total + tau, -MAX_LATENCY_S, MAX_LATENCY_S))
+        total = float(np.clip(total + tau, bounds_s[0], bounds_s[1]))
         out = retime(total)
     return total, out
+
+
+def unheld_age_bounds_s(t_s: F64) -> tuple[float, float]:
+    """The range (s) of the mean age of an unheld compass's samples logged at the times ``t_s``: a value
+    cannot be newer than its message (0), and a compass that repeats fewer than MIN_HELD_FRACTION of its
+    samples updates at least 1 - MIN_HELD_FRACTION as often as its message, so a sample is at most one
+    compass period, 1 / (1 - MIN_HELD_FRACTION) message periods old (and never more than MAX_LATENCY_S)."""
+    if t_s.shape[0] < 2:
+        return 0.0, 0.0
+    period = float(np.median(np.diff(t_s)))
+    return 0.0, float(min(max(period, 0.0) / (1.0 - MIN_HELD_FRACTION), MAX_LATENCY_S))
 
 
 def held_fraction(values: F64) -> float:
