@@ -291,6 +291,7 @@ def run_case(
 
     from magcomp.diagnosis.engine import diagnose
     from magcomp.diagnosis.gate import EarthReference
+    from magcomp.sim.config import EFFECTS as SIM_EFFECTS
 
     _, _, _, value, case_seed, _ = CASES[effect]
     seed = case_seed if seed is None else seed
@@ -314,7 +315,7 @@ def run_case(
     if top is not None and effect in out["top"]:
         params = top["params"] if effect == top["effect"] else top.get("candidate_params", {}).get(effect, {})
     out["params"] = params
-    if value == 0.0:  # a clean log (``--clean``): any finding is a false alarm, there is no truth to hold
+    if value == SIM_EFFECTS[effect][0]:  # a clean log (``--clean``): any finding is a false alarm, no truth
         out["inside"] = False
         out["ci_width"] = None
         return out
@@ -440,15 +441,17 @@ def main() -> int:
     ap.add_argument(
         "--clean",
         action="store_true",
-        help="each case's log with its effect off (value 0): logs with any finding are false alarms at the "
-        "case's settings (and --rates)",
+        help="each case's log with its effect off (the simulator's off value): logs with any finding are "
+        "false alarms at the case's settings (and --rates)",
     )
     args = ap.parse_args()
     from multiprocessing import Pool
 
     values = {k: float(v) for k, v in (a.split("=", 1) for a in args.value)}
     if args.clean:
-        values = {e: 0.0 for e in args.effects}
+        from magcomp.sim.config import EFFECTS as SIM_EFFECTS
+
+        values = {e: SIM_EFFECTS[e][0] for e in args.effects}  # the simulator's "off"
     overrides: dict[str, object] = dict(a.split("=", 1) for a in args.set)  # parsed as the simulator's --set
     jobs: list[tuple[str, int | None, float | None, dict[str, object], bool]] = [
         (e, None, values.get(e), overrides, args.rates) for e in args.effects

@@ -179,7 +179,9 @@ def compass_data(
     9.1 mgauss rms (8.6 with the simulator's rotation).
 
     attitude: gives the log's rotation (:func:`log_attitude`), for a caller that builds it once for every
-    compass and latency of the log (``functools.cache``); by default it is built from ``log`` here."""
+    compass and latency of the log (``functools.cache``); by default it is built from ``log`` here.
+    age_s: for an unheld compass, how long before its logged time each sample was measured (the fitted age,
+    :func:`magcomp.diagnosis.latency.unheld_age_bounds_s`): the drive and the rotation are taken there."""
     if index not in log.mag:
         raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
     mag = finite_series(log.mag[index])

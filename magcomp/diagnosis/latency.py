@@ -37,6 +37,17 @@ taken at each held sample's own measurement time, read from the hold itself
 (:func:`magcomp.diagnosis.inputs.measured_times_s`): the hold's age is the compass's, not the attitude's, and
 left in place it was fitted as lag (+26 ms on the held-out current_lag case). Departure from the paper: the
 paper's compass and attitude share one clock.
+
+An unheld compass is stale too: a compass updated at 24.7 Hz in a 25 Hz RAW_IMU repeats 1 % of its samples
+(no hold to read), but each sample is 0 to one compass period old (30 ms on average in the simulator's 50 Hz
+loop). Left at the logged times, that age cost the held-out cases at drawn rates (seeds 6000-6019,
+``diagnosis_heldout.py --rates``) the per-motor evidence (GLS delta BIC -23 and +1 on seeds 6001 and 6008
+against -290 and -367 with the rotation at the mean age) and biased the skew by +20-50 ms. So the engine fits
+the same latency for an unheld compass (``engine._unheld_age``) and takes both the rotation and the drive
+that much earlier, within :func:`unheld_age_bounds_s`: not below 0 (a value is not newer than its message:
+the clean fixed-wing flight's -39 ms above stays 0), not above one compass period. Only against the gyro's
+integral, which travels in the compass's own message: the autopilot's attitude adds its filter's delay,
+which the powertrain does not have (the 42 ms lag above).
 """
 
 from __future__ import annotations
