@@ -154,6 +154,7 @@ def compass_data(
     index: int,
     latency_s: float = 0.0,
     attitude: Callable[[], AttitudeSource] | None = None,
+    age_s: float = 0.0,
 ) -> CompassData:
     """Align compass ``index`` of ``log`` with rotation and drive signals (decimated to MAX_SAMPLES).
 
@@ -178,7 +179,9 @@ def compass_data(
     9.1 mgauss rms (8.6 with the simulator's rotation).
 
     attitude: gives the log's rotation (:func:`log_attitude`), for a caller that builds it once for every
-    compass and latency of the log (``functools.cache``); by default it is built from ``log`` here."""
+    compass and latency of the log (``functools.cache``); by default it is built from ``log`` here.
+    age_s: for an unheld compass, how long before its logged time each sample was measured (the fitted age,
+    :func:`magcomp.diagnosis.latency.unheld_age_bounds_s`): the drive and the rotation are taken there."""
     if index not in log.mag:
         raise InputError(f"the log has no compass {index} (compasses: {sorted(log.mag)})")
     mag = finite_series(log.mag[index])
@@ -191,7 +194,7 @@ def compass_data(
     t, v = t[keep], v[keep]
     # a held compass (updated slower than its messages) measured each sample when its value first appeared:
     # the powertrain that biased it is taken then, not at the logged time (measured_times_s)
-    t_drive = t
+    t_drive = t - age_s
     if held_fraction(mag.values) >= MIN_HELD_FRACTION:
         t_drive = measured_times_s(mag.t_s, mag.values)[::step][keep]
     track = (attitude() if attitude is not None else log_attitude(log)).at(t_drive - latency_s)

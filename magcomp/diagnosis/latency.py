@@ -37,6 +37,17 @@ taken at each held sample's own measurement time, read from the hold itself
 (:func:`magcomp.diagnosis.inputs.measured_times_s`): the hold's age is the compass's, not the attitude's, and
 left in place it was fitted as lag (+26 ms on the held-out current_lag case). Departure from the paper: the
 paper's compass and attitude share one clock.
+
+An unheld compass is stale too: a compass updated at 24.7 Hz in a 25 Hz RAW_IMU repeats 1 % of its samples
+(no hold to read), but each sample is 0 to one compass period old (30 ms on average in the simulator's 50 Hz
+loop). Left at the logged times, that age cost the held-out cases at drawn rates (seeds 6000-6019,
+``diagnosis_heldout.py --rates``) the per-motor evidence (GLS delta BIC -23 and +1 on seeds 6001 and 6008
+against -290 and -367 with the rotation at the mean age) and biased the skew by +20-50 ms. So the engine fits
+the same latency for an unheld compass (``engine._unheld_age``) and takes both the rotation and the drive
+that much earlier, within :func:`unheld_age_bounds_s`: not below 0 (a value is not newer than its message:
+the clean fixed-wing flight's -39 ms above stays 0), not above one compass period. Only against the gyro's
+integral, which travels in the compass's own message: the autopilot's attitude adds its filter's delay,
+which the powertrain does not have (the 42 ms lag above).
 """
 
 from __future__ import annotations
@@ -82,18 +93,34 @@ def latency_step_s(data: CompassData) -> tuple[float, float]:
     return tau, se
 
 
-def compass_latency_s(data: CompassData, retime: Callable[[float], CompassData]) -> tuple[float, CompassData]:
+def compass_latency_s(
+    data: CompassData,
+    retime: Callable[[float], CompassData],
+    bounds_s: tuple[float, float] = (-MAX_LATENCY_S, MAX_LATENCY_S),
+) -> tuple[float, CompassData]:
     """The fitted latency (s) and the data with the attitude taken that much earlier; ``retime(latency_s) ->
-    CompassData`` builds that data from the log. The estimate is clipped to +-MAX_LATENCY_S."""
+    CompassData`` builds that data from the log. The estimate is clipped to ``bounds_s`` (default
+    +-MAX_LATENCY_S; an unheld compass: :func:`unheld_age_bounds_s`)."""
     total = 0.0
     out = data
     for _ in range(PASSES):
         tau, se = latency_step_s(out)
         if not math.isfinite(se) or tau == 0.0:
             break
-        total = float(np.clip(total + tau, -MAX_LATENCY_S, MAX_LATENCY_S))
+        total = float(np.clip(total + tau, bounds_s[0], bounds_s[1]))
         out = retime(total)
     return total, out
+
+
+def unheld_age_bounds_s(t_s: F64) -> tuple[float, float]:
+    """The range (s) of the mean age of an unheld compass's samples logged at the times ``t_s``: a value
+    cannot be newer than its message (0), and a compass that repeats fewer than MIN_HELD_FRACTION of its
+    samples updates at least 1 - MIN_HELD_FRACTION as often as its message, so a sample is at most one
+    compass period, 1 / (1 - MIN_HELD_FRACTION) message periods old (and never more than MAX_LATENCY_S)."""
+    if t_s.shape[0] < 2:
+        return 0.0, 0.0
+    period = float(np.median(np.diff(t_s)))
+    return 0.0, float(min(max(period, 0.0) / (1.0 - MIN_HELD_FRACTION), MAX_LATENCY_S))
 
 
 def held_fraction(values: F64) -> float:
