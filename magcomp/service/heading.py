@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import math
 from itertools import chain
-from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.heading_filter import HeadingFilter, turn_rate
+from magcomp.core.heading_filter import FloatOrArray, HeadingFilter, turn_rate
 from magcomp.core.hover_theta import (
     OFFSET_PRIOR_SD_MGAUSS,
     HoverGroups,
@@ -46,7 +45,6 @@ from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
 F64 = NDArray[np.float64]
-FloatOrArray = TypeVar("FloatOrArray", float, F64)
 _DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
 
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
