@@ -41,27 +41,8 @@ def _records(n: int, seed: int) -> list[MagRecord]:
     return out
 
 
-def test_filter_rates_block_equals_the_live_rates_bit_for_bit() -> None:
-    recs = _records(3000, 0)
-    col = lambda f: np.array([f(r) for r in recs], dtype=float)  # noqa: E731
-    rate, turn, bias = filter_rates_block(
-        (col(lambda r: r.gyro_raw[0]), col(lambda r: r.gyro_raw[1]), col(lambda r: r.gyro_raw[2])),
-        (col(lambda r: r.gyro[1]), col(lambda r: r.gyro[2])),
-        (col(lambda r: r.tilt[0]), col(lambda r: r.tilt[1]), col(lambda r: r.tilt[2])),
-        np.array([r.down is not None for r in recs]),
-        np.array([r.have_throttle for r in recs]),
-        col(lambda r: r.throttle_01),
-    )
-    want = np.array([filter_rates(r) for r in recs])
-    got = np.column_stack((rate, turn, bias))
-    # every case is there: no yaw rate (steep pitch), a turn rate (beyond 30 deg), a trusted bias
-    assert np.isnan(want[:, 0]).any() and (np.abs(np.array([r.tilt[2] for r in recs])) < MIN_COS_PITCH).any()
-    assert (want[:, 1] > 0.0).any() and (want[:, 1] == 0.0).any()
-    assert np.isfinite(want[:, 2]).sum() > 50 and np.isnan(want[:, 2]).sum() > 50
-    assert np.array_equal(got, want, equal_nan=True)
-
-
 def _block(recs: list[MagRecord]) -> NDArray[np.float64]:
+    """filter_rates_block of the records' columns: (yaw rate, turn rate, bias) per record, (n, 3)."""
     col = lambda f: np.array([f(r) for r in recs], dtype=float)  # noqa: E731
     rate, turn, bias = filter_rates_block(
         (col(lambda r: r.gyro_raw[0]), col(lambda r: r.gyro_raw[1]), col(lambda r: r.gyro_raw[2])),
@@ -72,6 +53,17 @@ def _block(recs: list[MagRecord]) -> NDArray[np.float64]:
         col(lambda r: r.throttle_01),
     )
     return np.column_stack((rate, turn, bias))
+
+
+def test_filter_rates_block_equals_the_live_rates_bit_for_bit() -> None:
+    recs = _records(3000, 0)
+    want = np.array([filter_rates(r) for r in recs])
+    got = _block(recs)
+    # every case is there: no yaw rate (steep pitch), a turn rate (beyond 30 deg), a trusted bias
+    assert np.isnan(want[:, 0]).any() and (np.abs(np.array([r.tilt[2] for r in recs])) < MIN_COS_PITCH).any()
+    assert (want[:, 1] > 0.0).any() and (want[:, 1] == 0.0).any()
+    assert np.isfinite(want[:, 2]).sum() > 50 and np.isnan(want[:, 2]).sum() > 50
+    assert np.array_equal(got, want, equal_nan=True)
 
 
 def test_filter_rates_at_the_exact_thresholds() -> None:
