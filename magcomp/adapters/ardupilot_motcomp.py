@@ -55,7 +55,8 @@ class OnboardMotorComp:
     """The autopilot's motor compensation as seen on the link: parameters, throttle, current."""
 
     def __init__(self) -> None:
-        #: the motor-compensation parameters (set through :meth:`param`)
+        #: the motor-compensation parameters: set them only through :meth:`param`, which takes COMPASS_MOTCT
+        #: again (``motct`` is cached; a direct write into this dict would leave it stale)
         self.params: dict[str, float] = {}
         self._motct = 0  # COMPASS_MOTCT of ``params``, taken again at each parameter (read per sample)
         self.throttle_01: float | None = None

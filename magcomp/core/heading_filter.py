@@ -110,6 +110,8 @@ def turn_rate(gx: FloatOrArray, gy: FloatOrArray, gz: FloatOrArray, cos_tilt: Fl
     beyond 30 deg (``cos_tilt`` = cos(roll) cos(pitch)), else 0 (near level the attitude's errors make the
     integral wander about zero as the vehicle rocks, not drift). Floats, or arrays of a block of samples
     (the same numbers element by element)."""
+    steep = cos_tilt < STEEP_COS_TILT
+    norm2 = gx * gx + gy * gy + gz * gz  # the body rate's squared norm
     if not isinstance(cos_tilt, np.ndarray):
-        return math.sqrt(gx * gx + gy * gy + gz * gz) if cos_tilt < STEEP_COS_TILT else 0.0
-    return np.where(cos_tilt < STEEP_COS_TILT, np.sqrt(gx * gx + gy * gy + gz * gz), 0.0)
+        return math.sqrt(norm2) if steep else 0.0
+    return np.where(steep, np.sqrt(norm2), 0.0)

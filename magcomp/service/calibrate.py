@@ -43,6 +43,9 @@ from magcomp.service.record import Float3, MagRecord
 log = logging.getLogger("magcomp.pipeline")
 
 F64 = NDArray[np.float64]
+#: the corrected field a learn-only pass leaves in the records the in-flight calibration corrects (it computes
+#: none there): NaN, so that a reader who takes it shows up in the outputs instead of reading a zero field
+FIELD_NOT_COMPUTED: Float3 = (math.nan, math.nan, math.nan)
 
 #: at most this many (evenly strided) pairs go into the final (refined) DPI fit / an interim one
 FIT_MAX_ROWS = 3000
@@ -329,9 +332,9 @@ class CalibrateStage(Generic[H]):
         text: Callable[[float, str, bool], None],
         outputs: bool = True,
     ) -> None:
-        """``outputs`` False (a learn-only pass): the in-flight correction's field (eq. (2)) is not written
-        into the records, which nothing there reads (the theta stage reads the field only of samples the
-        in-flight calibration does not correct)."""
+        """``outputs`` False (a learn-only pass): the in-flight correction's field (eq. (2)) is not computed
+        for the records, which nothing there reads (the theta stage reads the field only of samples the
+        in-flight calibration does not correct); they carry FIELD_NOT_COMPUTED (NaN) instead."""
         self.cfg = cfg
         self._outputs = outputs
         self.attitude = attitude
@@ -366,8 +369,7 @@ class CalibrateStage(Generic[H]):
                 rec.calibrated = True
                 rec.inflight = out
                 # eq. (2) with the in-flight L and d (its theta and bias come with it: service/theta.py)
-                if self._outputs:
-                    rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
+                rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz) if self._outputs else FIELD_NOT_COMPUTED
                 return
             if c.inflight is not None:
                 rec.shadow = c.inflight.candidate()

@@ -35,6 +35,8 @@ class FastMahony:
 
     @property
     def state(self) -> MahonyState:
+        """The filter's state (attitude and gyro bias) as the core's :class:`MahonyState`, built on each
+        read from the plain floats kept between samples (a read-only snapshot)."""
         return MahonyState(self.q, self.b)
 
     def down_b(self) -> Vec3:

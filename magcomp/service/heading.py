@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import math
 from itertools import chain
-from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
-from magcomp.core.heading_filter import HeadingFilter, turn_rate
+from magcomp.core.heading_filter import FloatOrArray, HeadingFilter, turn_rate
 from magcomp.core.hover_theta import (
     OFFSET_PRIOR_SD_MGAUSS,
     HoverGroups,
@@ -46,7 +45,6 @@ from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
 F64 = NDArray[np.float64]
-FloatOrArray = TypeVar("FloatOrArray", float, F64)
 _DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
 
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
@@ -422,13 +420,26 @@ def gyro_bias_rad_s(rec: MagRecord, raw_rate_rad_s: float) -> float:
     learns thrust, drag and a turn's centripetal acceleration as bias (1.1-1.6 deg/s on log171 and 1.BIN,
     up to 0.9 deg/s of yaw rate in the simulator's banked turns), and a hand carrying the vehicle moves it
     (the paper's log: 1.96 deg max in its pan with the motors-off rule alone, 1.70 with rest)."""
-    if rec.down is None or (rec.have_throttle and rec.throttle_01 > MOTORS_RUNNING_01):
-        return math.nan
-    gx, gy, gz = rec.gyro_raw
-    if gx * gx + gy * gy + gz * gz > STILL_RATE_RAD_S * STILL_RATE_RAD_S:
+    if not bias_trusted(rec.down is not None, rec.have_throttle, rec.throttle_01, rec.gyro_raw):
         return math.nan
     cr, sr, cp, _ = rec.tilt
     return raw_rate_rad_s - yaw_rate(rec.gyro[1], rec.gyro[2], cr, sr, cp)
+
+
+def bias_trusted(
+    settled: bool | NDArray[np.bool_],
+    have_throttle: bool | NDArray[np.bool_],
+    throttle_01: float | F64,
+    gyro_raw: tuple[float, float, float] | tuple[F64, F64, F64],
+) -> bool | NDArray[np.bool_]:
+    """:func:`gyro_bias_rad_s`'s rule: the attitude filter settled, the motors off (no throttle, or the
+    throttle not above MOTORS_RUNNING_01), the vehicle at rest (its raw body rate not above
+    STILL_RATE_RAD_S). Python bools and floats (one sample), or arrays of a block of samples (element by
+    element); ``^ True`` negates both a bool and a boolean array."""
+    gx, gy, gz = gyro_raw
+    motors_running = have_throttle & (throttle_01 > MOTORS_RUNNING_01)
+    moving = gx * gx + gy * gy + gz * gz > STILL_RATE_RAD_S * STILL_RATE_RAD_S
+    return settled & ((motors_running | moving) ^ True)
 
 
 def filter_rates(rec: MagRecord) -> tuple[float, float, float]:
@@ -457,9 +468,7 @@ def filter_rates_block(
     gx, gy, gz = gyro_raw
     cr, sr, cp = tilt
     rate = yaw_rate(gy, gz, cr, sr, cp)
-    # gyro_bias_rad_s's rule: settled, the motors off, the vehicle at rest
-    trusted = settled & ~(have_throttle & (throttle_01 > MOTORS_RUNNING_01))
-    trusted &= ~(gx * gx + gy * gy + gz * gz > STILL_RATE_RAD_S * STILL_RATE_RAD_S)
+    trusted = bias_trusted(settled, have_throttle, throttle_01, gyro_raw)  # gyro_bias_rad_s's rule
     bias = np.where(trusted, rate - yaw_rate(gyro_yz[0], gyro_yz[1], cr, sr, cp), np.nan)
     return rate, turn_rate(gx, gy, gz, cr * cp), bias
 
@@ -468,11 +477,17 @@ def yaw_rate(gy: FloatOrArray, gz: FloatOrArray, cos_roll: FloatOrArray, sin_rol
              cos_pitch: FloatOrArray) -> FloatOrArray:  # fmt: skip
     """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)`` (NaN where
     ``|cos(pitch)| < MIN_COS_PITCH``); floats, or arrays of a block of samples."""
+    undefined = abs(cos_pitch) < MIN_COS_PITCH  # abs() of an array is np.abs
     if not isinstance(cos_pitch, np.ndarray):
-        return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
+        return math.nan if undefined else _euler_yaw_rate(gy, gz, cos_roll, sin_roll, cos_pitch)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rate = (gy * sin_roll + gz * cos_roll) / cos_pitch
-        return np.where(np.abs(cos_pitch) < MIN_COS_PITCH, np.nan, rate)
+        return np.where(undefined, np.nan, _euler_yaw_rate(gy, gz, cos_roll, sin_roll, cos_pitch))
+
+
+def _euler_yaw_rate(gy: FloatOrArray, gz: FloatOrArray, cos_roll: FloatOrArray, sin_roll: FloatOrArray,
+                    cos_pitch: FloatOrArray) -> FloatOrArray:  # fmt: skip
+    """:func:`yaw_rate` where it is defined (ZYX Euler angles)."""
+    return (gy * sin_roll + gz * cos_roll) / cos_pitch
 
 
 def _shadow_heading_deg(rec: MagRecord) -> float | None:

@@ -51,6 +51,12 @@ class Queued(NamedTuple):
     skip: bool = False
 
 
+# ThetaStage builds Queued with _new_tuple from four positional values (no field-count check there): a field
+# added here must be added there too
+if Queued._fields != ("t_s", "gyro", "field", "skip"):
+    raise RuntimeError(f"Queued has fields {Queued._fields}: update ThetaStage's _new_tuple(Queued, (...))")
+
+
 #: samples an observer's log holds before they are reduced to their least-squares sums (~22 min at 50 Hz;
 #: ~5 MB of samples, ~60 MB while they are reduced)
 ROW_LOG_CHUNK = 65536
@@ -238,7 +244,8 @@ class ThetaStage:
             self.counts["observer_resets"] += 1
             rec.flags |= FLAG_OBSERVER_RESET
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
-            # (tuple.__new__: the named tuple's own constructor without its keyword handling, 0.17 us less)
+            # (tuple.__new__: the named tuple's own constructor without its keyword handling, 0.17 us less;
+            # the field count is checked once, under Queued)
             tr.queue.append(_new_tuple(Queued, (rec.t_s, rec.gyro, rec.field_cal, False)))
         elif self._learn:  # a sample the observer cannot take: no step across it (observer.samples_missing)
             tr.queue_reset(rec.t_s, skip=True)

@@ -84,3 +84,22 @@ def test_warning_only_when_the_difference_exceeds_the_learned_uncertainty() -> N
     s = _summary(outside, sd)
     s["compasses"][0]["status"] = "uncorrected"
     assert onboard_comp_warnings(report, s) == []
+
+
+def test_motct_changed_mid_log_is_taken_at_each_parameter() -> None:
+    """COMPASS_MOTCT set again during the log (1 -> 0 -> 2): the type and the offset follow the latest value,
+    not the first one seen (``motct`` is cached per parameter)."""
+    counts: Counter[str] = Counter()
+    c = _comp(1.0)
+    c.throttle_01 = 0.5
+    c.current_a = 12.0
+    assert c.motct == 1
+    assert c.offset(0, counts) == pytest.approx((5.0, -10.0, 2.5))  # mot x throttle
+    c.param("COMPASS_MOTCT", 0.0)
+    assert c.motct == 0
+    assert c.offset(0, counts) is None  # compensation switched off: nothing added
+    c.param("COMPASS_MOTCT", 2.0)
+    assert c.motct == 2
+    assert c.offset(0, counts) == pytest.approx((120.0, -240.0, 60.0))  # mot x current
+    c.param("COMPASS_MOT_X", 1.0)  # another motor-compensation parameter keeps the type
+    assert c.motct == 2

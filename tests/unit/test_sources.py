@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import socket
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 
 from magcomp.adapters import dialect
 from magcomp.adapters.mavlink_source import load_log, open_source
+from magcomp.adapters.message_convert import Counts, MessageConverter, PwmRecord
 from magcomp.adapters.throttle import parse_throttle_source, pwm_to_01, resolve_throttle
 from magcomp.core.types import (
     AttitudeSample,
@@ -455,3 +457,35 @@ def test_px4_integer_parameters_arrive_bytewise_and_are_decoded(
     data = load_log(path)
     assert data.throttle_source == "motors:5,6"
     np.testing.assert_allclose(data.motors_01.values, [[1.0, 0.5]])
+
+
+def test_servo_output_raw_channels_per_port_and_extension() -> None:
+    """SERVO_OUTPUT_RAW to PWM by channel: servo1..8 of port p are channels 8p+1..8p+8, port 0's servo9..16
+    extension channels 9..16 where the sender fills it (0: not filled), and the channels seen stay known."""
+    mod = dialect.ensure_dialect()
+    conv = MessageConverter(Counts(), mag_index=None, undo_motor_comp=False)
+
+    def servo(t_us: int, port: int, pwm: list[int]) -> dict[int, float]:
+        fields = {f"servo{i + 1}_raw": v for i, v in enumerate(pwm + [0] * (16 - len(pwm)))}
+        out = conv.mavlink(mod.MAVLink_servo_output_raw_message(time_usec=t_us, port=port, **fields))
+        assert [name for name, _ in out] == ["SERVO_OUTPUT_RAW"]
+        rec = out[0][1]
+        assert isinstance(rec, PwmRecord) and rec.kind == "servo"
+        return rec.pwm_us
+
+    first = [1100 + 10 * i for i in range(8)]  # servo1..8, every one distinct
+    assert servo(1_000_000, 0, first) == {i + 1: float(v) for i, v in enumerate(first)}
+    ext = [1200 + 10 * i for i in range(8)] + [0, 1950, 0, 0, 0, 0, 0, 1010]  # servo10 and servo16 filled
+    got = servo(1_020_000, 0, ext)
+    assert got == {**{i + 1: float(v) for i, v in enumerate(ext[:8])}, 10: 1950.0, 16: 1010.0}
+    port1 = [1500 + 10 * i for i in range(8)] + [1234] * 8  # port 1: channels 9..16; no extension beyond
+    got = servo(1_040_000, 1, port1)
+    want = {i + 1: float(v) for i, v in enumerate(ext[:8])}
+    want |= {i + 9: float(v) for i, v in enumerate(port1[:8])}  # port 0's extension overwritten
+    assert got == want
+    # a message class without the extension (MAVLink 1 era): servo1..8 only
+    old = SimpleNamespace(time_usec=1_060_000, port=0, **{f"servo{i + 1}_raw": 1700 + i for i in range(8)})
+    old.get_type = lambda: "SERVO_OUTPUT_RAW"
+    (_, rec), = conv.mavlink(old)
+    assert isinstance(rec, PwmRecord)
+    assert rec.pwm_us == want | {i + 1: float(1700 + i) for i in range(8)}
