@@ -9,7 +9,7 @@ and block by block give the same theta (one model, two solvers)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 import pytest
@@ -168,31 +168,42 @@ def test_thetas_sigma_from_the_block_jackknife_covers_the_error_under_correlated
     sigma; the delete-one-block jackknife over 30-50 s blocks (``with_block_sigma``) covers the realised
     error at about its stated level. Under white noise it states about the fit's own sigma (not a larger
     one)."""
+    def fits() -> Iterator[tuple[bool, HoverTheta, HoverTheta]]:
+        for seed in range(20):
+            h = _hover(100 + seed, n=6000, follow_per_s=0.0)
+            for coloured in (True, False):
+                fit_on = _gyro_fit_on(_disturbed(h, coloured, 1000 + seed), h)
+                fit = fit_on(np.ones(h["t"].size, dtype=bool))
+                assert fit is not None
+                yield coloured, fit, with_block_sigma(fit, h["t"], fit_on)
+
+    _assert_covers(fits())
+
+
+def _disturbed(h: dict[str, np.ndarray], coloured: bool, seed: int) -> np.ndarray:
+    """The hover's field with (``coloured``) or without the AR(1) disturbance of 6 mgauss and 4 s."""
+    return h["field"] + (_ar1(np.random.default_rng(seed), h["t"].size, 4.0, 6.0) if coloured else 0.0)
+
+
+def _assert_covers(fits: Iterable[tuple[bool, HoverTheta, HoverTheta]]) -> None:
+    """(coloured, the fit, the fit with the jackknife's sigma) per case: under the correlated disturbance the
+    white sigma covers far fewer of 60 axis errors at 2 sigma (95 %) than that, the jackknife's about that;
+    under white noise the stated sigma is about the fit's own (measured median 1.03 with the max taken)."""
     z_white: list[float] = []
     z_jk: list[float] = []
     ratio_white_noise: list[float] = []
-    for seed in range(20):
-        h = _hover(100 + seed, n=6000, follow_per_s=0.0)
-        for coloured in (True, False):
-            field = h["field"] + (_ar1(np.random.default_rng(1000 + seed), h["t"].size, 4.0, 6.0)
-                                  if coloured else 0.0)  # fmt: skip
-            fit_on = _gyro_fit_on(field, h)
-            fit = fit_on(np.ones(h["t"].size, dtype=bool))
-            assert fit is not None
-            jk = with_block_sigma(fit, h["t"], fit_on)
-            assert jk.sigma_blocks == 12 and not jk.sigma_lower_bound  # 600 s: 12 blocks of 50 s
-            if coloured:
-                err = fit.theta_mgauss - THETA
-                z_white.extend(np.abs(err) / fit.theta_sigma_mgauss)
-                z_jk.extend(np.abs(err) / jk.theta_sigma_mgauss)
-            else:
-                ratio_white_noise.extend(jk.theta_sigma_mgauss / fit.theta_sigma_mgauss)
+    for coloured, fit, jk in fits:
+        assert jk.sigma_blocks == 12 and not jk.sigma_lower_bound  # 600 s: 12 blocks of 50 s
+        if coloured:
+            err = fit.theta_mgauss - THETA
+            z_white.extend(np.abs(err) / fit.theta_sigma_mgauss)
+            z_jk.extend(np.abs(err) / jk.theta_sigma_mgauss)
+        else:
+            ratio_white_noise.extend(jk.theta_sigma_mgauss / fit.theta_sigma_mgauss)
     cover_white = float(np.mean(np.asarray(z_white) < 2.0))
     cover_jk = float(np.mean(np.asarray(z_jk) < 2.0))
-    # 60 axis-errors at a 2-sigma (95 %) level: the white sigma covers far fewer, the jackknife's about that
     assert cover_white < 0.75, cover_white
     assert cover_jk >= 0.85, (cover_jk, cover_white)
-    # white noise: the larger of the two is about the fit's own (measured median 1.03 with the max taken)
     assert 1.0 <= float(np.median(ratio_white_noise)) < 1.4, np.median(ratio_white_noise)
 
 
@@ -229,42 +240,34 @@ def test_the_live_fits_jackknife_leaves_each_block_out_by_subtraction_and_covers
     other samples, state and all, and the jackknife over those stretches merged into blocks
     (``grouped_jackknife``) covers theta's error under the same correlated disturbance as above, where the
     fit's own sigma does not; under white noise it states about the fit's own."""
-    z_white: list[float] = []
-    z_jk: list[float] = []
-    ratio_white_noise: list[float] = []
-    for seed in range(20):
-        h = _hover(200 + seed, n=6000, follow_per_s=0.0)  # the autopilot's yaw: the true one
-        for coloured in (True, False):
-            field = h["field"] + (_ar1(np.random.default_rng(2000 + seed), h["t"].size, 4.0, 6.0)
-                                  if coloured else 0.0)  # fmt: skip
-            total, groups = _live_groups(field, h)
-            fit = total.fit()
-            assert fit is not None
-            if seed == 0 and coloured:  # one stretch left out by subtraction: the fit on the other samples
-                n0 = sum(g.n for g in groups.groups[:13])
-                keep = np.ones(h["t"].size, dtype=bool)
-                keep[n0:n0 + groups.groups[13].n] = False
-                direct = fit_hover_theta(field[keep], h["roll"][keep], h["pitch"][keep], h["ap"][keep],
-                                         h["thr"][keep])  # fmt: skip
-                left = total.without(groups.groups[13]).fit()
-                assert direct is not None and left is not None and left.n == direct.n
-                for a, b in ((left.theta_mgauss, direct.theta_mgauss),
-                             (left.theta_sigma_mgauss, direct.theta_sigma_mgauss),
-                             (left.residual_rms_mgauss, direct.residual_rms_mgauss)):  # fmt: skip
-                    np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-5)
-            jk = grouped_jackknife(total, groups, fit, None)
-            assert jk.sigma_blocks == 12 and not jk.sigma_lower_bound  # 600 s: 12 blocks
-            if coloured:
-                err = fit.theta_mgauss - THETA
-                z_white.extend(np.abs(err) / fit.theta_sigma_mgauss)
-                z_jk.extend(np.abs(err) / jk.theta_sigma_mgauss)
-            else:
-                ratio_white_noise.extend(jk.theta_sigma_mgauss / fit.theta_sigma_mgauss)
-    cover_white = float(np.mean(np.asarray(z_white) < 2.0))
-    cover_jk = float(np.mean(np.asarray(z_jk) < 2.0))
-    assert cover_white < 0.75, cover_white
-    assert cover_jk >= 0.85, (cover_jk, cover_white)
-    assert 1.0 <= float(np.median(ratio_white_noise)) < 1.4, np.median(ratio_white_noise)
+    def fits() -> Iterator[tuple[bool, HoverTheta, HoverTheta]]:
+        for seed in range(20):
+            h = _hover(200 + seed, n=6000, follow_per_s=0.0)  # the autopilot's yaw: the true one
+            for coloured in (True, False):
+                field = _disturbed(h, coloured, 2000 + seed)
+                total, groups = _live_groups(field, h)
+                fit = total.fit()
+                assert fit is not None
+                if seed == 0 and coloured:
+                    _assert_left_out_by_subtraction(field, h, total, groups, 13)
+                yield coloured, fit, grouped_jackknife(total, groups, fit, None)
+
+    _assert_covers(fits())
+
+
+def _assert_left_out_by_subtraction(field: np.ndarray, h: dict[str, np.ndarray], total: HoverNormal,
+                                    groups: HoverGroups, k: int) -> None:  # fmt: skip
+    """Stretch ``k`` left out by subtraction is the fit on the other samples: theta, sigma, n, residual."""
+    n0 = sum(g.n for g in groups.groups[:k])
+    keep = np.ones(h["t"].size, dtype=bool)
+    keep[n0:n0 + groups.groups[k].n] = False
+    direct = fit_hover_theta(field[keep], h["roll"][keep], h["pitch"][keep], h["ap"][keep], h["thr"][keep])
+    left = total.without(groups.groups[k]).fit()
+    assert direct is not None and left is not None and left.n == direct.n
+    for a, b in ((left.theta_mgauss, direct.theta_mgauss),
+                 (left.theta_sigma_mgauss, direct.theta_sigma_mgauss),
+                 (left.residual_rms_mgauss, direct.residual_rms_mgauss)):  # fmt: skip
+        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-5)
 
 
 def test_the_live_groups_stay_bounded_on_a_long_flight() -> None:
