@@ -257,13 +257,19 @@ def simulate_case(
 ) -> tuple[Any, Any]:
     """The held-out log of ``effect`` at ``value`` with this seed: (the simulation, the log as read);
     ``overrides``: settings that replace the case's (e.g. other telemetry rates, ``{"mag_hz": 50}``);
-    ``rates``: message rates in place of the case's (:func:`drawn_rates`: its rate settings dropped first)."""
+    ``rates``: message rates in place of the case's (:func:`drawn_rates`: its rate settings dropped first);
+    ``telemetry_hz`` among the overrides (``--set telemetry_hz=R``) is taken as such rates."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.sim import SimConfig, simulate
     from magcomp.sim.config import apply_settings
 
     scenario, vehicle, duration, _, _, settings = CASES[effect]
+    if rates is None and overrides and "telemetry_hz" in overrides:
+        # a telemetry stream sets every message rate: the case's own rates would override its RAW_IMU and
+        # ATTITUDE (``apply_settings`` applies named rates after the telemetry expansion)
+        overrides = dict(overrides)
+        rates = {"telemetry_hz": overrides.pop("telemetry_hz")}
     if rates is not None:
         rate_keys = ("mag_hz", "raw_imu_hz", "attitude_hz", "telemetry_hz")
         settings = {k: v for k, v in settings.items() if k not in rate_keys} | rates
