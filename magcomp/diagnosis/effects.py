@@ -272,15 +272,27 @@ def effect_available(name: str, d: DriveInputs) -> str | None:
     return None
 
 
-def negligible(name: str, value: float, d: DriveInputs) -> str | None:
-    """None when a fitted extension value is physically meaningful, else why it is not.
+def delay_unresolved(name: str, value: float, ci: tuple[float, float] | None, d: DriveInputs) -> str | None:
+    """Why a fitted delay (current_lag, time_skew) is not told from the sampling of the logged throttle, or
+    None. Whether the ESC held each logged value until the next or ramped (what the forward model's
+    interpolation assumes) moves a delay by up to half the throttle's sampling interval, a systematic error
+    the likelihood cannot see (:func:`~magcomp.diagnosis.intervals.profile_interval` widens a delay's 95 %
+    interval by it). A delay shorter than the sampling interval is therefore resolved only when that
+    widened interval ``ci`` excludes zero. (Until 2026-11-28 every delay shorter than the interval was
+    refused whatever its interval: on telemetry logs, throttle at 4 Hz, that refused a 0.3 s current_lag
+    fitted at 0.18-0.25 s with raw delta BIC -66 to -150; docs/diagnosis.md "telemetry rates".)"""
+    if name not in ("time_skew", "current_lag") or abs(value) >= d.throttle_dt_s:
+        return None
+    if ci is not None and (ci[0] > 0.0 or ci[1] < 0.0):
+        return None
+    ms = d.throttle_dt_s * 1e3
+    why = f"{abs(value) * 1e3:.0f} ms is below the throttle's sampling interval ({ms:.0f} ms)"
+    return why if ci is None else f"{why} and its 95 % interval [{ci[0]:.3g}, {ci[1]:.3g}] s reaches 0"
 
-    Shifts and lags shorter than the throttle's own sampling interval cannot be told from the sampling of
-    the logged throttle (which the forward model interpolates), so they are not reported as findings.
-    """
-    if name in ("time_skew", "current_lag") and abs(value) < d.throttle_dt_s:
-        ms = d.throttle_dt_s * 1e3
-        return f"{abs(value) * 1e3:.0f} ms is below the throttle's sampling interval ({ms:.0f} ms)"
+
+def negligible(name: str, value: float, d: DriveInputs) -> str | None:
+    """None when a fitted extension value is physically meaningful, else why it is not. (A delay shorter than
+    the throttle's sampling interval is judged with its interval: :func:`delay_unresolved`.)"""
     if name == "throttle_offset" and value < 0.01:
         return "offset below 1 % of full throttle"
     if name == "throttle_exponent" and abs(value - 2.0) < 0.05:

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from magcomp.core.types import LogData
 from magcomp.diagnosis.current import CurrentFit, corroborates, current_fits
-from magcomp.diagnosis.effects import EFFECTS, effect_available, negligible
+from magcomp.diagnosis.effects import EFFECTS, delay_unresolved, effect_available, negligible
 from magcomp.diagnosis.export import autopilot_export, evidence_json, params_json, r4
 from magcomp.diagnosis.inputs import inlier_mask, signals_at, spans, subset
 from magcomp.diagnosis.intervals import profile_interval
@@ -159,11 +159,16 @@ def interval_at_edge(
     parameter that may as well sit at its physical ceiling (a 9 s "lag" on a 1-2 min hover, interval to the
     10 s ceiling) is a slow drift of the log, not the cause. Measured: the one false alarm on fresh clean
     seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0].
-    ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`)."""
+    ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`).
+    A delay shorter than the throttle's sampling interval whose interval reaches zero is not identified either
+    (:func:`~magcomp.diagnosis.effects.delay_unresolved`)."""
     param = EFFECTS[name].param
     ci = ci if ci is not None else profile_interval(data, f, name)
     if param is None or ci is None:
         return None
+    unresolved = delay_unresolved(name, float(getattr(f.ext, param)), ci, data.drive)
+    if unresolved is not None:
+        return unresolved
     lo_b, hi_b = EFFECTS[name].bounds
     tol = 1e-3 * (hi_b - lo_b)
     if ci[1] >= hi_b - tol or (lo_b != 0.0 and ci[0] <= lo_b + tol):
