@@ -55,7 +55,9 @@ class OnboardMotorComp:
     """The autopilot's motor compensation as seen on the link: parameters, throttle, current."""
 
     def __init__(self) -> None:
+        #: the motor-compensation parameters (set through :meth:`param`)
         self.params: dict[str, float] = {}
+        self._motct = 0  # COMPASS_MOTCT of ``params``, taken again at each parameter (read per sample)
         self.throttle_01: float | None = None
         self.current_a: float | None = None
         # per compass: sum of o_k delta_k^2 (3), sum of delta_k^4, samples undone, last MOT vector
@@ -67,10 +69,11 @@ class OnboardMotorComp:
     def param(self, name: str, value: float) -> None:
         if is_motor_comp_param(name):
             self.params[name] = float(value)
+            self._motct = motor_comp_type(self.params)
 
     @property
     def motct(self) -> int:
-        return motor_comp_type(self.params)
+        return self._motct
 
     def mot(self, index: int) -> tuple[float, float, float] | None:
         return motor_comp_vector(self.params, index)

@@ -57,8 +57,12 @@ class ResolvedThrottle:
     pwm_max: tuple[float, ...] = ()
     #: what the throttle samples say they came from, made once (every throttle sample carries it)
     label: str = field(init=False, compare=False, repr=False, default="")
+    #: (channel, pwm_min, pwm_max) of each channel, made once (:func:`throttle_from_pwm`, per PWM message)
+    ranges: tuple[tuple[int, float, float], ...] = field(init=False, compare=False, repr=False, default=())
 
     def __post_init__(self) -> None:
+        ranges = tuple(zip(self.channels, self.pwm_min, self.pwm_max, strict=True))
+        object.__setattr__(self, "ranges", ranges)
         if self.kind in ("servo", "rc"):
             label = f"{self.kind}:{self.channels[0]}"
         elif self.kind == "motors":
@@ -172,7 +176,7 @@ def _any_motor_channels(params: Mapping[str, float]) -> tuple[int, ...]:
 def pwm_to_01(pwm_us: float, pwm_min: float, pwm_max: float) -> float:
     """Map a PWM pulse (us) linearly from [pwm_min, pwm_max] to [0, 1], clipped."""
     x = (float(pwm_us) - pwm_min) / (pwm_max - pwm_min)
-    return min(1.0, max(0.0, x))
+    return x if 0.0 < x < 1.0 else (1.0 if x >= 1.0 else 0.0)  # min(1, max(0, x)) without the calls
 
 
 #: pulse widths an ESC or servo can be driven with (RC PWM is 800-2200 us); MAVLink reports 0 for a
@@ -191,8 +195,9 @@ def throttle_from_pwm(
     """
     outs: list[float] = []
     lo_ok, hi_ok = PWM_PLAUSIBLE_US
-    for ch, lo, hi in zip(resolved.channels, resolved.pwm_min, resolved.pwm_max, strict=True):
-        pwm = pwm_by_channel.get(ch)
+    get = pwm_by_channel.get
+    for ch, lo, hi in resolved.ranges:
+        pwm = get(ch)
         if pwm is None or not lo_ok <= pwm <= hi_ok:
             return None
         outs.append(pwm_to_01(pwm, lo, hi))

@@ -22,6 +22,12 @@ _ATT_T, _ATT_ROLL, _ATT_PITCH, _ATT_YAW, _ATT_RATES = (
     AttitudeSample.__dict__[name] for name in ("t_s", "roll_rad", "pitch_rad", "yaw_rad", "rates_b_rad_s")
 )
 _set = object.__setattr__  # the frozen dataclasses' __setattr__ refuses every attribute
+# the slots' setters bound once (looked up per sample, ``__set__`` cost a third of a constructor's time)
+_set_imu_t, _set_imu_index = _IMU_T.__set__, _IMU_INDEX.__set__
+_set_mag_t, _set_mag_index, _set_mag_onboard = _MAG_T.__set__, _MAG_INDEX.__set__, _MAG_ONBOARD.__set__
+_set_att_t, _set_att_roll, _set_att_pitch, _set_att_yaw = (
+    _ATT_T.__set__, _ATT_ROLL.__set__, _ATT_PITCH.__set__, _ATT_YAW.__set__
+)
 Float3 = tuple[float, float, float]
 
 
@@ -41,10 +47,10 @@ class WireImuSample(ImuSample):
     def __init__(
         self, t_s: float, gyro_b_rad_s: Float3 | Vec3, accel_b_m_s2: Float3 | Vec3, imu_index: int = 0
     ) -> None:
-        _IMU_T.__set__(self, t_s)
-        _IMU_INDEX.__set__(self, imu_index)
-        _set(self, "gyro_xyz", _floats(gyro_b_rad_s))
-        _set(self, "accel_xyz", _floats(accel_b_m_s2))
+        _set_imu_t(self, t_s)
+        _set_imu_index(self, imu_index)
+        _set(self, "gyro_xyz", gyro_b_rad_s if type(gyro_b_rad_s) is tuple else _floats(gyro_b_rad_s))
+        _set(self, "accel_xyz", accel_b_m_s2 if type(accel_b_m_s2) is tuple else _floats(accel_b_m_s2))
 
     @property  # type: ignore[override]
     def gyro_b_rad_s(self) -> np.ndarray:
@@ -75,10 +81,10 @@ class WireMagSample(MagSample):
         mag_index: int = 0,
         onboard_mgauss: Float3 | None = None,
     ) -> None:
-        _MAG_T.__set__(self, t_s)
-        _MAG_INDEX.__set__(self, mag_index)
-        _MAG_ONBOARD.__set__(self, onboard_mgauss)
-        _set(self, "field_xyz", _floats(field_b_mgauss))
+        _set_mag_t(self, t_s)
+        _set_mag_index(self, mag_index)
+        _set_mag_onboard(self, onboard_mgauss)
+        _set(self, "field_xyz", field_b_mgauss if type(field_b_mgauss) is tuple else _floats(field_b_mgauss))
 
     @property  # type: ignore[override]
     def field_b_mgauss(self) -> np.ndarray:
@@ -101,11 +107,11 @@ class WireAttitudeSample(AttitudeSample):
     def __init__(
         self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float, rates_b_rad_s: Float3 | Vec3
     ) -> None:
-        _set(self, "rates_xyz", _floats(rates_b_rad_s))
-        _ATT_T.__set__(self, t_s)
-        _ATT_ROLL.__set__(self, roll_rad)
-        _ATT_PITCH.__set__(self, pitch_rad)
-        _ATT_YAW.__set__(self, yaw_rad)
+        _set(self, "rates_xyz", rates_b_rad_s if type(rates_b_rad_s) is tuple else _floats(rates_b_rad_s))
+        _set_att_t(self, t_s)
+        _set_att_roll(self, roll_rad)
+        _set_att_pitch(self, pitch_rad)
+        _set_att_yaw(self, yaw_rad)
 
     @property  # type: ignore[override]
     def rates_b_rad_s(self) -> np.ndarray:
@@ -122,9 +128,8 @@ def _as_plain(sample: Any, cls: Any) -> tuple[Any, ...]:
 
 
 def _floats(v: Float3 | Vec3) -> Float3:
-    """Three Python floats (as given when they are; arrays, e.g. from ``dataclasses.replace``, converted)."""
-    if type(v) is tuple:
-        return v
+    """Three Python floats from what is not a tuple of them (arrays, e.g. from ``dataclasses.replace``;
+    the constructors keep a tuple as given)."""
     return float(v[0]), float(v[1]), float(v[2])
 
 

@@ -9,8 +9,13 @@ Symbols: psi -> psi_deg (heading, deg); the Euler yaw rate yaw_rate_rad_s (rad/s
 from __future__ import annotations
 
 import math
+from typing import TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
 
 _DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
+FloatOrArray = TypeVar("FloatOrArray", float, NDArray[np.float64])
 
 GYRO_SCALE_ERROR = 0.01
 """A MEMS gyro's scale-factor tolerance, which autopilots do not calibrate (datasheets: 0.5-3 %)."""
@@ -99,9 +104,12 @@ STEEP_COS_TILT = math.cos(math.radians(30.0))
 sine) makes the yaw integral err with the whole body rate, not only with the yaw rate."""
 
 
-def turn_rate(gx: float, gy: float, gz: float, cos_tilt: float) -> float:
+def turn_rate(gx: FloatOrArray, gy: FloatOrArray, gz: FloatOrArray, cos_tilt: FloatOrArray) -> FloatOrArray:
     """The rotation rate (rad/s) the heading filter's gyro error grows with besides the yaw rate
     (:class:`HeadingFilter`): the body rate's norm where the vehicle is tilted
     beyond 30 deg (``cos_tilt`` = cos(roll) cos(pitch)), else 0 (near level the attitude's errors make the
-    integral wander about zero as the vehicle rocks, not drift)."""
-    return math.sqrt(gx * gx + gy * gy + gz * gz) if cos_tilt < STEEP_COS_TILT else 0.0
+    integral wander about zero as the vehicle rocks, not drift). Floats, or arrays of a block of samples
+    (the same numbers element by element)."""
+    if not isinstance(cos_tilt, np.ndarray):
+        return math.sqrt(gx * gx + gy * gy + gz * gz) if cos_tilt < STEEP_COS_TILT else 0.0
+    return np.where(cos_tilt < STEEP_COS_TILT, np.sqrt(gx * gx + gy * gy + gz * gz), 0.0)

@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,9 +68,12 @@ class HoverTheta:
     anchor_rad: float = 0.0
     #: where the fit's yaw came from: "autopilot" (:class:`HoverNormal`) or "gyro" (:class:`GyroYawNormal`)
     yaw_source: str = "autopilot"
-    #: what ``theta_sigma_mgauss`` rests on: the number of blocks of the jackknife over time
-    #: (:func:`with_block_sigma`; 0: the fit's own covariance, which takes the residuals as white)
+    #: the blocks of time of the jackknife that ``theta_sigma_mgauss`` also takes, per axis the larger
+    #: (:func:`with_jackknife`; 0: none, the fit's own covariance alone, which takes the residuals as white)
     sigma_blocks: int = 0
+    #: a block left out left too little to fit (theta rests on that stretch of the flight): the jackknife
+    #: over the other blocks, and so the sigma stated, is a lower bound
+    sigma_lower_bound: bool = False
 
     def correction(self) -> Correction:
         """The fit as a core correction (eq. (2) with L = I and d the offsets' change, eq. (11) with theta),
@@ -413,19 +416,28 @@ MIN_JACKKNIFE_BLOCKS = 4
 MAX_JACKKNIFE_BLOCKS = 12
 
 
+def jackknife_count(covered_s: float) -> int | None:
+    """How many blocks the jackknife takes for samples covering ``covered_s`` of time: one per
+    JACKKNIFE_BLOCK_S, at least MIN_JACKKNIFE_BLOCKS and at most MAX_JACKKNIFE_BLOCKS; None where that many
+    would be shorter than MIN_JACKKNIFE_BLOCK_S on average."""
+    j = min(max(int(covered_s // JACKKNIFE_BLOCK_S), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
+    return None if covered_s < j * MIN_JACKKNIFE_BLOCK_S else j
+
+
+def covered_s(t_s: F64) -> float:
+    """The time samples in time order cover (s): their spacings, gaps longer than MIN_JACKKNIFE_BLOCK_S left
+    out (the motors stopped, the vehicle out of the fit's bounds)."""
+    dt = np.diff(np.asarray(t_s, dtype=float))
+    return float(dt[(dt > 0.0) & (dt <= MIN_JACKKNIFE_BLOCK_S)].sum())
+
+
 def jackknife_blocks(t_s: F64) -> NDArray[np.int64] | None:
-    """A block index per sample for :func:`block_jackknife_sd` (samples in time order): contiguous runs of
-    equal sample counts, as many as the time the samples cover holds of JACKKNIFE_BLOCK_S (gaps longer than
-    MIN_JACKKNIFE_BLOCK_S not counted: the motors stopped, the vehicle out of the fit's bounds), at least
-    MIN_JACKKNIFE_BLOCKS of no less than MIN_JACKKNIFE_BLOCK_S each, at most MAX_JACKKNIFE_BLOCKS; None
-    where the time covered holds fewer."""
+    """A block index per sample for :func:`block_jackknife_sd` (samples in time order):
+    :func:`jackknife_count` contiguous runs of equal sample counts over the time they cover
+    (:func:`covered_s`); None where too short."""
     t = np.asarray(t_s, dtype=float)
-    if t.size < 2:
-        return None
-    dt = np.diff(t)
-    covered = float(dt[(dt > 0.0) & (dt <= MIN_JACKKNIFE_BLOCK_S)].sum())
-    j = min(max(int(covered // JACKKNIFE_BLOCK_S), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
-    if covered < j * MIN_JACKKNIFE_BLOCK_S:
+    j = jackknife_count(covered_s(t)) if t.size >= 2 else None
+    if j is None:
         return None
     return np.asarray(np.arange(t.size) * j // t.size, dtype=np.int64)
 
@@ -433,57 +445,110 @@ def jackknife_blocks(t_s: F64) -> NDArray[np.int64] | None:
 FitOnMask = Callable[[NDArray[np.bool_]], "HoverTheta | None"]
 
 
-def block_jackknife_sd(blocks: NDArray[np.int64], fit_without: FitOnMask) -> tuple[F64, int] | None:
+class Jackknife(NamedTuple):
+    """The delete-one-block jackknife's sd of theta (mgauss, per axis), its blocks, and whether every refit
+    succeeded (else the sd is over the others only: a lower bound)."""
+
+    sd: F64
+    blocks: int
+    complete: bool
+
+
+def block_jackknife_sd(blocks: NDArray[np.int64], fit_without: FitOnMask) -> Jackknife | None:
     """theta's standard deviation (mgauss, per axis) by the delete-one-block jackknife: theta refitted with
-    each block of time left out (``fit_without(mask of the samples kept)``), sd = sqrt((J - 1) / J * sum of
-    the squared deviations from their mean). Residuals correlated in time (a yaw reference that wanders, a
-    field that changes along the path) make the fit's own covariance, which takes them as white, too small;
-    blocks long against that correlation carry it into the spread of the refits. Returns (sd, J), None
-    where fewer than MIN_JACKKNIFE_BLOCKS refits succeed."""
+    each block of time left out (``fit_without(mask of the samples kept)``; :func:`jackknife_sd`).
+    Residuals correlated in time (a yaw reference that wanders, a field that changes along the path) make the
+    fit's own covariance, which takes them as white, too small; blocks long against that correlation carry it
+    into the spread of the refits."""
     return jackknife_sd([fit_without(blocks != b) for b in np.unique(blocks)])
 
 
-def jackknife_sd(fits_without: list[HoverTheta | None]) -> tuple[F64, int] | None:
-    """The delete-one-block jackknife's sd of theta (mgauss, per axis) from the refits with each block left
-    out (None: that refit failed, not counted), and their count; None below MIN_JACKKNIFE_BLOCKS."""
+def jackknife_sd(fits_without: list[HoverTheta | None]) -> Jackknife | None:
+    """sd = sqrt((J - 1) / J * sum of the squared deviations of the refits' theta from their mean), from the
+    refits with each block left out. A refit that fails (None: the block left out held the throttle's
+    change) is not counted and marks the result incomplete: theta rests on that block, which the others
+    cannot measure. None below MIN_JACKKNIFE_BLOCKS refits."""
     thetas = [f.theta_mgauss for f in fits_without if f is not None]
     j = len(thetas)
     if j < MIN_JACKKNIFE_BLOCKS:
         return None
     th = np.asarray(thetas, dtype=float)
-    return np.sqrt((j - 1) / j * ((th - th.mean(axis=0)) ** 2).sum(axis=0)), j
+    sd = np.sqrt((j - 1) / j * ((th - th.mean(axis=0)) ** 2).sum(axis=0))
+    return Jackknife(sd, j, j == len(fits_without))
 
 
-def with_jackknife(fit: HoverTheta, got: tuple[F64, int] | None) -> HoverTheta:
+def with_jackknife(fit: HoverTheta, got: Jackknife | None) -> HoverTheta:
     """``fit`` with theta's sigma the larger, per axis, of its own and the jackknife's ``got``."""
     if got is None:
         return fit
-    sd, j = got
-    return replace(fit, theta_sigma_mgauss=np.maximum(fit.theta_sigma_mgauss, sd), sigma_blocks=j)
+    sd = np.maximum(fit.theta_sigma_mgauss, got.sd)
+    return replace(fit, theta_sigma_mgauss=sd, sigma_blocks=got.blocks, sigma_lower_bound=not got.complete)
 
 
-def grouped_jackknife(total: HoverNormal, groups: list[HoverNormal], fit: HoverTheta,
+#: the live fit's groups of normal equations (one per MIN_JACKKNIFE_BLOCK_S) are merged in adjacent pairs
+#: beyond this many, so that a long flight keeps a bounded memory (each is ~1 kB)
+MAX_LIVE_GROUPS = 72
+
+
+class HoverGroups:
+    """The live fit's normal equations also kept per stretch of about MIN_JACKKNIFE_BLOCK_S
+    (service/heading.py HoverShadow), with the time each covers (:func:`covered_s`'s rule, sample block by
+    block): what :func:`grouped_jackknife` leaves out one block at a time."""
+
+    __slots__ = ("_last_t", "_start_t", "groups", "seconds")
+
+    def __init__(self) -> None:
+        self.groups: list[HoverNormal] = []
+        self.seconds: list[float] = []
+        self._start_t = -math.inf
+        self._last_t = math.nan
+
+    def add(self, part: HoverNormal, t_s: float) -> None:
+        """A block of samples' normal equations, its latest sample at ``t_s``."""
+        step = t_s - self._last_t
+        self._last_t = t_s
+        if not t_s - self._start_t < MIN_JACKKNIFE_BLOCK_S:
+            if len(self.groups) >= MAX_LIVE_GROUPS:
+                self._halve()
+            self.groups.append(HoverNormal())
+            self.seconds.append(0.0)
+            self._start_t = t_s
+        self.groups[-1].merge(part)
+        if 0.0 < step <= MIN_JACKKNIFE_BLOCK_S:
+            self.seconds[-1] += step
+
+    def _halve(self) -> None:
+        groups, seconds = self.groups, self.seconds
+        for i in range(0, len(groups) - 1, 2):
+            groups[i].merge(groups[i + 1])
+            seconds[i] += seconds[i + 1]
+        self.groups, self.seconds = groups[::2], seconds[::2]
+
+
+def grouped_jackknife(total: HoverNormal, groups: HoverGroups, fit: HoverTheta,
                       offset_sd_mgauss: float | None) -> HoverTheta:  # fmt: skip
-    """:func:`with_block_sigma` on normal equations kept per MIN_JACKKNIFE_BLOCK_S of time (the live fit's
-    ``groups``, whose sum is ``total``): adjacent groups merged into as many blocks as
-    :func:`jackknife_blocks` takes for that time, each left out by subtraction."""
-    if len(groups) < MIN_JACKKNIFE_BLOCKS:
+    """:func:`with_block_sigma` on normal equations kept per stretch of time (the live fit's ``groups``,
+    whose sum is ``total``): :func:`jackknife_count` blocks for the time they cover, adjacent groups merged
+    into runs of about equal sample counts, each block left out by subtraction."""
+    j = jackknife_count(sum(groups.seconds))
+    if j is None or len(groups.groups) < j:
         return fit
-    per_block = JACKKNIFE_BLOCK_S / MIN_JACKKNIFE_BLOCK_S
-    j = min(max(int(len(groups) // per_block), MIN_JACKKNIFE_BLOCKS), MAX_JACKKNIFE_BLOCKS)
+    counts = np.cumsum([g.n for g in groups.groups])
+    cuts = np.searchsorted(counts, np.arange(1, j) * counts[-1] / j, side="left") + 1
     merged: list[HoverNormal] = []
-    for chunk in np.array_split(np.arange(len(groups)), j):
+    for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(groups.groups)], strict=True):
         g = HoverNormal()
-        for i in chunk.tolist():
-            g.merge(groups[i])
+        for part in groups.groups[int(lo):int(hi)]:
+            g.merge(part)
         merged.append(g)
-    return with_jackknife(fit, jackknife_sd([total.without(g).fit(offset_sd_mgauss) for g in merged]))
+    return with_jackknife(fit, jackknife_sd([total.without(g).fit(offset_sd_mgauss) for g in merged if g.n]))
 
 
 def with_block_sigma(fit: HoverTheta, t_s: F64, fit_on: FitOnMask) -> HoverTheta:
     """``fit`` with theta's sigma the larger, per axis, of its own and :func:`block_jackknife_sd`'s
     (``fit_on``: the same form fitted on a mask of the samples ``t_s``); unchanged where the span holds too
-    few blocks. Departure from the paper, whose eq. (15) covariance takes the noise as white: on the
-    development logs' hover fits the jackknife's sd is 1-45x the white one (docs/real-flights.md)."""
+    few blocks. The blocks are counted over the samples the form fits (``t_s``: their times; ``fit_on``
+    takes a mask of them). Departure from the paper, whose eq. (15) covariance takes the noise as white: on
+    the development logs' hover fits the jackknife's sd is 1-45x the white one (docs/real-flights.md)."""
     blocks = jackknife_blocks(t_s)
     return with_jackknife(fit, None if blocks is None else block_jackknife_sd(blocks, fit_on))

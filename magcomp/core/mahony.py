@@ -120,8 +120,12 @@ def mahony_init(accel_b_m_s2: ArrayLike, yaw_rad: float = 0.0) -> MahonyState:
 def accel_gate_ok(accel_b_m_s2: Sequence[float], p: MahonyParams) -> bool:
     """True when the specific-force magnitude is within the gate around g."""
     ax, ay, az = accel_b_m_s2
-    norm = math.sqrt(ax * ax + ay * ay + az * az)
-    return math.isfinite(norm) and abs(norm - p.gravity_m_s2) <= p.accel_gate_frac * p.gravity_m_s2
+    return accel_norm_ok(math.sqrt(ax * ax + ay * ay + az * az), p)
+
+
+def accel_norm_ok(norm_m_s2: float, p: MahonyParams) -> bool:
+    """:func:`accel_gate_ok` of a specific force whose magnitude is ``norm_m_s2``."""
+    return math.isfinite(norm_m_s2) and abs(norm_m_s2 - p.gravity_m_s2) <= p.accel_gate_frac * p.gravity_m_s2
 
 
 def mahony_update(
@@ -131,18 +135,37 @@ def mahony_update(
     dt_s: float,
     p: MahonyParams,
 ) -> MahonyUpdate:
-    """One filter step over ``dt_s`` (vectors as any three numbers); plain floats, once per IMU sample."""
+    """One filter step over ``dt_s`` (vectors as any three numbers; :func:`mahony_floats`)."""
     if not dt_s > 0.0:
         raise ValueError(f"dt must be > 0, got {dt_s}")
     gx, gy, gz = vec3(gyro_b_rad_s)
     ax, ay, az = vec3(accel_b_m_s2)
-    used = accel_gate_ok((ax, ay, az), p)
-    b0, b1, b2 = state.gyro_bias_b_rad_s
+    q, bias, used = mahony_floats(state.q_nb, state.gyro_bias_b_rad_s, gx, gy, gz, ax, ay, az, dt_s, p)
+    return MahonyUpdate(MahonyState(q, bias), used)
+
+
+def mahony_floats(
+    q_nb: Quat,
+    bias_b_rad_s: Vec3,
+    gx: float,
+    gy: float,
+    gz: float,
+    ax: float,
+    ay: float,
+    az: float,
+    dt_s: float,
+    p: MahonyParams,
+) -> tuple[Quat, Vec3, bool]:
+    """One filter step over ``dt_s`` > 0 on plain floats: (attitude, gyro bias, whether the accelerometer
+    passed the gate) after the step from attitude ``q_nb`` and bias ``bias_b_rad_s`` with the body rate
+    ``g*`` (rad/s) and the specific force ``a*`` (m/s^2). The per-IMU-sample path (no named tuples built)."""
+    b0, b1, b2 = bias_b_rad_s
     # predict with the bias-corrected gyro, then correct against the accelerometer sampled at the end of
     # the step (comparing with the start-of-step attitude would leave a lag of |omega| dt in the tilt)
-    q = quat_step_body_rate(state.q_nb, (gx - b0, gy - b1, gz - b2), dt_s)  # eq. (18)
+    q = quat_step_body_rate(q_nb, (gx - b0, gy - b1, gz - b2), dt_s)  # eq. (18)
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    used = accel_norm_ok(an, p)
     if used:
-        an = math.sqrt(ax * ax + ay * ay + az * az)
         ex, ey, ez = cross((-ax / an, -ay / an, -az / an), down_b_from_quat(q))  # [23] v x v_hat
         kp = p.kp
         q = quat_step_body_rate(q, (kp * ex, kp * ey, kp * ez), dt_s)  # [23] explicit complementary filter
@@ -155,7 +178,7 @@ def mahony_update(
         m if b1 > m else -m if b1 < -m else b1,
         m if b2 > m else -m if b2 < -m else b2,
     )
-    return MahonyUpdate(MahonyState(q, bias), used)
+    return q, bias, used
 
 
 def mahony_step(state: MahonyState, imu: ImuSample, dt_s: float, p: MahonyParams) -> MahonyState:

@@ -327,8 +327,13 @@ class CalibrateStage(Generic[H]):
         earth_ned: F64,
         save: Callable[[H, float], None],
         text: Callable[[float, str, bool], None],
+        outputs: bool = True,
     ) -> None:
+        """``outputs`` False (a learn-only pass): the in-flight correction's field (eq. (2)) is not written
+        into the records, which nothing there reads (the theta stage reads the field only of samples the
+        in-flight calibration does not correct)."""
         self.cfg = cfg
+        self._outputs = outputs
         self.attitude = attitude
         self.throttle = throttle
         self.params = params
@@ -361,7 +366,8 @@ class CalibrateStage(Generic[H]):
                 rec.calibrated = True
                 rec.inflight = out
                 # eq. (2) with the in-flight L and d (its theta and bias come with it: service/theta.py)
-                rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
+                if self._outputs:
+                    rec.field_cal = apply_eq2(out.coeffs, vx, vy, vz)
                 return
             if c.inflight is not None:
                 rec.shadow = c.inflight.candidate()

@@ -210,6 +210,8 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                 )
             if cal.get("yaw_source") == "gyro":
                 why += "; theta fitted with the gyro's yaw, which no compass steers"
+            if cal.get("theta_sigma_lower_bound"):
+                why += "; theta rests on one stretch of the flight, its sigma a lower bound"
             kept += f" ({why})"
             lines.append(_corrected_line(c, kept, sig, ""))
             continue

@@ -30,7 +30,6 @@ import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from functools import partial
 from typing import IO, TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -49,7 +48,7 @@ from magcomp.core.hover_theta import (
 )
 from magcomp.core.types import FLAG_OBSERVER_RESET, HeadingEstimate
 from magcomp.core.yaw_follow import follows_within
-from magcomp.service.heading import filter_rates
+from magcomp.service.heading import filter_rates_block
 from magcomp.service.publish import HeadingEncoder, TlogWriter, write_headings
 from magcomp.service.record import ZERO3, Float3, MagRecord
 
@@ -58,11 +57,12 @@ if TYPE_CHECKING:
 
 F64 = NDArray[np.float64]
 
-#: the sample log's columns (one row per magnetometer sample that reached the heading stage)
+#: the sample log's columns (one row per magnetometer sample that reached the heading stage); the heading
+#: filters' rates are taken from the gyro columns a block at a time (heading.filter_rates_block)
 (T, MAG, RAW_X, RAW_Y, RAW_Z, THR, HAVE_THR, FLAGS, RESET, PREV_T, OBS_RESET, COS_ROLL, SIN_ROLL, COS_PITCH,
- SIN_PITCH, GYRO_FRESH, YAW_RATE, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
- IMU_DT, ONB_X, ONB_Y, ONB_Z, TURN, GYRO_BIAS) = range(28)  # fmt: skip
-N_COLS = GYRO_BIAS + 1
+ SIN_PITCH, GYRO_FRESH, GRAW_X, GRAW_Y, GRAW_Z, BOOT_OFFSET, REBOOT, AP_YAW, GYRO_YAW, GYRO_EPOCH,
+ IMU_DT, ONB_X, ONB_Y, ONB_Z, GYRO_Y, GYRO_Z, SETTLED) = range(31)  # fmt: skip
+N_COLS = SETTLED + 1
 #: rows held in memory before they go to the temporary file (and rows per block of the second pass):
 #: 8192 rows of 28 float64 are 1.8 MB
 CHUNK_ROWS = 8192
@@ -97,10 +97,11 @@ class SampleLog:
         vx, vy, vz = rec.raw
         onb = rec.sample.onboard_mgauss or ZERO3
         buf = self._buf
-        rate, turn, bias = filter_rates(rec)  # what the heading filters propagate with, as live
+        _, g1, g2 = rec.gyro
         buf.frombytes(_ROW.pack(rec.t_s, rec.mag_index, vx, vy, vz, rec.throttle_01, rec.have_throttle,
-                                rec.flags, rec.reset, prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh, rate,
-                                boot_offset_s, reboot, *yaws, imu_dt_s, *onb, turn, bias))  # fmt: skip
+                                rec.flags, rec.reset, prev, rec.obs_reset, *rec.tilt, rec.gyro_fresh,
+                                *rec.gyro_raw, boot_offset_s, reboot, *yaws, imu_dt_s, *onb, g1, g2,
+                                rec.down is not None))  # fmt: skip
         if len(buf) >= self._limit:
             self._spill()
 
@@ -369,8 +370,28 @@ def hover_candidate(cols: F64) -> tuple[HoverTheta, selfcheck.SelfCheck] | None:
             chk = self_check(np.column_stack((t, base, cand, yaw, gyaw, epoch, imu_dt)), circular)
             got = anchored(fit, field, thr, *trig), chk
             if chk.applies:
-                return with_block_sigma(got[0], t, partial(fit_on, source, sd=sd)), chk
+                return _stated(got[0], source, sd, fit_on, cols, fast), chk
     return got
+
+
+def _stated(fit: HoverTheta, source: str, sd: float | None,
+            fit_on: Callable[[str, NDArray[np.bool_], float | None], HoverTheta | None], cols: F64,
+            fast: NDArray[np.bool_] | None) -> HoverTheta:  # fmt: skip
+    """``fit`` with theta's sigma from the jackknife over blocks of time (core/hover_theta.py
+    :func:`~magcomp.core.hover_theta.with_block_sigma`), the blocks counted over the rows its form fits."""
+    t, roll, pitch, yaw, thr, gyaw, epoch = (cols[:, i] for i in (0, 4, 5, 6, 7, 8, 9))
+    use = np.isfinite(cols[:, 1:4]).all(axis=1) & np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(thr)
+    if source == "gyro" and fast is not None:
+        use &= fast & np.isfinite(gyaw) & np.isfinite(epoch) & np.isfinite(t)
+    else:
+        use &= np.isfinite(yaw)
+
+    def on_used(kept: NDArray[np.bool_]) -> HoverTheta | None:
+        m = np.zeros(use.shape, dtype=bool)
+        m[use] = kept
+        return fit_on(source, m, sd)
+
+    return with_block_sigma(fit, t[use], on_used)
 
 
 def self_check_finals(
@@ -440,8 +461,14 @@ def filter_and_publish(
     # bool() of each float, the same index as int())
     mags = rows[:, MAG].astype(np.int64).tolist()
     flags = [(rows[:, k] != 0.0).tolist() for k in (HAVE_THR, RESET, GYRO_FRESH, REBOOT)]
-    cols = (rows[:, T], rows[:, PREV_T], rows[:, YAW_RATE], cor.psi_deg, cor.psi_raw_deg, cor.corrected,
-            rows[:, GYRO_YAW], rows[:, GYRO_EPOCH], rows[:, IMU_DT], rows[:, TURN], rows[:, GYRO_BIAS])
+    # what the heading filters propagate with, as live (heading.filter_rates), for the whole block
+    rate, turn, bias = filter_rates_block(
+        (rows[:, GRAW_X], rows[:, GRAW_Y], rows[:, GRAW_Z]), (rows[:, GYRO_Y], rows[:, GYRO_Z]),
+        (rows[:, COS_ROLL], rows[:, SIN_ROLL], rows[:, COS_PITCH]), rows[:, SETTLED] != 0.0,
+        rows[:, HAVE_THR] != 0.0, rows[:, THR],
+    )  # fmt: skip
+    cols = (rows[:, T], rows[:, PREV_T], rate, cor.psi_deg, cor.psi_raw_deg, cor.corrected,
+            rows[:, GYRO_YAW], rows[:, GYRO_EPOCH], rows[:, IMU_DT], turn, bias)
     lists = [mags, *flags, *(c.tolist() for c in cols)]
     # per compass: its state, its in-flight stage whose time is accounted (None: none) and the state counted
     per = {i: (correctors[i], stages.get(i), accounts.get(i) or "uncorrected") for i in set(mags)}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from itertools import chain
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,8 +20,8 @@ from magcomp.core.correction import Correction
 from magcomp.core.heading import heading_from_trig_deg
 from magcomp.core.heading_filter import HeadingFilter, turn_rate
 from magcomp.core.hover_theta import (
-    MIN_JACKKNIFE_BLOCK_S,
     OFFSET_PRIOR_SD_MGAUSS,
+    HoverGroups,
     HoverNormal,
     HoverTheta,
     grouped_jackknife,
@@ -44,6 +45,8 @@ from magcomp.core.types import FLAG_CALIBRATED, FLAG_THETA_CONVERGED
 from magcomp.service.calibrate import apply_eq2
 from magcomp.service.record import Float3, MagRecord
 
+F64 = NDArray[np.float64]
+FloatOrArray = TypeVar("FloatOrArray", float, F64)
 _DEG_PER_RAD = 180.0 / math.pi  # the factor of math.degrees
 
 #: below this |cos(pitch)| the Euler yaw rate is undefined (pitch beyond +-75.5 deg): the filter restarts
@@ -61,14 +64,13 @@ class HoverShadow:
     equations in blocks; each form is re-fitted whenever its running self-check closes a window and judged
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
-    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_group_t", "_groups", "_offset", "_solved",
-                 "checks", "deg", "filter", "fits", "normal", "on_form")  # fmt: skip
+    __slots__ = ("_anchor_sc", "_block", "_cors", "_fit_t", "_groups", "_offset", "_solved", "checks", "deg",
+                 "filter", "fits", "normal", "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self.normal = HoverNormal()
-        #: the same normal equations per MIN_JACKKNIFE_BLOCK_S of time (theta's sigma: :meth:`stated_fit`)
-        self._groups: list[HoverNormal] = []
-        self._group_t = -math.inf
+        #: the same normal equations per stretch of time (theta's sigma: :meth:`stated_fit`)
+        self._groups = HoverGroups()
         self._fit_t = math.nan
         self._block: list[tuple[float, float, float, float, float, float, float]] = []
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
@@ -96,10 +98,7 @@ class HoverShadow:
             part = HoverNormal()
             part.add(a[:, 0:3], a[:, 3], a[:, 4], a[:, 5], a[:, 6])
             self.normal.merge(part)
-            if not t_s - self._group_t < MIN_JACKKNIFE_BLOCK_S:
-                self._groups.append(HoverNormal())
-                self._group_t = t_s
-            self._groups[-1].merge(part)
+            self._groups.add(part, t_s)
         self._solved = False
 
     def _solve(self) -> None:
@@ -436,16 +435,44 @@ def filter_rates(rec: MagRecord) -> tuple[float, float, float]:
     """What the heading filters propagate with at this sample, from the raw gyro: the Euler yaw rate
     (:func:`yaw_rate`, rad/s), the turn rate (core/heading_filter.py :func:`turn_rate`, rad/s) and the
     attitude filter's bias where it can be trusted (:func:`gyro_bias_rad_s`; NaN elsewhere). The live stage
-    and the two-pass replay's sample log (which its second pass replays) take them here."""
+    takes them here; the two-pass replay's second pass takes the same numbers a block at a time
+    (:func:`filter_rates_block`)."""
     gx, gy, gz = rec.gyro_raw
     cr, sr, cp, _ = rec.tilt
     rate = yaw_rate(gy, gz, cr, sr, cp)
     return rate, turn_rate(gx, gy, gz, cr * cp), gyro_bias_rad_s(rec, rate)
 
 
-def yaw_rate(gy: float, gz: float, cos_roll: float, sin_roll: float, cos_pitch: float) -> float:
-    """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)``."""
-    return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
+def filter_rates_block(
+    gyro_raw: tuple[F64, F64, F64],
+    gyro_yz: tuple[F64, F64],
+    tilt: tuple[F64, F64, F64],
+    settled: NDArray[np.bool_],
+    have_throttle: NDArray[np.bool_],
+    throttle_01: F64,
+) -> tuple[F64, F64, F64]:
+    """:func:`filter_rates` of a block of samples (the same numbers: the same operations, element by element)
+    from their columns: the gyro as logged (x, y, z), the bias-corrected gyro's y and z, cos / sin of roll and
+    cos of pitch, whether the attitude filter had settled (``MagRecord.down`` not None), the throttle."""
+    gx, gy, gz = gyro_raw
+    cr, sr, cp = tilt
+    rate = yaw_rate(gy, gz, cr, sr, cp)
+    # gyro_bias_rad_s's rule: settled, the motors off, the vehicle at rest
+    trusted = settled & ~(have_throttle & (throttle_01 > MOTORS_RUNNING_01))
+    trusted &= ~(gx * gx + gy * gy + gz * gz > STILL_RATE_RAD_S * STILL_RATE_RAD_S)
+    bias = np.where(trusted, rate - yaw_rate(gyro_yz[0], gyro_yz[1], cr, sr, cp), np.nan)
+    return rate, turn_rate(gx, gy, gz, cr * cp), bias
+
+
+def yaw_rate(gy: FloatOrArray, gz: FloatOrArray, cos_roll: FloatOrArray, sin_roll: FloatOrArray,
+             cos_pitch: FloatOrArray) -> FloatOrArray:  # fmt: skip
+    """Euler yaw rate from body rates (ZYX): ``(q sin(roll) + r cos(roll)) / cos(pitch)`` (NaN where
+    ``|cos(pitch)| < MIN_COS_PITCH``); floats, or arrays of a block of samples."""
+    if not isinstance(cos_pitch, np.ndarray):
+        return math.nan if abs(cos_pitch) < MIN_COS_PITCH else (gy * sin_roll + gz * cos_roll) / cos_pitch
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = (gy * sin_roll + gz * cos_roll) / cos_pitch
+        return np.where(np.abs(cos_pitch) < MIN_COS_PITCH, np.nan, rate)
 
 
 def _shadow_heading_deg(rec: MagRecord) -> float | None:

@@ -170,7 +170,7 @@ class Pipeline:
         # the first pass of a two-pass replay publishes only its final estimate: re-solved less often
         cal_cfg = replace(cfg, inflight=learn_config(cfg.inflight)) if learn_only else cfg
         self.calibrate = CalibrateStage(cal_cfg, self.attitude, self.throttle, self._params, self._earth_ned,
-                                        self.persist.save, self._text)  # fmt: skip
+                                        self.persist.save, self._text, outputs=not learn_only)  # fmt: skip
         self.theta = ThetaStage(cfg, self.throttle, self.counts, outputs=not learn_only)
         self.publish = PublishStage(cfg, self.counts)
         #: sample class -> its handler (:meth:`feed`)
@@ -481,7 +481,7 @@ class Pipeline:
         """Plain values for JSON: counts, warnings, where the Earth field came from, and per compass its
         calibration, theta, whether its headings are corrected and, when not, why (strictly valid JSON:
         no NaN)."""
-        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self._hover(c))
+        compasses = [compass_summary(c, self._status(c), self._check(c)[0], self._hover(c, stated=True))
                      for i, c in sorted(self.correctors.items())]
         lat, lon, alt, year = self._location
         return json_safe(
@@ -539,11 +539,12 @@ class Pipeline:
         if got is None:
             return ""
         hov, chk = got
-        return f"; theta against the autopilot's calibration, tried with {_yaw_words(hov)}: {chk.reason}"
+        return f"; theta against the autopilot's calibration, last tried with {_yaw_words(hov)}: {chk.reason}"
 
-    def _hover(self, c: CompassCorrector) -> HoverTheta | None:
+    def _hover(self, c: CompassCorrector, stated: bool = False) -> HoverTheta | None:
         """The theta against the autopilot's calibration a compass publishes: the two-pass replay's, else the
-        live one's (service/heading.py HoverShadow) where its self-check is on and nothing else applies."""
+        live one's (service/heading.py HoverShadow) where its self-check is on and nothing else applies;
+        ``stated``: the live one with the sigma the summary states (its jackknife over blocks of time)."""
         if c.mag_index in self.self_checks or c.mag_index in self.hover_thetas:  # the two-pass replay's
             return self.hover_thetas.get(c.mag_index)
         live, st = c.heading.hover, c.inflight
@@ -551,7 +552,7 @@ class Pipeline:
             return None
         if st is not None and st.applied:
             return None  # the in-flight correction applies (published or not: service/heading.py)
-        return live.stated_fit()
+        return live.stated_fit() if stated else live.fit
 
     def _check(self, c: CompassCorrector) -> tuple[SelfCheck | None, bool]:
         """A compass's self-check and whether its correction is published: the two-pass replay's over the

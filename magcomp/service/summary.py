@@ -60,8 +60,10 @@ def compass_summary(
             "residual_rms_mgauss": hover.residual_rms_mgauss,
             "n": hover.n,
             "theta_sigma_mgauss": hover.theta_sigma_mgauss.tolist(),
-            # blocks of the jackknife the sigma rests on (0: the fit's own, white-residual covariance)
+            # the jackknife's blocks of time (0: none; the sigma is per axis the larger of it and the fit's
+            # own, white-residual one) and whether a block left out left too little to fit (a lower bound)
             "theta_sigma_blocks": hover.sigma_blocks,
+            "theta_sigma_lower_bound": hover.sigma_lower_bound,
             "offset_change_mgauss": hover.offset_mgauss.tolist(),
             "heading_anchor_deg": math.degrees(hover.anchor_rad),
             "yaw_source": hover.yaw_source,

@@ -38,6 +38,7 @@ from magcomp.service.align import Counts, ThrottleTrack
 from magcomp.service.record import Float3, MagRecord
 
 F64 = NDArray[np.float64]
+_new_tuple = tuple.__new__
 
 
 class Queued(NamedTuple):
@@ -237,7 +238,8 @@ class ThetaStage:
             self.counts["observer_resets"] += 1
             rec.flags |= FLAG_OBSERVER_RESET
         elif self._learn and rec.have_throttle and rec.gyro_fresh:
-            tr.queue.append(Queued(rec.t_s, rec.gyro, rec.field_cal))
+            # (tuple.__new__: the named tuple's own constructor without its keyword handling, 0.17 us less)
+            tr.queue.append(_new_tuple(Queued, (rec.t_s, rec.gyro, rec.field_cal, False)))
         elif self._learn:  # a sample the observer cannot take: no step across it (observer.samples_missing)
             tr.queue_reset(rec.t_s, skip=True)
         self.drain(c, rec.t_s)
