@@ -81,8 +81,15 @@ place of the case's; figures for voltage_sag and throttle_offset on fresh seeds 
 after the logged current became a second witness of the throttle shapes and the halves test generalised least
 squares: docs/diagnosis.md ("voltage_sag and throttle_offset on fresh seeds and other rates").
 
+Measured 2026-11-28 (helper diag11): ``--set telemetry_hz=R`` streams every case as a telemetry link (RAW_IMU,
+ATTITUDE, SERVO_OUTPUT_RAW at R Hz, as ``--rates`` draws a third of its logs). Fresh seeds 6100-6119 and
+6200-6219, before -> after the slow gyro's integral (:mod:`magcomp.diagnosis.slow_gyro`) and the delay rule
+(:func:`magcomp.diagnosis.effects.delay_unresolved`): at 10 Hz current_lag 6 -> 40/40, time_skew 0 -> 39/40,
+temperature_drift 21 -> 38/40, per_motor 4 -> 35/40; at 4 Hz 0 -> 28/40, 0 -> 0/40, 18 -> 21/40, 2 -> 29/40;
+the throttle shapes unchanged. Detectable sizes at 4 Hz and why: docs/diagnosis.md ("telemetry rates").
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
-    [--rates]
+    [--rates] [--set telemetry_hz=4]
 """
 
 from __future__ import annotations

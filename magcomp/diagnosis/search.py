@@ -22,6 +22,7 @@ from magcomp.diagnosis.effects import EFFECTS, delay_unresolved, effect_availabl
 from magcomp.diagnosis.export import autopilot_export, evidence_json, params_json, r4
 from magcomp.diagnosis.inputs import inlier_mask, signals_at, spans, subset
 from magcomp.diagnosis.intervals import profile_interval
+from magcomp.diagnosis.latency import MAX_HOLD_S
 from magcomp.diagnosis.model import CompassData, ModelFit, design, fit_model, initial_fit
 from magcomp.diagnosis.results import CompassDiagnosis, Finding
 from magcomp.diagnosis.rivals import (
@@ -132,7 +133,7 @@ def _cheap_rejection(
 ) -> str | None:
     """Why extension ``name`` fails before any held-out test (BIC, negligible, pinned), or None."""
     param = EFFECTS[name].param
-    small = negligible(name, float(getattr(f.ext, param)), data.drive) if param else None
+    small = negligible(name, float(getattr(f.ext, param)), data.drive, MAX_HOLD_S) if param else None
     if dbic > -p.min_delta_bic:  # cheap test first: CV only for candidates that pass BIC
         return "BIC"
     if small is not None:
@@ -161,12 +162,12 @@ def interval_at_edge(
     seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0].
     ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`).
     A delay shorter than the throttle's sampling interval whose interval reaches zero is not identified either
-    (:func:`~magcomp.diagnosis.effects.delay_unresolved`)."""
+    (:func:`~magcomp.diagnosis.effects.delay_unresolved`; MAX_HOLD_S: the oldest a compass sample can be)."""
     param = EFFECTS[name].param
     ci = ci if ci is not None else profile_interval(data, f, name)
     if param is None or ci is None:
         return None
-    unresolved = delay_unresolved(name, float(getattr(f.ext, param)), ci, data.drive)
+    unresolved = delay_unresolved(name, float(getattr(f.ext, param)), ci, data.drive, MAX_HOLD_S)
     if unresolved is not None:
         return unresolved
     lo_b, hi_b = EFFECTS[name].bounds

@@ -23,7 +23,7 @@ import pytest
 from magcomp.adapters.mavlink_emit import write_tlog
 from magcomp.adapters.mavlink_source import load_log
 from magcomp.core.rotations import dcms_from_quats
-from magcomp.diagnosis.effects import DriveInputs, delay_unresolved
+from magcomp.diagnosis.effects import DriveInputs, delay_unresolved, negligible
 from magcomp.diagnosis.engine import compass_data, diagnose
 from magcomp.diagnosis.gate import EarthReference
 from magcomp.sim import SimConfig, simulate
@@ -110,14 +110,21 @@ def _drive(throttle_dt_s: float) -> DriveInputs:
 
 
 def test_delay_below_the_sampling_interval_is_judged_by_its_widened_interval() -> None:
-    """Below the throttle's sampling interval a delay stands when its interval excludes zero, and only then;
-    at or above it the interval is not asked (the BIC and the range edges judge it)."""
+    """Below the throttle's sampling interval a delay longer than the oldest a compass sample can be stands
+    when its interval excludes zero, and only then; shorter than that age it is refused (as before, and
+    before any held-out test); at or above the sampling interval the interval is not asked."""
     d = _drive(0.26)
-    assert delay_unresolved("current_lag", 0.2, (0.05, 0.45), d) is None
-    assert delay_unresolved("time_skew", -0.2, (-0.4, -0.02), d) is None
-    why = delay_unresolved("current_lag", 0.2, (0.0, 0.4), d)
+    age = 0.1
+    assert delay_unresolved("current_lag", 0.2, (0.05, 0.45), d, age) is None
+    assert delay_unresolved("time_skew", -0.2, (-0.4, -0.02), d, age) is None
+    why = delay_unresolved("current_lag", 0.2, (0.0, 0.4), d, age)
     assert why is not None and "reaches 0" in why
-    assert delay_unresolved("time_skew", 0.1, (-0.05, 0.3), d) is not None
-    assert delay_unresolved("time_skew", 0.1, None, d) is not None
-    assert delay_unresolved("current_lag", 0.3, (0.0, 0.6), d) is None
-    assert delay_unresolved("voltage_sag", 0.1, (0.0, 0.6), d) is None
+    assert delay_unresolved("time_skew", 0.15, (-0.05, 0.3), d, age) is not None
+    assert delay_unresolved("time_skew", 0.15, None, d, age) is not None
+    assert delay_unresolved("current_lag", 0.05, (0.02, 0.08), d, age) is not None  # younger than an age
+    assert negligible("current_lag", 0.05, d, age) is not None
+    assert negligible("current_lag", 0.2, d, age) is None
+    assert delay_unresolved("current_lag", 0.3, (0.0, 0.6), d, age) is None
+    assert delay_unresolved("voltage_sag", 0.1, (0.0, 0.6), d, age) is None
+    fast = _drive(0.04)  # 25 Hz: every delay below the interval is also below the age, refused as before
+    assert negligible("time_skew", 0.038, fast, age) is not None
