@@ -160,22 +160,29 @@ def interval_at_edge(
     parameter that may as well sit at its physical ceiling (a 9 s "lag" on a 1-2 min hover, interval to the
     10 s ceiling) is a slow drift of the log, not the cause. Measured: the one false alarm on fresh clean
     seeds 10600-10659 (``benchmarks/diagnosis_false_alarm.py``) was such a lag, 9.1 s [5.6, 10.0].
-    ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`).
-    A delay shorter than the throttle's sampling interval whose interval reaches zero is not identified either
-    (:func:`~magcomp.diagnosis.effects.delay_unresolved`; MAX_HOLD_S: the oldest a compass sample can be)."""
+    ``ci``: that interval when the caller has it (:func:`~magcomp.diagnosis.intervals.profile_interval`)."""
     param = EFFECTS[name].param
     ci = ci if ci is not None else profile_interval(data, f, name)
     if param is None or ci is None:
         return None
-    unresolved = delay_unresolved(name, float(getattr(f.ext, param)), ci, data.drive, MAX_HOLD_S)
-    if unresolved is not None:
-        return unresolved
     lo_b, hi_b = EFFECTS[name].bounds
     tol = 1e-3 * (hi_b - lo_b)
     if ci[1] >= hi_b - tol or (lo_b != 0.0 and ci[0] <= lo_b + tol):
         rng = f"[{lo_b}, {hi_b}]"
         return f"{param}'s 95 % interval [{ci[0]:.3g}, {ci[1]:.3g}] reaches the end of its range {rng}"
     return None
+
+
+def not_identified(name: str, data: CompassData, f: ModelFit, ci: tuple[float, float] | None) -> str | None:
+    """Why a significant extension with the 95 % profile interval ``ci`` is not named, or None: the interval
+    reaches the end of its range (:func:`interval_at_edge`), or a delay shorter than the throttle's
+    sampling interval is not told from the samples' timing
+    (:func:`~magcomp.diagnosis.effects.delay_unresolved`; MAX_HOLD_S: the oldest a compass sample can be)."""
+    edge = interval_at_edge(name, data, f, ci)
+    param = EFFECTS[name].param
+    if edge is not None or param is None:
+        return edge
+    return delay_unresolved(name, float(getattr(f.ext, param)), ci, data.drive, MAX_HOLD_S)
 
 
 def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -> None:
@@ -210,7 +217,7 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         if ci is None:
             ci = profile_interval(data, f, name)
         s.intervals[name] = (f, ci)
-        why_edge = interval_at_edge(name, data, f, ci)
+        why_edge = not_identified(name, data, f, ci)
         if why_edge is not None:
             s.rejected[name] = {"delta_bic": r4(dbic), "cv_gain_pct": r4(100 * c.cv_gain), "why": why_edge}
             return
@@ -309,7 +316,7 @@ def group_rivals(data: CompassData, s: _Search) -> None:
             if not (math.isfinite(g) and g < RIVAL_DELTA_BIC):
                 continue
             ci = profile_interval(data, f, k)
-            if interval_at_edge(k, data, f, ci) is None:
+            if not_identified(k, data, f, ci) is None:
                 s.intervals[k] = (f, ci)
                 same.append(k)
                 gap[k] = g
