@@ -89,8 +89,15 @@ off (the simulator's off value) and counts the logs with any finding: 27 / 140 b
 ``--seed-list`` runs given seeds (e.g. the draws whose compass is unheld). docs/diagnosis.md ("Fresh draws of
 seeds and rates").
 
+Measured 2026-11-28 (helper diag11): ``--set telemetry_hz=R`` streams every case as a telemetry link (RAW_IMU,
+ATTITUDE, SERVO_OUTPUT_RAW at R Hz, as ``--rates`` draws a third of its logs). Fresh seeds 6100-6119 and
+6200-6219, before -> after the slow gyro's integral (:mod:`magcomp.diagnosis.slow_gyro`) and the delay rule
+(:func:`magcomp.diagnosis.effects.delay_unresolved`): at 10 Hz current_lag 6 -> 40/40, time_skew 0 -> 39/40,
+temperature_drift 21 -> 38/40, per_motor 4 -> 35/40; at 4 Hz 0 -> 28/40, 0 -> 0/40, 18 -> 21/40, 2 -> 29/40;
+the throttle shapes unchanged. Detectable sizes at 4 Hz and why: docs/diagnosis.md ("telemetry rates").
+
     PYTHONPATH=. .venv/bin/python benchmarks/diagnosis_heldout.py [--effects ...] [--seeds N --first-seed S]
-    [--rates] [--clean] [--seed-list S ...]
+    [--rates] [--clean] [--seed-list S ...] [--set telemetry_hz=4]
 """
 
 from __future__ import annotations
@@ -265,13 +272,19 @@ def simulate_case(
 ) -> tuple[Any, Any]:
     """The held-out log of ``effect`` at ``value`` with this seed: (the simulation, the log as read);
     ``overrides``: settings that replace the case's (e.g. other telemetry rates, ``{"mag_hz": 50}``);
-    ``rates``: message rates in place of the case's (:func:`drawn_rates`: its rate settings dropped first)."""
+    ``rates``: message rates in place of the case's (:func:`drawn_rates`: its rate settings dropped first);
+    ``telemetry_hz`` among the overrides (``--set telemetry_hz=R``) is taken as such rates."""
     from magcomp.adapters.mavlink_emit import write_tlog
     from magcomp.adapters.mavlink_source import load_log
     from magcomp.sim import SimConfig, simulate
     from magcomp.sim.config import apply_settings
 
     scenario, vehicle, duration, _, _, settings = CASES[effect]
+    if rates is None and overrides and "telemetry_hz" in overrides:
+        # a telemetry stream sets every message rate: the case's own rates would override its RAW_IMU and
+        # ATTITUDE (``apply_settings`` applies named rates after the telemetry expansion)
+        overrides = dict(overrides)
+        rates = {"telemetry_hz": overrides.pop("telemetry_hz")}
     if rates is not None:
         rate_keys = ("mag_hz", "raw_imu_hz", "attitude_hz", "telemetry_hz")
         settings = {k: v for k, v in settings.items() if k not in rate_keys} | rates

@@ -338,10 +338,13 @@ def attitude_source(
     gps_t_s: F64 | None = None,
     gps_vel_ned_m_s: F64 | None = None,
     gps_mask: NDArray[np.bool_] | None = None,
+    min_gyro_hz: float = MIN_GYRO_HZ,
 ) -> AttitudeSource:
     """Choose the rotation for the forward model and integrate the gyro when it is the source (module
     docstring); :meth:`AttitudeSource.at` takes it at a compass's times. GNSS velocity ``gps_t_s`` (k,),
-    ``gps_vel_ned_m_s`` (k, 3) m/s, usable where ``gps_mask`` (n,) allows: :func:`_gps_pass`."""
+    ``gps_vel_ned_m_s`` (k, 3) m/s, usable where ``gps_mask`` (n,) allows: :func:`_gps_pass`.
+    ``min_gyro_hz``: the slowest gyro integrated (default MIN_GYRO_HZ; 0 for the slow gyro's integral that
+    :mod:`magcomp.diagnosis.slow_gyro` puts to the compass)."""
     has_gyro = imu_t_s.shape[0] >= 10 and np.all(np.isfinite(gyro_b_rad_s))
     has_att = att_t_s.shape[0] >= 2
     slow_gyro = ""
@@ -352,10 +355,10 @@ def attitude_source(
             return stationary
         dt = float(np.median(np.diff(imu_t_s)))
         gyro_hz = 1.0 / dt if dt > 0 else 0.0
-        if gyro_hz < MIN_GYRO_HZ and has_att:
+        if gyro_hz < min_gyro_hz and has_att:
             has_gyro = False
             slow_gyro = (
-                f"the gyro is logged at {gyro_hz:.1f} Hz (< {MIN_GYRO_HZ:.0f} Hz: its integral misses "
+                f"the gyro is logged at {gyro_hz:.1f} Hz (< {min_gyro_hz:.0f} Hz: its integral misses "
                 "rotation), so "
             )
     if has_gyro:

@@ -272,15 +272,42 @@ def effect_available(name: str, d: DriveInputs) -> str | None:
     return None
 
 
-def negligible(name: str, value: float, d: DriveInputs) -> str | None:
-    """None when a fitted extension value is physically meaningful, else why it is not.
+def _delay_ms(value: float, d: DriveInputs) -> str:
+    ms = d.throttle_dt_s * 1e3
+    return f"{abs(value) * 1e3:.0f} ms is below the throttle's sampling interval ({ms:.0f} ms)"
 
-    Shifts and lags shorter than the throttle's own sampling interval cannot be told from the sampling of
-    the logged throttle (which the forward model interpolates), so they are not reported as findings.
-    """
-    if name in ("time_skew", "current_lag") and abs(value) < d.throttle_dt_s:
-        ms = d.throttle_dt_s * 1e3
-        return f"{abs(value) * 1e3:.0f} ms is below the throttle's sampling interval ({ms:.0f} ms)"
+
+def delay_unresolved(
+    name: str, value: float, ci: tuple[float, float] | None, d: DriveInputs, max_age_s: float
+) -> str | None:
+    """Why a fitted delay (current_lag, time_skew) is not told from the timing of the logged samples, or None.
+
+    Two timings blur a delay shorter than the throttle's sampling interval. Whether the ESC held each logged
+    value until the next or ramped (what the forward model's interpolation assumes) moves it by up to half
+    that interval, a systematic error the likelihood cannot see; :func:`~.intervals.profile_interval` widens
+    a delay's 95 % interval by it. And a compass sample may be older than its message, by up to ``max_age_s``
+    (autopilots read their compasses at 10 Hz or faster: :data:`~.latency.MAX_HOLD_S`). So a delay shorter
+    than the sampling interval is refused when it is also shorter than that age (:func:`negligible`, before
+    any held-out test), and otherwise when its widened interval reaches zero. Below a 0.1 s interval (10 Hz
+    and faster) this is the former rule, every delay shorter than the interval refused. On telemetry logs
+    (throttle at 4 Hz, every 0.26 s) that rule refused a 0.3 s current_lag fitted at 0.18-0.25 s with raw
+    delta BIC -66 to -150 (docs/diagnosis.md, 2026-11-28 "telemetry rates")."""
+    if name not in ("time_skew", "current_lag") or abs(value) >= d.throttle_dt_s:
+        return None
+    if abs(value) < max_age_s:
+        return _delay_ms(value, d)
+    if ci is not None and (ci[0] > 0.0 or ci[1] < 0.0):
+        return None
+    why = _delay_ms(value, d)
+    return why if ci is None else f"{why} and its 95 % interval [{ci[0]:.3g}, {ci[1]:.3g}] s reaches 0"
+
+
+def negligible(name: str, value: float, d: DriveInputs, max_age_s: float = 0.0) -> str | None:
+    """None when a fitted extension value is physically meaningful, else why it is not. A delay shorter than
+    both the throttle's sampling interval and ``max_age_s``, the oldest a compass sample can be, is not told
+    from the timing of the samples (:func:`delay_unresolved` judges one between the two by its interval)."""
+    if name in ("time_skew", "current_lag") and abs(value) < min(d.throttle_dt_s, max_age_s):
+        return _delay_ms(value, d)
     if name == "throttle_offset" and value < 0.01:
         return "offset below 1 % of full throttle"
     if name == "throttle_exponent" and abs(value - 2.0) < 0.05:

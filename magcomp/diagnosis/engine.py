@@ -61,6 +61,7 @@ from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, Head
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
 from magcomp.diagnosis.selection import SelectionParams
 from magcomp.diagnosis.siblings import clock_conflicts
+from magcomp.diagnosis.slow_gyro import prefer_slow_gyro
 from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 from magcomp.errors import InputError
 
@@ -376,7 +377,8 @@ def diagnose(
     earth = earth or gate_mod.NO_POSITION
     notes: list[str] = [f"Earth field reference: {earth.source}"]
     run = _Run(log, events, p, earth, gate_params)
-    comps = _shared_clock(run, _prefer_compass_yaw(run, _each_compass(run, notes), notes), notes)
+    comps = prefer_slow_gyro(log, _each_compass(run, notes), run.compass, run.given, notes)
+    comps = _shared_clock(run, _prefer_compass_yaw(run, comps, notes), notes)
     prim = primary if primary is not None else comps[0].index
     if prim not in [c.index for c in comps]:
         raise InputError(f"compass {prim} is not in the log or has too few samples")

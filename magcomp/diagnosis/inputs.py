@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from magcomp.core.rotations import euler_from_dcms
 from magcomp.core.selfcheck import MOTORS_RUNNING_01
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
-from magcomp.diagnosis.attitude import AttitudeSource, attitude_source
+from magcomp.diagnosis.attitude import MIN_GYRO_HZ, AttitudeSource, attitude_source
 from magcomp.diagnosis.effects import DriveInputs
 from magcomp.diagnosis.latency import MAX_HOLD_S, MIN_HELD_FRACTION, held_fraction
 from magcomp.diagnosis.model import CompassData
@@ -119,9 +119,9 @@ def impact_left_out(log: LogData, t_s: F64, step: int = 1) -> NDArray[np.bool_]:
     return crash
 
 
-def log_attitude(log: LogData) -> AttitudeSource:
+def log_attitude(log: LogData, min_gyro_hz: float = MIN_GYRO_HZ) -> AttitudeSource:
     """The compass-free rotation of ``log`` (:func:`~magcomp.diagnosis.attitude.attitude_source`), once for
-    all its compasses."""
+    all its compasses (``min_gyro_hz``: the slowest gyro integrated)."""
     att = finite_series(log.attitude_rad)
     imu_ok = log.imu_t_s.shape[0] >= 10
     return attitude_source(
@@ -133,6 +133,7 @@ def log_attitude(log: LogData) -> AttitudeSource:
         log.gps_velocity_ned_m_s.t_s,
         log.gps_velocity_ned_m_s.values,
         gps_flight_mask(log) if imu_ok else None,
+        min_gyro_hz,
     )
 
 

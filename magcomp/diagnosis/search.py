@@ -18,11 +18,11 @@ from numpy.typing import NDArray
 
 from magcomp.core.types import LogData
 from magcomp.diagnosis.current import CurrentFit, corroborates, current_fits
-from magcomp.diagnosis.effects import EFFECTS, effect_available, negligible
+from magcomp.diagnosis.effects import EFFECTS, delay_unresolved, effect_available, negligible
 from magcomp.diagnosis.export import autopilot_export, evidence_json, params_json, r4
 from magcomp.diagnosis.inputs import inlier_mask, signals_at, spans, subset
 from magcomp.diagnosis.intervals import profile_interval
-from magcomp.diagnosis.latency import unheld_age_bounds_s
+from magcomp.diagnosis.latency import MAX_HOLD_S, unheld_age_bounds_s
 from magcomp.diagnosis.model import CompassData, ModelFit, design, fit_model, initial_fit
 from magcomp.diagnosis.results import CompassDiagnosis, Finding
 from magcomp.diagnosis.rivals import (
@@ -133,7 +133,7 @@ def _cheap_rejection(
 ) -> str | None:
     """Why extension ``name`` fails before any held-out test (BIC, negligible, pinned), or None."""
     param = EFFECTS[name].param
-    small = negligible(name, float(getattr(f.ext, param)), data.drive) if param else None
+    small = negligible(name, float(getattr(f.ext, param)), data.drive, MAX_HOLD_S) if param else None
     if dbic > -p.min_delta_bic:  # cheap test first: CV only for candidates that pass BIC
         return "BIC"
     if small is not None:
@@ -199,6 +199,18 @@ def within_compass_age(name: str, data: CompassData, ci: tuple[float, float] | N
     )
 
 
+def not_identified(name: str, data: CompassData, f: ModelFit, ci: tuple[float, float] | None) -> str | None:
+    """Why a significant extension with the 95 % profile interval ``ci`` is not named, or None: the interval
+    reaches the end of its range (:func:`interval_at_edge`), or a delay shorter than the throttle's
+    sampling interval is not told from the samples' timing
+    (:func:`~magcomp.diagnosis.effects.delay_unresolved`; MAX_HOLD_S: the oldest a compass sample can be)."""
+    edge = interval_at_edge(name, data, f, ci)
+    param = EFFECTS[name].param
+    if edge is not None or param is None:
+        return edge
+    return delay_unresolved(name, float(getattr(f.ext, param)), ci, data.drive, MAX_HOLD_S)
+
+
 def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParams, s: _Search) -> None:
     """Fit extension ``name`` alone against the baseline; record it in ``s`` as a single or a rejection."""
     f = fit_model(data, (name,), start=base, max_nfev=p.max_nfev)
@@ -231,7 +243,7 @@ def _test_single(name: str, data: CompassData, base: ModelFit, p: SelectionParam
         if ci is None:
             ci = profile_interval(data, f, name)
         s.intervals[name] = (f, ci)
-        why_edge = interval_at_edge(name, data, f, ci) or within_compass_age(name, data, ci)
+        why_edge = not_identified(name, data, f, ci) or within_compass_age(name, data, ci)
         if why_edge is not None:
             s.rejected[name] = {"delta_bic": r4(dbic), "cv_gain_pct": r4(100 * c.cv_gain), "why": why_edge}
             return
@@ -330,7 +342,7 @@ def group_rivals(data: CompassData, s: _Search) -> None:
             if not (math.isfinite(g) and g < RIVAL_DELTA_BIC):
                 continue
             ci = profile_interval(data, f, k)
-            if interval_at_edge(k, data, f, ci) is None and within_compass_age(k, data, ci) is None:
+            if not_identified(k, data, f, ci) is None and within_compass_age(k, data, ci) is None:
                 s.intervals[k] = (f, ci)
                 same.append(k)
                 gap[k] = g
