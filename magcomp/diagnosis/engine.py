@@ -287,6 +287,22 @@ def _unheld_age(
     return aged
 
 
+Retime = Callable[[int, CompassData, AttitudeSource], CompassData]
+
+
+def _slow_gyro_aged(log: LogData, notes: list[str]) -> Retime:
+    """:func:`_unheld_age` for a compass searched again with the slow gyro's integral (slow_gyro.py): an
+    unheld compass's age fitted against that rotation, as for a gyro logged fast (a held one is re-timed by
+    its hold there already)."""
+
+    def aged(idx: int, data: CompassData, source: AttitudeSource) -> CompassData:
+        if held_fraction(finite_series(log.mag[idx]).values) >= MIN_HELD_FRACTION:
+            return data
+        return _unheld_age(log, idx, data, finite_series(log.mag[idx]).t_s, lambda: source, notes)
+
+    return aged
+
+
 def _paper_rms(data: CompassData) -> float:
     """The paper model's residual rms (mgauss) on ``data`` with the gyro-bias heading, as searched."""
     return fit_model(with_gyro_bias_heading(data), ()).rms_mgauss
@@ -377,7 +393,8 @@ def diagnose(
     earth = earth or gate_mod.NO_POSITION
     notes: list[str] = [f"Earth field reference: {earth.source}"]
     run = _Run(log, events, p, earth, gate_params)
-    comps = prefer_slow_gyro(log, _each_compass(run, notes), run.compass, run.given, notes)
+    comps = prefer_slow_gyro(log, _each_compass(run, notes), run.compass, run.given, notes,
+                             _slow_gyro_aged(log, notes))  # fmt: skip
     comps = _shared_clock(run, _prefer_compass_yaw(run, comps, notes), notes)
     prim = primary if primary is not None else comps[0].index
     if prim not in [c.index for c in comps]:

@@ -179,16 +179,18 @@ def within_compass_age(name: str, data: CompassData, ci: tuple[float, float] | N
     A compass sample is older than its logged time by 0 to one compass period, and the field then follows
     the logged throttle by that much: a delay a skew or a lag would fit. Where the ages were read from a
     hold or fitted against the rotation (``engine._unheld_age``), the drive is taken at the measurement
-    times (``data.drive.t_s`` differs from ``data.t_s``); otherwise (an unheld compass on a vehicle that does
-    not rotate, or against the autopilot's attitude) the age is unknown within
+    times (``data.drive.t_s`` differs from ``data.t_s``); where the rotation is the gyro's integral the age
+    was fitted against it (kept where it helped the paper model, else found not to: a fast or a slow gyro,
+    engine._unheld_age); otherwise (an unheld compass on a vehicle that does not rotate, or against the
+    autopilot's attitude) the age is unknown within
     :func:`~magcomp.diagnosis.latency.unheld_age_bounds_s`, and a skew or lag whose 95 % interval reaches into
     that range is not identified. Measured on clean held-out logs at drawn rates (``diagnosis_heldout.py
     --clean --rates``, seeds 6000-6019, the bench cases): a lag of 43 ms [5, 89] and 63 ms [15, 127], a
     skew of 41 ms [1, 65], on compasses at 24.7 and 16.9 Hz in 25 and 20 Hz messages (ages 30-40 ms)."""
     if name not in ("time_skew", "current_lag") or ci is None or data.n < 2:
         return None
-    if not np.array_equal(data.drive.t_s, data.t_s):
-        return None
+    if not np.array_equal(data.drive.t_s, data.t_s) or data.attitude_source.startswith("gyro"):
+        return None  # re-timed by a hold or a fitted age, or the age fitted against the gyro's rotation
     _, max_age = unheld_age_bounds_s(data.t_s)
     if ci[0] > max_age or ci[1] < 0.0:  # above any age, or the field leading the throttle (no age does that)
         return None

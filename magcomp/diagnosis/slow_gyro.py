@@ -72,10 +72,13 @@ def prefer_slow_gyro(
     search: Callable[[CompassData], CompassDiagnosis],
     given: dict[int, CompassData],
     notes: list[str],
+    retime: Callable[[int, CompassData, AttitudeSource], CompassData] | None = None,
 ) -> list[CompassDiagnosis]:
     """Each compass whose rotation is the autopilot's because the gyro is slow: searched again (``search``)
     with the slow gyro's integral when the paper model leaves a smaller residual with it (module docstring);
-    ``given`` (index -> the data searched) is updated, the change noted."""
+    ``given`` (index -> the data searched) is updated, the change noted. ``retime``: the engine's re-timing
+    of an unheld compass's samples by their fitted age against that rotation (the gyro's integral is what
+    the age is fitted against; the autopilot's attitude was not)."""
     out = list(comps)
     source: AttitudeSource | None = None
     for i, c in enumerate(comps):
@@ -85,6 +88,8 @@ def prefer_slow_gyro(
         if source is None:
             return out
         alt = slow_gyro_data(log, c.index, source)
+        if retime is not None:
+            alt = retime(c.index, alt, source)
         rms_autopilot = paper_rms_mgauss(given[c.index])
         rms_gyro = paper_rms_mgauss(with_gyro_bias_heading(alt))
         if not rms_gyro < rms_autopilot:

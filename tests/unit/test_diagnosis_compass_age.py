@@ -42,7 +42,10 @@ def test_age_bounds_are_one_compass_period() -> None:
 )
 def test_timing_effect_within_the_compass_age(effect: str, ci: tuple[float, float], refused: bool) -> None:
     log, _, _ = synth_log(3)
-    data = compass_data(log, 0)
+    fitted = compass_data(log, 0)
+    assert fitted.attitude_source.startswith("gyro")  # the age is fitted against the gyro's rotation
+    assert within_compass_age(effect, fitted, ci) is None
+    data = replace(fitted, attitude_source="autopilot")  # an age no rotation can measure
     assert np.array_equal(data.drive.t_s, data.t_s)  # unheld, no age fitted: the drive at the logged times
     why = within_compass_age(effect, data, ci)
     assert (why is not None) == refused, why
