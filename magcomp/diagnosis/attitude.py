@@ -329,6 +329,27 @@ def _stationary_source(gyro_b_rad_s: F64, att_rad: F64 | None) -> AttitudeSource
     return None
 
 
+def _tilt_reference(imu_t_s: F64, accel_b_m_s2: F64, att_t_s: F64 | None,
+                    att_rad: F64) -> tuple[F64, F64, F64, str, str]:  # fmt: skip
+    """The down direction the gyro's tilt is pulled toward, its times, the initial attitude, the source's name
+    and its words: the log's roll and pitch where there is an attitude (``att_t_s`` not None), else the
+    accelerometer's gravity direction."""
+    if att_t_s is not None:
+        ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
+        d0 = _interp_rows(imu_t_s[:1], att_t_s, ref)[0]
+        roll0 = math.atan2(float(d0[1]), float(d0[2]))
+        pitch0 = -math.asin(float(np.clip(d0[0] / np.linalg.norm(d0), -1.0, 1.0)))
+        q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, float(att_rad[0, 2])))
+        return att_t_s, ref, q0, "gyro+tilt(attitude)", "the log's roll and pitch"
+    a = accel_b_m_s2
+    ref = -a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+    d = ref[0]
+    roll0 = math.atan2(float(d[1]), float(d[2]))
+    pitch0 = -math.asin(float(np.clip(d[0], -1.0, 1.0)))
+    q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
+    return imu_t_s, ref, q0, "gyro+tilt(accelerometer)", "the accelerometer's gravity direction"
+
+
 def attitude_source(
     imu_t_s: F64,
     gyro_b_rad_s: F64,
@@ -362,25 +383,8 @@ def attitude_source(
                 "rotation), so "
             )
     if has_gyro:
-        if has_att:
-            ref = down_b_from_euler(att_rad[:, 0], att_rad[:, 1])
-            ref_t = att_t_s
-            d0 = _interp_rows(imu_t_s[:1], att_t_s, ref)[0]
-            roll0 = math.atan2(float(d0[1]), float(d0[2]))
-            pitch0 = -math.asin(float(np.clip(d0[0] / np.linalg.norm(d0), -1.0, 1.0)))
-            q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, float(att_rad[0, 2])))
-            src = "gyro+tilt(attitude)"
-            tilt = "the log's roll and pitch"
-        else:
-            a = accel_b_m_s2
-            ref = -a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
-            ref_t = imu_t_s
-            d = ref[0]
-            roll0 = math.atan2(float(d[1]), float(d[2]))
-            pitch0 = -math.asin(float(np.clip(d[0], -1.0, 1.0)))
-            q0 = quat_from_dcm(dcm_from_euler(roll0, pitch0, 0.0))
-            src = "gyro+tilt(accelerometer)"
-            tilt = "the accelerometer's gravity direction"
+        att_times = att_t_s if has_att else None
+        ref_t, ref, q0, src, tilt = _tilt_reference(imu_t_s, accel_b_m_s2, att_times, att_rad)
         q, bias = _propagate((imu_t_s, gyro_b_rad_s), (ref_t, ref), q0)
         gnss_note = ""
         if has_att and gps_t_s is not None and gps_vel_ned_m_s is not None and gps_t_s.shape[0]:
