@@ -195,25 +195,20 @@ class HoverNormal(_ThrottleSums):
         self._aty[6:9] += m.sum(axis=0)
         self._yty += float(np.einsum("ni,ni->", m, m))
 
-    def merge(self, other: HoverNormal) -> None:
-        """``other``'s samples added to these (the sums are additive)."""
-        self._ata += other._ata
-        self._aty += other._aty
-        self._yty += other._yty
-        self.n += other.n
-        self._d2 += other._d2
-        self._d4 += other._d4
+    def merge(self, other: HoverNormal, sign: int = 1) -> None:
+        """``other``'s samples added to these (the sums are additive); ``sign`` -1: taken out."""
+        self._ata += sign * other._ata
+        self._aty += sign * other._aty
+        self._yty += sign * other._yty
+        self.n += sign * other.n
+        self._d2 += sign * other._d2
+        self._d4 += sign * other._d4
 
     def without(self, other: HoverNormal) -> HoverNormal:
         """These normal equations less ``other``'s samples (a part of them): the fit with them left out."""
         out = HoverNormal()
         out.merge(self)
-        out._ata -= other._ata
-        out._aty -= other._aty
-        out._yty -= other._yty
-        out.n -= other.n
-        out._d2 -= other._d2
-        out._d4 -= other._d4
+        out.merge(other, -1)
         return out
 
     def fit(self, offset_sd_mgauss: float | None = None) -> HoverTheta | None:

@@ -378,13 +378,10 @@ def _stated(fit: HoverTheta, source: str, sd: float | None,
             fit_on: Callable[[str, NDArray[np.bool_], float | None], HoverTheta | None], cols: F64,
             fast: NDArray[np.bool_] | None) -> HoverTheta:  # fmt: skip
     """``fit`` with theta's sigma from the jackknife over blocks of time (core/hover_theta.py
-    :func:`~magcomp.core.hover_theta.with_block_sigma`), the blocks counted over the rows its form fits."""
-    t, roll, pitch, yaw, thr, gyaw, epoch = (cols[:, i] for i in (0, 4, 5, 6, 7, 8, 9))
-    use = np.isfinite(cols[:, 1:4]).all(axis=1) & np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(thr)
-    if source == "gyro" and fast is not None:
-        use &= fast & np.isfinite(gyaw) & np.isfinite(epoch) & np.isfinite(t)
-    else:
-        use &= np.isfinite(yaw)
+    :func:`~magcomp.core.hover_theta.with_block_sigma`), the blocks counted over the rows its form takes
+    (the gyro form only the rows :func:`_gyro_rows` gives it; each fit leaves out non-finite rows itself)."""
+    t = cols[:, 0]
+    use = fast if source == "gyro" and fast is not None else np.ones(t.shape, dtype=bool)
 
     def on_used(kept: NDArray[np.bool_]) -> HoverTheta | None:
         m = np.zeros(use.shape, dtype=bool)
