@@ -55,13 +55,13 @@ from magcomp.diagnosis.inputs import (
     subset,
 )
 from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction, unheld_age_bounds_s
-from magcomp.diagnosis.model import CompassData, fit_model
+from magcomp.diagnosis.model import CompassData
 from magcomp.diagnosis.partial import theta_with_prior
 from magcomp.diagnosis.results import CompassDiagnosis, Diagnosis, Finding, HeadingErrors
 from magcomp.diagnosis.search import diagnose_compass, motors_off_step, step_candidate
 from magcomp.diagnosis.selection import SelectionParams
 from magcomp.diagnosis.siblings import clock_conflicts
-from magcomp.diagnosis.slow_gyro import prefer_slow_gyro
+from magcomp.diagnosis.slow_gyro import paper_rms_mgauss, prefer_slow_gyro
 from magcomp.diagnosis.yaw_follow import yaw_follow_gain
 from magcomp.errors import InputError
 
@@ -234,17 +234,7 @@ def _each_compass(run: _Run, notes: list[str]) -> list[CompassDiagnosis]:
         except InputError as exc:
             notes.append(f"compass {idx} skipped: {exc}")
             continue
-        held = held_fraction(finite_series(log.mag[idx]).values)
-        if held >= MIN_HELD_FRACTION:
-            latency, data = compass_latency_s(data, partial(compass_data, log, idx, attitude=attitude))
-            age_ms = 1000.0 * float(np.mean(data.t_s - data.drive.t_s))
-            notes.append(
-                f"compass {idx}: held in a faster message ({100 * held:.0f} % of its samples repeat the one "
-                f"before): attitude re-timed to each sample's measurement time ({age_ms:.1f} ms before its "
-                f"logged time on average), then by {-1000 * latency:+.1f} ms, the compass's fitted latency"
-            )
-        else:
-            data = _unheld_age(log, idx, data, finite_series(log.mag[idx]).t_s, attitude, notes)
+        data = _timed(log, idx, data, attitude, notes)
         comps.append(run.compass(data))
         run.given[idx] = data
     notes[first:first] = [_left_out_note(ts, idxs) for ts, idxs in left_out.items()]
@@ -287,25 +277,37 @@ def _unheld_age(
     return aged
 
 
-Retime = Callable[[int, CompassData, AttitudeSource], CompassData]
+def _timed(log: LogData, idx: int, data: CompassData, attitude: Callable[[], AttitudeSource],
+           notes: list[str]) -> CompassData:  # fmt: skip
+    """Compass ``idx``'s ``data`` re-timed to its samples' measurement times: a compass held in a faster
+    message by its hold and its fitted latency (:func:`latency.compass_latency_s`), an unheld one by its age
+    fitted against the rotation (:func:`_unheld_age`); the change noted. The engine's first pass and the
+    slow gyro's second (slow_gyro.py ``prefer_slow_gyro``) both take it."""
+    held = held_fraction(finite_series(log.mag[idx]).values)
+    if held < MIN_HELD_FRACTION:
+        return _unheld_age(log, idx, data, finite_series(log.mag[idx]).t_s, attitude, notes)
+    latency, data = compass_latency_s(data, partial(compass_data, log, idx, attitude=attitude))
+    age_ms = 1000.0 * float(np.mean(data.t_s - data.drive.t_s))
+    notes.append(
+        f"compass {idx}: held in a faster message ({100 * held:.0f} % of its samples repeat the one "
+        f"before): attitude re-timed to each sample's measurement time ({age_ms:.1f} ms before its "
+        f"logged time on average), then by {-1000 * latency:+.1f} ms, the compass's fitted latency"
+    )
+    return data
 
 
-def _slow_gyro_aged(log: LogData, notes: list[str]) -> Retime:
-    """:func:`_unheld_age` for a compass searched again with the slow gyro's integral (slow_gyro.py): an
-    unheld compass's age fitted against that rotation, as for a gyro logged fast (a held one is re-timed by
-    its hold there already)."""
+def _slow_gyro_timed(log: LogData) -> Callable[[int, CompassData, AttitudeSource, list[str]], CompassData]:
+    """:func:`_timed` for a compass searched again with the slow gyro's integral (slow_gyro.py)."""
 
-    def aged(idx: int, data: CompassData, source: AttitudeSource) -> CompassData:
-        if held_fraction(finite_series(log.mag[idx]).values) >= MIN_HELD_FRACTION:
-            return data
-        return _unheld_age(log, idx, data, finite_series(log.mag[idx]).t_s, lambda: source, notes)
+    def timed(idx: int, data: CompassData, source: AttitudeSource, notes: list[str]) -> CompassData:
+        return _timed(log, idx, data, lambda: source, notes)
 
-    return aged
+    return timed
 
 
 def _paper_rms(data: CompassData) -> float:
     """The paper model's residual rms (mgauss) on ``data`` with the gyro-bias heading, as searched."""
-    return fit_model(with_gyro_bias_heading(data), ()).rms_mgauss
+    return paper_rms_mgauss(with_gyro_bias_heading(data))
 
 
 def _aged_data(log: LogData, idx: int, attitude: Callable[[], AttitudeSource], age_s: float) -> CompassData:
@@ -394,7 +396,7 @@ def diagnose(
     notes: list[str] = [f"Earth field reference: {earth.source}"]
     run = _Run(log, events, p, earth, gate_params)
     comps = prefer_slow_gyro(log, _each_compass(run, notes), run.compass, run.given, notes,
-                             _slow_gyro_aged(log, notes))  # fmt: skip
+                             _slow_gyro_timed(log))  # fmt: skip
     comps = _shared_clock(run, _prefer_compass_yaw(run, comps, notes), notes)
     prim = primary if primary is not None else comps[0].index
     if prim not in [c.index for c in comps]:

@@ -23,14 +23,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from functools import partial
 
 from magcomp.core.types import LogData
 from magcomp.diagnosis.attitude import MIN_GYRO_HZ, AttitudeSource
 from magcomp.diagnosis.gate import median_rate_hz
 from magcomp.diagnosis.gyro_heading import with_gyro_bias_heading
-from magcomp.diagnosis.inputs import compass_data, finite_series, log_attitude
-from magcomp.diagnosis.latency import MIN_HELD_FRACTION, compass_latency_s, held_fraction
+from magcomp.diagnosis.inputs import compass_data, log_attitude
 from magcomp.diagnosis.model import CompassData, fit_model
 from magcomp.diagnosis.results import CompassDiagnosis
 
@@ -43,15 +41,13 @@ def slow_gyro_source(log: LogData) -> AttitudeSource | None:
 
 
 def slow_gyro_data(log: LogData, index: int, source: AttitudeSource) -> CompassData:
-    """Compass ``index`` of ``log`` with the rotation of ``source`` (the slow gyro's integral), re-timed as
-    the engine re-times a held compass (:mod:`magcomp.diagnosis.latency`)."""
+    """Compass ``index`` of ``log`` with the rotation of ``source`` (the slow gyro's integral), at its logged
+    times (``prefer_slow_gyro``'s ``retime`` re-times it as the engine does)."""
 
     def attitude() -> AttitudeSource:
         return source
 
     data = compass_data(log, index, attitude=attitude)
-    if held_fraction(finite_series(log.mag[index]).values) >= MIN_HELD_FRACTION:
-        _, data = compass_latency_s(data, partial(compass_data, log, index, attitude=attitude))
     hz = median_rate_hz(log.imu_t_s)
     note = (
         f"the gyro is logged at {hz:.1f} Hz (< {MIN_GYRO_HZ:.0f} Hz), integrated all the same: its "
@@ -72,13 +68,14 @@ def prefer_slow_gyro(
     search: Callable[[CompassData], CompassDiagnosis],
     given: dict[int, CompassData],
     notes: list[str],
-    retime: Callable[[int, CompassData, AttitudeSource], CompassData] | None = None,
+    retime: Callable[[int, CompassData, AttitudeSource, list[str]], CompassData] | None = None,
 ) -> list[CompassDiagnosis]:
     """Each compass whose rotation is the autopilot's because the gyro is slow: searched again (``search``)
     with the slow gyro's integral when the paper model leaves a smaller residual with it (module docstring);
     ``given`` (index -> the data searched) is updated, the change noted. ``retime``: the engine's re-timing
-    of an unheld compass's samples by their fitted age against that rotation (the gyro's integral is what
-    the age is fitted against; the autopilot's attitude was not)."""
+    of the compass's samples against that rotation (a hold's latency, or an unheld compass's age: the gyro's
+    integral is what the age is fitted against; the autopilot's attitude was not), its notes kept only where
+    the slow gyro is taken."""
     out = list(comps)
     source: AttitudeSource | None = None
     for i, c in enumerate(comps):
@@ -88,8 +85,9 @@ def prefer_slow_gyro(
         if source is None:
             return out
         alt = slow_gyro_data(log, c.index, source)
+        timing: list[str] = []
         if retime is not None:
-            alt = retime(c.index, alt, source)
+            alt = retime(c.index, alt, source, timing)
         rms_autopilot = paper_rms_mgauss(given[c.index])
         rms_gyro = paper_rms_mgauss(with_gyro_bias_heading(alt))
         if not rms_gyro < rms_autopilot:
@@ -99,6 +97,7 @@ def prefer_slow_gyro(
             f"instead of the autopilot's attitude (paper-model residual {rms_autopilot:.1f} -> "
             f"{rms_gyro:.1f} mgauss)"
         )
+        notes.extend(timing)
         out[i] = search(alt)
         given[c.index] = alt
     return out
