@@ -68,4 +68,8 @@ def test_clean_bench_log_at_drawn_rates_names_no_timing_effect() -> None:
     c = diagnose(log, earth=EarthReference(res.earth_field_ned_mgauss, "simulated place")).compasses[0]
     assert c.data.attitude_source == "stationary"
     assert not c.findings, [f.label for f in c.findings]
-    assert "age of the compass's own samples" in str(c.rejected.get("time_skew", {}).get("why"))
+    # refused for the compass's age, or (since a delay's interval counts the compass's timing range,
+    # DriveInputs.compass_timing_s) already as a delay the samples' timing does not resolve: on this branch
+    # the search lands at 31 ms, "below the throttle's sampling interval (40 ms)"
+    why = str(c.rejected.get("time_skew", {}).get("why"))
+    assert "age of the compass's own samples" in why or "below the throttle's sampling interval" in why, why
