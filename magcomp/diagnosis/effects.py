@@ -188,6 +188,9 @@ class DriveInputs:
     throttle_grid (g,) 0..1, motors_grid (g, m) 0..1 or None and voltage_grid (g,) V or None are sampled.
     v_full_v: reference battery voltage of the sag model. temperature_degc: (n,) at the compass times or None.
     throttle_dt_s: median interval of the logged throttle (its time resolution).
+    compass_timing_s: the range within which each compass sample's measurement time is not known (s): a held
+    compass's message period (its update fell between two messages), an unheld one's largest age
+    (:func:`~magcomp.diagnosis.latency.unheld_age_bounds_s`); 0 when the times are exact.
     """
 
     t_s: F64
@@ -199,6 +202,7 @@ class DriveInputs:
     v_full_v: float
     temperature_degc: F64 | None
     throttle_dt_s: float = 0.04
+    compass_timing_s: float = 0.0
     # nuisance columns found by the open search (:mod:`magcomp.diagnosis.structure`), e.g. a step: (n, k)
     extra: F64 | None = None
     extra_names: tuple[str, ...] = ()
@@ -285,7 +289,8 @@ def delay_unresolved(
     Two timings blur a delay shorter than the throttle's sampling interval. Whether the ESC held each logged
     value until the next or ramped (what the forward model's interpolation assumes) moves it by up to half
     that interval, a systematic error the likelihood cannot see; :func:`~.intervals.profile_interval` widens
-    a delay's 95 % interval by it. And a compass sample may be older than its message, by up to ``max_age_s``
+    a delay's 95 % interval by it (and by half the compass's own timing range). And a compass sample may be
+    older than its message, by up to ``max_age_s``
     (autopilots read their compasses at 10 Hz or faster: :data:`~.latency.MAX_HOLD_S`). So a delay shorter
     than the sampling interval is refused when it is also shorter than that age (:func:`negligible`, before
     any held-out test), and otherwise when its widened interval reaches zero. Below a 0.1 s interval (10 Hz

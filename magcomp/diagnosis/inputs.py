@@ -18,7 +18,7 @@ from magcomp.core.selfcheck import MOTORS_RUNNING_01
 from magcomp.core.types import STANDARD_GRAVITY_M_S2, LogData, Series
 from magcomp.diagnosis.attitude import MIN_GYRO_HZ, AttitudeSource, attitude_source
 from magcomp.diagnosis.effects import DriveInputs
-from magcomp.diagnosis.latency import MAX_HOLD_S, MIN_HELD_FRACTION, held_fraction
+from magcomp.diagnosis.latency import MAX_HOLD_S, MIN_HELD_FRACTION, held_fraction, unheld_age_bounds_s
 from magcomp.diagnosis.model import CompassData
 from magcomp.errors import InputError
 
@@ -196,10 +196,13 @@ def compass_data(
     # a held compass (updated slower than its messages) measured each sample when its value first appeared:
     # the powertrain that biased it is taken then, not at the logged time (measured_times_s)
     t_drive = t - age_s
+    timing = unheld_age_bounds_s(mag.t_s)[1]  # an unheld sample is 0 to this old (its mean age fitted)
     if held_fraction(mag.values) >= MIN_HELD_FRACTION:
         t_drive = measured_times_s(mag.t_s, mag.values)[::step][keep]
+        timing = min(float(np.median(np.diff(mag.t_s))), MAX_HOLD_S)  # the update fell between two messages
     track = (attitude() if attitude is not None else log_attitude(log)).at(t_drive - latency_s)
-    return CompassData(index, t, v, track.r_nb, drive_inputs(log, t_drive), track.source, track.note)
+    drive = replace(drive_inputs(log, t_drive), compass_timing_s=timing)
+    return CompassData(index, t, v, track.r_nb, drive, track.source, track.note)
 
 
 def measured_times_s(t_s: F64, values: F64, max_age_s: float = MAX_HOLD_S) -> F64:

@@ -33,7 +33,15 @@ n_eff log(RSS(value) / RSS(best)) stays below 3.84 (chi^2, one degree of freedom
 n_eff = 3 n / Bartlett's factor of the residual against the change of the prediction that moving the
 parameter makes (``selection.bartlett_factor``; formerly the lag-one AR(1) factor of the residual alone).
 Other nonlinear extension parameters of the same model are held at their optimum.
-Delays (current_lag, time_skew) are widened by half the logged throttle's sampling interval (see the code).
+Delays (current_lag, time_skew) are widened by half the logged throttle's sampling interval and half the
+compass samples' timing range (``DriveInputs.compass_timing_s``). Both are systematic: a delay is read off
+the few throttle steps of a log, and where every step falls at one phase of the throttle's and the compass's
+sampling, the error is the same at each step and does not average out. Measured (``benchmarks/
+diagnosis_heldout.py --rates``, time_skew 0.15 s on onboard logs, seeds 7000-7039): the simulated flight's
+throttle steps fall on its 25 Hz SERVO_OUTPUT_RAW samples, which the interpolation places 20 ms early, and a
+compass held in a 20-25 Hz RAW_IMU adds its hold's timing error (+5-10 ms on average, the value read at
+the loop row before its update); the skew was fitted 13-41 ms high, and with the throttle's half-interval
+alone the interval held 0.15 s in 23 of 32 onboard logs.
 
 Vector parameters (theta, the temperature coefficient, the per-motor vectors) are reported twice: per axis at
 95 % each (the marginal half-widths every decision uses: identifiability, the fleet's standard deviations,
@@ -336,7 +344,10 @@ def profile_interval(
     if effect in ("current_lag", "time_skew"):
         # the logged throttle is known only at its samples: whether the ESC held each value until the next one
         # (zero-order hold) or ramped (what the model's interpolation assumes) shifts a delay by up to half an
-        # interval, a systematic error the likelihood cannot see
-        half = 0.5 * data.drive.throttle_dt_s
+        # interval, a systematic error the likelihood cannot see. The compass's samples are placed in time
+        # only to within their own timing range (a hold's midpoint, an unheld sample's fitted mean age): a
+        # delay is read off the few throttle steps of a log, where the samples' timing errors do not average
+        # out, and both errors can have one sign at every step, so the two half-ranges add (module docstring)
+        half = 0.5 * (data.drive.throttle_dt_s + data.drive.compass_timing_s)
         lo, hi = max(lo - half, lo_b), min(hi + half, hi_b)
     return lo, hi

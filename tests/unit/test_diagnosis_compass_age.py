@@ -70,7 +70,7 @@ def test_clean_bench_log_at_drawn_rates_names_no_timing_effect() -> None:
     c = diagnose(log, earth=EarthReference(res.earth_field_ned_mgauss, "simulated place")).compasses[0]
     assert c.data.attitude_source == "stationary"
     assert not c.findings, [f.label for f in c.findings]
-    # refused for what the log's timing cannot resolve: the compass's unknown age, or, where the fit lands
+    # refused for what the log's timing cannot resolve: the compass's unknown age, or, where the search lands
     # below it (31 ms on numpy 2.4.6 / scipy 1.17.1), the throttle's sampling interval
     why = str(c.rejected.get("time_skew", {}).get("why"))
     assert "age of the compass's own samples" in why or "below the throttle's sampling interval" in why, why
