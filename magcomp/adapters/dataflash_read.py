@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import mmap
 import os
+import struct
 from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -246,6 +247,15 @@ def dataflash_repaired(path: Path, counts: dict[str, int]) -> Path | None:
     return Path(name)
 
 
+#: what pymavlink's DataFlash readers raise on a log they cannot read: damaged bytes, and records its clock
+#: does not know (ArduCopter 3.0 text logs: GPS with the time of week and no week, a TypeError building the
+#: time base)
+READER_ERRORS: tuple[type[Exception], ...] = (
+    UnicodeDecodeError, ValueError, IndexError, KeyError, TypeError, AttributeError, ArithmeticError,
+    struct.error,
+)
+
+
 def iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
     repaired = None if text else dataflash_repaired(path, counts)
     try:
@@ -266,7 +276,7 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
                 if text
                 else DFReader.DFReader_binary(str(path), zero_time_base=False)
             )
-    except (UnicodeDecodeError, ValueError, IndexError, KeyError, OSError) as exc:
+    except (*READER_ERRORS, OSError) as exc:
         raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
     wanted = list(WANTED_DATAFLASH)
     try:
@@ -283,7 +293,7 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
                 yield m
             if len(batch) < 2000:
                 break
-    except (UnicodeDecodeError, ValueError, IndexError, KeyError) as exc:
+    except READER_ERRORS as exc:
         counts["dataflash_errors"] += 1
         if counts["messages"] == 0:
             raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
