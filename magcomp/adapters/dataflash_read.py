@@ -12,9 +12,11 @@ gets the believed messages only. Messages of a type whose FMT was lost are skipp
 from __future__ import annotations
 
 import contextlib
+import gc
 import mmap
 import os
 import struct
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -269,6 +271,7 @@ def iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[A
 def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
     from pymavlink import DFReader
 
+    failed = ""
     try:
         with quiet(), quiet_c_streams():
             reader: Any = (
@@ -277,7 +280,12 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
                 else DFReader.DFReader_binary(str(path), zero_time_base=False)
             )
     except (*READER_ERRORS, OSError) as exc:
-        raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
+        failed = type(exc).__name__
+    if failed:  # the half-built reader's open file, freed with the traceback: closed here, not at a later gc
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ResourceWarning)
+            gc.collect()
+        raise InputError(f"{shown}: not a readable DataFlash log ({failed})")
     wanted = list(WANTED_DATAFLASH)
     try:
         while True:
