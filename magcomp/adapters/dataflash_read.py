@@ -254,7 +254,7 @@ def dataflash_repaired(path: Path, counts: dict[str, int]) -> Path | None:
 #: time base)
 READER_ERRORS: tuple[type[Exception], ...] = (
     UnicodeDecodeError, ValueError, IndexError, KeyError, TypeError, AttributeError, ArithmeticError,
-    struct.error,
+    struct.error, OSError,
 )
 
 
@@ -279,7 +279,7 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
                 if text
                 else DFReader.DFReader_binary(str(path), zero_time_base=False)
             )
-    except (*READER_ERRORS, OSError) as exc:
+    except READER_ERRORS as exc:
         failed = type(exc).__name__
     if failed:  # the half-built reader's open file, freed with the traceback: closed here, not at a later gc
         with warnings.catch_warnings():
