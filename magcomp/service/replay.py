@@ -15,6 +15,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.errors import InputError
+from magcomp.service.attitude_at_mag import with_attitude_at_mag
 from magcomp.service.final_pass import (
     FinalCompass,
     PassOutputs,
@@ -143,7 +144,7 @@ def _learn(
 
     source = open_source(path, throttle_source=source_throttle(cfg), pipeline_only=True)
     feed_all = pipeline.feed_all
-    samples = source.samples()
+    samples = with_attitude_at_mag(source.samples())
     try:
         while batch := list(islice(samples, REPLAY_BATCH)):
             if should_stop is not None and should_stop():
@@ -275,7 +276,7 @@ def _replay_loop(
     prog = PassProgress()
     feed = pipeline.feed
     wanted = outputs.wanted
-    samples = source.samples()
+    samples = with_attitude_at_mag(source.samples())
     n = 0
     sample: Any = None
     try:
