@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from magcomp.adapters.config import Config
 from magcomp.adapters.mavlink_source import WANTED_MAVLINK, sender_stream
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.types import HeadingEstimate
-from magcomp.service.attitude_at_mag import AttitudeAtMag
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, NamedValues, pilot_status
 from magcomp.service.replay import source_throttle
@@ -36,8 +35,6 @@ class _Vehicle:
     encoder: HeadingEncoder
     named: NamedValues
     last: dict[int, HeadingEstimate]
-    #: its magnetometer samples wait for the next ATTITUDE where that stream is slow
-    at_mag: AttitudeAtMag = field(default_factory=AttitudeAtMag)
 
 
 class Companion:
@@ -69,11 +66,10 @@ class Companion:
         v = self.vehicles.get(key) or self._new_vehicle(key)
         out = None
         for sample in v.stream.push(msg):
-            for s in v.at_mag.push(sample):  # (service/attitude_at_mag.py)
-                est = v.pipeline.process(s)
-                if est is not None:
-                    self._publish(v, est)
-                    out = est
+            est = v.pipeline.process(sample)
+            if est is not None:
+                self._publish(v, est)
+                out = est
         return out
 
     def _new_vehicle(self, key: tuple[int, int]) -> _Vehicle:

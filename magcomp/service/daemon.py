@@ -39,7 +39,6 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import StateStore
 from magcomp.core.types import HeadingEstimate, PowerSample
 from magcomp.errors import InputError
-from magcomp.service.attitude_at_mag import AttitudeAtMag
 from magcomp.service.pipeline import Pipeline
 from magcomp.service.publish import HeadingEncoder, LinkSink, NamedValues
 from magcomp.service.replay import source_throttle
@@ -276,9 +275,6 @@ class Daemon:
         # vehicles (or components) on one link each get their own clocks, calibration and theta, and
         # their headings go out as that vehicle; the first sender gets ``self.pipeline``
         self.pipelines: dict[tuple[int, int], Pipeline] = {}
-        #: per sender: its magnetometer samples wait for the next ATTITUDE where that stream is slow
-        #: (service/attitude_at_mag.py)
-        self._at_mag: dict[tuple[int, int], AttitudeAtMag] = {}
         self._encoders: dict[tuple[int, int], HeadingEncoder] = {}
         self.encoder = self._new_encoder()
         #: NAMED_VALUE_FLOAT per encoder (vehicle), decimated (``[output] named_values_hz``)
@@ -629,7 +625,6 @@ class Daemon:
         """Samples from the source through the pipeline to the sinks until the source ends or fails."""
         key: tuple[int, int] | None = None
         pipeline, enc = self.pipeline, self.encoder
-        at_mag = AttitudeAtMag()
         on_power = self.on_power
         for sender, sample in source.vehicle_samples():
             if self._stop_requested:  # (a flag read per sample; the rest of _should_stop while quiet)
@@ -643,13 +638,11 @@ class Daemon:
             if sender != key:
                 key = sender
                 pipeline, enc = self._vehicle(sender)
-                at_mag = self._at_mag.get(sender) or self._at_mag.setdefault(sender, AttitudeAtMag())
             if on_power is not None and type(sample) is PowerSample and pipeline is self.pipeline:
                 on_power(sample)
-            for s in at_mag.push(sample):
-                est = pipeline.process(s)
-                if est is not None:
-                    self._publish(est, t_arrival, enc)
+            est = pipeline.process(sample)
+            if est is not None:
+                self._publish(est, t_arrival, enc)
 
     def _merge_counts(self, counts: dict[str, int]) -> None:
         for k, v in counts.items():

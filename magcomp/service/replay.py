@@ -276,7 +276,7 @@ def _replay_loop(
     prog = PassProgress()
     feed = pipeline.feed
     wanted = outputs.wanted
-    samples = with_attitude_at_mag(source.samples())
+    samples = source.samples()
     n = 0
     sample: Any = None
     try:

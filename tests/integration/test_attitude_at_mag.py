@@ -1,4 +1,5 @@
-"""The roll and pitch of a magnetometer sample between two slow ATTITUDE messages: interpolated at its time.
+"""The roll and pitch of a magnetometer sample between two slow ATTITUDE messages: interpolated at its time
+(the two-pass replay; service/attitude_at_mag.py).
 
 On a telemetry log (ATTITUDE at 2 Hz, the field at 1.25 Hz) eq. (24) with the latest ATTITUDE's roll and
 pitch lags them by up to an interval; at 60-70 deg of inclination each degree of roll is 2-3 deg of heading.
@@ -54,7 +55,7 @@ def _own_att_rms_deg(path: Path, idx: int) -> float:
 
 
 def test_the_autopilots_own_heading_takes_the_attitude_at_the_samples_time(telemetry_tlog: Path) -> None:
-    rep = replay_log(telemetry_tlog, Config())
+    rep = replay_log(telemetry_tlog, Config(), two_pass=True)
     checks = {int(c["index"]): c["self_check"] for c in rep.summary["compasses"] if c.get("self_check")}
     assert checks
     for idx, chk in checks.items():
