@@ -57,9 +57,11 @@ class AttitudeAtMag:
     """One sender's stream: :meth:`push` a sample, get the samples to process now (in stream order, with an
     interpolated ATTITUDE before each magnetometer sample that waited); :meth:`flush` at the end."""
 
-    __slots__ = ("_held", "_last", "_slow")
+    __slots__ = ("_held", "_last", "_slow", "inserted")
 
     def __init__(self) -> None:
+        #: the interpolated ATTITUDEs passed on (not the log's: a count of the log's samples leaves them out)
+        self.inserted = 0
         self._held: list[Sample] = []
         self._last: AttitudeSample | None = None  # the latest ATTITUDE passed on
         self._slow = False  # its stream's latest interval is longer than MAX_GYRO_DT_S
@@ -108,6 +110,7 @@ class AttitudeAtMag:
                     t_prev = max(t_prev, s.t_s)
                     out.append(att if att.t_s == t_prev else AttitudeSample(
                         t_prev, att.roll_rad, att.pitch_rad, att.yaw_rad))
+                    self.inserted += 1
                 out.append(s)
         if keep:  # this ATTITUDE goes before the samples still waiting, as the stream had it
             out.append(a)
@@ -123,9 +126,9 @@ class AttitudeAtMag:
         return out
 
 
-def with_attitude_at_mag(samples: Iterable[Sample]) -> Iterator[Sample]:
-    """:class:`AttitudeAtMag` over a whole stream of one sender."""
-    at = AttitudeAtMag()
-    for s in samples:
-        yield from at.push(s)
-    yield from at.flush()
+    def stream(self, samples: Iterable[Sample]) -> Iterator[Sample]:
+        """:meth:`push` over a whole stream of one sender, then :meth:`flush`."""
+        push = self.push
+        for s in samples:
+            yield from push(s)
+        yield from self.flush()
