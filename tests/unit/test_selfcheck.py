@@ -480,6 +480,39 @@ def test_live_hover_theta_switches_on_and_corrects() -> None:
         assert pub_rms < 0.6 * own_rms, (pub_rms, own_rms)  # measured 1.9 against 3.9 deg
 
 
+def test_the_hover_shadows_sums_taken_when_read_are_those_taken_at_each_refit() -> None:
+    """HoverShadow takes its closed blocks' sums into its normal equations and per-stretch groups only where
+    they are read (where the in-flight correction applies they never are): read at the end, they are bit
+    for bit those read after every sample (each block's sums taken as soon as it closed), fits and
+    jackknife groups alike."""
+    from types import SimpleNamespace
+
+    from magcomp.core.heading import heading_from_trig_deg
+    from magcomp.service.heading import HoverShadow
+    from magcomp.service.record import Tilt
+
+    m, roll, pitch, yaw, thr, _, _ = _hover_with_offset(22)
+    eager, lazy = (HoverShadow(tau_s=Config().output.heading_tau_s) for _ in range(2))
+    for i in range(m.shape[0]):
+        cr, sr, cp, sp = math.cos(roll[i]), math.sin(roll[i]), math.cos(pitch[i]), math.sin(pitch[i])
+        rec = SimpleNamespace(tilt=Tilt(cr, sr, cp, sp), throttle_01=thr[i], ap_yaw=yaw[i],
+                              gyro_yaw=yaw[i], gyro_epoch=0.0, imu_fast=True, t_s=i * 0.1)  # fmt: skip
+        field = (float(m[i, 0]), float(m[i, 1]), float(m[i, 2]))
+        psi_own = heading_from_trig_deg(*field, cr, sr, cp, sp)
+        for h in (eager, lazy):  # shadow False: as where the in-flight correction applies
+            h.step(rec, field, psi_own, True, False, 0.0, 0.1)  # type: ignore[arg-type]
+        eager.normal  # noqa: B018 - the sums taken now
+    assert len(lazy._blocks) > 10  # the refits closed blocks, none taken yet
+    a, b = eager.normal.fit(None), lazy.normal.fit(None)
+    assert a is not None and b is not None and not lazy._blocks
+    assert np.array_equal(a.theta_mgauss, b.theta_mgauss) and a.residual_rms_mgauss == b.residual_rms_mgauss
+    assert eager._groups.seconds == lazy._groups.seconds
+    for g_eager, g_lazy in zip(eager._groups.groups, lazy._groups.groups, strict=True):
+        ga, gb = g_eager.fit(None), g_lazy.fit(None)
+        assert (ga is None) == (gb is None)
+        assert ga is None or gb is None or np.array_equal(ga.theta_mgauss, gb.theta_mgauss)
+
+
 def test_uncorrected_status_says_what_became_of_theta_against_the_autopilots_calibration() -> None:
     """Where the two-pass replay tried theta against the autopilot's calibration and its held-out check
     refused it, the compass's status says so with the check's reason (a pilot reading "not observable"
