@@ -12,8 +12,11 @@ gets the believed messages only. Messages of a type whose FMT was lost are skipp
 from __future__ import annotations
 
 import contextlib
+import gc
 import mmap
 import os
+import struct
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -246,6 +249,15 @@ def dataflash_repaired(path: Path, counts: dict[str, int]) -> Path | None:
     return Path(name)
 
 
+#: what pymavlink's DataFlash readers raise on a log they cannot read: damaged bytes, and records its clock
+#: does not know (ArduCopter 3.0 text logs: GPS with the time of week and no week, a TypeError building the
+#: time base)
+READER_ERRORS: tuple[type[Exception], ...] = (
+    UnicodeDecodeError, ValueError, IndexError, KeyError, TypeError, AttributeError, ArithmeticError,
+    struct.error, OSError,
+)
+
+
 def iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
     repaired = None if text else dataflash_repaired(path, counts)
     try:
@@ -259,6 +271,7 @@ def iter_dataflash(path: Path, counts: dict[str, int], text: bool) -> Iterator[A
 def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: bool) -> Iterator[Any]:
     from pymavlink import DFReader
 
+    failed = ""
     try:
         with quiet(), quiet_c_streams():
             reader: Any = (
@@ -266,8 +279,13 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
                 if text
                 else DFReader.DFReader_binary(str(path), zero_time_base=False)
             )
-    except (UnicodeDecodeError, ValueError, IndexError, KeyError, OSError) as exc:
-        raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None
+    except READER_ERRORS as exc:
+        failed = type(exc).__name__
+    if failed:  # the half-built reader's open file, freed with the traceback: closed here, not at a later gc
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ResourceWarning)
+            gc.collect()
+        raise InputError(f"{shown}: not a readable DataFlash log ({failed})")
     wanted = list(WANTED_DATAFLASH)
     try:
         while True:
@@ -283,7 +301,7 @@ def _iter_dataflash_file(path: Path, shown: Path, counts: dict[str, int], text: 
                 yield m
             if len(batch) < 2000:
                 break
-    except (UnicodeDecodeError, ValueError, IndexError, KeyError) as exc:
+    except READER_ERRORS as exc:
         counts["dataflash_errors"] += 1
         if counts["messages"] == 0:
             raise InputError(f"{shown}: not a readable DataFlash log ({type(exc).__name__})") from None

@@ -15,6 +15,7 @@ from magcomp.adapters.config import Config
 from magcomp.adapters.state_store import CompassState
 from magcomp.core.types import HeadingEstimate
 from magcomp.errors import InputError
+from magcomp.service.attitude_at_mag import AttitudeAtMag
 from magcomp.service.final_pass import (
     FinalCompass,
     PassOutputs,
@@ -143,7 +144,8 @@ def _learn(
 
     source = open_source(path, throttle_source=source_throttle(cfg), pipeline_only=True)
     feed_all = pipeline.feed_all
-    samples = source.samples()
+    at_mag = AttitudeAtMag()  # the attitude at each field sample's time (service/attitude_at_mag.py)
+    samples = at_mag.stream(source.samples())
     try:
         while batch := list(islice(samples, REPLAY_BATCH)):
             if should_stop is not None and should_stop():
@@ -152,8 +154,9 @@ def _learn(
             if on_progress is not None:
                 on_progress(batch[-1].t_s)
     finally:
-        # what the pipeline_only source left out counts as fed (the pipeline ignores those samples)
-        pipeline.counts["samples"] += source.skipped_samples
+        # what the pipeline_only source left out counts as fed (the pipeline ignores those samples); the
+        # interpolated ATTITUDEs are not the log's
+        pipeline.counts["samples"] += source.skipped_samples - at_mag.inserted
         source.close()
         pipeline.close()
     onboard = source.onboard_motor_comp() if hasattr(source, "onboard_motor_comp") else {}

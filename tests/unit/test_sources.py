@@ -349,6 +349,10 @@ def test_garbage_between_messages_and_truncated_tail_are_counted(tmp_path: Path)
         ("empty.bin", b"", "empty file"),
         ("noise.bin", bytes(np.random.default_rng(5).integers(0, 253, 3000, dtype=np.uint8)), "DataFlash"),
         ("prose.log", b"hello, world\nnothing here\n", "DataFlash"),
+        # ArduCopter 3.0's text log: GPS with the time of week but no week (pymavlink's clock raised a
+        # TypeError building its time base: a traceback, ArduPilot LogAnalyzer's robert_lefebvre_octo_PM.log)
+        ("old_gps.log", b"FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns\n"
+         b"FMT, 130, 10, GPS, BI, Status,TimeMS\nGPS, 3, 1000\nGPS, 3, 1200\n", "DataFlash"),
     ],
 )
 def test_unreadable_inputs_raise_one_line_input_error(
