@@ -23,7 +23,7 @@ published, and measured that way (the same class before the daemon's pipeline) i
 the running self-check switched on: a live correction switches on with its own constant, a step att counts,
 and two absolute-form compasses switched on where they had not (the development corpus's ``--causal`` median
 att ratio 0.60 -> 0.67 from squilter kresge_02 compass 1 alone; a held-out tlog's compass 1 worse than the
-autopilot's own); docs/real-flights.md, eleventh stop.
+autopilot's own); docs/real-flights.md, eighth stop.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ pitch lags them by up to an interval; at 60-70 deg of inclination each degree of
 magcomp's "autopilot's own heading" (what it publishes where no correction applies, and what its self-check
 compares a correction with) was then further from the autopilot's yaw than that same field tilt-compensated
 at the attitude interpolated at each sample's time (a real ArduCopter 3.5.7 tlog: 10.4 against 7.0 deg rms,
-published worse than the autopilot's own heading; docs/real-flights.md, eleventh stop)."""
+published worse than the autopilot's own heading; docs/real-flights.md, eighth stop)."""
 
 from __future__ import annotations
 
