@@ -20,37 +20,25 @@ from typing import Any
 
 import pytest
 
-from magcomp.adapters.mavlink_emit import write_tlog
-from magcomp.adapters.mavlink_source import load_log
 from magcomp.diagnosis.engine import compass_data, diagnose
 from magcomp.diagnosis.gate import EarthReference
 from magcomp.diagnosis.latency import MIN_HELD_FRACTION, held_fraction
-from magcomp.sim import SimConfig, simulate
-from magcomp.sim.config import apply_settings
 
 SKEW_S = 0.15
 
 
-def _skew_log(tmp_path: Path, seed: int, rates: dict[str, object]) -> tuple[Any, Any]:
+def _skew_log(seed: int, rates: dict[str, object]) -> tuple[Any, Any]:
     """The held-out benchmark's time_skew log (its settings, one definition) with this seed, its message
     rates replaced by ``rates`` (as ``--rates`` draws them)."""
     sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
-    from diagnosis_heldout import CASES as HELD_OUT
+    from diagnosis_heldout import simulate_case
 
-    scenario, vehicle, duration_s, _, _, settings = HELD_OUT["time_skew"]
-    keys = ("mag_hz", "raw_imu_hz", "attitude_hz", "telemetry_hz")
-    settings = {k: v for k, v in settings.items() if k not in keys} | rates
-    cfg = SimConfig(scenario=scenario, duration_s=duration_s, seed=seed, effects={"time_skew": SKEW_S},
-                    vehicle=vehicle, n_compasses=1)  # fmt: skip
-    res = simulate(apply_settings(cfg, dict(settings)))
-    path = tmp_path / "skew.tlog"
-    write_tlog(res, path)
-    return res, load_log(path)
+    return simulate_case("time_skew", seed, SKEW_S, None, rates)  # type: ignore[no-any-return]
 
 
 @pytest.mark.slow
-def test_skew_interval_counts_a_held_compass_timing(tmp_path: Path) -> None:
-    res, log = _skew_log(tmp_path, 7011, {"raw_imu_hz": 20.0, "mag_hz": 11.6, "attitude_hz": 25.0})
+def test_skew_interval_counts_a_held_compass_timing() -> None:
+    res, log = _skew_log(7011, {"raw_imu_hz": 20.0, "mag_hz": 11.6, "attitude_hz": 25.0})
     assert held_fraction(log.mag[0].values) >= MIN_HELD_FRACTION  # a held compass: the case of the test
     data = compass_data(log, 0)
     assert data.drive.compass_timing_s == pytest.approx(0.05, abs=0.002)  # one 20 Hz message period
@@ -65,8 +53,8 @@ def test_skew_interval_counts_a_held_compass_timing(tmp_path: Path) -> None:
     assert hi - lo < 0.12  # widened by the two half-ranges (40 + 50 ms), not made uninformative
 
 
-def test_unheld_compass_timing_is_its_age_bound(tmp_path: Path) -> None:
+def test_unheld_compass_timing_is_its_age_bound() -> None:
     """An unheld compass in a 25 Hz message: its samples are 0 to 1.25 message periods old (50 ms)."""
-    _, log = _skew_log(tmp_path, 7011, {"raw_imu_hz": 25.0, "mag_hz": 24.7, "attitude_hz": 25.0})
+    _, log = _skew_log(7011, {"raw_imu_hz": 25.0, "mag_hz": 24.7, "attitude_hz": 25.0})
     assert held_fraction(log.mag[0].values) < MIN_HELD_FRACTION
     assert compass_data(log, 0).drive.compass_timing_s == pytest.approx(0.05, abs=0.002)
