@@ -63,7 +63,7 @@ class HoverShadow:
     in the shadow, sample by sample, like the in-flight estimate; its heading has a filter of its own."""
 
     __slots__ = ("_anchor_sc", "_block", "_blocks", "_cors", "_fit_t", "_groups", "_normal", "_offset",
-                 "_solved", "checks", "deg", "filter", "fits", "on_form")  # fmt: skip
+                 "_pending", "_solved", "checks", "deg", "filter", "fits", "on_form")  # fmt: skip
 
     def __init__(self, tau_s: float) -> None:
         self._normal = HoverNormal()
@@ -75,6 +75,7 @@ class HoverShadow:
         #: their order, where the normal equations are next read (where the in-flight correction applies,
         #: the fits are never read: the sums were ~1.4 % of a 10 min ``--causal`` replay's CPU)
         self._blocks: list[tuple[list[tuple[float, float, float, float, float, float, float]], float]] = []
+        self._pending = 0  # the rows of those blocks
         self.fits: list[HoverTheta | None] = [None] * len(HOVER_FORMS)
         #: the fits are those of the normal equations as they are (False: solved when next needed)
         self._solved = True
@@ -96,7 +97,10 @@ class HoverShadow:
         reported)."""
         if self._block:
             self._blocks.append((self._block, t_s))
+            self._pending += len(self._block)
             self._block = []
+            if self._pending > MAX_PENDING_HOVER_ROWS:  # a live daemon's memory stays bounded
+                _ = self.normal
         self._solved = False
 
     @property
@@ -109,6 +113,7 @@ class HoverShadow:
             self._normal.merge(part)
             self._groups.add(part, t_s)
         self._blocks = []
+        self._pending = 0
         return self._normal
 
     def _solve(self) -> None:
@@ -208,6 +213,10 @@ RECENT_FIELDS = 13
 #: with the motors running and a window's time (LIVE_WINDOW_S) since the last solve (before any fit, no check
 #: has windows): more than twice its unknowns' count of 3-row samples
 MIN_HOVER_BLOCK = 50
+#: the most hover rows :meth:`HoverShadow.refit` keeps unsummed (its sums are taken where they are read, never
+#: where the in-flight correction applies; a daemon flies for hours): ~10 min of a 50 Hz compass, ~3 MB of
+#: 7-float rows. The sums are taken in the same order either way (bit for bit)
+MAX_PENDING_HOVER_ROWS = 30_000
 #: a hover sample's row in the block (:meth:`HoverShadow.step`): the field (3), roll, pitch, yaw, throttle
 HOVER_ROW = 7
 

@@ -480,19 +480,23 @@ def test_live_hover_theta_switches_on_and_corrects() -> None:
         assert pub_rms < 0.6 * own_rms, (pub_rms, own_rms)  # measured 1.9 against 3.9 deg
 
 
-def test_the_hover_shadows_sums_taken_when_read_are_those_taken_at_each_refit() -> None:
+def test_the_hover_shadows_sums_taken_when_read_are_those_taken_at_each_refit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """HoverShadow takes its closed blocks' sums into its normal equations and per-stretch groups only where
     they are read (where the in-flight correction applies they never are): read at the end, they are bit
     for bit those read after every sample (each block's sums taken as soon as it closed), fits and
-    jackknife groups alike."""
+    jackknife groups alike; the rows kept unsummed are bounded (a daemon flies for hours), the sums then
+    taken early, in the same order."""
     from types import SimpleNamespace
 
     from magcomp.core.heading import heading_from_trig_deg
+    from magcomp.service import heading as heading_stage
     from magcomp.service.heading import HoverShadow
     from magcomp.service.record import Tilt
 
     m, roll, pitch, yaw, thr, _, _ = _hover_with_offset(22)
-    eager, lazy = (HoverShadow(tau_s=Config().output.heading_tau_s) for _ in range(2))
+    eager, lazy, bounded = (HoverShadow(tau_s=Config().output.heading_tau_s) for _ in range(3))
     for i in range(m.shape[0]):
         cr, sr, cp, sp = math.cos(roll[i]), math.sin(roll[i]), math.cos(pitch[i]), math.sin(pitch[i])
         rec = SimpleNamespace(tilt=Tilt(cr, sr, cp, sp), throttle_01=thr[i], ap_yaw=yaw[i],
@@ -501,8 +505,15 @@ def test_the_hover_shadows_sums_taken_when_read_are_those_taken_at_each_refit() 
         psi_own = heading_from_trig_deg(*field, cr, sr, cp, sp)
         for h in (eager, lazy):  # shadow False: as where the in-flight correction applies
             h.step(rec, field, psi_own, True, False, 0.0, 0.1)  # type: ignore[arg-type]
+        with monkeypatch.context() as mp:
+            mp.setattr(heading_stage, "MAX_PENDING_HOVER_ROWS", 120)
+            bounded.step(rec, field, psi_own, True, False, 0.0, 0.1)  # type: ignore[arg-type]
+            assert bounded._pending <= 120 + 2 * heading_stage.MIN_HOVER_BLOCK
         eager.normal  # noqa: B018 - the sums taken now
     assert len(lazy._blocks) > 10  # the refits closed blocks, none taken yet
+    c = bounded.normal.fit(None)
+    assert c is not None and np.array_equal(c.theta_mgauss, lazy.normal.fit(None).theta_mgauss)  # type: ignore[union-attr]
+    assert bounded._groups.seconds == lazy._groups.seconds
     a, b = eager.normal.fit(None), lazy.normal.fit(None)
     assert a is not None and b is not None and not lazy._blocks
     assert np.array_equal(a.theta_mgauss, b.theta_mgauss) and a.residual_rms_mgauss == b.residual_rms_mgauss
